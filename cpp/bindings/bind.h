@@ -1,0 +1,43 @@
+// Per-domain binding entry points, called from module.cc.
+#pragma once
+
+#include <pybind11/pybind11.h>
+
+#include <stdexcept>
+#include <string>
+
+#include <Eigen/Core>
+
+namespace fusedmosaic::bindings {
+
+void BindGeometry(pybind11::module_& m);
+
+using RowMatrixXd = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+
+// Shape / finiteness checks shared by the binding files; they throw std::invalid_argument,
+// which pybind11 turns into ValueError.
+inline void CheckSize(const Eigen::Ref<const Eigen::VectorXd>& v, Eigen::Index size,
+                      const char* name) {
+  if (v.size() != size) {
+    throw std::invalid_argument(std::string(name) + ": expected " + std::to_string(size) +
+                                " values, got " + std::to_string(v.size()));
+  }
+  if (!v.allFinite()) {
+    throw std::invalid_argument(std::string(name) + ": contains NaN or infinite values");
+  }
+}
+
+inline void CheckShape(const Eigen::Ref<const RowMatrixXd>& a, Eigen::Index rows,
+                       Eigen::Index cols, const char* name) {
+  if ((rows >= 0 && a.rows() != rows) || a.cols() != cols) {
+    throw std::invalid_argument(std::string(name) + ": expected shape (" +
+                                (rows >= 0 ? std::to_string(rows) : std::string("N")) + ", " +
+                                std::to_string(cols) + "), got (" + std::to_string(a.rows()) +
+                                ", " + std::to_string(a.cols()) + ")");
+  }
+  if (!a.allFinite()) {
+    throw std::invalid_argument(std::string(name) + ": contains NaN or infinite values");
+  }
+}
+
+}  // namespace fusedmosaic::bindings

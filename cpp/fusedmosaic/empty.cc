@@ -1,0 +1,1 @@
+// Placeholder translation unit while the core is header-only.
