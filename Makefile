@@ -1,0 +1,47 @@
+# One entry for newcomers and CI: `make demo`, `make test` (README, .ci/run).
+# Both install the Debian build dependencies, build the wheel, install it into a fresh-ish
+# virtual environment (.venv) and run from there, so what is tested is what users install.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+APT_PACKAGES := libceres-dev libeigen3-dev cmake g++ python3-dev
+
+.PHONY: deps venv install test demo wheel-check dev bench clean
+
+deps:
+	@if dpkg -s $(APT_PACKAGES) >/dev/null 2>&1; then echo "Debian packages present"; else \
+	  $(SUDO) apt-get update -qq && \
+	  DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq $(APT_PACKAGES); fi
+
+$(PY):
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+
+venv: $(PY)
+
+# Build the wheel (with build isolation), install it with its runtime + test dependencies.
+install: deps venv
+	rm -rf dist
+	$(PY) -m pip wheel -q --no-deps -w dist .
+	whl=$$(ls dist/fusedmosaic-*.whl) && \
+	  $(PY) -m pip install -q "$$whl[test]" && \
+	  $(PY) -m pip install -q --force-reinstall --no-deps "$$whl"
+
+# The wheel imports its compiled core from a fresh virtual environment.
+wheel-check: install
+	cd /tmp && $(CURDIR)/$(PY) -c "import fusedmosaic._core as c; print('fusedmosaic._core', c.__version__, 'from', c.__file__)"
+
+test: wheel-check
+	cd tests && ../$(PY) -m pytest -q -c ../pyproject.toml --rootdir .. .
+
+demo: install
+	$(VENV)/bin/fusedmosaic demo --out demo_out
+
+# Developer loop: editable install with an incremental C++ build in build/dev.
+dev: deps
+	$(PYTHON) -m pip install --no-build-isolation -e ".[test]" -C build-dir=build/dev
+
+clean:
+	rm -rf build dist $(VENV) demo_out

@@ -1,0 +1,172 @@
+"""Mosaic accuracy against ground truth.
+
+* Seed 000, Eq. 28: e_j = mean over a 100 x 100 grid of image points rho_i of
+  ||w(H_j^-1, rho_i) - w(H_GT^-1, rho_i)||, where w projects frame points into the mosaic. Our
+  output homographies G_j are already frame -> reference, i.e. the paper's H_j^-1, so
+  e_j = mean_i ||G_est,j(rho_i) - G_true,j(rho_i)|| in reference pixels. Eq. 29: e_M = mean e_j.
+* Drift ratio: mean e_j over the last quarter of frames / mean over the first quarter.
+* Seed 004, Sec. IV-B: distances in micrometres between estimated and true image positions at n
+  evenly spaced frames (13 circle, 25 spiral) and at all frames; mean, max, std, median, and a
+  Wilcoxon signed-rank test between two methods' paired errors (the paper writes "Wilcoxon
+  U-test"; the errors are paired by frame, so the signed-rank form is the right one).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+
+GRID_SIZE = 100  # points per axis, N_g = 100^2 (seed 000, Sec. 4.1)
+
+
+def grid_points(width: int, height: int, n: int = GRID_SIZE) -> np.ndarray:
+    """(n*n, 2) pixel grid spanning the image domain [0, w-1] x [0, h-1]."""
+    xs, ys = np.meshgrid(np.linspace(0, width - 1, n), np.linspace(0, height - 1, n))
+    return np.stack([xs.ravel(), ys.ravel()], axis=1)
+
+
+def _apply(H: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Applies each (3,3) of H (N,3,3) to pts (P,2): returns (N,P,2)."""
+    hom = np.einsum("nij,pj->npi", H, np.hstack([pts, np.ones((len(pts), 1))]))
+    return hom[..., :2] / hom[..., 2:]
+
+
+def _check_stack(H: np.ndarray, name: str) -> np.ndarray:
+    H = np.asarray(H, dtype=np.float64)
+    if H.ndim != 3 or H.shape[1:] != (3, 3):
+        raise ValueError(f"{name}: expected homographies of shape (N, 3, 3), got {H.shape}")
+    return H
+
+
+def frame_errors(G_est: np.ndarray, G_true: np.ndarray, width: int, height: int) -> np.ndarray:
+    """e_j (Eq. 28) per frame, NaN where either homography is missing (unplaced)."""
+    G_est = _check_stack(G_est, "G_est")
+    G_true = _check_stack(G_true, "G_true")
+    if G_est.shape != G_true.shape:
+        raise ValueError(
+            f"G_est and G_true differ in frame count: {len(G_est)} vs {len(G_true)}"
+        )
+    pts = grid_points(width, height)
+    errors = np.full(len(G_est), np.nan)
+    ok = np.isfinite(G_est).all(axis=(1, 2)) & np.isfinite(G_true).all(axis=(1, 2))
+    if ok.any():
+        diff = _apply(G_est[ok], pts) - _apply(G_true[ok], pts)
+        errors[ok] = np.linalg.norm(diff, axis=2).mean(axis=1)
+    return errors
+
+
+def mosaic_error(errors: np.ndarray) -> float:
+    """e_M (Eq. 29): mean of e_j over placed frames (NaN if none placed)."""
+    placed = np.isfinite(errors)
+    return float(errors[placed].mean()) if placed.any() else float("nan")
+
+
+def drift_ratio(errors: np.ndarray) -> float:
+    """Mean e_j over the last quarter of frames / first quarter (placed frames only)."""
+    n = len(errors)
+    q = max(n // 4, 1)
+    first, last = errors[:q], errors[n - q :]
+    first, last = first[np.isfinite(first)], last[np.isfinite(last)]
+    if len(first) == 0 or len(last) == 0 or first.mean() == 0:
+        return float("nan")
+    return float(last.mean() / first.mean())
+
+
+def positions_px(G: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Image positions in the reference frame: where each frame's centre lands, minus the centre.
+
+    For the translation-only pCLE methods this is exactly the translation of G_k."""
+    centre = np.array([[(width - 1) / 2.0, (height - 1) / 2.0]])
+    return _apply(_check_stack(G, "G"), centre)[:, 0, :] - centre
+
+
+def position_errors_um(G_est: np.ndarray, G_true: np.ndarray, width: int, height: int,
+                       pixel_size_um: float) -> np.ndarray:
+    """Per-frame distance (µm) between estimated and true image positions (seed 004, IV-B)."""
+    if not pixel_size_um or pixel_size_um <= 0 or not np.isfinite(pixel_size_um):
+        raise ValueError(f"pixel_size_um must be a positive number, got {pixel_size_um}")
+    d = positions_px(G_est, width, height) - positions_px(G_true, width, height)
+    return np.linalg.norm(d, axis=1) * pixel_size_um
+
+
+@dataclass
+class PositionStats:
+    """Table I/II statistics of seed 004, in µm."""
+
+    n: int
+    mean: float
+    max: float
+    std: float
+    median: float
+
+
+def evenly_spaced(n_frames: int, n: int) -> np.ndarray:
+    """n frame indices evenly spaced along the sequence (seed 004 picks 13 / 25 such frames)."""
+    return np.unique(np.round(np.linspace(0, n_frames - 1, n)).astype(int))
+
+
+def position_stats(errors_um: np.ndarray, frames: np.ndarray | None = None) -> PositionStats:
+    e = errors_um if frames is None else errors_um[frames]
+    e = e[np.isfinite(e)]
+    if len(e) == 0:
+        return PositionStats(0, *([float("nan")] * 4))
+    return PositionStats(len(e), float(e.mean()), float(e.max()), float(e.std()),
+                         float(np.median(e)))
+
+
+def compare_position_errors(errors_a: np.ndarray, errors_b: np.ndarray) -> dict:
+    """Wilcoxon signed-rank test between two methods' per-frame errors (paired by frame)."""
+    ok = np.isfinite(errors_a) & np.isfinite(errors_b)
+    if ok.sum() < 2:
+        raise ValueError("Wilcoxon test needs at least 2 frames placed by both methods")
+    res = stats.wilcoxon(errors_a[ok], errors_b[ok])
+    return {"n": int(ok.sum()), "statistic": float(res.statistic), "p_value": float(res.pvalue),
+            "mean_a": float(errors_a[ok].mean()), "mean_b": float(errors_b[ok].mean())}
+
+
+def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
+                    positions_n: int | None = None) -> dict:
+    """Scores an output folder's homographies.csv against a dataset's ground_truth.csv."""
+    from fusedmosaic.io import read_dataset, read_homographies_csv
+
+    out_dir, truth_root = Path(out_dir), Path(truth_root)
+    dataset = read_dataset(truth_root)
+    if dataset.ground_truth is None:
+        raise ValueError(f"{truth_root / 'ground_truth.csv'}: file not found; nothing to score")
+    est_path = out_dir / "homographies.csv"
+    if not est_path.is_file():
+        raise ValueError(f"{est_path}: file not found")
+    ids, G_est = read_homographies_csv(est_path)
+    truth_ids = dataset.frame_ids
+    if not np.array_equal(np.sort(ids), np.sort(truth_ids)):
+        missing = sorted(set(truth_ids.tolist()) - set(ids.tolist()))[:5]
+        extra = sorted(set(ids.tolist()) - set(truth_ids.tolist()))[:5]
+        raise ValueError(f"{est_path}: frames do not match {truth_root / 'ground_truth.csv'} "
+                         f"(missing {missing}, unexpected {extra})")
+    G_est = G_est[np.argsort(ids)]
+    w, h = dataset.camera.width, dataset.camera.height
+    errors = frame_errors(G_est, dataset.ground_truth, w, h)
+    placed = np.isfinite(errors)
+    result: dict = {
+        "output": str(out_dir),
+        "truth": str(truth_root),
+        "frames": int(len(errors)),
+        "placed": int(placed.sum()),
+        "unplaced": int((~placed).sum()),
+        "e_M_px": mosaic_error(errors),
+        "max_e_j_px": float(np.nanmax(errors)) if placed.any() else float("nan"),
+        "drift_ratio": drift_ratio(errors),
+        "e_j_px": [None if not np.isfinite(e) else float(e) for e in errors],
+    }
+    if dataset.camera.pixel_size_um:
+        err_um = position_errors_um(G_est, dataset.ground_truth, w, h,
+                                    dataset.camera.pixel_size_um)
+        result["position_errors_um"] = [None if not np.isfinite(e) else float(e) for e in err_um]
+        result["position_all_um"] = asdict(position_stats(err_um))
+        if positions_n:
+            result["position_sampled_um"] = asdict(
+                position_stats(err_um, evenly_spaced(len(err_um), positions_n)))
+    return result

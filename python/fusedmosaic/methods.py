@@ -1,0 +1,51 @@
+"""The registry of mosaicking methods behind `fusedmosaic run --method M`.
+
+Each method is a function `(dataset, **options) -> MethodResult` living in its own module of
+`fusedmosaic.estimation`; the registry maps the CLI name to "module:function" so that running one
+method does not import the others. A method that has not landed yet is simply not registered.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+# CLI name -> (module:function, what the paper calls it). Order = preference for the demo.
+REGISTRY: dict[str, tuple[str, str]] = {}
+
+
+@dataclass
+class MethodResult:
+    """What a method hands to the output writer.
+
+    homographies: (N, 3, 3) frame -> reference, all-NaN rows for frames that could not be placed.
+    status: per frame, "placed", "prior-only" (placed from priors without visual evidence), or
+        "unplaced: <reason>".
+    """
+
+    homographies: np.ndarray
+    status: list[str]
+    poses: np.ndarray | None = None  # (N, 6) cam_from_world
+    plane: np.ndarray | None = None  # (3,) pi = n / d
+    timings: dict[str, float] = field(default_factory=dict)  # stage -> seconds
+    parameters: dict = field(default_factory=dict)
+    details: dict = field(default_factory=dict)  # method-specific report entries
+
+
+def register(name: str, target: str, paper_name: str) -> None:
+    REGISTRY[name] = (target, paper_name)
+
+
+def available() -> list[str]:
+    return list(REGISTRY)
+
+
+def get(name: str) -> Callable[..., MethodResult]:
+    if name not in REGISTRY:
+        known = ", ".join(REGISTRY) or "none yet"
+        raise ValueError(f"unknown method {name!r}; available: {known}")
+    module, func = REGISTRY[name][0].split(":")
+    return getattr(importlib.import_module(module), func)
