@@ -34,7 +34,7 @@ wheel-check: install
 	cd /tmp && $(CURDIR)/$(PY) -c "import fusedmosaic._core as c; print('fusedmosaic._core', c.__version__, 'from', c.__file__)"
 
 test: wheel-check
-	cd tests && ../$(PY) -m pytest -q -c ../pyproject.toml --rootdir .. .
+	$(PY) -m pytest -q
 
 demo: install
 	$(VENV)/bin/fusedmosaic demo --out demo_out
