@@ -1,0 +1,1 @@
+"""Estimators: PairVis, bundle adjustment, sliding window, keyframes, robot-prior Kalman filter."""
