@@ -1,8 +1,8 @@
 """The registry of mosaicking methods behind `fusedmosaic run --method M`.
 
-Each method is a function `(dataset, **options) -> MethodResult` living in its own module of
-`fusedmosaic.estimation`; the registry maps the CLI name to "module:function" so that running one
-method does not import the others. A method that has not landed yet is simply not registered.
+Each method is a function `(dataset, *, progress, options=None) -> MethodResult` in its own
+module of `fusedmosaic.estimation`; the registry maps the CLI name to "module:function" so that
+running one method does not import the others.
 """
 
 from __future__ import annotations
@@ -14,7 +14,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 # CLI name -> (module:function, what the paper calls it). Order = preference for the demo.
-REGISTRY: dict[str, tuple[str, str]] = {}
+REGISTRY: dict[str, tuple[str, str]] = {
+    "pairwise": ("fusedmosaic.estimation.pairwise:run_pairwise", "PairVis"),
+}
 
 
 @dataclass
@@ -35,11 +37,8 @@ class MethodResult:
     details: dict = field(default_factory=dict)  # method-specific report entries
 
 
-def register(name: str, target: str, paper_name: str) -> None:
-    REGISTRY[name] = (target, paper_name)
-
-
 def available() -> list[str]:
+    """Registered names, best first (the demo runs the first)."""
     return list(REGISTRY)
 
 

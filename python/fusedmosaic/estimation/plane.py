@@ -1,0 +1,90 @@
+"""Plane initialisation for the EMT methods (seed 000, Sec. 3.3-3.4).
+
+A registered pair gives a homography H_lm (pixels, m -> l). In normalised coordinates and in
+camera m's frame it factorises as s Hn = R - t pi_m^T, with (R, t) = l_from_m known from the tracker
+poses: 9 linear equations in the 4 unknowns (s, pi_m). The plane in camera m is moved to the world
+(virtual camera): for X_m = R_m X + t_m, the condition -pi_m^T X_m = 1 becomes
+-(R_m^T pi_m)^T X = 1 + pi_m^T t_m, so pi = R_m^T pi_m / (1 + pi_m^T t_m).
+Each pair is noisy (tracker noise enters through (R, t)), so pairs with the widest baselines are
+used, combined robustly (median normal direction and median inverse depth) and the result refined
+by minimising the point-transfer error of their inliers with the poses held fixed (soft-L1 loss).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from fusedmosaic import _core
+
+
+def plane_from_pair(H_lm: np.ndarray, K: np.ndarray, cam_l: np.ndarray,
+                    cam_m: np.ndarray) -> np.ndarray | None:
+    """pi (world) from one homography and two cam_from_world poses; None if ill-posed."""
+    Kinv = np.linalg.inv(K)
+    Hn = Kinv @ H_lm @ K
+    rel = _core.compose_poses(cam_l, _core.invert_pose(cam_m))  # l_from_m
+    R = _core.rotation_from_angle_axis(rel[:3])
+    t = rel[3:]
+    if np.linalg.norm(t) < 1e-9:
+        return None
+    # Unknowns u = [s, pi_x, pi_y, pi_z]: s Hn_ij + t_i pi_j = R_ij.
+    A = np.zeros((9, 4))
+    b = R.ravel()
+    for i in range(3):
+        for j in range(3):
+            A[3 * i + j, 0] = Hn[i, j]
+            A[3 * i + j, 1 + j] = t[i]
+    u, *_ = np.linalg.lstsq(A, b, rcond=None)
+    pi_m = u[1:]
+    denom = 1.0 + pi_m @ cam_m[3:]
+    if abs(denom) < 1e-9 or not np.isfinite(u).all():
+        return None
+    return _core.rotation_from_angle_axis(cam_m[:3]).T @ pi_m / denom
+
+
+def _robust_combine(planes: np.ndarray) -> np.ndarray:
+    inv_depth = np.median(np.linalg.norm(planes, axis=1))
+    normals = planes / np.linalg.norm(planes, axis=1, keepdims=True)
+    ref = np.median(normals, axis=0)
+    normals *= np.sign(normals @ ref)[:, None]  # pi and -pi are different planes; align anyway
+    n = np.median(normals, axis=0)
+    return n / np.linalg.norm(n) * inv_depth
+
+
+def estimate_plane(pairs, poses: np.ndarray, K: np.ndarray, *, max_pairs: int = 60,
+                   refine: bool = True) -> np.ndarray:
+    """Plane pi from registered pairs (PairMatch, frame ids index `poses`) and tracker poses.
+
+    Raises ValueError when no registered pair with valid poses is available."""
+    usable = [p for p in pairs if p.ok and np.isfinite(poses[p.frame_l]).all()
+              and np.isfinite(poses[p.frame_m]).all()]
+    if not usable:
+        raise ValueError("cannot estimate the plane: no registered pair of frames with valid "
+                         "tracker poses")
+    centres = {k: -(_core.rotation_from_angle_axis(poses[k][:3]).T @ poses[k][3:])
+               for p in usable for k in (p.frame_l, p.frame_m)}
+    baseline = np.array([np.linalg.norm(centres[p.frame_l] - centres[p.frame_m])
+                         for p in usable])
+    chosen = [usable[i] for i in np.argsort(-baseline)[:max_pairs]]
+    estimates = [plane_from_pair(p.H_lm, K, poses[p.frame_l], poses[p.frame_m]) for p in chosen]
+    estimates = np.array([e for e in estimates if e is not None and np.isfinite(e).all()])
+    if len(estimates) == 0:
+        raise ValueError("cannot estimate the plane: every pair was degenerate")
+    plane = _robust_combine(estimates)
+    if not refine:
+        return plane
+
+    def residuals(pi):
+        res = []
+        for p in chosen:
+            pred = _core.transfer_points(p.points_m, poses[p.frame_l], poses[p.frame_m], pi, K)
+            res.append((pred - p.points_l).ravel())
+        return np.concatenate(res)
+
+    try:
+        sol = least_squares(residuals, plane, loss="soft_l1", f_scale=5.0, x_scale="jac",
+                            max_nfev=50)
+    except ValueError:  # a trial plane made a homography singular: keep the robust estimate
+        return plane
+    return sol.x if np.isfinite(sol.x).all() and np.linalg.norm(sol.x) > 0 else plane

@@ -1,0 +1,124 @@
+"""Keypoints and descriptors inside the field of view (seed 000, Sec. 3.1 and 4.1: SIFT).
+
+Fetoscopic frames are low in contrast and circular: features are detected only inside the
+field-of-view mask (from camera.yaml's fov_mask_radius, or found from the black border), a few
+pixels away from its edge so the border itself never makes a corner, optionally after CLAHE.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+
+@dataclass
+class FeatureOptions:
+    detector: str = "sift"  # "sift" (paper Sec. 4.1, VLFeat SIFT) or "orb" (faster)
+    max_features: int = 1000  # strongest keypoints kept per frame
+    clahe: bool = False  # contrast-limited histogram equalisation for low-texture tissue
+    clahe_clip_limit: float = 2.0
+    clahe_tiles: int = 8
+    mask_margin_px: int = 6  # keep keypoints this far inside the field of view
+    border_threshold: int = 12  # grey level below which a border pixel counts as black
+
+
+@dataclass
+class Features:
+    """Keypoints (N, 2) float64 pixel coordinates and descriptors (N, D) of one frame."""
+
+    frame_id: int
+    points: np.ndarray
+    descriptors: np.ndarray | None
+    binary: bool  # Hamming descriptors (ORB) vs float (SIFT)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+def fov_mask_from_image(image: np.ndarray, threshold: int = 12) -> np.ndarray | None:
+    """Finds a black border around a (circular) field of view: the largest connected non-black
+    region, filled. Returns None when the frame has no black border (or no content at all)."""
+    gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    bright = (gray > threshold).astype(np.uint8)
+    ring = np.concatenate([bright[0], bright[-1], bright[:, 0], bright[:, -1]])
+    if ring.mean() > 0.5 or not bright.any():  # the image border is not (mostly) black
+        return None
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(bright, connectivity=8)
+    largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    region = (labels == largest).astype(np.uint8)
+    contours, _ = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    hull = cv2.convexHull(np.vstack(contours))
+    mask = np.zeros_like(region)
+    cv2.fillConvexPoly(mask, hull, 255)
+    return mask
+
+
+class FeatureExtractor:
+    """Detects keypoints in frames of one camera; reusable and thread-safe per call."""
+
+    def __init__(self, options: FeatureOptions | None = None, mask: np.ndarray | None = None):
+        self.options = options or FeatureOptions()
+        if self.options.detector not in ("sift", "orb"):
+            raise ValueError(f"detector must be 'sift' or 'orb', got {self.options.detector!r}")
+        self._mask = None if mask is None else self._shrink(mask)
+
+    def _shrink(self, mask: np.ndarray) -> np.ndarray:
+        m = self.options.mask_margin_px
+        if m <= 0:
+            return mask
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * m + 1, 2 * m + 1))
+        return cv2.erode(mask, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+
+    def _detector(self):
+        o = self.options
+        if o.detector == "sift":
+            return cv2.SIFT_create(nfeatures=o.max_features)
+        return cv2.ORB_create(nfeatures=o.max_features, fastThreshold=5)
+
+    def extract(self, image: np.ndarray, frame_id: int = 0) -> Features:
+        if image.ndim not in (2, 3) or image.dtype != np.uint8:
+            raise ValueError(f"frame {frame_id}: expected a uint8 (H, W) or (H, W, 3) image, "
+                             f"got {image.dtype} {image.shape}")
+        gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        mask = self._mask
+        if mask is None:
+            found = fov_mask_from_image(gray, self.options.border_threshold)
+            mask = None if found is None else self._shrink(found)
+        if mask is not None and mask.shape != gray.shape:
+            raise ValueError(f"frame {frame_id}: mask shape {mask.shape} differs from the image "
+                             f"{gray.shape}")
+        if self.options.clahe:
+            clahe = cv2.createCLAHE(self.options.clahe_clip_limit,
+                                    (self.options.clahe_tiles, self.options.clahe_tiles))
+            gray = clahe.apply(gray)
+        binary = self.options.detector == "orb"
+        if gray.max() <= self.options.border_threshold:  # no visual content (e.g. black frame)
+            return Features(frame_id, np.zeros((0, 2)), None, binary)
+        keypoints, descriptors = self._detector().detectAndCompute(gray, mask)
+        points = np.array([kp.pt for kp in keypoints], np.float64).reshape(-1, 2)
+        return Features(frame_id, points, descriptors, binary)
+
+
+def extract_features(frames, frame_indices, camera_mask: np.ndarray | None,
+                     options: FeatureOptions | None = None, progress: bool = False,
+                     num_threads: int = 2) -> dict[int, Features]:
+    """Features of frames[k] for k in frame_indices, keyed by k; threads share the work."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from tqdm import tqdm
+
+    extractor = FeatureExtractor(options, camera_mask)
+    indices = list(frame_indices)
+
+    def one(k):
+        return extractor.extract(frames[k], int(k))
+
+    out: dict[int, Features] = {}
+    with ThreadPoolExecutor(max(1, num_threads)) as pool, tqdm(
+            total=len(indices), desc="features", disable=not progress, leave=False) as bar:
+        for f in pool.map(one, indices):
+            out[f.frame_id] = f
+            bar.update(1)
+    return out

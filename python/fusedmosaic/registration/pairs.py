@@ -1,0 +1,153 @@
+"""Pairwise registration: ratio-test matching, RANSAC homography (DLT on minimal samples) and
+a least-squares DLT + Levenberg-Marquardt refinement on the inliers (seed 000, Sec. 3.1).
+
+A pair is registered only if enough inliers support a non-degenerate homography; otherwise it is
+reported with the reason (never silently accepted). Homographies map frame m -> frame l (the
+paper's H_{l,m}), and correspondences are stored with their frame ids for the bundle adjuster.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from fusedmosaic.registration.features import Features
+
+
+@dataclass
+class MatchOptions:
+    ratio: float = 0.8  # Lowe's ratio test
+    ransac_threshold_px: float = 3.0  # inlier reprojection threshold
+    ransac_confidence: float = 0.999
+    ransac_max_iters: int = 2000
+    min_inliers: int = 15  # fewer inliers: the pair is not registered
+    min_inlier_ratio: float = 0.2  # inliers / ratio-test matches
+    max_scale_change: float = 4.0  # |det| of the affine part outside [1/4, 4]: degenerate
+    num_threads: int = 2  # pairs matched in parallel (OpenCV releases the GIL)
+
+
+@dataclass
+class PairMatch:
+    """Result of registering frame m into frame l."""
+
+    frame_l: int
+    frame_m: int
+    status: str  # "ok" or the reason it failed
+    H_lm: np.ndarray | None = None  # (3, 3) frame m pixels -> frame l pixels, H[2,2] = 1
+    points_l: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # inliers (N, 2)
+    points_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    n_matches: int = 0
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    @property
+    def n_inliers(self) -> int:
+        return len(self.points_l)
+
+
+def _ratio_matches(f_m: Features, f_l: Features, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    norm = cv2.NORM_HAMMING if f_m.binary else cv2.NORM_L2
+    matcher = cv2.BFMatcher(norm)
+    knn = matcher.knnMatch(f_m.descriptors, f_l.descriptors, k=2)
+    good = [p[0] for p in knn if len(p) == 2 and p[0].distance < ratio * p[1].distance]
+    # one-to-one: keep the best match per target keypoint
+    best: dict[int, cv2.DMatch] = {}
+    for m in good:
+        if m.trainIdx not in best or m.distance < best[m.trainIdx].distance:
+            best[m.trainIdx] = m
+    chosen = list(best.values())
+    pm = f_m.points[[m.queryIdx for m in chosen]].reshape(-1, 2)
+    pl = f_l.points[[m.trainIdx for m in chosen]].reshape(-1, 2)
+    return pm, pl
+
+
+def degeneracy(H: np.ndarray, width: int, height: int, max_scale_change: float) -> str | None:
+    """Why H is not a plausible frame-to-frame homography, or None if it is."""
+    if not np.isfinite(H).all() or abs(H[2, 2]) < 1e-12:
+        return "degenerate homography (non-finite)"
+    A = H / H[2, 2]
+    det = np.linalg.det(A[:2, :2])
+    if det <= 1.0 / max_scale_change or det >= max_scale_change:
+        return f"degenerate homography (area scale {det:.3g})"
+    corners = np.array([[0, 0], [width, 0], [width, height], [0, height]], np.float64)
+    hom = np.hstack([corners, np.ones((4, 1))]) @ A.T
+    if (hom[:, 2] <= 0).any():
+        return "degenerate homography (image corners behind the camera)"
+    quad = (hom[:, :2] / hom[:, 2:]).astype(np.float32)
+    if not cv2.isContourConvex(quad):
+        return "degenerate homography (warped frame not convex)"
+    return None
+
+
+def match_pair(f_l: Features, f_m: Features, image_size: tuple[int, int],
+               options: MatchOptions | None = None) -> PairMatch:
+    """Registers frame m (source) into frame l (target). image_size = (width, height)."""
+    o = options or MatchOptions()
+    out = PairMatch(f_l.frame_id, f_m.frame_id, "ok")
+    if len(f_m) < o.min_inliers or len(f_l) < o.min_inliers:
+        out.status = f"too few features ({len(f_m)}, {len(f_l)})"
+        return out
+    pm, pl = _ratio_matches(f_m, f_l, o.ratio)
+    out.n_matches = len(pm)
+    if len(pm) < o.min_inliers:
+        out.status = f"too few matches ({len(pm)} < {o.min_inliers})"
+        return out
+    H, inl = cv2.findHomography(pm, pl, cv2.RANSAC, o.ransac_threshold_px,
+                                maxIters=o.ransac_max_iters, confidence=o.ransac_confidence)
+    if H is None:
+        out.status = "RANSAC found no homography"
+        return out
+    inl = inl.ravel().astype(bool)
+    if inl.sum() >= 4:
+        # DLT on all inliers followed by Levenberg-Marquardt refinement (method 0 in OpenCV).
+        refined, _ = cv2.findHomography(pm[inl], pl[inl], 0)
+        if refined is not None:
+            H = refined
+    n_in = int(inl.sum())
+    if n_in < o.min_inliers or n_in < o.min_inlier_ratio * len(pm):
+        out.status = f"too few inliers ({n_in} of {len(pm)} matches)"
+        return out
+    reason = degeneracy(H, *image_size, o.max_scale_change)
+    if reason:
+        out.status = reason
+        return out
+    out.H_lm = H / H[2, 2]
+    out.points_l, out.points_m = pl[inl], pm[inl]
+    return out
+
+
+def match_pairs(features: Mapping[int, Features], pairs: Iterable[tuple[int, int]],
+                image_size: tuple[int, int], options: MatchOptions | None = None,
+                progress=None) -> list[PairMatch]:
+    """Matches (l, m) pairs, in parallel threads. Returns results in the order of `pairs`."""
+    o = options or MatchOptions()
+    pairs = list(pairs)
+    for l, m in pairs:
+        for k in (l, m):
+            if k not in features:
+                raise ValueError(f"pair ({l}, {m}): no features for frame {k}")
+
+    def one(pair):
+        l, m = pair
+        return match_pair(features[l], features[m], image_size, o)
+
+    if o.num_threads <= 1:
+        results = []
+        for p in pairs:
+            results.append(one(p))
+            if progress:
+                progress(1)
+        return results
+    with ThreadPoolExecutor(o.num_threads) as pool:
+        results = []
+        for r in pool.map(one, pairs):
+            results.append(r)
+            if progress:
+                progress(1)
+    return results

@@ -1,0 +1,119 @@
+"""Feature registration (seed 000, Sec. 3.1), pair selection, and the PairVis chain."""
+
+import cv2
+import numpy as np
+import pytest
+
+from fusedmosaic.estimation.pairwise import chain_homographies
+from fusedmosaic.evaluation import frame_errors
+from fusedmosaic.registration.features import (
+    FeatureExtractor,
+    FeatureOptions,
+    fov_mask_from_image,
+)
+from fusedmosaic.registration.pair_selection import all_pairs, emt_guided_pairs, window_pairs
+from fusedmosaic.registration.pairs import MatchOptions, degeneracy, match_pair, match_pairs
+
+SIZE = (320, 300)  # width, height
+
+
+@pytest.fixture(scope="module")
+def texture():
+    rng = np.random.default_rng(11)
+    noise = rng.normal(0, 1, (900, 900)).astype(np.float32)
+    img = sum(cv2.GaussianBlur(noise, (0, 0), s) * s for s in (1.5, 4, 12))
+    img = (img - img.min()) / (img.max() - img.min()) * 255
+    return img.astype(np.uint8)
+
+
+def view(texture, H_frame_from_tex):
+    return cv2.warpPerspective(texture, H_frame_from_tex, SIZE, flags=cv2.INTER_LINEAR)
+
+
+def similarity(angle_deg, scale, tx, ty):
+    a = np.deg2rad(angle_deg)
+    return np.array([[scale * np.cos(a), -scale * np.sin(a), tx],
+                     [scale * np.sin(a), scale * np.cos(a), ty], [0, 0, 1.0]])
+
+
+@pytest.mark.parametrize("detector", ["sift", "orb"])
+def test_known_homography_recovered(texture, detector):
+    A = similarity(0, 1, -250, -250)
+    B = np.array([[1.02, 0.03, -270], [-0.02, 0.99, -236], [2e-5, -1e-5, 1.0]])
+    img_m, img_l = view(texture, A), view(texture, B)
+    ext = FeatureExtractor(FeatureOptions(detector=detector, max_features=1500))
+    fm, fl = ext.extract(img_m, 0), ext.extract(img_l, 1)
+    res = match_pair(fl, fm, SIZE, MatchOptions())
+    assert res.ok, res.status
+    true_lm = B @ np.linalg.inv(A)
+    err = frame_errors(res.H_lm[None], (true_lm / true_lm[2, 2])[None], *SIZE)[0]
+    assert err < 0.5  # px over the 100x100 grid
+    assert res.n_inliers >= 50 and res.points_l.shape == res.points_m.shape
+    moved = cv2.perspectiveTransform(res.points_m[None], true_lm)[0]
+    assert np.median(np.linalg.norm(moved - res.points_l, axis=1)) < 1.0
+
+
+def test_black_frame_and_unrelated_frames_are_reported(texture):
+    ext = FeatureExtractor()
+    f0 = ext.extract(view(texture, similarity(0, 1, -100, -100)), 0)
+    black = ext.extract(np.zeros((SIZE[1], SIZE[0]), np.uint8), 1)
+    assert len(black) == 0
+    res = match_pair(black, f0, SIZE)
+    assert not res.ok and res.status.startswith("too few features")
+    rng = np.random.default_rng(5)
+    other = cv2.GaussianBlur(rng.integers(0, 255, (SIZE[1], SIZE[0])).astype(np.uint8), (0, 0), 2)
+    res = match_pair(ext.extract(other, 2), f0, SIZE)
+    assert not res.ok and res.H_lm is None
+
+
+def test_degenerate_homographies_rejected():
+    assert degeneracy(np.eye(3), *SIZE, 4.0) is None
+    assert "area scale" in degeneracy(np.diag([10.0, 10.0, 1.0]), *SIZE, 4.0)
+    flip = np.array([[1.0, 0, 0], [0, 1, 0], [-0.01, 0, 1]])
+    assert "behind the camera" in degeneracy(flip, *SIZE, 4.0)
+
+
+def test_fov_mask_detected_from_black_border(texture):
+    img = view(texture, similarity(0, 1, -100, -100))
+    circle = np.zeros_like(img)
+    cv2.circle(circle, (SIZE[0] // 2, SIZE[1] // 2), 120, 255, -1)
+    img[circle == 0] = 0
+    mask = fov_mask_from_image(img)
+    assert mask is not None
+    assert (mask > 0).sum() == pytest.approx((circle > 0).sum(), rel=0.03)
+    feats = FeatureExtractor(FeatureOptions(mask_margin_px=6)).extract(img)
+    r = np.linalg.norm(feats.points - [SIZE[0] // 2, SIZE[1] // 2], axis=1)
+    assert len(feats) > 50 and r.max() < 120 - 4
+    assert fov_mask_from_image(view(texture, np.eye(3))) is None
+
+
+def test_parallel_matching_equals_serial(texture):
+    ext = FeatureExtractor(FeatureOptions(detector="orb"))
+    feats = {k: ext.extract(view(texture, similarity(2 * k, 1, -200 - 9 * k, -200 + 4 * k)), k)
+             for k in range(4)}
+    pairs = window_pairs(4, 2)
+    serial = match_pairs(feats, pairs, SIZE, MatchOptions(num_threads=1))
+    parallel = match_pairs(feats, pairs, SIZE, MatchOptions(num_threads=2))
+    assert [(r.frame_l, r.frame_m, r.n_inliers) for r in serial] == \
+        [(r.frame_l, r.frame_m, r.n_inliers) for r in parallel]
+    with pytest.raises(ValueError, match="no features for frame 9"):
+        match_pairs(feats, [(9, 0)], SIZE)
+
+
+def test_pair_selection_counts():
+    assert len(all_pairs(10)) == 45
+    assert window_pairs(4, 1) == [(1, 0), (2, 1), (3, 2)]
+    # Frames on a line, 40 px apart, 100 px wide: only neighbours within 2 steps overlap >= 30 %.
+    G = np.stack([np.array([[1.0, 0, 40 * k], [0, 1, 0], [0, 0, 1]]) for k in range(8)])
+    pairs = emt_guided_pairs(G, 100, 100, min_overlap=0.3)
+    assert set(pairs) == {(l, m) for l in range(8) for m in range(l) if l - m <= 1}
+    G[3] = np.nan  # no prediction: keeps its temporal neighbours
+    pairs = emt_guided_pairs(G, 100, 100, min_overlap=0.15)
+    assert (3, 2) in pairs and (4, 3) in pairs and (3, 1) not in pairs and (5, 3) not in pairs
+
+
+def test_chain_breaks_at_first_failure():
+    step = np.array([[1.0, 0, 5], [0, 1, 0], [0, 0, 1]])
+    G = chain_homographies([step, step, None, step])
+    np.testing.assert_allclose(G[2][:2, 2], [10, 0])
+    assert np.isnan(G[3:]).all() and np.isfinite(G[:3]).all()
