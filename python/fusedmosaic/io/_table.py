@@ -1,0 +1,106 @@
+"""Small strict CSV reader/writer shared by the io modules.
+
+Rows are numbered as in a spreadsheet: the header is row 1, the first data row is row 2, so an
+error message's row number is the file's line number.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+
+def read_table(
+    path: str | Path,
+    columns: Sequence[str],
+    optional: Sequence[str] = (),
+    *,
+    integer: Sequence[str] = (),
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Read a headed CSV with exactly ``columns`` followed by any prefix of ``optional``.
+
+    Empty fields become NaN (float columns); ``integer`` columns must be filled with integers and
+    come back as int64. Returns the columns by name and each data row's spreadsheet row number.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: file not found")
+    with path.open(newline="") as f:
+        lines = list(csv.reader(f))
+    while lines and not any(field.strip() for field in lines[-1]):
+        lines.pop()  # trailing blank lines
+    if not lines:
+        raise ValueError(f"{path}: empty file, expected header {','.join(columns)}")
+    header = [h.strip() for h in lines[0]]
+    allowed = [list(columns) + list(optional[:k]) for k in range(len(optional) + 1)]
+    if header not in allowed:
+        expected = ",".join(columns) + "".join(f"[,{c}]" for c in optional)
+        raise ValueError(f"{path}: row 1: header is {','.join(header)!r}, expected {expected!r}")
+
+    values: dict[str, list] = {name: [] for name in header}
+    rows = []
+    for row_number, fields in enumerate(lines[1:], start=2):
+        if not any(field.strip() for field in fields):
+            continue  # blank line
+        if len(fields) != len(header):
+            raise ValueError(
+                f"{path}: row {row_number}: {len(fields)} fields, expected {len(header)} "
+                f"({','.join(header)})"
+            )
+        for name, field in zip(header, fields, strict=True):
+            values[name].append(_parse(path, row_number, name, field.strip(), name in integer))
+        rows.append(row_number)
+    table = {
+        name: np.asarray(v, dtype=np.int64 if name in integer else np.float64).reshape(-1)
+        for name, v in values.items()
+    }
+    return table, np.asarray(rows, dtype=np.int64)
+
+
+def _parse(path: Path, row: int, column: str, field: str, integer: bool) -> float | int:
+    if integer:
+        try:
+            return int(field)
+        except ValueError:
+            raise ValueError(
+                f"{path}: row {row}, column {column!r}: expected an integer, got {field!r}"
+            ) from None
+    if not field:
+        return math.nan
+    try:
+        return float(field)
+    except ValueError:
+        raise ValueError(
+            f"{path}: row {row}, column {column!r}: cannot parse {field!r} as a number"
+        ) from None
+
+
+def format_float(x: float) -> str:
+    """Shortest text that round-trips exactly (Python's repr); NaN -> empty field."""
+    x = float(x)
+    return "" if math.isnan(x) else repr(x)
+
+
+def write_table(path: str | Path, header: Sequence[str], rows: Iterable[Sequence[str]]) -> None:
+    with Path(path).open("w", newline="") as f:
+        writer = csv.writer(f, lineterminator="\n")
+        writer.writerow(header)
+        writer.writerows(rows)
+
+
+def check_increasing(path: str | Path, rows: np.ndarray, values: np.ndarray, what: str) -> None:
+    """Raise naming the first row whose ``what`` is NaN or not strictly after the previous one."""
+    missing = np.flatnonzero(~np.isfinite(values))
+    if missing.size:
+        raise ValueError(f"{path}: row {rows[missing[0]]}: {what} is missing or not finite")
+    bad = np.flatnonzero(np.diff(values) <= 0)
+    if bad.size:
+        i = bad[0] + 1
+        raise ValueError(
+            f"{path}: row {rows[i]}: {what} {values[i].item()!r} is not after the previous "
+            f"{values[i - 1].item()!r}; {what}s must be strictly increasing"
+        )

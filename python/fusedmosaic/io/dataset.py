@@ -1,0 +1,251 @@
+"""The dataset contract (design.md, "Dataset contract"): reader and writer.
+
+A dataset is a folder with ``frames/*.png`` or ``video.*``, ``camera.yaml`` and optionally
+``frames.csv``, ``tracking.csv``, ``hand_eye.txt``, ``robot.csv`` and ``ground_truth.csv``.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fusedmosaic.io._table import check_increasing, format_float, read_table, write_table
+from fusedmosaic.io.calibration import Camera, read_camera_yaml, write_camera_yaml
+from fusedmosaic.io.homographies import read_homographies_csv, write_homographies_csv
+from fusedmosaic.io.tracking import (
+    RobotSamples,
+    TrackingSamples,
+    interpolate_camera_poses,
+    interpolate_robot,
+    read_hand_eye,
+    read_robot_csv,
+    read_tracking_csv,
+    write_hand_eye,
+    write_robot_csv,
+    write_tracking_csv,
+)
+from fusedmosaic.io.video import FrameSource, write_frames
+
+
+@dataclass(eq=False)
+class Dataset:
+    """A dataset read from disk; per-frame arrays are aligned with ``frame_ids``.
+
+    hand_eye : (4, 4) sensor_from_camera (identity when hand_eye.txt is absent).
+    cam_from_world, pose_valid : EM-tracker camera poses interpolated at the frame times (N, 6)
+        and their validity (N,); None without tracking.csv. Invalid frames have NaN poses.
+    robot_xy_um, robot_valid : robot positions at the frame times (N, 2) µm and validity (N,).
+    ground_truth : (N, 3, 3) frame -> reference homographies, NaN for unplaced frames.
+    """
+
+    root: Path
+    camera: Camera
+    frames: FrameSource
+    frame_ids: np.ndarray
+    timestamps: np.ndarray
+    hand_eye: np.ndarray
+    tracking: TrackingSamples | None = None
+    cam_from_world: np.ndarray | None = None
+    pose_valid: np.ndarray | None = None
+    robot: RobotSamples | None = None
+    robot_xy_um: np.ndarray | None = None
+    robot_valid: np.ndarray | None = None
+    ground_truth: np.ndarray | None = None
+    robot_file: str = "robot.csv"
+
+    def __len__(self) -> int:
+        return self.frame_ids.size
+
+    def require_tracking(self, method: str) -> None:
+        if self.tracking is None:
+            raise ValueError(
+                f"{self.root / 'tracking.csv'}: file not found; method {method!r} "
+                "needs EM tracker poses"
+            )
+
+    def require_robot(self, method: str) -> None:
+        if self.robot is None:
+            raise ValueError(
+                f"{self.root / self.robot_file}: file not found; method {method!r} "
+                "needs robot positions"
+            )
+
+    def require_pixel_size(self, method: str) -> float:
+        return self.camera.require_pixel_size(method)
+
+    def require_camera_matrix(self, method: str) -> np.ndarray:
+        return self.camera.require_camera_matrix(method)
+
+
+def read_dataset(
+    root: str | Path,
+    *,
+    fps: float = 25.0,
+    robot_file: str = "robot.csv",
+    allow_untracked: bool = False,
+) -> Dataset:
+    """Read and check a dataset folder. Images are not loaded (only the first, to check its size).
+
+    Row i of frames.csv (``frame,timestamp``, both strictly increasing) describes the i-th image
+    in name order; without frames.csv, frame ids are 0..N-1.
+
+    fps : frame rate used for timestamps when frames.csv is absent (timestamp = frame / fps).
+    robot_file : name of the robot positions file (e.g. robot_noisy.csv).
+    allow_untracked : flag frames outside the tracker's / robot's time span as invalid instead of
+        raising.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise ValueError(f"{root}: dataset folder not found")
+    camera = read_camera_yaml(root / "camera.yaml")
+    frames = FrameSource.open(root, expected_size=camera.size, size_source=camera.source)
+    frames[0]  # size check of the first image; the rest are checked as they are read
+
+    frame_ids, timestamps = _read_frame_times(root, len(frames), fps)
+    hand_eye_path = root / "hand_eye.txt"
+    hand_eye = read_hand_eye(hand_eye_path) if hand_eye_path.exists() else np.eye(4)
+    dataset = Dataset(root, camera, frames, frame_ids, timestamps, hand_eye, robot_file=robot_file)
+
+    tracking_path = root / "tracking.csv"
+    if tracking_path.exists():
+        dataset.tracking = read_tracking_csv(tracking_path)
+        dataset.cam_from_world, dataset.pose_valid = interpolate_camera_poses(
+            dataset.tracking,
+            timestamps,
+            hand_eye,
+            allow_outside=allow_untracked,
+            source=str(tracking_path),
+        )
+    robot_path = root / robot_file
+    if robot_path.exists():
+        dataset.robot = read_robot_csv(robot_path)
+        dataset.robot_xy_um, dataset.robot_valid = interpolate_robot(
+            dataset.robot, timestamps, allow_outside=allow_untracked, source=str(robot_path)
+        )
+    truth_path = root / "ground_truth.csv"
+    if truth_path.exists():
+        dataset.ground_truth = _align_ground_truth(truth_path, frame_ids)
+    return dataset
+
+
+def _read_frame_times(root: Path, n_images: int, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    path = root / "frames.csv"
+    if not path.exists():
+        if not fps > 0:
+            raise ValueError(f"fps must be positive, got {fps!r}")
+        frame_ids = np.arange(n_images, dtype=np.int64)
+        return frame_ids, frame_ids / float(fps)
+    table, rows = read_table(path, ["frame", "timestamp"], integer=["frame"])
+    if rows.size != n_images:
+        raise ValueError(f"{path}: {rows.size} rows but the dataset has {n_images} images")
+    check_increasing(path, rows, table["frame"], "frame")
+    check_increasing(path, rows, table["timestamp"], "timestamp")
+    return table["frame"], table["timestamp"]
+
+
+def _align_ground_truth(path: Path, frame_ids: np.ndarray) -> np.ndarray:
+    truth_ids, H = read_homographies_csv(path)
+    unknown = np.setdiff1d(truth_ids, frame_ids)
+    if unknown.size:
+        raise ValueError(
+            f"{path}: frame {unknown[0]} is not in the dataset ({unknown.size} unknown frame ids)"
+        )
+    missing = np.setdiff1d(frame_ids, truth_ids)
+    if missing.size:
+        raise ValueError(
+            f"{path}: no row for frame {missing[0]} ({missing.size} frames missing; "
+            "write empty fields for unplaced frames)"
+        )
+    order = np.argsort(truth_ids)
+    return H[order][np.searchsorted(truth_ids[order], frame_ids)]
+
+
+def write_dataset(
+    root: str | Path,
+    *,
+    camera: Camera,
+    frames: Iterable[np.ndarray],
+    timestamps,
+    tracking: TrackingSamples | None = None,
+    hand_eye=None,
+    robot: RobotSamples | None = None,
+    ground_truth=None,
+    extra_files: dict[str, bytes | str] | None = None,
+    robot_files: dict[str, RobotSamples] | None = None,
+    overwrite: bool = False,
+) -> Path:
+    """Write a dataset folder atomically: it is built in a temporary folder next to ``root`` and
+    renamed into place, so a failure leaves no ``root`` (or the previous one, with overwrite).
+
+    frames are streamed to ``frames/000000.png``…; timestamps (N,) go to frames.csv with frame
+    ids 0..N-1 (None: no frames.csv). ground_truth (N, 3, 3) is written with frame ids 0..N-1.
+    robot goes to robot.csv; robot_files maps further file names to samples. extra_files are
+    written last, verbatim (they may replace a generated file, e.g. to build a bad dataset).
+    """
+    root = Path(root)
+    if root.exists() and (not root.is_dir() or any(root.iterdir())) and not overwrite:
+        raise ValueError(f"{root}: exists and is not empty (pass overwrite=True to replace it)")
+    root.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{root.name}.tmp-", dir=root.parent))
+    try:
+        write_camera_yaml(tmp / "camera.yaml", camera)
+        n = write_frames(tmp / "frames", frames)
+        if timestamps is not None:
+            timestamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+            if timestamps.size != n:
+                raise ValueError(f"{root}: {timestamps.size} timestamps for {n} frames")
+            write_table(
+                tmp / "frames.csv",
+                ["frame", "timestamp"],
+                ([str(i), format_float(t)] for i, t in enumerate(timestamps)),
+            )
+        if tracking is not None:
+            write_tracking_csv(tmp / "tracking.csv", tracking)
+        if hand_eye is not None:
+            write_hand_eye(tmp / "hand_eye.txt", hand_eye)
+        robot_files = dict(robot_files or {})
+        if robot is not None:
+            robot_files.setdefault("robot.csv", robot)
+        for name, samples in robot_files.items():
+            write_robot_csv(tmp / name, samples)
+        if ground_truth is not None:
+            ground_truth = np.asarray(ground_truth, dtype=np.float64)
+            if ground_truth.shape[0] != n:
+                raise ValueError(
+                    f"{root}: ground truth has {ground_truth.shape[0]} homographies for {n} frames"
+                )
+            write_homographies_csv(tmp / "ground_truth.csv", np.arange(n), ground_truth)
+        for name, content in (extra_files or {}).items():
+            path = tmp / name
+            path.parent.mkdir(parents=True, exist_ok=True)
+            if isinstance(content, str):
+                path.write_text(content)
+            else:
+                path.write_bytes(content)
+        _replace_dir(tmp, root)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return root
+
+
+def _replace_dir(src: Path, dst: Path) -> None:
+    """Rename ``src`` to ``dst``, replacing an existing ``dst`` (moved aside first)."""
+    if not dst.exists():
+        os.replace(src, dst)
+        return
+    old = Path(tempfile.mkdtemp(prefix=f".{dst.name}.old-", dir=dst.parent))
+    os.replace(dst, old / dst.name)
+    try:
+        os.replace(src, dst)
+    except BaseException:
+        os.replace(old / dst.name, dst)
+        raise
+    finally:
+        shutil.rmtree(old, ignore_errors=True)

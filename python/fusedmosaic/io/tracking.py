@@ -1,0 +1,267 @@
+"""External pose sources: EM tracker (``tracking.csv``, ``hand_eye.txt``) and robot
+(``robot.csv``), and their interpolation to frame timestamps.
+
+Quaternions are (x, y, z, w), scipy's order; angle-axis vectors are scipy's ``as_rotvec``, the
+same convention as the C++ core (rotation angle = norm, right-handed about the axis).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from fusedmosaic.io._table import check_increasing, format_float, read_table, write_table
+
+TRACKING_COLUMNS = ["timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw"]
+ROBOT_COLUMNS = ["timestamp", "x", "y"]
+QUATERNION_NORM_TOLERANCE = 1e-3
+ROTATION_TOLERANCE = 1e-4  # hand_eye.txt is often written with ~6 decimals
+
+
+@dataclass(eq=False)
+class TrackingSamples:
+    """EM tracker samples of tracker_from_sensor at the tracker's own rate.
+
+    timestamps : (M,) float64, s.  translations : (M, 3) float64, mm.
+    quaternions : (M, 4) float64 unit, (x, y, z, w).  valid : (M,) bool, False = missing sample.
+    """
+
+    timestamps: np.ndarray
+    translations: np.ndarray
+    quaternions: np.ndarray
+    valid: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.timestamps = np.asarray(self.timestamps, dtype=np.float64).reshape(-1)
+        m = self.timestamps.size
+        self.translations = np.asarray(self.translations, dtype=np.float64)
+        self.quaternions = np.asarray(self.quaternions, dtype=np.float64)
+        self.valid = np.ones(m, bool) if self.valid is None else np.asarray(self.valid, bool)
+        for name, shape in [("translations", (m, 3)), ("quaternions", (m, 4)), ("valid", (m,))]:
+            if getattr(self, name).shape != shape:
+                raise ValueError(
+                    f"TrackingSamples.{name}: expected shape {shape}, "
+                    f"got {getattr(self, name).shape}"
+                )
+
+    def __len__(self) -> int:
+        return self.timestamps.size
+
+
+@dataclass(eq=False)
+class RobotSamples:
+    """Robot-reported probe positions in the image axes: timestamps (M,) s, xy_um (M, 2) µm."""
+
+    timestamps: np.ndarray
+    xy_um: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.timestamps = np.asarray(self.timestamps, dtype=np.float64).reshape(-1)
+        self.xy_um = np.asarray(self.xy_um, dtype=np.float64)
+        if self.xy_um.shape != (self.timestamps.size, 2):
+            raise ValueError(
+                f"RobotSamples.xy_um: expected shape ({self.timestamps.size}, 2), "
+                f"got {self.xy_um.shape}"
+            )
+
+    def __len__(self) -> int:
+        return self.timestamps.size
+
+
+def read_tracking_csv(path: str | Path) -> TrackingSamples:
+    """Read ``timestamp,tx,ty,tz,qx,qy,qz,qw[,valid]``; rows with valid=0 may have empty
+    fields. Quaternions of valid rows are checked (|q| within 1e-3 of 1) and renormalised."""
+    table, rows = read_table(path, TRACKING_COLUMNS, ["valid"], integer=["valid"])
+    timestamps = table["timestamp"]
+    check_increasing(path, rows, timestamps, "timestamp")
+    valid = table.get("valid", np.ones(timestamps.size, np.int64))
+    bad = np.flatnonzero((valid != 0) & (valid != 1))
+    if bad.size:
+        raise ValueError(
+            f"{path}: row {rows[bad[0]]}, column 'valid': expected 0 or 1, got {valid[bad[0]]}"
+        )
+    valid = valid.astype(bool)
+    values = np.stack([table[c] for c in TRACKING_COLUMNS[1:]], axis=1)
+    nan_row, nan_col = np.nonzero(~np.isfinite(values) & valid[:, None])
+    if nan_row.size:
+        raise ValueError(
+            f"{path}: row {rows[nan_row[0]]}, column "
+            f"{TRACKING_COLUMNS[1 + nan_col[0]]!r}: NaN or empty value in a valid row"
+        )
+    quaternions = values[:, 3:]
+    norms = np.linalg.norm(quaternions, axis=1)
+    off = np.flatnonzero(valid & (np.abs(norms - 1.0) > QUATERNION_NORM_TOLERANCE))
+    if off.size:
+        raise ValueError(
+            f"{path}: row {rows[off[0]]}: quaternion norm {norms[off[0]]:.6g} is "
+            f"not 1 (tolerance {QUATERNION_NORM_TOLERANCE:g})"
+        )
+    quaternions[valid] /= norms[valid, None]
+    return TrackingSamples(timestamps, values[:, :3], quaternions, valid)
+
+
+def write_tracking_csv(path: str | Path, samples: TrackingSamples) -> None:
+    """Write all samples with a ``valid`` column; NaN fields are written empty."""
+    values = np.concatenate([samples.translations, samples.quaternions], axis=1)
+    rows = (
+        [format_float(t), *map(format_float, v), str(int(ok))]
+        for t, v, ok in zip(samples.timestamps, values, samples.valid, strict=True)
+    )
+    write_table(path, [*TRACKING_COLUMNS, "valid"], rows)
+
+
+def read_hand_eye(path: str | Path) -> np.ndarray:
+    """Read the 4x4 rigid sensor_from_camera transform (whitespace-separated text). The rotation
+    block is projected onto the nearest rotation, so text rounding does not leak a scale."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: file not found")
+    try:
+        T = np.loadtxt(path, dtype=np.float64, ndmin=2)
+    except ValueError as e:
+        raise ValueError(f"{path}: cannot parse as a 4x4 matrix of numbers ({e})") from None
+    if T.shape != (4, 4):
+        raise ValueError(f"{path}: expected a 4x4 matrix, got {T.shape[0]}x{T.shape[1]}")
+    if not np.all(np.isfinite(T)):
+        raise ValueError(f"{path}: NaN or inf in the matrix")
+    R = T[:3, :3]
+    if (
+        np.abs(R.T @ R - np.eye(3)).max() > ROTATION_TOLERANCE
+        or np.linalg.det(R) <= 0
+        or np.abs(T[3] - [0, 0, 0, 1]).max() > ROTATION_TOLERANCE
+    ):
+        raise ValueError(
+            f"{path}: not a rigid transform (rotation block not orthonormal with "
+            f"det +1 to {ROTATION_TOLERANCE:g}, or last row not 0 0 0 1)"
+        )
+    u, _, vt = np.linalg.svd(R)
+    T[:3, :3] = u @ vt
+    T[3] = [0, 0, 0, 1]
+    return T
+
+
+def write_hand_eye(path: str | Path, T) -> None:
+    """Write a 4x4 transform as text, 17 significant digits (exact round trip)."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise ValueError(f"{path}: hand-eye transform must be 4x4, got {T.shape}")
+    np.savetxt(path, T, fmt="%.17g")
+
+
+def read_robot_csv(path: str | Path) -> RobotSamples:
+    """Read ``timestamp,x,y`` (s, µm)."""
+    table, rows = read_table(path, ROBOT_COLUMNS)
+    check_increasing(path, rows, table["timestamp"], "timestamp")
+    xy = np.stack([table["x"], table["y"]], axis=1)
+    nan_row, nan_col = np.nonzero(~np.isfinite(xy))
+    if nan_row.size:
+        raise ValueError(
+            f"{path}: row {rows[nan_row[0]]}, column "
+            f"{ROBOT_COLUMNS[1 + nan_col[0]]!r}: NaN or empty value"
+        )
+    return RobotSamples(table["timestamp"], xy)
+
+
+def write_robot_csv(path: str | Path, samples: RobotSamples) -> None:
+    rows = (
+        [format_float(t), format_float(x), format_float(y)]
+        for t, (x, y) in zip(samples.timestamps, samples.xy_um, strict=True)
+    )
+    write_table(path, ROBOT_COLUMNS, rows)
+
+
+def _outside_span(
+    frame_times: np.ndarray, t0: float, t1: float, source: str, what: str, allow_outside: bool
+) -> np.ndarray:
+    """Boolean mask of frames outside [t0, t1]; raises on the first unless allow_outside."""
+    if not np.all(np.isfinite(frame_times)):
+        raise ValueError(f"{source}: frame times must be finite")
+    outside = (frame_times < t0) | (frame_times > t1)
+    if outside.any() and not allow_outside:
+        i = int(np.flatnonzero(outside)[0])
+        raise ValueError(
+            f"{source}: {int(outside.sum())} frames outside the {what}'s time span "
+            f"[{t0:.6g}, {t1:.6g}] s; first offending frame index {i} at t={frame_times[i]:.6g} s"
+        )
+    return outside
+
+
+def interpolate_camera_poses(
+    samples: TrackingSamples,
+    frame_times,
+    sensor_from_camera=None,
+    *,
+    max_gap: float | None = None,
+    allow_outside: bool = False,
+    source: str = "tracking.csv",
+) -> tuple[np.ndarray, np.ndarray]:
+    """Camera poses at frame times from tracker samples (paper 000, Sec. 3: tracker poses are
+    interpolated to the frames, then composed with the hand-eye transform).
+
+    tracker_from_sensor is SLERPed (rotation) and linearly interpolated (translation) between the
+    valid samples around each frame time; world_from_cam = tracker_from_sensor @
+    sensor_from_camera; returns cam_from_world (N, 6) = [angle-axis, t] and valid (N,) bool.
+
+    Frames outside the valid samples' time span raise ValueError, or with ``allow_outside`` are
+    flagged invalid. Frames inside a gap between valid samples longer than ``max_gap`` (default
+    3x the median valid-sample spacing) are flagged invalid. Invalid frames get NaN poses.
+    """
+    frame_times = np.asarray(frame_times, dtype=np.float64).reshape(-1)
+    X = np.eye(4) if sensor_from_camera is None else np.asarray(sensor_from_camera, np.float64)
+    if X.shape != (4, 4):
+        raise ValueError(f"sensor_from_camera must be 4x4, got {X.shape}")
+    ts = samples.timestamps[samples.valid]
+    if ts.size < 2:
+        raise ValueError(f"{source}: {ts.size} valid samples; interpolation needs at least 2")
+    if np.any(np.diff(ts) <= 0):
+        raise ValueError(f"{source}: timestamps must be strictly increasing")
+    outside = _outside_span(frame_times, ts[0], ts[-1], source, "tracker", allow_outside)
+
+    if max_gap is None:
+        max_gap = 3.0 * float(np.median(np.diff(ts)))
+    # Interval [ts[k], ts[k+1]] holding each frame; a frame exactly on a sample is measured.
+    k = np.clip(np.searchsorted(ts, frame_times, side="right") - 1, 0, ts.size - 2)
+    on_sample = (frame_times == ts[k]) | (frame_times == ts[k + 1])
+    in_gap = (ts[k + 1] - ts[k] > max_gap) & ~on_sample
+    valid = ~outside & ~in_gap
+
+    cam_from_world = np.full((frame_times.size, 6), np.nan)
+    if valid.any():
+        t = frame_times[valid]
+        rotations = Rotation.from_quat(samples.quaternions[samples.valid])
+        R_ts = Slerp(ts, rotations)(t)
+        t_ts = np.stack(
+            [np.interp(t, ts, samples.translations[samples.valid][:, j]) for j in range(3)], axis=1
+        )
+        # world_from_cam = [R_ts | t_ts] @ [R_sc | t_sc]
+        R_sc = Rotation.from_matrix(X[:3, :3])
+        R_wc = R_ts * R_sc
+        t_wc = R_ts.apply(X[:3, 3]) + t_ts
+        R_cw = R_wc.inv()
+        cam_from_world[valid, :3] = R_cw.as_rotvec()
+        cam_from_world[valid, 3:] = -R_cw.apply(t_wc)
+    return cam_from_world, valid
+
+
+def interpolate_robot(
+    samples: RobotSamples,
+    frame_times,
+    *,
+    allow_outside: bool = False,
+    source: str = "robot.csv",
+) -> tuple[np.ndarray, np.ndarray]:
+    """Robot positions (N, 2) µm at frame times, linear between samples, and valid (N,) bool.
+    Frames outside the robot's time span raise, or with ``allow_outside`` get NaN/invalid."""
+    frame_times = np.asarray(frame_times, dtype=np.float64).reshape(-1)
+    ts = samples.timestamps
+    if ts.size == 0:
+        raise ValueError(f"{source}: no samples")
+    if np.any(np.diff(ts) <= 0):
+        raise ValueError(f"{source}: timestamps must be strictly increasing")
+    outside = _outside_span(frame_times, ts[0], ts[-1], source, "robot", allow_outside)
+    xy = np.stack([np.interp(frame_times, ts, samples.xy_um[:, j]) for j in range(2)], axis=1)
+    xy[outside] = np.nan
+    return xy, ~outside

@@ -1,0 +1,485 @@
+"""Dataset / output contracts: round trips, pose interpolation, bad input, atomicity."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from fusedmosaic.io import (
+    Camera,
+    FrameSource,
+    OutputWriter,
+    RobotSamples,
+    TrackingSamples,
+    interpolate_camera_poses,
+    interpolate_robot,
+    read_camera_yaml,
+    read_dataset,
+    read_hand_eye,
+    read_homographies_csv,
+    read_poses_csv,
+    read_robot_csv,
+    read_tracking_csv,
+    write_camera_yaml,
+    write_dataset,
+    write_hand_eye,
+    write_homographies_csv,
+    write_poses_csv,
+    write_robot_csv,
+    write_tracking_csv,
+)
+
+W, H = 32, 24
+K = np.array([[40.5, 0.0, 15.5], [0.0, 41.25, 11.5], [0.0, 0.0, 1.0]])
+
+
+def _images(n: int, seed: int = 0, size: tuple[int, int] = (W, H)):
+    rng = np.random.default_rng(seed)
+    for _ in range(n):
+        yield rng.integers(0, 256, size=(size[1], size[0]), dtype=np.uint8)
+
+
+def _rigid(rng: np.random.Generator) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.random(random_state=rng).as_matrix()
+    T[:3, 3] = rng.normal(scale=10.0, size=3)
+    return T
+
+
+def _pose_matrix(cam_from_world: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(cam_from_world[:3]).as_matrix()
+    T[:3, 3] = cam_from_world[3:]
+    return T
+
+
+def _smooth_tracking(times: np.ndarray) -> tuple[Rotation, np.ndarray]:
+    """Constant-rate rotation about a fixed axis and linear translation: SLERP + lerp are exact."""
+    axis = np.array([1.0, -2.0, 0.5]) / np.linalg.norm([1.0, -2.0, 0.5])
+    rotation = Rotation.from_rotvec(0.4 * axis) * Rotation.from_rotvec(np.outer(0.7 * times, axis))
+    translation = np.array([1.0, 2.0, 50.0]) + np.outer(times, [3.0, -1.0, 0.5])
+    return rotation, translation
+
+
+def _tracking(times: np.ndarray, valid=None) -> TrackingSamples:
+    rotation, translation = _smooth_tracking(times)
+    return TrackingSamples(times, translation, rotation.as_quat(), valid)
+
+
+def _write(tmp_path: Path, n: int = 5, name: str = "ds", **kwargs) -> Path:
+    kwargs.setdefault("camera", Camera(W, H, K))
+    kwargs.setdefault("frames", _images(n))
+    kwargs.setdefault("timestamps", np.arange(n) / 25.0)
+    return write_dataset(tmp_path / name, **kwargs)
+
+
+TRACKING_HEADER = "timestamp,tx,ty,tz,qx,qy,qz,qw,valid\n"
+
+
+# ---------------------------------------------------------------------------- round trips
+
+
+def test_camera_round_trip_and_fov_mask(tmp_path):
+    rng = np.random.default_rng(1)
+    camera = Camera(W, H, K * 1.0 / 3.0 + np.diag([0, 0, 2 / 3]), rng.normal(size=5), 1 / 3, 9.5)
+    write_camera_yaml(tmp_path / "camera.yaml", camera)
+    back = read_camera_yaml(tmp_path / "camera.yaml")
+    assert (back.width, back.height) == (W, H)
+    np.testing.assert_array_equal(back.camera_matrix, camera.camera_matrix)
+    np.testing.assert_array_equal(back.distortion, camera.distortion)
+    assert back.pixel_size_um == 1 / 3 and back.fov_mask_radius == 9.5
+
+    mask = back.fov_mask()
+    assert mask.shape == (H, W) and mask.dtype == np.uint8
+    assert mask[H // 2, W // 2] == 255 and mask[0, 0] == 0
+    assert abs(np.count_nonzero(mask) - np.pi * 9.5**2) < 0.05 * np.pi * 9.5**2
+    assert Camera(W, H).fov_mask() is None
+
+
+def test_homographies_round_trip_exact_with_unplaced_rows(tmp_path):
+    rng = np.random.default_rng(2)
+    Hs = rng.normal(size=(4, 3, 3))
+    Hs[1] = np.nan
+    Hs[3, 0, 2] = np.nan  # any NaN marks the frame unplaced
+    write_homographies_csv(tmp_path / "h.csv", [0, 1, 2, 7], Hs)
+    lines = (tmp_path / "h.csv").read_text().splitlines()
+    assert lines[0] == "frame,h00,h01,h02,h10,h11,h12,h20,h21,h22"
+    assert lines[2] == "1" + "," * 9
+    ids, back = read_homographies_csv(tmp_path / "h.csv")
+    np.testing.assert_array_equal(ids, [0, 1, 2, 7])
+    assert ids.dtype == np.int64 and back.shape == (4, 3, 3)
+    np.testing.assert_array_equal(back[[0, 2]], Hs[[0, 2]])  # bit-exact
+    assert np.isnan(back[[1, 3]]).all()
+
+
+def test_poses_round_trip(tmp_path):
+    poses = np.random.default_rng(3).normal(size=(3, 6))
+    poses[2] = np.nan
+    write_poses_csv(tmp_path / "poses.csv", np.arange(3), poses)
+    ids, back = read_poses_csv(tmp_path / "poses.csv")
+    np.testing.assert_array_equal(ids, np.arange(3))
+    np.testing.assert_array_equal(back, poses)
+
+
+def test_tracking_robot_hand_eye_round_trips(tmp_path):
+    rng = np.random.default_rng(4)
+    samples = _tracking(np.linspace(0.0, 1.0, 7), valid=[1, 1, 0, 1, 1, 1, 1])
+    samples.translations[2] = np.nan  # a missing sample may have empty fields
+    write_tracking_csv(tmp_path / "tracking.csv", samples)
+    back = read_tracking_csv(tmp_path / "tracking.csv")
+    np.testing.assert_array_equal(back.timestamps, samples.timestamps)
+    np.testing.assert_array_equal(back.translations, samples.translations)
+    np.testing.assert_allclose(back.quaternions, samples.quaternions, rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(back.valid, samples.valid)
+
+    robot = RobotSamples(np.cumsum(rng.uniform(0.01, 0.1, 9)), rng.normal(size=(9, 2)) * 100)
+    write_robot_csv(tmp_path / "robot.csv", robot)
+    back_robot = read_robot_csv(tmp_path / "robot.csv")
+    np.testing.assert_array_equal(back_robot.timestamps, robot.timestamps)
+    np.testing.assert_array_equal(back_robot.xy_um, robot.xy_um)
+
+    T = _rigid(rng)
+    write_hand_eye(tmp_path / "hand_eye.txt", T)
+    np.testing.assert_allclose(read_hand_eye(tmp_path / "hand_eye.txt"), T, rtol=0, atol=1e-14)
+
+
+def test_dataset_round_trip(tmp_path):
+    n, rng = 6, np.random.default_rng(5)
+    images = list(_images(n, seed=5))
+    hand_eye = _rigid(rng)
+    truth = rng.normal(size=(n, 3, 3))
+    truth[4] = np.nan
+    robot = RobotSamples(np.linspace(-0.1, 1.0, 12), rng.normal(size=(12, 2)))
+    noisy = RobotSamples(robot.timestamps, robot.xy_um + 1.0)
+    root = _write(
+        tmp_path,
+        n,
+        camera=Camera(W, H, K, pixel_size_um=0.5),
+        frames=iter(images),
+        timestamps=0.02 + np.arange(n) / 30.0,
+        tracking=_tracking(np.linspace(0.0, 1.0, 41)),
+        hand_eye=hand_eye,
+        robot=robot,
+        robot_files={"robot_noisy.csv": noisy},
+        ground_truth=truth,
+        extra_files={"notes/readme.txt": "synthetic"},
+    )
+    ds = read_dataset(root)
+    assert len(ds) == n and len(ds.frames) == n and ds.frames.paths[0].name == "000000.png"
+    for image, expected in zip(ds.frames, images, strict=True):
+        np.testing.assert_array_equal(image, expected)
+    np.testing.assert_array_equal(ds.frame_ids, np.arange(n))
+    np.testing.assert_array_equal(ds.timestamps, 0.02 + np.arange(n) / 30.0)
+    np.testing.assert_allclose(ds.hand_eye, hand_eye, rtol=0, atol=1e-14)
+    assert ds.cam_from_world.shape == (n, 6) and ds.pose_valid.all()
+    np.testing.assert_array_equal(ds.ground_truth[[0, 1, 2, 3, 5]], truth[[0, 1, 2, 3, 5]])
+    assert np.isnan(ds.ground_truth[4]).all()
+    np.testing.assert_allclose(
+        ds.robot_xy_um[:, 0], np.interp(ds.timestamps, robot.timestamps, robot.xy_um[:, 0])
+    )
+    assert ds.require_pixel_size("robot") == 0.5
+    noisy_ds = read_dataset(root, robot_file="robot_noisy.csv")
+    np.testing.assert_allclose(noisy_ds.robot_xy_um, ds.robot_xy_um + 1.0)
+    assert (root / "notes" / "readme.txt").read_text() == "synthetic"
+
+
+def test_dataset_without_frames_csv_uses_fps(tmp_path):
+    ds = read_dataset(_write(tmp_path, 4, timestamps=None), fps=10.0)
+    np.testing.assert_array_equal(ds.timestamps, [0.0, 0.1, 0.2, 0.3])
+    assert ds.tracking is None and ds.cam_from_world is None
+    np.testing.assert_array_equal(ds.hand_eye, np.eye(4))
+
+
+def test_video_frame_source(tmp_path):
+    writer = cv2.VideoWriter(
+        str(tmp_path / "video.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 25, (W, H)
+    )
+    assert writer.isOpened()
+    for i in range(5):
+        writer.write(np.full((H, W, 3), 40 * i, np.uint8))
+    writer.release()
+    frames = FrameSource.open(tmp_path, expected_size=(W, H))
+    assert len(frames) == 5 and frames.paths is None
+    means = [image.mean() for image in frames]
+    np.testing.assert_allclose(means, 40.0 * np.arange(5), atol=3.0)
+    assert abs(frames[3].mean() - 120) < 3 and abs(frames[1].mean() - 40) < 3  # seeks
+    frames.close()
+
+
+# ----------------------------------------------------------------------- interpolation
+
+
+def test_slerp_midpoint_and_hand_eye_composition():
+    rng = np.random.default_rng(6)
+    r0, r1 = Rotation.random(2, random_state=rng)
+    t0, t1 = rng.normal(size=3), rng.normal(size=3)
+    samples = TrackingSamples([1.0, 3.0], [t0, t1], np.stack([r0.as_quat(), r1.as_quat()]))
+    sensor_from_camera = _rigid(rng)
+    poses, valid = interpolate_camera_poses(samples, [2.0, 1.5, 3.0], sensor_from_camera)
+    assert valid.all()
+    for pose, s in zip(poses, [0.5, 0.25, 1.0], strict=True):
+        # SLERP by hand: r0 * exp(s * log(r0^-1 r1)); translation linear.
+        tracker_from_sensor = np.eye(4)
+        r = r0 * Rotation.from_rotvec(s * (r0.inv() * r1).as_rotvec())
+        tracker_from_sensor[:3, :3] = r.as_matrix()
+        tracker_from_sensor[:3, 3] = (1 - s) * t0 + s * t1
+        expected = np.linalg.inv(tracker_from_sensor @ sensor_from_camera)
+        np.testing.assert_allclose(_pose_matrix(pose), expected, rtol=0, atol=1e-9)
+
+
+def test_tracker_rate_differs_from_frame_rate():
+    tracker_times = np.arange(0.0, 2.0 + 1e-9, 1 / 40.0)  # 40 Hz tracker
+    frame_times = 0.013 + np.arange(48) / 25.0  # 25 Hz frames, not synchronised
+    X = _rigid(np.random.default_rng(7))
+    poses, valid = interpolate_camera_poses(_tracking(tracker_times), frame_times, X)
+    assert valid.all()
+    rotation, translation = _smooth_tracking(frame_times)
+    for pose, r, t in zip(poses, rotation, translation, strict=True):
+        tracker_from_sensor = np.eye(4)
+        tracker_from_sensor[:3, :3], tracker_from_sensor[:3, 3] = r.as_matrix(), t
+        expected = np.linalg.inv(tracker_from_sensor @ X)
+        np.testing.assert_allclose(_pose_matrix(pose), expected, rtol=0, atol=1e-9)
+
+
+def test_gap_of_invalid_samples_is_flagged():
+    times = np.arange(0.0, 2.0 + 1e-9, 0.05)
+    valid = (times < 0.78) | (times > 1.22)  # 0.5 s gap, 10x the spacing
+    valid[5] = False  # a single dropped sample (0.1 s gap) is interpolated
+    samples = _tracking(times, valid)
+    frame_times = np.array([0.26, 0.7, 0.9, 1.0, 1.2, 1.25, 1.3])
+    poses, ok = interpolate_camera_poses(samples, frame_times)
+    np.testing.assert_array_equal(ok, [True, True, False, False, False, True, True])
+    assert np.isnan(poses[~ok]).all() and np.isfinite(poses[ok]).all()
+    _, ok_loose = interpolate_camera_poses(samples, frame_times, max_gap=1.0)
+    assert ok_loose.all()
+
+
+def test_robot_interpolation():
+    robot = RobotSamples([0.0, 0.1, 0.3], [[0.0, 0.0], [10.0, -5.0], [30.0, 5.0]])
+    xy, valid = interpolate_robot(robot, [0.05, 0.2, 0.3])
+    np.testing.assert_allclose(xy, [[5.0, -2.5], [20.0, 0.0], [30.0, 5.0]], rtol=0, atol=1e-12)
+    assert valid.all()
+    with pytest.raises(ValueError, match=r"robot.csv: 1 frames outside the robot's time span"):
+        interpolate_robot(robot, [0.1, 0.4])
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def test_missing_camera_yaml(tmp_path):
+    root = _write(tmp_path)
+    (root / "camera.yaml").unlink()
+    with pytest.raises(ValueError, match=r"camera\.yaml: file not found"):
+        read_dataset(root)
+
+
+def test_camera_matrix_wrong_shape(tmp_path):
+    path = tmp_path / "camera.yaml"
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", W)
+    fs.write("image_height", H)
+    fs.write("camera_matrix", K[:2])
+    fs.release()
+    with pytest.raises(
+        ValueError, match=r"camera\.yaml: camera_matrix: expected a 3x3 matrix, got 2x3"
+    ):
+        read_camera_yaml(path)
+
+
+def test_camera_yaml_bad_values(tmp_path):
+    path = tmp_path / "camera.yaml"
+    path.write_text("%YAML:1.0\nimage_width: 32\n")
+    with pytest.raises(ValueError, match=r"camera\.yaml: missing key 'image_height'"):
+        read_camera_yaml(path)
+    path.write_text(
+        "%YAML:1.0\nimage_width: 32\nimage_height: 24\ncamera_matrix: [0,0,1,0,5,1,0,0,1]\n"
+    )
+    with pytest.raises(ValueError, match=r"focal lengths must be positive"):
+        read_camera_yaml(path)
+    path.write_text("%YAML:1.0\nimage_width: 32\nimage_height: 24\npixel_size_um: .nan\n")
+    with pytest.raises(ValueError, match=r"camera\.yaml: pixel_size_um is NaN"):
+        read_camera_yaml(path)
+
+
+def test_camera_without_matrix_for_pose_method(tmp_path):
+    root = _write(tmp_path, camera=Camera(W, H))
+    ds = read_dataset(root)
+    with pytest.raises(ValueError, match=r"camera\.yaml: no camera_matrix; method 'ba-emt' needs"):
+        ds.require_camera_matrix("ba-emt")
+
+
+def test_missing_pixel_size(tmp_path):
+    ds = read_dataset(_write(tmp_path))
+    with pytest.raises(ValueError, match=r"camera\.yaml: no pixel_size_um; method 'kalman-robot'"):
+        ds.require_pixel_size("kalman-robot")
+
+
+def test_missing_tracking_or_robot_for_method(tmp_path):
+    ds = read_dataset(_write(tmp_path))
+    with pytest.raises(
+        ValueError, match=r"tracking\.csv: file not found; method 'ba-emt' needs EM tracker poses"
+    ):
+        ds.require_tracking("ba-emt")
+    with pytest.raises(ValueError, match=r"robot\.csv: file not found; method 'robot' needs"):
+        ds.require_robot("robot")
+
+
+@pytest.mark.parametrize(
+    ("rows", "match"),
+    [
+        (
+            "0,0,0,0,0,0,0,1,1\n0.1,0,,0,0,0,0,1,1\n",
+            r"row 3, column 'ty': NaN or empty value in a valid",
+        ),
+        ("0,0,0,0,0,0,0,1,1\n0.1,0,nan,0,0,0,0,1,1\n", r"row 3, column 'ty': NaN"),
+        ("0,0,0,0,0,0,0,0.9,1\n", r"row 2: quaternion norm 0.9 is not 1"),
+        (
+            "0,0,0,0,0,0,0,1,1\n0.2,0,0,0,0,0,0,1,1\n0.1,0,0,0,0,0,0,1,1\n",
+            r"row 4: timestamp 0.1 .*strictly increasing",
+        ),
+        ("0,0,0,0,0,0,0,1\n", r"row 2: 8 fields, expected 9"),
+        ("0,0,0,0,0,0,0,1,2\n", r"row 2, column 'valid': expected 0 or 1"),
+    ],
+)
+def test_bad_tracking_csv(tmp_path, rows, match):
+    path = tmp_path / "tracking.csv"
+    path.write_text(TRACKING_HEADER + rows)
+    with pytest.raises(ValueError, match=r"tracking\.csv: " + match):
+        read_tracking_csv(path)
+
+
+def test_tracking_csv_wrong_columns(tmp_path):
+    path = tmp_path / "tracking.csv"
+    path.write_text("timestamp,x,y,z,qw,qx,qy,qz\n")
+    with pytest.raises(
+        ValueError, match=r"tracking\.csv: row 1: header is .*expected 'timestamp,tx"
+    ):
+        read_tracking_csv(path)
+
+
+def test_invalid_rows_may_be_empty(tmp_path):
+    path = tmp_path / "tracking.csv"
+    path.write_text(TRACKING_HEADER + "0,0,0,0,0,0,0,1,1\n0.1,,,,,,,,0\n0.2,1,0,0,0,0,0,2,1\n")
+    with pytest.raises(ValueError, match=r"row 4: quaternion norm 2 is not 1"):
+        read_tracking_csv(path)
+
+
+def test_unsorted_frames_csv(tmp_path):
+    root = _write(
+        tmp_path, 3, extra_files={"frames.csv": "frame,timestamp\n0,0.0\n1,0.08\n2,0.04\n"}
+    )
+    with pytest.raises(ValueError, match=r"frames\.csv: row 4: timestamp 0.04 is not after"):
+        read_dataset(root)
+
+
+def test_frames_csv_row_count(tmp_path):
+    root = _write(tmp_path, 3, extra_files={"frames.csv": "frame,timestamp\n0,0.0\n1,0.04\n"})
+    with pytest.raises(ValueError, match=r"frames\.csv: 2 rows but the dataset has 3 images"):
+        read_dataset(root)
+
+
+def test_frames_outside_tracker_span(tmp_path):
+    root = _write(tmp_path, 6, tracking=_tracking(np.linspace(0.0, 0.1, 5)))  # frames to 0.2 s
+    with pytest.raises(
+        ValueError,
+        match=r"tracking\.csv: 3 frames outside the tracker's time span .*first offending frame "
+        r"index 3 at t=0.12 s",
+    ):
+        read_dataset(root)
+    ds = read_dataset(root, allow_untracked=True)
+    np.testing.assert_array_equal(ds.pose_valid, [True, True, True, False, False, False])
+    assert np.isnan(ds.cam_from_world[3:]).all()
+
+
+def test_image_size_differs_from_camera_yaml(tmp_path):
+    images = [*_images(2), next(_images(1, size=(W - 4, H)))]
+    ds = read_dataset(_write(tmp_path, frames=images, timestamps=[0.0, 0.1, 0.2]))
+    ds.frames[1]
+    with pytest.raises(
+        ValueError, match=r"000002\.png: image is 28x24 but .*camera\.yaml says 32x24"
+    ):
+        ds.frames[2]
+    root = _write(tmp_path, 2, name="ds2", camera=Camera(W + 1, H))
+    with pytest.raises(ValueError, match=r"000000\.png: image is 32x24 but .*says 33x24"):
+        read_dataset(root)
+
+
+def test_unreadable_image_and_ground_truth_mismatch(tmp_path):
+    root = _write(tmp_path, 3, extra_files={"frames/000001.png": b"not a png"})
+    with pytest.raises(ValueError, match=r"000001\.png: cannot read image"):
+        read_dataset(root).frames[1]
+    truth = "frame," + ",".join(f"h{i}{j}" for i in range(3) for j in range(3)) + "\n"
+    truth += "0,1,0,0,0,1,0,0,0,1\n"
+    root = _write(tmp_path, 2, name="ds2", extra_files={"ground_truth.csv": truth})
+    with pytest.raises(ValueError, match=r"ground_truth\.csv: no row for frame 1"):
+        read_dataset(root)
+
+
+def test_hand_eye_not_rigid(tmp_path):
+    path = tmp_path / "hand_eye.txt"
+    np.savetxt(path, np.diag([1.0, 2.0, 1.0, 1.0]))
+    with pytest.raises(ValueError, match=r"hand_eye\.txt: not a rigid transform"):
+        read_hand_eye(path)
+    np.savetxt(path, np.eye(3))
+    with pytest.raises(ValueError, match=r"hand_eye\.txt: expected a 4x4 matrix, got 3x3"):
+        read_hand_eye(path)
+
+
+# --------------------------------------------------------------------------- atomicity
+
+
+def test_output_writer_commits_on_success(tmp_path):
+    out = tmp_path / "out"
+    with OutputWriter(out) as w:
+        w.write_homographies([0, 1], np.stack([np.eye(3), np.full((3, 3), np.nan)]))
+        w.write_json("report.json", {"e_M": np.float64(1.5), "x": np.arange(2), "bad": np.nan})
+        w.write_image("mosaic.png", np.zeros((4, 5), np.uint8))
+        w.path("video.bin").write_bytes(b"x")
+        assert not out.exists()  # nothing visible before the end
+    assert sorted(p.name for p in out.iterdir()) == [
+        "homographies.csv",
+        "mosaic.png",
+        "report.json",
+        "video.bin",
+    ]
+    assert json.loads((out / "report.json").read_text()) == {"e_M": 1.5, "x": [0, 1], "bad": None}
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]  # no temp folder left
+
+
+def test_output_writer_exception_leaves_out_untouched(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "homographies.csv").write_text("old")
+    with pytest.raises(RuntimeError, match="boom"), OutputWriter(out) as w:
+        w.write_homographies([0], np.eye(3)[None])
+        w.write_text("report.json", "{}")
+        raise RuntimeError("boom")
+    assert [p.name for p in out.iterdir()] == ["homographies.csv"]
+    assert (out / "homographies.csv").read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]
+
+
+def test_write_dataset_failure_leaves_no_root(tmp_path):
+    def frames():
+        yield from _images(2)
+        raise RuntimeError("camera unplugged")
+
+    with pytest.raises(RuntimeError, match="camera unplugged"):
+        write_dataset(
+            tmp_path / "ds", camera=Camera(W, H, K), frames=frames(), timestamps=[0, 1, 2]
+        )
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_write_dataset_refuses_to_overwrite(tmp_path):
+    root = _write(tmp_path, 2)
+    with pytest.raises(ValueError, match=r"ds: exists and is not empty \(pass overwrite=True"):
+        _write(tmp_path, 2)
+    _write(tmp_path, 3, overwrite=True)
+    assert len(read_dataset(root).frames) == 3
+    assert [p.name for p in tmp_path.iterdir()] == ["ds"]
