@@ -3,14 +3,16 @@
 
 #include <pybind11/pybind11.h>
 
+#include <Eigen/Core>
+#include <cmath>
 #include <stdexcept>
 #include <string>
-
-#include <Eigen/Core>
 
 namespace fusedmosaic::bindings {
 
 void BindGeometry(pybind11::module_& m);
+void BindResiduals(pybind11::module_& m);
+void BindProblem(pybind11::module_& m);
 
 using RowMatrixXd = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
 
@@ -27,8 +29,8 @@ inline void CheckSize(const Eigen::Ref<const Eigen::VectorXd>& v, Eigen::Index s
   }
 }
 
-inline void CheckShape(const Eigen::Ref<const RowMatrixXd>& a, Eigen::Index rows,
-                       Eigen::Index cols, const char* name) {
+inline void CheckShape(const Eigen::Ref<const RowMatrixXd>& a, Eigen::Index rows, Eigen::Index cols,
+                       const char* name) {
   if ((rows >= 0 && a.rows() != rows) || a.cols() != cols) {
     throw std::invalid_argument(std::string(name) + ": expected shape (" +
                                 (rows >= 0 ? std::to_string(rows) : std::string("N")) + ", " +
@@ -38,6 +40,15 @@ inline void CheckShape(const Eigen::Ref<const RowMatrixXd>& a, Eigen::Index rows
   if (!a.allFinite()) {
     throw std::invalid_argument(std::string(name) + ": contains NaN or infinite values");
   }
+}
+
+inline Eigen::Matrix3d CheckCameraMatrix(const Eigen::Ref<const RowMatrixXd>& K) {
+  CheckShape(K, 3, 3, "camera_matrix");
+  Eigen::Matrix3d out = K;
+  if (std::abs(out.determinant()) < 1e-12) {
+    throw std::invalid_argument("camera_matrix: matrix is singular");
+  }
+  return out;
 }
 
 }  // namespace fusedmosaic::bindings

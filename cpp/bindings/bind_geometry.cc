@@ -29,15 +29,6 @@ void CheckPlane(const Vec& plane) {
   }
 }
 
-Eigen::Matrix3d CheckCameraMatrix(const Mat& K) {
-  CheckShape(K, 3, 3, "camera_matrix");
-  Eigen::Matrix3d out = K;
-  if (std::abs(out.determinant()) < 1e-12) {
-    throw std::invalid_argument("camera_matrix: matrix is singular");
-  }
-  return out;
-}
-
 Eigen::Matrix3d CheckedInverse(const Eigen::Matrix3d& H, const char* what) {
   const double det = H.determinant();
   if (!std::isfinite(det) || std::abs(det) < 1e-12 * std::pow(H.norm(), 3)) {

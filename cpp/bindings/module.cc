@@ -9,4 +9,6 @@ PYBIND11_MODULE(_core, m) {
   m.attr("__version__") = FUSEDMOSAIC_VERSION;
 #endif
   fusedmosaic::bindings::BindGeometry(m);
+  fusedmosaic::bindings::BindResiduals(m);
+  fusedmosaic::bindings::BindProblem(m);
 }

@@ -1,0 +1,252 @@
+// Python bindings of cpp/fusedmosaic/problem: BundleAdjuster, its options and solve summary.
+#include <pybind11/eigen.h>
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+#include <pybind11/stl.h>
+
+#include <optional>
+#include <sstream>
+#include <string>
+
+#include "bindings/bind.h"
+#include "fusedmosaic/problem/bundle_adjuster.h"
+
+namespace py = pybind11;
+using namespace pybind11::literals;
+
+namespace fusedmosaic::bindings {
+namespace {
+
+using Vec = Eigen::Ref<const Eigen::VectorXd>;
+using Mat = Eigen::Ref<const RowMatrixXd>;
+
+Vector6d ToPose(const Vec& v, const char* name) {
+  CheckSize(v, kPoseSize, name);
+  return v;
+}
+
+BundleAdjuster::Points ToPoints(const Mat& points, const char* name) {
+  CheckShape(points, -1, 2, name);
+  return points;
+}
+
+// Field names of BundleAdjusterOptions, in declaration order (repr and keyword construction).
+constexpr const char* kOptionFields[] = {"sigma_v_px",
+                                         "emt_sigma",
+                                         "motion_sigma",
+                                         "loss",
+                                         "loss_scale_px",
+                                         "linear_solver",
+                                         "residual_blocks",
+                                         "max_iterations",
+                                         "function_tolerance",
+                                         "gradient_tolerance",
+                                         "parameter_tolerance",
+                                         "num_threads",
+                                         "use_emt",
+                                         "use_motion_prior"};
+
+constexpr const char* kSummaryFields[] = {"iterations",
+                                          "initial_cost",
+                                          "final_cost",
+                                          "visual_cost",
+                                          "emt_cost",
+                                          "motion_cost",
+                                          "solve_time_s",
+                                          "termination",
+                                          "message",
+                                          "linear_solver",
+                                          "num_residual_blocks",
+                                          "num_residuals",
+                                          "num_parameters",
+                                          "num_free_parameters",
+                                          "num_visual_blocks",
+                                          "num_emt_blocks",
+                                          "num_motion_blocks",
+                                          "gauge_fixed_by_constraints"};
+
+std::string Repr(const py::object& self, const char* cls, const char* const* fields, size_t n) {
+  std::ostringstream out;
+  out << cls << "(";
+  for (size_t i = 0; i < n; ++i) {
+    out << (i ? ", " : "") << fields[i] << "="
+        << py::repr(self.attr(fields[i])).cast<std::string>();
+  }
+  out << ")";
+  return out.str();
+}
+
+}  // namespace
+
+void BindProblem(py::module_& m) {
+  py::class_<BundleAdjusterOptions>(m, "BundleAdjusterOptions",
+                                    "Options of BundleAdjuster; defaults from seed 000 "
+                                    "(Sec. 4.2, appendix Eq. 30). Keyword construction: "
+                                    "BundleAdjusterOptions(loss='huber', ...).")
+      .def(py::init([](const py::kwargs& kwargs) {
+        BundleAdjusterOptions options;
+        py::object self = py::cast(options);
+        for (const auto& item : kwargs) {
+          const std::string key = py::str(item.first);
+          bool known = false;
+          for (const char* field : kOptionFields) known = known || key == field;
+          if (!known) {
+            throw py::type_error("BundleAdjusterOptions: unknown option '" + key + "'");
+          }
+          self.attr(key.c_str()) = item.second;
+        }
+        return self.cast<BundleAdjusterOptions>();
+      }))
+      .def_readwrite("sigma_v_px", &BundleAdjusterOptions::sigma_v_px,
+                     "sigma_v, pixels (paper Sec. 4.2: 1 px).")
+      .def_property(
+          "emt_sigma", [](const BundleAdjusterOptions& o) { return Eigen::VectorXd(o.emt_sigma); },
+          [](BundleAdjusterOptions& o, const Vec& v) { o.emt_sigma = ToPose(v, "emt_sigma"); },
+          "(6,) float64 EMT prior standard deviations [rad x3, mm x3] (appendix Eq. 30). "
+          "Returns a copy: assign the whole array.")
+      .def_property(
+          "motion_sigma",
+          [](const BundleAdjusterOptions& o) { return Eigen::VectorXd(o.motion_sigma); },
+          [](BundleAdjusterOptions& o, const Vec& v) {
+            o.motion_sigma = ToPose(v, "motion_sigma");
+          },
+          "(6,) float64 constant-velocity prior standard deviations [rad x3, mm x3] "
+          "(appendix Eq. 30). Returns a copy: assign the whole array.")
+      .def_readwrite("loss", &BundleAdjusterOptions::loss,
+                     "'none' | 'huber' | 'cauchy', applied per correspondence.")
+      .def_readwrite("loss_scale_px", &BundleAdjusterOptions::loss_scale_px,
+                     "Robust kernel scale, pixels.")
+      .def_readwrite("linear_solver", &BundleAdjusterOptions::linear_solver,
+                     "'auto' (sparse_normal_cholesky, see bench/bench_solvers.py), "
+                     "'dense_schur', 'sparse_schur', 'sparse_normal_cholesky', 'dense_qr', "
+                     "'dense_normal_cholesky' or 'iterative_schur'.")
+      .def_readwrite("residual_blocks", &BundleAdjusterOptions::residual_blocks,
+                     "'per_pair' (default) or 'per_point' residual blocks.")
+      .def_readwrite("max_iterations", &BundleAdjusterOptions::max_iterations)
+      .def_readwrite("function_tolerance", &BundleAdjusterOptions::function_tolerance)
+      .def_readwrite("gradient_tolerance", &BundleAdjusterOptions::gradient_tolerance)
+      .def_readwrite("parameter_tolerance", &BundleAdjusterOptions::parameter_tolerance)
+      .def_readwrite("num_threads", &BundleAdjusterOptions::num_threads)
+      .def_readwrite("use_emt", &BundleAdjusterOptions::use_emt,
+                     "Add the EMT pose prior (Eq. 19) for frames with a measurement.")
+      .def_readwrite("use_motion_prior", &BundleAdjusterOptions::use_motion_prior,
+                     "Add the constant-velocity prior (Eq. 20) for frame ids k-2, k-1, k.")
+      .def("validate", &BundleAdjusterOptions::Validate,
+           "Raises ValueError naming the first invalid field.")
+      .def("__repr__", [](const py::object& self) {
+        return Repr(self, "BundleAdjusterOptions", kOptionFields, std::size(kOptionFields));
+      });
+
+  py::class_<SolveSummary>(m, "SolveSummary",
+                           "Result of BundleAdjuster.solve(). Costs follow Ceres' convention "
+                           "(1/2 sum of squared whitened residuals).")
+      .def_readonly("iterations", &SolveSummary::iterations)
+      .def_readonly("initial_cost", &SolveSummary::initial_cost)
+      .def_readonly("final_cost", &SolveSummary::final_cost)
+      .def_readonly("visual_cost", &SolveSummary::visual_cost)
+      .def_readonly("emt_cost", &SolveSummary::emt_cost)
+      .def_readonly("motion_cost", &SolveSummary::motion_cost)
+      .def_readonly("solve_time_s", &SolveSummary::solve_time_s)
+      .def_readonly("termination", &SolveSummary::termination)
+      .def_readonly("message", &SolveSummary::message)
+      .def_readonly("linear_solver", &SolveSummary::linear_solver)
+      .def_readonly("num_residual_blocks", &SolveSummary::num_residual_blocks)
+      .def_readonly("num_residuals", &SolveSummary::num_residuals)
+      .def_readonly("num_parameters", &SolveSummary::num_parameters)
+      .def_readonly("num_free_parameters", &SolveSummary::num_free_parameters)
+      .def_readonly("num_visual_blocks", &SolveSummary::num_visual_blocks)
+      .def_readonly("num_emt_blocks", &SolveSummary::num_emt_blocks)
+      .def_readonly("num_motion_blocks", &SolveSummary::num_motion_blocks)
+      .def_readonly("gauge_fixed_by_constraints", &SolveSummary::gauge_fixed_by_constraints)
+      .def(
+          "as_dict",
+          [](const py::object& self) {
+            py::dict out;
+            for (const char* field : kSummaryFields) out[field] = self.attr(field);
+            return out;
+          },
+          "All fields as a dict (JSON-serialisable).")
+      .def("__repr__", [](const py::object& self) {
+        return Repr(self, "SolveSummary", kSummaryFields, std::size(kSummaryFields));
+      });
+
+  py::class_<BundleAdjuster>(
+      m, "BundleAdjuster",
+      "Bundle adjustment of frame poses and the plane: BAVis (use_emt=False) and BAVis+EMT\n"
+      "(seed 000, Eq. 17). Owns the parameters, keyed by frame id. Without EMT priors the gauge\n"
+      "is fixed by holding the first frame constant and |plane| fixed.")
+      .def(py::init([](const Mat& camera_matrix, const BundleAdjusterOptions& options) {
+             return BundleAdjuster(CheckCameraMatrix(camera_matrix), options);
+           }),
+           "camera_matrix"_a, "options"_a = BundleAdjusterOptions(),
+           "camera_matrix : (3, 3) float64 K\noptions : BundleAdjusterOptions")
+      .def(
+          "add_frame",
+          [](BundleAdjuster& self, int frame_id, const Vec& cam_from_world,
+             const std::optional<Eigen::VectorXd>& emt_measurement) {
+            std::optional<Vector6d> z;
+            if (emt_measurement) z = ToPose(*emt_measurement, "emt_measurement");
+            self.AddFrame(frame_id, ToPose(cam_from_world, "cam_from_world"), z);
+          },
+          "frame_id"_a, "cam_from_world"_a, "emt_measurement"_a = py::none(),
+          "Adds a frame.\n\ncam_from_world : (6,) float64 initial pose [r, t]\n"
+          "emt_measurement : (6,) float64 EMT pose z_k [r, t], or None")
+      .def(
+          "add_pair",
+          [](BundleAdjuster& self, int frame_l, int frame_m, const Mat& points_l,
+             const Mat& points_m) {
+            self.AddPair(frame_l, frame_m, ToPoints(points_l, "points_l"),
+                         ToPoints(points_m, "points_m"));
+          },
+          "frame_l"_a, "frame_m"_a, "points_l"_a, "points_m"_a,
+          "Adds the correspondences of a pair; the residual transfers frame m -> frame l.\n\n"
+          "points_l, points_m : (N, 2) float64 pixels, N >= 1, row i corresponds to row i")
+      .def(
+          "set_plane",
+          [](BundleAdjuster& self, const Vec& plane) {
+            CheckSize(plane, kPlaneSize, "plane");
+            self.SetPlane(plane);
+          },
+          "plane"_a, "Sets the plane.\n\nplane : (3,) float64 pi = n / d, non-zero")
+      .def(
+          "set_pose",
+          [](BundleAdjuster& self, int frame_id, const Vec& pose) {
+            self.SetPose(frame_id, ToPose(pose, "pose"));
+          },
+          "frame_id"_a, "pose"_a, "Sets a frame's pose.\n\npose : (6,) float64 cam_from_world")
+      .def("set_constant_frame", &BundleAdjuster::SetConstantFrame, "frame_id"_a,
+           "constant"_a = true, "Holds a frame's pose constant (or frees it again).")
+      .def("solve", &BundleAdjuster::Solve, py::call_guard<py::gil_scoped_release>(),
+           "Runs Ceres (GIL released) and returns a SolveSummary; poses and plane are updated.")
+      .def(
+          "poses",
+          [](const BundleAdjuster& self) {
+            const std::vector<int> ids = self.FrameIds();
+            const auto n = static_cast<py::ssize_t>(ids.size());
+            py::array_t<int64_t> id_array(n);
+            py::array_t<double> pose_array({n, py::ssize_t{kPoseSize}});
+            auto id_view = id_array.mutable_unchecked<1>();
+            auto pose_view = pose_array.mutable_unchecked<2>();
+            for (py::ssize_t i = 0; i < n; ++i) {
+              id_view(i) = ids[i];
+              const Vector6d pose = self.GetPose(ids[i]);
+              for (int j = 0; j < kPoseSize; ++j) pose_view(i, j) = pose[j];
+            }
+            return py::make_tuple(id_array, pose_array);
+          },
+          "Returns (ids (N,) int64 ascending, poses (N, 6) float64 cam_from_world).")
+      .def(
+          "pose", [](const BundleAdjuster& self, int frame_id) { return self.GetPose(frame_id); },
+          "frame_id"_a, "Pose of one frame, (6,) float64. IndexError for an unknown id.")
+      .def("plane", &BundleAdjuster::Plane, "The plane pi = n / d, (3,) float64.")
+      .def_property_readonly(
+          "options", [](const BundleAdjuster& self) { return self.options(); },
+          "A copy of the options (fixed at construction).")
+      .def_property_readonly("camera_matrix",
+                             [](const BundleAdjuster& self) { return self.camera_matrix(); })
+      .def_property_readonly("num_frames", &BundleAdjuster::NumFrames)
+      .def_property_readonly("num_pairs", &BundleAdjuster::NumPairs)
+      .def_property_readonly("num_correspondences", &BundleAdjuster::NumCorrespondences);
+}
+
+}  // namespace fusedmosaic::bindings

@@ -1,0 +1,143 @@
+// Bundle adjustment over all frames: BAVis and BAVis+EMT (seed 000, Sec. 3.4, Eq. 17).
+//
+//     (X, pi) = argmin  C_v + C_EMT + C_p                                        (Eq. 17)
+// with the visual transfer term C_v (residuals/visual_transfer.h, Eq. 18), the EM-tracker pose
+// prior C_EMT (residuals/pose_prior.h, Eq. 19) and the constant-velocity prior C_p
+// (residuals/constant_velocity.h, Eq. 20). Ceres reports costs as 1/2 of these sums.
+//
+// The adjuster owns the parameters: one pose [r, t] (cam_from_world) per frame id and the plane
+// pi = n / d. Each Solve() builds a fresh ceres::Problem over the stored data, so frames, pairs
+// and poses can be added or changed between solves. Not thread-safe: do not modify an adjuster
+// while it solves.
+//
+// Gauge. Without EMT priors (BAVis) every term is invariant to a change of world frame by a
+// similarity: a rigid motion (poses T_k -> T_k A, the plane re-expressed accordingly) and a scale
+// (t_k -> s t_k, pi -> pi / s leaves H_k = R_k - t_k pi^T unchanged). The frame -> reference
+// homographies G_k = H_0 H_k^-1 are gauge-invariant, so any representative will do; we fix the
+// 7 degrees of freedom so that the normal equations are not singular:
+//   * rigid motion: the first frame (lowest id) in the problem is held constant, unless the user
+//     already set a frame constant with SetConstantFrame;
+//   * scale: the plane block lives on ceres::SphereManifold<3>, i.e. |pi| = 1 / (distance from
+//     the world origin to the plane) keeps its initial value. Skipped when two or more frames are
+//     constant, whose baseline already fixes the scale.
+// The constant-velocity prior is only approximately gauge-invariant and does not change this.
+// With EMT priors in the problem (use_emt and at least one measurement) the priors fix the gauge
+// and no constraint is added. Disconnected groups of frames keep their own relative freedom.
+#pragma once
+
+#include <Eigen/Core>
+#include <array>
+#include <map>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "fusedmosaic/residuals/constant_velocity.h"
+#include "fusedmosaic/residuals/pose_prior.h"
+#include "fusedmosaic/residuals/visual_transfer.h"
+
+namespace fusedmosaic {
+
+struct BundleAdjusterOptions {
+  double sigma_v_px = 1.0;                      // paper Sec. 4.2: sigma_v = 1 px
+  Vector6d emt_sigma = kDefaultEmtSigma;        // appendix Eq. 30, standard deviations (rad, mm)
+  Vector6d motion_sigma = kDefaultMotionSigma;  // appendix Eq. 30, standard deviations (rad, mm)
+  std::string loss = "none";                    // "none" | "huber" | "cauchy", applied per point
+  double loss_scale_px = 2.0;                   // robust kernel scale, pixels
+  // "auto" or a Ceres linear solver name in lower case: "dense_schur", "sparse_schur",
+  // "sparse_normal_cholesky", "dense_qr", "dense_normal_cholesky", "iterative_schur".
+  std::string linear_solver = "auto";
+  // "per_pair": one residual block per image pair (default, measured faster in
+  // bench/bench_solvers.py); "per_point": one block per correspondence (robust loss via Ceres).
+  std::string residual_blocks = "per_pair";
+  int max_iterations = 100;
+  double function_tolerance = 1e-10;
+  double gradient_tolerance = 1e-10;
+  double parameter_tolerance = 1e-8;
+  int num_threads = 2;
+  bool use_emt = true;           // add C_EMT for frames with a measurement
+  bool use_motion_prior = true;  // add C_p for consecutive frame ids k-2, k-1, k
+
+  // Throws std::invalid_argument naming the offending field.
+  void Validate() const;
+};
+
+struct SolveSummary {
+  int iterations = 0;  // successful + unsuccessful steps
+  double initial_cost = 0.0;
+  double final_cost = 0.0;
+  // Per-term costs at the solution (Ceres convention: 1/2 sum of squared whitened residuals,
+  // robust-kernel values for the visual term when a loss is set).
+  double visual_cost = 0.0;
+  double emt_cost = 0.0;
+  double motion_cost = 0.0;
+  double solve_time_s = 0.0;  // Ceres' total time (preprocessing + minimisation)
+  std::string termination;    // "CONVERGENCE", "NO_CONVERGENCE", "FAILURE", ...
+  std::string message;        // Ceres' explanation of the termination
+  std::string linear_solver;  // the linear solver used, lower case
+  int num_residual_blocks = 0;
+  int num_residuals = 0;
+  int num_parameters = 0;       // all parameters in the problem (constant ones included)
+  int num_free_parameters = 0;  // optimised tangent-space parameters
+  int num_visual_blocks = 0;
+  int num_emt_blocks = 0;
+  int num_motion_blocks = 0;
+  bool gauge_fixed_by_constraints = false;  // true when the BAVis gauge constraints were applied
+};
+
+class BundleAdjuster {
+ public:
+  using Pose = Vector6d;
+  using Points = Eigen::Matrix<double, Eigen::Dynamic, 2>;
+
+  // camera_matrix: K, finite and invertible. Throws std::invalid_argument.
+  explicit BundleAdjuster(const Eigen::Matrix3d& camera_matrix,
+                          const BundleAdjusterOptions& options = BundleAdjusterOptions());
+
+  // Adds a frame with its initial pose (cam_from_world) and optional EMT measurement.
+  void AddFrame(int frame_id, const Pose& cam_from_world,
+                const std::optional<Pose>& emt_measurement = std::nullopt);
+  // Adds the N >= 1 correspondences of a pair, pixels; row i of points_m maps to row i of points_l
+  // (transfer m -> l). Frames must exist (std::out_of_range otherwise) and differ.
+  void AddPair(int frame_l, int frame_m, const Points& points_l, const Points& points_m);
+  void SetPlane(const Eigen::Vector3d& plane);
+  void SetPose(int frame_id, const Pose& cam_from_world);
+  void SetConstantFrame(int frame_id, bool constant = true);
+
+  SolveSummary Solve();
+
+  std::vector<int> FrameIds() const;
+  Pose GetPose(int frame_id) const;
+  Eigen::Vector3d Plane() const;
+  bool HasPlane() const { return plane_set_; }
+  int NumFrames() const { return static_cast<int>(frames_.size()); }
+  int NumPairs() const { return static_cast<int>(pairs_.size()); }
+  int NumCorrespondences() const;
+  const BundleAdjusterOptions& options() const { return options_; }
+  const Eigen::Matrix3d& camera_matrix() const { return camera_matrix_; }
+
+ private:
+  struct Frame {
+    std::array<double, kPoseSize> pose{};  // Ceres parameter block; std::map keeps it in place
+    std::optional<Pose> emt_measurement;
+    bool constant = false;
+  };
+  struct Pair {
+    int frame_l = 0;
+    int frame_m = 0;
+    Eigen::Matrix<double, 2, Eigen::Dynamic> points_l;
+    Eigen::Matrix<double, 2, Eigen::Dynamic> points_m;
+  };
+
+  Frame& FindFrame(int frame_id, const char* what);
+  const Frame& FindFrame(int frame_id, const char* what) const;
+
+  Eigen::Matrix3d camera_matrix_;
+  BundleAdjusterOptions options_;
+  std::map<int, Frame> frames_;
+  std::vector<Pair> pairs_;
+  std::array<double, kPlaneSize> plane_{};
+  bool plane_set_ = false;
+};
+
+}  // namespace fusedmosaic

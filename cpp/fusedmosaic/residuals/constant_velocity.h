@@ -1,0 +1,60 @@
+// Constant-velocity motion prior (seed 000, Sec. 3.3.1 assumption 4, Eqs. 14-16 and 20).
+//
+// With poses as rigid transforms T_k (cam_from_world), the last pairwise motion is
+// T_{k-1,k-2} = T_{k-1} T_{k-2}^-1 (cam_{k-1} from cam_{k-2}); repeating it once predicts
+//     T_bar_k = T_{k-1,k-2} T_{k-1} = T_{k-1} T_{k-2}^-1 T_{k-1}              (Eq. 16)
+//     mu_p(x_{k-1}, x_{k-2}) = [r(T_bar_k), t(T_bar_k)]                       (Eq. 15)
+// and x_k | x_{k-1}, x_{k-2} ~ N(mu_p, Sigma_p), so
+//     C_p = sum_{k>=3} (x_k - mu_p)^T Sigma_p^-1 (x_k - mu_p)                  (Eq. 20)
+// The residual is r = S_p (x_k - mu_p), S_p = diag(1 / sigma_p). As in the paper (and in
+// pose_prior.h) x_k - mu_p is the plain difference of angle-axis + translation 6-vectors.
+//
+// Standard deviations (appendix, Eq. 30): Sigma_p = diag(0.0044 x3, 15.2178 x3) is called a
+// covariance there; for consistency with Sigma_EMT (whose values match the standard deviations
+// of Sec. 4.1) we read it as standard deviations too: 0.0044 rad (0.25 deg) and 15.2 mm.
+#pragma once
+
+#include <ceres/autodiff_cost_function.h>
+
+#include <Eigen/Core>
+
+#include "fusedmosaic/geometry/pose.h"
+#include "fusedmosaic/residuals/pose_prior.h"
+
+namespace fusedmosaic {
+
+// sigma_p, [rad x3, mm x3] (appendix Eq. 30, read as standard deviations).
+inline const Vector6d kDefaultMotionSigma =
+    (Vector6d() << 0.0044, 0.0044, 0.0044, 15.2178, 15.2178, 15.2178).finished();
+
+struct ConstantVelocityCostFunctor {
+  explicit ConstantVelocityCostFunctor(const Vector6d& sigma)
+      : sqrt_information_(SqrtInformationFromSigma(sigma)) {}
+
+  // Each pose: [0..2] angle-axis, [3..5] translation of cam_from_world, for frames k-2, k-1, k.
+  // residuals: 6.
+  template <typename T>
+  bool operator()(const T* const cam_km2_from_world, const T* const cam_km1_from_world,
+                  const T* const cam_k_from_world, T* residuals_ptr) const {
+    const auto T_km1 = RigidTransform<T>::FromPose(cam_km1_from_world);
+    const auto T_km2 = RigidTransform<T>::FromPose(cam_km2_from_world);
+    const RigidTransform<T> predicted = T_km1 * T_km2.Inverse() * T_km1;
+    T mu[kPoseSize];
+    predicted.ToPose(mu);
+    Eigen::Map<Eigen::Matrix<T, 6, 1>> residuals(residuals_ptr);
+    for (int i = 0; i < kPoseSize; ++i) residuals[i] = cam_k_from_world[i] - mu[i];
+    residuals.applyOnTheLeft(sqrt_information_.template cast<T>());
+    return true;
+  }
+
+  static ceres::CostFunction* Create(const Vector6d& sigma = kDefaultMotionSigma) {
+    return new ceres::AutoDiffCostFunction<ConstantVelocityCostFunctor, kPoseSize, kPoseSize,
+                                           kPoseSize, kPoseSize>(
+        new ConstantVelocityCostFunctor(sigma));
+  }
+
+ private:
+  Matrix6d sqrt_information_;
+};
+
+}  // namespace fusedmosaic
