@@ -1,0 +1,607 @@
+"""Robot-prior Kalman filter for online pCLE topology inference (Rosa et al. 2018, paper 004).
+
+Per frame i the filter fuses two estimates of the displacement since frame i-1, independently
+for x and y (Sec. II-A):
+
+- the robot's ``dX_r(i) = V_r(i) T_s`` (the prior, Eq. 4), with variance
+  ``sigma_rob^2 = sigma_r0^2 / c_rob`` (Eq. 9);
+- the image registration ``dX_{i-1}^i`` (the likelihood, Eq. 5), with variance
+  ``sigma_img^2 = sigma_i0^2 / c_img`` (Eq. 10);
+
+by the product of the two Gaussians (Eqs. 6-8). The confidences come from the smoothness of the
+image displacement's direction and norm (``c_angle``, ``c_speed``, Eqs. 11-15), the structural
+similarity of the aligned frames (``c_match``, Sec. II-C), their geometric mean ``c_img``
+(Eq. 16), the robot/image speed agreement ``c_sp`` (Eq. 17) and ``c_rob`` (Eq. 18).
+
+Units: displacements are in pixels of the image axes (x right, y down), the robot's already
+converted to pixels by the caller (robot positions interpolated at the frame times, then
+differenced). Angles are in radians. Positions are relative to frame 0 (Eq. 3).
+
+Reading choices where the paper leaves room (all configurable in :class:`KalmanOptions`):
+
+- Eq. 13-14: ``normalize`` decreases, so it is applied to the absolute deviation. The angle
+  deviation ``alpha(i) - f(h_alpha)`` is wrapped to (-pi, pi] before taking its absolute value,
+  and the angle history is unwrapped (``numpy.unwrap``) before filtering so that a trajectory
+  crossing +-pi (a circle, a spiral) stays smooth.
+- The history ``h(i, n) = [x(i-n), ..., x(i)]`` holds the n preceding values and the current
+  one, as Eq. 13-14 write it, and ``f`` (median filter, then a 3rd-order least-squares
+  polynomial) is read at i. The median filter mirrors the sequence at its end, so an outlier at
+  i is removed from its own reference (the text's "n time-steps directly preceding i" reading,
+  with ``f`` extrapolated one step, is ``include_current=False``; it is about twice as noisy).
+  Histories keep the last n *valid* samples with their step indices (failed registrations are
+  skipped) and the angle history skips displacements too short to have a direction.
+- Eq. 14 by default uses the *relative* speed deviation ``|N - f| / max(f, speed_floor)`` so one
+  ``(k, x_r)`` works across scanning speeds; ``speed_relative=False`` gives the absolute one.
+- Eq. 17: ``r = min(n_I/n_r, n_r/n_I)`` is 1 when the speeds agree, and ``normalize`` decreases,
+  so ``c_sp = normalize(1 - r)``: high for agreement, as the text below Eq. 17 requires ("tend
+  to 1 if both displacements get close"). ``speed_floor`` is added to both norms so two
+  near-zero displacements count as agreeing.
+- Until the history holds ``min_history`` values the confidences cannot be computed; the
+  initial values ``c_rob(0) = 10`` and ``c_img(0) = 1`` (Sec. II-B) are used. Note that with
+  Eq. 9-10 taken literally and equal ``sigma_r0 = sigma_i0`` this favours the *robot* 10:1,
+  whereas the paper's prose says it relies more on the image at the start; set ``c_rob0 < 1``
+  (or ``sigma_robot0 > sqrt(10) sigma_image0``) to follow the prose.
+- ``c_angle`` is undefined for a displacement shorter than ``angle_min_norm`` (its direction is
+  noise, e.g. a stuck probe): it is reported as NaN and counts as 1 in Eq. 16 (``c_speed``
+  already judges such a step), and such directions are kept out of the angle history.
+- A missing image displacement (NaN, e.g. a featureless frame) sets ``c_img = 0`` (follow the
+  robot); a missing robot displacement sets ``c_rob = 0`` (follow the image).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import numpy as np
+from scipy import ndimage
+from scipy.special import erf
+
+__all__ = [
+    "KalmanOptions",
+    "FilterStep",
+    "FilterTrajectory",
+    "RobotKalmanFilter",
+    "normalize",
+    "smoothed_prediction",
+    "angle_confidence",
+    "speed_confidence",
+    "speed_agreement_confidence",
+    "image_confidence",
+    "robot_confidence",
+    "fuse_gaussians",
+    "filter_trajectory",
+    "integrate_displacements",
+]
+
+
+def normalize(x, k: float, x_r: float):
+    """Eq. 15: ``(1 - erf(k (x - x_r))) / 2``, decreasing from ~1 to ~0, 0.5 at ``x = x_r``.
+
+    ``k`` sets the slope (the transition spans about ``x_r +- 2/k``). Works on scalars and arrays.
+    """
+    out = 0.5 * (1.0 - erf(k * (np.asarray(x, dtype=np.float64) - x_r)))
+    return float(out) if np.ndim(out) == 0 else out
+
+
+@dataclass(frozen=True)
+class KalmanOptions:
+    """Parameters of :class:`RobotKalmanFilter`. The paper gives no numeric values except
+    ``c_rob0``, ``c_img0`` and the polynomial order; the rest are chosen so that a confidence is
+    ~1 for smooth motion and ~0 for a clear outlier (see the module docstring)."""
+
+    # Eq. 9-10 base standard deviations of the robot and image displacements, px per frame.
+    sigma_robot0: float = 1.0
+    sigma_image0: float = 1.0
+    # Initial confidences, Sec. II-B: c_rob(0) = 10, c_img(0) = 1.
+    c_rob0: float = 10.0
+    c_img0: float = 1.0
+    # Eq. 13-14 history length n (paper: no value; ~1 s at the pCLE's 9-12 Hz).
+    history_length: int = 10
+    # Fewest past values for which confidences are computed (needs > poly_degree).
+    min_history: int = 6
+    # True: h(i, n) = [x(i-n), ..., x(i)] includes the current value (Eq. 13-14 as written) and
+    # f is the smoothed value at i. False: only the n preceding values, f extrapolated to i
+    # (noisier: a cubic extrapolated one step amplifies noise ~2x at n = 10).
+    include_current: bool = True
+    # f(.) of Eq. 13-14: median filter (odd kernel, removes isolated peaks) ...
+    median_kernel: int = 5
+    # ... then a 3rd-order polynomial fit, Sec. II-C.
+    poly_degree: int = 3
+    # c_angle = normalize(|wrap(alpha - f(h_alpha))|, k, x_r): 0.5 at 0.5 rad (~29 deg).
+    angle_k: float = 4.0  # 1/rad
+    angle_x_r: float = 0.5  # rad
+    # Displacements shorter than this (px/frame) have no usable direction: no c_angle, and
+    # they are left out of the angle history.
+    angle_min_norm: float = 0.25
+    # c_speed = normalize(|N - f(h_N)| / max(f(h_N), speed_floor), k, x_r): 0.5 at a 50 % change.
+    speed_k: float = 4.0
+    speed_x_r: float = 0.5
+    # False: absolute deviation |N - f(h_N)| in px/frame (then set speed_x_r in px).
+    speed_relative: bool = True
+    # px/frame; guards the relative speed and the Eq. 17 ratio against near-zero norms.
+    speed_floor: float = 0.25
+    # c_sp = normalize(1 - min(n_I/n_r, n_r/n_I), k, x_r): 0.5 when one norm is half the other.
+    sp_k: float = 4.0
+    sp_x_r: float = 0.5
+    # False: Eqs. 7-8 as written (the state variance is not carried over).
+    # True: standard Kalman filter, see RobotKalmanFilter.
+    propagate_variance: bool = False
+    # Variance of X_f(0) for propagate_variance=True, px^2 (frame 0 defines the origin).
+    initial_variance: float = 0.0
+
+    def __post_init__(self) -> None:
+        positive = ("sigma_robot0", "sigma_image0", "angle_k", "speed_k", "sp_k")
+        for name in positive:
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"KalmanOptions.{name} must be a finite number > 0, got {value}")
+        for name in ("c_rob0", "c_img0", "speed_floor", "angle_min_norm", "initial_variance"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"KalmanOptions.{name} must be a finite number >= 0, got {value}")
+        if self.c_rob0 == 0 and self.c_img0 == 0:
+            raise ValueError("KalmanOptions: c_rob0 and c_img0 cannot both be 0")
+        if self.poly_degree < 0:
+            raise ValueError(f"KalmanOptions.poly_degree must be >= 0, got {self.poly_degree}")
+        if self.median_kernel < 1 or self.median_kernel % 2 == 0:
+            raise ValueError(
+                f"KalmanOptions.median_kernel must be a positive odd integer, "
+                f"got {self.median_kernel}"
+            )
+        if not self.poly_degree < self.min_history <= self.history_length:
+            raise ValueError(
+                f"KalmanOptions: need poly_degree < min_history <= history_length, got "
+                f"poly_degree={self.poly_degree}, min_history={self.min_history}, "
+                f"history_length={self.history_length}"
+            )
+
+
+@lru_cache(maxsize=256)
+def _extrapolation_weights(offsets: tuple[int, ...], degree: int) -> np.ndarray:
+    """Weights w with ``w @ h`` = least-squares polynomial of ``degree`` through samples ``h``
+    taken at integer step ``offsets`` (<= 0) relative to the current step, evaluated at 0. Same
+    value as ``numpy.polynomial.Polynomial.fit(offsets, h, degree)(0)``, computed once per
+    pattern of offsets (in a steady stream there is one pattern)."""
+    t = np.asarray(offsets, dtype=np.float64)
+    t = t / max(1.0, float(-t.min()))  # scaled to [-1, 0] for conditioning
+    vander = np.polynomial.polynomial.polyvander(t, degree)
+    weights = np.linalg.pinv(vander)[0]  # coefficient of t^0 = value at t = 0
+    weights.setflags(write=False)
+    return weights
+
+
+def smoothed_prediction(
+    history, offsets=None, *, median_kernel: int = 5, poly_degree: int = 3
+) -> float:
+    """The low-pass operator ``f(h)`` of Eq. 13-14, evaluated at the current step.
+
+    ``history`` holds values oldest first; ``offsets`` their step offsets from the current step
+    (increasing integers <= 0), by default ``-len(history)+1, ..., 0``: the last sample is the
+    current step, the paper's ``h(i, n) = [x(i-n), ..., x(i)]``. A median filter of
+    ``median_kernel`` samples (``scipy.ndimage.median_filter``, mirrored edges, so a peak in the
+    last sample is removed too) suppresses isolated peaks, then a least-squares polynomial of
+    ``poly_degree`` (3 in the paper) is evaluated at offset 0 (an extrapolation when the history
+    stops before the current step).
+    """
+    h = np.asarray(history, dtype=np.float64)
+    if h.ndim != 1 or h.size <= poly_degree:
+        raise ValueError(
+            f"smoothed_prediction: need a 1-D history longer than poly_degree={poly_degree}, "
+            f"got shape {h.shape}"
+        )
+    if offsets is None:
+        offsets = tuple(range(-h.size + 1, 1))
+    else:
+        offsets = tuple(int(o) for o in offsets)
+        if (
+            len(offsets) != h.size
+            or offsets[-1] > 0
+            or any(b <= a for a, b in zip(offsets[:-1], offsets[1:], strict=True))
+        ):
+            raise ValueError(
+                f"smoothed_prediction: offsets must be {h.size} increasing step offsets <= 0, "
+                f"got {offsets}"
+            )
+    if median_kernel > 1 and h.size > 1:
+        h = ndimage.median_filter(h, size=min(median_kernel, 2 * h.size - 1), mode="mirror")
+    return float(_extrapolation_weights(offsets, poly_degree) @ h)
+
+
+def _wrap_angle(a: float) -> float:
+    """Wrap to (-pi, pi]."""
+    w = float(np.mod(a + np.pi, 2.0 * np.pi) - np.pi)
+    return np.pi if w == -np.pi else w
+
+
+def angle_confidence(
+    alpha: float,
+    alpha_history,
+    offsets=None,
+    *,
+    k: float = 4.0,
+    x_r: float = 0.5,
+    median_kernel: int = 5,
+    poly_degree: int = 3,
+) -> float:
+    """Eq. 13: ``normalize(|wrap(alpha - f(unwrap(h_alpha)))|)``, angles in radians.
+
+    ``offsets``: step offsets of the history samples, see :func:`smoothed_prediction`."""
+    reference = smoothed_prediction(
+        np.unwrap(np.asarray(alpha_history, dtype=np.float64)),
+        offsets,
+        median_kernel=median_kernel,
+        poly_degree=poly_degree,
+    )
+    return normalize(abs(_wrap_angle(alpha - reference)), k, x_r)
+
+
+def speed_confidence(
+    norm: float,
+    norm_history,
+    offsets=None,
+    *,
+    k: float = 4.0,
+    x_r: float = 0.5,
+    relative: bool = True,
+    floor: float = 0.25,
+    median_kernel: int = 5,
+    poly_degree: int = 3,
+) -> float:
+    """Eq. 14: ``normalize(|N - f(h_N)|)``, by default relative to ``max(f(h_N), floor)``.
+
+    ``offsets``: step offsets of the history samples, see :func:`smoothed_prediction`."""
+    reference = smoothed_prediction(
+        norm_history, offsets, median_kernel=median_kernel, poly_degree=poly_degree
+    )
+    deviation = abs(norm - reference)
+    if relative:
+        deviation /= max(reference, floor, np.finfo(np.float64).tiny)
+    return normalize(deviation, k, x_r)
+
+
+def speed_agreement_confidence(
+    norm_image: float, norm_robot: float, *, k: float = 4.0, x_r: float = 0.5, floor: float = 0.25
+) -> float:
+    """Eq. 17 read as ``normalize(1 - min(n_I/n_r, n_r/n_I))``: ~1 when the image and robot
+    displacement norms agree, ~0 when one is much smaller. ``floor`` (px/frame) is added to both
+    norms (two still frames agree); both zero with ``floor = 0`` counts as agreement."""
+    a, b = norm_image + floor, norm_robot + floor
+    ratio = 1.0 if max(a, b) == 0.0 else min(a, b) / max(a, b)
+    return normalize(1.0 - ratio, k, x_r)
+
+
+def image_confidence(c_angle: float, c_speed: float, c_match: float) -> float:
+    """Eq. 16: geometric mean of the three image confidences."""
+    return float(np.cbrt(c_angle * c_speed * c_match))
+
+
+def robot_confidence(c_sp: float, c_img: float) -> float:
+    """Eq. 18: ``c_rob = c_sp c_img - c_img + 1``: 0 when the image is trusted (c_img = 1) and
+    disagrees with the robot (c_sp = 0); 1 when they agree or the image is not trusted."""
+    return c_sp * c_img - c_img + 1.0
+
+
+def fuse_gaussians(
+    mean_prior: np.ndarray, var_prior: float, mean_like: np.ndarray, var_like: float
+) -> tuple[np.ndarray, float]:
+    """Eqs. 7-8, product of two Gaussians; an infinite variance means "ignore this one"."""
+    if np.isinf(var_prior) and np.isinf(var_like):
+        raise ValueError("fuse_gaussians: both variances are infinite (no information)")
+    if np.isinf(var_prior):
+        return np.asarray(mean_like, dtype=np.float64), float(var_like)
+    if np.isinf(var_like):
+        return np.asarray(mean_prior, dtype=np.float64), float(var_prior)
+    total = var_prior + var_like
+    if total == 0.0:  # both exact: Eq. 7 is 0/0; take the midpoint
+        return 0.5 * (np.asarray(mean_prior) + np.asarray(mean_like)), 0.0
+    mean = (var_prior * np.asarray(mean_like) + var_like * np.asarray(mean_prior)) / total
+    return mean, var_prior * var_like / total
+
+
+@dataclass(frozen=True)
+class FilterStep:
+    """One :meth:`RobotKalmanFilter.update`.
+
+    position : (2,) filtered position X_f(i) (px, relative to frame 0).
+    displacement : (2,) X_f(i) - X_f(i-1).
+    variance : (2,) state variance per axis: sigma_est^2 of Eq. 8, or the propagated P(i).
+    prior_variance, likelihood_variance : the robot and image variances used (Eq. 9-10;
+        inf for a confidence of 0). With ``propagate_variance`` the prior one includes P(i-1).
+    c_angle, c_speed, c_match, c_sp : the confidences (NaN when not computed: warm-up, missing
+        input).
+    c_img, c_rob : the confidences used for the variances (Eq. 16, 18 or the initial values).
+    warmup : True while the initial confidences of Sec. II-B are in use.
+    """
+
+    position: np.ndarray
+    displacement: np.ndarray
+    variance: np.ndarray
+    prior_variance: float
+    likelihood_variance: float
+    c_angle: float
+    c_speed: float
+    c_match: float
+    c_img: float
+    c_sp: float
+    c_rob: float
+    warmup: bool
+
+
+def _as_vector2(value, name: str, step: int) -> np.ndarray:
+    v = np.asarray(value, dtype=np.float64)
+    if v.shape != (2,):
+        raise ValueError(f"step {step}: {name} must have shape (2,), got {v.shape}")
+    if np.isinf(v).any():
+        raise ValueError(f"step {step}: {name} is infinite: {v}")
+    return v
+
+
+@dataclass
+class RobotKalmanFilter:
+    """Streaming robot-prior filter (paper 004, Sec. II), one :meth:`update` per new frame.
+
+    With ``options.propagate_variance = False`` (default, the paper as written) each step fuses
+
+    - prior ``N(X_f(i-1) + dX_r(i), sigma_r0^2 / c_rob(i))`` (Eq. 4, 9) and
+    - likelihood ``N(X_f(i-1) + dX(i), sigma_i0^2 / c_img(i))`` (Eq. 5, 10)
+
+    by Eqs. 7-8; ``sigma_est^2`` is reported but not carried to the next step. Because both
+    Gaussians are centred on the same X_f(i-1), this is also the exact Kalman mean for relative
+    measurements (a two-state "stochastic cloning" filter gives the same X_f, with the position
+    variance growing by sigma_est^2 per step).
+
+    With ``propagate_variance = True`` it is a standard Kalman filter on the position, the
+    robot displacement as the control input and the image registration read as a position
+    measurement in the mosaic:
+
+    - predict: ``x- = X_f(i-1) + dX_r(i)``, ``P- = P(i-1) + sigma_r0^2 / c_rob(i)``
+    - measure: ``z = X_f(i-1) + dX(i)`` with ``R = sigma_i0^2 / c_img(i)``: frame i registered
+      against frame i-1 *as already placed* in the mosaic, so only the registration noise counts
+    - update: ``K = P- / (P- + R)``, ``X_f(i) = x- + K (z - x-)``, ``P(i) = (1 - K) P-``,
+      with ``P(0) = options.initial_variance``.
+
+    The accumulated P makes the image term gain weight over time (steady state
+    ``K > Q / (Q + R)``): the robot's errors integrate, the registration to the placed mosaic
+    does not. Both modes coincide on the first step when P(0) = 0.
+    """
+
+    options: KalmanOptions = field(default_factory=KalmanOptions)
+    start: np.ndarray = field(default_factory=lambda: np.zeros(2))
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.options, KalmanOptions):
+            raise ValueError(f"options must be a KalmanOptions, got {type(self.options).__name__}")
+        self.start = _as_vector2(self.start, "start", 0).copy()
+        if np.isnan(self.start).any():
+            raise ValueError(f"start must be finite, got {self.start}")
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the history and go back to ``start`` (frame 0)."""
+        n = self.options.history_length
+        # (step, value) of the last n valid image displacements; the angle history skips
+        # displacements shorter than angle_min_norm (their direction is noise).
+        self._alpha: deque[tuple[int, float]] = deque(maxlen=n)
+        self._norm: deque[tuple[int, float]] = deque(maxlen=n)
+        self._position = self.start.copy()
+        self._variance = np.full(2, self.options.initial_variance)
+        self._step = 0
+
+    @property
+    def position(self) -> np.ndarray:
+        """Current filtered position X_f (2,), a copy."""
+        return self._position.copy()
+
+    @property
+    def step(self) -> int:
+        """Number of updates so far (the index of the last frame placed)."""
+        return self._step
+
+    def _history(
+        self, stored: deque[tuple[int, float]], current: float, step: int
+    ) -> tuple[list[int], list[float]]:
+        """Offsets and values of h(i, n) for Eq. 13-14 (with the current value when
+        ``include_current``)."""
+        offsets = [s - step for s, _ in stored]
+        values = [v for _, v in stored]
+        if self.options.include_current:
+            offsets.append(0)
+            values.append(current)
+        return offsets, values
+
+    def update(self, dx_image, dx_robot, c_match: float) -> FilterStep:
+        """Place the next frame.
+
+        Parameters
+        ----------
+        dx_image : (2,) image registration dX_{i-1}^i in px (``register_ncc(...).dx``); NaN if
+            the registration failed.
+        dx_robot : (2,) robot displacement dX_r(i) = V_r(i) T_s in px, image axes; NaN if
+            unavailable.
+        c_match : SSIM of the aligned overlap in [0, 1] (``aligned_overlap_ssim``); ignored when
+            ``dx_image`` is NaN.
+        """
+        opt = self.options
+        step = self._step + 1
+        dx_img = _as_vector2(dx_image, "dx_image", step)
+        dx_rob = _as_vector2(dx_robot, "dx_robot", step)
+        image_ok = bool(np.isfinite(dx_img).all())
+        robot_ok = bool(np.isfinite(dx_rob).all())
+        if not image_ok and not robot_ok:
+            raise ValueError(
+                f"step {step}: both dx_image and dx_robot are missing (NaN); cannot place the frame"
+            )
+        c_match = float(c_match)
+        if image_ok and not 0.0 <= c_match <= 1.0:
+            raise ValueError(f"step {step}: c_match must be in [0, 1], got {c_match}")
+
+        nan = float("nan")
+        c_angle = c_speed = c_sp = nan
+        if image_ok:
+            alpha = float(np.arctan2(dx_img[1], dx_img[0]))  # Eq. 11
+            norm = float(np.hypot(dx_img[0], dx_img[1]))  # Eq. 12
+        warmup = len(self._norm) < opt.min_history
+        if robot_ok and image_ok:
+            c_sp = speed_agreement_confidence(
+                norm, float(np.hypot(*dx_rob)), k=opt.sp_k, x_r=opt.sp_x_r, floor=opt.speed_floor
+            )
+        if not image_ok:
+            c_img, c_rob = 0.0, 1.0
+            warmup = False
+        elif warmup:
+            c_img, c_rob = opt.c_img0, opt.c_rob0
+        else:
+            smooth = {"median_kernel": opt.median_kernel, "poly_degree": opt.poly_degree}
+            if norm >= opt.angle_min_norm and len(self._alpha) >= opt.min_history:
+                offsets, values = self._history(self._alpha, alpha, step)
+                c_angle = angle_confidence(
+                    alpha, values, offsets, k=opt.angle_k, x_r=opt.angle_x_r, **smooth
+                )
+            offsets, values = self._history(self._norm, norm, step)
+            c_speed = speed_confidence(
+                norm,
+                values,
+                offsets,
+                k=opt.speed_k,
+                x_r=opt.speed_x_r,
+                relative=opt.speed_relative,
+                floor=opt.speed_floor,
+                **smooth,
+            )
+            # An undefined c_angle (too short a displacement, or too few directions yet) is
+            # uninformative: 1 in Eq. 16.
+            c_img = image_confidence(1.0 if np.isnan(c_angle) else c_angle, c_speed, c_match)
+            c_rob = robot_confidence(c_sp, c_img) if robot_ok else 0.0
+        if not robot_ok:
+            c_rob = 0.0
+        if image_ok:
+            self._norm.append((step, norm))
+            if norm >= opt.angle_min_norm:
+                self._alpha.append((step, alpha))
+
+        var_rob = opt.sigma_robot0**2 / c_rob if c_rob > 0 else np.inf  # Eq. 9
+        var_img = opt.sigma_image0**2 / c_img if c_img > 0 else np.inf  # Eq. 10
+        mu_prior = self._position + (dx_rob if robot_ok else 0.0)  # Eq. 4
+        mu_like = self._position + (dx_img if image_ok else 0.0)  # Eq. 5
+        previous = self._position
+        if np.isinf(var_rob) and np.isinf(var_img):
+            # Robot missing and c_img = 0: the image is the only information left; use it.
+            position, variance = mu_like, np.full(2, np.inf)
+            prior_variance = float("inf")
+        elif opt.propagate_variance:
+            var_prior = self._variance + var_rob  # (2,), P- = P(i-1) + Q
+            if np.isinf(var_img):
+                position, variance = mu_prior, var_prior
+            elif np.isinf(var_prior).any():  # no robot now, or no information carried over
+                position, variance = mu_like, np.full(2, var_img)
+            else:
+                gain = var_prior / (var_prior + var_img)  # var_img > 0: sigma_image0 > 0
+                position = mu_prior + gain * (mu_like - mu_prior)
+                variance = (1.0 - gain) * var_prior
+            prior_variance = float(var_prior[0])
+        else:
+            position, var_est = fuse_gaussians(mu_prior, var_rob, mu_like, var_img)  # Eq. 7-8
+            variance = np.full(2, var_est)
+            prior_variance = float(var_rob)
+        self._position = np.asarray(position, dtype=np.float64).copy()
+        self._variance = np.asarray(variance, dtype=np.float64).copy()
+        self._step = step
+        return FilterStep(
+            position=self._position.copy(),
+            displacement=self._position - previous,
+            variance=self._variance.copy(),
+            prior_variance=prior_variance,
+            likelihood_variance=float(var_img),
+            c_angle=c_angle,
+            c_speed=c_speed,
+            c_match=c_match if image_ok else nan,
+            c_img=float(c_img),
+            c_sp=c_sp,
+            c_rob=float(c_rob),
+            warmup=warmup,
+        )
+
+
+@dataclass(frozen=True)
+class FilterTrajectory:
+    """Result of :func:`filter_trajectory` for N displacements (N + 1 frames).
+
+    positions : (N + 1, 2) X_f of frames 0..N, positions[0] = start (frame 0).
+    variances : (N, 2) state variance after each step (frames 1..N).
+    c_angle, c_speed, c_match, c_img, c_sp, c_rob : (N,) per-step confidences (NaN = not
+        computed).
+    warmup : (N,) bool, True where the initial confidences were used.
+    """
+
+    positions: np.ndarray
+    variances: np.ndarray
+    c_angle: np.ndarray
+    c_speed: np.ndarray
+    c_match: np.ndarray
+    c_img: np.ndarray
+    c_sp: np.ndarray
+    c_rob: np.ndarray
+    warmup: np.ndarray
+
+
+def filter_trajectory(
+    dx_images,
+    dx_robots,
+    c_match,
+    options: KalmanOptions | None = None,
+    *,
+    start=(0.0, 0.0),
+) -> FilterTrajectory:
+    """Run :class:`RobotKalmanFilter` over a whole sequence.
+
+    Parameters
+    ----------
+    dx_images : (N, 2) image registrations, row i-1 = dX between frames i-1 and i (px); NaN rows
+        are failed registrations.
+    dx_robots : (N, 2) robot displacements over the same frame pairs (px); NaN rows = missing.
+    c_match : (N,) SSIM confidences in [0, 1].
+    options : KalmanOptions, default paper settings.
+    start : (2,) position of frame 0.
+    """
+    dx_images = np.asarray(dx_images, dtype=np.float64)
+    dx_robots = np.asarray(dx_robots, dtype=np.float64)
+    c_match = np.asarray(c_match, dtype=np.float64)
+    if dx_images.ndim != 2 or dx_images.shape[1] != 2:
+        raise ValueError(f"dx_images must have shape (N, 2), got {dx_images.shape}")
+    n = dx_images.shape[0]
+    if dx_robots.shape != (n, 2):
+        raise ValueError(
+            f"dx_robots must have shape ({n}, 2) like dx_images, got {dx_robots.shape}"
+        )
+    if c_match.shape != (n,):
+        raise ValueError(f"c_match must have shape ({n},) like dx_images, got {c_match.shape}")
+    kf = RobotKalmanFilter(options if options is not None else KalmanOptions(), np.asarray(start))
+    positions = np.empty((n + 1, 2))
+    positions[0] = kf.position
+    variances = np.empty((n, 2))
+    conf = {
+        name: np.empty(n) for name in ("c_angle", "c_speed", "c_match", "c_img", "c_sp", "c_rob")
+    }
+    warmup = np.empty(n, dtype=bool)
+    for i in range(n):
+        s = kf.update(dx_images[i], dx_robots[i], c_match[i])
+        positions[i + 1] = s.position
+        variances[i] = s.variance
+        for name, values in conf.items():
+            values[i] = getattr(s, name)
+        warmup[i] = s.warmup
+    return FilterTrajectory(positions=positions, variances=variances, warmup=warmup, **conf)
+
+
+def integrate_displacements(displacements, start=(0.0, 0.0)) -> np.ndarray:
+    """Eq. 2-3: chain (N, 2) per-frame displacements into (N + 1, 2) positions from ``start``
+    (X_m for image registrations, X_r for robot displacements). NaN rows propagate."""
+    d = np.asarray(displacements, dtype=np.float64)
+    if d.ndim != 2 or d.shape[1] != 2:
+        raise ValueError(f"displacements must have shape (N, 2), got {d.shape}")
+    out = np.empty((d.shape[0] + 1, 2))
+    out[0] = np.asarray(start, dtype=np.float64)
+    out[1:] = out[0] + np.cumsum(d, axis=0)
+    return out
