@@ -15,6 +15,9 @@ import numpy as np
 
 # CLI name -> (module:function, what the paper calls it). Order = preference for the demo.
 REGISTRY: dict[str, tuple[str, str]] = {
+    "ba-emt": ("fusedmosaic.estimation.bundle:run_ba_emt", "BAVis+EMT"),
+    "ba": ("fusedmosaic.estimation.bundle:run_ba", "BAVis"),
+    "emt": ("fusedmosaic.estimation.bundle:run_emt", "EMT poses + estimated plane"),
     "pairwise": ("fusedmosaic.estimation.pairwise:run_pairwise", "PairVis"),
 }
 
@@ -35,6 +38,7 @@ class MethodResult:
     timings: dict[str, float] = field(default_factory=dict)  # stage -> seconds
     parameters: dict = field(default_factory=dict)
     details: dict = field(default_factory=dict)  # method-specific report entries
+    blend: str = "last"  # how run composes mosaic.png: "last" (newest on top) or "average"
 
 
 def available() -> list[str]:

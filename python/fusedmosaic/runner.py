@@ -18,8 +18,10 @@ NEEDS_PIXEL_SIZE = {"ncc", "robot", "kalman-robot"}
 
 def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: float = 25.0,
                 robot_file: str = "robot.csv", allow_untracked: bool = False,
-                progress: bool = True, blend: str = "last") -> str:
-    """Runs `method` on a dataset folder and writes the output contract into `out`."""
+                progress: bool = True, blend: str | None = None) -> str:
+    """Runs `method` on a dataset folder and writes the output contract into `out`.
+
+    blend: mosaic blending, by default the method's own preference (MethodResult.blend)."""
     from fusedmosaic.compositing import compose_mosaic
     from fusedmosaic.io import OutputWriter, read_dataset
 
@@ -46,7 +48,8 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
     t0 = time.perf_counter()
     cam = dataset.camera
     mosaic = compose_mosaic(((k, dataset.frames[k]) for k in np.flatnonzero(placed)), G,
-                            cam.width, cam.height, mask=cam.fov_mask(), blend=blend)
+                            cam.width, cam.height, mask=cam.fov_mask(),
+                            blend=blend or result.blend)
     timings["compose_mosaic"] = time.perf_counter() - t0
 
     report = {

@@ -1,0 +1,290 @@
+"""Offline methods of seed 000 on a dataset: BAVis (`ba`), BAVis+EMT (`ba-emt`) and the EMT
+baseline (`emt`: tracker poses with an estimated plane, no further visual term, Sec. 4.2.2).
+
+Stages (each timed in the report): features -> pair selection -> matching -> plane
+initialisation -> Ceres bundle adjustment (C++ `BundleAdjuster`) -> frame -> reference
+homographies G_k = H_0 H_k^-1 from the estimated poses and plane.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from dataclasses import asdict, dataclass, field
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from fusedmosaic import _core
+from fusedmosaic.estimation.plane import estimate_plane
+from fusedmosaic.methods import MethodResult
+from fusedmosaic.registration.features import FeatureOptions, extract_features
+from fusedmosaic.registration.pair_selection import all_pairs, emt_guided_pairs, window_pairs
+from fusedmosaic.registration.pairs import MatchOptions, PairMatch, match_pairs
+
+
+@dataclass
+class BundleOptions:
+    features: FeatureOptions = field(default_factory=FeatureOptions)
+    matching: MatchOptions = field(default_factory=MatchOptions)
+    # "all": every pair, the paper's O(N^2) attempts (Sec. 1); "emt-guided": pairs whose
+    # footprints predicted from the tracker overlap (O(N k)); "window": temporal neighbours.
+    pair_selection: str = "all"
+    min_overlap: float = 0.3  # EMT-guided: overlap fraction of the smaller footprint
+    max_pairs_per_frame: int = 20  # EMT-guided: at most this many earlier frames per frame
+    window: int = 2  # "window" selection, and the seed pairs used to initialise the plane
+    max_points_per_pair: int = 100  # inliers kept per pair (paper Table 1: 67-222 on average)
+    sigma_v_px: float = 1.0  # px, visual noise (Sec. 4.2)
+    loss: str = "none"  # "none" | "huber" | "cauchy" on the visual term
+    loss_scale_px: float = 2.0
+    linear_solver: str = "auto"
+    max_iterations: int = 100
+    num_threads: int = 2
+    seed: int = 0  # inlier subsampling
+
+
+@dataclass
+class FrontEnd:
+    features: dict
+    matches: list[PairMatch]
+    timings: dict[str, float]
+
+
+def _undistort(points: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
+    if dist is None or not np.any(dist) or len(points) == 0:
+        return points
+    return cv2.undistortPoints(points.reshape(-1, 1, 2), K, dist, P=K).reshape(-1, 2)
+
+
+def register_frames(dataset, pairs_fn, options: BundleOptions, progress: bool,
+                    features: dict | None = None) -> FrontEnd:
+    """Features for every frame, then matches of the pairs returned by pairs_fn(features)."""
+    cam = dataset.camera
+    n = len(dataset.frames)
+    timings: dict[str, float] = {}
+    if features is None:
+        t0 = time.perf_counter()
+        features = extract_features(dataset.frames, range(n), cam.fov_mask(), options.features,
+                                    progress, options.num_threads)
+        timings["features"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    pairs = pairs_fn(features)
+    with tqdm(total=len(pairs), desc="matching", disable=not progress, leave=False) as bar:
+        matches = match_pairs(features, pairs, (cam.width, cam.height), options.matching,
+                              bar.update)
+    timings["matching"] = time.perf_counter() - t0
+    return FrontEnd(features, matches, timings)
+
+
+def _subsample(match: PairMatch, k: int, rng: np.random.Generator):
+    if len(match.points_l) <= k:
+        return match.points_l, match.points_m
+    idx = np.sort(rng.choice(len(match.points_l), k, replace=False))
+    return match.points_l[idx], match.points_m[idx]
+
+
+def _select_pairs_with_emt(dataset, options: BundleOptions, progress: bool):
+    """EMT-guided selection: temporal seed pairs -> plane -> predicted footprints -> pairs."""
+    cam = dataset.camera
+    K = cam.camera_matrix
+    n = len(dataset.frames)
+    seed = register_frames(dataset, lambda f: window_pairs(n, options.window), options, progress)
+    plane = estimate_plane(seed.matches, dataset.cam_from_world, K)
+    predicted = predicted_homographies(dataset.cam_from_world, plane, K)
+    selected = emt_guided_pairs(predicted, cam.width, cam.height, min_overlap=options.min_overlap,
+                                max_per_frame=options.max_pairs_per_frame,
+                                fov_radius=cam.fov_mask_radius)
+    done = {(m.frame_l, m.frame_m): m for m in seed.matches}
+    rest = [p for p in selected if p not in done]
+    more = register_frames(dataset, lambda f: rest, options, progress, seed.features)
+    for m in more.matches:
+        done[(m.frame_l, m.frame_m)] = m
+    wanted = set(selected) | set(done)
+    matches = [done[p] for p in sorted(wanted) if p in done]
+    timings = {"features": seed.timings["features"],
+               "matching": seed.timings["matching"] + more.timings["matching"]}
+    return FrontEnd(seed.features, matches, timings), plane
+
+
+def predicted_homographies(poses: np.ndarray, plane: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """G_k from poses (NaN rows stay NaN) and a plane; frame 0 must have a pose."""
+    G = np.full((len(poses), 3, 3), np.nan)
+    valid = np.isfinite(poses).all(axis=1)
+    if not valid[0]:
+        raise ValueError("frame 0 has no valid pose: the reference frame cannot be placed")
+    idx = np.flatnonzero(valid)
+    G[idx] = _core.frame_to_reference(poses[idx], plane, K, reference=0)
+    return G
+
+
+def _fill_missing_poses(poses: np.ndarray) -> np.ndarray:
+    """Initial values for frames without a tracker sample: nearest valid neighbours, linearly."""
+    out = poses.copy()
+    valid = np.isfinite(poses).all(axis=1)
+    if valid.all():
+        return out
+    idx = np.flatnonzero(valid)
+    for j in range(6):
+        out[~valid, j] = np.interp(np.flatnonzero(~valid), idx, poses[idx, j])
+    return out
+
+
+def _pose_from_homography(G: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """cam_from_world of a frame whose frame -> reference homography is G, for the plane
+    pi = (0, 0, -1) in the reference camera (virtual camera = frame 0, unit distance).
+
+    H_k ~ K^-1 G^-1 K = R + t e3^T: the first two columns are r1, r2 up to scale."""
+    M = np.linalg.inv(K) @ np.linalg.inv(G) @ K
+    s = 0.5 * (np.linalg.norm(M[:, 0]) + np.linalg.norm(M[:, 1]))
+    M = M / s
+    if M[2, 2] < 0:  # the plane point (0, 0, 1) must lie in front of the camera
+        M = -M
+    B = np.column_stack([M[:, 0], M[:, 1], np.cross(M[:, 0], M[:, 1])])
+    U, _, Vt = np.linalg.svd(B)
+    R = U @ np.diag([1, 1, np.linalg.det(U @ Vt)]) @ Vt
+    t = M[:, 2] - R[:, 2]
+    return np.concatenate([_core.angle_axis_from_rotation(R), t])
+
+
+def _visual_initialisation(n: int, matches: list[PairMatch], K: np.ndarray) -> np.ndarray:
+    """Poses from a breadth-first spanning tree of registered pairs rooted at frame 0 (BAVis).
+
+    Frames not connected to frame 0 by registered pairs get NaN (they cannot be placed)."""
+    adjacency: dict[int, list[tuple[int, np.ndarray]]] = {k: [] for k in range(n)}
+    for m in matches:
+        if m.ok:
+            adjacency[m.frame_l].append((m.frame_m, m.H_lm))  # frame_m -> frame_l
+            adjacency[m.frame_m].append((m.frame_l, np.linalg.inv(m.H_lm)))
+    G = {0: np.eye(3)}
+    queue = deque([0])
+    while queue:
+        k = queue.popleft()
+        # prefer temporal neighbours (shortest chains) by visiting in order of |j - k|
+        for j, H_kj in sorted(adjacency[k], key=lambda e: abs(e[0] - k)):
+            if j not in G:
+                G[j] = G[k] @ H_kj
+                queue.append(j)
+    poses = np.full((n, 6), np.nan)
+    for k, g in G.items():
+        poses[k] = _pose_from_homography(g / g[2, 2], K)
+    poses[0] = 0.0
+    return poses
+
+
+def _adjuster(K, options: BundleOptions, use_emt: bool):
+    return _core.BundleAdjuster(K, _core.BundleAdjusterOptions(
+        sigma_v_px=options.sigma_v_px, loss=options.loss, loss_scale_px=options.loss_scale_px,
+        linear_solver=options.linear_solver, max_iterations=options.max_iterations,
+        num_threads=options.num_threads, use_emt=use_emt, use_motion_prior=use_emt))
+
+
+def _status(n: int, placed: np.ndarray, matches: list[PairMatch], why: str) -> list[str]:
+    seen = np.zeros(n, bool)
+    for m in matches:
+        if m.ok:
+            seen[m.frame_l] = seen[m.frame_m] = True
+    return ["placed" if p and s else "prior-only" if p else f"unplaced: {why}"
+            for p, s in zip(placed, seen, strict=True)]
+
+
+def _pair_details(front: FrontEnd) -> dict:
+    ok = [m for m in front.matches if m.ok]
+    return {"pairs": {"attempted": len(front.matches), "registered": len(ok),
+                      "mean_correspondences": float(np.mean([m.n_inliers for m in ok]))
+                      if ok else 0.0}}
+
+
+def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None = None,
+               use_emt: bool = True) -> MethodResult:
+    """BAVis+EMT (use_emt=True, Eq. 17-20) or BAVis (visual cost only)."""
+    o = options or BundleOptions()
+    K = dataset.camera.camera_matrix
+    dist = dataset.camera.distortion
+    n = len(dataset.frames)
+    rng = np.random.default_rng(o.seed)
+    plane = None
+    if use_emt and o.pair_selection == "emt-guided":
+        front, plane = _select_pairs_with_emt(dataset, o, progress)
+    else:
+        select = {"all": lambda f: all_pairs(n), "window": lambda f: window_pairs(n, o.window)}
+        if o.pair_selection not in select:
+            raise ValueError(f"pair_selection must be 'all', 'window' or 'emt-guided', got "
+                             f"{o.pair_selection!r} (emt-guided needs the EMT)")
+        front = register_frames(dataset, select[o.pair_selection], o, progress)
+    ok = [m for m in front.matches if m.ok]
+    if not ok:
+        raise ValueError(f"{dataset.root}: no pair of frames could be registered "
+                         f"({len(front.matches)} attempted); nothing to adjust")
+    timings = dict(front.timings)
+
+    t0 = time.perf_counter()
+    if use_emt:
+        emt = dataset.cam_from_world
+        if plane is None:
+            plane = estimate_plane(ok, emt, K)
+        init = _fill_missing_poses(emt)
+        frames = range(n)
+    else:
+        init = _visual_initialisation(n, ok, K)
+        plane = np.array([0.0, 0.0, -1.0])
+        frames = [k for k in range(n) if np.isfinite(init[k]).all()]
+    timings["initialisation"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    ba = _adjuster(K, o, use_emt)
+    for k in frames:
+        z = dataset.cam_from_world[k] if use_emt and dataset.pose_valid[k] else None
+        ba.add_frame(k, init[k], z)
+    in_problem = set(frames)
+    for m in ok:
+        if m.frame_l in in_problem and m.frame_m in in_problem:
+            pl, pm = _subsample(m, o.max_points_per_pair, rng)
+            ba.add_pair(m.frame_l, m.frame_m, _undistort(pl, K, dist), _undistort(pm, K, dist))
+    ba.set_plane(plane)
+    summary = ba.solve()
+    timings["optimisation"] = summary.solve_time_s
+    timings["problem_setup"] = time.perf_counter() - t0 - summary.solve_time_s
+    ids, est = ba.poses()
+    poses = np.full((n, 6), np.nan)
+    poses[ids] = est
+    plane = ba.plane()
+    G = predicted_homographies(poses, plane, K)
+    placed = np.isfinite(G).all(axis=(1, 2))
+    details = _pair_details(front)
+    details["solver"] = summary.as_dict()
+    return MethodResult(G, _status(n, placed, ok, "not connected to frame 0 by registered pairs"),
+                        poses=poses, plane=plane, timings=timings, parameters=asdict(o),
+                        details=details)
+
+
+def run_ba(dataset, *, progress: bool = True, options: BundleOptions | None = None):
+    """BAVis: bundle adjustment with the visual cost only (Sec. 4.1)."""
+    return run_bundle(dataset, progress=progress, options=options, use_emt=False)
+
+
+def run_ba_emt(dataset, *, progress: bool = True, options: BundleOptions | None = None):
+    """BAVis+EMT: visual + EMT + constant-velocity costs, initialised from the tracker."""
+    return run_bundle(dataset, progress=progress, options=options, use_emt=True)
+
+
+def run_emt(dataset, *, progress: bool = True, options: BundleOptions | None = None,
+            plane: np.ndarray | None = None) -> MethodResult:
+    """EMT baseline: tracker poses + a plane (estimated from temporal pairs unless given)."""
+    o = options or BundleOptions(pair_selection="window")
+    K = dataset.camera.camera_matrix
+    n = len(dataset.frames)
+    timings: dict[str, float] = {}
+    details: dict = {}
+    if plane is None:
+        front = register_frames(dataset, lambda f: window_pairs(n, o.window), o, progress)
+        timings.update(front.timings)
+        t0 = time.perf_counter()
+        plane = estimate_plane(front.matches, dataset.cam_from_world, K)
+        timings["initialisation"] = time.perf_counter() - t0
+        details = _pair_details(front)
+    G = predicted_homographies(dataset.cam_from_world, np.asarray(plane, float), K)
+    placed = np.isfinite(G).all(axis=(1, 2))
+    status = ["placed" if p else "unplaced: no tracker sample" for p in placed]
+    return MethodResult(G, status, poses=dataset.cam_from_world.copy(), plane=plane,
+                        timings=timings, parameters=asdict(o), details=details)

@@ -1,0 +1,49 @@
+"""Bad input to `fusedmosaic run`: each case ends with a clear error and no partial output."""
+
+import numpy as np
+import pytest
+
+from fusedmosaic.cli import main
+from fusedmosaic.io import Camera, write_dataset
+from fusedmosaic.runner import run_dataset
+
+K = np.array([[300.0, 0, 79.5], [0, 300.0, 59.5], [0, 0, 1]])
+
+
+def noise_frames(n, seed=0):
+    rng = np.random.default_rng(seed)
+    return [rng.integers(0, 255, (120, 160), dtype=np.uint8) for _ in range(n)]
+
+
+@pytest.fixture
+def untracked(tmp_path):
+    return write_dataset(tmp_path / "data", camera=Camera(160, 120, camera_matrix=K),
+                         frames=noise_frames(4), timestamps=np.arange(4) / 25.0)
+
+
+def test_ba_emt_without_tracking_csv(untracked, tmp_path):
+    with pytest.raises(ValueError, match=r"tracking\.csv: file not found; method 'ba-emt' needs"):
+        run_dataset(untracked, "ba-emt", tmp_path / "out", progress=False)
+    assert not (tmp_path / "out").exists()
+
+
+def test_camera_matrix_required_for_pose_methods(tmp_path):
+    data = write_dataset(tmp_path / "data", camera=Camera(160, 120), frames=noise_frames(3),
+                         timestamps=np.arange(3) / 25.0)
+    with pytest.raises(ValueError, match=r"camera\.yaml.*camera_matrix.*'ba'"):
+        run_dataset(data, "ba", tmp_path / "out", progress=False)
+
+
+@pytest.mark.parametrize("method", ["ba", "pairwise"])
+def test_no_registrable_pair(untracked, tmp_path, method):
+    with pytest.raises(ValueError, match="could be registered"):
+        run_dataset(untracked, method, tmp_path / "out", progress=False)
+    assert not (tmp_path / "out").exists()
+
+
+def test_unknown_method_and_cli_error_line(untracked, tmp_path, capsys):
+    with pytest.raises(ValueError, match="unknown method 'nope'; available: ba-emt"):
+        run_dataset(untracked, "nope", tmp_path / "out")
+    code = main(["run", str(untracked), "--method", "pairwise", "--out", str(tmp_path / "o")])
+    assert code == 2
+    assert "fusedmosaic: error:" in capsys.readouterr().err
