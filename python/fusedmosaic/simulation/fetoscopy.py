@@ -1,0 +1,550 @@
+"""Fetoscopy simulator: the SYN dataset of paper 000 (Sec. 4.1) and a hand-held variant.
+
+A textured plane is imaged by a pinhole camera moving over it; an EM tracker reports the camera
+pose at its own rate with Gaussian noise (paper 000, assumption 2 and appendix Σ_EMT).
+
+Conventions (design.md; the C++ core uses the same, but this module does not call it so it can
+test it):
+
+- world = the tracker frame; the paper's virtual camera sits at its origin with identity rotation.
+- pose = [rx, ry, rz, tx, ty, tz]: angle-axis (rad) and translation (mm) of cam_from_world.
+- plane π = n/d (3,), the plane n·X + d = 0; ``truth_plane.json`` gives π, the unit normal n
+  (pointing from the plane towards the virtual camera) and the distance d > 0 (mm).
+- H_k = K (R_k - t_k πᵀ) K⁻¹ maps virtual-camera pixels to frame-k pixels; the ground truth is
+  G_k = H_0 H_k⁻¹ (frame k -> frame 0 pixels, G[2,2] = 1). Pixel (0, 0) is the centre of the
+  top-left pixel (OpenCV's convention), so ``cv2.warpPerspective(frame_k, G_k, size)`` lands on
+  frame 0.
+- tracking.csv holds tracker_from_sensor, with world_from_cam = tracker_from_sensor @
+  sensor_from_camera (hand_eye.txt). The noise is added to the camera pose parameters
+  [r, t] of cam_from_world before that conversion, so reading the tracker back through the
+  hand-eye transform gives truth + N(0, diag(ν·1°, ν·1 mm)²) per sample.
+
+Rendering: the texture is an image of the plane, texture pixel (u, v) being the plane point
+O + s (u e1 + v e2). Frame k sees it through M_k = K [s R_k e1 | s R_k e2 | R_k O + t_k], and
+M_k = H_k M_v with M_v the same map for the virtual camera (πᵀe1 = πᵀe2 = 0, πᵀO = -1), so the
+rendered images obey G_k = M_0 M_k⁻¹ = H_0 H_k⁻¹ exactly.
+"""
+
+import json
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from fusedmosaic.simulation.textures import placenta_texture
+
+# Paper 000 Sec. 4.2.3: frames replaced by black frames in the loss-of-visual-information test.
+PAPER_BLACK_FRAMES = [7, 11, 12, 23, 24, 37, 38, 42, 43, 45, 51, 54]
+
+MOTIONS = ("syn", "handheld")
+
+
+def _opt(default, help_text: str):
+    """A dataclass field whose default and one-line help (used by the CLI) sit together."""
+    return field(default=default, metadata={"help": help_text})
+
+
+@dataclass
+class FetoscopyOptions:
+    """Options of :func:`generate_fetoscopy` (the CLI builds its flags from these fields)."""
+
+    motion: str = _opt("syn", "'syn' (paper 000 Sec. 4.1: xy-translation circles) or 'handheld'")
+    n_frames: int = _opt(150, "frames (paper 000 Sec. 4.2.1 uses 152 SYN frames)")
+    width: int = _opt(400, "frame width, px (paper's SYN frames are 368x378)")
+    height: int = _opt(400, "frame height, px")
+    focal_factor: float = _opt(1.2, "focal length in px / image width (~45 deg horizontal FOV)")
+    fps: float = _opt(25.0, "frame rate (paper 000 Sec. 4.1: video at 25 fps)")
+    distance_mm: float = _opt(30.0, "camera-plane distance (perpendicular, mm)")
+    laps: float = _opt(4.0, "syn: laps of the circle (paper 000 Fig. 1: four laps)")
+    radius_mm: float = _opt(15.0, "syn: circle radius; handheld: extent of the random path")
+    step_px: float = _opt(
+        30.0, "handheld: rms image motion per frame, px (keeps ~90 percent overlap)"
+    )
+    tilt_deg: float = _opt(15.0, "handheld: plane tilt w.r.t. the virtual camera's image plane")
+    rotation_deg: float = _opt(4.0, "handheld: roll/pitch amplitude, deg")
+    yaw_deg: float = _opt(20.0, "handheld: slow yaw amplitude, deg")
+    distance_variation: float = _opt(0.15, "handheld: relative camera-plane distance variation")
+    tracker_rate_hz: float = _opt(40.0, "EM tracker rate (paper 000 Sec. 4.1: 40 Hz)")
+    tracker_offset_s: float = _opt(0.0071, "tracker clock phase vs frames (not frame-synchronous)")
+    tracker_margin_s: float = _opt(
+        0.1, "tracker samples extend this far beyond the first/last frame"
+    )
+    noise_multiplier: float = _opt(1.0, "ν: EMT noise std = ν·(1 deg, 1 mm) (paper 000 Sec. 4.2.2)")
+    rot_sigma_deg: float = _opt(1.0, "EMT rotation noise std at ν=1 (paper 000 appendix Σ_EMT)")
+    trans_sigma_mm: float = _opt(1.0, "EMT translation noise std at ν=1 (paper 000 appendix Σ_EMT)")
+    hand_eye_rot_deg: float = _opt(4.0, "sensor_from_camera rotation angle (0 = aligned)")
+    hand_eye_offset_mm: float = _opt(6.0, "sensor_from_camera translation length (0 = co-located)")
+    tracker_gap: list[int] | None = _opt(
+        None, "[first, last] frames whose tracker samples are invalid"
+    )
+    black_frames: list[int] | None = _opt(
+        None, "frames replaced by black; the bare CLI flag = paper 000 Sec. 4.2.3 list"
+    )
+    fov_mask_radius: float = _opt(
+        -1.0, "px circular FOV; -1 auto (syn none, handheld 0.48 min(W,H))"
+    )
+    image_noise_sigma: float = _opt(2.0, "std of per-frame Gaussian image noise, gray levels")
+    seed: int = _opt(0, "seed of every random draw (texture, path, noise)")
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first bad option."""
+        if self.motion not in MOTIONS:
+            raise ValueError(
+                f"FetoscopyOptions.motion: expected one of {MOTIONS}, got {self.motion!r}"
+            )
+        if self.n_frames < 1:
+            raise ValueError(f"FetoscopyOptions.n_frames: must be >= 1, got {self.n_frames}")
+        if self.width < 16 or self.height < 16:
+            raise ValueError(
+                f"FetoscopyOptions.width/height: must be >= 16 px, got {self.width}x{self.height}"
+            )
+        for name in ("focal_factor", "fps", "distance_mm", "tracker_rate_hz"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"FetoscopyOptions.{name}: must be > 0, got {getattr(self, name)}")
+        for name in (
+            "noise_multiplier",
+            "rot_sigma_deg",
+            "trans_sigma_mm",
+            "image_noise_sigma",
+            "tracker_margin_s",
+            "radius_mm",
+            "step_px",
+        ):
+            if not getattr(self, name) >= 0:
+                raise ValueError(
+                    f"FetoscopyOptions.{name}: must be >= 0, got {getattr(self, name)}"
+                )
+        if not 0 <= self.distance_variation < 0.9:
+            raise ValueError(
+                f"FetoscopyOptions.distance_variation: must be in [0, 0.9), "
+                f"got {self.distance_variation}"
+            )
+        if not 0 <= abs(self.tilt_deg) < 60:
+            raise ValueError(
+                f"FetoscopyOptions.tilt_deg: must be below 60 deg, got {self.tilt_deg}"
+            )
+        if self.black_frames is not None:
+            bad = [k for k in self.black_frames if not 0 <= int(k) < self.n_frames]
+            if bad:
+                raise ValueError(
+                    f"FetoscopyOptions.black_frames: frame {bad[0]} outside 0..{self.n_frames - 1}"
+                )
+        if self.tracker_gap is not None:
+            if len(self.tracker_gap) != 2 or self.tracker_gap[0] > self.tracker_gap[1]:
+                raise ValueError(
+                    "FetoscopyOptions.tracker_gap: expected [first, last] frames, "
+                    f"got {self.tracker_gap}"
+                )
+        if self.fov_mask_radius < 0 and self.fov_mask_radius != -1:
+            raise ValueError(
+                f"FetoscopyOptions.fov_mask_radius: expected -1 (auto), 0 (none) or "
+                f"a radius in px, got {self.fov_mask_radius}"
+            )
+
+
+# --------------------------------------------------------------------------------------------
+# Small geometry helpers (numpy + scipy only, independent of fusedmosaic._core)
+# --------------------------------------------------------------------------------------------
+
+
+def pose_matrix(pose: np.ndarray) -> np.ndarray:
+    """[r, t] (6,) or (N, 6) -> 4x4 (or (N, 4, 4)) rigid transforms."""
+    pose = np.asarray(pose, np.float64)
+    flat = pose.reshape(-1, 6)
+    T = np.tile(np.eye(4), (flat.shape[0], 1, 1))
+    T[:, :3, :3] = Rotation.from_rotvec(flat[:, :3]).as_matrix()
+    T[:, :3, 3] = flat[:, 3:]
+    return T[0] if pose.ndim == 1 else T
+
+
+def pose_vector(T: np.ndarray) -> np.ndarray:
+    """4x4 (or (N, 4, 4)) rigid transforms -> [r, t] (6,) or (N, 6)."""
+    T = np.asarray(T, np.float64)
+    flat = T.reshape(-1, 4, 4)
+    out = np.concatenate([Rotation.from_matrix(flat[:, :3, :3]).as_rotvec(), flat[:, :3, 3]], 1)
+    return out[0] if T.ndim == 2 else out
+
+
+def induced_homographies(poses: np.ndarray, plane: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """H_k = K (R_k - t_k πᵀ) K⁻¹ for (N, 6) cam_from_world poses (paper 000 Eq. 5)."""
+    poses = np.asarray(poses, np.float64).reshape(-1, 6)
+    R = Rotation.from_rotvec(poses[:, :3]).as_matrix()
+    A = R - poses[:, 3:, None] * np.asarray(plane, np.float64)[None, None, :]
+    return K @ A @ np.linalg.inv(K)
+
+
+def frame_to_reference_truth(
+    poses: np.ndarray, plane: np.ndarray, K: np.ndarray, reference: int = 0
+) -> np.ndarray:
+    """G_k = H_ref H_k⁻¹ (frame k -> reference pixels), normalised so G[2,2] = 1."""
+    H = induced_homographies(poses, plane, K)
+    G = H[reference] @ np.linalg.inv(H)
+    return G / G[:, 2:3, 2:3]
+
+
+def _rigid(rotvec, t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    T[:3, 3] = t
+    return T
+
+
+def default_hand_eye(rot_deg: float, offset_mm: float) -> np.ndarray:
+    """sensor_from_camera: a rotation of ``rot_deg`` about a fixed oblique axis and an offset of
+    ``offset_mm`` along a fixed direction (mostly along the scope axis, as for a sensor mounted
+    a few mm behind the tip)."""
+    axis = np.array([0.3, -0.8, 0.5])
+    direction = np.array([0.25, -0.4, 0.88])
+    return _rigid(
+        np.deg2rad(rot_deg) * axis / np.linalg.norm(axis),
+        offset_mm * direction / np.linalg.norm(direction),
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Trajectories (continuous in time so the tracker can sample them at its own rate)
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Trajectory:
+    """Camera motion over a plane through P0 with world_from_plane rotation R_p (e3 = normal
+    pointing away from the camera). Returns cam_from_world poses at arbitrary times."""
+
+    options: FetoscopyOptions
+    R_p: np.ndarray  # (3, 3) world_from_plane
+    P0: np.ndarray  # (3,) a point of the plane
+    rng: np.random.Generator
+    params: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        o = self.options
+        if o.motion == "handheld":
+            r = self.rng
+            duration = o.n_frames / o.fps
+            n_sin = 3
+            # Sum of sinusoids per axis; amplitudes share the path extent radius_mm.
+            freqs = r.uniform(0.3, 1.6, size=(2, n_sin)) / duration
+            amps = r.dirichlet(np.ones(n_sin), size=2) * o.radius_mm
+            phases = r.uniform(0, 2 * np.pi, size=(2, n_sin))
+            # Rescale the frequencies so the rms in-plane speed gives step_px per frame.
+            rms = np.sqrt(np.sum((2 * np.pi * freqs * amps) ** 2) / 2.0)
+            target = o.step_px * o.distance_mm / (o.focal_factor * o.width) * o.fps
+            freqs = freqs * (target / max(rms, 1e-12))
+            self.params = {
+                "freqs": freqs,
+                "amps": amps,
+                "phases": phases,
+                "rp_f": r.uniform(0.2, 0.5, size=2),
+                "rp_phase": r.uniform(0, 2 * np.pi, 2),
+                "yaw_f": r.uniform(0.04, 0.08),
+                "yaw_phase": r.uniform(0, 2 * np.pi),
+                "h_f": r.uniform(0.1, 0.25),
+                "h_phase": r.uniform(0, 2 * np.pi),
+            }
+
+    def world_from_cam(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rotations (N, 3, 3) and centres (N, 3) of the camera at times t (s)."""
+        o = self.options
+        t = np.asarray(t, np.float64).reshape(-1)
+        e1, e2, e3 = self.R_p[:, 0], self.R_p[:, 1], self.R_p[:, 2]
+        if o.motion == "syn":
+            # Paper 000 Sec. 4.1: xy-translation only, circular pattern; laps over n_frames.
+            theta = 2.0 * np.pi * o.laps * t * o.fps / o.n_frames
+            a, b = o.radius_mm * np.cos(theta), o.radius_mm * np.sin(theta)
+            h = np.full_like(t, o.distance_mm)
+            R = np.tile(np.eye(3), (t.size, 1, 1))
+        else:
+            p = self.params
+            arg = 2 * np.pi * p["freqs"][:, :, None] * t + p["phases"][:, :, None]
+            ab = np.sum(p["amps"][:, :, None] * np.sin(arg), axis=1)
+            a, b = ab[0], ab[1]
+            h = o.distance_mm * (
+                1.0 + o.distance_variation * np.sin(2 * np.pi * p["h_f"] * t + p["h_phase"])
+            )
+            amp = np.deg2rad(o.rotation_deg)
+            roll = amp * np.sin(2 * np.pi * p["rp_f"][0] * t + p["rp_phase"][0])
+            pitch = amp * np.sin(2 * np.pi * p["rp_f"][1] * t + p["rp_phase"][1])
+            yaw = np.deg2rad(o.yaw_deg) * np.sin(2 * np.pi * p["yaw_f"] * t + p["yaw_phase"])
+            R = Rotation.from_euler("ZYX", np.stack([yaw, pitch, roll], 1)).as_matrix()
+        C = self.P0 + a[:, None] * e1 + b[:, None] * e2 - h[:, None] * e3
+        return R, C
+
+    def poses(self, t: np.ndarray) -> np.ndarray:
+        """cam_from_world [r, t] (N, 6) at times t."""
+        R_wc, C = self.world_from_cam(t)
+        R_cw = np.transpose(R_wc, (0, 2, 1))
+        return np.concatenate(
+            [Rotation.from_matrix(R_cw).as_rotvec(), -np.einsum("nij,nj->ni", R_cw, C)], axis=1
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# Scene
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class FetoscopyScene:
+    """Everything :func:`generate_fetoscopy` makes; frames are rendered on demand.
+
+    camera_matrix (3, 3); timestamps (N,) s; poses (N, 6) true cam_from_world; plane (3,) π;
+    homographies (N, 3, 3) true frame -> frame-0 G_k; hand_eye (4, 4) sensor_from_camera;
+    tracker_timestamps (M,); tracker_poses (M, 6) measured (noisy) cam_from_world, NaN where
+    invalid; tracker_truth (M, 6) true cam_from_world at the tracker times; tracker_valid (M,);
+    tracker_translations (M, 3) mm and tracker_quaternions (M, 4) (x, y, z, w) of
+    tracker_from_sensor (NaN where invalid); texture (Ht, Wt, 3) BGR; frame_from_texture
+    (N, 3, 3) the warps used to render; black_frames (sorted list); fov_mask_radius px or None.
+    """
+
+    options: FetoscopyOptions
+    camera_matrix: np.ndarray
+    timestamps: np.ndarray
+    poses: np.ndarray
+    plane: np.ndarray
+    homographies: np.ndarray
+    hand_eye: np.ndarray
+    tracker_timestamps: np.ndarray
+    tracker_poses: np.ndarray
+    tracker_truth: np.ndarray
+    tracker_valid: np.ndarray
+    tracker_translations: np.ndarray
+    tracker_quaternions: np.ndarray
+    texture: np.ndarray
+    texture_mm_per_px: float
+    frame_from_texture: np.ndarray
+    black_frames: list[int]
+    fov_mask_radius: float | None
+
+    @property
+    def n_frames(self) -> int:
+        return self.timestamps.size
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height) of the frames."""
+        return self.options.width, self.options.height
+
+    def fov_mask(self) -> np.ndarray | None:
+        """(H, W) bool, True inside the circular field of view (centre ((W-1)/2, (H-1)/2))."""
+        if self.fov_mask_radius is None:
+            return None
+        w, h = self.size
+        y, x = np.ogrid[:h, :w]
+        return (x - (w - 1) / 2.0) ** 2 + (y - (h - 1) / 2.0) ** 2 <= self.fov_mask_radius**2
+
+    def render(self, k: int, *, noise: bool = True) -> np.ndarray:
+        """Frame k, (H, W, 3) BGR uint8: the texture warped by the true M_k, plus seeded noise
+        (the same for a given seed and k, whatever the order of calls), the FOV mask, and black
+        if k is a black frame."""
+        if not 0 <= k < self.n_frames:
+            raise IndexError(f"frame {k} outside 0..{self.n_frames - 1}")
+        w, h = self.size
+        if k in self.black_frames:
+            return np.zeros((h, w, 3), np.uint8)
+        img = cv2.warpPerspective(
+            self.texture,
+            self.frame_from_texture[k],
+            (w, h),
+            flags=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REFLECT,
+        )
+        sigma = self.options.image_noise_sigma
+        if noise and sigma > 0:
+            rng = np.random.default_rng([self.options.seed, 1, k])
+            img = np.clip(img + rng.normal(0.0, sigma, img.shape), 0, 255).astype(np.uint8)
+        mask = self.fov_mask()
+        if mask is not None:
+            img[~mask] = 0
+        return img
+
+    def frames(self, *, noise: bool = True) -> Iterator[np.ndarray]:
+        """Render all frames lazily, in order."""
+        for k in range(self.n_frames):
+            yield self.render(k, noise=noise)
+
+
+def _tracker_times(o: FetoscopyOptions, t_last: float) -> np.ndarray:
+    """Tracker sample times on its own clock: period 1/rate, phase tracker_offset_s, covering
+    [-margin, t_last + margin]."""
+    period = 1.0 / o.tracker_rate_hz
+    j0 = np.floor((-o.tracker_margin_s - o.tracker_offset_s) / period)
+    j1 = np.ceil((t_last + o.tracker_margin_s - o.tracker_offset_s) / period)
+    return o.tracker_offset_s + np.arange(j0, j1 + 1) * period
+
+
+def generate_fetoscopy(options: FetoscopyOptions | None = None) -> FetoscopyScene:
+    """Build a fetoscopy scene (poses, plane, K, timestamps, tracker samples, ground truth and a
+    lazy frame renderer) without touching the disk."""
+    o = FetoscopyOptions() if options is None else options
+    o.validate()
+    rng = np.random.default_rng([o.seed, 0])
+    f = o.focal_factor * o.width
+    K = np.array([[f, 0.0, (o.width - 1) / 2.0], [0.0, f, (o.height - 1) / 2.0], [0, 0, 1.0]])
+
+    # Plane through P0 = (0, 0, D) seen by the virtual camera; tilted about a random in-plane
+    # axis in hand-held mode.
+    if o.motion == "handheld":
+        phi = rng.uniform(0, 2 * np.pi)
+        R_p = Rotation.from_rotvec(
+            np.deg2rad(o.tilt_deg) * np.array([np.cos(phi), np.sin(phi), 0.0])
+        ).as_matrix()
+    else:
+        R_p = np.eye(3)
+    P0 = np.array([0.0, 0.0, o.distance_mm])
+    e3 = R_p[:, 2]
+    plane = -e3 / float(e3 @ P0) + 0.0  # n·X + d = 0 with n = e3, d = -e3·P0; π = n/d
+
+    traj = _Trajectory(o, R_p, P0, rng)
+    timestamps = np.arange(o.n_frames) / o.fps
+    poses = traj.poses(timestamps) + 0.0  # (+ 0.0 turns -0.0 into 0.0 in the files)
+    G = frame_to_reference_truth(poses, plane, K)
+
+    # Texture geometry: plane coordinates (mm) of every frame corner, then a margin.
+    R = Rotation.from_rotvec(poses[:, :3]).as_matrix()
+    M1 = K @ np.stack(
+        [R @ R_p[:, 0], R @ R_p[:, 1], R @ P0 + poses[:, 3:]], axis=2
+    )  # plane mm (about P0) -> frame px
+    corners = np.array(
+        [[0, 0, 1], [o.width - 1, 0, 1], [0, o.height - 1, 1], [o.width - 1, o.height - 1, 1.0]]
+    ).T
+    uv = np.linalg.solve(M1, np.broadcast_to(corners, (o.n_frames, 3, 4)))
+    uv = (uv[:, :2] / uv[:, 2:3]).transpose(0, 2, 1).reshape(-1, 2)
+    closest = o.distance_mm * (1.0 - (o.distance_variation if o.motion == "handheld" else 0.0))
+    s = closest / f  # texture mm/px: never coarser than a frame pixel
+    margin = 16 * s
+    lo, hi = uv.min(0) - margin, uv.max(0) + margin
+    tex_w, tex_h = (int(np.ceil(v)) for v in (hi - lo) / s)
+    if tex_w * tex_h > 60e6:
+        raise ValueError(
+            f"FetoscopyOptions: the camera path needs a {tex_w}x{tex_h} px texture; "
+            "reduce radius_mm/step_px/n_frames or raise distance_mm"
+        )
+    O = P0 + lo[0] * R_p[:, 0] + lo[1] * R_p[:, 1]
+    texture = placenta_texture(
+        (tex_h, tex_w),
+        np.random.default_rng([o.seed, 2]),
+        vessel_width_px=9.0 * (0.0625 / s) ** 0.5,
+    )
+    M = K @ np.stack([s * (R @ R_p[:, 0]), s * (R @ R_p[:, 1]), R @ O + poses[:, 3:]], axis=2)
+
+    # EM tracker: truth at its own times, noise on [r, t] of cam_from_world, then
+    # tracker_from_sensor = world_from_cam @ cam_from_sensor.
+    t_tr = _tracker_times(o, float(timestamps[-1]))
+    truth_tr = traj.poses(t_tr)
+    sigma = o.noise_multiplier * np.array(
+        [np.deg2rad(o.rot_sigma_deg)] * 3 + [o.trans_sigma_mm] * 3
+    )
+    noisy = truth_tr + np.random.default_rng([o.seed, 3]).normal(size=truth_tr.shape) * sigma
+    hand_eye = default_hand_eye(o.hand_eye_rot_deg, o.hand_eye_offset_mm)
+    tracker_from_sensor = np.linalg.inv(pose_matrix(noisy)) @ np.linalg.inv(hand_eye)
+    valid = np.ones(t_tr.size, bool)
+    if o.tracker_gap is not None:
+        g0 = o.tracker_gap[0] / o.fps - 0.5 / o.fps
+        g1 = o.tracker_gap[1] / o.fps + 0.5 / o.fps
+        valid &= ~((t_tr >= g0) & (t_tr <= g1))
+    translations = tracker_from_sensor[:, :3, 3].copy()
+    quaternions = Rotation.from_matrix(tracker_from_sensor[:, :3, :3]).as_quat()
+    translations[~valid] = np.nan
+    quaternions[~valid] = np.nan
+    noisy[~valid] = np.nan
+
+    if o.fov_mask_radius == -1:
+        fov = 0.48 * min(o.width, o.height) if o.motion == "handheld" else None
+    else:
+        fov = float(o.fov_mask_radius) if o.fov_mask_radius > 0 else None
+
+    return FetoscopyScene(
+        options=o,
+        camera_matrix=K,
+        timestamps=timestamps,
+        poses=poses,
+        plane=plane,
+        homographies=G,
+        hand_eye=hand_eye,
+        tracker_timestamps=t_tr,
+        tracker_poses=noisy,
+        tracker_truth=truth_tr,
+        tracker_valid=valid,
+        tracker_translations=translations,
+        tracker_quaternions=quaternions,
+        texture=texture,
+        texture_mm_per_px=s,
+        frame_from_texture=M,
+        black_frames=sorted({int(k) for k in o.black_frames or []}),
+        fov_mask_radius=fov,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Writing
+# --------------------------------------------------------------------------------------------
+
+
+def _poses_csv(poses: np.ndarray) -> str:
+    lines = ["frame,rx,ry,rz,tx,ty,tz"]
+    lines += [",".join([str(k), *(repr(float(v)) for v in p)]) for k, p in enumerate(poses)]
+    return "\n".join(lines) + "\n"
+
+
+def _plane_json(plane: np.ndarray) -> str:
+    d = 1.0 / float(np.linalg.norm(plane))
+    return (
+        json.dumps(
+            {
+                "plane": [float(v) for v in plane],
+                "normal": [float(v) for v in plane * d],
+                "distance_mm": d,
+            },
+            indent=2,
+        )
+        + "\n"
+    )
+
+
+def simulate_fetoscopy(
+    out: str | Path, options: FetoscopyOptions | None = None, *, overwrite: bool = False
+) -> Path:
+    """Generate a fetoscopy dataset folder (dataset contract of design.md) at ``out``.
+
+    Writes frames/, frames.csv, camera.yaml (K, fov_mask_radius), tracking.csv, hand_eye.txt,
+    ground_truth.csv, and for evaluation truth_poses.csv (frame,rx,ry,rz,tx,ty,tz of the true
+    cam_from_world), truth_plane.json ({"plane", "normal", "distance_mm"}) and simulation.json
+    (the options used)."""
+    from fusedmosaic.io import Camera, TrackingSamples, write_dataset
+
+    scene = generate_fetoscopy(options)
+    o = scene.options
+    camera = Camera(
+        o.width, o.height, camera_matrix=scene.camera_matrix, fov_mask_radius=scene.fov_mask_radius
+    )
+    tracking = TrackingSamples(
+        scene.tracker_timestamps,
+        scene.tracker_translations,
+        scene.tracker_quaternions,
+        scene.tracker_valid,
+    )
+    info = {
+        "simulator": "fetoscopy",
+        "options": asdict(o),
+        "texture_mm_per_px": scene.texture_mm_per_px,
+    }
+    root = write_dataset(
+        out,
+        camera=camera,
+        frames=scene.frames(),
+        timestamps=scene.timestamps,
+        tracking=tracking,
+        hand_eye=scene.hand_eye,
+        ground_truth=scene.homographies,
+        extra_files={
+            "truth_poses.csv": _poses_csv(scene.poses),
+            "truth_plane.json": _plane_json(scene.plane),
+            "simulation.json": json.dumps(info, indent=2) + "\n",
+        },
+        overwrite=overwrite,
+    )
+    return root
