@@ -74,6 +74,7 @@ struct SolveSummary {
   double solve_time_s = 0.0;  // Ceres' total time (preprocessing + minimisation)
   std::string termination;    // "CONVERGENCE", "NO_CONVERGENCE", "FAILURE", ...
   std::string message;        // Ceres' explanation of the termination
+  std::string full_report;    // Ceres' FullReport(): timings per stage, problem sizes
   std::string linear_solver;  // the linear solver used, lower case
   int num_residual_blocks = 0;
   int num_residuals = 0;
