@@ -19,6 +19,12 @@ REGISTRY: dict[str, tuple[str, str]] = {
     "ba": ("fusedmosaic.estimation.bundle:run_ba", "BAVis"),
     "emt": ("fusedmosaic.estimation.bundle:run_emt", "EMT poses + estimated plane"),
     "pairwise": ("fusedmosaic.estimation.pairwise:run_pairwise", "PairVis"),
+    "kalman-robot": (
+        "fusedmosaic.estimation.translation:run_kalman_robot",
+        "X_f (robot-prior Kalman)",
+    ),
+    "ncc": ("fusedmosaic.estimation.translation:run_ncc", "X_m (NCC chain)"),
+    "robot": ("fusedmosaic.estimation.translation:run_robot", "X_r (robot only)"),
 }
 
 

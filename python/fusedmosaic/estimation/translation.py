@@ -1,0 +1,571 @@
+"""Translation-only pCLE mosaicking with a robot prior (Rosa et al. 2018, paper 004).
+
+Three estimates of where frame i sits in the mosaic, relative to frame 0 (pixels, image axes:
+x right, y down), each written as the frame -> reference translation ``G_i = [[1, 0, x],
+[0, 1, y], [0, 0, 1]]``:
+
+- ``X_m`` (method ``ncc``), Eq. 1-2: the image-only chain of forward/backward NCC registrations
+  ``X_m(i) = X_m(i-1) + dX_{i-1}^i`` (:func:`fusedmosaic.registration.ncc.register_ncc`).
+- ``X_r`` (method ``robot``), Eq. 3: the robot positions at the frame times, relative to frame 0,
+  converted from µm with ``pixel_size_um``.
+- ``X_f`` (method ``kalman-robot``), Eq. 4-18: the two fused per frame by
+  :class:`fusedmosaic.estimation.kalman.RobotKalmanFilter`, with the confidences ``c_angle``,
+  ``c_speed``, ``c_match`` (SSIM of the aligned overlap), ``c_img``, ``c_sp``, ``c_rob``.
+
+Sign convention: frame i's pixel ``u`` shows the point ``u + X(i)`` of frame 0's pixel grid,
+i.e. ``X`` is the position of the field of view over the tissue. The simulator's
+``ground_truth.csv`` uses the same one (translation by ``(p_i - p_0) / pixel_size_um``).
+
+:class:`RobotPriorMosaicker` is the streaming form (``add_frame(image, timestamp, robot_xy_um)``,
+one call per acquired frame); ``run_ncc``, ``run_robot`` and ``run_kalman_robot`` feed it a
+dataset frame by frame, so offline runs and live use share one code path. The mosaic is composed
+by averaging every pixel landing on a canvas pixel (``blend="average"``, Sec. III-D).
+
+Graceful degradation: a frame without a robot sample (NaN) follows the image (``c_rob = 0``); a
+blank frame (constant image, e.g. a dropped frame) or a failed registration follows the robot
+(``c_img = 0``) and is reported as ``prior-only``. The next textured frame is registered against
+the last frame whose registration succeeded (the *anchor*), and the robot displacement is taken
+from the last frame that had a robot sample, so a gap costs accuracy but never breaks the chain.
+
+Robot noise (``sigma_r0`` of Eq. 9). The paper gives no value for ``sigma_r0`` and ``sigma_i0``
+("initial values", with ``sigma_r0(i)`` indexed by time in Eq. 9). The ratio decides everything:
+with an accurate robot the filter should follow the robot wherever the image is doubtful, with a
+noisy one (paper Sec. III-C: miniature mechanisms, noisy sensors) it should follow the image.
+The robot's per-frame displacement error differs by orders of magnitude between setups (0.2 µm
+resolution stage vs the paper's artificially noised input) and the user rarely knows it, so by
+default (``adaptive_robot_sigma``) it is estimated online, as in innovation-based adaptive
+Kalman filtering (Mehra 1970, IEEE TAC 15(2)): ``sigma_r0`` = the robust scale (1.4826 x median
+absolute value) of the robot-minus-image displacement over the last ``robot_sigma_window``
+frames whose image was trusted (``c_img >= 0.5``), floored at ``robot_sigma_floor_px``. Until
+``robot_sigma_min_frames`` such frames exist, ``KalmanOptions.sigma_robot0`` is used. With
+``adaptive_robot_sigma=False`` the filter is the paper's with fixed ``sigma_robot0``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from dataclasses import asdict, dataclass, field, replace
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from fusedmosaic.estimation.kalman import KalmanOptions, RobotKalmanFilter
+from fusedmosaic.methods import MethodResult
+from fusedmosaic.registration.ncc import aligned_overlap_ssim, register_ncc
+
+__all__ = [
+    "ESTIMATES",
+    "RobotPriorOptions",
+    "FrameResult",
+    "RobotPriorMosaicker",
+    "translation_homography",
+    "run_ncc",
+    "run_robot",
+    "run_kalman_robot",
+]
+
+# Streaming estimate -> (CLI method name, the paper's symbol).
+ESTIMATES = {"image": ("ncc", "X_m"), "robot": ("robot", "X_r"), "fused": ("kalman-robot", "X_f")}
+CONFIDENCES = ("c_img", "c_rob", "c_angle", "c_speed", "c_match", "c_sp")
+STAGES = ("ncc", "ssim", "filter")
+
+
+@dataclass(frozen=True)
+class RobotPriorOptions:
+    """Options of :class:`RobotPriorMosaicker` (paper 004 values where the paper gives one)."""
+
+    # Central template side as a fraction of the frame: 3/5, paper 004 Sec. III-D.
+    template_fraction: float = 0.6
+    # Coarse-to-fine NCC search (ncc.py): the same peak as the exhaustive search, ~2.5x faster.
+    pyramid_levels: int = 2
+    # Gaussian pre-blur (px) before NCC; 0 = raw frames, as the paper registers them.
+    presmooth_sigma: float = 0.0
+    # Largest displacement searched (px/axis); None = the template's full range (+-1/5 frame).
+    max_displacement_px: float | None = None
+    # c_match = SSIM of the aligned overlap at full resolution (Sec. II-C, ref. [17]); 2 = ~4x
+    # cheaper SSIM on a 2x area-downsampled overlap.
+    ssim_downsample: int = 1
+    # Filter and confidence parameters (Eqs. 4-18), see kalman.KalmanOptions.
+    kalman: KalmanOptions = field(default_factory=KalmanOptions)
+    # Estimate sigma_r0 online from the robot-minus-image displacements (module docstring).
+    adaptive_robot_sigma: bool = True
+    # Frames in the estimate: 5 s at the pCLE's ~10 Hz (Sec. III-B), >= 100 pooled values, short
+    # enough to follow a change of scanning speed.
+    robot_sigma_window: int = 50
+    # Trusted frames needed before the estimate replaces kalman.sigma_robot0: 3 frames (6
+    # values), i.e. before the filter's own confidences start (kalman.min_history = 6) so that
+    # the warm-up, where c_rob(0) = 10 favours the robot (Sec. II-B), uses a measured sigma_r0.
+    robot_sigma_min_frames: int = 3
+    # px; lower bound of the estimate: below ~0.1 px the sub-pixel NCC cannot tell the robot's
+    # error from its own.
+    robot_sigma_floor_px: float = 0.1
+    # Frames with c_img at or above this feed the estimate: the 0.5 level of Eq. 15.
+    robot_sigma_c_img: float = 0.5
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.kalman, KalmanOptions):
+            raise ValueError(
+                "RobotPriorOptions.kalman must be a KalmanOptions, got "
+                f"{type(self.kalman).__name__}"
+            )
+        if not 0.0 < self.template_fraction < 1.0:
+            raise ValueError(
+                f"RobotPriorOptions.template_fraction must be in (0, 1), got "
+                f"{self.template_fraction}"
+            )
+        if self.pyramid_levels < 0:
+            raise ValueError(
+                f"RobotPriorOptions.pyramid_levels must be >= 0, got {self.pyramid_levels}"
+            )
+        if not self.presmooth_sigma >= 0.0:
+            raise ValueError(
+                f"RobotPriorOptions.presmooth_sigma must be >= 0, got {self.presmooth_sigma}"
+            )
+        if self.max_displacement_px is not None and not self.max_displacement_px > 0.0:
+            raise ValueError(
+                "RobotPriorOptions.max_displacement_px must be > 0 or None, got "
+                f"{self.max_displacement_px}"
+            )
+        if self.ssim_downsample < 1:
+            raise ValueError(
+                f"RobotPriorOptions.ssim_downsample must be >= 1, got {self.ssim_downsample}"
+            )
+        if self.robot_sigma_window < 1 or self.robot_sigma_min_frames < 1:
+            raise ValueError(
+                "RobotPriorOptions.robot_sigma_window and robot_sigma_min_frames must be >= 1, "
+                f"got {self.robot_sigma_window} and {self.robot_sigma_min_frames}"
+            )
+        if self.robot_sigma_min_frames > self.robot_sigma_window:
+            raise ValueError(
+                "RobotPriorOptions.robot_sigma_min_frames must not exceed robot_sigma_window, "
+                f"got {self.robot_sigma_min_frames} > {self.robot_sigma_window}"
+            )
+        if not (np.isfinite(self.robot_sigma_floor_px) and self.robot_sigma_floor_px > 0.0):
+            raise ValueError(
+                "RobotPriorOptions.robot_sigma_floor_px must be a finite number > 0, got "
+                f"{self.robot_sigma_floor_px}"
+            )
+        if not 0.0 <= self.robot_sigma_c_img <= 1.0:
+            raise ValueError(
+                "RobotPriorOptions.robot_sigma_c_img must be in [0, 1], got "
+                f"{self.robot_sigma_c_img}"
+            )
+
+
+def translation_homography(position) -> np.ndarray:
+    """(3, 3) frame -> reference translation by ``position`` (px); all-NaN if it is not finite."""
+    p = np.asarray(position, dtype=np.float64)
+    if not np.isfinite(p).all():
+        return np.full((3, 3), np.nan)
+    G = np.eye(3)
+    G[:2, 2] = p
+    return G
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """What :meth:`RobotPriorMosaicker.add_frame` returns for one frame.
+
+    index : frame number in the stream (0 = the reference).
+    position : (2,) px, the chosen estimate (X_m, X_r or X_f) relative to frame 0; NaN when the
+        frame could not be placed.
+    homography : (3, 3) frame -> reference translation, all-NaN when unplaced.
+    status : ``placed`` (image evidence used), ``prior-only`` (placed from the robot alone) or
+        ``unplaced: <reason>``.
+    c_img, c_rob, c_angle, c_speed, c_match, c_sp : the confidences of Eqs. 13-18 for the fused
+        estimate (NaN when not computed: frame 0, other estimates, missing inputs); ``c_match``
+        is also given for the image estimate.
+    ncc_score : mean forward/backward peak NCC (NaN without a registration).
+    position_image, position_robot, position_fused : (2,) X_m, X_r, X_f where computed (NaN
+        otherwise): the fused estimate also reports X_m and X_r for comparison.
+    sigma_robot0 : px, the sigma_r0 of Eq. 9 used at this frame (NaN outside the fused estimate).
+    displacement_image, displacement_robot : (2,) px, the dX of Eq. 5 and the V_r T_s of Eq. 4
+        handed to the filter (relative to the previous placed position; NaN when missing).
+    timings : seconds per stage: ``ncc`` (forward + backward), ``ssim`` (c_match), ``filter``
+        (confidences + Eqs. 4-8), ``total`` (the whole call).
+    """
+
+    index: int
+    timestamp: float
+    position: np.ndarray
+    homography: np.ndarray
+    status: str
+    c_img: float
+    c_rob: float
+    c_angle: float
+    c_speed: float
+    c_match: float
+    c_sp: float
+    ncc_score: float
+    position_image: np.ndarray
+    position_robot: np.ndarray
+    position_fused: np.ndarray
+    sigma_robot0: float
+    displacement_image: np.ndarray
+    displacement_robot: np.ndarray
+    timings: dict[str, float]
+
+    @property
+    def placed(self) -> bool:
+        return bool(np.isfinite(self.position).all())
+
+
+@dataclass
+class _Anchor:
+    """The last frame registered successfully: its image and positions in the mosaic."""
+
+    index: int
+    image: np.ndarray
+    x_m: np.ndarray
+    x_f: np.ndarray
+
+
+_NAN2 = np.full(2, np.nan)
+
+
+class RobotPriorMosaicker:
+    """Streaming pCLE topology inference (paper 004, Sec. II): one :meth:`add_frame` per frame.
+
+    Parameters
+    ----------
+    camera : :class:`fusedmosaic.io.Camera` (or any object with ``width``, ``height`` and
+        ``pixel_size_um``): frames must be ``height x width``; ``pixel_size_um`` (µm/px)
+        converts robot positions and is required by the ``robot`` and ``fused`` estimates.
+    options : :class:`RobotPriorOptions`, default paper settings.
+    estimate : ``"fused"`` (X_f, default), ``"image"`` (X_m) or ``"robot"`` (X_r).
+
+    Memory is bounded: only the anchor frame's image is kept.
+    """
+
+    def __init__(
+        self, camera, options: RobotPriorOptions | None = None, *, estimate: str = "fused"
+    ) -> None:
+        if estimate not in ESTIMATES:
+            raise ValueError(f"estimate must be one of {tuple(ESTIMATES)}, got {estimate!r}")
+        self.options = RobotPriorOptions() if options is None else options
+        if not isinstance(self.options, RobotPriorOptions):
+            raise ValueError(
+                f"options must be a RobotPriorOptions, got {type(self.options).__name__}"
+            )
+        self.estimate = estimate
+        self.width, self.height = int(camera.width), int(camera.height)
+        pixel_size = getattr(camera, "pixel_size_um", None)
+        source = getattr(camera, "source", "camera")
+        if estimate != "image" and pixel_size is None:
+            raise ValueError(
+                f"{source}: no pixel_size_um; the {estimate!r} estimate "
+                f"(method {ESTIMATES[estimate][0]!r}) needs it to convert robot µm to pixels"
+            )
+        if pixel_size is not None and not (np.isfinite(pixel_size) and pixel_size > 0):
+            raise ValueError(f"{source}: pixel_size_um must be a positive number, got {pixel_size}")
+        self.pixel_size_um = None if pixel_size is None else float(pixel_size)
+        self.reset()
+
+    def reset(self) -> None:
+        """Start a new sequence: the next frame becomes the reference (frame 0)."""
+        self._count = 0
+        self._last_timestamp = -np.inf
+        self._anchor: _Anchor | None = None
+        self._robot_origin_um = _NAN2  # robot position at frame 0
+        self._robot_anchor: tuple[np.ndarray, np.ndarray] | None = None  # (robot µm, X_f)
+        self._innovations: deque[np.ndarray] = deque(maxlen=self.options.robot_sigma_window)
+        self._kf = RobotKalmanFilter(self.options.kalman) if self.estimate == "fused" else None
+
+    @property
+    def frame_count(self) -> int:
+        """Frames added since the last :meth:`reset`."""
+        return self._count
+
+    @property
+    def sigma_robot0(self) -> float:
+        """The sigma_r0 (px) the next fused step will use (Eq. 9)."""
+        o = self.options
+        if not o.adaptive_robot_sigma or len(self._innovations) < o.robot_sigma_min_frames:
+            return o.kalman.sigma_robot0
+        d = np.abs(np.concatenate(self._innovations))
+        return max(1.4826 * float(np.median(d)), o.robot_sigma_floor_px)
+
+    # -- input checks --------------------------------------------------------------------------
+
+    def _prepare_image(self, image, index: int) -> np.ndarray:
+        image = np.asarray(image)
+        if image.ndim == 3 and image.shape[2] in (3, 4):
+            code = cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+            if image.dtype not in (np.uint8, np.uint16, np.float32):
+                image = image.astype(np.float32)
+            image = cv2.cvtColor(image, code)
+        if image.ndim != 2:
+            raise ValueError(
+                f"frame {index}: expected a (H, W) gray or (H, W, 3) BGR image, got an array of "
+                f"shape {image.shape}"
+            )
+        if image.shape != (self.height, self.width):
+            raise ValueError(
+                f"frame {index}: image is {image.shape[1]}x{image.shape[0]} but the camera (and "
+                f"frame 0) is {self.width}x{self.height}; all frames must have one size"
+            )
+        if image.dtype != np.uint8:
+            if not (
+                np.issubdtype(image.dtype, np.floating) or np.issubdtype(image.dtype, np.integer)
+            ):
+                raise ValueError(f"frame {index}: unsupported pixel type {image.dtype}")
+            image = np.ascontiguousarray(image, dtype=np.float32)
+            if not np.isfinite(image).all():
+                raise ValueError(f"frame {index}: image contains NaN or infinite pixels")
+        return image
+
+    def _prepare_robot(self, robot_xy_um, index: int) -> np.ndarray:
+        if robot_xy_um is None:
+            return _NAN2
+        r = np.asarray(robot_xy_um, dtype=np.float64)
+        if r.shape != (2,):
+            raise ValueError(f"frame {index}: robot_xy_um must have shape (2,), got {r.shape}")
+        if np.isinf(r).any():
+            raise ValueError(f"frame {index}: robot_xy_um is infinite: {r}")
+        return r if np.isfinite(r).all() else _NAN2
+
+    # -- the streaming step --------------------------------------------------------------------
+
+    def add_frame(self, image, timestamp: float, robot_xy_um=None) -> FrameResult:
+        """Place the next frame.
+
+        Parameters
+        ----------
+        image : (H, W) uint8/float gray or (H, W, 3) BGR, the camera's size; may be None for the
+            ``robot`` estimate (which does not look at images).
+        timestamp : s, strictly increasing.
+        robot_xy_um : (2,) robot position at the frame time (µm, image axes), or None / NaN when
+            the robot has no sample for this frame.
+
+        Raises
+        ------
+        ValueError
+            Naming the frame: a size differing from the camera's, bad pixel values or shapes, a
+            timestamp not after the previous one.
+        """
+        t_start = time.perf_counter()
+        i = self._count
+        t = float(timestamp)
+        if not np.isfinite(t) or t <= self._last_timestamp:
+            raise ValueError(
+                f"frame {i}: timestamp {t!r} is not finite or not after the previous frame's "
+                f"({self._last_timestamp!r})"
+            )
+        robot = self._prepare_robot(robot_xy_um, i)
+        gray = None
+        if image is not None:
+            gray = self._prepare_image(image, i)
+        elif self.estimate != "robot":
+            raise ValueError(f"frame {i}: an image is needed for the {self.estimate!r} estimate")
+        blank = gray is not None and float(np.ptp(gray)) == 0.0
+        timings = dict.fromkeys(STAGES, 0.0)
+        nan = float("nan")
+        conf = dict.fromkeys(CONFIDENCES, nan)
+        score, sigma_r = nan, nan
+        dx_img_f, dx_rob_f = _NAN2, _NAN2
+
+        # Robot position X_r (Eq. 3), relative to frame 0.
+        if i == 0:
+            self._robot_origin_um = robot
+        x_r = _NAN2
+        if self.pixel_size_um is not None:
+            x_r = (robot - self._robot_origin_um) / self.pixel_size_um
+
+        # Image registration against the anchor (frame i-1 unless it was blank or failed).
+        dx, why_no_image = _NAN2, None
+        if i > 0 and self.estimate != "robot":
+            if blank:
+                why_no_image = "blank frame (constant image)"
+            elif self._anchor is None:
+                why_no_image = "no textured frame placed before it to register against"
+            else:
+                t0 = time.perf_counter()
+                reg = register_ncc(
+                    self._anchor.image,
+                    gray,
+                    template_fraction=self.options.template_fraction,
+                    max_displacement=self.options.max_displacement_px,
+                    pyramid_levels=self.options.pyramid_levels,
+                    presmooth_sigma=self.options.presmooth_sigma,
+                )
+                t1 = time.perf_counter()
+                timings["ncc"] = t1 - t0
+                dx, score = reg.dx, reg.score
+                if np.isfinite(dx).all():
+                    conf["c_match"] = aligned_overlap_ssim(
+                        self._anchor.image, gray, dx, downsample=self.options.ssim_downsample
+                    )
+                    timings["ssim"] = time.perf_counter() - t1
+                else:
+                    why_no_image = (
+                        f"NCC registration against frame {self._anchor.index} failed "
+                        "(featureless template)"
+                    )
+        if i == 0:
+            x_m = x_f = np.zeros(2)
+        else:
+            x_m = self._anchor.x_m + dx if self._anchor is not None else _NAN2
+            x_f = _NAN2
+
+        # The chosen estimate.
+        if i == 0:
+            position, status = np.zeros(2), "placed"  # the reference defines the origin
+        elif self.estimate == "image":
+            position = x_m
+            status = "placed" if np.isfinite(x_m).all() else f"unplaced: {why_no_image}"
+        elif self.estimate == "robot":
+            position = x_r
+            if np.isfinite(x_r).all():
+                status = "prior-only"
+            elif not np.isfinite(self._robot_origin_um).all():
+                status = "unplaced: no robot sample at the reference frame 0"
+            else:
+                status = "unplaced: no robot sample at this frame"
+        else:
+            t0 = time.perf_counter()
+            kf = self._kf
+            previous = kf.position
+            if self._anchor is not None:
+                dx_img_f = self._anchor.x_f + dx - previous  # likelihood mean - X_f(i-1), Eq. 5
+            if self._robot_anchor is not None and np.isfinite(robot).all():
+                r_um, r_xf = self._robot_anchor
+                dx_rob_f = r_xf + (robot - r_um) / self.pixel_size_um - previous  # Eq. 4
+            image_ok = bool(np.isfinite(dx_img_f).all())
+            robot_ok = bool(np.isfinite(dx_rob_f).all())
+            if not image_ok and not robot_ok:
+                position = _NAN2
+                status = f"unplaced: no image registration ({why_no_image}) and no robot sample"
+            else:
+                sigma_r = self.sigma_robot0
+                if sigma_r != kf.options.sigma_robot0:
+                    kf.options = replace(kf.options, sigma_robot0=sigma_r)
+                c_match = conf["c_match"] if image_ok else 0.0
+                step = kf.update(dx_img_f, dx_rob_f, c_match)
+                for name in CONFIDENCES:
+                    conf[name] = float(getattr(step, name))
+                x_f = position = step.position
+                status = "placed" if image_ok else "prior-only"
+                if image_ok and robot_ok and step.c_img >= self.options.robot_sigma_c_img:
+                    self._innovations.append(dx_rob_f - dx_img_f)
+            timings["filter"] = time.perf_counter() - t0
+
+        placed = bool(np.isfinite(position).all())
+        if (
+            placed
+            and gray is not None
+            and not blank
+            and (i == 0 or self._anchor is None or np.isfinite(dx).all())
+        ):
+            self._anchor = _Anchor(i, gray, x_m.copy(), x_f.copy())
+        if self.estimate == "fused" and placed and np.isfinite(robot).all():
+            self._robot_anchor = (robot.copy(), x_f.copy())
+        self._count += 1
+        self._last_timestamp = t
+        timings["total"] = time.perf_counter() - t_start
+        position = np.asarray(position, dtype=np.float64).copy()
+        return FrameResult(
+            index=i,
+            timestamp=t,
+            position=position,
+            homography=translation_homography(position),
+            status=status,
+            ncc_score=float(score),
+            position_image=np.array(x_m, dtype=np.float64),
+            position_robot=np.array(x_r, dtype=np.float64),
+            position_fused=np.array(x_f, dtype=np.float64),
+            sigma_robot0=float(sigma_r),
+            displacement_image=np.array(dx_img_f),
+            displacement_robot=np.array(dx_rob_f),
+            timings=timings,
+            **conf,
+        )
+
+
+# -- batch methods (`fusedmosaic run --method ncc|robot|kalman-robot`) ---------------------------
+
+
+def _run(
+    dataset, estimate: str, *, progress: bool, options: RobotPriorOptions | None
+) -> MethodResult:
+    method, symbol = ESTIMATES[estimate]
+    if estimate != "image":
+        dataset.require_robot(method)
+        dataset.require_pixel_size(method)
+    options = RobotPriorOptions() if options is None else options
+    mosaicker = RobotPriorMosaicker(dataset.camera, options, estimate=estimate)
+    n = len(dataset)
+    robot = dataset.robot_xy_um
+    results: list[FrameResult] = []
+    read_s = 0.0
+    for k in tqdm(range(n), desc=method, disable=not progress, leave=False):
+        t0 = time.perf_counter()
+        image = None if estimate == "robot" else dataset.frames[k]
+        read_s += time.perf_counter() - t0
+        results.append(
+            mosaicker.add_frame(image, dataset.timestamps[k], None if robot is None else robot[k])
+        )
+
+    G = np.stack([r.homography for r in results])
+    per_frame = np.array([r.timings["total"] for r in results[1:]]) if n > 1 else np.zeros(1)
+    timings = {"read_frames": read_s}
+    for stage in (*STAGES, "total"):
+        timings[f"{stage}_per_frame_sum" if stage == "total" else stage] = float(
+            sum(r.timings[stage] for r in results)
+        )
+
+    def column(name: str) -> list:
+        return [getattr(r, name) for r in results]
+
+    details = {
+        "estimate": symbol,
+        "confidences": {name: column(name) for name in CONFIDENCES},
+        "ncc_score": column("ncc_score"),
+        "sigma_robot0_px": column("sigma_robot0"),
+        "trajectories_px": {
+            "X_m": np.stack(column("position_image")),
+            "X_r": np.stack(column("position_robot")),
+            "X_f": np.stack(column("position_fused")),
+        },
+        "per_frame_ms": {
+            "median": 1e3 * float(np.median(per_frame)),
+            "p95": 1e3 * float(np.percentile(per_frame, 95)),
+            "max": 1e3 * float(per_frame.max()),
+        },
+    }
+    parameters = {
+        "estimate": estimate,
+        "pixel_size_um": mosaicker.pixel_size_um,
+        "robot_file": dataset.robot_file if estimate != "image" else None,
+        **asdict(options),
+    }
+    return MethodResult(
+        homographies=G,
+        status=column("status"),
+        timings=timings,
+        parameters=parameters,
+        details=details,
+        blend="average",
+    )
+
+
+def run_ncc(
+    dataset, *, progress: bool = True, options: RobotPriorOptions | None = None
+) -> MethodResult:
+    """X_m: the image-only chain of NCC registrations (paper 004, Eq. 1-2)."""
+    return _run(dataset, "image", progress=progress, options=options)
+
+
+def run_robot(
+    dataset, *, progress: bool = True, options: RobotPriorOptions | None = None
+) -> MethodResult:
+    """X_r: robot positions at the frame times, relative to frame 0 (paper 004, Eq. 3)."""
+    return _run(dataset, "robot", progress=progress, options=options)
+
+
+def run_kalman_robot(
+    dataset, *, progress: bool = True, options: RobotPriorOptions | None = None
+) -> MethodResult:
+    """X_f: image registrations fused with the robot prior (paper 004, Eqs. 4-18)."""
+    return _run(dataset, "fused", progress=progress, options=options)

@@ -1,0 +1,442 @@
+"""Translation-only pCLE methods ncc (X_m), robot (X_r), kalman-robot (X_f) and their streaming
+form (paper 004, Sec. II-IV), against the pCLE simulator's ground truth.
+
+The accuracy and confidence tests use the simulator's default circle (79 frames) and spiral
+(134 frames) at full length, with contact loss, stick-slip and the noisy robot: the five test
+cases of Sec. IV-A. Errors are position errors in µm (Sec. IV-B) at the paper's n evenly spaced
+frames (13 circle, 25 spiral) and at all frames.
+"""
+
+import csv
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from fusedmosaic.cli import main
+from fusedmosaic.estimation.kalman import KalmanOptions
+from fusedmosaic.estimation.translation import (
+    RobotPriorMosaicker,
+    RobotPriorOptions,
+    run_kalman_robot,
+    run_ncc,
+    run_robot,
+)
+from fusedmosaic.evaluation import compare_position_errors, position_errors_um
+from fusedmosaic.evaluation.metrics import evenly_spaced
+from fusedmosaic.io import Camera, read_dataset, read_homographies_csv, write_dataset
+from fusedmosaic.runner import run_dataset
+from fusedmosaic.simulation import PcleOptions, generate_pcle, simulate_pcle
+
+N_EVEN = {"circle": 13, "spiral": 25}  # paper 004, Sec. IV-B
+SMALL = PcleOptions(width=192, height=160, n_frames=14, speed_um_per_frame=12.0, radius_um=150.0)
+
+
+# -- fixtures ----------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    """A short, clean sequence (no contact loss, no stick-slip) written to disk."""
+    return simulate_pcle(
+        tmp_path_factory.mktemp("pcle") / "small",
+        replace(SMALL, contact_loss=False, stick_slip=False),
+    )
+
+
+@pytest.fixture(scope="module")
+def small_scene():
+    return generate_pcle(replace(SMALL, contact_loss=False, stick_slip=False))
+
+
+def _events(root):
+    with open(root / "events.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    loss = np.array([int(r["contact_loss"]) for r in rows], bool)
+    stick = np.array([int(r["stick_slip"]) for r in rows], bool)
+    return loss, stick
+
+
+def _case_errors(dataset, noisy_dataset, name):
+    """The five test cases of paper 004 Sec. IV-A on one dataset: per-frame errors (µm)."""
+    cam = dataset.camera
+    truth = dataset.ground_truth
+
+    def err(result):
+        return position_errors_um(
+            result.homographies, truth, cam.width, cam.height, cam.pixel_size_um
+        )
+
+    fused_noisy = run_kalman_robot(noisy_dataset, progress=False)
+    errors = {
+        1: err(run_ncc(dataset, progress=False)),
+        2: err(run_robot(dataset, progress=False)),
+        3: err(run_kalman_robot(dataset, progress=False)),
+        4: err(run_robot(noisy_dataset, progress=False)),
+        5: err(fused_noisy),
+    }
+    return {"name": name, "errors": errors, "fused_noisy": fused_noisy, "dataset": dataset}
+
+
+@pytest.fixture(scope="module", params=["circle", "spiral"])
+def cases(request, tmp_path_factory):
+    name = request.param
+    root = simulate_pcle(tmp_path_factory.mktemp("pcle") / name, PcleOptions(trajectory=name))
+    dataset = read_dataset(root)
+    noisy = read_dataset(root, robot_file="robot_noisy.csv")
+    out = _case_errors(dataset, noisy, name)
+    out["events"] = _events(root)
+    return out
+
+
+def _mean(errors, name, frames):
+    e = errors if frames == "all" else errors[evenly_spaced(len(errors), N_EVEN[name])]
+    return float(np.mean(e))
+
+
+# -- end to end through `fusedmosaic run` ------------------------------------------------------
+
+
+@pytest.mark.parametrize("method", ["ncc", "robot", "kalman-robot"])
+def test_methods_write_the_output_contract(small, tmp_path, method):
+    out = tmp_path / method
+    summary = run_dataset(small, method, out, progress=False)
+    assert f"placed {SMALL.n_frames}/{SMALL.n_frames}" in summary
+    ids, G = read_homographies_csv(out / "homographies.csv")
+    np.testing.assert_array_equal(ids, np.arange(SMALL.n_frames))
+    np.testing.assert_allclose(G[0], np.eye(3))
+    # translation-only: identity linear part, unit last row
+    np.testing.assert_allclose(G[:, :2, :2], np.tile(np.eye(2), (len(G), 1, 1)))
+    np.testing.assert_allclose(G[:, 2], np.tile([0.0, 0.0, 1.0], (len(G), 1)))
+    assert (out / "mosaic.png").stat().st_size > 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["method"] == method
+    assert len(report["frame_status"]) == SMALL.n_frames
+    assert report["frame_status"][0] == "placed"
+    expected = "prior-only" if method == "robot" else "placed"
+    assert set(report["frame_status"][1:]) == {expected}
+    for stage in ("read_frames", "ncc", "ssim", "filter", "compose_mosaic"):
+        assert stage in report["timings_s"]
+    conf = report["confidences"]
+    assert set(conf) == {"c_img", "c_rob", "c_angle", "c_speed", "c_match", "c_sp"}
+    assert all(len(v) == SMALL.n_frames for v in conf.values())
+    if method == "kalman-robot":
+        assert all(0.0 <= c <= 1.0 for c in conf["c_img"][1:])
+        assert report["parameters"]["kalman"]["c_rob0"] == 10.0  # paper Sec. II-B
+    assert report["parameters"]["template_fraction"] == 0.6  # paper Sec. III-D
+    assert report["metrics"]["e_M_px"] < 1.0
+
+
+def test_cli_run_with_the_noisy_robot_file(small, tmp_path):
+    out = tmp_path / "out"
+    argv = [
+        "--quiet",
+        "run",
+        str(small),
+        "--method",
+        "kalman-robot",
+        "--out",
+        str(out),
+        "--robot-file",
+        "robot_noisy.csv",
+    ]
+    assert main(argv) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["parameters"]["robot_file"] == "robot_noisy.csv"
+    assert report["paper_name"] == "X_f (robot-prior Kalman)"
+
+
+def test_sign_convention_matches_ground_truth(small, small_scene):
+    """Clean scan: X_r is exact up to the robot-sample interpolation; X_m and X_f are sub-pixel;
+    all three share the ground truth's sign (frame pixel u shows reference pixel u + X)."""
+    dataset = read_dataset(small)
+    truth = small_scene.homographies[:, :2, 2]
+    for run, tol in ((run_robot, 0.05), (run_ncc, 0.5), (run_kalman_robot, 0.5)):
+        est = run(dataset, progress=False).homographies[:, :2, 2]
+        assert np.abs(est - truth).max() < tol, run.__name__
+    assert np.abs(truth[-1]).max() > 50  # the scan really moved
+
+
+# -- streaming: one code path, graceful degradation ---------------------------------------------
+
+
+def _stream(dataset, estimate="fused", frames=None, robot=None, options=None):
+    m = RobotPriorMosaicker(dataset.camera, options, estimate=estimate)
+    frames = [dataset.frames[k] for k in range(len(dataset))] if frames is None else frames
+    robot = dataset.robot_xy_um if robot is None else robot
+    return [m.add_frame(f, t, r) for f, t, r in zip(frames, dataset.timestamps, robot, strict=True)]
+
+
+def test_streaming_equals_the_batch_method(small):
+    dataset = read_dataset(small, robot_file="robot_noisy.csv")
+    stream = _stream(dataset)
+    batch = run_kalman_robot(dataset, progress=False)
+    np.testing.assert_array_equal(np.stack([r.homography for r in stream]), batch.homographies)
+    np.testing.assert_array_equal([r.c_img for r in stream], batch.details["confidences"]["c_img"])
+    r = stream[5]
+    assert set(r.timings) == {"ncc", "ssim", "filter", "total"}
+    assert r.timings["total"] >= r.timings["ncc"] + r.timings["ssim"] + r.timings["filter"]
+    np.testing.assert_allclose(r.homography[:2, 2], r.position)
+
+
+def test_missing_robot_sample_follows_the_image(small, small_scene):
+    dataset = read_dataset(small, robot_file="robot_noisy.csv")
+    robot = dataset.robot_xy_um.copy()
+    robot[6:9] = np.nan
+    out = _stream(dataset, robot=robot)
+    truth = small_scene.homographies[:, :2, 2]
+    for k in (6, 7, 8):
+        assert out[k].status == "placed" and out[k].c_rob == 0.0
+        np.testing.assert_allclose(
+            out[k].position - out[k - 1].position, out[k].displacement_image, atol=1e-9
+        )
+    # frame 9 takes the robot displacement since frame 5, its last sample
+    np.testing.assert_allclose(
+        out[9].displacement_robot,
+        out[5].position + (robot[9] - robot[5]) / dataset.camera.pixel_size_um - out[8].position,
+        atol=1e-9,
+    )
+    # following the (sub-pixel) image through the gap adds no error
+    drift = np.linalg.norm(out[8].position - truth[8]) - np.linalg.norm(out[5].position - truth[5])
+    assert abs(drift) < 0.5
+
+
+def test_blank_frame_follows_the_robot_and_the_chain_resumes(small, small_scene):
+    dataset = read_dataset(small)  # perfect robot: following it is exact on this clean scan
+    frames = [dataset.frames[k] for k in range(len(dataset))]
+    frames[6] = np.zeros_like(frames[6])
+    truth = small_scene.homographies[:, :2, 2]
+    fused = _stream(dataset, frames=frames)
+    assert fused[6].status == "prior-only" and fused[6].c_img == 0.0
+    assert np.isnan(fused[6].ncc_score)
+    assert np.abs(fused[6].position - truth[6]).max() < 0.5
+    assert fused[7].status == "placed"  # registered against frame 5, the anchor
+    assert np.abs(fused[7].position - truth[7]).max() < 0.5
+    image = _stream(dataset, "image", frames=frames)
+    assert image[6].status == "unplaced: blank frame (constant image)"
+    assert np.isnan(image[6].homography).all()
+    assert image[7].status == "placed"
+    assert np.abs(image[7].position - truth[7]).max() < 0.5
+
+
+def test_blank_frame_without_robot_sample_is_unplaced(small):
+    dataset = read_dataset(small)
+    frames = [dataset.frames[k] for k in range(len(dataset))]
+    frames[4] = np.full_like(frames[4], 7)
+    robot = dataset.robot_xy_um.copy()
+    robot[4] = np.nan
+    out = _stream(dataset, frames=frames, robot=robot)
+    assert out[4].status.startswith("unplaced: no image registration (blank frame")
+    assert out[4].status.endswith("and no robot sample")
+    assert out[5].status == "placed" and np.isfinite(out[5].position).all()
+
+
+def test_robot_estimate_needs_no_images_and_flags_missing_samples(small):
+    dataset = read_dataset(small)
+    robot = dataset.robot_xy_um.copy()
+    robot[3] = np.nan
+    out = _stream(dataset, "robot", frames=[None] * len(dataset), robot=robot)
+    assert out[3].status == "unplaced: no robot sample at this frame"
+    assert out[4].status == "prior-only"
+    robot[0] = np.nan
+    out = _stream(dataset, "robot", frames=[None] * len(dataset), robot=robot)
+    assert out[0].status == "placed"
+    assert out[1].status == "unplaced: no robot sample at the reference frame 0"
+
+
+def test_adaptive_robot_sigma_tracks_the_robot_noise(cases):
+    """sigma_r0 estimated online: ~0.1 px (the floor) for the perfect robot, about the noisy
+    robot's per-frame displacement error (0.3 x 40 µm/frame = 12 px, PcleOptions) for the noisy
+    one; without adaptation the fixed KalmanOptions.sigma_robot0 is used."""
+    sigma = np.array(cases["fused_noisy"].details["sigma_robot0_px"][10:], dtype=float)
+    assert 6.0 < np.median(sigma) < 24.0
+    perfect = run_kalman_robot(cases["dataset"], progress=False)
+    assert np.median(perfect.details["sigma_robot0_px"][10:]) < 0.5
+    fixed = run_kalman_robot(
+        cases["dataset"], progress=False, options=RobotPriorOptions(adaptive_robot_sigma=False)
+    )
+    assert set(fixed.details["sigma_robot0_px"][1:]) == {KalmanOptions().sigma_robot0}
+
+
+# -- the five test cases of paper 004 (Done-when of issue 5) ------------------------------------
+
+
+@pytest.mark.parametrize("frames", ["even", "all"])
+def test_fused_noisy_beats_noisy_robot_significantly(cases, frames):
+    """#5 (X_f, noisy robot) < #4 (X_r noisy), Wilcoxon signed-rank p < 0.05 (Tables I-II)."""
+    e4, e5 = cases["errors"][4], cases["errors"][5]
+    name = cases["name"]
+    assert _mean(e5, name, frames) < _mean(e4, name, frames)
+    if frames == "even":
+        idx = evenly_spaced(len(e4), N_EVEN[name])
+        e4, e5 = e4[idx], e5[idx]
+    assert compare_position_errors(e4, e5)["p_value"] < 0.05
+
+
+@pytest.mark.parametrize("frames", ["even", "all"])
+def test_fused_perfect_robot_within_25_percent_of_robot(cases, frames):
+    """#3 (X_f, perfect robot) not worse than #2 (X_r perfect) by more than 25 %."""
+    name = cases["name"]
+    assert _mean(cases["errors"][3], name, frames) <= 1.25 * _mean(cases["errors"][2], name, frames)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="Done-when missed (issue 5): on the simulator the image-only chain X_m is accurate "
+    "(mean ~58 µm circle, ~52 µm spiral, vs 274/687 µm in the paper) and #5 is worse "
+    "(~81 µm circle, ~218 µm spiral). Stick-slip releases jump ~140 µm, beyond the NCC search "
+    "range (+-1/5 frame), so c_img ~ 0 there and Eq. 18 hands the step to the robot, which "
+    "does not see the slip: each release leaves ~100 µm of lag in the chained X_f. See "
+    "bench/results/pcle_cases.md.",
+)
+@pytest.mark.parametrize("frames", ["even", "all"])
+def test_fused_noisy_beats_image_only(cases, frames):
+    """#5 (X_f, noisy robot) < #1 (X_m)."""
+    name = cases["name"]
+    assert _mean(cases["errors"][5], name, frames) < _mean(cases["errors"][1], name, frames)
+
+
+def _c_img(cases):
+    c = np.array(cases["fused_noisy"].details["confidences"]["c_img"], dtype=float)
+    loss, stick = cases["events"]
+    event = loss | stick
+    # c_img(i) scores the registration of frame i against frame i-1 (Sec. II-C); frame i is
+    # labelled by events.csv at its own time. Frame 0 has no registration. Every labelled frame
+    # counts, including the first and last of each event run (no boundary frame is dropped).
+    return c[1:], event[1:]
+
+
+def test_c_img_stays_high_on_good_frames(cases):
+    """c_img > 0.5 on at least 80 % of the frames without contact loss or stick-slip."""
+    c, event = _c_img(cases)
+    assert np.mean(c[~event] > 0.5) >= 0.8
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="Done-when missed (issue 5): c_img < 0.5 on ~59 % (circle) / ~60 % (spiral) of the "
+    "contact-loss or stick-slip frames, not 80 %. Missed: frames at the edges of a contact-loss "
+    "run (contrast 0.2-0.5) still register to < 1 px and keep c_img ~0.7 (Eq. 16 is a geometric "
+    "mean: c_match ~0.35 alone gives 0.7), and stick-slip frames after a release, where the "
+    "image moves smoothly again; a few registrations off by 5-20 px at low contrast also keep "
+    "c_img 0.53-0.65 (spiral). Counts in bench/results/pcle_cases.md.",
+)
+def test_c_img_low_on_event_frames(cases):
+    """c_img < 0.5 on at least 80 % of the frames with contact loss or stick-slip."""
+    c, event = _c_img(cases)
+    assert np.mean(c[event] < 0.5) >= 0.8
+
+
+# -- bad input -----------------------------------------------------------------------------------
+
+
+def _tiny(tmp_path, *, pixel_size=1.0, robot=True, sizes=None, name="data"):
+    from fusedmosaic.io import RobotSamples
+
+    rng = np.random.default_rng(3)
+    sizes = sizes or [(64, 48)] * 4
+    frames = [rng.integers(0, 255, (h, w), dtype=np.uint8) for w, h in sizes]
+    t = np.arange(len(frames)) / 10.0
+    samples = RobotSamples(np.linspace(-0.1, t[-1] + 0.1, 20), np.zeros((20, 2)))
+    return write_dataset(
+        tmp_path / name,
+        camera=Camera(64, 48, pixel_size_um=pixel_size),
+        frames=frames,
+        timestamps=t,
+        robot=samples if robot else None,
+    )
+
+
+@pytest.mark.parametrize("robot_file", ["robot.csv", "robot_noisy.csv"])
+def test_kalman_robot_without_robot_file(tmp_path, robot_file):
+    data = _tiny(tmp_path, robot=False)
+    with pytest.raises(
+        ValueError,
+        match=rf"{robot_file}: file not found; method 'kalman-robot'"
+        r" needs robot positions",
+    ):
+        run_dataset(data, "kalman-robot", tmp_path / "out", robot_file=robot_file, progress=False)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("method", ["ncc", "robot", "kalman-robot"])
+def test_missing_pixel_size(tmp_path, method):
+    data = _tiny(tmp_path, pixel_size=None)
+    with pytest.raises(ValueError, match=rf"camera\.yaml: no pixel_size_um; method '{method}'"):
+        run_dataset(data, method, tmp_path / "out", progress=False)
+    assert not (tmp_path / "out").exists()
+
+
+def test_streaming_without_pixel_size():
+    with pytest.raises(
+        ValueError,
+        match=r"no pixel_size_um; the 'fused' estimate \(method "
+        r"'kalman-robot'\) needs it",
+    ):
+        RobotPriorMosaicker(Camera(64, 48))
+    RobotPriorMosaicker(Camera(64, 48), estimate="image")  # X_m needs no pixel size
+
+
+@pytest.mark.parametrize("method", ["ncc", "kalman-robot"])
+def test_frames_of_differing_sizes_in_a_dataset(tmp_path, method):
+    data = _tiny(tmp_path, sizes=[(64, 48), (64, 48), (60, 48), (64, 48)])
+    with pytest.raises(
+        ValueError,
+        match=r"000002\.png: image is 60x48 but \S*camera\.yaml says "
+        r"64x48",
+    ):
+        run_dataset(data, method, tmp_path / "out", progress=False)
+    assert not (tmp_path / "out").exists()
+
+
+def test_frames_of_differing_sizes_streaming():
+    m = RobotPriorMosaicker(Camera(64, 48, pixel_size_um=1.0))
+    rng = np.random.default_rng(0)
+    m.add_frame(rng.integers(0, 255, (48, 64), dtype=np.uint8), 0.0, (0.0, 0.0))
+    m.add_frame(rng.integers(0, 255, (48, 64), dtype=np.uint8), 0.1, (0.0, 0.0))
+    with pytest.raises(
+        ValueError,
+        match=r"frame 2: image is 64x40 but the camera \(and frame 0\)"
+        r" is 64x48",
+    ):
+        m.add_frame(rng.integers(0, 255, (40, 64), dtype=np.uint8), 0.2, (0.0, 0.0))
+
+
+@pytest.mark.parametrize(
+    ("call", "message"),
+    [
+        (
+            lambda m, f: m.add_frame(f, 1.0, (1.0, 2.0, 3.0)),
+            r"frame 1: robot_xy_um must have "
+            r"shape \(2,\)",
+        ),
+        (lambda m, f: m.add_frame(f, -1.0, (0.0, 0.0)), r"frame 1: timestamp -1\.0 is not"),
+        (lambda m, f: m.add_frame(f, 1.0, (np.inf, 0.0)), r"frame 1: robot_xy_um is infinite"),
+        (lambda m, f: m.add_frame(None, 1.0, (0.0, 0.0)), r"frame 1: an image is needed"),
+        (lambda m, f: m.add_frame(f[None], 1.0, (0.0, 0.0)), r"frame 1: expected a \(H, W\)"),
+    ],
+)
+def test_bad_streaming_input(call, message):
+    m = RobotPriorMosaicker(Camera(64, 48, pixel_size_um=1.0))
+    frame = np.random.default_rng(0).integers(0, 255, (48, 64), dtype=np.uint8)
+    m.add_frame(frame, 0.5, (0.0, 0.0))
+    with pytest.raises(ValueError, match=message):
+        call(m, frame)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"template_fraction": 1.0}, r"template_fraction must be in \(0, 1\)"),
+        ({"ssim_downsample": 0}, r"ssim_downsample must be >= 1"),
+        ({"robot_sigma_floor_px": 0.0}, r"robot_sigma_floor_px must be a finite number > 0"),
+        ({"robot_sigma_min_frames": 60}, r"robot_sigma_min_frames must not exceed"),
+        ({"kalman": {"sigma_robot0": 1.0}}, r"kalman must be a KalmanOptions"),
+    ],
+)
+def test_bad_options(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        RobotPriorOptions(**kwargs)
+    with pytest.raises(ValueError, match=r"estimate must be one of"):
+        RobotPriorMosaicker(Camera(64, 48), estimate="X_f")
