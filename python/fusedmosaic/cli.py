@@ -60,9 +60,16 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     from fusedmosaic.runner import run_dataset
 
+    options = None
+    if args.pair_selection:
+        if args.method not in ("ba", "ba-emt", "emt"):
+            raise ValueError(f"--pair-selection applies to ba, ba-emt and emt, not {args.method}")
+        from fusedmosaic.estimation.bundle import BundleOptions
+
+        options = BundleOptions(pair_selection=args.pair_selection)
     summary = run_dataset(args.dataset, args.method, args.out, fps=args.fps,
                           robot_file=args.robot_file, allow_untracked=args.allow_untracked,
-                          progress=not args.quiet)
+                          progress=_progress(args), options=options)
     _say(args, summary)
     return 0
 
@@ -129,7 +136,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         raise SystemExit("no mosaicking method is registered yet")
     method = names[0]
     out = root / method
-    run_dataset(data, method, out, progress=not args.quiet)
+    run_dataset(data, method, out, progress=_progress(args))
     result = evaluate_output(out, data)
     _write_json_atomic(out / "evaluation.json", result)
     _say(args, _format_table([result]))
@@ -138,6 +145,11 @@ def _cmd_demo(args: argparse.Namespace) -> int:
                f"outputs in {out} (mosaic.png, homographies.csv, report.json); "
                f"{time.perf_counter() - t0:.0f} s in all")
     return 0
+
+
+def _progress(args: argparse.Namespace) -> bool:
+    """Progress bars only for a person watching a terminal."""
+    return not getattr(args, "quiet", False) and sys.stderr.isatty()
 
 
 def _say(args: argparse.Namespace, text: str) -> None:
@@ -170,6 +182,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="frame rate when the dataset has no frames.csv (default 25)")
     run.add_argument("--robot-file", default="robot.csv",
                      help="robot positions file inside the dataset (default robot.csv)")
+    run.add_argument("--pair-selection", choices=["all", "emt-guided", "window"],
+                     help="ba / ba-emt / emt: which image pairs to match (default: all for ba and "
+                          "ba-emt as in the paper, emt-guided for emt)")
     run.add_argument("--allow-untracked", action="store_true",
                      help="flag frames outside the tracker's time span instead of failing")
     run.set_defaults(func=_cmd_run)

@@ -18,10 +18,11 @@ NEEDS_PIXEL_SIZE = {"ncc", "robot", "kalman-robot"}
 
 def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: float = 25.0,
                 robot_file: str = "robot.csv", allow_untracked: bool = False,
-                progress: bool = True, blend: str | None = None) -> str:
+                progress: bool = True, blend: str | None = None, options=None) -> str:
     """Runs `method` on a dataset folder and writes the output contract into `out`.
 
-    blend: mosaic blending, by default the method's own preference (MethodResult.blend)."""
+    blend: mosaic blending, by default the method's own preference (MethodResult.blend).
+    options: the method's options dataclass (None: the method's defaults)."""
     from fusedmosaic.compositing import compose_mosaic
     from fusedmosaic.io import OutputWriter, read_dataset
 
@@ -40,7 +41,7 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
         dataset.require_pixel_size(method)
     timings["read_dataset"] = time.perf_counter() - t0
 
-    result = run_method(dataset, progress=progress)
+    result = run_method(dataset, progress=progress, options=options)
     timings.update(result.timings)
     G = result.homographies
     placed = np.isfinite(G).all(axis=(1, 2))

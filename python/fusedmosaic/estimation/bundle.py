@@ -85,7 +85,8 @@ def _subsample(match: PairMatch, k: int, rng: np.random.Generator):
 
 
 def _select_pairs_with_emt(dataset, options: BundleOptions, progress: bool):
-    """EMT-guided selection: temporal seed pairs -> plane -> predicted footprints -> pairs."""
+    """EMT-guided selection: temporal seed pairs -> first plane -> footprints predicted from the
+    tracker -> overlapping pairs matched -> plane re-estimated from the wider baselines."""
     cam = dataset.camera
     K = cam.camera_matrix
     n = len(dataset.frames)
@@ -98,10 +99,8 @@ def _select_pairs_with_emt(dataset, options: BundleOptions, progress: bool):
     done = {(m.frame_l, m.frame_m): m for m in seed.matches}
     rest = [p for p in selected if p not in done]
     more = register_frames(dataset, lambda f: rest, options, progress, seed.features)
-    for m in more.matches:
-        done[(m.frame_l, m.frame_m)] = m
-    wanted = set(selected) | set(done)
-    matches = [done[p] for p in sorted(wanted) if p in done]
+    matches = seed.matches + more.matches
+    plane = estimate_plane(matches, dataset.cam_from_world, K)
     timings = {"features": seed.timings["features"],
                "matching": seed.timings["matching"] + more.timings["matching"]}
     return FrontEnd(seed.features, matches, timings), plane
@@ -270,18 +269,16 @@ def run_ba_emt(dataset, *, progress: bool = True, options: BundleOptions | None 
 
 def run_emt(dataset, *, progress: bool = True, options: BundleOptions | None = None,
             plane: np.ndarray | None = None) -> MethodResult:
-    """EMT baseline: tracker poses + a plane (estimated from temporal pairs unless given)."""
-    o = options or BundleOptions(pair_selection="window")
+    """EMT baseline: tracker poses + a plane (estimated from EMT-guided pairs unless given)."""
+    o = options or BundleOptions(pair_selection="emt-guided")
     K = dataset.camera.camera_matrix
-    n = len(dataset.frames)
     timings: dict[str, float] = {}
     details: dict = {}
     if plane is None:
-        front = register_frames(dataset, lambda f: window_pairs(n, o.window), o, progress)
-        timings.update(front.timings)
         t0 = time.perf_counter()
-        plane = estimate_plane(front.matches, dataset.cam_from_world, K)
-        timings["initialisation"] = time.perf_counter() - t0
+        front, plane = _select_pairs_with_emt(dataset, o, progress)
+        timings.update(front.timings)
+        timings["initialisation"] = time.perf_counter() - t0 - sum(front.timings.values())
         details = _pair_details(front)
     G = predicted_homographies(dataset.cam_from_world, np.asarray(plane, float), K)
     placed = np.isfinite(G).all(axis=(1, 2))

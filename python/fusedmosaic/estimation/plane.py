@@ -6,14 +6,14 @@ poses: 9 linear equations in the 4 unknowns (s, pi_m). The plane in camera m is 
 (virtual camera): for X_m = R_m X + t_m, the condition -pi_m^T X_m = 1 becomes
 -(R_m^T pi_m)^T X = 1 + pi_m^T t_m, so pi = R_m^T pi_m / (1 + pi_m^T t_m).
 Each pair is noisy (tracker noise enters through (R, t)), so pairs with the widest baselines are
-used, combined robustly (median normal direction and median inverse depth) and the result refined
-by minimising the point-transfer error of their inliers with the poses held fixed (soft-L1 loss).
+used and combined robustly (median normal direction and median inverse depth). A refinement of the
+point-transfer error with the noisy tracker poses held fixed was tried and removed: it fits the
+plane to the pose noise (4-6 deg normal error on SYN-150 against 0.24 deg for the median).
 """
 
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from fusedmosaic import _core
 
@@ -52,8 +52,7 @@ def _robust_combine(planes: np.ndarray) -> np.ndarray:
     return n / np.linalg.norm(n) * inv_depth
 
 
-def estimate_plane(pairs, poses: np.ndarray, K: np.ndarray, *, max_pairs: int = 60,
-                   refine: bool = True) -> np.ndarray:
+def estimate_plane(pairs, poses: np.ndarray, K: np.ndarray, *, max_pairs: int = 60) -> np.ndarray:
     """Plane pi from registered pairs (PairMatch, frame ids index `poses`) and tracker poses.
 
     Raises ValueError when no registered pair with valid poses is available."""
@@ -71,20 +70,4 @@ def estimate_plane(pairs, poses: np.ndarray, K: np.ndarray, *, max_pairs: int = 
     estimates = np.array([e for e in estimates if e is not None and np.isfinite(e).all()])
     if len(estimates) == 0:
         raise ValueError("cannot estimate the plane: every pair was degenerate")
-    plane = _robust_combine(estimates)
-    if not refine:
-        return plane
-
-    def residuals(pi):
-        res = []
-        for p in chosen:
-            pred = _core.transfer_points(p.points_m, poses[p.frame_l], poses[p.frame_m], pi, K)
-            res.append((pred - p.points_l).ravel())
-        return np.concatenate(res)
-
-    try:
-        sol = least_squares(residuals, plane, loss="soft_l1", f_scale=5.0, x_scale="jac",
-                            max_nfev=50)
-    except ValueError:  # a trial plane made a homography singular: keep the robust estimate
-        return plane
-    return sol.x if np.isfinite(sol.x).all() and np.linalg.norm(sol.x) > 0 else plane
+    return _robust_combine(estimates)

@@ -17,6 +17,9 @@ import numpy as np
 class FeatureOptions:
     detector: str = "sift"  # "sift" (paper Sec. 4.1, VLFeat SIFT) or "orb" (faster)
     max_features: int = 1000  # strongest keypoints kept per frame
+    # SIFT peak threshold. OpenCV's default is 0.04; the paper used VLFeat SIFT whose default
+    # peak threshold is 0, which matters on low-contrast placenta: lower keeps more keypoints.
+    sift_contrast_threshold: float = 0.04
     clahe: bool = False  # contrast-limited histogram equalisation for low-texture tissue
     clahe_clip_limit: float = 2.0
     clahe_tiles: int = 8
@@ -74,7 +77,8 @@ class FeatureExtractor:
     def _detector(self):
         o = self.options
         if o.detector == "sift":
-            return cv2.SIFT_create(nfeatures=o.max_features)
+            return cv2.SIFT_create(nfeatures=o.max_features,
+                                   contrastThreshold=o.sift_contrast_threshold)
         return cv2.ORB_create(nfeatures=o.max_features, fastThreshold=5)
 
     def extract(self, image: np.ndarray, frame_id: int = 0) -> Features:
