@@ -4,6 +4,7 @@
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
+#include <memory>
 #include <optional>
 #include <sstream>
 #include <string>
@@ -175,9 +176,10 @@ void BindProblem(py::module_& m) {
       m, "BundleAdjuster",
       "Bundle adjustment of frame poses and the plane: BAVis (use_emt=False) and BAVis+EMT\n"
       "(seed 000, Eq. 17). Owns the parameters, keyed by frame id. Without EMT priors the gauge\n"
-      "is fixed by holding the first frame constant and |plane| fixed.")
+      "is fixed by holding the first frame constant and |plane| fixed. Calls from other threads\n"
+      "wait while solve() runs.")
       .def(py::init([](const Mat& camera_matrix, const BundleAdjusterOptions& options) {
-             return BundleAdjuster(CheckCameraMatrix(camera_matrix), options);
+             return std::make_unique<BundleAdjuster>(CheckCameraMatrix(camera_matrix), options);
            }),
            "camera_matrix"_a, "options"_a = BundleAdjusterOptions(),
            "camera_matrix : (3, 3) float64 K\noptions : BundleAdjusterOptions")
@@ -222,16 +224,15 @@ void BindProblem(py::module_& m) {
       .def(
           "poses",
           [](const BundleAdjuster& self) {
-            const std::vector<int> ids = self.FrameIds();
-            const auto n = static_cast<py::ssize_t>(ids.size());
+            const auto poses = self.Poses();
+            const auto n = static_cast<py::ssize_t>(poses.size());
             py::array_t<int64_t> id_array(n);
             py::array_t<double> pose_array({n, py::ssize_t{kPoseSize}});
             auto id_view = id_array.mutable_unchecked<1>();
             auto pose_view = pose_array.mutable_unchecked<2>();
             for (py::ssize_t i = 0; i < n; ++i) {
-              id_view(i) = ids[i];
-              const Vector6d pose = self.GetPose(ids[i]);
-              for (int j = 0; j < kPoseSize; ++j) pose_view(i, j) = pose[j];
+              id_view(i) = poses[i].first;
+              for (int j = 0; j < kPoseSize; ++j) pose_view(i, j) = poses[i].second[j];
             }
             return py::make_tuple(id_array, pose_array);
           },

@@ -139,6 +139,7 @@ const BundleAdjuster::Frame& BundleAdjuster::FindFrame(int frame_id, const char*
 
 void BundleAdjuster::AddFrame(int frame_id, const Pose& cam_from_world,
                               const std::optional<Pose>& emt_measurement) {
+  std::lock_guard<std::mutex> lock(mutex_);
   if (frames_.count(frame_id)) {
     throw std::invalid_argument("add_frame: frame id " + std::to_string(frame_id) +
                                 " already added (use set_pose to change its pose)");
@@ -153,6 +154,7 @@ void BundleAdjuster::AddFrame(int frame_id, const Pose& cam_from_world,
 
 void BundleAdjuster::AddPair(int frame_l, int frame_m, const Points& points_l,
                              const Points& points_m) {
+  std::lock_guard<std::mutex> lock(mutex_);
   FindFrame(frame_l, "add_pair: frame_l");
   FindFrame(frame_m, "add_pair: frame_m");
   if (frame_l == frame_m) {
@@ -181,6 +183,7 @@ void BundleAdjuster::AddPair(int frame_l, int frame_m, const Points& points_l,
 }
 
 void BundleAdjuster::SetPlane(const Eigen::Vector3d& plane) {
+  std::lock_guard<std::mutex> lock(mutex_);
   CheckFinite(plane.data(), kPlaneSize, "plane");
   if (!(plane.norm() > 1e-12)) {
     throw std::invalid_argument(
@@ -191,38 +194,70 @@ void BundleAdjuster::SetPlane(const Eigen::Vector3d& plane) {
 }
 
 void BundleAdjuster::SetPose(int frame_id, const Pose& cam_from_world) {
+  std::lock_guard<std::mutex> lock(mutex_);
   Frame& frame = FindFrame(frame_id, "set_pose");
   CheckFinite(cam_from_world.data(), kPoseSize, "pose");
   std::copy(cam_from_world.data(), cam_from_world.data() + kPoseSize, frame.pose.begin());
 }
 
 void BundleAdjuster::SetConstantFrame(int frame_id, bool constant) {
+  std::lock_guard<std::mutex> lock(mutex_);
   FindFrame(frame_id, "set_constant_frame").constant = constant;
 }
 
 std::vector<int> BundleAdjuster::FrameIds() const {
+  std::lock_guard<std::mutex> lock(mutex_);
   std::vector<int> ids;
   ids.reserve(frames_.size());
   for (const auto& [id, frame] : frames_) ids.push_back(id);
   return ids;
 }
 
+std::vector<std::pair<int, BundleAdjuster::Pose>> BundleAdjuster::Poses() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  std::vector<std::pair<int, Pose>> out;
+  out.reserve(frames_.size());
+  for (const auto& [id, frame] : frames_) {
+    out.emplace_back(id, Eigen::Map<const Pose>(frame.pose.data()));
+  }
+  return out;
+}
+
 BundleAdjuster::Pose BundleAdjuster::GetPose(int frame_id) const {
+  std::lock_guard<std::mutex> lock(mutex_);
   return Eigen::Map<const Pose>(FindFrame(frame_id, "pose").pose.data());
 }
 
 Eigen::Vector3d BundleAdjuster::Plane() const {
+  std::lock_guard<std::mutex> lock(mutex_);
   if (!plane_set_) throw std::invalid_argument("plane: not set (call set_plane first)");
   return Eigen::Map<const Eigen::Vector3d>(plane_.data());
 }
 
+bool BundleAdjuster::HasPlane() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return plane_set_;
+}
+
+int BundleAdjuster::NumFrames() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return static_cast<int>(frames_.size());
+}
+
+int BundleAdjuster::NumPairs() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return static_cast<int>(pairs_.size());
+}
+
 int BundleAdjuster::NumCorrespondences() const {
+  std::lock_guard<std::mutex> lock(mutex_);
   int n = 0;
   for (const Pair& pair : pairs_) n += static_cast<int>(pair.points_l.cols());
   return n;
 }
 
 SolveSummary BundleAdjuster::Solve() {
+  std::lock_guard<std::mutex> lock(mutex_);
   if (frames_.empty()) throw std::invalid_argument("solve: no frames (call add_frame first)");
   if (!pairs_.empty() && !plane_set_) {
     throw std::invalid_argument("solve: plane not set (call set_plane before solving pairs)");

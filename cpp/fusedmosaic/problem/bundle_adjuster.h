@@ -7,8 +7,8 @@
 //
 // The adjuster owns the parameters: one pose [r, t] (cam_from_world) per frame id and the plane
 // pi = n / d. Each Solve() builds a fresh ceres::Problem over the stored data, so frames, pairs
-// and poses can be added or changed between solves. Not thread-safe: do not modify an adjuster
-// while it solves.
+// and poses can be added or changed between solves. Every public method takes an internal mutex:
+// a call made from another thread while Solve() runs waits for it to finish.
 //
 // Gauge. Without EMT priors (BAVis) every term is invariant to a change of world frame by a
 // similarity: a rigid motion (poses T_k -> T_k A, the plane re-expressed accordingly) and a scale
@@ -28,8 +28,10 @@
 #include <Eigen/Core>
 #include <array>
 #include <map>
+#include <mutex>
 #include <optional>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "fusedmosaic/residuals/constant_velocity.h"
@@ -94,6 +96,8 @@ class BundleAdjuster {
   // camera_matrix: K, finite and invertible. Throws std::invalid_argument.
   explicit BundleAdjuster(const Eigen::Matrix3d& camera_matrix,
                           const BundleAdjusterOptions& options = BundleAdjusterOptions());
+  BundleAdjuster(const BundleAdjuster&) = delete;
+  BundleAdjuster& operator=(const BundleAdjuster&) = delete;
 
   // Adds a frame with its initial pose (cam_from_world) and optional EMT measurement.
   void AddFrame(int frame_id, const Pose& cam_from_world,
@@ -108,11 +112,13 @@ class BundleAdjuster {
   SolveSummary Solve();
 
   std::vector<int> FrameIds() const;
+  // All frame ids (ascending) and their poses, read under one lock.
+  std::vector<std::pair<int, Pose>> Poses() const;
   Pose GetPose(int frame_id) const;
   Eigen::Vector3d Plane() const;
-  bool HasPlane() const { return plane_set_; }
-  int NumFrames() const { return static_cast<int>(frames_.size()); }
-  int NumPairs() const { return static_cast<int>(pairs_.size()); }
+  bool HasPlane() const;
+  int NumFrames() const;
+  int NumPairs() const;
   int NumCorrespondences() const;
   const BundleAdjusterOptions& options() const { return options_; }
   const Eigen::Matrix3d& camera_matrix() const { return camera_matrix_; }
@@ -133,6 +139,7 @@ class BundleAdjuster {
   Frame& FindFrame(int frame_id, const char* what);
   const Frame& FindFrame(int frame_id, const char* what) const;
 
+  mutable std::mutex mutex_;  // guards everything below
   Eigen::Matrix3d camera_matrix_;
   BundleAdjusterOptions options_;
   std::map<int, Frame> frames_;

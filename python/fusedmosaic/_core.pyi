@@ -1,0 +1,274 @@
+"""Type stubs for fusedmosaic._core, the C++ core (cpp/bindings).
+
+Conventions (seed 000, Sec. 3): a pose is ``[rx, ry, rz, tx, ty, tz]``, angle-axis (rad) and
+translation (mm) of cam_from_world (X_cam = R X_world + t); the plane is ``pi = n / d`` (1/mm),
+the plane ``n.X + d = 0`` seen from the virtual camera at the world origin. All arrays are
+float64 unless stated. Bad input raises ValueError (IndexError for an unknown frame id).
+"""
+
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+__version__: str
+
+_Array = npt.NDArray[np.float64]
+_ArrayLike = npt.ArrayLike
+
+# ---------------------------------------------------------------- geometry (bind_geometry.cc)
+
+def rotation_from_angle_axis(angle_axis: _ArrayLike) -> _Array:
+    """R = exp([r]_x).
+
+    angle_axis : (3,) radians. Returns (3, 3).
+    """
+
+def angle_axis_from_rotation(rotation: _ArrayLike) -> _Array:
+    """Angle-axis vector (3,) of a rotation matrix.
+
+    rotation : (3, 3), orthonormal with det +1.
+    """
+
+def compose_poses(c_from_b: _ArrayLike, b_from_a: _ArrayLike) -> _Array:
+    """c_from_a = c_from_b * b_from_a.
+
+    c_from_b, b_from_a : (6,) poses. Returns (6,).
+    """
+
+def invert_pose(b_from_a: _ArrayLike) -> _Array:
+    """a_from_b.
+
+    b_from_a : (6,) pose. Returns (6,).
+    """
+
+def camera_plane_distance(cam_from_world: _ArrayLike, plane: _ArrayLike) -> float:
+    """Distance (mm) from the camera centre to the plane.
+
+    cam_from_world : (6,); plane : (3,) pi = n / d, non-zero.
+    """
+
+def induced_homography(
+    cam_from_world: _ArrayLike, plane: _ArrayLike, camera_matrix: _ArrayLike | None = None
+) -> _Array:
+    """H_k = K (R - t pi^T) K^-1 (Eq. 5): virtual-camera pixels -> frame-k pixels.
+
+    cam_from_world : (6,); plane : (3,); camera_matrix : (3, 3) or None (normalised
+    coordinates). Returns (3, 3).
+    """
+
+def transfer_homography(
+    cam_l_from_world: _ArrayLike,
+    cam_m_from_world: _ArrayLike,
+    plane: _ArrayLike,
+    camera_matrix: _ArrayLike | None = None,
+) -> _Array:
+    """H_l H_m^-1 (Eq. 13): frame-m points -> frame-l points, normalised to H[2, 2] = 1.
+
+    cam_l_from_world, cam_m_from_world : (6,); plane : (3,); camera_matrix : (3, 3) or None.
+    Returns (3, 3).
+    """
+
+def transfer_points(
+    points: _ArrayLike,
+    cam_l_from_world: _ArrayLike,
+    cam_m_from_world: _ArrayLike,
+    plane: _ArrayLike,
+    camera_matrix: _ArrayLike | None = None,
+) -> _Array:
+    """Transfers points of frame m into frame l through the plane (Eq. 13).
+
+    points : (N, 2) pixels (normalised coordinates when camera_matrix is None).
+    Returns (N, 2).
+    """
+
+def frame_to_reference(
+    cams_from_world: _ArrayLike, plane: _ArrayLike, camera_matrix: _ArrayLike, reference: int = 0
+) -> _Array:
+    """Frame -> reference pixel homographies G_k = H_ref H_k^-1, each with G[2, 2] = 1.
+
+    cams_from_world : (N, 6); plane : (3,); camera_matrix : (3, 3); reference : row index
+    (IndexError outside [0, N)). Returns (N, 3, 3).
+    """
+
+# ---------------------------------------------------------------- residuals (bind_residuals.cc)
+
+DEFAULT_EMT_SIGMA: _Array
+"""(6,) EMT prior standard deviations [0.017 rad x3, 1 mm x3] (appendix Eq. 30)."""
+
+DEFAULT_MOTION_SIGMA: _Array
+"""(6,) constant-velocity prior standard deviations [0.0044 rad x3, 15.2178 mm x3] (Eq. 30)."""
+
+def evaluate_visual_transfer(
+    cam_l_from_world: _ArrayLike,
+    cam_m_from_world: _ArrayLike,
+    plane: _ArrayLike,
+    points_l: _ArrayLike,
+    points_m: _ArrayLike,
+    camera_matrix: _ArrayLike,
+    sigma_v_px: float = 1.0,
+    loss: str = "none",
+    loss_scale_px: float = 2.0,
+) -> tuple[_Array, tuple[_Array, _Array, _Array]]:
+    """Visual transfer residual (Eq. 13, 18) of one pair block and its autodiff Jacobians.
+
+    points_l, points_m : (N, 2) pixels, row i of points_m transfers to row i of points_l.
+    loss : 'none' | 'huber' | 'cauchy', applied per point (|r_i'|^2 = rho(|r_i|^2)).
+    Returns (residuals (2N,), (J_l (2N, 6), J_m (2N, 6), J_plane (2N, 3))); residuals are
+    (mu - p_l) / sigma_v interleaved x, y per point.
+    """
+
+def evaluate_pose_prior(
+    cam_from_world: _ArrayLike, measurement: _ArrayLike, sigma: _ArrayLike = ...
+) -> tuple[_Array, tuple[_Array]]:
+    """EMT pose prior (Eq. 19): residuals S (x - z), S = diag(1 / sigma).
+
+    cam_from_world, measurement : (6,); sigma : (6,) standard deviations (default
+    DEFAULT_EMT_SIGMA). Returns (residuals (6,), (J (6, 6),)).
+    """
+
+def evaluate_constant_velocity(
+    cam_km2_from_world: _ArrayLike,
+    cam_km1_from_world: _ArrayLike,
+    cam_k_from_world: _ArrayLike,
+    sigma: _ArrayLike = ...,
+) -> tuple[_Array, tuple[_Array, _Array, _Array]]:
+    """Constant-velocity prior (Eq. 15, 16, 20): S_p (x_k - mu_p).
+
+    mu_p = T_{k-1} T_{k-2}^-1 T_{k-1} (poses as rigid transforms).
+
+    Poses : (6,) for frames k-2, k-1, k; sigma : (6,) standard deviations (default
+    DEFAULT_MOTION_SIGMA). Returns (residuals (6,), (J_km2, J_km1, J_k), each (6, 6)).
+    """
+
+# ---------------------------------------------------------------- problem (bind_problem.cc)
+
+class BundleAdjusterOptions:
+    """Options of BundleAdjuster; defaults from seed 000 (Sec. 4.2, appendix Eq. 30).
+
+    Keyword construction: ``BundleAdjusterOptions(loss="huber", use_emt=False)``; an unknown
+    keyword raises TypeError. Values are checked when a BundleAdjuster is built (ValueError).
+    """
+
+    sigma_v_px: float
+    """sigma_v, pixels (Sec. 4.2: 1 px)."""
+    emt_sigma: _Array
+    """(6,) EMT prior standard deviations (rad x3, mm x3); a copy: assign the whole array."""
+    motion_sigma: _Array
+    """(6,) constant-velocity prior standard deviations (rad x3, mm x3); a copy."""
+    loss: str
+    """'none' | 'huber' | 'cauchy', applied per correspondence."""
+    loss_scale_px: float
+    """Robust kernel scale, pixels (default 2)."""
+    linear_solver: str
+    """'auto' (= 'sparse_schur', measured in bench/bench_solvers.py), 'dense_schur',
+    'sparse_schur', 'sparse_normal_cholesky', 'dense_qr', 'dense_normal_cholesky',
+    'iterative_schur'."""
+    residual_blocks: str
+    """'per_pair' (default: one block per image pair) or 'per_point'."""
+    max_iterations: int
+    function_tolerance: float
+    gradient_tolerance: float
+    parameter_tolerance: float
+    num_threads: int
+    use_emt: bool
+    """Add the EMT pose prior (Eq. 19) for frames with a measurement."""
+    use_motion_prior: bool
+    """Add the constant-velocity prior (Eq. 20) for present frame ids k-2, k-1, k."""
+
+    def __init__(self, **kwargs: Any) -> None: ...
+    def validate(self) -> None:
+        """Raises ValueError naming the first invalid field."""
+
+class SolveSummary:
+    """Result of BundleAdjuster.solve(). Costs are Ceres' 1/2 sum of squared whitened residuals
+    (robust-kernel values for the visual term when a loss is set)."""
+
+    iterations: int
+    initial_cost: float
+    final_cost: float
+    visual_cost: float
+    emt_cost: float
+    motion_cost: float
+    solve_time_s: float
+    termination: str
+    """'CONVERGENCE', 'NO_CONVERGENCE', 'FAILURE', ..."""
+    message: str
+    full_report: str
+    linear_solver: str
+    """The linear solver used, lower case ('auto' resolved)."""
+    num_residual_blocks: int
+    num_residuals: int
+    num_parameters: int
+    """All parameters in the problem, constant ones included."""
+    num_free_parameters: int
+    """Optimised (tangent-space) parameters."""
+    num_visual_blocks: int
+    num_emt_blocks: int
+    num_motion_blocks: int
+    gauge_fixed_by_constraints: bool
+    """True when no EMT prior was present and the BAVis gauge (first frame constant, |pi|
+    fixed) was applied."""
+
+    def as_dict(self) -> dict[str, Any]:
+        """All fields except full_report, JSON-serialisable."""
+
+class BundleAdjuster:
+    """Bundle adjustment of frame poses and the plane: BAVis (use_emt=False) and BAVis+EMT
+    (seed 000, Eq. 17). Owns the parameters, keyed by frame id. Without EMT priors the gauge
+    is fixed by holding the first (lowest-id) frame constant and |plane| fixed. Not
+    thread-safe: do not modify an adjuster while it solves.
+    """
+
+    def __init__(self, camera_matrix: _ArrayLike, options: BundleAdjusterOptions = ...) -> None:
+        """camera_matrix : (3, 3) K, invertible."""
+
+    @property
+    def options(self) -> BundleAdjusterOptions:
+        """A copy of the options (fixed at construction)."""
+
+    @property
+    def camera_matrix(self) -> _Array:
+        """(3, 3)."""
+
+    @property
+    def num_frames(self) -> int: ...
+    @property
+    def num_pairs(self) -> int: ...
+    @property
+    def num_correspondences(self) -> int: ...
+    def add_frame(
+        self, frame_id: int, cam_from_world: _ArrayLike, emt_measurement: _ArrayLike | None = None
+    ) -> None:
+        """Adds a frame. cam_from_world : (6,) initial pose; emt_measurement : (6,) z_k or None.
+        ValueError for a duplicate id."""
+
+    def add_pair(
+        self, frame_l: int, frame_m: int, points_l: _ArrayLike, points_m: _ArrayLike
+    ) -> None:
+        """Adds a pair's correspondences; the residual transfers frame m -> frame l.
+
+        points_l, points_m : (N, 2) pixels, N >= 1, row i corresponds to row i.
+        IndexError for an unknown frame id.
+        """
+
+    def set_plane(self, plane: _ArrayLike) -> None:
+        """plane : (3,) pi = n / d, non-zero."""
+
+    def set_pose(self, frame_id: int, pose: _ArrayLike) -> None:
+        """pose : (6,) cam_from_world."""
+
+    def set_constant_frame(self, frame_id: int, constant: bool = True) -> None:
+        """Holds a frame's pose constant during solve() (or frees it again)."""
+
+    def solve(self) -> SolveSummary:
+        """Runs Ceres with the GIL released; the stored poses and plane are updated."""
+
+    def poses(self) -> tuple[npt.NDArray[np.int64], _Array]:
+        """(ids (N,) int64 ascending, poses (N, 6) cam_from_world)."""
+
+    def pose(self, frame_id: int) -> _Array:
+        """(6,) pose of one frame; IndexError for an unknown id."""
+
+    def plane(self) -> _Array:
+        """(3,) pi = n / d; ValueError before set_plane."""
