@@ -32,7 +32,8 @@ class BundleOptions:
     # footprints predicted from the tracker overlap (O(N k)); "window": temporal neighbours.
     pair_selection: str = "all"
     min_overlap: float = 0.3  # EMT-guided: overlap fraction of the smaller footprint
-    max_pairs_per_frame: int = 20  # EMT-guided: at most this many earlier frames per frame
+    max_pairs_per_frame: int = 6  # EMT-guided: older overlapping frames kept per frame
+    min_pair_separation: int = 4  # EMT-guided: frames apart between kept older frames
     window: int = 2  # "window" selection, and the seed pairs used to initialise the plane
     max_points_per_pair: int = 100  # inliers kept per pair (paper Table 1: 67-222 on average)
     sigma_v_px: float = 1.0  # px, visual noise (Sec. 4.2)
@@ -95,7 +96,8 @@ def _select_pairs_with_emt(dataset, options: BundleOptions, progress: bool):
     predicted = predicted_homographies(dataset.cam_from_world, plane, K)
     selected = emt_guided_pairs(predicted, cam.width, cam.height, min_overlap=options.min_overlap,
                                 max_per_frame=options.max_pairs_per_frame,
-                                fov_radius=cam.fov_mask_radius)
+                                fov_radius=cam.fov_mask_radius, temporal_window=options.window,
+                                min_separation=options.min_pair_separation)
     done = {(m.frame_l, m.frame_m): m for m in seed.matches}
     rest = [p for p in selected if p not in done]
     more = register_frames(dataset, lambda f: rest, options, progress, seed.features)

@@ -49,12 +49,16 @@ def footprint_polygons(homographies: np.ndarray, width: int, height: int,
 
 def emt_guided_pairs(predicted: np.ndarray, width: int, height: int, *,
                      min_overlap: float = 0.3, max_per_frame: int | None = 20,
-                     fov_radius: float | None = None) -> list[tuple[int, int]]:
+                     fov_radius: float | None = None, temporal_window: int = 2,
+                     min_separation: int = 4) -> list[tuple[int, int]]:
     """Pairs (l > m) whose predicted footprints overlap by >= min_overlap of the smaller one.
 
     predicted: (N, 3, 3) frame -> reference homographies from tracker poses and a plane.
-    Frames without a prediction (NaN) are paired with their temporal neighbours only.
-    max_per_frame keeps, for each l, the m with the largest overlap (bounds attempts to O(N k)).
+    Temporal neighbours (l - m <= temporal_window) that overlap are always kept; frames without a
+    prediction (NaN) are paired with their temporal neighbours only. Of the older overlapping
+    frames, at most max_per_frame are kept per l (O(N k) attempts), chosen greedily by overlap
+    but at least min_separation frames apart: a revisit of the same area contributes one wide-
+    baseline loop pair instead of k near-duplicates (measured: better e_M per attempted pair).
     """
     polys = footprint_polygons(predicted, width, height, fov_radius)
     n = len(polys)
@@ -79,8 +83,13 @@ def emt_guided_pairs(predicted: np.ndarray, width: int, height: int, *,
             frac = inter / max(min(areas[l], areas[m]), 1e-9)
             if frac >= min_overlap:
                 candidates.append((frac, m))
-        candidates.sort(reverse=True)
-        if max_per_frame is not None:
-            candidates = candidates[:max_per_frame]
-        pairs += [(l, m) for _, m in sorted(candidates, key=lambda c: c[1])]
+        chosen = [m for _, m in candidates if l - m <= temporal_window]
+        older = sorted((c for c in candidates if l - c[1] > temporal_window), reverse=True)
+        picked: list[int] = []
+        for _, m in older:
+            if max_per_frame is not None and len(picked) >= max_per_frame:
+                break
+            if all(abs(m - q) >= min_separation for q in picked):
+                picked.append(m)
+        pairs += [(l, m) for m in sorted(chosen + picked)]
     return pairs
