@@ -17,10 +17,11 @@ namespace fusedmosaic {
 namespace {
 
 // The solver behind linear_solver = "auto", chosen by bench/bench_solvers.py
-// (bench/results/solvers.json; 150 frames, 1000 pairs, 70 points per pair, BA+EMT, 2 threads,
-// per-pair blocks, median of 3): sparse_schur 0.21 s, sparse_normal_cholesky and dense_schur
-// 0.23 s, iterative_schur 1.6 s; dense_qr / dense_normal_cholesky need a dense 140k x 903
-// Jacobian and take > 6 s even with 10 points per pair.
+// (bench/results/solvers.json; 150 frames, 1000 pairs, 70 points per pair, BA+EMT, 2 threads on
+// shared cores, per-pair blocks, median of interleaved runs): sparse_schur 0.28 s (best run
+// 0.21 s), sparse_normal_cholesky 0.29 s (0.22 s), dense_schur 0.32 s, iterative_schur 2.0 s;
+// dense_qr / dense_normal_cholesky need a dense 140k x 903 Jacobian and take 7-15 s even with
+// 10 points per pair. sparse_schur and sparse_normal_cholesky are within a few percent.
 constexpr ceres::LinearSolverType kAutoLinearSolver = ceres::SPARSE_SCHUR;
 
 std::string Lower(std::string s) {
