@@ -399,5 +399,6 @@ def test_solve_releases_the_gil(scene):
     worker.join()
     assert "summary" in result
     assert elapsed > 0.05, "solve too short to tell"
-    # With the GIL held the loop could not run during the solve; allow for scheduling slack.
-    assert ticks > 0.2 * elapsed / 0.0011
+    # Were the GIL held for the whole solve, the loop could tick at most ~2 times (before the
+    # worker enters solve() and after it returns); a loaded machine still gives far more than 10.
+    assert ticks >= 10
