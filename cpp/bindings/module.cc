@@ -11,4 +11,5 @@ PYBIND11_MODULE(_core, m) {
   fusedmosaic::bindings::BindGeometry(m);
   fusedmosaic::bindings::BindResiduals(m);
   fusedmosaic::bindings::BindProblem(m);
+  fusedmosaic::bindings::BindSlidingWindow(m);
 }

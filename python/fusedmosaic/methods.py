@@ -15,6 +15,7 @@ import numpy as np
 
 # CLI name -> (module:function, what the paper calls it). Order = preference for the demo.
 REGISTRY: dict[str, tuple[str, str]] = {
+    "lba-emt": ("fusedmosaic.estimation.sequential:run_lba_emt", "LBAVis+EMT"),
     "ba-emt": ("fusedmosaic.estimation.bundle:run_ba_emt", "BAVis+EMT"),
     "ba": ("fusedmosaic.estimation.bundle:run_ba", "BAVis"),
     "emt": ("fusedmosaic.estimation.bundle:run_emt", "EMT poses + estimated plane"),

@@ -1,0 +1,124 @@
+// Python bindings of cpp/fusedmosaic/problem/sliding_window.h (LBAVis+EMT).
+#include <pybind11/eigen.h>
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+#include <pybind11/stl.h>
+
+#include <optional>
+#include <vector>
+
+#include "bindings/bind.h"
+#include "fusedmosaic/problem/sliding_window.h"
+
+namespace py = pybind11;
+using namespace pybind11::literals;
+
+namespace fusedmosaic::bindings {
+namespace {
+
+std::optional<Vector6d> OptionalPose(const std::optional<Eigen::VectorXd>& v, const char* name) {
+  if (!v) return std::nullopt;
+  CheckSize(*v, kPoseSize, name);
+  return Vector6d(*v);
+}
+
+SlidingWindow::Points Points(const Eigen::Ref<const RowMatrixXd>& p, const char* name) {
+  CheckShape(p, -1, 2, name);
+  return p;
+}
+
+}  // namespace
+
+void BindSlidingWindow(py::module_& m) {
+  py::class_<SlidingWindowOptions>(m, "SlidingWindowOptions",
+                                   "Options of the LBA sliding window (seed 000, Sec. 4.2).")
+      .def(py::init([](int window_size, int num_new,
+                       const std::optional<BundleAdjusterOptions>& costs) {
+             SlidingWindowOptions o;
+             o.window_size = window_size;
+             o.num_new = num_new;
+             if (costs) o.costs = *costs;
+             o.Validate();
+             return o;
+           }),
+           "window_size"_a = 5, "num_new"_a = 3, "costs"_a = py::none(),
+           "window_size: W; num_new: chi_e; costs: BundleAdjusterOptions (weights, loss, solver)")
+      .def_readwrite("window_size", &SlidingWindowOptions::window_size)
+      .def_readwrite("num_new", &SlidingWindowOptions::num_new)
+      .def_readwrite("costs", &SlidingWindowOptions::costs);
+
+  py::class_<WindowStepSummary>(m, "WindowStepSummary", "Result of SlidingWindow.step().")
+      .def_readonly("frame_ids", &WindowStepSummary::frame_ids)
+      .def_readonly("fixed_ids", &WindowStepSummary::fixed_ids)
+      .def_readonly("keyframe_ids", &WindowStepSummary::keyframe_ids)
+      .def_readonly("emt_mahalanobis2", &WindowStepSummary::emt_mahalanobis2)
+      .def_readonly("iterations", &WindowStepSummary::iterations)
+      .def_readonly("initial_cost", &WindowStepSummary::initial_cost)
+      .def_readonly("final_cost", &WindowStepSummary::final_cost)
+      .def_readonly("visual_cost", &WindowStepSummary::visual_cost)
+      .def_readonly("emt_cost", &WindowStepSummary::emt_cost)
+      .def_readonly("motion_cost", &WindowStepSummary::motion_cost)
+      .def_readonly("solve_time_s", &WindowStepSummary::solve_time_s)
+      .def_readonly("step_time_s", &WindowStepSummary::step_time_s)
+      .def_readonly("termination", &WindowStepSummary::termination)
+      .def_readonly("num_visual_blocks", &WindowStepSummary::num_visual_blocks)
+      .def_readonly("num_correspondences", &WindowStepSummary::num_correspondences);
+
+  py::class_<SlidingWindow>(
+      m, "SlidingWindow",
+      "Local bundle adjustment over a sliding window with keyframes (LBAVis+EMT, Eqs. 24-27).\n"
+      "Frames are added in increasing id order; step() estimates the pending ones and the plane\n"
+      "with the window and the given keyframes fixed, then fixes them.")
+      .def(py::init([](const Eigen::Ref<const RowMatrixXd>& camera_matrix,
+                       const SlidingWindowOptions& options) {
+             CheckShape(camera_matrix, 3, 3, "camera_matrix");
+             return std::make_unique<SlidingWindow>(Eigen::Matrix3d(camera_matrix), options);
+           }),
+           "camera_matrix"_a, "options"_a = SlidingWindowOptions())
+      .def(
+          "add_frame",
+          [](SlidingWindow& self, int frame_id, const std::optional<Eigen::VectorXd>& initial,
+             const std::optional<Eigen::VectorXd>& emt_measurement, bool fixed) {
+            self.AddFrame(frame_id, OptionalPose(initial, "initial"),
+                          OptionalPose(emt_measurement, "emt_measurement"), fixed);
+          },
+          "frame_id"_a, "initial"_a = py::none(), "emt_measurement"_a = py::none(),
+          "fixed"_a = false,
+          "initial, emt_measurement : (6,) float64 cam_from_world [r, t] or None\n"
+          "fixed : already estimated (enters the window fixed; needs initial)")
+      .def("set_emt_sigma_scale", &SlidingWindow::SetEmtSigmaScale, "frame_id"_a, "scale"_a)
+      .def(
+          "add_pair",
+          [](SlidingWindow& self, int frame_l, int frame_m,
+             const Eigen::Ref<const RowMatrixXd>& points_l,
+             const Eigen::Ref<const RowMatrixXd>& points_m) {
+            self.AddPair(frame_l, frame_m, Points(points_l, "points_l"),
+                         Points(points_m, "points_m"));
+          },
+          "frame_l"_a, "frame_m"_a, "points_l"_a, "points_m"_a,
+          "points_l, points_m : (N, 2) float64 pixels; transfer m -> l")
+      .def(
+          "set_plane",
+          [](SlidingWindow& self, const Eigen::Ref<const Eigen::VectorXd>& plane) {
+            CheckSize(plane, kPlaneSize, "plane");
+            self.SetPlane(plane);
+          },
+          "plane"_a)
+      .def("step", &SlidingWindow::Step, "keyframe_ids"_a = std::vector<int>{},
+           py::call_guard<py::gil_scoped_release>(),
+           "Estimates the pending frames and the plane (GIL released).")
+      .def("redo", &SlidingWindow::Redo, "frame_ids"_a, "keyframe_ids"_a = std::vector<int>{},
+           py::call_guard<py::gil_scoped_release>(),
+           "Re-estimates the given last frames (e.g. after gating a tracker sample).")
+      .def("forget", &SlidingWindow::Forget, "frame_ids"_a,
+           "Drops fixed frames outside the window and their pairs.")
+      .def("pose", &SlidingWindow::GetPose, "frame_id"_a)
+      .def("plane", &SlidingWindow::Plane)
+      .def("pending_ids", &SlidingWindow::PendingIds)
+      .def("window_ids", &SlidingWindow::WindowIds)
+      .def_property_readonly("num_frames", &SlidingWindow::NumFrames)
+      .def_property_readonly("num_pairs", &SlidingWindow::NumPairs)
+      .def_property_readonly("num_correspondences", &SlidingWindow::NumCorrespondences);
+}
+
+}  // namespace fusedmosaic::bindings

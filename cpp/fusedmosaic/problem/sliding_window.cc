@@ -1,0 +1,423 @@
+#include "fusedmosaic/problem/sliding_window.h"
+
+#include <ceres/problem.h>
+#include <ceres/solver.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <limits>
+#include <set>
+#include <stdexcept>
+#include <string>
+
+#include "fusedmosaic/residuals/constant_velocity.h"
+#include "fusedmosaic/residuals/pose_prior.h"
+#include "fusedmosaic/residuals/visual_transfer.h"
+
+namespace fusedmosaic {
+namespace {
+
+// "auto" for the window: a step has chi_e * 6 + 3 free parameters (21 with the SYN preset) and a
+// few thousand residuals, so a dense solver on the reduced Jacobian wins; measured in
+// bench/bench_sequential.py (dense_normal_cholesky vs dense_qr vs dense_schur vs sparse).
+constexpr ceres::LinearSolverType kWindowAutoSolver = ceres::DENSE_NORMAL_CHOLESKY;
+
+ceres::LinearSolverType WindowLinearSolver(const std::string& name) {
+  if (name == "auto") return kWindowAutoSolver;
+  std::string upper = name;
+  std::transform(upper.begin(), upper.end(), upper.begin(),
+                 [](unsigned char c) { return static_cast<char>(std::toupper(c)); });
+  ceres::LinearSolverType type;
+  if (!ceres::StringToLinearSolverType(upper, &type)) {
+    throw std::invalid_argument("linear_solver: unknown solver '" + name + "'");
+  }
+  return type;
+}
+
+SlidingWindow::Pose ToVector(const std::array<double, kPoseSize>& a) {
+  return Eigen::Map<const SlidingWindow::Pose>(a.data());
+}
+
+void CheckPose(const SlidingWindow::Pose& pose, const char* name) {
+  if (!pose.allFinite()) {
+    throw std::invalid_argument(std::string(name) + ": contains NaN or infinite values");
+  }
+}
+
+double Seconds(std::chrono::steady_clock::time_point since) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
+}
+
+}  // namespace
+
+void SlidingWindowOptions::Validate() const {
+  if (num_new < 1) {
+    throw std::invalid_argument("num_new: must be >= 1, got " + std::to_string(num_new));
+  }
+  if (window_size < num_new) {
+    throw std::invalid_argument("window_size: must be >= num_new (" + std::to_string(num_new) +
+                                "), got " + std::to_string(window_size));
+  }
+  costs.Validate();
+  WindowLinearSolver(costs.linear_solver);
+}
+
+SlidingWindow::SlidingWindow(const Eigen::Matrix3d& camera_matrix,
+                             const SlidingWindowOptions& options)
+    : camera_matrix_(camera_matrix), options_(options) {
+  if (!camera_matrix.allFinite() ||
+      !(std::abs(camera_matrix.determinant()) > 1e-12 * std::pow(camera_matrix.norm(), 3))) {
+    throw std::invalid_argument("camera_matrix: must be finite and invertible");
+  }
+  options_.Validate();
+}
+
+SlidingWindow::Frame& SlidingWindow::FindFrame(int frame_id, const char* what) {
+  auto it = frames_.find(frame_id);
+  if (it == frames_.end()) {
+    throw std::out_of_range(std::string(what) + ": unknown frame id " + std::to_string(frame_id));
+  }
+  return it->second;
+}
+
+const SlidingWindow::Frame& SlidingWindow::FindFrame(int frame_id, const char* what) const {
+  return const_cast<SlidingWindow*>(this)->FindFrame(frame_id, what);
+}
+
+void SlidingWindow::AddFrame(int frame_id, const std::optional<Pose>& initial,
+                             const std::optional<Pose>& emt_measurement, bool fixed) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (fixed && !initial) {
+    throw std::invalid_argument("add_frame: a fixed frame needs its pose (initial)");
+  }
+  for (const auto& [id, f] : frames_) {
+    if (fixed && !f.fixed) {
+      throw std::invalid_argument("add_frame: fixed frame " + std::to_string(frame_id) +
+                                  " after pending frame " + std::to_string(id));
+    }
+  }
+  if (!frames_.empty() && frame_id <= frames_.rbegin()->first) {
+    throw std::invalid_argument("add_frame: frame ids must increase; got " +
+                                std::to_string(frame_id) + " after " +
+                                std::to_string(frames_.rbegin()->first));
+  }
+  Frame frame;
+  if (initial) {
+    CheckPose(*initial, "initial");
+    Eigen::Map<Pose>(frame.pose.data()) = *initial;
+    frame.has_initial = true;
+  }
+  if (emt_measurement) {
+    CheckPose(*emt_measurement, "emt_measurement");
+    frame.emt_measurement = emt_measurement;
+  }
+  frame.fixed = fixed;
+  frames_.emplace(frame_id, std::move(frame));
+}
+
+void SlidingWindow::SetEmtSigmaScale(int frame_id, double scale) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (!(std::isfinite(scale) && scale >= 1.0)) {
+    throw std::invalid_argument("scale: must be finite and >= 1, got " + std::to_string(scale));
+  }
+  FindFrame(frame_id, "set_emt_sigma_scale").emt_sigma_scale = scale;
+}
+
+void SlidingWindow::AddPair(int frame_l, int frame_m, const Points& points_l,
+                            const Points& points_m) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (frame_l == frame_m) throw std::invalid_argument("add_pair: frame_l == frame_m");
+  if (points_l.rows() != points_m.rows() || points_l.rows() < 1) {
+    throw std::invalid_argument("add_pair: points_l and points_m need the same N >= 1 rows, got " +
+                                std::to_string(points_l.rows()) + " and " +
+                                std::to_string(points_m.rows()));
+  }
+  if (!points_l.allFinite() || !points_m.allFinite()) {
+    throw std::invalid_argument("add_pair: points contain NaN or infinite values");
+  }
+  Frame& l = FindFrame(frame_l, "add_pair frame_l");
+  Frame& m = FindFrame(frame_m, "add_pair frame_m");
+  const auto key = std::make_pair(frame_l, frame_m);
+  auto [it, inserted] = pairs_.try_emplace(key);
+  if (!inserted) num_correspondences_ -= static_cast<int>(it->second.points_l.cols());
+  it->second.points_l = points_l.transpose();
+  it->second.points_m = points_m.transpose();
+  num_correspondences_ += static_cast<int>(points_l.rows());
+  if (inserted) {
+    l.pair_keys.push_back(key);
+    m.pair_keys.push_back(key);
+  }
+}
+
+void SlidingWindow::SetPlane(const Eigen::Vector3d& plane) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (!plane.allFinite() || plane.norm() < 1e-12) {
+    throw std::invalid_argument("plane: must be finite and non-zero");
+  }
+  Eigen::Map<Eigen::Vector3d>(plane_.data()) = plane;
+  plane_set_ = true;
+}
+
+std::vector<int> SlidingWindow::WindowIdsLocked(int num_new) const {
+  std::vector<int> out;
+  const int wanted = std::max(0, options_.window_size - num_new);
+  for (auto it = frames_.rbegin(); it != frames_.rend() && static_cast<int>(out.size()) < wanted;
+       ++it) {
+    if (it->second.fixed) out.push_back(it->first);
+  }
+  std::reverse(out.begin(), out.end());
+  return out;
+}
+
+void SlidingWindow::InitialisePending(const std::vector<int>& ids) {
+  for (int id : ids) {
+    Frame& f = frames_.at(id);
+    if (f.has_initial) continue;
+    if (f.emt_measurement) {
+      Eigen::Map<Pose>(f.pose.data()) = *f.emt_measurement;
+    } else {
+      // Constant-velocity prediction (Eq. 15-16) from the two preceding cameras, if any.
+      auto it = frames_.find(id);
+      if (it == frames_.begin()) {
+        throw std::invalid_argument("frame " + std::to_string(id) +
+                                    ": no initial pose, no tracker sample and no predecessor");
+      }
+      auto prev1 = std::prev(it);
+      if (prev1 == frames_.begin()) {
+        f.pose = prev1->second.pose;
+      } else {
+        auto prev2 = std::prev(prev1);
+        const auto T1 = RigidTransform<double>::FromPose(prev1->second.pose.data());
+        const auto T2 = RigidTransform<double>::FromPose(prev2->second.pose.data());
+        (T1 * T2.Inverse() * T1).ToPose(f.pose.data());
+      }
+    }
+    f.has_initial = true;
+  }
+}
+
+WindowStepSummary SlidingWindow::Step(const std::vector<int>& keyframe_ids) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  std::vector<int> pending;
+  for (const auto& [id, f] : frames_)
+    if (!f.fixed) pending.push_back(id);
+  if (pending.empty()) throw std::invalid_argument("step: no pending frame (call add_frame)");
+  return Solve(pending, keyframe_ids);
+}
+
+WindowStepSummary SlidingWindow::Redo(const std::vector<int>& frame_ids,
+                                      const std::vector<int>& keyframe_ids) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (frame_ids.empty()) throw std::invalid_argument("redo: frame_ids is empty");
+  for (int id : frame_ids) {
+    Frame& f = FindFrame(id, "redo");
+    if (f.emt_measurement) Eigen::Map<Pose>(f.pose.data()) = *f.emt_measurement;
+    f.fixed = false;
+  }
+  return Solve(frame_ids, keyframe_ids);
+}
+
+WindowStepSummary SlidingWindow::Solve(std::vector<int> free_ids,
+                                       const std::vector<int>& keyframe_ids) {
+  const auto t_start = std::chrono::steady_clock::now();
+  std::sort(free_ids.begin(), free_ids.end());
+  if (!plane_set_) throw std::invalid_argument("step: set_plane must be called first");
+  const BundleAdjusterOptions& c = options_.costs;
+  InitialisePending(free_ids);
+
+  WindowStepSummary out;
+  out.frame_ids = free_ids;
+  out.fixed_ids = WindowIdsLocked(static_cast<int>(free_ids.size()));
+  // Window ids are the fixed cameras preceding the free ones; in Redo the free ones are the
+  // last cameras, so the same rule applies.
+  std::set<int> in_problem(free_ids.begin(), free_ids.end());
+  for (int id : out.fixed_ids) in_problem.insert(id);
+  // Fixed cameras paired with a new one (e.g. EMT-predicted revisits matched by the caller)
+  // join the step as constants, so their pairs enter C_v (the set W of Eq. 25).
+  for (int id : free_ids) {
+    for (const auto& key : frames_.at(id).pair_keys) {
+      const int other = key.first == id ? key.second : key.first;
+      if (frames_.at(other).fixed) in_problem.insert(other);
+    }
+  }
+  for (int id : keyframe_ids) {
+    const Frame& f = FindFrame(id, "step keyframe");
+    if (!f.fixed) {
+      throw std::invalid_argument("step: keyframe " + std::to_string(id) + " is not yet fixed");
+    }
+    if (in_problem.insert(id).second) out.keyframe_ids.push_back(id);
+  }
+
+  ceres::Problem problem;
+  std::vector<ceres::ResidualBlockId> visual_blocks, emt_blocks, motion_blocks;
+  const RobustLoss loss = RobustLossFromString(c.loss);
+  const bool per_point = c.residual_blocks == "per_point";
+
+  // C_v (Eq. 25): every stored pair with both cameras in the step.
+  std::set<std::pair<int, int>> used;
+  for (int id : in_problem) {
+    for (const auto& key : frames_.at(id).pair_keys) {
+      if (!in_problem.count(key.first) || !in_problem.count(key.second)) continue;
+      if (!used.insert(key).second) continue;
+      const Pair& pair = pairs_.at(key);
+      double* pose_l = frames_.at(key.first).pose.data();
+      double* pose_m = frames_.at(key.second).pose.data();
+      const int n = static_cast<int>(pair.points_l.cols());
+      out.num_correspondences += n;
+      const int blocks = per_point ? n : 1;
+      for (int b = 0; b < blocks; ++b) {
+        const int first = per_point ? b : 0, count = per_point ? 1 : n;
+        visual_blocks.push_back(problem.AddResidualBlock(
+            VisualTransferCostFunctor::Create(camera_matrix_, pair.points_l.middleCols(first, count),
+                                              pair.points_m.middleCols(first, count), c.sigma_v_px,
+                                              loss, c.loss_scale_px),
+            nullptr, pose_l, pose_m, plane_.data()));
+      }
+    }
+  }
+  // C_EMT (Eq. 26) and C_p (Eq. 27) for the free cameras.
+  for (int id : free_ids) {
+    Frame& f = frames_.at(id);
+    problem.AddParameterBlock(f.pose.data(), kPoseSize);
+    if (c.use_emt && f.emt_measurement) {
+      emt_blocks.push_back(problem.AddResidualBlock(
+          PosePriorCostFunctor::Create(*f.emt_measurement, c.emt_sigma * f.emt_sigma_scale),
+          nullptr, f.pose.data()));
+    }
+    if (c.use_motion_prior) {
+      auto it = frames_.find(id);
+      if (it != frames_.begin() && std::prev(it) != frames_.begin()) {
+        auto prev1 = std::prev(it);
+        auto prev2 = std::prev(prev1);
+        motion_blocks.push_back(problem.AddResidualBlock(
+            ConstantVelocityCostFunctor::Create(c.motion_sigma), nullptr,
+            prev2->second.pose.data(), prev1->second.pose.data(), f.pose.data()));
+        for (auto p : {prev1, prev2})
+          if (!in_problem.count(p->first)) problem.SetParameterBlockConstant(p->second.pose.data());
+      }
+    }
+  }
+  for (int id : in_problem) {
+    if (!std::binary_search(free_ids.begin(), free_ids.end(), id) &&
+        problem.HasParameterBlock(frames_.at(id).pose.data())) {
+      problem.SetParameterBlockConstant(frames_.at(id).pose.data());
+    }
+  }
+  if (problem.HasParameterBlock(plane_.data()) && visual_blocks.empty()) {
+    problem.SetParameterBlockConstant(plane_.data());
+  }
+  out.num_visual_blocks = static_cast<int>(visual_blocks.size());
+
+  if (problem.NumResidualBlocks() > 0) {
+    ceres::Solver::Options so;
+    so.linear_solver_type = WindowLinearSolver(c.linear_solver);
+    so.max_num_iterations = c.max_iterations;
+    so.function_tolerance = c.function_tolerance;
+    so.gradient_tolerance = c.gradient_tolerance;
+    so.parameter_tolerance = c.parameter_tolerance;
+    so.num_threads = c.num_threads;
+    so.logging_type = ceres::SILENT;
+    ceres::Solver::Summary summary;
+    ceres::Solve(so, &problem, &summary);
+    out.iterations = static_cast<int>(summary.iterations.size()) - 1;
+    out.initial_cost = summary.initial_cost;
+    out.final_cost = summary.final_cost;
+    out.solve_time_s = summary.total_time_in_seconds;
+    out.termination = ceres::TerminationTypeToString(summary.termination_type);
+    auto term_cost = [&problem](const std::vector<ceres::ResidualBlockId>& ids) {
+      if (ids.empty()) return 0.0;
+      ceres::Problem::EvaluateOptions eo;
+      eo.residual_blocks = ids;
+      double cost = 0.0;
+      problem.Evaluate(eo, &cost, nullptr, nullptr, nullptr);
+      return cost;
+    };
+    out.visual_cost = term_cost(visual_blocks);
+    out.emt_cost = term_cost(emt_blocks);
+    out.motion_cost = term_cost(motion_blocks);
+  } else {
+    out.termination = "NO_RESIDUALS";
+  }
+  for (int id : free_ids) {
+    Frame& f = frames_.at(id);
+    f.fixed = true;
+    if (f.emt_measurement) {
+      const Pose r = (ToVector(f.pose) - *f.emt_measurement).cwiseQuotient(c.emt_sigma);
+      out.emt_mahalanobis2.push_back(r.squaredNorm());
+    } else {
+      out.emt_mahalanobis2.push_back(std::numeric_limits<double>::quiet_NaN());
+    }
+  }
+  out.step_time_s = Seconds(t_start);
+  return out;
+}
+
+void SlidingWindow::Forget(const std::vector<int>& frame_ids) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  std::vector<int> pending;
+  for (const auto& [id, f] : frames_)
+    if (!f.fixed) pending.push_back(id);
+  const std::vector<int> window = WindowIdsLocked(std::max<int>(1, pending.size()));
+  for (int id : frame_ids) {
+    auto it = frames_.find(id);
+    if (it == frames_.end()) continue;
+    if (!it->second.fixed || std::count(window.begin(), window.end(), id)) {
+      throw std::invalid_argument("forget: frame " + std::to_string(id) +
+                                  " is pending or in the window");
+    }
+    for (const auto& key : it->second.pair_keys) {
+      auto p = pairs_.find(key);
+      if (p == pairs_.end()) continue;
+      num_correspondences_ -= static_cast<int>(p->second.points_l.cols());
+      const int other = key.first == id ? key.second : key.first;
+      auto o = frames_.find(other);
+      if (o != frames_.end()) {
+        auto& keys = o->second.pair_keys;
+        keys.erase(std::remove(keys.begin(), keys.end(), key), keys.end());
+      }
+      pairs_.erase(p);
+    }
+    frames_.erase(it);
+  }
+}
+
+SlidingWindow::Pose SlidingWindow::GetPose(int frame_id) const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return ToVector(FindFrame(frame_id, "pose").pose);
+}
+
+Eigen::Vector3d SlidingWindow::Plane() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return Eigen::Map<const Eigen::Vector3d>(plane_.data());
+}
+
+std::vector<int> SlidingWindow::PendingIds() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  std::vector<int> out;
+  for (const auto& [id, f] : frames_)
+    if (!f.fixed) out.push_back(id);
+  return out;
+}
+
+std::vector<int> SlidingWindow::WindowIds() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return WindowIdsLocked(options_.num_new);
+}
+
+int SlidingWindow::NumFrames() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return static_cast<int>(frames_.size());
+}
+
+int SlidingWindow::NumPairs() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return static_cast<int>(pairs_.size());
+}
+
+int SlidingWindow::NumCorrespondences() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return num_correspondences_;
+}
+
+}  // namespace fusedmosaic

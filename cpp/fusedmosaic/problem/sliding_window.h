@@ -1,0 +1,136 @@
+// Local Bundle Adjustment over a sliding window: LBAVis+EMT (seed 000, Sec. 3.4, Eqs. 21-27).
+//
+// Each step estimates the chi_e pending (new) cameras X_e and the plane pi, with
+//   * the previous W - chi_e estimated cameras X_g held fixed (the temporal window),
+//   * sparse keyframe sets chosen by the caller (fixed cameras whose correspondences keep pi
+//     well observed across the explored area, Fig. 5),
+// minimising                 C_v + C_EMT + C_p                                       (Eq. 24)
+//   C_v   visual transfer over every stored pair whose two frames are in the step (Eq. 25);
+//         fixed cameras that share a stored pair with a new camera join the step as constants
+//         (the caller's spatial loop pairs, the paper's suggested spatio-temporal window);
+//   C_EMT tracker prior on the new cameras (Eq. 26);
+//   C_p   constant velocity for each new camera from its two predecessors in the sequence,
+//         new or fixed, which includes the two terms linking x_1^e and x_2^e to the last
+//         fixed cameras x_{chi_g}^g, x_{chi_g - 1}^g (Eq. 27).
+// After the step the new cameras are fixed for good (assumption (ii) of Sec. 3.4); pi stays free
+// in later steps. Frames are ordered by id (ids must increase), which is the sequence order.
+//
+// Memory: poses, tracker measurements and correspondences of frames the caller has not
+// Forget()-ed. The caller (python/fusedmosaic/estimation/sequential.py) forgets what neither the
+// window nor keyframe selection can use, so the state stays bounded.
+#pragma once
+
+#include <Eigen/Core>
+#include <array>
+#include <map>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "fusedmosaic/problem/bundle_adjuster.h"
+
+namespace fusedmosaic {
+
+struct SlidingWindowOptions {
+  int window_size = 5;  // W, cameras in the temporal window (paper Sec. 4.2, SYN preset)
+  int num_new = 3;      // chi_e, new cameras estimated per step (SYN preset)
+  // Cost weights, robust loss and Ceres settings shared with the bundle adjuster; use_emt and
+  // use_motion_prior switch C_EMT and C_p. Solver defaults for these small dense problems are
+  // set in the constructor of the Python options (see estimation/sequential.py).
+  BundleAdjusterOptions costs;
+
+  void Validate() const;
+};
+
+struct WindowStepSummary {
+  std::vector<int> frame_ids;  // the cameras estimated (and now fixed)
+  std::vector<int> fixed_ids;  // the window cameras held fixed
+  std::vector<int> keyframe_ids;
+  // Per estimated camera: (z - x)^T Sigma_EMT^-1 (z - x) at the solution with the nominal
+  // Sigma_EMT, NaN without a measurement. Used by the caller to gate gross tracker outliers.
+  std::vector<double> emt_mahalanobis2;
+  int iterations = 0;
+  double initial_cost = 0.0;
+  double final_cost = 0.0;
+  double visual_cost = 0.0;
+  double emt_cost = 0.0;
+  double motion_cost = 0.0;
+  double solve_time_s = 0.0;  // Ceres' total time
+  double step_time_s = 0.0;   // assembly + solve
+  std::string termination;
+  int num_visual_blocks = 0;
+  int num_correspondences = 0;
+};
+
+class SlidingWindow {
+ public:
+  using Pose = Vector6d;
+  using Points = Eigen::Matrix<double, Eigen::Dynamic, 2>;
+
+  explicit SlidingWindow(const Eigen::Matrix3d& camera_matrix,
+                         const SlidingWindowOptions& options = SlidingWindowOptions());
+  SlidingWindow(const SlidingWindow&) = delete;
+  SlidingWindow& operator=(const SlidingWindow&) = delete;
+
+  // Adds a pending camera. frame_id must exceed every id added so far. initial: starting pose
+  // (cam_from_world); when absent the step starts from the tracker measurement, or else from
+  // the constant-velocity prediction of the two preceding cameras. fixed: the camera is already
+  // estimated (e.g. by the bootstrap bundle adjustment) and enters the window as such; it then
+  // needs `initial`.
+  void AddFrame(int frame_id, const std::optional<Pose>& initial,
+                const std::optional<Pose>& emt_measurement, bool fixed = false);
+  // Inflates the tracker standard deviations of a pending camera (gating, >= 1).
+  void SetEmtSigmaScale(int frame_id, double scale);
+  void AddPair(int frame_l, int frame_m, const Points& points_l, const Points& points_m);
+  void SetPlane(const Eigen::Vector3d& plane);
+
+  // Estimates all pending cameras (1 <= count) and the plane; keyframe_ids must be fixed cameras.
+  WindowStepSummary Step(const std::vector<int>& keyframe_ids);
+  // Re-runs the last step's problem after SetEmtSigmaScale (gating) and refixes its cameras.
+  WindowStepSummary Redo(const std::vector<int>& frame_ids, const std::vector<int>& keyframe_ids);
+
+  // Drops fixed cameras outside the current window, with their pairs.
+  void Forget(const std::vector<int>& frame_ids);
+
+  Pose GetPose(int frame_id) const;
+  Eigen::Vector3d Plane() const;
+  std::vector<int> PendingIds() const;
+  std::vector<int> WindowIds() const;  // fixed cameras the next step would hold in its window
+  int NumFrames() const;
+  int NumPairs() const;
+  int NumCorrespondences() const;
+  const SlidingWindowOptions& options() const { return options_; }
+
+ private:
+  struct Frame {
+    std::array<double, kPoseSize> pose{};
+    bool has_initial = false;
+    std::optional<Pose> emt_measurement;
+    double emt_sigma_scale = 1.0;
+    bool fixed = false;
+    std::vector<std::pair<int, int>> pair_keys;  // keys into pairs_
+  };
+  struct Pair {
+    Eigen::Matrix<double, 2, Eigen::Dynamic> points_l;
+    Eigen::Matrix<double, 2, Eigen::Dynamic> points_m;
+  };
+
+  Frame& FindFrame(int frame_id, const char* what);
+  const Frame& FindFrame(int frame_id, const char* what) const;
+  std::vector<int> WindowIdsLocked(int num_new) const;
+  void InitialisePending(const std::vector<int>& ids);
+  WindowStepSummary Solve(std::vector<int> free_ids, const std::vector<int>& keyframe_ids);
+
+  mutable std::mutex mutex_;
+  Eigen::Matrix3d camera_matrix_;
+  SlidingWindowOptions options_;
+  std::map<int, Frame> frames_;                  // ordered by id = sequence order
+  std::map<std::pair<int, int>, Pair> pairs_;    // (frame_l, frame_m)
+  std::array<double, kPlaneSize> plane_{};
+  bool plane_set_ = false;
+  int num_correspondences_ = 0;
+};
+
+}  // namespace fusedmosaic

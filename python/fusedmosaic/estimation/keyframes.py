@@ -1,0 +1,94 @@
+"""Sparse keyframe sets for the LBA window (seed 000, Sec. 3.4, Fig. 5).
+
+The image corners of every estimated frame are projected to the mosaic with the current
+estimates and their centroid is taken (Fig. 5a); centroids are clustered with K-means (5b) and a
+random consecutive subset of frames is picked in each cluster (5c). Their fixed cameras and
+correspondences keep the plane observed over the whole explored area.
+
+Frames are grouped in blocks of `block_size` consecutive frames, the "consecutive subsets" of
+the paper; K-means runs on block centroids and one random block is picked per cluster. To keep
+the per-step cost and the memory flat in sequence length (the paper keeps everything), at most
+`max_blocks` blocks are retained: when full, a block is evicted from the most crowded cell of a
+grid over the mosaic (the oldest there), so coverage of the explored area is kept while revisits
+stop adding state. Evicted frames are returned so the caller can forget their data.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.cluster.vq import kmeans2
+
+
+@dataclass
+class _Block:
+    frame_ids: list[int]
+    centroids: list[np.ndarray]
+
+    @property
+    def centroid(self) -> np.ndarray:
+        return np.mean(self.centroids, axis=0)
+
+
+class KeyframeIndex:
+    def __init__(self, block_size: int, *, max_blocks: int = 200, cell_size_px: float = 200.0,
+                 rng: np.random.Generator | None = None):
+        if block_size < 1 or max_blocks < 1:
+            raise ValueError("block_size and max_blocks must be >= 1")
+        self.block_size = block_size
+        self.max_blocks = max_blocks
+        self.cell_size_px = cell_size_px
+        self.rng = rng or np.random.default_rng(0)
+        self._blocks: OrderedDict[int, _Block] = OrderedDict()  # block id -> block (old first)
+        self._open: _Block | None = None
+        self._next_id = 0
+
+    def __len__(self) -> int:
+        return len(self._blocks)
+
+    def add(self, frame_id: int, centroid: np.ndarray) -> list[int]:
+        """Adds an estimated frame's centroid (reference pixels). Returns frame ids to forget."""
+        if self._open is None:
+            self._open = _Block([], [])
+        self._open.frame_ids.append(frame_id)
+        self._open.centroids.append(np.asarray(centroid, float))
+        if len(self._open.frame_ids) < self.block_size:
+            return []
+        self._blocks[self._next_id] = self._open
+        self._next_id += 1
+        self._open = None
+        return self._evict() if len(self._blocks) > self.max_blocks else []
+
+    def _evict(self) -> list[int]:
+        ids = list(self._blocks)
+        cells = np.floor(np.array([self._blocks[i].centroid for i in ids]) / self.cell_size_px)
+        _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+        crowded = np.flatnonzero(counts[inverse.ravel()] == counts.max())[0]  # oldest there
+        return self._blocks.pop(ids[crowded]).frame_ids
+
+    def select(self, num_clusters: int, exclude: set[int] | None = None) -> list[int]:
+        """Keyframe ids: one random block of consecutive frames per K-means cluster."""
+        exclude = exclude or set()
+        blocks = [b for b in self._blocks.values() if not exclude.intersection(b.frame_ids)]
+        if not blocks or num_clusters < 1:
+            return []
+        if len(blocks) <= num_clusters:
+            chosen = blocks
+        else:
+            pts = np.array([b.centroid for b in blocks])
+            seed = int(self.rng.integers(2**31 - 1))
+            _, labels = kmeans2(pts, num_clusters, minit="++", seed=seed)
+            chosen = []
+            for c in range(num_clusters):
+                members = np.flatnonzero(labels == c)
+                if len(members):
+                    chosen.append(blocks[int(self.rng.choice(members))])
+        return sorted(k for b in chosen for k in b.frame_ids)
+
+    def centroids(self) -> tuple[np.ndarray, np.ndarray]:
+        """(ids, centroids) of retained frames, for plots and tests."""
+        ids = [k for b in self._blocks.values() for k in b.frame_ids]
+        pts = [c for b in self._blocks.values() for c in b.centroids]
+        return np.array(ids, int), np.array(pts).reshape(-1, 2)

@@ -1,0 +1,387 @@
+"""LBAVis+EMT, the sequential drift-free method of seed 000 (Sec. 3.4, Eqs. 21-27; Sec. 4.2).
+
+`SequentialMosaicker` takes frames one at a time (a live loop or a recorded dataset):
+
+    features -> match against the frames of the window -> C++ SlidingWindow step every chi_e
+    frames (new cameras + plane, window and K-means keyframes fixed) -> tracker gating ->
+    frame -> reference homographies G_k = H_0 H_k^-1 with the plane of that step (Sec. 3.4:
+    "we compose the new homographies with the estimated set of cameras and plane obtained in
+    every iteration by using Eq. (5)").
+
+A frame is final once its step has run (every chi_e frames); until then `add_frame` returns a
+provisional placement from its tracker pose (or the motion prediction) and the current plane.
+State is bounded: features only for the frames the window matches against, images never, and
+keyframe candidates in a bounded spatial reservoir (estimation/keyframes.py) whose evicted frames
+are forgotten by the C++ window too.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+from tqdm import tqdm
+
+from fusedmosaic import _core
+from fusedmosaic.estimation.keyframes import KeyframeIndex
+from fusedmosaic.estimation.plane import estimate_plane
+from fusedmosaic.methods import MethodResult
+from fusedmosaic.registration.features import FeatureExtractor, FeatureOptions
+from fusedmosaic.registration.pairs import MatchOptions, match_pair
+
+# Paper presets (Sec. 4.2): (W, chi_e, K, frames per cluster).
+PRESETS = {"syn": (5, 3, 3, 5), "phb": (3, 1, 3, 3), "ex": (12, 6, 3, 12)}
+
+
+@dataclass
+class SequentialOptions:
+    window_size: int = 5  # W (Sec. 4.2, SYN preset)
+    num_new: int = 3  # chi_e, cameras estimated per step
+    num_clusters: int = 3  # K of K-means
+    frames_per_cluster: int = 5  # consecutive frames picked per cluster
+    features: FeatureOptions = field(default_factory=FeatureOptions)
+    matching: MatchOptions = field(default_factory=lambda: MatchOptions(num_threads=1))
+    max_points_per_pair: int = 100  # inliers kept per pair
+    sigma_v_px: float = 1.0  # px (Sec. 4.2)
+    loss: str = "none"
+    linear_solver: str = "auto"
+    max_iterations: int = 20
+    # Tracker gating: a sample whose whitened distance to the fused pose exceeds the 99.9 %
+    # chi-square quantile for 6 dof (22.46) is down-weighted (sigma x gate_sigma_scale) and the
+    # step redone, when the frame has visual evidence to judge it by.
+    gate_chi2: float = 22.46
+    gate_sigma_scale: float = 10.0
+    max_keyframe_blocks: int = 200  # bound on retained keyframe candidates (memory, per-step cost)
+    # Initialisation: the first frames are bundle-adjusted together (all pairs, BA+EMT) to get the
+    # plane and their poses before the window starts. A plane from the first chi_e frames alone
+    # (1-3 mm baselines against 1 mm tracker noise) was 11 % off in depth on SYN, and the window
+    # cannot repair it later: pairs between fixed cameras pin pi to their scale.
+    bootstrap_frames: int = 40  # SYN-150: 15 -> e_M 0.30 px (plane 2.4 % deep), 25 -> 0.30, 40 -> 0.14
+    # Spatial loop pairs (beyond the paper's Eq. 25 window; its Sec. 5 proposes such a
+    # spatio-temporal window): each new frame is also matched against up to this many retained
+    # older frames whose footprint, predicted from the drift-free tracker pose, overlaps it.
+    # 0 gives the paper's LBA exactly. Measured in bench/bench_sequential.py.
+    loop_pairs: int = 2
+    loop_min_separation: int = 10  # frames between a new frame and its loop candidates
+    seed: int = 0
+
+    @classmethod
+    def preset(cls, name: str, **overrides) -> SequentialOptions:
+        if name not in PRESETS:
+            raise ValueError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}")
+        w, chi, k, per = PRESETS[name]
+        return cls(window_size=w, num_new=chi, num_clusters=k, frames_per_cluster=per,
+                   **overrides)
+
+
+@dataclass
+class FrameResult:
+    frame_id: int
+    timestamp: float
+    homography: np.ndarray  # (3, 3) frame -> reference (NaN when unplaced)
+    pose: np.ndarray  # (6,) cam_from_world
+    status: str  # "placed" | "prior-only" | "provisional" | "unplaced: ..."
+    final: bool
+    tracker_gated: bool = False
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+class SequentialMosaicker:
+    """Frame-by-frame LBAVis+EMT. `camera` is an io.Camera with a camera_matrix."""
+
+    def __init__(self, camera, options: SequentialOptions | None = None):
+        self.options = o = options or SequentialOptions()
+        self.K = camera.require_camera_matrix("lba-emt")
+        self.size = (camera.width, camera.height)
+        self._outline = self._frame_outline(camera)
+        costs = _core.BundleAdjusterOptions(
+            sigma_v_px=o.sigma_v_px, loss=o.loss, linear_solver=o.linear_solver,
+            max_iterations=o.max_iterations, function_tolerance=1e-6, num_threads=1)
+        self.window = _core.SlidingWindow(self.K, _core.SlidingWindowOptions(
+            window_size=o.window_size, num_new=o.num_new, costs=costs))
+        self.extractor = FeatureExtractor(o.features, camera.fov_mask())
+        self.keyframes = KeyframeIndex(o.frames_per_cluster, max_blocks=o.max_keyframe_blocks,
+                                       cell_size_px=0.5 * max(self.size),
+                                       rng=np.random.default_rng(o.seed))
+        self.rng = np.random.default_rng(o.seed)
+        self._recent: deque = deque(maxlen=max(o.window_size - 1, 1))  # (id, Features)
+        self._pending: list[dict] = []
+        self._boot_feats: list = []  # bootstrap: features and pairs of the first frames
+        self._boot_matches: list = []
+        self._loop_feats: dict = {}  # one frame per retained keyframe block: its features
+        self._loop_centroids: dict = {}
+        self._loop_radius = 0.6 * float(np.hypot(*self.size))  # centroid distance for overlap
+        self._poses: dict[int, np.ndarray] = {}  # last two estimated poses, for prediction
+        self._reference_pose: np.ndarray | None = None
+        self._plane: np.ndarray | None = None
+        self._next_id = 0
+        self._last_timestamp = -np.inf
+        self.plane_history: list[tuple[int, np.ndarray]] = []
+        self.step_summaries: list = []
+
+    @staticmethod
+    def _frame_outline(camera) -> np.ndarray:
+        w, h = camera.width, camera.height
+        if camera.fov_mask_radius:
+            a = np.linspace(0, 2 * np.pi, 16, endpoint=False)
+            r = camera.fov_mask_radius
+            return np.stack([(w - 1) / 2 + r * np.cos(a), (h - 1) / 2 + r * np.sin(a)], axis=1)
+        return np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], np.float64)
+
+    # ----------------------------------------------------------------------------------------
+    def add_frame(self, image: np.ndarray, timestamp: float,
+                  tracker_pose: np.ndarray | None = None) -> FrameResult:
+        """Adds the next frame. tracker_pose: (6,) cam_from_world from the EM tracker after
+        hand-eye (None when there is no valid sample). Returns this frame's result, final if
+        its step ran now, else provisional; `finalized()` hands out the frames made final."""
+        k = self._next_id
+        if image.shape[1::-1] != self.size:
+            raise ValueError(f"frame {k}: image size {image.shape[1]}x{image.shape[0]} differs "
+                             f"from the camera's {self.size[0]}x{self.size[1]}")
+        if not timestamp > self._last_timestamp:
+            raise ValueError(f"frame {k}: timestamp {timestamp} does not increase "
+                             f"(previous {self._last_timestamp})")
+        if tracker_pose is not None:
+            tracker_pose = np.asarray(tracker_pose, np.float64)
+            if tracker_pose.shape != (6,) or not np.isfinite(tracker_pose).all():
+                raise ValueError(f"frame {k}: tracker_pose must be 6 finite values "
+                                 f"[r, t] (cam_from_world), got {tracker_pose!r}")
+        self._next_id += 1
+        self._last_timestamp = timestamp
+        timings: dict[str, float] = {}
+
+        t0 = time.perf_counter()
+        feats = self.extractor.extract(image, k)
+        timings["features"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        against = self._boot_feats if self._plane is None else [f for _, f in self._recent]
+        matches = [match_pair(feats, f_old, self.size, self.options.matching)
+                   for f_old in against]
+        self._recent.append((k, feats))
+        timings["matching"] = time.perf_counter() - t0
+        ok = [m for m in matches if m.ok]
+        self._pending.append({"id": k, "timestamp": timestamp, "tracker": tracker_pose,
+                              "visual": bool(ok), "timings": timings, "features": feats})
+        self._finalized: list[FrameResult] = []
+        if self._plane is None:  # bootstrap: keep everything until the initial adjustment
+            self._boot_feats.append(feats)
+            self._boot_matches += ok
+            if len(self._pending) >= self.options.bootstrap_frames:
+                self._bootstrap()
+        else:
+            self.window.add_frame(k, None, tracker_pose)
+            t0 = time.perf_counter()
+            loops = [m for m in self._match_loops(k, feats, tracker_pose) if m.ok]
+            timings["matching"] += time.perf_counter() - t0
+            for m in ok + loops:
+                self.window.add_pair(m.frame_l, m.frame_m, *self._subsample(m))
+            self._pending[-1]["visual"] = bool(ok or loops)
+            if len(self._pending) >= self.options.num_new:
+                self._step()
+        for r in self._finalized:
+            if r.frame_id == k:
+                return r
+        return self._provisional(k, timestamp, tracker_pose, timings)
+
+    def finalized(self) -> list[FrameResult]:
+        """Frames made final by the last add_frame / flush call (in order)."""
+        return list(self._finalized)
+
+    def flush(self) -> list[FrameResult]:
+        """Estimates any pending frames (end of sequence) and returns their final results."""
+        self._finalized = []
+        if self._pending:
+            if self._plane is None:
+                self._bootstrap()
+            else:
+                self._step()
+        return list(self._finalized)
+
+    # ----------------------------------------------------------------------------------------
+    def _subsample(self, m):
+        n = self.options.max_points_per_pair
+        if len(m.points_l) <= n:
+            return m.points_l, m.points_m
+        idx = np.sort(self.rng.choice(len(m.points_l), n, replace=False))
+        return m.points_l[idx], m.points_m[idx]
+
+    def _match_loops(self, k: int, feats, tracker_pose) -> list:
+        """Matches frame k against retained older frames its predicted footprint overlaps."""
+        o = self.options
+        if o.loop_pairs <= 0 or not self._loop_feats:
+            return []
+        pose = tracker_pose if tracker_pose is not None else self._predict_pose()
+        if pose is None:
+            return []
+        centre = self._centroid(self._to_reference(pose))
+        ids = np.array([i for i in self._loop_feats if k - i >= o.loop_min_separation], int)
+        if len(ids) == 0:
+            return []
+        dist = np.linalg.norm(np.array([self._loop_centroids[i] for i in ids]) - centre, axis=1)
+        near = ids[np.argsort(dist)][: o.loop_pairs]
+        near = [i for i in near if np.linalg.norm(self._loop_centroids[i] - centre)
+                < self._loop_radius]
+        return [match_pair(feats, self._loop_feats[i], self.size, o.matching) for i in near]
+
+    def _predict_pose(self) -> np.ndarray | None:
+        if len(self._poses) < 2:
+            return None
+        a, b = sorted(self._poses)[-2:]
+        velocity = _core.compose_poses(self._poses[b], _core.invert_pose(self._poses[a]))
+        return _core.compose_poses(velocity, self._poses[b])
+
+    def _bootstrap(self) -> None:
+        """BA+EMT over the first frames (all their pairs): plane and poses to start from."""
+        t0 = time.perf_counter()
+        tracked = {p["id"]: p["tracker"] for p in self._pending if p["tracker"] is not None}
+        table = np.full((self._next_id, 6), np.nan)
+        for i, z in tracked.items():
+            table[i] = z
+        usable = [m for m in self._boot_matches if m.frame_l in tracked and m.frame_m in tracked]
+        if not usable:
+            raise ValueError(f"no pair among the first {len(self._pending)} frames could be "
+                             "registered with tracker poses: the plane cannot be initialised")
+        plane = estimate_plane(usable, table, self.K)
+        o = self.options
+        ba = _core.BundleAdjuster(self.K, _core.BundleAdjusterOptions(
+            sigma_v_px=o.sigma_v_px, loss=o.loss, num_threads=1))
+        ids = [p["id"] for p in self._pending]
+        filled = _fill_poses(table[ids])
+        for i, k in enumerate(ids):
+            ba.add_frame(k, filled[i], tracked.get(k))
+        for m in self._boot_matches:
+            ba.add_pair(m.frame_l, m.frame_m, *self._subsample(m))
+        ba.set_plane(plane)
+        ba.solve()
+        self._plane = np.asarray(ba.plane())
+        self.window.set_plane(self._plane)
+        for k in ids:
+            self.window.add_frame(k, ba.pose(k), tracked.get(k), fixed=True)
+        for m in self._boot_matches:
+            self.window.add_pair(m.frame_l, m.frame_m, *self._subsample(m))
+        self._boot_feats, self._boot_matches = [], []
+        self.plane_history.append((ids[-1], self._plane.copy()))
+        elapsed = (time.perf_counter() - t0) / len(ids)
+        self._finalize(ids, [ba.pose(k) for k in ids], [], elapsed, 0.0)
+
+    def _step(self) -> None:
+        t0 = time.perf_counter()
+        ids = [p["id"] for p in self._pending]
+        exclude = set(ids) | set(self.window.window_ids())
+        keyframe_ids = self.keyframes.select(self.options.num_clusters, exclude)
+        t_kf = time.perf_counter() - t0
+        summary = self.window.step(keyframe_ids)
+        gated = [p["id"] for p, d2 in zip(self._pending, summary.emt_mahalanobis2, strict=True)
+                 if np.isfinite(d2) and d2 > self.options.gate_chi2 and p["visual"]]
+        if gated:
+            for k in gated:
+                self.window.set_emt_sigma_scale(k, self.options.gate_sigma_scale)
+            summary = self.window.redo(ids, keyframe_ids)
+        self.step_summaries.append(summary)
+        self._plane = np.asarray(self.window.plane())
+        self.plane_history.append((ids[-1], self._plane.copy()))
+        self._finalize(ids, [self.window.pose(k) for k in ids], gated,
+                       summary.step_time_s / len(ids), t_kf / len(ids))
+
+    def _finalize(self, ids, poses, gated, solve_per_frame, keyframe_per_frame) -> None:
+        forget: list[int] = []
+        for p, pose in zip(self._pending, poses, strict=True):
+            k = p["id"]
+            pose = np.asarray(pose)
+            if self._reference_pose is None:
+                self._reference_pose = pose
+            self._poses[k] = pose
+            G = self._to_reference(pose)
+            centroid = self._centroid(G)
+            forget += self.keyframes.add(k, centroid)
+            if k % self.options.frames_per_cluster == self.options.frames_per_cluster // 2:
+                feats = p.pop("features", None)
+                if feats is not None and len(feats):
+                    self._loop_feats[k] = feats
+                    self._loop_centroids[k] = centroid
+            p["timings"]["window_solve"] = solve_per_frame
+            p["timings"]["keyframe_selection"] = keyframe_per_frame
+            status = "placed" if p["visual"] else "prior-only"
+            self._finalized.append(FrameResult(k, p["timestamp"], G, pose, status, True,
+                                               k in gated, p["timings"]))
+        for old in sorted(self._poses)[:-2]:
+            del self._poses[old]  # keep only what the motion prediction needs
+        if forget:
+            self.window.forget(forget)
+            for i in forget:
+                self._loop_feats.pop(i, None)
+                self._loop_centroids.pop(i, None)
+        self._pending = []
+
+    def _to_reference(self, pose: np.ndarray) -> np.ndarray:
+        return _core.transfer_homography(self._reference_pose, pose, self._plane, self.K)
+
+    def _centroid(self, G: np.ndarray) -> np.ndarray:
+        q = np.hstack([self._outline, np.ones((len(self._outline), 1))]) @ G.T
+        return (q[:, :2] / q[:, 2:]).mean(axis=0)
+
+    def _provisional(self, k, timestamp, tracker_pose, timings) -> FrameResult:
+        pose = tracker_pose if tracker_pose is not None else self._predict_pose()
+        if pose is None or self._plane is None or self._reference_pose is None:
+            nan = np.full((3, 3), np.nan)
+            return FrameResult(k, timestamp, nan, np.full(6, np.nan),
+                               "unplaced: waiting for the first window step", False,
+                               timings=timings)
+        return FrameResult(k, timestamp, self._to_reference(pose), pose, "provisional", False,
+                           timings=timings)
+
+
+def _fill_poses(poses: np.ndarray) -> np.ndarray:
+    """Initial values for frames without a tracker sample: interpolated between valid ones."""
+    out = poses.copy()
+    valid = np.isfinite(poses).all(axis=1)
+    if not valid.all():
+        idx = np.flatnonzero(valid)
+        for j in range(6):
+            out[~valid, j] = np.interp(np.flatnonzero(~valid), idx, poses[idx, j])
+    return out
+
+
+def run_lba_emt(dataset, *, progress: bool = True,
+                options: SequentialOptions | None = None) -> MethodResult:
+    """LBAVis+EMT over a recorded dataset, frame by frame through SequentialMosaicker."""
+    o = options or SequentialOptions()
+    n = len(dataset.frames)
+    mosaicker = SequentialMosaicker(dataset.camera, o)
+    results: dict[int, FrameResult] = {}
+    latency = np.zeros(n)
+    t_start = time.perf_counter()
+    for k in tqdm(range(n), desc="lba-emt", disable=not progress, leave=False):
+        image = dataset.frames[k]
+        t0 = time.perf_counter()
+        valid = dataset.pose_valid is not None and dataset.pose_valid[k]
+        mosaicker.add_frame(image, float(dataset.timestamps[k]),
+                            dataset.cam_from_world[k] if valid else None)
+        latency[k] = time.perf_counter() - t0
+        for r in mosaicker.finalized():
+            results[r.frame_id] = r
+    for r in mosaicker.flush():
+        results[r.frame_id] = r
+    total = time.perf_counter() - t_start
+    G = np.stack([results[k].homography for k in range(n)])
+    poses = np.stack([results[k].pose for k in range(n)])
+    stages = ("features", "matching", "window_solve", "keyframe_selection")
+    timings = {s: float(sum(results[k].timings.get(s, 0.0) for k in range(n))) for s in stages}
+    timings["optimisation"] = timings["window_solve"]
+    solve = np.array([s.step_time_s for s in mosaicker.step_summaries])
+    details = {
+        "latency_ms": {"median": float(np.median(latency) * 1e3),
+                       "p95": float(np.percentile(latency, 95) * 1e3),
+                       "frames_per_s": n / total},
+        "window_step_ms": {"median": float(np.median(solve) * 1e3),
+                           "p95": float(np.percentile(solve, 95) * 1e3),
+                           "steps": len(solve)},
+        "tracker_gated": [k for k in range(n) if results[k].tracker_gated],
+        "plane_history": [{"frame": f, "plane": p.tolist()} for f, p in mosaicker.plane_history],
+    }
+    status = [results[k].status for k in range(n)]
+    return MethodResult(G, status, poses=poses, plane=mosaicker._plane, timings=timings,
+                        parameters=asdict(o), details=details)
