@@ -42,7 +42,7 @@ def test_no_registrable_pair(untracked, tmp_path, method):
 
 
 def test_unknown_method_and_cli_error_line(untracked, tmp_path, capsys):
-    with pytest.raises(ValueError, match="unknown method 'nope'; available: ba-emt"):
+    with pytest.raises(ValueError, match="unknown method 'nope'; available: lba-emt, ba-emt"):
         run_dataset(untracked, "nope", tmp_path / "out")
     code = main(["run", str(untracked), "--method", "pairwise", "--out", str(tmp_path / "o")])
     assert code == 2

@@ -37,6 +37,9 @@ class BundleOptions:
     window: int = 2  # "window" selection, and the seed pairs used to initialise the plane
     max_points_per_pair: int = 100  # inliers kept per pair (paper Table 1: 67-222 on average)
     sigma_v_px: float = 1.0  # px, visual noise (Sec. 4.2)
+    # Constant-velocity prior std devs (rad x3, mm x3); None = the paper's appendix values
+    # (estimation/motion.py estimates them from an independent recording, as Sec. 4.2 did).
+    motion_sigma: tuple[float, ...] | None = None
     loss: str = "none"  # "none" | "huber" | "cauchy" on the visual term
     loss_scale_px: float = 2.0
     linear_solver: str = "auto"
@@ -174,10 +177,13 @@ def _visual_initialisation(n: int, matches: list[PairMatch], K: np.ndarray) -> n
 
 
 def _adjuster(K, options: BundleOptions, use_emt: bool):
-    return _core.BundleAdjuster(K, _core.BundleAdjusterOptions(
+    costs = _core.BundleAdjusterOptions(
         sigma_v_px=options.sigma_v_px, loss=options.loss, loss_scale_px=options.loss_scale_px,
         linear_solver=options.linear_solver, max_iterations=options.max_iterations,
-        num_threads=options.num_threads, use_emt=use_emt, use_motion_prior=use_emt))
+        num_threads=options.num_threads, use_emt=use_emt, use_motion_prior=use_emt)
+    if options.motion_sigma is not None:
+        costs.motion_sigma = np.asarray(options.motion_sigma, np.float64)
+    return _core.BundleAdjuster(K, costs)
 
 
 def _status(n: int, placed: np.ndarray, matches: list[PairMatch], why: str) -> list[str]:

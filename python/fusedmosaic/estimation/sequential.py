@@ -45,6 +45,9 @@ class SequentialOptions:
     matching: MatchOptions = field(default_factory=lambda: MatchOptions(num_threads=1))
     max_points_per_pair: int = 100  # inliers kept per pair
     sigma_v_px: float = 1.0  # px (Sec. 4.2)
+    # Constant-velocity prior std devs (rad x3, mm x3); None = the paper's appendix values.
+    # estimation/motion.py estimates them from an independent recording, as Sec. 4.2 did.
+    motion_sigma: tuple[float, ...] | None = None
     loss: str = "none"
     linear_solver: str = "auto"
     max_iterations: int = 20
@@ -58,7 +61,8 @@ class SequentialOptions:
     # plane and their poses before the window starts. A plane from the first chi_e frames alone
     # (1-3 mm baselines against 1 mm tracker noise) was 11 % off in depth on SYN, and the window
     # cannot repair it later: pairs between fixed cameras pin pi to their scale.
-    bootstrap_frames: int = 40  # SYN-150: 15 -> e_M 0.30 px (plane 2.4 % deep), 25 -> 0.30, 40 -> 0.14
+    # Measured on SYN-150: 15 frames -> e_M 0.30 px (plane 2.4 % deep), 25 -> 0.30, 40 -> 0.14.
+    bootstrap_frames: int = 40
     # Spatial loop pairs (beyond the paper's Eq. 25 window; its Sec. 5 proposes such a
     # spatio-temporal window): each new frame is also matched against up to this many retained
     # older frames whose footprint, predicted from the drift-free tracker pose, overlaps it.
@@ -99,6 +103,9 @@ class SequentialMosaicker:
         costs = _core.BundleAdjusterOptions(
             sigma_v_px=o.sigma_v_px, loss=o.loss, linear_solver=o.linear_solver,
             max_iterations=o.max_iterations, function_tolerance=1e-6, num_threads=1)
+        if o.motion_sigma is not None:
+            costs.motion_sigma = np.asarray(o.motion_sigma, np.float64)
+        self._costs = costs
         self.window = _core.SlidingWindow(self.K, _core.SlidingWindowOptions(
             window_size=o.window_size, num_new=o.num_new, costs=costs))
         self.extractor = FeatureExtractor(o.features, camera.fov_mask())
@@ -163,6 +170,9 @@ class SequentialMosaicker:
         self._recent.append((k, feats))
         timings["matching"] = time.perf_counter() - t0
         ok = [m for m in matches if m.ok]
+        for p in self._pending:  # a registered pair is visual evidence for both frames
+            if any(m.frame_m == p["id"] for m in ok):
+                p["visual"] = True
         self._pending.append({"id": k, "timestamp": timestamp, "tracker": tracker_pose,
                               "visual": bool(ok), "timings": timings, "features": feats})
         self._finalized: list[FrameResult] = []
@@ -246,8 +256,10 @@ class SequentialMosaicker:
                              "registered with tracker poses: the plane cannot be initialised")
         plane = estimate_plane(usable, table, self.K)
         o = self.options
-        ba = _core.BundleAdjuster(self.K, _core.BundleAdjusterOptions(
-            sigma_v_px=o.sigma_v_px, loss=o.loss, num_threads=1))
+        ba_options = _core.BundleAdjusterOptions(sigma_v_px=o.sigma_v_px, loss=o.loss,
+                                                 num_threads=1)
+        ba_options.motion_sigma = self._costs.motion_sigma
+        ba = _core.BundleAdjuster(self.K, ba_options)
         ids = [p["id"] for p in self._pending]
         filled = _fill_poses(table[ids])
         for i, k in enumerate(ids):
@@ -380,7 +392,8 @@ def run_lba_emt(dataset, *, progress: bool = True,
                            "p95": float(np.percentile(solve, 95) * 1e3),
                            "steps": len(solve)},
         "tracker_gated": [k for k in range(n) if results[k].tracker_gated],
-        "plane_history": [{"frame": f, "plane": p.tolist()} for f, p in mosaicker.plane_history],
+        # rows [last frame of the step, pi_x, pi_y, pi_z]: the plane after each window step
+        "plane_history": [[f, *p.tolist()] for f, p in mosaicker.plane_history],
     }
     status = [results[k].status for k in range(n)]
     return MethodResult(G, status, poses=poses, plane=mosaicker._plane, timings=timings,

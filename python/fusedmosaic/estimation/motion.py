@@ -1,0 +1,45 @@
+"""The constant-velocity motion prior's covariance (seed 000, Eq. 14-16 and Sec. 4.2).
+
+The paper estimates Sigma_p "through an independent dataset with similar motion characteristics"
+(Sec. 4.2) and lists its values in the appendix (Eq. 30, read as standard deviations by the C++
+core). `estimate_motion_sigma` does that estimation: given a pose sequence (cam_from_world,
+e.g. ground truth of a calibration recording, or a simulated sequence of the same kind), it
+returns the per-component standard deviation of x_k - mu_p(x_{k-1}, x_{k-2}).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fusedmosaic import _core
+
+# Appendix Eq. 30 (std devs: rad x3, mm x3), the default when no motion data is given.
+PAPER_MOTION_SIGMA = np.array([0.0044, 0.0044, 0.0044, 15.2178, 15.2178, 15.2178])
+
+
+def constant_velocity_residuals(poses: np.ndarray) -> np.ndarray:
+    """(N-2, 6) x_k - mu_p(x_{k-1}, x_{k-2}) with mu_p = T_{k-1} T_{k-2}^-1 T_{k-1} (Eq. 16)."""
+    poses = np.asarray(poses, np.float64)
+    if poses.ndim != 2 or poses.shape[1] != 6 or len(poses) < 3:
+        raise ValueError(f"poses: expected shape (N >= 3, 6), got {poses.shape}")
+    out = []
+    for k in range(2, len(poses)):
+        a, b, c = poses[k - 2], poses[k - 1], poses[k]
+        if not (np.isfinite(a).all() and np.isfinite(b).all() and np.isfinite(c).all()):
+            continue
+        mu = _core.compose_poses(_core.compose_poses(b, _core.invert_pose(a)), b)
+        out.append(c - mu)
+    if not out:
+        raise ValueError("poses: no three consecutive finite poses")
+    return np.array(out)
+
+
+def estimate_motion_sigma(poses: np.ndarray, *, floor: tuple[float, float] = (1e-4, 0.01)
+                          ) -> np.ndarray:
+    """Per-component RMS of the constant-velocity residual (6,), rotations then translations,
+    floored at (rad, mm) so a perfectly smooth recording does not give a zero deviation."""
+    r = constant_velocity_residuals(poses)
+    sigma = np.sqrt(np.mean(r**2, axis=0))
+    sigma[:3] = np.maximum(sigma[:3], floor[0])
+    sigma[3:] = np.maximum(sigma[3:], floor[1])
+    return sigma
