@@ -69,9 +69,35 @@ def _cmd_run(args: argparse.Namespace) -> int:
         options = BundleOptions(pair_selection=args.pair_selection)
     summary = run_dataset(args.dataset, args.method, args.out, fps=args.fps,
                           robot_file=args.robot_file, allow_untracked=args.allow_untracked,
-                          progress=_progress(args), options=options)
+                          progress=_progress(args), options=options, blend=_blend_options(args),
+                          canvas=_canvas_options(args), video=args.video,
+                          report=not args.no_report)
     _say(args, summary)
     return 0
+
+
+def _blend_options(args: argparse.Namespace):
+    """BlendOptions from --blend/--border/--bands/--gain-compensation (blend None: the method's
+    preference); None when no compositing flag is given."""
+    from fusedmosaic.compositing import BlendOptions
+
+    if args.blend is None and not args.border and args.bands is None \
+            and not args.gain_compensation:
+        return None
+    return BlendOptions(blend=args.blend, border_px=args.border or 0.0,
+                        bands=args.bands if args.bands is not None else BlendOptions.bands,
+                        gain_compensation=args.gain_compensation)
+
+
+def _canvas_options(args: argparse.Namespace):
+    from fusedmosaic.compositing import CanvasOptions
+
+    canvas = CanvasOptions()
+    if args.max_canvas_pixels is not None:
+        canvas.max_pixels = args.max_canvas_pixels
+    if args.tile_size is not None:
+        canvas.tile_size = args.tile_size
+    return canvas
 
 
 def _format_table(results: list[dict]) -> str:
@@ -117,33 +143,74 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     json_path = Path(args.json) if args.json else outs[0] / "evaluation.json"
     _write_json_atomic(json_path, report)
     _say(args, f"wrote {json_path}")
+    if not args.no_report:
+        md = _evaluation_report(outs, args.truth, json_path.with_suffix(".md"))
+        _say(args, f"wrote {md} (plots in {md.parent / (md.stem + '_plots')})")
     return 0
+
+
+def _evaluation_report(outs: list[Path], truth_root, md_path: Path) -> Path:
+    """evaluation.md + <stem>_plots/: e_j of every output on one plot, poses, plane, timing."""
+    from fusedmosaic.evaluation.report import load_run, load_truth, write_report
+
+    truth = load_truth(truth_root)
+    runs = [load_run(o, truth.frame_ids) for o in outs]
+    labels = [r.label for r in runs]
+    for r in runs:  # the same method twice: tell them apart by folder
+        if labels.count(r.label) > 1:
+            r.label = f"{r.label} ({Path(r.output).name})"
+    md_path.parent.mkdir(parents=True, exist_ok=True)
+    return write_report(md_path.parent, runs, truth, name=md_path.name,
+                        title="fusedmosaic evaluation", plots_dir=md_path.stem + "_plots")
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from fusedmosaic import methods, simulation
+    from fusedmosaic.compositing import BlendOptions, render_mosaic
     from fusedmosaic.evaluation import evaluate_output
+    from fusedmosaic.io import read_dataset, read_homographies_csv
     from fusedmosaic.runner import run_dataset
 
     root = Path(args.out)
     data = root / "dataset"
     t0 = time.perf_counter()
     if not (data / "camera.yaml").is_file():
-        simulation.simulate_fetoscopy(data, simulation.FetoscopyOptions(n_frames=args.frames))
-    _say(args, f"[demo] simulated SYN fetoscopy sequence ({args.frames} frames): {data}")
+        simulation.simulate_fetoscopy(data, simulation.FetoscopyOptions(
+            n_frames=args.frames, motion=args.motion))
+        _say(args, f"[demo] simulated a {args.motion} fetoscopy sequence ({args.frames} frames, "
+                   f"EM tracker at 40 Hz, ground truth): {data}")
+    else:
+        _say(args, f"[demo] reusing the simulated sequence in {data}")
     names = methods.available()
     if not names:
         raise SystemExit("no mosaicking method is registered yet")
     method = names[0]
     out = root / method
-    run_dataset(data, method, out, progress=_progress(args))
+    _say(args, f"[demo] running {method} ({methods.REGISTRY[method][1]}) ...")
+    run_dataset(data, method, out, progress=_progress(args),
+                blend=BlendOptions("multiband"), video=out / "creation.mp4")
+    # The paper's demonstration look (seed 000 Sec. 4.2): linear blending with a thin black
+    # border per frame, which shows where each frame was stitched.
+    dataset = read_dataset(data)
+    _, G = read_homographies_csv(out / "homographies.csv")
+    cam = dataset.camera
+    seams = render_mosaic(dataset.frames, G, cam.width, cam.height, mask=cam.fov_mask(),
+                          blend=BlendOptions("linear", border_px=1.5)).image
+    import cv2
+
+    cv2.imwrite(str(out / "mosaic_seams.png"), seams)
     result = evaluate_output(out, data)
     _write_json_atomic(out / "evaluation.json", result)
     _say(args, _format_table([result]))
-    _say(args, f"[demo] method {method}: {result['placed']}/{result['frames']} frames placed, "
+    _say(args, f"[demo] {method}: {result['placed']}/{result['frames']} frames placed, "
                f"e_M = {result['e_M_px']:.2f} px, drift ratio {result['drift_ratio']:.2f}; "
-               f"outputs in {out} (mosaic.png, homographies.csv, report.json); "
-               f"{time.perf_counter() - t0:.0f} s in all")
+               f"{time.perf_counter() - t0:.0f} s in all. Look at:")
+    for name, what in (("report.md", "report: accuracy per frame, poses vs tracker vs truth, "
+                                     "plane, timing (plots in plots/)"),
+                       ("mosaic.png", "mosaic, multi-band blending"),
+                       ("mosaic_seams.png", "mosaic, linear blending with each frame's border"),
+                       ("creation.mp4", "video of the sequential creation")):
+        _say(args, f"  {out / name}  {what}")
     return 0
 
 
@@ -163,17 +230,21 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fusedmosaic", description=__doc__)
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
     sub = parser.add_subparsers(dest="command", required=True)
+    quiet = argparse.ArgumentParser(add_help=False)  # --quiet after the command works too
+    quiet.add_argument("--quiet", action="store_true", default=argparse.SUPPRESS,
+                       help="print nothing but errors (no progress bars)")
 
     sim = sub.add_parser("simulate", help="write a simulated dataset (with ground truth)")
     sim_sub = sim.add_subparsers(dest="kind", required=True)
     for kind, cls in (("fetoscopy", simulation.FetoscopyOptions),
                       ("pcle", simulation.PcleOptions)):
-        p = sim_sub.add_parser(kind, help=f"{kind} dataset (see fusedmosaic.simulation)")
+        p = sim_sub.add_parser(kind, help=f"{kind} dataset (see fusedmosaic.simulation)",
+                               parents=[quiet])
         p.add_argument("out", help="output dataset folder (must not exist or be empty)")
         _add_dataclass_options(p, cls)
         p.set_defaults(func=_cmd_simulate)
 
-    run = sub.add_parser("run", help="mosaic a dataset with one method")
+    run = sub.add_parser("run", help="mosaic a dataset with one method", parents=[quiet])
     run.add_argument("dataset")
     run.add_argument("--method", required=True,
                      help="one of: " + (", ".join(methods.available()) or "(none yet)"))
@@ -187,20 +258,48 @@ def build_parser() -> argparse.ArgumentParser:
                           "ba-emt as in the paper, emt-guided for emt)")
     run.add_argument("--allow-untracked", action="store_true",
                      help="flag frames outside the tracker's time span instead of failing")
+    from fusedmosaic.compositing import BLENDS
+
+    comp = run.add_argument_group("mosaic, video and report")
+    comp.add_argument("--blend", choices=BLENDS,
+                      help="linear (feathering, seed 000), multiband (Laplacian pyramid), average "
+                           "(seed 004), last (newest on top); default: the method's preference")
+    comp.add_argument("--border", type=float, default=0.0, metavar="PX",
+                      help="draw each frame's field-of-view edge as a thin black border of PX "
+                           "pixels, to show the seams (seed 000 Sec. 4.2; e.g. 1.5)")
+    comp.add_argument("--bands", type=int, default=None, help="multiband pyramid levels "
+                      "(default 5)")
+    comp.add_argument("--gain-compensation", action="store_true",
+                      help="equalise the brightness of overlapping frames (one gain per frame)")
+    comp.add_argument("--video", metavar="OUT.mp4",
+                      help="also write a video of the mosaic's sequential creation")
+    comp.add_argument("--no-report", action="store_true",
+                      help="skip report.md and its plots")
+    comp.add_argument("--max-canvas-pixels", type=int, default=None,
+                      help="refuse mosaics larger than this (default 400 000 000)")
+    comp.add_argument("--tile-size", type=int, default=None,
+                      help="tile size (px) for mosaics rendered tile by tile (default 1024)")
     run.set_defaults(func=_cmd_run)
 
-    ev = sub.add_parser("evaluate", help="score an output against a dataset's ground truth")
+    ev = sub.add_parser("evaluate", help="score an output against a dataset's ground truth",
+                        parents=[quiet])
     ev.add_argument("out", help="output folder with homographies.csv")
     ev.add_argument("--truth", required=True, help="dataset folder with ground_truth.csv")
     ev.add_argument("--compare", nargs="*", help="more output folders (Wilcoxon vs the first)")
     ev.add_argument("--positions", type=int, default=None,
                     help="also report position errors at N evenly spaced frames (seed 004)")
-    ev.add_argument("--json", help="JSON path (default OUT/evaluation.json)")
+    ev.add_argument("--json", help="JSON path (default OUT/evaluation.json); the report goes "
+                                   "beside it (evaluation.md, evaluation_plots/)")
+    ev.add_argument("--no-report", action="store_true", help="skip the .md report and plots")
     ev.set_defaults(func=_cmd_evaluate)
 
-    demo = sub.add_parser("demo", help="simulate, mosaic with the best method, evaluate")
+    demo = sub.add_parser("demo", help="simulate, mosaic with the best method, report, video",
+                          parents=[quiet])
     demo.add_argument("--out", default="demo_out", help="folder for everything (default demo_out)")
     demo.add_argument("--frames", type=int, default=150, help="frames to simulate (default 150)")
+    demo.add_argument("--motion", choices=simulation.fetoscopy.MOTIONS, default="syn",
+                      help="syn: the paper's circular SYN sequence; handheld: a free-hand sweep "
+                           "over a tilted plane with a circular field of view")
     demo.set_defaults(func=_cmd_demo)
     return parser
 

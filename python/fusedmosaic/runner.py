@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -18,12 +19,18 @@ NEEDS_PIXEL_SIZE = {"ncc", "robot", "kalman-robot"}
 
 def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: float = 25.0,
                 robot_file: str = "robot.csv", allow_untracked: bool = False,
-                progress: bool = True, blend: str | None = None, options=None) -> str:
+                progress: bool = True, blend=None, options=None, canvas=None,
+                video: str | Path | None = None, report: bool = True) -> str:
     """Runs `method` on a dataset folder and writes the output contract into `out`.
 
-    blend: mosaic blending, by default the method's own preference (MethodResult.blend).
-    options: the method's options dataclass (None: the method's defaults)."""
-    from fusedmosaic.compositing import compose_mosaic
+    blend: a blend name ("linear", "multiband", "average", "last") or a
+        compositing.BlendOptions (its blend None: the method's); by default the method's own
+        preference (MethodResult.blend).
+    options: the method's options dataclass (None: the method's defaults).
+    canvas: compositing.CanvasOptions (pixel budget, tiling); None: defaults.
+    video: path of an MP4 of the mosaic's sequential creation (None: no video).
+    report: also write report.md with PNG plots (plots/).
+    Returns a short summary for the terminal."""
     from fusedmosaic.io import OutputWriter, read_dataset
 
     timings: dict[str, float] = {}
@@ -46,14 +53,7 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
     G = result.homographies
     placed = np.isfinite(G).all(axis=(1, 2))
 
-    t0 = time.perf_counter()
-    cam = dataset.camera
-    mosaic = compose_mosaic(((k, dataset.frames[k]) for k in np.flatnonzero(placed)), G,
-                            cam.width, cam.height, mask=cam.fov_mask(),
-                            blend=blend or result.blend)
-    timings["compose_mosaic"] = time.perf_counter() - t0
-
-    report = {
+    report_json = {
         "method": method,
         "paper_name": methods.REGISTRY[method][1],
         "dataset": str(Path(dataset_root).resolve()),
@@ -64,12 +64,15 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
         "frame_status": result.status,
         **result.details,
     }
+    errors = None
     if dataset.ground_truth is not None:
         from fusedmosaic.evaluation import drift_ratio, frame_errors, mosaic_error
 
-        e = frame_errors(G, dataset.ground_truth, cam.width, cam.height)
-        report["metrics"] = {"e_M_px": mosaic_error(e), "drift_ratio": drift_ratio(e),
-                             "max_e_j_px": float(np.nanmax(e)) if placed.any() else None}
+        errors = frame_errors(G, dataset.ground_truth, dataset.camera.width,
+                              dataset.camera.height)
+        report_json["metrics"] = {
+            "e_M_px": mosaic_error(errors), "drift_ratio": drift_ratio(errors),
+            "max_e_j_px": float(np.nanmax(errors)) if np.isfinite(errors).any() else None}
     with OutputWriter(out) as w:
         w.write_homographies(dataset.frame_ids, G)
         if result.poses is not None:
@@ -84,9 +87,146 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
                                         "normal": (plane / np.linalg.norm(plane)).tolist(),
                                         "distance_mm": float(1.0 / np.linalg.norm(plane)),
                                         "camera_plane_distance_mm": dist})
-        w.write_image("mosaic.png", mosaic)
-        w.write_json("report.json", report)
-    msg = f"{method}: placed {int(placed.sum())}/{len(G)} frames -> {out}"
-    if "metrics" in report:
-        msg += f" (e_M = {report['metrics']['e_M_px']:.3f} px)"
-    return msg
+        outputs = compose_outputs(w, dataset, result, G, blend=blend, canvas=canvas, video=video,
+                                  out=Path(out), progress=progress, timings=timings)
+        report_json["mosaic"] = outputs["mosaic"]
+        if report:
+            t0 = time.perf_counter()
+            write_run_report(w, dataset, method, result, G, outputs, timings)
+            timings["report"] = time.perf_counter() - t0
+        w.write_json("report.json", report_json)
+    return _summary(method, G, Path(out), report_json, outputs, report)
+
+
+def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=None, video=None,
+                    out: Path, progress: bool, timings: dict[str, float]) -> dict:
+    """mosaic.png (one piece, or tile by tile above CanvasOptions.in_memory_pixels), and the
+    creation video if asked; fills `timings`; returns what report.json says about them."""
+    from fusedmosaic.compositing import (
+        BlendOptions,
+        CanvasOptions,
+        frame_gains,
+        plan_canvas,
+        render_mosaic,
+        write_creation_video,
+        write_mosaic_png,
+    )
+
+    cam = dataset.camera
+    mask = cam.fov_mask()
+    if blend is None:
+        blend = BlendOptions(result.blend)
+    elif isinstance(blend, str):
+        blend = BlendOptions(blend)
+    elif blend.blend is None:  # options given, blend left to the method
+        blend = dataclasses.replace(blend, blend=result.blend)
+    blend.validate()
+    canvas = canvas or CanvasOptions()
+    canvas.validate()
+    t0 = time.perf_counter()
+    plan = plan_canvas(G, cam.width, cam.height, max_pixels=canvas.max_pixels,
+                       absurd_area_factor=canvas.absurd_area_factor)
+    gains = None
+    if blend.gain_compensation:
+        gains = frame_gains(dataset.frames, G, cam.width, cam.height, mask=mask, use=plan.use,
+                            progress=progress)
+        timings["gain_compensation"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+    tiled = plan.pixels > canvas.in_memory_pixels
+    if tiled:
+        _, covered = write_mosaic_png(w.path("mosaic.png"), dataset.frames, G, cam.width,
+                                      cam.height, mask=mask, blend=blend, canvas=canvas,
+                                      gains=gains, plan=plan, progress=progress)
+    else:
+        rendered = render_mosaic(dataset.frames, G, cam.width, cam.height, mask=mask,
+                                 blend=blend, max_pixels=canvas.max_pixels, gains=gains,
+                                 plan=plan, progress=progress)
+        w.write_image("mosaic.png", rendered.image)
+        covered = float(rendered.covered.mean())
+    timings["compose_mosaic"] = time.perf_counter() - t0
+    ids = dataset.frame_ids
+    info = {
+        "file": "mosaic.png",
+        "blend": blend.blend,
+        "border_px": blend.border_px,
+        "gain_compensation": blend.gain_compensation,
+        "width": plan.width,
+        "height": plan.height,
+        "origin_reference_px": [plan.x0, plan.y0],  # mosaic pixel (0, 0) in frame 0's pixels
+        "tiled": tiled,
+        "covered_fraction": covered,
+        "frames_shown": int(plan.use.sum()),
+        "skipped_frames": {str(int(ids[k])): why for k, why in sorted(plan.skipped.items())},
+    }
+    if gains is not None:
+        info["gains"] = gains.tolist()
+    outputs = {"mosaic": info, "plan": plan, "video": None}
+    if video is not None:
+        t0 = time.perf_counter()
+        target = Path(video)
+        try:  # a video inside OUT goes through the atomic writer with everything else
+            path = w.path(str(target.resolve().relative_to(out.resolve())))
+        except ValueError:
+            path = target
+        n = write_creation_video(path, dataset.frames, G, cam.width, cam.height,
+                                 (plan.x0, plan.y0, plan.x1, plan.y1), use=plan.use, mask=mask,
+                                 blend=blend, fps=25.0, gains=gains, frame_ids=ids,
+                                 progress=progress)
+        timings["video"] = time.perf_counter() - t0
+        outputs["video"] = str(target)
+        info["video"] = {"file": str(target), "frames": n}
+    return outputs
+
+
+def write_run_report(w, dataset, method: str, result, G: np.ndarray, outputs: dict,
+                     timings: dict[str, float]) -> None:
+    """report.md + plots/ for one run (see evaluation.report)."""
+    from fusedmosaic.evaluation.report import (
+        RunRecord,
+        plane_history_per_frame,
+        truth_from_dataset,
+        write_report,
+    )
+
+    ids = dataset.frame_ids
+    run = RunRecord(method, G, poses=result.poses,
+                    plane=None if result.plane is None else np.asarray(result.plane, float),
+                    plane_history=plane_history_per_frame(result.details.get("plane_history"),
+                                                          len(G)),
+                    timings=dict(timings),
+                    skipped={int(ids[k]): why for k, why in outputs["plan"].skipped.items()},
+                    output=".")
+    directory = w.path("report.md").parent
+    video = outputs.get("video")
+    if video is not None:
+        try:
+            video = str(Path(video).resolve().relative_to(Path(w.out_dir).resolve()))
+        except ValueError:
+            video = str(Path(video).resolve())
+    write_report(directory, [run], truth_from_dataset(dataset),
+                 title=f"fusedmosaic run: {method} ({methods.REGISTRY[method][1]})",
+                 mosaic="mosaic.png", video=video,
+                 notes=[f"Mosaic: {outputs['mosaic']['width']} x {outputs['mosaic']['height']} px,"
+                        f" {outputs['mosaic']['blend']} blending"
+                        f"{', tiled' if outputs['mosaic']['tiled'] else ''}; its pixel (0, 0) is "
+                        f"reference pixel {tuple(outputs['mosaic']['origin_reference_px'])}."])
+
+
+def _summary(method: str, G: np.ndarray, out: Path, report_json: dict, outputs: dict,
+             report: bool) -> str:
+    placed = int(np.isfinite(G).all(axis=(1, 2)).sum())
+    msg = f"{method}: placed {placed}/{len(G)} frames -> {out}"
+    if "metrics" in report_json:
+        msg += f" (e_M = {report_json['metrics']['e_M_px']:.3f} px)"
+    m = outputs["mosaic"]
+    detail = f"{m['width']} x {m['height']} px, {m['blend']}"
+    if m["tiled"]:
+        detail += ", tiled"
+    if m["skipped_frames"]:
+        detail += f", {len(m['skipped_frames'])} frame(s) left out: see report.json"
+    lines = [msg, f"  mosaic  {out / 'mosaic.png'}  ({detail})"]
+    if report:
+        lines.append(f"  report  {out / 'report.md'}  (plots in {out / 'plots'})")
+    if outputs["video"] is not None:
+        lines.append(f"  video   {outputs['video']}")
+    return "\n".join(lines)

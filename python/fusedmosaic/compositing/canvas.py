@@ -1,21 +1,56 @@
-"""A simple one-piece canvas: bounds from placed frames, `last` (newest on top) or `average`
-blending (seed 004, Sec. III-D). Richer blending and tiling come with the compositing module's
-own issue; what is here already refuses absurd footprints and canvases above a pixel budget.
+"""The mosaic canvas: bounds from the placed frames, absurd footprints left out, a pixel budget,
+and rendering in one piece or tile by tile (streamed to a PNG, so memory stays bounded).
+
+Canvas pixel (i, j) is reference pixel (x0 + i, y0 + j), the reference being frame 0's pixel grid
+(design.md: output homographies map frame -> reference); report.json records (x0, y0).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections import OrderedDict
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import cv2
 import numpy as np
 
-MAX_CANVAS_PIXELS = 64_000_000  # refuse larger canvases instead of allocating them
-ABSURD_AREA_FACTOR = 20.0  # a footprint > 20x the median area is left out
+from fusedmosaic.compositing.blending import (
+    BlendOptions,
+    FrameWarper,
+    MultibandRegion,
+    Patch,
+    _overlap,
+    accumulate,
+    as_blend_options,
+    compensate_gains,
+    resolve,
+    thumbnail,
+)
+
+MAX_CANVAS_PIXELS = 64_000_000  # one-piece canvases above this are refused (compose_mosaic)
+ABSURD_AREA_FACTOR = 20.0  # issue 6: a footprint > 20x the median area is left out
 
 
 class CanvasTooLargeError(ValueError):
     pass
+
+
+@dataclass
+class CanvasOptions:
+    """Canvas size limits and tiling (CLI: ``--max-canvas-pixels``, ``--tile-size``)."""
+
+    max_pixels: int = 400_000_000  # budget: larger canvases are refused before allocating
+    in_memory_pixels: int = 8_000_000  # up to this, one piece; above, tile by tile to the PNG
+    tile_size: int = 1024  # px; a tile's accumulator is tile_size^2 x (C + 1) float32
+    cache_mb: float = 256.0  # warped frames kept for the neighbouring tiles
+    absurd_area_factor: float = ABSURD_AREA_FACTOR
+
+    def validate(self) -> None:
+        if self.max_pixels <= 0 or self.in_memory_pixels <= 0:
+            raise ValueError("max_pixels and in_memory_pixels must be positive")
+        if self.tile_size < 64:
+            raise ValueError(f"tile_size must be >= 64 px, got {self.tile_size}")
 
 
 def _corners(width: int, height: int) -> np.ndarray:
@@ -32,69 +67,328 @@ def footprints(homographies: np.ndarray, width: int, height: int) -> np.ndarray:
     return out
 
 
+def screen_frames(homographies: np.ndarray, width: int, height: int,
+                  absurd_area_factor: float = ABSURD_AREA_FACTOR
+                  ) -> tuple[np.ndarray, dict[int, str]]:
+    """Which frames go on the canvas: placed, with a convex footprint in front of the camera of
+    area <= factor x the median. Returns (use (N,) bool, reasons for placed frames left out)."""
+    G = np.asarray(homographies, np.float64)
+    placed = np.isfinite(G).all(axis=(1, 2))
+    fp = footprints(np.where(placed[:, None, None], G, np.eye(3)), width, height)
+    use = placed & np.isfinite(fp).all(axis=(1, 2))
+    reasons = {int(k): "footprint behind the camera" for k in np.flatnonzero(placed & ~use)}
+    areas = np.full(len(G), np.nan)
+    for k in np.flatnonzero(use):
+        quad = fp[k].astype(np.float32)
+        if not cv2.isContourConvex(quad):
+            use[k] = False
+            reasons[int(k)] = "non-convex footprint"
+        areas[k] = cv2.contourArea(quad)
+    if use.any():
+        med = np.median(areas[use])
+        for k in np.flatnonzero(use & (areas > absurd_area_factor * med)):
+            use[k] = False
+            reasons[int(k)] = (f"footprint area {areas[k] / med:.0f} x the median "
+                               f"(limit {absurd_area_factor:g})")
+    return use, reasons
+
+
 def usable_frames(homographies: np.ndarray, width: int, height: int) -> np.ndarray:
     """Placed frames whose footprint is a sane convex quad of non-absurd area."""
-    fp = footprints(homographies, width, height)
-    ok = np.isfinite(fp).all(axis=(1, 2))
-    areas = np.full(len(fp), np.nan)
-    for k in np.flatnonzero(ok):
-        quad = fp[k].astype(np.float32)
-        ok[k] = cv2.isContourConvex(quad)
-        areas[k] = cv2.contourArea(quad)
-    if ok.any():
-        med = np.median(areas[ok])
-        ok &= areas <= ABSURD_AREA_FACTOR * med
-    return ok
+    return screen_frames(homographies, width, height)[0]
 
 
 def canvas_bounds(homographies: np.ndarray, width: int, height: int,
                   use: np.ndarray | None = None) -> tuple[int, int, int, int]:
-    """(x0, y0, x1, y1) integer bounds in reference pixels of the used frames."""
+    """(x0, y0, x1, y1) integer bounds in reference pixels of the used frames (x1, y1
+    exclusive): the union of the frames' pixel-centre footprints."""
     use = usable_frames(homographies, width, height) if use is None else use
     if not use.any():
         raise ValueError("no placed frame to compose a mosaic from")
-    pts = footprints(homographies[use], width, height).reshape(-1, 2)
+    pts = footprints(homographies[use], width - 1, height - 1).reshape(-1, 2)
     x0, y0 = np.floor(pts.min(axis=0)).astype(int)
-    x1, y1 = np.ceil(pts.max(axis=0)).astype(int)
+    x1, y1 = np.ceil(pts.max(axis=0)).astype(int) + 1
     return int(x0), int(y0), int(x1), int(y1)
+
+
+@dataclass
+class CanvasPlan:
+    """Where the mosaic lies in reference pixels and which frames it shows."""
+
+    x0: int
+    y0: int
+    x1: int
+    y1: int
+    use: np.ndarray
+    skipped: dict[int, str] = field(default_factory=dict)
+
+    @property
+    def width(self) -> int:
+        return self.x1 - self.x0
+
+    @property
+    def height(self) -> int:
+        return self.y1 - self.y0
+
+    @property
+    def pixels(self) -> int:
+        return self.width * self.height
+
+    @property
+    def reference_to_mosaic(self) -> np.ndarray:
+        """3x3 translation: reference pixels -> mosaic pixels."""
+        return np.array([[1.0, 0, -self.x0], [0, 1.0, -self.y0], [0, 0, 1.0]])
+
+
+def plan_canvas(homographies: np.ndarray, width: int, height: int, *,
+                max_pixels: int = MAX_CANVAS_PIXELS,
+                absurd_area_factor: float = ABSURD_AREA_FACTOR) -> CanvasPlan:
+    """Bounds and frames of the mosaic; raises CanvasTooLargeError above the pixel budget
+    (nothing is allocated) and ValueError if no frame can be shown."""
+    G = np.asarray(homographies, np.float64)
+    if G.ndim != 3 or G.shape[1:] != (3, 3):
+        raise ValueError(f"homographies must be (N, 3, 3), got {G.shape}")
+    use, reasons = screen_frames(G, width, height, absurd_area_factor)
+    x0, y0, x1, y1 = canvas_bounds(G, width, height, use)
+    plan = CanvasPlan(x0, y0, x1, y1, use, reasons)
+    if plan.pixels > max_pixels:
+        raise CanvasTooLargeError(
+            f"mosaic canvas of {plan.width} x {plan.height} pixels "
+            f"({plan.pixels / 1e6:.1f} Mpixel, reference x {x0}..{x1}, y {y0}..{y1}) exceeds the "
+            f"budget of {max_pixels} pixels ({max_pixels / 1e6:.1f} Mpixel); the frames are "
+            "spread over too large an area: check the homographies, or raise the budget "
+            "(CanvasOptions.max_pixels, fusedmosaic run --max-canvas-pixels)")
+    return plan
+
+
+# ------------------------------------------------------------------------------------------
+# Frames -> patches (warped once, kept for neighbouring tiles within a memory budget)
+# ------------------------------------------------------------------------------------------
+
+
+class _PatchSource:
+    """Warped patches of the used frames. `frames` is a sequence (frames[k]) or an iterable of
+    (k, image) pairs in increasing k, which can then only be read once, in order."""
+
+    def __init__(self, frames, G: np.ndarray, warper: FrameWarper, gains: np.ndarray | None,
+                 cache_bytes: int) -> None:
+        self._seq = frames if isinstance(frames, Sequence) or hasattr(frames, "__getitem__") \
+            else None
+        self._iter = None if self._seq is not None else iter(frames)
+        self.G, self.warper, self.gains = G, warper, gains
+        self._cache: OrderedDict[int, Patch] = OrderedDict()
+        self._cache_bytes, self._bytes = cache_bytes, 0
+
+    def image(self, k: int) -> np.ndarray:
+        if self._seq is not None:
+            return self._seq[k]
+        for j, image in self._iter:
+            if j == k:
+                return image
+            if j > k:
+                break
+        raise ValueError(f"frame {k} missing from the frames given (pairs must come in order)")
+
+    def patch(self, k: int) -> Patch:
+        if k in self._cache:
+            self._cache.move_to_end(k)
+            return self._cache[k]
+        gain = 1.0 if self.gains is None else float(self.gains[k])
+        patch = self.warper.warp(self.image(k), self.G[k], gain=gain, name=k)
+        if patch is None:  # screened out by plan_canvas; here only if G changed
+            raise ValueError(f"frame {k}: homography has no valid footprint")
+        if self._seq is not None and patch.nbytes <= self._cache_bytes:
+            self._cache[k] = patch
+            self._bytes += patch.nbytes
+            while self._bytes > self._cache_bytes:
+                self._bytes -= self._cache.popitem(last=False)[1].nbytes
+        return patch
+
+    def weight_patch(self, k: int) -> Patch:
+        if k in self._cache:
+            p = self._cache[k]
+            return Patch(p.x0, p.y0, p.data[:, :, -1:])
+        return self.warper.warp_weight(self.G[k])
+
+
+def _render_region(x0: int, y0: int, w: int, h: int, ks: Iterable[int], source: _PatchSource,
+                   options: BlendOptions, channels: int | None = None, progress=None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Blends frames `ks` (increasing) into region [x0, x0+w) x [y0, y0+h) of reference pixels.
+    Returns (uint8 (h, w, C), covered (h, w) bool). channels: needed only if ks is empty."""
+    ks = list(ks)
+    if options.blend != "multiband":
+        acc = None if not channels else np.zeros((h, w, channels + 1), np.float32)
+        for k in ks:
+            patch = source.patch(k)
+            if acc is None:
+                acc = np.zeros((h, w, patch.data.shape[2]), np.float32)
+            accumulate(acc, x0, y0, patch, options.blend)
+            if progress is not None:
+                progress.update(1)
+        if acc is None:
+            raise ValueError("no frame to render and no channel count given")
+        return resolve(acc)
+
+    step = 2 ** int(options.bands)
+    ax0, ay0 = (x0 // step) * step, (y0 // step) * step
+    ax1, ay1 = -((-(x0 + w)) // step) * step, -((-(y0 + h)) // step) * step
+    aw, ah = ax1 - ax0, ay1 - ay0
+    best = np.zeros((ah, aw), np.float32)  # largest feathering weight: who owns each pixel
+    for k in ks:
+        wp = source.weight_patch(k)
+        ov = _overlap(wp, ax0, ay0, aw, ah)
+        if ov is not None:
+            np.maximum(best[ov[0]], wp.data[ov[1]][:, :, 0], out=best[ov[0]])
+    region = None if not channels else MultibandRegion(ax0, ay0, aw, ah, channels,
+                                                       options.bands)
+    for k in ks:
+        p = source.patch(k)
+        if region is None:
+            region = MultibandRegion(ax0, ay0, aw, ah, p.data.shape[2] - 1, options.bands)
+        ov = _overlap(p, ax0, ay0, aw, ah)
+        if progress is not None:
+            progress.update(1)
+        if ov is None:
+            continue
+        reg, inside = ov
+        data = p.data[inside]
+        weight = data[:, :, -1]
+        seam = (weight >= best[reg]) & (weight > 1e-3)
+        if seam.any():
+            region.feed(Patch(ax0 + reg[1].start, ay0 + reg[0].start, data), seam)
+    if region is None:
+        raise ValueError("no frame to render and no channel count given")
+    out = region.result()[y0 - ay0:y0 - ay0 + h, x0 - ax0:x0 - ax0 + w]
+    covered = best[y0 - ay0:y0 - ay0 + h, x0 - ax0:x0 - ax0 + w] > 1e-3
+    image = np.clip(np.rint(out), 0, 255).astype(np.uint8)
+    image[~covered] = 0
+    return image, covered
+
+
+# ------------------------------------------------------------------------------------------
+# Public renderers
+# ------------------------------------------------------------------------------------------
+
+
+@dataclass
+class RenderedMosaic:
+    image: np.ndarray  # (H, W) or (H, W, 3) uint8
+    covered: np.ndarray  # (H, W) bool: some frame shows this pixel
+    plan: CanvasPlan
+
+
+def _frame_boxes(G: np.ndarray, use: np.ndarray, warper: FrameWarper) -> np.ndarray:
+    boxes = np.zeros((len(G), 4), np.int64)
+    for k in np.flatnonzero(use):
+        boxes[k] = warper.box(G[k])
+    return boxes
+
+
+def _progress_bar(progress: bool, total: int, desc: str):
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, disable=not progress, leave=False)
+
+
+def render_mosaic(frames, homographies: np.ndarray, width: int, height: int, *,
+                  mask: np.ndarray | None = None, blend: str | BlendOptions = "linear",
+                  max_pixels: int = MAX_CANVAS_PIXELS, gains: np.ndarray | None = None,
+                  plan: CanvasPlan | None = None, progress: bool = False) -> RenderedMosaic:
+    """Renders the whole mosaic in one piece (memory ~ 16 bytes per canvas pixel, more for
+    multiband).
+
+    frames: a sequence (frames[k], e.g. a FrameSource) or an iterable of (k, image) pairs in
+    increasing k (unplaced frames may be left out). mask: (H, W) field of view (uint8 255 or bool).
+    gains: (N,) per-frame gains (see :func:`frame_gains`)."""
+    options = as_blend_options(blend)
+    G = np.asarray(homographies, np.float64)
+    plan = plan or plan_canvas(G, width, height, max_pixels=max_pixels)
+    if plan.pixels > max_pixels:
+        raise CanvasTooLargeError(f"mosaic canvas of {plan.width} x {plan.height} pixels exceeds "
+                                  f"the budget of {max_pixels} pixels")
+    warper = FrameWarper(width, height, mask, options)
+    source = _PatchSource(frames, G, warper, gains, cache_bytes=0)
+    ks = np.flatnonzero(plan.use)
+    with _progress_bar(progress, len(ks), "mosaic") as bar:
+        image, covered = _render_region(plan.x0, plan.y0, plan.width, plan.height, ks, source,
+                                        options, progress=bar)
+    if warper.channels == 1:
+        image = image[:, :, 0]
+    return RenderedMosaic(image, covered, plan)
+
+
+def write_mosaic_png(path: str | Path, frames: Sequence, homographies: np.ndarray, width: int,
+                     height: int, *, mask: np.ndarray | None = None,
+                     blend: str | BlendOptions = "linear", canvas: CanvasOptions | None = None,
+                     gains: np.ndarray | None = None, plan: CanvasPlan | None = None,
+                     progress: bool = False) -> tuple[CanvasPlan, float]:
+    """Renders the mosaic tile by tile and streams it into a PNG at `path`; memory is bounded by
+    one band of tiles (tile_size rows x canvas width x C bytes) plus one tile's accumulator and
+    the patch cache, whatever the canvas size (up to canvas.max_pixels).
+
+    frames: a sequence (frames[k]); frames overlapping several tiles are read and warped again
+    unless still in the cache. Returns (plan, fraction of covered pixels)."""
+    from fusedmosaic.compositing.png import PngStreamWriter
+
+    options = as_blend_options(blend)
+    canvas = canvas or CanvasOptions()
+    canvas.validate()
+    G = np.asarray(homographies, np.float64)
+    plan = plan or plan_canvas(G, width, height, max_pixels=canvas.max_pixels,
+                               absurd_area_factor=canvas.absurd_area_factor)
+    warper = FrameWarper(width, height, mask, options)
+    source = _PatchSource(frames, G, warper, gains, int(canvas.cache_mb * 2**20))
+    ks = np.flatnonzero(plan.use)
+    first = np.asarray(frames[int(ks[0])])
+    warper.channels = 1 if first.ndim == 2 else first.shape[2]
+    boxes = _frame_boxes(G, plan.use, warper)
+    margin = 4 * 2 ** int(options.bands) if options.blend == "multiband" else 0
+    T = int(canvas.tile_size)
+    covered_px = 0
+    n_tiles = -(-plan.width // T) * -(-plan.height // T)
+    with PngStreamWriter(path, plan.width, plan.height, warper.channels) as png, \
+            _progress_bar(progress, n_tiles, "mosaic tiles") as bar:
+        for ty in range(plan.y0, plan.y1, T):
+            th = min(T, plan.y1 - ty)
+            band = np.zeros((th, plan.width, warper.channels), np.uint8)
+            for tx in range(plan.x0, plan.x1, T):
+                tw = min(T, plan.x1 - tx)
+                rx0, ry0 = max(tx - margin, plan.x0), max(ty - margin, plan.y0)
+                rx1, ry1 = min(tx + tw + margin, plan.x1), min(ty + th + margin, plan.y1)
+                hit = ks[(boxes[ks, 0] < rx1) & (boxes[ks, 2] > rx0)
+                         & (boxes[ks, 1] < ry1) & (boxes[ks, 3] > ry0)]
+                if len(hit):
+                    img, cov = _render_region(rx0, ry0, rx1 - rx0, ry1 - ry0, hit, source,
+                                              options, warper.channels)
+                    sy, sx = ty - ry0, tx - rx0
+                    band[:, tx - plan.x0:tx - plan.x0 + tw] = img[sy:sy + th, sx:sx + tw]
+                    covered_px += int(cov[sy:sy + th, sx:sx + tw].sum())
+                bar.update(1)
+            png.write_rows(band)
+    return plan, covered_px / plan.pixels
+
+
+def frame_gains(frames: Sequence, homographies: np.ndarray, width: int, height: int, *,
+                mask: np.ndarray | None = None, use: np.ndarray | None = None,
+                progress: bool = False) -> np.ndarray:
+    """Gain compensation (Brown & Lowe 2007, Sec. 6): reads every used frame once at 1/8 size and
+    returns (N,) gains equalising the mean intensity of overlapping frames."""
+    G = np.asarray(homographies, np.float64)
+    use = usable_frames(G, width, height) if use is None else use
+    thumbs = {}
+    from tqdm import tqdm
+
+    for k in tqdm(np.flatnonzero(use), desc="gains", disable=not progress, leave=False):
+        thumbs[int(k)] = thumbnail(frames[int(k)])
+    return compensate_gains(thumbs, G, width, height, mask)
 
 
 def compose_mosaic(frames: Iterable[tuple[int, np.ndarray]], homographies: np.ndarray,
                    width: int, height: int, *, mask: np.ndarray | None = None,
-                   blend: str = "last", max_pixels: int = MAX_CANVAS_PIXELS) -> np.ndarray:
-    """Warps (index, image) pairs into one canvas. Unplaced / absurd frames are skipped.
-
-    mask: (H, W) uint8 field-of-view mask (255 = tissue) so black corners never paint."""
-    if blend not in ("last", "average"):
-        raise ValueError(f"blend must be 'last' or 'average', got {blend!r}")
-    use = usable_frames(homographies, width, height)
-    x0, y0, x1, y1 = canvas_bounds(homographies, width, height, use)
-    cw, ch = x1 - x0, y1 - y0
-    if cw * ch > max_pixels:
-        raise CanvasTooLargeError(
-            f"mosaic canvas of {cw} x {ch} pixels exceeds the budget of {max_pixels} pixels")
-    offset = np.array([[1.0, 0, -x0], [0, 1.0, -y0], [0, 0, 1.0]])
-    full_mask = np.full((height, width), 255, np.uint8) if mask is None else mask
-    canvas = None
-    weight = np.zeros((ch, cw), np.float32)
-    for k, image in frames:
-        if not use[k]:
-            continue
-        if canvas is None:
-            channels = () if image.ndim == 2 else (image.shape[2],)
-            canvas = np.zeros((ch, cw, *channels), np.float32)
-        H = offset @ homographies[k]
-        warped = cv2.warpPerspective(image, H, (cw, ch), flags=cv2.INTER_LINEAR)
-        m = cv2.warpPerspective(full_mask, H, (cw, ch), flags=cv2.INTER_NEAREST) > 0
-        if blend == "last":
-            canvas[m] = warped[m]
-            weight[m] = 1
-        else:
-            canvas[m] += warped[m]
-            weight[m] += 1
-    if canvas is None:
-        raise ValueError("no placed frame to compose a mosaic from")
-    if blend == "average":
-        nz = weight > 0
-        canvas[nz] /= weight[nz][:, None] if canvas.ndim == 3 else weight[nz]
-    return np.clip(canvas, 0, 255).astype(np.uint8)
+                   blend: str | BlendOptions = "last", max_pixels: int = MAX_CANVAS_PIXELS,
+                   gains: np.ndarray | None = None) -> np.ndarray:
+    """Warps (index, image) pairs into one canvas (see :func:`render_mosaic`); unplaced and
+    absurd frames are skipped. Returns the uint8 mosaic."""
+    return render_mosaic(frames, homographies, width, height, mask=mask, blend=blend,
+                         max_pixels=max_pixels, gains=gains).image

@@ -1,0 +1,95 @@
+"""A PNG written band by band, so a mosaic larger than memory never exists in one piece.
+
+PNG stores rows top to bottom in one zlib stream; each row is written with the "Up" filter (the
+difference to the row above), which compresses smooth images well and needs only the previous
+row. Standard library only (zlib, struct); any PNG reader (OpenCV, PIL, browsers) opens the file.
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_COLOUR_TYPE = {1: 0, 3: 2}  # grey, RGB
+_IDAT_BYTES = 1 << 20
+
+
+def _chunk(kind: bytes, payload: bytes) -> bytes:
+    crc = zlib.crc32(payload, zlib.crc32(kind)) & 0xFFFFFFFF
+    return struct.pack(">I", len(payload)) + kind + payload + struct.pack(">I", crc)
+
+
+class PngStreamWriter:
+    """Writes an 8-bit grey or BGR image of known size as PNG, rows in order.
+
+    >>> with PngStreamWriter(path, width, height, channels=3) as png:
+    ...     for band in bands:  # (h, width, 3) uint8 BGR, top to bottom
+    ...         png.write_rows(band)
+    """
+
+    def __init__(self, path: str | Path, width: int, height: int, channels: int = 3,
+                 level: int = 6) -> None:
+        if channels not in _COLOUR_TYPE:
+            raise ValueError(f"{path}: PNG writer takes 1 (grey) or 3 (BGR) channels, "
+                             f"got {channels}")
+        if width <= 0 or height <= 0 or width >= 2**31 or height >= 2**31:
+            raise ValueError(f"{path}: invalid PNG size {width}x{height}")
+        self.path = Path(path)
+        self.width, self.height, self.channels = int(width), int(height), int(channels)
+        self._rows = 0
+        self._prev = np.zeros((1, self.width * self.channels), np.uint8)
+        self._zip = zlib.compressobj(level)
+        self._pending = bytearray()
+        self._file = open(self.path, "wb")  # noqa: SIM115 (closed in close())
+        header = struct.pack(">IIBBBBB", self.width, self.height, 8,
+                             _COLOUR_TYPE[self.channels], 0, 0, 0)
+        self._file.write(_SIGNATURE + _chunk(b"IHDR", header))
+
+    def write_rows(self, rows: np.ndarray) -> None:
+        """rows: (h, width) or (h, width, channels) uint8, the next h rows (BGR order)."""
+        rows = np.asarray(rows)
+        if rows.dtype != np.uint8:
+            raise ValueError(f"{self.path}: rows must be uint8, got {rows.dtype}")
+        rows = rows.reshape(rows.shape[0], self.width, -1)
+        if rows.shape[2] != self.channels:
+            raise ValueError(f"{self.path}: rows have {rows.shape[2]} channels, "
+                             f"expected {self.channels}")
+        if self._rows + rows.shape[0] > self.height:
+            raise ValueError(f"{self.path}: more than {self.height} rows written")
+        if self.channels == 3:
+            rows = rows[:, :, ::-1]  # BGR -> RGB
+        flat = np.ascontiguousarray(rows).reshape(rows.shape[0], -1)
+        filtered = np.empty((flat.shape[0], flat.shape[1] + 1), np.uint8)
+        filtered[:, 0] = 2  # "Up" filter
+        np.subtract(flat, np.vstack([self._prev, flat[:-1]]), out=filtered[:, 1:])
+        self._prev = flat[-1:].copy()
+        self._rows += flat.shape[0]
+        self._pending += self._zip.compress(filtered.tobytes())
+        if len(self._pending) >= _IDAT_BYTES:
+            self._file.write(_chunk(b"IDAT", bytes(self._pending)))
+            self._pending.clear()
+
+    def close(self) -> None:
+        if self._file.closed:
+            return
+        try:
+            if self._rows != self.height:
+                raise ValueError(f"{self.path}: {self._rows} of {self.height} rows written")
+            self._pending += self._zip.flush()
+            self._file.write(_chunk(b"IDAT", bytes(self._pending)))
+            self._file.write(_chunk(b"IEND", b""))
+        finally:
+            self._file.close()
+
+    def __enter__(self) -> PngStreamWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self._file.close()
