@@ -272,3 +272,80 @@ class BundleAdjuster:
 
     def plane(self) -> _Array:
         """(3,) pi = n / d; ValueError before set_plane."""
+
+# ---------------------------------------------------------------- LBA window (bind_sliding_window.cc)
+
+class SlidingWindowOptions:
+    """Options of the LBA sliding window (seed 000, Sec. 4.2): W, chi_e and the cost settings."""
+
+    window_size: int
+    num_new: int
+    costs: BundleAdjusterOptions
+
+    def __init__(
+        self, window_size: int = 5, num_new: int = 3, costs: BundleAdjusterOptions | None = None
+    ) -> None: ...
+
+class WindowStepSummary:
+    """Result of SlidingWindow.step() / redo()."""
+
+    frame_ids: list[int]
+    fixed_ids: list[int]
+    keyframe_ids: list[int]
+    emt_mahalanobis2: list[float]  # per estimated frame, NaN without a tracker sample
+    iterations: int
+    initial_cost: float
+    final_cost: float
+    visual_cost: float
+    emt_cost: float
+    motion_cost: float
+    solve_time_s: float
+    step_time_s: float
+    termination: str
+    num_visual_blocks: int
+    num_correspondences: int
+
+class SlidingWindow:
+    """Local bundle adjustment over a sliding window with keyframes (LBAVis+EMT, Eqs. 24-27)."""
+
+    num_frames: int
+    num_pairs: int
+    num_correspondences: int
+
+    def __init__(
+        self, camera_matrix: _ArrayLike, options: SlidingWindowOptions = ...
+    ) -> None: ...
+    def add_frame(
+        self,
+        frame_id: int,
+        initial: _ArrayLike | None = None,
+        emt_measurement: _ArrayLike | None = None,
+        fixed: bool = False,
+    ) -> None:
+        """initial, emt_measurement : (6,) cam_from_world or None; ids must increase.
+        fixed : already estimated (enters the window fixed; needs initial)."""
+
+    def set_emt_sigma_scale(self, frame_id: int, scale: float) -> None:
+        """Inflates a frame's tracker standard deviations (gating), scale >= 1."""
+
+    def add_pair(
+        self, frame_l: int, frame_m: int, points_l: _ArrayLike, points_m: _ArrayLike
+    ) -> None:
+        """points_l, points_m : (N, 2) pixels; transfer m -> l."""
+
+    def set_plane(self, plane: _ArrayLike) -> None:
+        """plane : (3,) pi = n / d."""
+
+    def step(self, keyframe_ids: list[int] = ...) -> WindowStepSummary:
+        """Estimates the pending frames and the plane (GIL released), then fixes them."""
+
+    def redo(self, frame_ids: list[int], keyframe_ids: list[int] = ...) -> WindowStepSummary:
+        """Re-estimates the given last frames (after set_emt_sigma_scale)."""
+
+    def forget(self, frame_ids: list[int]) -> None:
+        """Drops fixed frames outside the window, with their pairs."""
+
+    def pose(self, frame_id: int) -> _Array: ...
+    def plane(self) -> _Array: ...
+    def pending_ids(self) -> list[int]: ...
+    def window_ids(self) -> list[int]: ...
