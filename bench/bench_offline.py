@@ -60,7 +60,8 @@ def main() -> None:
             print(f"{name:<22} e_M {ev['e_M_px']:8.3f} px  "
                   f"drift {ev['drift_ratio']:5.2f}  "
                   f"pairs {rep.get('pairs', {}).get('attempted', '-'):>6}  matching "
-                  f"{t.get('matching', 0):6.2f} s  optimisation {t.get('optimisation') or 0:6.3f} s")
+                  f"{t.get('matching', 0):6.2f} s  "
+                  f"optimisation {t.get('optimisation') or 0:6.3f} s")
     by = {r["name"]: r for r in rows}
     full, guided = by["ba-emt"], by["ba-emt (emt-guided)"]
     summary = {

@@ -273,7 +273,7 @@ class BundleAdjuster:
     def plane(self) -> _Array:
         """(3,) pi = n / d; ValueError before set_plane."""
 
-# ---------------------------------------------------------------- LBA window (bind_sliding_window.cc)
+# ------------------------------------------------------- LBA window (bind_sliding_window.cc)
 
 class SlidingWindowOptions:
     """Options of the LBA sliding window (seed 000, Sec. 4.2): W, chi_e and the cost settings."""
