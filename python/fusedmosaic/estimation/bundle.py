@@ -122,7 +122,7 @@ def predicted_homographies(poses: np.ndarray, plane: np.ndarray, K: np.ndarray) 
     return G
 
 
-def _fill_missing_poses(poses: np.ndarray) -> np.ndarray:
+def fill_missing_poses(poses: np.ndarray) -> np.ndarray:
     """Initial values for frames without a tracker sample: nearest valid neighbours, linearly."""
     out = poses.copy()
     valid = np.isfinite(poses).all(axis=1)
@@ -230,7 +230,7 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
         emt = dataset.cam_from_world
         if plane is None:
             plane = estimate_plane(ok, emt, K)
-        init = _fill_missing_poses(emt)
+        init = fill_missing_poses(emt)
         frames = range(n)
     else:
         init = _visual_initialisation(n, ok, K)

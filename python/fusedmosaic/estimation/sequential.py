@@ -25,6 +25,7 @@ import numpy as np
 from tqdm import tqdm
 
 from fusedmosaic import _core
+from fusedmosaic.estimation.bundle import fill_missing_poses
 from fusedmosaic.estimation.keyframes import KeyframeIndex
 from fusedmosaic.estimation.plane import estimate_plane
 from fusedmosaic.methods import MethodResult
@@ -261,7 +262,7 @@ class SequentialMosaicker:
         ba_options.motion_sigma = self._costs.motion_sigma
         ba = _core.BundleAdjuster(self.K, ba_options)
         ids = [p["id"] for p in self._pending]
-        filled = _fill_poses(table[ids])
+        filled = fill_missing_poses(table[ids])
         for i, k in enumerate(ids):
             ba.add_frame(k, filled[i], tracked.get(k))
         for m in self._boot_matches:
@@ -344,17 +345,6 @@ class SequentialMosaicker:
                                timings=timings)
         return FrameResult(k, timestamp, self._to_reference(pose), pose, "provisional", False,
                            timings=timings)
-
-
-def _fill_poses(poses: np.ndarray) -> np.ndarray:
-    """Initial values for frames without a tracker sample: interpolated between valid ones."""
-    out = poses.copy()
-    valid = np.isfinite(poses).all(axis=1)
-    if not valid.all():
-        idx = np.flatnonzero(valid)
-        for j in range(6):
-            out[~valid, j] = np.interp(np.flatnonzero(~valid), idx, poses[idx, j])
-    return out
 
 
 def run_lba_emt(dataset, *, progress: bool = True,
