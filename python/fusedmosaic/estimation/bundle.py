@@ -55,7 +55,7 @@ class FrontEnd:
     timings: dict[str, float]
 
 
-def _undistort(points: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
+def undistort_points(points: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
     if dist is None or not np.any(dist) or len(points) == 0:
         return points
     return cv2.undistortPoints(points.reshape(-1, 1, 2), K, dist, P=K).reshape(-1, 2)
@@ -247,7 +247,8 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     for m in ok:
         if m.frame_l in in_problem and m.frame_m in in_problem:
             pl, pm = _subsample(m, o.max_points_per_pair, rng)
-            ba.add_pair(m.frame_l, m.frame_m, _undistort(pl, K, dist), _undistort(pm, K, dist))
+            ba.add_pair(m.frame_l, m.frame_m, undistort_points(pl, K, dist),
+                        undistort_points(pm, K, dist))
     ba.set_plane(plane)
     summary = ba.solve()
     timings["optimisation"] = summary.solve_time_s

@@ -25,7 +25,7 @@ import numpy as np
 from tqdm import tqdm
 
 from fusedmosaic import _core
-from fusedmosaic.estimation.bundle import fill_missing_poses
+from fusedmosaic.estimation.bundle import fill_missing_poses, undistort_points
 from fusedmosaic.estimation.keyframes import KeyframeIndex
 from fusedmosaic.estimation.plane import estimate_plane
 from fusedmosaic.methods import MethodResult
@@ -99,6 +99,7 @@ class SequentialMosaicker:
     def __init__(self, camera, options: SequentialOptions | None = None):
         self.options = o = options or SequentialOptions()
         self.K = camera.require_camera_matrix("lba-emt")
+        self.distortion = camera.distortion
         self.size = (camera.width, camera.height)
         self._outline = self._frame_outline(camera)
         costs = _core.BundleAdjusterOptions(
@@ -213,11 +214,14 @@ class SequentialMosaicker:
 
     # ----------------------------------------------------------------------------------------
     def _subsample(self, m):
+        """At most max_points_per_pair inliers of a pair, undistorted (pixels)."""
+        pl, pm = m.points_l, m.points_m
         n = self.options.max_points_per_pair
-        if len(m.points_l) <= n:
-            return m.points_l, m.points_m
-        idx = np.sort(self.rng.choice(len(m.points_l), n, replace=False))
-        return m.points_l[idx], m.points_m[idx]
+        if len(pl) > n:
+            idx = np.sort(self.rng.choice(len(pl), n, replace=False))
+            pl, pm = pl[idx], pm[idx]
+        return (undistort_points(pl, self.K, self.distortion),
+                undistort_points(pm, self.K, self.distortion))
 
     def _match_loops(self, k: int, feats, tracker_pose) -> list:
         """Matches frame k against retained older frames its predicted footprint overlaps."""
