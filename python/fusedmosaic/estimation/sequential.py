@@ -117,6 +117,7 @@ class SequentialMosaicker:
         self.rng = np.random.default_rng(o.seed)
         self._recent: deque = deque(maxlen=max(o.window_size - 1, 1))  # (id, Features)
         self._pending: list[dict] = []
+        self._finalized: list[FrameResult] = []
         self._boot_feats: list = []  # bootstrap: features and pairs of the first frames
         self._boot_matches: list = []
         self._loop_feats: dict = {}  # one frame per retained keyframe block: its features
@@ -177,7 +178,7 @@ class SequentialMosaicker:
                 p["visual"] = True
         self._pending.append({"id": k, "timestamp": timestamp, "tracker": tracker_pose,
                               "visual": bool(ok), "timings": timings, "features": feats})
-        self._finalized: list[FrameResult] = []
+        self._finalized = []
         if self._plane is None:  # bootstrap: keep everything until the initial adjustment
             self._boot_feats.append(feats)
             self._boot_matches += ok
