@@ -214,10 +214,11 @@ def accumulate(acc: np.ndarray, x0: int, y0: int, patch: Patch, blend: str) -> b
     if blend == "last":
         src = patch.data[inside]
         w = src[:, :, -1]
-        covered = w >= 0.5
-        dst = acc[region]
-        dst[covered, :-1] = src[covered, :-1] / w[covered, None]
-        dst[covered, -1] = 1.0
+        covered = (w >= 0.5).view(np.uint8)
+        value = src / np.maximum(w, np.float32(1e-6))[:, :, None]
+        value[:, :, -1] = 1.0
+        dst = acc[region]  # a view: cv2.copyTo writes into acc (numpy's masked copy is 5x slower)
+        cv2.copyTo(value, covered, dst)
     else:
         acc[region] += patch.data[inside]
     return True
@@ -225,11 +226,13 @@ def accumulate(acc: np.ndarray, x0: int, y0: int, patch: Patch, blend: str) -> b
 
 def resolve(acc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Accumulator -> (uint8 image (h, w, C), covered (h, w) bool); empty pixels are black."""
-    w = acc[:, :, -1:]
-    covered = w[:, :, 0] > COVERED
-    out = np.zeros(acc.shape[:2] + (acc.shape[2] - 1,), np.float32)
-    np.divide(acc[:, :, :-1], w, out=out, where=covered[:, :, None])
-    return np.clip(np.rint(out), 0, 255).astype(np.uint8), covered
+    w = acc[:, :, -1]
+    covered = w > COVERED
+    inv = np.divide(np.float32(1.0), w, out=np.zeros_like(w), where=covered)
+    out = acc[:, :, :-1] * inv[:, :, None]
+    out += np.float32(0.5)  # round half up (values are >= 0)
+    np.clip(out, 0, 255, out=out)
+    return out.astype(np.uint8), covered
 
 
 # ------------------------------------------------------------------------------------------
@@ -241,9 +244,9 @@ def fill_outside(colour: np.ndarray, covered: np.ndarray) -> np.ndarray:
     """Push-pull fill: pixels outside `covered` take smooth values extrapolated from inside, so
     the Laplacian pyramid of a frame does not see the black outside its footprint.
 
-    colour (h, w, C) float32 (values inside `covered`), covered (h, w) bool."""
+    colour (h, w, C) float32, zero outside `covered` (h, w) bool. Returns a new array."""
     alpha = covered.astype(np.float32)
-    levels = [(colour * alpha[:, :, None], alpha)]
+    levels = [(colour, alpha)]  # colour premultiplied by alpha (alpha is 0/1 here)
     while min(levels[-1][1].shape) > 2 and levels[-1][1].min() <= 0:
         c, a = levels[-1]
         levels.append((_pyr_down(c), cv2.pyrDown(a)))
@@ -254,9 +257,15 @@ def fill_outside(colour: np.ndarray, covered: np.ndarray) -> np.ndarray:
     if empty.any():
         inside = ~empty
         filled[empty] = filled[inside].mean(axis=0) if inside.any() else 0.0
-    for c, a in reversed(levels[:-1]):
+    for c, a in reversed(levels[1:-1]):
         up = _pyr_up(filled, c.shape[:2])
-        filled = c + (1.0 - np.minimum(a, 1.0))[:, :, None] * up
+        filled = c + (1.0 - np.minimum(a, 1.0))[:, :, None] * up  # "over" compositing
+    if len(levels) > 1:
+        up = _pyr_up(filled, colour.shape[:2])
+        filled = colour.copy()
+        np.copyto(filled, up, where=~covered[:, :, None])
+    else:
+        filled = colour.copy()
     return filled
 
 
@@ -287,27 +296,31 @@ class MultibandRegion:
     def feed(self, patch: Patch, seam: np.ndarray) -> None:
         """patch: aligned, cropped to the region; seam: (h, w) bool, the pixels it owns."""
         colour_w = patch.data
-        w = colour_w[:, :, -1]
+        w = colour_w[:, :, -1:]
         covered = w > COVERED
         colour = np.zeros(colour_w.shape[:2] + (colour_w.shape[2] - 1,), np.float32)
-        np.divide(colour_w[:, :, :-1], w[:, :, None], out=colour, where=covered[:, :, None])
-        image = fill_outside(colour, covered)
+        np.divide(colour_w[:, :, :-1], w, out=colour, where=covered)
+        gauss = fill_outside(colour, covered[:, :, 0])
         mask = seam.astype(np.float32)
-        gauss = [image]
-        masks = [mask]
-        for _ in range(self.bands):
-            gauss.append(_pyr_down(gauss[-1]))
-            masks.append(cv2.pyrDown(masks[-1]))
         for l in range(self.bands + 1):
             if l < self.bands:
-                band = gauss[l] - _pyr_up(gauss[l + 1], gauss[l].shape[:2])
+                down = _pyr_down(gauss)
+                band = gauss
+                band -= _pyr_up(down, gauss.shape[:2])  # Laplacian band (in place)
+                next_mask = cv2.pyrDown(mask)
             else:
-                band = gauss[l]
+                band = gauss
             ox, oy = (patch.x0 - self.x0) >> l, (patch.y0 - self.y0) >> l
             h, wd = band.shape[:2]
             dst = self.acc[l][oy:oy + h, ox:ox + wd]
-            dst[:, :, :-1] += band * masks[l][:, :, None]
-            dst[:, :, -1] += masks[l]
+            if l == 0:  # the mask is the 0/1 seam itself
+                np.add(dst[:, :, :-1], band, out=dst[:, :, :-1], where=seam[:, :, None])
+            else:
+                band *= mask[:, :, None]
+                dst[:, :, :-1] += band
+            dst[:, :, -1] += mask
+            if l < self.bands:
+                gauss, mask = down, next_mask
 
     def result(self) -> np.ndarray:
         """(h, w, C) float32 collapsed pyramid (unclipped)."""

@@ -313,13 +313,13 @@ def plot_distance(path: Path, runs: list[RunRecord], truth: TruthRecord | None, 
 def plot_trajectory(path: Path, runs: list[RunRecord], truth: TruthRecord) -> None:
     fig, ax = _figure(size=(6.0, 5.4))
     ax = ax[0, 0]
-    if truth.homographies is not None:
-        c = frame_centres(truth.homographies, truth.width, truth.height)
-        ax.plot(c[:, 0], c[:, 1], color=TRUTH_COLOUR, lw=1.0, ls="--", label="truth")
     for i, run in enumerate(runs):
         c = frame_centres(run.homographies, truth.width, truth.height)
-        ax.plot(c[:, 0], c[:, 1], color=COLOURS[i % len(COLOURS)], lw=1.0, marker=".", ms=2,
+        ax.plot(c[:, 0], c[:, 1], color=COLOURS[i % len(COLOURS)], lw=1.6, marker=".", ms=3,
                 label=run.label)
+    if truth.homographies is not None:  # on top, dashed: visible where the estimate agrees
+        c = frame_centres(truth.homographies, truth.width, truth.height)
+        ax.plot(c[:, 0], c[:, 1], color=TRUTH_COLOUR, lw=0.9, ls="--", label="truth")
     ax.set_aspect("equal", adjustable="datalim")
     ax.invert_yaxis()  # image axes: y down
     ax.set_xlabel("x (reference px)")

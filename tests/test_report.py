@@ -1,0 +1,189 @@
+"""report.md and plots (evaluation/report.py), and the CLI around them: run with --video and
+the report, evaluate --compare, --quiet, the end summary."""
+
+import json
+import re
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from fusedmosaic import _core
+from fusedmosaic.cli import main
+from fusedmosaic.evaluation.report import (
+    RunRecord,
+    camera_plane_distances,
+    load_run,
+    load_truth,
+    plane_azimuth_elevation_distance,
+    plane_history_per_frame,
+    write_report,
+)
+from fusedmosaic.io import read_homographies_csv, write_homographies_csv
+from fusedmosaic.simulation import FetoscopyOptions, simulate_fetoscopy
+
+SIM = FetoscopyOptions(motion="handheld", n_frames=24, width=200, height=200, seed=4)
+
+
+@pytest.fixture(scope="session")
+def dataset(tmp_path_factory):
+    return simulate_fetoscopy(tmp_path_factory.mktemp("report") / "data", SIM)
+
+
+@pytest.fixture(scope="session")
+def emt_run(dataset, tmp_path_factory):
+    """`fusedmosaic run` with every output on (the fastest pose method)."""
+    out = tmp_path_factory.mktemp("runs") / "emt"
+    argv = ["run", str(dataset), "--method", "emt", "--out", str(out), "--blend", "multiband",
+            "--border", "1.5", "--video", str(out / "creation.mp4")]
+    return out, argv
+
+
+def linked_files(md: Path) -> list[Path]:
+    links = re.findall(r"\]\(([^)]+)\)", md.read_text())
+    return [md.parent / link for link in links]
+
+
+# -- geometry of the plots ---------------------------------------------------------------------
+
+
+def test_plane_azimuth_elevation_distance_eq31():
+    # SYN: the plane z = 30 mm facing the virtual camera, pi = n / d = (0, 0, -1/30)
+    np.testing.assert_allclose(plane_azimuth_elevation_distance([0, 0, -1 / 30]), [0, 0, 30],
+                               atol=1e-12)
+    p = np.array([1.0, 2.0, 10.0])  # the plane's closest point to the camera
+    pi = -p / (p @ p)  # n.X + d = 0 through p with normal along p
+    az, elev, dist = plane_azimuth_elevation_distance(pi)
+    assert az == pytest.approx(np.degrees(np.arctan2(2.0, 10.0)))
+    assert elev == pytest.approx(np.degrees(np.arctan2(1.0, np.hypot(10.0, 2.0))))
+    assert dist == pytest.approx(np.sqrt(105.0))
+    assert plane_azimuth_elevation_distance(np.tile(pi, (4, 1))).shape == (4, 3)
+
+
+def test_camera_plane_distance_matches_core():
+    rng = np.random.default_rng(0)
+    poses = np.hstack([rng.normal(0, 0.2, (20, 3)), rng.normal(0, 5, (20, 3))])
+    poses[3] = np.nan
+    plane = np.array([0.001, -0.002, -1 / 30])
+    d = camera_plane_distances(poses, plane)
+    assert np.isnan(d[3])
+    expected = [_core.camera_plane_distance(p, plane) for k, p in enumerate(poses) if k != 3]
+    np.testing.assert_allclose(np.delete(d, 3), expected, rtol=1e-10)
+
+
+def test_plane_history_formats():
+    rows = [[2, 0.0, 0.0, -0.05], [4, 0.0, 0.0, -0.04]]
+    per_frame = plane_history_per_frame(rows, 6)
+    assert np.isnan(per_frame[:2]).all()
+    np.testing.assert_array_equal(per_frame[2:4, 2], [-0.05, -0.05])
+    np.testing.assert_array_equal(per_frame[4:, 2], [-0.04, -0.04])
+    dicts = [{"frame": 2, "plane": [0.0, 0.0, -0.05]}, {"frame": 4, "plane": [0.0, 0.0, -0.04]}]
+    np.testing.assert_array_equal(plane_history_per_frame(dicts, 6), per_frame)
+    full = np.tile([0.0, 0.0, -0.05], (6, 1))
+    np.testing.assert_array_equal(plane_history_per_frame(full.tolist(), 6), full)
+    assert plane_history_per_frame(None, 6) is None
+
+
+def test_report_from_records(dataset, tmp_path):
+    truth = load_truth(dataset)
+    assert truth.poses is not None and truth.plane is not None and truth.tracker_poses is not None
+    shift = np.tile(np.eye(3), (len(truth.homographies), 1, 1))
+    shift[:, 0, 2] = np.linspace(0, 6, len(shift))  # drifts to 6 px in the reference
+    noisy = shift @ truth.homographies
+    runs = [RunRecord("exact", truth.homographies, poses=truth.poses, plane=truth.plane,
+                      timings={"features": 1.0, "optimisation": 0.5}),
+            RunRecord("drifting", noisy, skipped={3: "non-convex footprint"},
+                      timings={"features": 2.0})]
+    md = write_report(tmp_path, runs, truth, title="two methods")
+    text = md.read_text()
+    for name in ("errors", "poses", "plane", "distance", "trajectory", "timing"):
+        assert f"plots/{name}.png" in text
+    for path in linked_files(md):
+        image = cv2.imread(str(path))
+        assert image is not None and image.shape[0] > 200, path
+    rows = [line for line in text.splitlines() if line.startswith("| exact")
+            or line.startswith("| drifting")]
+    e_exact, e_drift = (float(r.split("|")[4]) for r in rows[:2])
+    assert e_exact == 0.0 and e_drift == pytest.approx(3.0, abs=0.01)  # mean of 0..6 px
+    assert "- frame 3: non-convex footprint" in text
+    assert "| truth | " in text  # plane table row (Eq. 31)
+
+
+# -- through the CLI ---------------------------------------------------------------------------
+
+
+def test_run_writes_mosaic_video_and_report(emt_run, dataset, capsys):
+    out, argv = emt_run
+    assert main(argv) == 0
+    said = capsys.readouterr().out
+    assert re.search(rf"emt: placed {SIM.n_frames}/{SIM.n_frames} frames -> .* \(e_M = ", said)
+    for name in ("mosaic.png", "report.md", "creation.mp4"):
+        assert str(out / name) in said
+    report = json.loads((out / "report.json").read_text())
+    mosaic = report["mosaic"]
+    assert mosaic["blend"] == "multiband" and mosaic["border_px"] == 1.5
+    image = cv2.imread(str(out / "mosaic.png"))
+    assert image.shape[:2] == (mosaic["height"], mosaic["width"])
+    assert mosaic["video"]["frames"] == SIM.n_frames
+    for stage in ("features", "compose_mosaic", "video", "report"):
+        assert stage in report["timings_s"]
+    md = out / "report.md"
+    links = linked_files(md)
+    assert {p.name for p in links} >= {"mosaic.png", "creation.mp4", "errors.png", "poses.png",
+                                       "plane.png", "distance.png", "timing.png"}
+    assert all(p.is_file() and p.stat().st_size > 1000 for p in links)
+    cap = cv2.VideoCapture(str(out / "creation.mp4"))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == SIM.n_frames
+    assert not [p for p in out.parent.iterdir() if ".tmp" in p.name]
+
+
+def test_evaluate_compare_writes_report(emt_run, dataset, tmp_path, capsys):
+    out, argv = emt_run
+    if not (out / "homographies.csv").is_file():
+        assert main(argv + ["--quiet"]) == 0
+    other = tmp_path / "shifted"
+    shutil.copytree(out, other)
+    ids, G = read_homographies_csv(other / "homographies.csv")
+    G = np.array([[1.0, 0, 2], [0, 1, 2], [0, 0, 1]]) @ G
+    write_homographies_csv(other / "homographies.csv", ids, G)
+    capsys.readouterr()
+    assert main(["evaluate", str(out), "--truth", str(dataset), "--compare", str(other)]) == 0
+    said = capsys.readouterr().out
+    md = out / "evaluation.md"
+    assert f"wrote {md}" in said
+    text = md.read_text()
+    assert "| emt (emt) |" in text and "| emt (shifted) |" in text  # same method, two folders
+    assert (out / "evaluation_plots" / "errors.png").is_file()
+    run = load_run(other, load_truth(dataset).frame_ids)
+    assert run.label == "emt" and run.poses is not None and run.plane is not None
+
+
+def test_quiet_prints_nothing(dataset, tmp_path, capsys):
+    out = tmp_path / "q"
+    assert main(["run", str(dataset), "--method", "emt", "--out", str(out), "--quiet",
+                 "--no-report", "--blend", "average"]) == 0
+    assert capsys.readouterr().out == ""
+    assert (out / "mosaic.png").is_file() and not (out / "report.md").exists()
+
+
+def test_canvas_budget_is_a_clean_cli_error(dataset, tmp_path, capsys):
+    code = main(["run", str(dataset), "--method", "emt", "--out", str(tmp_path / "b"),
+                 "--max-canvas-pixels", "1000"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert re.search(r"fusedmosaic: error: mosaic canvas of \d+ x \d+ pixels .* exceeds the "
+                     r"budget of 1000 pixels", err)
+    assert not (tmp_path / "b").exists()
+
+
+def test_demo_says_where_to_look(tmp_path, capsys):
+    """`fusedmosaic demo` end to end on a short sequence: every file it points at exists."""
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--frames", "50"]) == 0
+    said = capsys.readouterr().out
+    pointed = re.findall(r"^  (\S+)  ", said, flags=re.MULTILINE)
+    names = {Path(p).name for p in pointed}
+    assert names == {"report.md", "mosaic.png", "mosaic_seams.png", "creation.mp4"}
+    assert all(Path(p).is_file() and Path(p).stat().st_size > 1000 for p in pointed)
+    assert re.search(r"50/50 frames placed, e_M = \d+\.\d+ px", said)
