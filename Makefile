@@ -39,6 +39,12 @@ test: wheel-check
 demo: install
 	$(VENV)/bin/fusedmosaic demo --out demo_out
 
+# Benchmarks (issue 7, bench/run_all.py): the papers' tables, the peers and the C++ solver core in
+# one run from the installed wheel, <= 20 min on 2 cores; writes bench/results/*.json,
+# bench/results/summary.md and README's "## Performance". Smoke run: make bench BENCH_ARGS=--quick
+bench: install
+	$(PY) bench/run_all.py $(BENCH_ARGS)
+
 # Developer loop: editable install with an incremental C++ build in build/dev.
 dev: deps
 	$(PYTHON) -m pip install --no-build-isolation -e ".[test]" -C build-dir=build/dev

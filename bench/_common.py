@@ -1,0 +1,432 @@
+"""Shared pieces of the issue-7 benchmarks (bench_table1, bench_latency, bench_peers, bench_cpp,
+run_all): the paper's figures, the simulated sequences, machine facts, statistics, JSON output and
+the problem logs replayed by the C++ solver benchmark (bench/cpp/solver_bench.cc).
+
+Scripts in bench/ import this as `_common` (python puts the script's folder on sys.path)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import time
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+BENCH = Path(__file__).resolve().parent
+REPO = BENCH.parent
+RESULTS = BENCH / "results"
+DEFAULT_WORK = REPO / "build" / "bench_work"  # simulated datasets and saved problems (not in git)
+
+# -- the papers' figures ---------------------------------------------------------------------
+
+# Seed 000, Table 1 (MacBook Pro, Core i7 2.5 GHz, 4 cores, 16 GB; Matlab + VLFeat SIFT):
+# (#images, #pairs, avg. correspondences, matching s, optimisation s). PHB is the hand-held
+# phantom sequence; our phantom-like stand-in is the simulator's "handheld" motion.
+PAPER_TABLE1 = {
+    "syn": {
+        "pairwise": (152, 151, 86, 49.811, 3.145),
+        "lba-emt": (152, 350, 67, 178.766, 38.567),
+        "ba": (152, 1094, 76, 4286.259, 521.819),
+        "ba-emt": (152, 1094, 76, 4350.518, 321.928),
+    },
+    "handheld": {
+        "pairwise": (155, 154, 222, 88.192, 3.333),
+        "lba-emt": (155, 449, 184, 519.447, 50.638),
+        "ba": (155, 2030, 105, 15064.135, 1488.251),
+        "ba-emt": (155, 2030, 105, 15394.628, 1103.748),
+    },
+}
+PAPER_MACHINE = "MacBook Pro, Intel Core i7 2.5 GHz, 4 cores, 16 GB; Matlab + VLFeat SIFT"
+PAPER_NAMES = {
+    "pairwise": "PairVis",
+    "lba-emt": "LBAVis+EMT",
+    "ba": "BAVis",
+    "ba-emt": "BAVis+EMT",
+    "ba-emt-guided": "BAVis+EMT, EMT-guided pairs",
+    "emt": "EMT + plane",
+}
+
+# Seed 004, Tables I (circle) and II (spiral): mean, max, std, median in µm.
+PAPER_PCLE = {
+    "circle": {
+        "#1": (274.3, 543.1, 190.2, 249.2),
+        "#2": (116.5, 251.6, 73.3, 108.4),
+        "#3": (142.3, 320.8, 86.8, 108.6),
+        "#4": (489.1, 752.8, 201.8, 551.8),
+        "#5": (226.8, 372.1, 86.4, 224.0),
+    },
+    "spiral": {
+        "#1": (686.7, 800.2, 1080.8, 375.3),
+        "#2": (139.4, 220.9, 51.3, 141.8),
+        "#3": (135.7, 263.1, 70.7, 133.4),
+        "#4": (291.0, 517.2, 134.9, 312.9),
+        "#5": (100.8, 260.8, 63.9, 105.9),
+    },
+}
+PCLE_CASES = {
+    "#1": "X_m (Test #1)",
+    "#2": "X_r (Test #2)",
+    "#3": "X_f with X_r (Test #3)",
+    "#4": "hat X_r (Test #4)",
+    "#5": "X_f with hat X_r (Test #5)",
+}
+
+# -- the simulated sequences -----------------------------------------------------------------
+
+FRAMES_PER_LAP = 37.5  # SYN: the default 150 frames make 4 laps (paper Fig. 1); keep that motion
+
+
+@dataclass(frozen=True)
+class Sequence:
+    name: str  # "syn", "handheld", "syn-black", "handheld-black"
+    base: str  # "syn" | "handheld": which Table 1 block it belongs to
+    black: bool
+    frames: int
+
+    def options(self):
+        from fusedmosaic.simulation import PAPER_BLACK_FRAMES, FetoscopyOptions
+
+        o = FetoscopyOptions(motion=self.base, n_frames=self.frames)
+        if self.base == "syn":
+            o = replace(o, laps=self.frames / FRAMES_PER_LAP)
+        if self.black:
+            o = replace(o, black_frames=[k for k in PAPER_BLACK_FRAMES if k < self.frames])
+        return o
+
+
+def sequences(quick: bool) -> list[Sequence]:
+    """SYN circular 152 frames and the hand-held phantom-like 155 frames (paper 000 Sec. 4.2.1),
+    each also with the paper's black frames (Sec. 4.2.3). --quick: 60 frames each."""
+    n = {"syn": 60, "handheld": 60} if quick else {"syn": 152, "handheld": 155}
+    return [
+        Sequence(base + ("-black" if black else ""), base, black, n[base])
+        for black in (False, True)
+        for base in ("syn", "handheld")
+    ]
+
+
+def ensure_dataset(work: Path, seq: Sequence) -> Path:
+    """Simulates the sequence into work/<name>-<frames> unless an identical one is there."""
+    from fusedmosaic.simulation import simulate_fetoscopy
+
+    root = Path(work) / f"{seq.name}-{seq.frames}"
+    options = asdict(seq.options())
+    stamp = root / "bench_options.json"
+    if stamp.is_file() and json.loads(stamp.read_text()) == options:
+        return root
+    simulate_fetoscopy(root, seq.options(), overwrite=True)
+    stamp.write_text(json.dumps(options))
+    return root
+
+
+# -- machine, statistics, output -------------------------------------------------------------
+
+
+def machine_info() -> dict:
+    import cv2
+    import scipy
+
+    cpu = "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    ram_gb = None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemTotal"):
+                ram_gb = round(int(line.split()[1]) / 1024**2, 1)
+    except OSError:
+        pass
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "ram_gb": ram_gb,
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "opencv": cv2.__version__,
+        "load_average": [round(x, 2) for x in os.getloadavg()],
+    }
+
+
+def dist(values, scale: float = 1.0) -> dict:
+    """median / p95 / p99 / mean / min / max / n of a sample (numpy's linear percentiles)."""
+    x = np.asarray(values, float) * scale
+    x = x[np.isfinite(x)]
+    if len(x) == 0:
+        return {
+            "median": None,
+            "p95": None,
+            "p99": None,
+            "mean": None,
+            "min": None,
+            "max": None,
+            "n": 0,
+        }
+    return {
+        "median": float(np.median(x)),
+        "p95": float(np.percentile(x, 95)),
+        "p99": float(np.percentile(x, 99)),
+        "mean": float(x.mean()),
+        "min": float(x.min()),
+        "max": float(x.max()),
+        "n": int(len(x)),
+    }
+
+
+def jsonable(obj):
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return jsonable(obj.item())
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def write_json(path: Path, obj) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(jsonable(obj), indent=1) + "\n")
+    tmp.replace(path)
+
+
+def fmt(x, digits: int = 2) -> str:
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "–"
+    if isinstance(x, int | np.integer):
+        return str(int(x))
+    return f"{x:.{digits}f}"
+
+
+def ratio(a, b) -> float | None:
+    if a is None or b is None or not b or not math.isfinite(a) or not math.isfinite(b):
+        return None
+    return float(a) / float(b)
+
+
+def md_table(header: list[str], rows: list[list]) -> list[str]:
+    out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return out
+
+
+# -- problem logs for the C++ replay ---------------------------------------------------------
+
+
+def _pose(x) -> str:
+    return " ".join(f"{v:.17g}" for v in np.asarray(x, float).ravel())
+
+
+class ProblemLog:
+    """Writes the call log of one BundleAdjuster or SlidingWindow (format: solver_bench.cc)."""
+
+    def __init__(self, path: Path, kind: str, K, costs, window=None):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.f = open(self.path, "w")  # noqa: SIM115 (closed by close())
+        c = costs
+        self.line(f"fusedmosaic-problem 1 {kind}")
+        self.line("K " + _pose(K))
+        self.line(
+            f"costs {c.sigma_v_px!r} {c.loss} {c.loss_scale_px!r} {c.linear_solver} "
+            f"{c.residual_blocks} {c.max_iterations} {c.function_tolerance!r} "
+            f"{c.gradient_tolerance!r} {c.parameter_tolerance!r} {c.num_threads} "
+            f"{int(c.use_emt)} {int(c.use_motion_prior)}"
+        )
+        self.line("emt_sigma " + _pose(c.emt_sigma))
+        self.line("motion_sigma " + _pose(c.motion_sigma))
+        if window is not None:
+            self.line(
+                f"window {window.window_size} {window.num_new} {int(window.fold_fixed_cameras)}"
+            )
+
+    def line(self, text: str) -> None:
+        self.f.write(text + "\n")
+
+    def add_frame(self, k, initial, emt, fixed=False) -> None:
+        a = "0" if initial is None else "1 " + _pose(initial)
+        b = "0" if emt is None else "1 " + _pose(emt)
+        self.line(f"add_frame {int(k)} {a} {b} {int(bool(fixed))}")
+
+    def add_pair(self, l, m, pl, pm) -> None:
+        pts = np.hstack(
+            [np.asarray(pl, float).reshape(-1, 2), np.asarray(pm, float).reshape(-1, 2)]
+        )
+        self.line(f"add_pair {int(l)} {int(m)} {len(pts)}")
+        np.savetxt(self.f, pts, fmt="%.17g")
+
+    def ids(self, ids) -> str:
+        ids = [int(i) for i in ids]
+        return " ".join([str(len(ids)), *map(str, ids)])
+
+    def close(self) -> None:
+        if not self.f.closed:
+            self.line("end")
+            self.f.close()
+
+
+class BundleRecorder:
+    """Stands in for a _core.BundleAdjuster: forwards every call, logs the problem to `path`,
+    times solve() from Python and logs the solution as the replay's expected values."""
+
+    def __init__(self, ba, K, path: Path):
+        self._ba = ba
+        self.log = ProblemLog(path, "ba", K, ba.options)
+        self.python_solve_s = None
+        self.summary = None
+
+    def __getattr__(self, name):
+        return getattr(self._ba, name)
+
+    def add_frame(self, k, pose, emt=None):
+        self.log.add_frame(k, pose, emt)
+        return self._ba.add_frame(k, pose, emt)
+
+    def add_pair(self, l, m, pl, pm):
+        self.log.add_pair(l, m, pl, pm)
+        return self._ba.add_pair(l, m, pl, pm)
+
+    def set_plane(self, plane):
+        self.log.line("set_plane " + _pose(plane))
+        return self._ba.set_plane(plane)
+
+    def set_pose(self, k, pose):
+        self.log.line(f"set_pose {int(k)} " + _pose(pose))
+        return self._ba.set_pose(k, pose)
+
+    def set_constant_frame(self, k, constant=True):
+        self.log.line(f"set_constant_frame {int(k)} {int(constant)}")
+        return self._ba.set_constant_frame(k, constant)
+
+    def solve(self):
+        self.log.line("solve")
+        t0 = time.perf_counter()
+        summary = self._ba.solve()
+        self.python_solve_s = time.perf_counter() - t0
+        self.summary = summary
+        ids, poses = self._ba.poses()
+        for k, x in zip(ids, poses, strict=True):
+            self.log.line(f"expect {int(k)} " + _pose(x))
+        self.log.line("expect_plane " + _pose(self._ba.plane()))
+        self.log.close()
+        return summary
+
+
+@contextmanager
+def record_bundle_problems(directory: Path, stem: str):
+    """While active, every BundleAdjuster that estimation.bundle builds is recorded to
+    directory/<stem>-<i>.txt. Hooks bundle._adjuster, the one factory run_bundle uses; if that
+    private name changes, nothing is recorded (the benchmark says so) and runs are unaffected."""
+    from fusedmosaic.estimation import bundle
+
+    recorders: list[BundleRecorder] = []
+    original = getattr(bundle, "_adjuster", None)
+    if original is None:
+        yield recorders
+        return
+
+    def make(K, options, use_emt):
+        rec = BundleRecorder(
+            original(K, options, use_emt), K, Path(directory) / f"{stem}-{len(recorders)}.txt"
+        )
+        recorders.append(rec)
+        return rec
+
+    bundle._adjuster = make
+    try:
+        yield recorders
+    finally:
+        bundle._adjuster = original
+        for r in recorders:
+            r.log.close()
+
+
+class WindowRecorder:
+    """Stands in for SequentialMosaicker.window (a _core.SlidingWindow): forwards every call,
+    times step()/redo() from Python (a gating redo is added to its step, one latency per step)
+    and, when `path` is given, logs the calls with the poses Python read back as expected
+    values."""
+
+    def __init__(self, window, K, costs, window_options, path: Path | None = None):
+        self._window = window
+        self.log = ProblemLog(path, "window", K, costs, window_options) if path else None
+        self.step_wall_s: list[float] = []
+        self.step_cpp_s: list[float] = []
+        self.step_frames: list[int] = []
+        self.summaries: list = []
+
+    def __getattr__(self, name):
+        return getattr(self._window, name)
+
+    def add_frame(self, k, initial=None, emt=None, fixed=False):
+        if self.log:
+            self.log.add_frame(k, initial, emt, fixed)
+        return self._window.add_frame(k, initial, emt, fixed=fixed)
+
+    def add_pair(self, l, m, pl, pm):
+        if self.log:
+            self.log.add_pair(l, m, pl, pm)
+        return self._window.add_pair(l, m, pl, pm)
+
+    def set_plane(self, plane):
+        if self.log:
+            self.log.line("set_plane " + _pose(plane))
+        return self._window.set_plane(plane)
+
+    def set_emt_sigma_scale(self, k, scale):
+        if self.log:
+            self.log.line(f"set_emt_sigma_scale {int(k)} {float(scale)!r}")
+        return self._window.set_emt_sigma_scale(k, scale)
+
+    def forget(self, ids):
+        if self.log:
+            self.log.line("forget " + self.log.ids(ids))
+        return self._window.forget(ids)
+
+    def step(self, keyframe_ids=()):
+        if self.log:
+            self.log.line("step " + self.log.ids(keyframe_ids))
+        t0 = time.perf_counter()
+        s = self._window.step(list(keyframe_ids))
+        self.step_wall_s.append(time.perf_counter() - t0)
+        self.step_cpp_s.append(s.step_time_s)
+        self.step_frames.append(len(s.frame_ids))
+        self.summaries.append(s)
+        return s
+
+    def redo(self, frame_ids, keyframe_ids=()):
+        if self.log:
+            self.log.line("redo " + self.log.ids(frame_ids) + " " + self.log.ids(keyframe_ids))
+        t0 = time.perf_counter()
+        s = self._window.redo(list(frame_ids), list(keyframe_ids))
+        self.step_wall_s[-1] += time.perf_counter() - t0
+        self.step_cpp_s[-1] += s.step_time_s
+        return s
+
+    def pose(self, k):
+        x = self._window.pose(k)
+        if self.log:
+            self.log.line(f"expect {int(k)} " + _pose(x))
+        return x
+
+    def close(self) -> None:
+        if self.log:
+            self.log.close()
