@@ -172,8 +172,7 @@ class _PatchSource:
 
     def __init__(self, frames, G: np.ndarray, warper: FrameWarper, gains: np.ndarray | None,
                  cache_bytes: int) -> None:
-        self._seq = frames if isinstance(frames, Sequence) or hasattr(frames, "__getitem__") \
-            else None
+        self._seq = frames if hasattr(frames, "__getitem__") else None
         self._iter = None if self._seq is not None else iter(frames)
         self.G, self.warper, self.gains = G, warper, gains
         self._cache: OrderedDict[int, Patch] = OrderedDict()
@@ -401,5 +400,6 @@ def compose_mosaic(frames: Iterable[tuple[int, np.ndarray]], homographies: np.nd
                    gains: np.ndarray | None = None) -> np.ndarray:
     """Warps (index, image) pairs into one canvas (see :func:`render_mosaic`); unplaced and
     absurd frames are skipped. Returns the uint8 mosaic."""
-    return render_mosaic(frames, homographies, width, height, mask=mask, blend=blend,
+    pairs = iter(frames)  # (index, image) pairs, even if given as a list
+    return render_mosaic(pairs, homographies, width, height, mask=mask, blend=blend,
                          max_pixels=max_pixels, gains=gains).image
