@@ -236,6 +236,13 @@ def test_emt_noise_fig9(work):
     assert (lba[2:] < emt[2:]).all()  # below EMT from nu = 1 on
 
 
+def test_sequence_shorter_than_the_bootstrap(work):
+    data = simulate_fetoscopy(work / "short", FetoscopyOptions(n_frames=12, laps=12 / 37.5))
+    r = run(data, "lba-emt", work)
+    assert r["unplaced"] == 0 and r["e_M_px"] < 1.0  # placed by the bootstrap adjustment alone
+    assert r["report"]["window_step_ms"]["steps"] == 0
+
+
 def test_loss_of_visual_content_fig10(work):
     data = simulate_fetoscopy(work / "black62", FetoscopyOptions(
         n_frames=62, laps=62 / 37.5, black_frames=list(PAPER_BLACK_FRAMES)))
