@@ -45,7 +45,12 @@ void BindSlidingWindow(py::module_& m) {
            "window_size: W; num_new: chi_e; costs: BundleAdjusterOptions (weights, loss, solver)")
       .def_readwrite("window_size", &SlidingWindowOptions::window_size)
       .def_readwrite("num_new", &SlidingWindowOptions::num_new)
-      .def_readwrite("costs", &SlidingWindowOptions::costs);
+      .def_readwrite("costs", &SlidingWindowOptions::costs)
+      .def_readwrite("fold_fixed_cameras", &SlidingWindowOptions::fold_fixed_cameras,
+                     "C_v blocks take the poses of the step's fixed cameras as values, so\n"
+                     "autodiff runs over the free parameters only (same residuals)")
+      .def_readwrite("full_report", &SlidingWindowOptions::full_report,
+                     "keep Ceres' FullReport() in each step summary (diagnostics)");
 
   py::class_<WindowStepSummary>(m, "WindowStepSummary", "Result of SlidingWindow.step().")
       .def_readonly("frame_ids", &WindowStepSummary::frame_ids)
@@ -62,7 +67,22 @@ void BindSlidingWindow(py::module_& m) {
       .def_readonly("step_time_s", &WindowStepSummary::step_time_s)
       .def_readonly("termination", &WindowStepSummary::termination)
       .def_readonly("num_visual_blocks", &WindowStepSummary::num_visual_blocks)
-      .def_readonly("num_correspondences", &WindowStepSummary::num_correspondences);
+      .def_readonly("num_correspondences", &WindowStepSummary::num_correspondences)
+      .def_readonly("num_window_correspondences", &WindowStepSummary::num_window_correspondences)
+      .def_readonly("num_keyframe_correspondences",
+                    &WindowStepSummary::num_keyframe_correspondences)
+      .def_readonly("num_loop_correspondences", &WindowStepSummary::num_loop_correspondences)
+      .def_readonly("num_fixed_pair_correspondences",
+                    &WindowStepSummary::num_fixed_pair_correspondences,
+                    "correspondences of pairs of two fixed cameras (they constrain pi only)")
+      .def_readonly("num_residuals", &WindowStepSummary::num_residuals)
+      .def_readonly("num_free_parameters", &WindowStepSummary::num_free_parameters)
+      .def_readonly("preprocessor_time_s", &WindowStepSummary::preprocessor_time_s)
+      .def_readonly("evaluation_time_s", &WindowStepSummary::evaluation_time_s,
+                    "Ceres residual + Jacobian evaluation time")
+      .def_readonly("linear_solver_time_s", &WindowStepSummary::linear_solver_time_s)
+      .def_readonly("full_report", &WindowStepSummary::full_report,
+                    "Ceres' FullReport() when SlidingWindowOptions.full_report, else empty");
 
   py::class_<SlidingWindow>(
       m, "SlidingWindow",

@@ -1,5 +1,6 @@
 #include "fusedmosaic/problem/sliding_window.h"
 
+#include <ceres/autodiff_cost_function.h>
 #include <ceres/problem.h>
 #include <ceres/solver.h>
 
@@ -18,10 +19,13 @@
 namespace fusedmosaic {
 namespace {
 
-// "auto" for the window: a step has chi_e * 6 + 3 free parameters (21 with the SYN preset) and a
-// few thousand residuals, so a dense solver on the reduced Jacobian wins; measured in
-// bench/bench_sequential.py (dense_normal_cholesky vs dense_qr vs dense_schur vs sparse).
-constexpr ceres::LinearSolverType kWindowAutoSolver = ceres::DENSE_NORMAL_CHOLESKY;
+// "auto" for the window. A step has chi_e * 6 + 3 free parameters (21 with the SYN preset) but
+// ~11k residuals, most of them (pairs of two fixed cameras) touching only pi: the dense solvers
+// pay for the full 11k x 21 Jacobian (J^T J, QR), the block-sparse J^T J does not. Measured in
+// bench/bench_sequential.py on a recorded SYN stream (median per step, 1 thread, fixed cameras
+// folded, idle 2-core machine): sparse_normal_cholesky 3.0 ms < dense_schur 3.4 ~ sparse_schur
+// 3.4 < dense_normal_cholesky 5.8 < dense_qr 10.5 ms; 2 threads were no faster.
+constexpr ceres::LinearSolverType kWindowAutoSolver = ceres::SPARSE_NORMAL_CHOLESKY;
 
 ceres::LinearSolverType WindowLinearSolver(const std::string& name) {
   if (name == "auto") return kWindowAutoSolver;
@@ -33,6 +37,47 @@ ceres::LinearSolverType WindowLinearSolver(const std::string& name) {
     throw std::invalid_argument("linear_solver: unknown solver '" + name + "'");
   }
   return type;
+}
+
+// C_v blocks of pairs whose cameras are partly held constant in the step. They evaluate the
+// very same VisualTransferCostFunctor (identical residuals, Eq. 25) with the constant poses
+// passed in as values, so automatic differentiation carries Jets over the free parameters only:
+// 9 (one new camera + pi) or 3 (pi alone, a pair of two fixed cameras) instead of 15.
+struct OneFixedCameraTransfer {
+  VisualTransferCostFunctor transfer;
+  std::array<double, kPoseSize> fixed_pose;
+  bool fixed_is_l;  // the constant camera is frame l (else frame m)
+
+  template <typename T>
+  bool operator()(const T* const free_pose, const T* const plane, T* residuals) const {
+    T fixed[kPoseSize];
+    for (int i = 0; i < kPoseSize; ++i) fixed[i] = T(fixed_pose[i]);
+    return fixed_is_l ? transfer(fixed, free_pose, plane, residuals)
+                      : transfer(free_pose, fixed, plane, residuals);
+  }
+};
+
+struct PlaneOnlyTransfer {
+  VisualTransferCostFunctor transfer;
+  std::array<double, kPoseSize> pose_l, pose_m;
+
+  template <typename T>
+  bool operator()(const T* const plane, T* residuals) const {
+    T l[kPoseSize], m[kPoseSize];
+    for (int i = 0; i < kPoseSize; ++i) {
+      l[i] = T(pose_l[i]);
+      m[i] = T(pose_m[i]);
+    }
+    return transfer(l, m, plane, residuals);
+  }
+};
+
+// 2 residuals per correspondence; fixed-size for a single point, as VisualTransferCostFunctor.
+template <typename Functor, int... Sizes>
+ceres::CostFunction* AutoDiffTransfer(Functor* functor, int num_points) {
+  if (num_points == 1) return new ceres::AutoDiffCostFunction<Functor, 2, Sizes...>(functor);
+  return new ceres::AutoDiffCostFunction<Functor, ceres::DYNAMIC, Sizes...>(functor,
+                                                                            2 * num_points);
 }
 
 SlidingWindow::Pose ToVector(const std::array<double, kPoseSize>& a) {
@@ -254,6 +299,16 @@ WindowStepSummary SlidingWindow::Solve(std::vector<int> free_ids,
   const RobustLoss loss = RobustLossFromString(c.loss);
   const bool per_point = c.residual_blocks == "per_point";
 
+  // Role of a camera in this step, for the residual counts of the summary.
+  enum class Role { kFree, kWindow, kKeyframe, kLoop };
+  const std::set<int> keyframe_set(out.keyframe_ids.begin(), out.keyframe_ids.end());
+  auto role = [&](int id) {
+    if (std::binary_search(free_ids.begin(), free_ids.end(), id)) return Role::kFree;
+    if (std::count(out.fixed_ids.begin(), out.fixed_ids.end(), id)) return Role::kWindow;
+    if (keyframe_set.count(id)) return Role::kKeyframe;
+    return Role::kLoop;
+  };
+
   // C_v (Eq. 25): every stored pair with both cameras in the step.
   std::set<std::pair<int, int>> used;
   for (int id : in_problem) {
@@ -265,14 +320,42 @@ WindowStepSummary SlidingWindow::Solve(std::vector<int> free_ids,
       double* pose_m = frames_.at(key.second).pose.data();
       const int n = static_cast<int>(pair.points_l.cols());
       out.num_correspondences += n;
+      const Role role_l = role(key.first), role_m = role(key.second);
+      if (role_l == Role::kKeyframe || role_m == Role::kKeyframe) {
+        out.num_keyframe_correspondences += n;
+      } else if (role_l == Role::kLoop || role_m == Role::kLoop) {
+        out.num_loop_correspondences += n;
+      } else {
+        out.num_window_correspondences += n;
+      }
+      if (role_l != Role::kFree && role_m != Role::kFree) out.num_fixed_pair_correspondences += n;
+      const bool fold_l = options_.fold_fixed_cameras && role_l != Role::kFree;
+      const bool fold_m = options_.fold_fixed_cameras && role_m != Role::kFree;
       const int blocks = per_point ? n : 1;
       for (int b = 0; b < blocks; ++b) {
         const int first = per_point ? b : 0, count = per_point ? 1 : n;
-        visual_blocks.push_back(problem.AddResidualBlock(
-            VisualTransferCostFunctor::Create(camera_matrix_, pair.points_l.middleCols(first, count),
-                                              pair.points_m.middleCols(first, count), c.sigma_v_px,
-                                              loss, c.loss_scale_px),
-            nullptr, pose_l, pose_m, plane_.data()));
+        VisualTransferCostFunctor transfer(camera_matrix_, pair.points_l.middleCols(first, count),
+                                           pair.points_m.middleCols(first, count), c.sigma_v_px,
+                                           loss, c.loss_scale_px);
+        ceres::ResidualBlockId block;
+        if (fold_l && fold_m) {
+          auto* f = new PlaneOnlyTransfer{std::move(transfer), frames_.at(key.first).pose,
+                                          frames_.at(key.second).pose};
+          block = problem.AddResidualBlock(
+              AutoDiffTransfer<PlaneOnlyTransfer, kPlaneSize>(f, count), nullptr, plane_.data());
+        } else if (fold_l || fold_m) {
+          auto* f = new OneFixedCameraTransfer{
+              std::move(transfer), frames_.at(fold_l ? key.first : key.second).pose, fold_l};
+          block = problem.AddResidualBlock(
+              AutoDiffTransfer<OneFixedCameraTransfer, kPoseSize, kPlaneSize>(f, count), nullptr,
+              fold_l ? pose_m : pose_l, plane_.data());
+        } else {
+          block = problem.AddResidualBlock(
+              AutoDiffTransfer<VisualTransferCostFunctor, kPoseSize, kPoseSize, kPlaneSize>(
+                  new VisualTransferCostFunctor(std::move(transfer)), count),
+              nullptr, pose_l, pose_m, plane_.data());
+        }
+        visual_blocks.push_back(block);
       }
     }
   }
@@ -291,8 +374,8 @@ WindowStepSummary SlidingWindow::Solve(std::vector<int> free_ids,
         auto prev1 = std::prev(it);
         auto prev2 = std::prev(prev1);
         motion_blocks.push_back(problem.AddResidualBlock(
-            ConstantVelocityCostFunctor::Create(c.motion_sigma), nullptr,
-            prev2->second.pose.data(), prev1->second.pose.data(), f.pose.data()));
+            ConstantVelocityCostFunctor::Create(c.motion_sigma), nullptr, prev2->second.pose.data(),
+            prev1->second.pose.data(), f.pose.data()));
         for (auto p : {prev1, prev2})
           if (!in_problem.count(p->first)) problem.SetParameterBlockConstant(p->second.pose.data());
       }
@@ -324,6 +407,13 @@ WindowStepSummary SlidingWindow::Solve(std::vector<int> free_ids,
     out.initial_cost = summary.initial_cost;
     out.final_cost = summary.final_cost;
     out.solve_time_s = summary.total_time_in_seconds;
+    out.preprocessor_time_s = summary.preprocessor_time_in_seconds;
+    out.evaluation_time_s =
+        summary.residual_evaluation_time_in_seconds + summary.jacobian_evaluation_time_in_seconds;
+    out.linear_solver_time_s = summary.linear_solver_time_in_seconds;
+    out.num_residuals = summary.num_residuals;
+    out.num_free_parameters = summary.num_effective_parameters_reduced;
+    if (options_.full_report) out.full_report = summary.FullReport();
     out.termination = ceres::TerminationTypeToString(summary.termination_type);
     auto term_cost = [&problem](const std::vector<ceres::ResidualBlockId>& ids) {
       if (ids.empty()) return 0.0;

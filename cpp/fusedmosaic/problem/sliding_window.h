@@ -37,9 +37,17 @@ struct SlidingWindowOptions {
   int window_size = 5;  // W, cameras in the temporal window (paper Sec. 4.2, SYN preset)
   int num_new = 3;      // chi_e, new cameras estimated per step (SYN preset)
   // Cost weights, robust loss and Ceres settings shared with the bundle adjuster; use_emt and
-  // use_motion_prior switch C_EMT and C_p. Solver defaults for these small dense problems are
-  // set in the constructor of the Python options (see estimation/sequential.py).
+  // use_motion_prior switch C_EMT and C_p. costs.linear_solver "auto" is sparse_normal_cholesky
+  // for the window (measured, see sliding_window.cc); the iteration limit, tolerances and thread
+  // count are set by the caller (estimation/sequential.py).
   BundleAdjusterOptions costs;
+  // C_v blocks of pairs with a camera held constant in the step take its pose as a value, so
+  // automatic differentiation runs over the free parameters only (Jets of 9 or 3 instead of 15);
+  // the residuals are the same. false: every block has both poses as (constant) parameters.
+  // bench/bench_sequential.py: median step 5.6 -> 3.0 ms (sparse_normal_cholesky), 8.6 -> 5.8 ms
+  // (dense_normal_cholesky); identical poses and plane.
+  bool fold_fixed_cameras = true;
+  bool full_report = false;  // keep Ceres' FullReport() in each step summary (diagnostics)
 
   void Validate() const;
 };
@@ -62,6 +70,21 @@ struct WindowStepSummary {
   std::string termination;
   int num_visual_blocks = 0;
   int num_correspondences = 0;
+  // Correspondences of C_v by the role of the pair's cameras: a pair touching a keyframe
+  // counts as keyframe, else one touching a loop camera (a fixed camera outside the window
+  // paired with a new one) as loop, else window (new and window cameras).
+  int num_window_correspondences = 0;
+  int num_keyframe_correspondences = 0;
+  int num_loop_correspondences = 0;
+  int num_fixed_pair_correspondences = 0;  // pairs of two fixed cameras: they only see pi
+  int num_residuals = 0;
+  int num_free_parameters = 0;
+  // Ceres' time split (s): building the reduced problem, residual + Jacobian evaluation, linear
+  // solves; and Ceres' FullReport() (empty unless SlidingWindowOptions::full_report).
+  double preprocessor_time_s = 0.0;
+  double evaluation_time_s = 0.0;
+  double linear_solver_time_s = 0.0;
+  std::string full_report;
 };
 
 class SlidingWindow {
@@ -126,8 +149,8 @@ class SlidingWindow {
   mutable std::mutex mutex_;
   Eigen::Matrix3d camera_matrix_;
   SlidingWindowOptions options_;
-  std::map<int, Frame> frames_;                  // ordered by id = sequence order
-  std::map<std::pair<int, int>, Pair> pairs_;    // (frame_l, frame_m)
+  std::map<int, Frame> frames_;                // ordered by id = sequence order
+  std::map<std::pair<int, int>, Pair> pairs_;  // (frame_l, frame_m)
   std::array<double, kPlaneSize> plane_{};
   bool plane_set_ = false;
   int num_correspondences_ = 0;
