@@ -26,10 +26,7 @@ from scipy.cluster.vq import kmeans2
 class _Block:
     frame_ids: list[int]
     centroids: list[np.ndarray]
-
-    @property
-    def centroid(self) -> np.ndarray:
-        return np.mean(self.centroids, axis=0)
+    centroid: np.ndarray | None = None  # mean of centroids, set once when the block closes
 
 
 class KeyframeIndex:
@@ -56,6 +53,7 @@ class KeyframeIndex:
         self._open.centroids.append(np.asarray(centroid, float))
         if len(self._open.frame_ids) < self.block_size:
             return []
+        self._open.centroid = np.mean(self._open.centroids, axis=0)
         self._blocks[self._next_id] = self._open
         self._next_id += 1
         self._open = None

@@ -64,6 +64,10 @@ class SequentialOptions:
     # cannot repair it later: pairs between fixed cameras pin pi to their scale.
     # Measured on SYN-150: 15 frames -> e_M 0.30 px (plane 2.4 % deep), 25 -> 0.30, 40 -> 0.14.
     bootstrap_frames: int = 40
+    # Start-up frames are matched against the window and every bootstrap_stride-th earlier
+    # start-up frame (wide baselines for the plane) instead of all of them: 780 -> ~190
+    # attempts for 40 frames.
+    bootstrap_stride: int = 4
     # Spatial loop pairs (beyond the paper's Eq. 25 window; its Sec. 5 proposes such a
     # spatio-temporal window): each new frame is also matched against up to this many retained
     # older frames whose footprint, predicted from the drift-free tracker pose, overlaps it.
@@ -167,7 +171,12 @@ class SequentialMosaicker:
         timings["features"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
-        against = self._boot_feats if self._plane is None else [f for _, f in self._recent]
+        if self._plane is None:  # start-up: the window plus a sparse set of older frames
+            recent = {f.frame_id for _, f in self._recent}
+            against = [f for f in self._boot_feats if f.frame_id in recent
+                       or f.frame_id % self.options.bootstrap_stride == 0]
+        else:
+            against = [f for _, f in self._recent]
         matches = [match_pair(feats, f_old, self.size, self.options.matching)
                    for f_old in against]
         self._recent.append((k, feats))

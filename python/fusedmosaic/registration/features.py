@@ -16,10 +16,10 @@ import numpy as np
 @dataclass
 class FeatureOptions:
     detector: str = "sift"  # "sift" (paper Sec. 4.1, VLFeat SIFT) or "orb" (faster)
-    # Strongest keypoints kept per frame. Matching is quadratic in it: ORB brute-force knn per
-    # 400x400 pair costs 3.2 ms at 500 and 13.8 ms at 1000, and 500 still gives ~160 ratio-test
-    # matches per SYN pair (the paper's Table 1 averages 67-222 correspondences).
-    max_features: int = 500
+    # Strongest keypoints kept per frame. 1000 ORB keypoints keep lba-emt at ~0.2 px on SYN where
+    # 500 gave ~0.55 px (bench/bench_sequential.py); ORB pairs are matched with LSH (pairs.py)
+    # so this stays real-time. SIFT finds fewer on low-contrast tissue anyway.
+    max_features: int = 1000
     # SIFT peak threshold. OpenCV's default is 0.04; the paper used VLFeat SIFT whose default
     # peak threshold is 0, which matters on low-contrast placenta: lower keeps more keypoints.
     sift_contrast_threshold: float = 0.04

@@ -51,10 +51,23 @@ class PairMatch:
         return len(self.points_l)
 
 
+# Binary descriptors (ORB) are matched with FLANN's LSH index: brute-force Hamming knn over 1000
+# x 1000 ORB descriptors took 13.8 ms per pair, LSH ~4 ms, with the same ratio-test matches within
+# a few percent (bench/results/sequential.md). Float descriptors (SIFT) use brute force.
+_LSH_INDEX = {"algorithm": 6, "table_number": 6, "key_size": 12, "multi_probe_level": 1}
+
+
+def _matcher(binary: bool):
+    if binary:
+        # LSH draws random hash tables from OpenCV's thread-local RNG: seed it so that a pair
+        # always gets the same matches (reproducible runs, serial == threaded matching).
+        cv2.setRNGSeed(0)
+        return cv2.FlannBasedMatcher(_LSH_INDEX, {"checks": 32})
+    return cv2.BFMatcher(cv2.NORM_L2)
+
+
 def _ratio_matches(f_m: Features, f_l: Features, ratio: float) -> tuple[np.ndarray, np.ndarray]:
-    norm = cv2.NORM_HAMMING if f_m.binary else cv2.NORM_L2
-    matcher = cv2.BFMatcher(norm)
-    knn = matcher.knnMatch(f_m.descriptors, f_l.descriptors, k=2)
+    knn = _matcher(f_m.binary).knnMatch(f_m.descriptors, f_l.descriptors, k=2)
     good = [p[0] for p in knn if len(p) == 2 and p[0].distance < ratio * p[1].distance]
     # one-to-one: keep the best match per target keypoint
     best: dict[int, cv2.DMatch] = {}
