@@ -281,6 +281,8 @@ class SlidingWindowOptions:
     window_size: int
     num_new: int
     costs: BundleAdjusterOptions
+    fold_fixed_cameras: bool  # fixed cameras enter costs as values, not parameters (faster)
+    full_report: bool  # keep Ceres' FullReport() in each step summary
 
     def __init__(
         self, window_size: int = 5, num_new: int = 3, costs: BundleAdjusterOptions | None = None
@@ -304,6 +306,16 @@ class WindowStepSummary:
     termination: str
     num_visual_blocks: int
     num_correspondences: int
+    num_window_correspondences: int
+    num_keyframe_correspondences: int
+    num_loop_correspondences: int
+    num_fixed_pair_correspondences: int  # in pairs of two fixed cameras: constrain pi only
+    num_residuals: int
+    num_free_parameters: int
+    preprocessor_time_s: float
+    evaluation_time_s: float
+    linear_solver_time_s: float
+    full_report: str
 
 class SlidingWindow:
     """Local bundle adjustment over a sliding window with keyframes (LBAVis+EMT, Eqs. 24-27)."""
