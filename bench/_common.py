@@ -236,12 +236,14 @@ def _pose(x) -> str:
 
 
 class ProblemLog:
-    """Writes the call log of one BundleAdjuster or SlidingWindow (format: solver_bench.cc)."""
+    """The call log of one BundleAdjuster or SlidingWindow (format: solver_bench.cc). Records
+    are kept in memory (points as array copies) and written by close(), so logging adds next to
+    nothing to the timings of the run it records."""
 
     def __init__(self, path: Path, kind: str, K, costs, window=None):
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.f = open(self.path, "w")  # noqa: SIM115 (closed by close())
+        self.records: list = []  # str lines, or (header, (N, 4) points) for add_pair
+        self.closed = False
         c = costs
         self.line(f"fusedmosaic-problem 1 {kind}")
         self.line("K " + _pose(K))
@@ -259,7 +261,7 @@ class ProblemLog:
             )
 
     def line(self, text: str) -> None:
-        self.f.write(text + "\n")
+        self.records.append(text)
 
     def add_frame(self, k, initial, emt, fixed=False) -> None:
         a = "0" if initial is None else "1 " + _pose(initial)
@@ -270,21 +272,30 @@ class ProblemLog:
         pts = np.hstack(
             [np.asarray(pl, float).reshape(-1, 2), np.asarray(pm, float).reshape(-1, 2)]
         )
-        self.line(f"add_pair {int(l)} {int(m)} {len(pts)}")
-        np.savetxt(self.f, pts, fmt="%.17g")
+        self.records.append((f"add_pair {int(l)} {int(m)} {len(pts)}", pts))
 
     def ids(self, ids) -> str:
         ids = [int(i) for i in ids]
         return " ".join([str(len(ids)), *map(str, ids)])
 
     def close(self) -> None:
-        if not self.f.closed:
-            self.line("end")
-            self.f.close()
+        if self.closed:
+            return
+        self.closed = True
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        with open(self.path, "w") as f:
+            for r in self.records:
+                if isinstance(r, str):
+                    f.write(r + "\n")
+                else:
+                    f.write(r[0] + "\n")
+                    np.savetxt(f, r[1], fmt="%.17g")
+            f.write("end\n")
+        self.records = []
 
 
 class BundleRecorder:
-    """Stands in for a _core.BundleAdjuster: forwards every call, logs the problem to `path`,
+    """Stands in for a _core.BundleAdjuster: forwards every call, logs the problem for `path`,
     times solve() from Python and logs the solution as the replay's expected values."""
 
     def __init__(self, ba, K, path: Path):
@@ -326,8 +337,7 @@ class BundleRecorder:
         for k, x in zip(ids, poses, strict=True):
             self.log.line(f"expect {int(k)} " + _pose(x))
         self.log.line("expect_plane " + _pose(self._ba.plane()))
-        self.log.close()
-        return summary
+        return summary  # the log is written when record_bundle_problems() exits
 
 
 @contextmanager

@@ -40,6 +40,7 @@ from _common import (
 
 
 def lba_latency(data: Path, base: str, log: Path | None) -> dict:
+    from fusedmosaic import _core
     from fusedmosaic.estimation.sequential import SequentialMosaicker, SequentialOptions
     from fusedmosaic.evaluation import drift_ratio, frame_errors, mosaic_error
     from fusedmosaic.io import read_dataset
@@ -49,9 +50,8 @@ def lba_latency(data: Path, base: str, log: Path | None) -> dict:
     frames = [np.asarray(ds.frames[k]) for k in range(len(ds))]
     n = len(frames)
     m = SequentialMosaicker(ds.camera, options)
-    costs = getattr(m, "_costs", None)  # the costs the window was built with
-    from fusedmosaic import _core
-
+    # The costs the window was built with, for the saved log (private: if it goes, no log).
+    costs = getattr(m, "_costs", None)
     wopts = _core.SlidingWindowOptions(
         window_size=options.window_size, num_new=options.num_new, costs=costs
     )

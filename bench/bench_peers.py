@@ -11,6 +11,8 @@
   the registration scale; this convention was checked on SYN: R_k^-1 gives sub-pixel e_j, R_k
   hundreds of pixels), so G_k = A_0^-1 A_k is its frame -> frame-0 mapping and e_j (Eq. 28) is
   measured exactly as for our methods; frames it leaves out of the panorama count as unplaced.
+  A check independent of that convention: 6 evenly spaced frames are registered into the
+  panorama image itself (SIFT + RANSAC homography) and their e_j computed the same way.
 * A plain OpenCV pairwise chain: SIFT (cv2.SIFT_create defaults, inside the circular FOV when
   there is one), BFMatcher L2 with Lowe's ratio 0.75, findHomography RANSAC (3 px), at least 15
   inliers; each frame registered to the last placed frame and the homographies chained. On all
@@ -163,7 +165,44 @@ def stitch_child(data: Path, out: Path) -> None:
                 g = np.linalg.inv(S) @ np.linalg.inv(A[0]) @ a @ S
                 G[k] = (g / g[2, 2]).tolist()
         res.update({"component": comp, "work_scale": s, "G": G})
+    if pano is not None:
+        res["panorama_registration"] = register_into_panorama(pano, frames, mask)
     out.write_text(json.dumps(res))
+
+
+PANO_CHECK_FRAMES = 6
+
+
+def register_into_panorama(pano: np.ndarray, frames: list, mask) -> dict:
+    """A check that does not rely on the stitcher's camera convention: a few evenly spaced
+    frames are registered into the returned panorama image (SIFT + ratio test + RANSAC
+    homography); G_k = P_0^-1 P_k with P_k: frame k -> panorama is then frame k -> frame 0."""
+    sift = cv2.SIFT_create()
+    gray = cv2.cvtColor(pano, cv2.COLOR_BGR2GRAY) if pano.ndim == 3 else pano
+    kp_p, des_p = sift.detectAndCompute(gray, None)
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    picks = np.unique(np.round(np.linspace(0, len(frames) - 1, PANO_CHECK_FRAMES)).astype(int))
+    P = {}
+    for k in picks:
+        f = frames[k] if frames[k].ndim == 2 else cv2.cvtColor(frames[k], cv2.COLOR_BGR2GRAY)
+        kp, des = sift.detectAndCompute(f, mask)
+        if des is None or des_p is None or len(kp) < MIN_INLIERS:
+            continue
+        knn = matcher.knnMatch(des, des_p, k=2)
+        good = [p[0] for p in knn if len(p) == 2 and p[0].distance < RATIO * p[1].distance]
+        if len(good) < MIN_INLIERS:
+            continue
+        src = np.float32([kp[g.queryIdx].pt for g in good])
+        dst = np.float32([kp_p[g.trainIdx].pt for g in good])
+        H, inl = cv2.findHomography(src, dst, cv2.RANSAC, RANSAC_PX)
+        if H is not None and int(inl.sum()) >= MIN_INLIERS:
+            P[int(k)] = H
+    G = {}
+    if 0 in P:
+        for k, h in P.items():
+            g = np.linalg.inv(P[0]) @ h
+            G[k] = (g / g[2, 2]).tolist()
+    return {"frames": [int(k) for k in picks], "G": G}
 
 
 STATUS = {
@@ -244,6 +283,20 @@ def opencv_stitcher(data: Path, timeout_s: float) -> dict:
         )
     else:
         row.update({"e_M_px": None, "unplaced": n})
+    check = res.get("panorama_registration")
+    if check:
+        G = np.full((n, 3, 3), np.nan)
+        for k, g in check["G"].items():
+            G[int(k)] = np.asarray(g)
+        e = score(G, ds)["e_j_px"]
+        picked = [e[k] for k in check["frames"] if k != 0]
+        found = [x for x in picked if x is not None]
+        row["panorama_check"] = {
+            "frames": check["frames"],
+            "registered": len(check["G"]),
+            "e_j_px": {str(k): e[k] for k in check["frames"]},
+            "mean_e_j_px": float(np.mean(found)) if found else None,
+        }
     return row
 
 

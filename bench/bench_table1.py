@@ -98,14 +98,16 @@ def count_sequential_matches():
         sequential.match_pair = original
 
 
-def run_one(data: Path, out: Path, name: str, method: str, options, *, problems: Path | None):
+def run_one(
+    data: Path, out: Path, name: str, method: str, options, *, problems: Path | None, stem: str
+):
     from fusedmosaic.evaluation import evaluate_output
     from fusedmosaic.runner import run_dataset
 
     recorders = []
     with count_sequential_matches() as counts:
         if problems is not None:
-            with record_bundle_problems(problems, name) as recorders:
+            with record_bundle_problems(problems, stem) as recorders:
                 t0 = time.perf_counter()
                 run_dataset(data, method, out, progress=False, options=options, report=False)
                 wall = time.perf_counter() - t0
@@ -255,6 +257,7 @@ def main(argv=None) -> dict:
                 method,
                 make_options(seq.base),
                 problems=record,
+                stem=f"{seq.name}-{name}",
             )
             r["sequence"] = seq.name
             rows[name] = r
