@@ -208,6 +208,17 @@ def write_json(path: Path, obj) -> None:
     tmp.replace(path)
 
 
+def finish_run(result: dict, out: Path, t_start: float, tmp=None) -> dict:
+    """Common end of a bench script: runtime, end load, JSON out, temp work dir removed."""
+    result["runtime_s"] = time.perf_counter() - t_start
+    result["machine"]["load_average_end"] = machine_info()["load_average"]
+    write_json(out, result)
+    print(f"wrote {out} ({result['runtime_s']:.0f} s)")
+    if tmp is not None:
+        tmp.cleanup()
+    return result
+
+
 def fmt(x, digits: int = 2) -> str:
     if x is None or (isinstance(x, float) and not math.isfinite(x)):
         return "–"

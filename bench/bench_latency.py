@@ -33,9 +33,9 @@ from _common import (
     WindowRecorder,
     dist,
     ensure_dataset,
+    finish_run,
     machine_info,
     sequences,
-    write_json,
 )
 
 
@@ -215,13 +215,7 @@ def main(argv=None) -> dict:
             f"{kf['p99']:.4f} ms",
             flush=True,
         )
-    res["runtime_s"] = time.perf_counter() - t_start
-    res["machine"]["load_average_end"] = machine_info()["load_average"]
-    write_json(args.out, res)
-    print(f"wrote {args.out} ({res['runtime_s']:.0f} s)")
-    if tmp is not None:
-        tmp.cleanup()
-    return res
+    return finish_run(res, args.out, t_start, tmp)
 
 
 if __name__ == "__main__":

@@ -38,9 +38,9 @@ from _common import (
     DEFAULT_WORK,
     RESULTS,
     ensure_dataset,
+    finish_run,
     machine_info,
     sequences,
-    write_json,
 )
 
 RATIO = 0.75
@@ -356,13 +356,7 @@ def main(argv=None) -> dict:
                 f"{'' if r.get('success', True) else '  ' + r['status']}",
                 flush=True,
             )
-    res["runtime_s"] = time.perf_counter() - t_start
-    res["machine"]["load_average_end"] = machine_info()["load_average"]
-    write_json(args.out, res)
-    print(f"wrote {args.out} ({res['runtime_s']:.0f} s)")
-    if tmp is not None:
-        tmp.cleanup()
-    return res
+    return finish_run(res, args.out, t_start, tmp)
 
 
 if __name__ == "__main__":

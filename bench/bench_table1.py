@@ -39,11 +39,11 @@ from _common import (
     PAPER_TABLE1,
     RESULTS,
     ensure_dataset,
+    finish_run,
     machine_info,
     ratio,
     record_bundle_problems,
     sequences,
-    write_json,
 )
 
 # (row name, method, options factory (base sequence -> options or None))
@@ -285,14 +285,8 @@ def main(argv=None) -> dict:
         "e_j_px": {
             f"{s}/{n}": r["e_j_px"] for s, rows in rows_by_seq.items() for n, r in rows.items()
         },
-        "runtime_s": time.perf_counter() - t_start,
     }
-    result["machine"]["load_average_end"] = machine_info()["load_average"]
-    write_json(args.out, result)
-    print(f"wrote {args.out} ({result['runtime_s']:.0f} s)")
-    if tmp is not None:
-        tmp.cleanup()
-    return result
+    return finish_run(result, args.out, t_start, tmp)
 
 
 if __name__ == "__main__":

@@ -81,7 +81,8 @@ def register_frames(dataset, pairs_fn, options: BundleOptions, progress: bool,
     return FrontEnd(features, matches, timings)
 
 
-def _subsample(match: PairMatch, k: int, rng: np.random.Generator):
+def subsample_inliers(match: PairMatch, k: int, rng: np.random.Generator):
+    """At most k of a pair's inlier correspondences (points_l, points_m), drawn with rng."""
     if len(match.points_l) <= k:
         return match.points_l, match.points_m
     idx = np.sort(rng.choice(len(match.points_l), k, replace=False))
@@ -246,7 +247,7 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     in_problem = set(frames)
     for m in ok:
         if m.frame_l in in_problem and m.frame_m in in_problem:
-            pl, pm = _subsample(m, o.max_points_per_pair, rng)
+            pl, pm = subsample_inliers(m, o.max_points_per_pair, rng)
             ba.add_pair(m.frame_l, m.frame_m, undistort_points(pl, K, dist),
                         undistort_points(pm, K, dist))
     ba.set_plane(plane)

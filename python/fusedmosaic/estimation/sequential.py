@@ -25,7 +25,11 @@ import numpy as np
 from tqdm import tqdm
 
 from fusedmosaic import _core
-from fusedmosaic.estimation.bundle import fill_missing_poses, undistort_points
+from fusedmosaic.estimation.bundle import (
+    fill_missing_poses,
+    subsample_inliers,
+    undistort_points,
+)
 from fusedmosaic.estimation.keyframes import KeyframeIndex
 from fusedmosaic.estimation.plane import estimate_plane
 from fusedmosaic.methods import MethodResult
@@ -225,11 +229,7 @@ class SequentialMosaicker:
     # ----------------------------------------------------------------------------------------
     def _subsample(self, m):
         """At most max_points_per_pair inliers of a pair, undistorted (pixels)."""
-        pl, pm = m.points_l, m.points_m
-        n = self.options.max_points_per_pair
-        if len(pl) > n:
-            idx = np.sort(self.rng.choice(len(pl), n, replace=False))
-            pl, pm = pl[idx], pm[idx]
+        pl, pm = subsample_inliers(m, self.options.max_points_per_pair, self.rng)
         return (undistort_points(pl, self.K, self.distortion),
                 undistort_points(pm, self.K, self.distortion))
 
