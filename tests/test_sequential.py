@@ -9,7 +9,11 @@ import pytest
 from fusedmosaic import _core
 from fusedmosaic.estimation.keyframes import KeyframeIndex
 from fusedmosaic.estimation.motion import PAPER_MOTION_SIGMA, estimate_motion_sigma
-from fusedmosaic.estimation.sequential import SequentialMosaicker, SequentialOptions
+from fusedmosaic.estimation.sequential import (
+    SequentialMosaicker,
+    SequentialOptions,
+    run_lba_emt,
+)
 from fusedmosaic.evaluation import evaluate_output, frame_errors, mosaic_error
 from fusedmosaic.io import read_dataset
 from fusedmosaic.runner import run_dataset
@@ -250,6 +254,52 @@ def test_loss_of_visual_content_fig10(work):
     assert r["unplaced"] == 0
     status = r["report"]["frame_status"]
     assert {k for k, s in enumerate(status) if s == "prior-only"} == set(PAPER_BLACK_FRAMES)
+
+
+def test_black_frames_smoothed_from_both_sides(work):
+    """Sec. 4.2.3 with Sigma_p estimated from an independent sequence of the same kind (as the
+    paper's Sec. 4.2 did): prior-only frames held free until two visual frames follow them are
+    placed far better than when fixed at once (extrapolated). Measured on this sequence:
+    black-frame e_M 2.9 px fixed at once, 0.56 px held, textured frames 0.09 px; with the true
+    neighbours given, C_EMT + C_p alone place these black frames at 0.51 px (tracker pull), so
+    the held result is at that floor."""
+    data = work / "black62"
+    if not data.exists():
+        simulate_fetoscopy(data, FetoscopyOptions(n_frames=62, laps=62 / 37.5,
+                                                  black_frames=list(PAPER_BLACK_FRAMES)))
+    independent = generate_fetoscopy(FetoscopyOptions(n_frames=62, laps=62 / 37.5, seed=100))
+    sigma = tuple(estimate_motion_sigma(independent.poses))
+    ds = read_dataset(data)
+    black = np.zeros(62, bool)
+    black[list(PAPER_BLACK_FRAMES)] = True
+    e = {}
+    for hold in (0, 2):
+        res = run_lba_emt(ds, progress=False, options=SequentialOptions(
+            motion_sigma=sigma, hold_prior_only_steps=hold))
+        e[hold] = frame_errors(res.homographies, ds.ground_truth, 400, 400)
+        assert np.isfinite(e[hold]).all()
+    assert e[2][black].mean() < 1.0  # tolerance: measured 0.56 px
+    assert e[2][black].mean() < 0.5 * e[0][black].mean()  # measured 0.56 vs 2.9 px
+    assert e[2][~black].mean() < 0.2  # textured frames unaffected (measured 0.09 px)
+
+
+def test_held_prior_only_frames_finalised_later_in_order():
+    scene = generate_fetoscopy(FetoscopyOptions(n_frames=30, seed=5, black_frames=[20, 23]))
+    from fusedmosaic.io import Camera
+
+    cam = Camera(*scene.size, camera_matrix=scene.camera_matrix)
+    m = SequentialMosaicker(cam, SequentialOptions(bootstrap_frames=9))
+    order, first_final = [], {}
+    for k in range(30):
+        m.add_frame(scene.render(k), k / 25.0, scene.poses[k])
+        for f in m.finalized():
+            order.append(f.frame_id)
+            first_final[f.frame_id] = k
+    order += [f.frame_id for f in m.flush()]
+    assert order == list(range(30))  # each frame final once, in sequence order
+    # bootstrap 0-8, then steps end at frames 11, 14, 17, 20, ...: black frame 20 ends its step
+    # with no visual successor, so it is solved again (and made final) with 21-23; 23 likewise
+    assert first_final[20] == 23 and first_final[23] == 26 and first_final[19] == 20
 
 
 def test_handheld_circular_fov(work):

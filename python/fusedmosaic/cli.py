@@ -61,12 +61,26 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from fusedmosaic.runner import run_dataset
 
     options = None
+    overrides: dict = {}
+    if args.motion_sigma_from:
+        if args.method not in ("ba-emt", "lba-emt"):
+            raise ValueError(f"--motion-sigma-from applies to ba-emt and lba-emt, not "
+                             f"{args.method}")
+        from fusedmosaic.estimation.motion import motion_sigma_from_recording
+
+        overrides["motion_sigma"] = tuple(motion_sigma_from_recording(args.motion_sigma_from))
     if args.pair_selection:
         if args.method not in ("ba", "ba-emt", "emt"):
             raise ValueError(f"--pair-selection applies to ba, ba-emt and emt, not {args.method}")
+        overrides["pair_selection"] = args.pair_selection
+    if overrides and args.method == "lba-emt":
+        from fusedmosaic.estimation.sequential import SequentialOptions
+
+        options = SequentialOptions(**overrides)
+    elif overrides:
         from fusedmosaic.estimation.bundle import BundleOptions
 
-        options = BundleOptions(pair_selection=args.pair_selection)
+        options = BundleOptions(**overrides)
     summary = run_dataset(args.dataset, args.method, args.out, fps=args.fps,
                           robot_file=args.robot_file, allow_untracked=args.allow_untracked,
                           progress=_progress(args), options=options, blend=_blend_options(args),
@@ -256,6 +270,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--pair-selection", choices=["all", "emt-guided", "window"],
                      help="ba / ba-emt / emt: which image pairs to match (default: all for ba and "
                           "ba-emt as in the paper, emt-guided for emt)")
+    run.add_argument("--motion-sigma-from", metavar="RECORDING",
+                     help="ba-emt / lba-emt: estimate the constant-velocity prior's Sigma_p from "
+                          "an independent recording's truth_poses.csv (paper 000 Sec. 4.2) "
+                          "instead of the paper's appendix values")
     run.add_argument("--allow-untracked", action="store_true",
                      help="flag frames outside the tracker's time span instead of failing")
     from fusedmosaic.compositing import BLENDS

@@ -43,3 +43,24 @@ def estimate_motion_sigma(poses: np.ndarray, *, floor: tuple[float, float] = (1e
     sigma[:3] = np.maximum(sigma[:3], floor[0])
     sigma[3:] = np.maximum(sigma[3:], floor[1])
     return sigma
+
+
+def motion_sigma_from_recording(path) -> np.ndarray:
+    """Sigma_p estimated from an independent recording with reference poses (Sec. 4.2): a file
+    or a dataset folder holding truth_poses.csv (frame,rx,ry,rz,tx,ty,tz, cam_from_world), e.g.
+    a calibration recording with an optical tracker, or a simulated sequence of the same kind.
+    Tracker poses are not used: their noise (Sigma_EMT) would dominate the second differences."""
+    from pathlib import Path
+
+    from fusedmosaic.io import read_poses_csv
+
+    path = Path(path)
+    csv = path / "truth_poses.csv" if path.is_dir() else path
+    if not csv.is_file():
+        raise ValueError(f"{csv}: no reference poses to estimate the motion prior from "
+                         "(expected truth_poses.csv: frame,rx,ry,rz,tx,ty,tz)")
+    _, poses = read_poses_csv(csv)
+    try:
+        return estimate_motion_sigma(poses)
+    except ValueError as e:
+        raise ValueError(f"{csv}: {e}") from None

@@ -78,6 +78,11 @@ class SequentialOptions:
     # 0 gives the paper's LBA exactly. Measured in bench/bench_sequential.py.
     loop_pairs: int = 2
     loop_min_separation: int = 10  # frames between a new frame and its loop candidates
+    # A frame without visual evidence (Sec. 4.2.3) is placed by C_EMT and C_p alone. Fixed at the
+    # end of its step it would be extrapolated from its predecessors only; instead it stays free
+    # (with the frames after it) for up to this many more steps, until two frames with visual
+    # evidence follow it, so C_p ties it to both sides. 0 fixes it at once (the paper's LBA).
+    hold_prior_only_steps: int = 2
     seed: int = 0
 
     @classmethod
@@ -190,7 +195,8 @@ class SequentialMosaicker:
             if any(m.frame_m == p["id"] for m in ok):
                 p["visual"] = True
         self._pending.append({"id": k, "timestamp": timestamp, "tracker": tracker_pose,
-                              "visual": bool(ok), "timings": timings, "features": feats})
+                              "visual": bool(ok), "timings": timings, "features": feats,
+                              "held": 0})
         self._finalized = []
         if self._plane is None:  # bootstrap: keep everything until the initial adjustment
             self._boot_feats.append(feats)
@@ -205,7 +211,7 @@ class SequentialMosaicker:
             for m in ok + loops:
                 self.window.add_pair(m.frame_l, m.frame_m, *self._subsample(m))
             self._pending[-1]["visual"] = bool(ok or loops)
-            if len(self._pending) >= self.options.num_new:
+            if sum(p["held"] == 0 for p in self._pending) >= self.options.num_new:
                 self._step()
         for r in self._finalized:
             if r.frame_id == k:
@@ -221,9 +227,9 @@ class SequentialMosaicker:
         self._finalized = []
         if self._pending:
             if self._plane is None:
-                self._bootstrap()
+                self._bootstrap(final_step=True)
             else:
-                self._step()
+                self._step(final_step=True)
         return list(self._finalized)
 
     # ----------------------------------------------------------------------------------------
@@ -258,7 +264,7 @@ class SequentialMosaicker:
         velocity = _core.compose_poses(self._poses[b], _core.invert_pose(self._poses[a]))
         return _core.compose_poses(velocity, self._poses[b])
 
-    def _bootstrap(self) -> None:
+    def _bootstrap(self, final_step: bool = False) -> None:
         """BA+EMT over the first frames (all their pairs): plane and poses to start from."""
         t0 = time.perf_counter()
         tracked = {p["id"]: p["tracker"] for p in self._pending if p["tracker"] is not None}
@@ -292,15 +298,18 @@ class SequentialMosaicker:
         self._boot_feats, self._boot_matches = [], []
         self.plane_history.append((ids[-1], self._plane.copy()))
         elapsed = (time.perf_counter() - t0) / len(ids)
-        self._finalize(ids, [ba.pose(k) for k in ids], [], elapsed, 0.0)
+        self._finalize(ids, [ba.pose(k) for k in ids], [], elapsed, 0.0, final_step)
 
-    def _step(self) -> None:
+    def _step(self, final_step: bool = False) -> None:
         t0 = time.perf_counter()
         ids = [p["id"] for p in self._pending]
         exclude = set(ids) | set(self.window.window_ids())
         keyframe_ids = self.keyframes.select(self.options.num_clusters, exclude)
         t_kf = time.perf_counter() - t0
-        summary = self.window.step(keyframe_ids)
+        if any(p["held"] for p in self._pending):  # frames held back by the last step
+            summary = self.window.redo(ids, keyframe_ids)
+        else:
+            summary = self.window.step(keyframe_ids)
         gated = [p["id"] for p, d2 in zip(self._pending, summary.emt_mahalanobis2, strict=True)
                  if np.isfinite(d2) and d2 > self.options.gate_chi2 and p["visual"]]
         if gated:
@@ -311,11 +320,26 @@ class SequentialMosaicker:
         self._plane = np.asarray(self.window.plane())
         self.plane_history.append((ids[-1], self._plane.copy()))
         self._finalize(ids, [self.window.pose(k) for k in ids], gated,
-                       summary.step_time_s / len(ids), t_kf / len(ids))
+                       summary.step_time_s / len(ids), t_kf / len(ids), final_step)
 
-    def _finalize(self, ids, poses, gated, solve_per_frame, keyframe_per_frame) -> None:
+    def _held_tail(self, final_step: bool) -> int:
+        """Index into the pending frames from which they stay free for the next step: the first
+        prior-only frame followed by fewer than two frames with visual evidence (Sec. 4.2.3)."""
+        n = len(self._pending)
+        if final_step or self.options.hold_prior_only_steps <= 0:
+            return n
+        for i, p in enumerate(self._pending):
+            if (not p["visual"] and p["held"] < self.options.hold_prior_only_steps
+                    and sum(q["visual"] for q in self._pending[i + 1:]) < 2):
+                return i
+        return n
+
+    def _finalize(self, ids, poses, gated, solve_per_frame, keyframe_per_frame,
+                  final_step: bool = False) -> None:
         forget: list[int] = []
-        for p, pose in zip(self._pending, poses, strict=True):
+        cut = self._held_tail(final_step)
+        held = self._pending[cut:]
+        for p, pose in zip(self._pending[:cut], poses[:cut], strict=True):
             k = p["id"]
             pose = np.asarray(pose)
             if self._reference_pose is None:
@@ -341,7 +365,9 @@ class SequentialMosaicker:
             for i in forget:
                 self._loop_feats.pop(i, None)
                 self._loop_centroids.pop(i, None)
-        self._pending = []
+        for p in held:
+            p["held"] += 1
+        self._pending = held
 
     def _to_reference(self, pose: np.ndarray) -> np.ndarray:
         return _core.transfer_homography(self._reference_pose, pose, self._plane, self.K)
