@@ -83,13 +83,25 @@ def test_angle_confidence_wraps_across_pi():
     assert angle_confidence(reverse, np.append(history, reverse)) < 1e-6
 
 
-def test_speed_confidence_relative_and_absolute():
+def test_speed_confidence_ratio_relative_and_absolute():
     history = np.full(10, 10.0)
-    # +20 %: relative deviation 0.2 -> high; absolute deviation 2 px -> low with x_r = 0.5 px
+    # +20 %: scale-free deviations ~0.2 -> high; absolute deviation 2 px -> low with x_r = 0.5 px
     assert speed_confidence(12.0, np.append(history, 12.0)) > 0.9
-    assert speed_confidence(12.0, np.append(history, 12.0), relative=False) < 1e-3
-    assert speed_confidence(20.0, np.append(history, 20.0)) < 0.01  # doubled speed
-    assert speed_confidence(0.0, np.append(history, 0.0)) < 0.01  # stuck
+    assert speed_confidence(12.0, np.append(history, 12.0), deviation="relative") > 0.9
+    assert speed_confidence(12.0, np.append(history, 12.0), deviation="absolute") < 1e-3
+    # ratio (default, Eq. 17's comparison): halving and doubling are alike, ~0.5 at x_r = 0.5
+    doubled = speed_confidence(20.0, np.append(history, 20.0))
+    halved = speed_confidence(5.0, np.append(history, 5.0))
+    assert 0.4 < doubled < 0.6 and abs(doubled - halved) < 0.05
+    # relative: a doubling is as bad as a stop
+    assert speed_confidence(20.0, np.append(history, 20.0), deviation="relative") < 0.01
+    # a stop and a large jump: low but bounded below by normalize(1) (~0.0023)
+    stuck = speed_confidence(0.0, np.append(history, 0.0))
+    jump = speed_confidence(1e4, np.append(history, 1e4))
+    for c in (stuck, jump):
+        assert 0.002 < c < 0.01
+    with pytest.raises(ValueError, match="speed deviation must be"):
+        speed_confidence(1.0, np.append(history, 1.0), deviation="log")
 
 
 def test_speed_agreement_confidence_orientation():
@@ -119,11 +131,13 @@ def test_image_and_robot_confidence_formulas():
 def test_confidences_drop_on_outlier_and_stay_high_otherwise():
     _, measured = circle_displacements(150)
     measured[60] = measured[60] @ np.array([[0.0, 1.0], [-1.0, 0.0]])  # turned 90 deg
-    measured[100] *= 3.0  # sudden slip
+    measured[100] *= 4.0  # sudden slip
     result = filter_trajectory(measured, measured.copy(), np.full(150, 0.9))
     assert result.c_angle[60] < 0.01 and result.c_speed[60] > 0.9
-    assert result.c_speed[100] < 0.01 and result.c_angle[100] > 0.9
-    assert result.c_img[60] < 0.2 and result.c_img[100] < 0.2
+    # speed_deviation="ratio": a 4x jump deviates by 0.75 -> c_speed ~0.1 (bounded below, Eq. 17
+    # form); with "relative" it would be ~1e-20
+    assert result.c_speed[100] < 0.15 and result.c_angle[100] > 0.9
+    assert result.c_img[60] < 0.2 and result.c_img[100] < 0.5
     normal = ~result.warmup
     normal[[60, 100]] = False
     assert np.nanmin(result.c_angle[normal]) > 0.9  # includes the two crossings of +-pi
@@ -268,7 +282,8 @@ def test_integrate_displacements():
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
-        ({"sigma_robot0": 0.0}, r"KalmanOptions.sigma_robot0 must be a finite number > 0"),
+        ({"sigma_robot0": 0.0}, r"KalmanOptions.sigma_robot0 must be > 0"),
+        ({"speed_deviation": "log"}, r"KalmanOptions.speed_deviation must be 'ratio'"),
         ({"median_kernel": 4}, r"median_kernel must be a positive odd integer, got 4"),
         ({"min_history": 3}, r"need poly_degree < min_history <= history_length"),
         ({"min_history": 12}, r"need poly_degree < min_history <= history_length"),

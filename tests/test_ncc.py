@@ -219,3 +219,32 @@ def test_ssim_bad_inputs():
         aligned_overlap_ssim(a, a, (0, 0, 0))
     with pytest.raises(ValueError, match=r"downsample must be >= 1"):
         aligned_overlap_ssim(a, a, (0, 0), downsample=0)
+
+
+def test_wide_range_fallback_beyond_the_primary_search(scene):
+    """A jump beyond the 3/5 template's +-1/5 frame (a stick-slip release) is clipped by the
+    primary search; the 2/5 retry (+-3/10 frame) recovers it, flagged as a fallback."""
+    d = (65.0, -55.0)  # primary range at 256x224: +-51 x, +-45 y; retry: +-77 x, +-67 y
+    prev, curr = frame_pair(scene, d, noise=2.0)
+    paper = register_ncc(prev, curr, fallback_template_fraction=None)
+    assert np.abs(paper.dx - d).max() > 5.0  # clipped at the primary range
+    res = register_ncc(prev, curr)
+    assert res.fallback and res.consistent
+    np.testing.assert_allclose(res.dx, d, atol=SUBPIXEL_TOL)
+    # ordinary shifts never trigger the retry
+    small = register_ncc(*frame_pair(scene, (12.0, -7.0), noise=2.0))
+    assert not small.fallback and small.consistent
+
+
+def test_inconsistent_directions_are_flagged():
+    """Forward and backward peaks far apart (pure noise, no common content): not consistent."""
+    rng = np.random.default_rng(2)
+    a, b = (rng.normal(128, 40, (H, W)).astype(np.float32) for _ in range(2))
+    res = register_ncc(a, b)
+    if res.disagreement > 3.0:
+        assert not res.consistent
+    assert register_ncc(a, b, max_disagreement=None).consistent
+    with pytest.raises(ValueError, match="max_disagreement"):
+        register_ncc(a, b, max_disagreement=-1.0)
+    with pytest.raises(ValueError, match="fallback_template_fraction"):
+        register_ncc(a, b, fallback_template_fraction=1.5)

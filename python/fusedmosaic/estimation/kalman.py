@@ -30,8 +30,16 @@ Reading choices where the paper leaves room (all configurable in :class:`KalmanO
   with ``f`` extrapolated one step, is ``include_current=False``; it is about twice as noisy).
   Histories keep the last n *valid* samples with their step indices (failed registrations are
   skipped) and the angle history skips displacements too short to have a direction.
-- Eq. 14 by default uses the *relative* speed deviation ``|N - f| / max(f, speed_floor)`` so one
-  ``(k, x_r)`` works across scanning speeds; ``speed_relative=False`` gives the absolute one.
+- Eq. 14 compares N(i) with f(h_N) scale-free, as Eq. 17 compares the image and robot speeds:
+  deviation ``1 - min(N', f') / max(N', f')`` (``N' = N + speed_floor``), so one ``(k, x_r)``
+  works across scanning speeds and a stop is as unusual as a jump (the relative deviation
+  ``|N - f| / f``, ``speed_deviation="relative"``, caps a stop at 1, a mere doubling). It is
+  bounded, so c_speed >= normalize(1) ~ 0.002 and c_img (Eq. 16) >= ~0.13 (c_angle c_match)^(1/3):
+  at a stick-slip release (Sec. III-C) a correct registration (high c_match, consistent
+  direction) keeps c_img ~0.1-0.4, flagged (< 0.5) but still the better estimate of the jump
+  than the robot increment, which never contains the catch-up of the lag.
+- Still displacements (< ``angle_min_norm``) stay out of both histories
+  (``speed_history_skips_still``), so a stuck image keeps a low c_speed for the whole stick.
 - Eq. 17: ``r = min(n_I/n_r, n_r/n_I)`` is 1 when the speeds agree, and ``normalize`` decreases,
   so ``c_sp = normalize(1 - r)``: high for agreement, as the text below Eq. 17 requires ("tend
   to 1 if both displacements get close"). ``speed_floor`` is added to both norms so two
@@ -91,7 +99,8 @@ class KalmanOptions:
     ``c_rob0``, ``c_img0`` and the polynomial order; the rest are chosen so that a confidence is
     ~1 for smooth motion and ~0 for a clear outlier (see the module docstring)."""
 
-    # Eq. 9-10 base standard deviations of the robot and image displacements, px per frame.
+    # Eq. 9-10 base standard deviations of the robot and image displacements, px per frame
+    # (sigma_robot0 = inf: the robot's noise is unknown, the prior carries no information).
     sigma_robot0: float = 1.0
     sigma_image0: float = 1.0
     # Initial confidences, Sec. II-B: c_rob(0) = 10, c_img(0) = 1.
@@ -115,11 +124,20 @@ class KalmanOptions:
     # Displacements shorter than this (px/frame) have no usable direction: no c_angle, and
     # they are left out of the angle history.
     angle_min_norm: float = 0.25
-    # c_speed = normalize(|N - f(h_N)| / max(f(h_N), speed_floor), k, x_r): 0.5 at a 50 % change.
+    # c_speed = normalize(1 - min(N', f') / max(N', f'), k, x_r) (speed_deviation="ratio"):
+    # 0.5 when the speed halves or doubles, ~0.002 for a stop or an unbounded jump (never 0:
+    # a speed change alone cannot veto a registration that c_match and c_angle accept).
     speed_k: float = 4.0
     speed_x_r: float = 0.5
-    # False: absolute deviation |N - f(h_N)| in px/frame (then set speed_x_r in px).
-    speed_relative: bool = True
+    # "ratio" (above), "relative" |N - f| / max(f, speed_floor) (0.5 at a 50 % change; a stop
+    # counts like a doubling) or "absolute" |N - f| in px/frame (then set speed_x_r in px).
+    speed_deviation: str = "ratio"
+    # Keep displacements shorter than angle_min_norm (a still image) out of the speed history,
+    # as they are kept out of the angle history: a still image while the scan goes on
+    # (stick-slip, Sec. III-C) stays unusual for as long as it lasts instead of becoming the
+    # reference after median_kernel // 2 frames. A deliberate stop is unaffected in effect:
+    # the robot stops too, so both estimates say ~0.
+    speed_history_skips_still: bool = True
     # px/frame; guards the relative speed and the Eq. 17 ratio against near-zero norms.
     speed_floor: float = 0.25
     # c_sp = normalize(1 - min(n_I/n_r, n_r/n_I), k, x_r): 0.5 when one norm is half the other.
@@ -132,7 +150,9 @@ class KalmanOptions:
     initial_variance: float = 0.0
 
     def __post_init__(self) -> None:
-        positive = ("sigma_robot0", "sigma_image0", "angle_k", "speed_k", "sp_k")
+        if not self.sigma_robot0 > 0:  # inf allowed: robot noise unknown, no robot information
+            raise ValueError(f"KalmanOptions.sigma_robot0 must be > 0, got {self.sigma_robot0}")
+        positive = ("sigma_image0", "angle_k", "speed_k", "sp_k")
         for name in positive:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
@@ -143,6 +163,11 @@ class KalmanOptions:
                 raise ValueError(f"KalmanOptions.{name} must be a finite number >= 0, got {value}")
         if self.c_rob0 == 0 and self.c_img0 == 0:
             raise ValueError("KalmanOptions: c_rob0 and c_img0 cannot both be 0")
+        if self.speed_deviation not in ("ratio", "relative", "absolute"):
+            raise ValueError(
+                "KalmanOptions.speed_deviation must be 'ratio', 'relative' or 'absolute', got "
+                f"{self.speed_deviation!r}"
+            )
         if self.poly_degree < 0:
             raise ValueError(f"KalmanOptions.poly_degree must be >= 0, got {self.poly_degree}")
         if self.median_kernel < 1 or self.median_kernel % 2 == 0:
@@ -244,21 +269,34 @@ def speed_confidence(
     *,
     k: float = 4.0,
     x_r: float = 0.5,
-    relative: bool = True,
+    deviation: str = "ratio",
     floor: float = 0.25,
     median_kernel: int = 5,
     poly_degree: int = 3,
 ) -> float:
-    """Eq. 14: ``normalize(|N - f(h_N)|)``, by default relative to ``max(f(h_N), floor)``.
+    """Eq. 14: ``normalize(deviation(N, f(h_N)))``. ``deviation``: ``"ratio"`` (default)
+    ``1 - min(N', f') / max(N', f')`` with ``N' = N + floor``, ``f' = max(f, 0) + floor``;
+    ``"relative"`` ``|N - f| / max(f, floor)``; ``"absolute"`` ``|N - f|`` (px/frame).
 
     ``offsets``: step offsets of the history samples, see :func:`smoothed_prediction`."""
     reference = smoothed_prediction(
         norm_history, offsets, median_kernel=median_kernel, poly_degree=poly_degree
     )
-    deviation = abs(norm - reference)
-    if relative:
-        deviation /= max(reference, floor, np.finfo(np.float64).tiny)
-    return normalize(deviation, k, x_r)
+    if deviation == "ratio":
+        # Eq. 17's comparison of two speeds applied to N(i) and f(h_N): 0 when equal, -> 1 when
+        # one is much smaller, the same for a stop as for a jump (a speed change by a factor rho
+        # either way gives 1 - 1/rho).
+        a, b = norm + floor, max(reference, 0.0) + floor
+        dev = 1.0 - min(a, b) / max(a, b)
+    elif deviation == "relative":
+        dev = abs(norm - reference) / max(reference, floor, np.finfo(np.float64).tiny)
+    elif deviation == "absolute":
+        dev = abs(norm - reference)
+    else:
+        raise ValueError(
+            f"speed deviation must be 'ratio', 'relative' or 'absolute', got {deviation!r}"
+        )
+    return normalize(dev, k, x_r)
 
 
 def speed_agreement_confidence(
@@ -466,7 +504,7 @@ class RobotKalmanFilter:
                 offsets,
                 k=opt.speed_k,
                 x_r=opt.speed_x_r,
-                relative=opt.speed_relative,
+                deviation=opt.speed_deviation,
                 floor=opt.speed_floor,
                 **smooth,
             )
@@ -476,7 +514,7 @@ class RobotKalmanFilter:
             c_rob = robot_confidence(c_sp, c_img) if robot_ok else 0.0
         if not robot_ok:
             c_rob = 0.0
-        if image_ok:
+        if image_ok and not (opt.speed_history_skips_still and norm < opt.angle_min_norm):
             self._norm.append((step, norm))
             if norm >= opt.angle_min_norm:
                 self._alpha.append((step, alpha))

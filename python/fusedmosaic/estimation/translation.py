@@ -103,6 +103,18 @@ class RobotPriorOptions:
     robot_sigma_floor_px: float = 0.1
     # Frames with c_img at or above this feed the estimate: the 0.5 level of Eq. 15.
     robot_sigma_c_img: float = 0.5
+    # Forward/backward consistency and wide-range retry of register_ncc (ncc.py): the two
+    # directions must agree within this (px; below the probe's 3.5 µm optical resolution,
+    # Sec. III-B), else the 2/5 template retries over +-3/10 of the frame. None = no check.
+    max_disagreement_px: float | None = 3.0
+    fallback_template_fraction: float | None = 0.4
+    # Fused estimate: a registration whose directions still disagree is a failed one (c_img = 0,
+    # the robot places the frame), as a featureless frame. X_m (image only) keeps the average.
+    distrust_inconsistent: bool = True
+    # Until sigma_r0 has been measured (robot_sigma_min_frames trusted frames), the robot is
+    # uninformative (sigma_r0 = inf): the paper "chose to rely more on the image data than on
+    # the robot data at the start" (Sec. II-B). False: KalmanOptions.sigma_robot0 is used.
+    robot_unknown_at_start: bool = True
 
     def __post_init__(self) -> None:
         if not isinstance(self.kalman, KalmanOptions):
@@ -282,6 +294,12 @@ class RobotPriorMosaicker:
     def sigma_robot0(self) -> float:
         """The sigma_r0 (px) the next fused step will use (Eq. 9)."""
         o = self.options
+        if (
+            o.robot_unknown_at_start
+            and o.adaptive_robot_sigma
+            and len(self._innovations) < o.robot_sigma_min_frames
+        ):
+            return float("inf")
         if not o.adaptive_robot_sigma or len(self._innovations) < o.robot_sigma_min_frames:
             return o.kalman.sigma_robot0
         d = np.abs(np.concatenate(self._innovations))
@@ -375,6 +393,7 @@ class RobotPriorMosaicker:
 
         # Image registration against the anchor (frame i-1 unless it was blank or failed).
         dx, why_no_image = _NAN2, None
+        inconsistent = False
         if i > 0 and self.estimate != "robot":
             if blank:
                 why_no_image = "blank frame (constant image)"
@@ -389,10 +408,13 @@ class RobotPriorMosaicker:
                     max_displacement=self.options.max_displacement_px,
                     pyramid_levels=self.options.pyramid_levels,
                     presmooth_sigma=self.options.presmooth_sigma,
+                    max_disagreement=self.options.max_disagreement_px,
+                    fallback_template_fraction=self.options.fallback_template_fraction,
                 )
                 t1 = time.perf_counter()
                 timings["ncc"] = t1 - t0
                 dx, score = reg.dx, reg.score
+                inconsistent = self.options.distrust_inconsistent and not reg.consistent
                 if np.isfinite(dx).all():
                     conf["c_match"] = aligned_overlap_ssim(
                         self._anchor.image, gray, dx, downsample=self.options.ssim_downsample
@@ -427,7 +449,7 @@ class RobotPriorMosaicker:
             t0 = time.perf_counter()
             kf = self._kf
             previous = kf.position
-            if self._anchor is not None:
+            if self._anchor is not None and not inconsistent:
                 dx_img_f = self._anchor.x_f + dx - previous  # likelihood mean - X_f(i-1), Eq. 5
             if self._robot_anchor is not None and np.isfinite(robot).all():
                 r_um, r_xf = self._robot_anchor

@@ -22,7 +22,7 @@ similarity (Wang et al. 2004, the paper's ref. [17]) of the overlap of the two f
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -58,6 +58,12 @@ class NccResult:
         flipped so that both estimate ``dx``).
     score_forward, score_backward : float
         Peak NCC value of each direction.
+    consistent : bool
+        The forward and backward estimates agree within ``max_disagreement`` px (always True
+        when that check is off). False means at least one of the two peaks is a false match: the
+        averaged ``dx`` is then unreliable (a caller with another estimate should not use it).
+    fallback : bool
+        The result comes from the wide-range fallback search (see :func:`register_ncc`).
     """
 
     dx: np.ndarray
@@ -66,6 +72,8 @@ class NccResult:
     dx_backward: np.ndarray
     score_forward: float
     score_backward: float
+    consistent: bool = True
+    fallback: bool = False
 
     @property
     def disagreement(self) -> float:
@@ -150,8 +158,10 @@ def _find_template(
     max_shift: tuple[int, int],
     levels: int,
     refine_radius: int,
-) -> tuple[np.ndarray, float]:
-    """Top-left position (x, y) of ``template`` in ``image`` (sub-pixel) and its peak NCC.
+) -> tuple[np.ndarray, float, bool]:
+    """Top-left position (x, y) of ``template`` in ``image`` (sub-pixel), its peak NCC, and
+    whether the integer peak lies on the border of the search range (the true shift may then be
+    beyond the range: the peak is clipped).
 
     ``origin`` is the template's own top-left position (its position for a zero shift); the
     search covers ``origin +- max_shift``, clipped to the image.
@@ -211,7 +221,9 @@ def _find_template(
     elif 0 < py < ncc.shape[0] - 1:
         _, sub_y = _quadratic_peak(np.repeat(ncc[py - 1 : py + 2, px : px + 1], 3, axis=1))
     position = np.array([bx + px + sub_x, by + py + sub_y], dtype=np.float64)
-    return position, peak
+    ix, iy = bx + int(px), by + int(py)
+    on_range_border = ix in (lo_x, hi_x) or iy in (lo_y, hi_y)
+    return position, peak, on_range_border
 
 
 def register_ncc(
@@ -223,6 +235,8 @@ def register_ncc(
     pyramid_levels: int = 2,
     refine_radius: int = 2,
     presmooth_sigma: float = 0.0,
+    max_disagreement: float | None = 3.0,
+    fallback_template_fraction: float | None = 0.4,
 ) -> NccResult:
     """Register ``current`` (frame i) to ``previous`` (frame i-1) by forward/backward NCC.
 
@@ -248,12 +262,27 @@ def register_ncc(
         Gaussian blur (px) applied to both frames before matching, 0 = none (the paper uses
         none). A sigma of ~1-2 px damps pixel noise and the fibre-bundle honeycomb, which is
         fixed in image coordinates and otherwise pulls the NCC peak towards zero displacement.
+    max_disagreement : float or None
+        Largest distance (px) between the forward and backward estimates for the match to count
+        as ``consistent``. Both estimate the same dX, so on a true match they agree to the
+        sub-pixel registration noise (99th percentile 0.07 px on the simulator's good frames);
+        two peaks further apart than the probe's optical resolution (3.5 µm, paper 004
+        Sec. III-B, ~3.5 px at 1 µm/px) are different matches. The default 3 px stays below
+        it. None = no check (every result is consistent, no fallback for disagreement).
+    fallback_template_fraction : float or None
+        Template side of the wide-range retry made when the primary search is inconsistent or
+        its peak is clipped at the edge of its range: 2/5 searches +-3/10 of the frame (154 px
+        in x, 134 px in y at 512x448) instead of +-1/5, e.g. a stick-slip release that jumps
+        ~150 µm in one frame (Sec. III-C). Accepted only if its own directions agree; otherwise
+        the primary result is returned (``consistent`` tells whether to trust it). It runs on
+        the failing frames only. None = no retry (the paper's registration as written).
 
     Returns
     -------
     NccResult
         ``dx`` (2,) float64, with ``X_m(i) = X_m(i-1) + dx`` (Eq. 1). The integer NCC peak is
         refined to sub-pixel by a 2-D quadratic least-squares fit on its 3x3 neighbourhood.
+        ``consistent`` and ``fallback`` report the checks above.
 
     Raises
     ------
@@ -272,10 +301,61 @@ def register_ncc(
         raise ValueError(f"max_displacement must be >= 0 or None, got {max_displacement}")
     if not presmooth_sigma >= 0.0:
         raise ValueError(f"presmooth_sigma must be >= 0, got {presmooth_sigma}")
+    if max_disagreement is not None and not max_disagreement >= 0.0:
+        raise ValueError(f"max_disagreement must be >= 0 or None, got {max_disagreement}")
+    if fallback_template_fraction is not None and not 0.0 < fallback_template_fraction < 1.0:
+        raise ValueError(
+            f"fallback_template_fraction must be in (0, 1) or None, got "
+            f"{fallback_template_fraction}"
+        )
     if presmooth_sigma > 0.0:
         prev = cv2.GaussianBlur(prev, (0, 0), presmooth_sigma, borderType=cv2.BORDER_REFLECT)
         curr = cv2.GaussianBlur(curr, (0, 0), presmooth_sigma, borderType=cv2.BORDER_REFLECT)
 
+    primary = _register(
+        prev, curr, template_fraction, max_displacement, pyramid_levels, refine_radius
+    )
+    if primary is None:
+        return NccResult(
+            dx=np.full(2, np.nan),
+            score=0.0,
+            dx_forward=np.full(2, np.nan),
+            dx_backward=np.full(2, np.nan),
+            score_forward=0.0,
+            score_backward=0.0,
+            consistent=False,
+        )
+    result, clipped = primary
+    agree = max_disagreement is None or result.disagreement <= max_disagreement
+    result = replace(result, consistent=agree)
+    if fallback_template_fraction is None or (agree and not clipped):
+        return result
+    # The primary search failed its own check: the two directions disagree (a false peak in at
+    # least one) or the peak is clipped at the edge of the search range (the shift is larger
+    # than the 3/5 template can see, e.g. a stick-slip release). Retry with a smaller central
+    # template, whose search covers +-(1 - fraction)/2 of the frame, and accept it only if its
+    # own forward and backward estimates agree.
+    second = _register(
+        prev, curr, fallback_template_fraction, max_displacement, pyramid_levels, refine_radius
+    )
+    if second is None:
+        return result
+    retry, _ = second
+    if max_disagreement is None or retry.disagreement <= max_disagreement:
+        return replace(retry, consistent=True, fallback=True)
+    return result
+
+
+def _register(
+    prev: np.ndarray,
+    curr: np.ndarray,
+    template_fraction: float,
+    max_displacement: float | None,
+    pyramid_levels: int,
+    refine_radius: int,
+) -> tuple[NccResult, bool] | None:
+    """One forward + backward NCC search with a central template; None for a featureless
+    template. Also returns whether either peak was clipped at the edge of the search range."""
     h, w = prev.shape
     th, tw = int(template_fraction * h), int(template_fraction * w)
     if th < 3 or tw < 3 or th > h - 2 or tw > w - 2:
@@ -292,34 +372,30 @@ def register_ncc(
     while levels > 0 and min(th, tw) >> levels < _MIN_TEMPLATE_SIDE:
         levels -= 1
 
-    failed = NccResult(
-        dx=np.full(2, np.nan),
-        score=0.0,
-        dx_forward=np.full(2, np.nan),
-        dx_backward=np.full(2, np.nan),
-        score_forward=0.0,
-        score_backward=0.0,
-    )
     template_prev = prev[oy : oy + th, ox : ox + tw]
     template_curr = curr[oy : oy + th, ox : ox + tw]
     for t in (template_prev, template_curr):
         spread = float(t.max() - t.min())
         if spread <= _FLAT_TEMPLATE_STD * max(1.0, float(np.abs(t).max())):
-            return failed  # featureless template: NCC is undefined (OpenCV returns 1 everywhere)
+            return None  # featureless template: NCC is undefined (OpenCV returns 1 everywhere)
 
     # Forward: the template of frame i-1 at (ox, oy) is found at p in frame i; content moved by
     # p - origin = -dx.
-    pos_f, score_f = _find_template(curr, template_prev, (ox, oy), max_shift, levels, refine_radius)
+    pos_f, score_f, clip_f = _find_template(
+        curr, template_prev, (ox, oy), max_shift, levels, refine_radius
+    )
     dx_f = np.array([ox, oy], dtype=np.float64) - pos_f
     # Backward: the template of frame i is found at p' in frame i-1; content moved by
     # p' - origin = +dx.
-    pos_b, score_b = _find_template(prev, template_curr, (ox, oy), max_shift, levels, refine_radius)
+    pos_b, score_b, clip_b = _find_template(
+        prev, template_curr, (ox, oy), max_shift, levels, refine_radius
+    )
     dx_b = pos_b - np.array([ox, oy], dtype=np.float64)
     if max_displacement is not None:
         # The search window is rounded outward to whole pixels; enforce the stated bound.
         dx_f = np.clip(dx_f, -max_displacement, max_displacement)
         dx_b = np.clip(dx_b, -max_displacement, max_displacement)
-    return NccResult(
+    result = NccResult(
         dx=0.5 * (dx_f + dx_b),
         score=0.5 * (score_f + score_b),
         dx_forward=dx_f,
@@ -327,6 +403,8 @@ def register_ncc(
         score_forward=score_f,
         score_backward=score_b,
     )
+    # A user-set max_displacement is a deliberate bound, not a reason for a wider search.
+    return result, (clip_f or clip_b) and max_displacement is None
 
 
 def structural_similarity(
