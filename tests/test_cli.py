@@ -51,3 +51,26 @@ def test_simulate_black_frames_flag_uses_the_paper_list(tmp_path):
 def test_evaluate_bad_input(datasets, tmp_path, capsys):
     assert main(["evaluate", str(tmp_path), "--truth", str(datasets / "feto")]) == 2
     assert "homographies.csv: file not found" in capsys.readouterr().err
+
+
+def test_run_with_motion_sigma_from_an_independent_recording(datasets, tmp_path, capsys):
+    feto = datasets / "feto"
+    other = tmp_path / "calibration"
+    assert main(["--quiet", "simulate", "fetoscopy", str(other), "--n-frames", "20",
+                 "--seed", "7"]) == 0
+    out = tmp_path / "lba"
+    assert main(["--quiet", "run", str(feto), "--method", "lba-emt", "--out", str(out),
+                 "--no-report", "--motion-sigma-from", str(other)]) == 0
+    sigma = json.loads((out / "report.json").read_text())["parameters"]["motion_sigma"]
+    truth = np.loadtxt(other / "truth_poses.csv", delimiter=",", skiprows=1)[:, 1:]
+    second = truth[2:, 3:5] - 2 * truth[1:-1, 3:5] + truth[:-2, 3:5]  # SYN: no rotation
+    np.testing.assert_allclose(sigma[3:5], np.sqrt((second**2).mean(axis=0)), rtol=1e-9)
+    (other / "truth_poses.csv").unlink()
+    assert main(["run", str(feto), "--method", "lba-emt", "--out", str(tmp_path / "x"),
+                 "--motion-sigma-from", str(other)]) == 2
+    assert "truth_poses.csv: no reference poses to estimate the motion prior" in (
+        capsys.readouterr().err)
+    assert main(["run", str(feto), "--method", "pairwise", "--out", str(tmp_path / "y"),
+                 "--motion-sigma-from", str(other)]) == 2
+    assert "--motion-sigma-from applies to ba-emt and lba-emt" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()

@@ -83,6 +83,7 @@ class SequentialOptions:
     # (with the frames after it) for up to this many more steps, until two frames with visual
     # evidence follow it, so C_p ties it to both sides. 0 fixes it at once (the paper's LBA).
     hold_prior_only_steps: int = 2
+    history_steps: int = 1000  # step summaries and plane estimates kept (diagnostics, bounded)
     seed: int = 0
 
     @classmethod
@@ -104,6 +105,7 @@ class FrameResult:
     final: bool
     tracker_gated: bool = False
     timings: dict[str, float] = field(default_factory=dict)
+    plane: np.ndarray | None = None  # (3,) pi of the step that made the frame final
 
 
 class SequentialMosaicker:
@@ -141,8 +143,14 @@ class SequentialMosaicker:
         self._plane: np.ndarray | None = None
         self._next_id = 0
         self._last_timestamp = -np.inf
-        self.plane_history: list[tuple[int, np.ndarray]] = []
-        self.step_summaries: list = []
+        # The last history_steps window steps: (last frame id, pi) and C++ step summaries.
+        self.plane_history: deque = deque(maxlen=o.history_steps)
+        self.step_summaries: deque = deque(maxlen=o.history_steps)
+        self.num_steps = 0
+        # Pair registrations (window / start-up and spatial loop pairs): attempted, registered,
+        # correspondences of the registered ones.
+        self.pair_counts = {"attempted": 0, "registered": 0, "correspondences": 0,
+                            "loop_attempted": 0, "loop_registered": 0}
 
     @staticmethod
     def _frame_outline(camera) -> np.ndarray:
@@ -191,6 +199,7 @@ class SequentialMosaicker:
         self._recent.append((k, feats))
         timings["matching"] = time.perf_counter() - t0
         ok = [m for m in matches if m.ok]
+        self._count_pairs(matches, ok)
         for p in self._pending:  # a registered pair is visual evidence for both frames
             if any(m.frame_m == p["id"] for m in ok):
                 p["visual"] = True
@@ -206,7 +215,9 @@ class SequentialMosaicker:
         else:
             self.window.add_frame(k, None, tracker_pose)
             t0 = time.perf_counter()
-            loops = [m for m in self._match_loops(k, feats, tracker_pose) if m.ok]
+            loop_matches = self._match_loops(k, feats, tracker_pose)
+            loops = [m for m in loop_matches if m.ok]
+            self._count_pairs(loop_matches, loops, "loop_")
             timings["matching"] += time.perf_counter() - t0
             for m in ok + loops:
                 self.window.add_pair(m.frame_l, m.frame_m, *self._subsample(m))
@@ -233,6 +244,13 @@ class SequentialMosaicker:
         return list(self._finalized)
 
     # ----------------------------------------------------------------------------------------
+    def _count_pairs(self, attempted, registered, kind: str = "") -> None:
+        c = self.pair_counts
+        c[kind + "attempted"] += len(attempted)
+        c[kind + "registered"] += len(registered)
+        if not kind:
+            c["correspondences"] += sum(m.n_inliers for m in registered)
+
     def _subsample(self, m):
         """At most max_points_per_pair inliers of a pair, undistorted (pixels)."""
         pl, pm = subsample_inliers(m, self.options.max_points_per_pair, self.rng)
@@ -317,6 +335,7 @@ class SequentialMosaicker:
                 self.window.set_emt_sigma_scale(k, self.options.gate_sigma_scale)
             summary = self.window.redo(ids, keyframe_ids)
         self.step_summaries.append(summary)
+        self.num_steps += 1
         self._plane = np.asarray(self.window.plane())
         self.plane_history.append((ids[-1], self._plane.copy()))
         self._finalize(ids, [self.window.pose(k) for k in ids], gated,
@@ -357,7 +376,7 @@ class SequentialMosaicker:
             p["timings"]["keyframe_selection"] = keyframe_per_frame
             status = "placed" if p["visual"] else "prior-only"
             self._finalized.append(FrameResult(k, p["timestamp"], G, pose, status, True,
-                                               k in gated, p["timings"]))
+                                               k in gated, p["timings"], self._plane.copy()))
         for old in sorted(self._poses)[:-2]:
             del self._poses[old]  # keep only what the motion prediction needs
         if forget:
@@ -395,18 +414,25 @@ def run_lba_emt(dataset, *, progress: bool = True,
     mosaicker = SequentialMosaicker(dataset.camera, o)
     results: dict[int, FrameResult] = {}
     latency = np.zeros(n)
+    step_times: list[float] = []
     t_start = time.perf_counter()
     for k in tqdm(range(n), desc="lba-emt", disable=not progress, leave=False):
         image = dataset.frames[k]
         t0 = time.perf_counter()
         valid = dataset.pose_valid is not None and dataset.pose_valid[k]
+        steps_before = mosaicker.num_steps
         mosaicker.add_frame(image, float(dataset.timestamps[k]),
                             dataset.cam_from_world[k] if valid else None)
         latency[k] = time.perf_counter() - t0
+        if mosaicker.num_steps > steps_before:
+            step_times.append(mosaicker.step_summaries[-1].step_time_s)
         for r in mosaicker.finalized():
             results[r.frame_id] = r
+    steps_before = mosaicker.num_steps
     for r in mosaicker.flush():
         results[r.frame_id] = r
+    if mosaicker.num_steps > steps_before:
+        step_times.append(mosaicker.step_summaries[-1].step_time_s)
     total = time.perf_counter() - t_start
     G = np.stack([results[k].homography for k in range(n)])
     poses = np.stack([results[k].pose for k in range(n)])
@@ -415,19 +441,24 @@ def run_lba_emt(dataset, *, progress: bool = True,
               "keyframe_selection": "keyframe_selection"}
     timings = {name: float(sum(results[k].timings.get(key, 0.0) for k in range(n)))
                for name, key in stages.items()}
-    solve = np.array([s.step_time_s for s in mosaicker.step_summaries])
-    if len(solve) == 0:  # a sequence shorter than the bootstrap: no window step ran
-        solve = np.full(1, np.nan)
+    solve = np.array(step_times) if step_times else np.full(1, np.nan)
+    c = mosaicker.pair_counts
     details = {
         "latency_ms": {"median": float(np.median(latency) * 1e3),
                        "p95": float(np.percentile(latency, 95) * 1e3),
+                       "p99": float(np.percentile(latency, 99) * 1e3),
                        "frames_per_s": n / total},
         "window_step_ms": {"median": float(np.median(solve) * 1e3),
                            "p95": float(np.percentile(solve, 95) * 1e3),
-                           "steps": len(mosaicker.step_summaries)},
+                           "p99": float(np.percentile(solve, 99) * 1e3),
+                           "steps": len(step_times)},
+        "pairs": {"attempted": c["attempted"], "registered": c["registered"],
+                  "mean_correspondences": c["correspondences"] / max(c["registered"], 1),
+                  "loop_attempted": c["loop_attempted"],
+                  "loop_registered": c["loop_registered"]},
         "tracker_gated": [k for k in range(n) if results[k].tracker_gated],
-        # rows [last frame of the step, pi_x, pi_y, pi_z]: the plane after each window step
-        "plane_history": [[f, *p.tolist()] for f, p in mosaicker.plane_history],
+        # per frame: the plane of the step that made the frame final
+        "plane_history": [results[k].plane.tolist() for k in range(n)],
     }
     status = [results[k].status for k in range(n)]
     return MethodResult(G, status, poses=poses, plane=mosaicker._plane, timings=timings,
