@@ -10,7 +10,8 @@ through --work):
   pcle_cases  bench_pcle_cases.py seed 004 Tables I and II (the pCLE helper's benchmark)
   peers       bench_peers.py      cv2.Stitcher (SCANS) and a plain OpenCV SIFT chain, same frames
 With --others, the other helpers' benchmarks run too (solvers, pcle_core, sequential,
-compositing, offline; minutes each); their latest results are linked from the summary anyway.
+compositing, offline, lba_experiments; minutes each); their latest results are linked from the
+summary anyway.
 
     python bench/run_all.py            # full: <= 20 min on 2 cores; results in bench/results/
     python bench/run_all.py --quick    # smoke run (60-frame sequences), results in
@@ -49,7 +50,7 @@ BUDGET_S = 20 * 60
 QUICK_ROOT = REPO / "build" / "bench_quick"
 # cpp replays what table1 and latency saved; peers (the stitcher, the longest) goes last.
 MINE = ("table1", "latency", "cpp", "pcle_cases", "peers")
-OTHERS = ("solvers", "pcle_core", "sequential", "compositing", "offline")
+OTHERS = ("solvers", "pcle_core", "sequential", "compositing", "offline", "lba_experiments")
 
 
 def stage_command(
@@ -82,6 +83,8 @@ def stage_command(
         "compositing": ["--out", str(results / "compositing.json")]
         + ("--frames 200 --render-frames 150 --passes 1".split() if quick else []),
         "offline": ["--out", str(results / "offline.json")] + (["--frames", "40"] if quick else []),
+        "lba_experiments": ["--out", str(results / "lba_experiments.json")]
+        + (["--quick"] if quick else []),
     }[stage]
     script = "bench_pcle_cases.py" if stage == "pcle_cases" else f"bench_{stage}.py"
     return [sys.executable, str(BENCH / script), *args]
@@ -625,7 +628,7 @@ def summary_markdown(results: Path, run: dict | None) -> tuple[str, str, dict]:
     )
 
     others = []
-    for name in ("solvers", "pcle_core", "sequential", "compositing", "offline"):
+    for name in OTHERS:
         p = results / f"{name}.json"
         if p.is_file():
             md = p.with_suffix(".md")
