@@ -27,6 +27,10 @@ blank frame (constant image, e.g. a dropped frame) or a failed registration foll
 the last frame whose registration succeeded (the *anchor*), and the robot displacement is taken
 from the last frame that had a robot sample, so a gap costs accuracy but never breaks the chain.
 
+A registration whose forward and backward directions disagree even after the wide-range retry
+(``NccResult.consistent`` False, e.g. a low-contrast frame where one direction locks on noise)
+counts as failed for the fused estimate (``distrust_inconsistent``): the robot places the frame.
+
 Robot noise (``sigma_r0`` of Eq. 9). The paper gives no value for ``sigma_r0`` and ``sigma_i0``
 ("initial values", with ``sigma_r0(i)`` indexed by time in Eq. 9). The ratio decides everything:
 with an accurate robot the filter should follow the robot wherever the image is doubtful, with a
@@ -37,7 +41,9 @@ default (``adaptive_robot_sigma``) it is estimated online, as in innovation-base
 Kalman filtering (Mehra 1970, IEEE TAC 15(2)): ``sigma_r0`` = the robust scale (1.4826 x median
 absolute value) of the robot-minus-image displacement over the last ``robot_sigma_window``
 frames whose image was trusted (``c_img >= 0.5``), floored at ``robot_sigma_floor_px``. Until
-``robot_sigma_min_frames`` such frames exist, ``KalmanOptions.sigma_robot0`` is used. With
+``robot_sigma_min_frames`` such frames exist the robot is uninformative (``sigma_r0 = inf``,
+``robot_unknown_at_start``: the paper relies on the image at the start, Sec. II-B; else
+``KalmanOptions.sigma_robot0`` is used). With
 ``adaptive_robot_sigma=False`` the filter is the paper's with fixed ``sigma_robot0``.
 """
 
