@@ -96,6 +96,10 @@ VARIANTS = {  # filter variants, run with both robot files (#3 / #5)
             adaptive_robot_sigma=False, kalman=KalmanOptions(propagate_variance=True)
         ),
     ),
+    "ssim-normalized": (
+        "c_match = normalize(1 - SSIM, k=8, x_r=0.5) (Eq. 15) instead of the raw SSIM",
+        RobotPriorOptions(c_match_normalize=(8.0, 0.5)),
+    ),
 }
 RUN = {"ncc": run_ncc, "robot": run_robot, "kalman-robot": run_kalman_robot}
 
@@ -211,6 +215,11 @@ def evaluate_trajectory(name: str, root: Path, variants: bool = True) -> dict:
         "stats_um": table,
         "wilcoxon": tests,
         "c_img": _cimg_analysis(results["#5"], dataset, events),
+        "c_img_variants": {
+            v: _cimg_analysis(results[f"#5 {v}"], dataset, events)
+            for v in VARIANTS
+            if v != "default" and f"#5 {v}" in results
+        },
         "error_entry_um": {label: _error_entry(results[label], dataset, events) for label in CASES},
         "sigma_robot0_px_median": {
             label: float(
@@ -538,6 +547,16 @@ def markdown(report: dict) -> str:
             row("registration_wrong_gt5px_low", "< 0.5 where the NCC step is off by > 5 px"),
             row("registration_right_le5px_high", "> 0.5 where the NCC step is within 5 px"),
             "",
+        ]
+        if ev.get("c_img_variants"):
+            lines += ["The same for the #5 runs of the filter variants:", "",
+                      "| variant | c_img < 0.5 on event frames | c_img > 0.5 on good frames |",
+                      "|---|---|---|"]
+            for v, cv in ev["c_img_variants"].items():
+                lines.append(f"| {VARIANTS[v][0]} | {_fmt(100 * cv['event_low']['fraction'], 0)}"
+                             f" % | {_fmt(100 * cv['good_high']['fraction'], 0)} % |")
+            lines.append("")
+        lines += [
             "Where the error enters: sum over frames of |step error| (µm) by frame class. For "
             "the chained estimates (#1, #3, #5) every step error stays in all later positions; "
             "the robot-only #2 and #4 are absolute, so a step error during stick-slip is undone "

@@ -424,6 +424,8 @@ def test_bad_streaming_input(call, message):
         ({"robot_sigma_floor_px": 0.0}, r"robot_sigma_floor_px must be a finite number > 0"),
         ({"robot_sigma_min_frames": 60}, r"robot_sigma_min_frames must not exceed"),
         ({"kalman": {"sigma_robot0": 1.0}}, r"kalman must be a KalmanOptions"),
+        ({"c_match_normalize": (0.0, 0.5)}, r"c_match_normalize must be \(k > 0, x_r\)"),
+        ({"c_match_normalize": (8.0,)}, r"c_match_normalize must be \(k > 0, x_r\)"),
     ],
 )
 def test_bad_options(kwargs, message):
@@ -431,3 +433,21 @@ def test_bad_options(kwargs, message):
         RobotPriorOptions(**kwargs)
     with pytest.raises(ValueError, match=r"estimate must be one of"):
         RobotPriorMosaicker(Camera(64, 48), estimate="X_f")
+
+
+def test_c_match_normalize_maps_the_ssim_through_eq15(small):
+    """The non-default c_match = normalize(1 - SSIM) (Eq. 15): same registrations, c_match
+    replaced frame by frame."""
+    from fusedmosaic.estimation.kalman import normalize
+
+    ds = read_dataset(small)
+    raw = run_kalman_robot(ds, progress=False)
+    norm = run_kalman_robot(ds, progress=False,
+                            options=RobotPriorOptions(c_match_normalize=(8.0, 0.5)))
+    a = np.array(raw.details["confidences"]["c_match"], dtype=float)
+    b = np.array(norm.details["confidences"]["c_match"], dtype=float)
+    ok = np.isfinite(a)
+    assert ok.sum() > 5
+    np.testing.assert_allclose(b[ok], normalize(1.0 - a[ok], 8.0, 0.5), rtol=1e-9)
+    np.testing.assert_allclose(raw.details["trajectories_px"]["X_m"],
+                               norm.details["trajectories_px"]["X_m"])

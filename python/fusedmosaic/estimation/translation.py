@@ -57,7 +57,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from fusedmosaic.estimation.kalman import KalmanOptions, RobotKalmanFilter
+from fusedmosaic.estimation.kalman import KalmanOptions, RobotKalmanFilter, normalize
 from fusedmosaic.methods import MethodResult
 from fusedmosaic.registration.ncc import aligned_overlap_ssim, register_ncc
 
@@ -121,6 +121,12 @@ class RobotPriorOptions:
     # uninformative (sigma_r0 = inf): the paper "chose to rely more on the image data than on
     # the robot data at the start" (Sec. II-B). False: KalmanOptions.sigma_robot0 is used.
     robot_unknown_at_start: bool = True
+    # c_match (Sec. II-C) is the raw SSIM: "as this score is by definition between 0 and 1, it
+    # is not necessary to normalize" it. (k, x_r): c_match = normalize(1 - SSIM, k, x_r)
+    # (Eq. 15) instead, a confidence that is 0.5 at SSIM = 1 - x_r. Measured in
+    # bench/bench_pcle_cases.py ("ssim-normalized"): it flags low-contrast frames that still
+    # register correctly, which then follow the (noisier) robot.
+    c_match_normalize: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.kalman, KalmanOptions):
@@ -170,6 +176,13 @@ class RobotPriorOptions:
                 "RobotPriorOptions.robot_sigma_c_img must be in [0, 1], got "
                 f"{self.robot_sigma_c_img}"
             )
+        if self.c_match_normalize is not None:
+            values = np.asarray(self.c_match_normalize, dtype=np.float64)
+            if values.shape != (2,) or not np.isfinite(values).all() or not values[0] > 0.0:
+                raise ValueError(
+                    "RobotPriorOptions.c_match_normalize must be (k > 0, x_r) or None, got "
+                    f"{self.c_match_normalize!r}"
+                )
 
 
 def translation_homography(position) -> np.ndarray:
@@ -425,6 +438,9 @@ class RobotPriorMosaicker:
                     conf["c_match"] = aligned_overlap_ssim(
                         self._anchor.image, gray, dx, downsample=self.options.ssim_downsample
                     )
+                    if self.options.c_match_normalize is not None:
+                        slope, level = self.options.c_match_normalize
+                        conf["c_match"] = normalize(1.0 - conf["c_match"], slope, level)
                     timings["ssim"] = time.perf_counter() - t1
                 else:
                     why_no_image = (
