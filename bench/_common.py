@@ -10,6 +10,7 @@ import json
 import math
 import os
 import platform
+import tempfile
 import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, replace
@@ -206,6 +207,15 @@ def write_json(path: Path, obj) -> None:
     tmp = path.with_suffix(path.suffix + ".tmp")
     tmp.write_text(json.dumps(jsonable(obj), indent=1) + "\n")
     tmp.replace(path)
+
+
+def work_folder(work: Path | None):
+    """(folder, temporary directory or None): the --work folder if given, else a temporary one
+    that finish_run removes."""
+    if work is not None:
+        return Path(work), None
+    tmp = tempfile.TemporaryDirectory(prefix="fm_bench_")
+    return Path(tmp.name), tmp
 
 
 def finish_run(result: dict, out: Path, t_start: float, tmp=None) -> dict:

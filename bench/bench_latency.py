@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -36,6 +35,7 @@ from _common import (
     finish_run,
     machine_info,
     sequences,
+    work_folder,
 )
 
 
@@ -170,10 +170,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--out", type=Path, default=RESULTS / "latency.json")
     args = ap.parse_args(argv)
     t_start = time.perf_counter()
-    tmp = None
-    if args.work is None:
-        tmp = tempfile.TemporaryDirectory()
-        args.work = Path(tmp.name)
+    args.work, tmp = work_folder(args.work)
     from dataclasses import replace
 
     from fusedmosaic.simulation import PcleOptions, simulate_pcle

@@ -27,13 +27,21 @@ import argparse
 import json
 import shutil
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import cv2
 import numpy as np
-from _common import RESULTS, finish_run, fmt, machine_info, md_table, ratio
+from _common import (
+    FRAMES_PER_LAP,
+    RESULTS,
+    finish_run,
+    fmt,
+    machine_info,
+    md_table,
+    ratio,
+    work_folder,
+)
 
 from fusedmosaic import _core
 from fusedmosaic.estimation.bundle import BundleOptions, run_ba_emt, run_emt
@@ -49,8 +57,6 @@ from fusedmosaic.simulation import (
     generate_fetoscopy,
     simulate_fetoscopy,
 )
-
-FRAMES_PER_LAP = 37.5
 
 
 def syn(n: int, seed: int, **kw) -> FetoscopyOptions:
@@ -237,8 +243,7 @@ def main() -> None:
     p.add_argument("--out", type=Path, default=RESULTS / "lba_experiments.json")
     args = p.parse_args()
     t_start = time.perf_counter()
-    tmp = tempfile.TemporaryDirectory(prefix="fm_lba_")
-    work = Path(tmp.name)
+    work, tmp = work_folder(None)
     n = 60 if args.quick else 152
     seeds = 1 if args.quick else args.seeds
     res: dict = {"machine": machine_info(), "command": " ".join(sys.argv)}

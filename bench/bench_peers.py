@@ -41,6 +41,7 @@ from _common import (
     finish_run,
     machine_info,
     sequences,
+    work_folder,
 )
 
 RATIO = 0.75
@@ -324,10 +325,7 @@ def main(argv=None) -> dict:
         stitch_child(*args.stitch_child)
         return {}
     t_start = time.perf_counter()
-    tmp = None
-    if args.work is None:
-        tmp = tempfile.TemporaryDirectory()
-        args.work = Path(tmp.name)
+    args.work, tmp = work_folder(args.work)
     res: dict = {
         "benchmark": "peers on the same frames (bench/bench_peers.py)",
         "quick": args.quick,

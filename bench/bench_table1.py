@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -44,6 +43,7 @@ from _common import (
     ratio,
     record_bundle_problems,
     sequences,
+    work_folder,
 )
 
 # (row name, method, options factory (base sequence -> options or None))
@@ -233,10 +233,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--methods", nargs="*", default=None, help="subset of row names")
     args = ap.parse_args(argv)
     t_start = time.perf_counter()
-    tmp = None
-    if args.work is None:
-        tmp = tempfile.TemporaryDirectory()
-        args.work = Path(tmp.name)
+    args.work, tmp = work_folder(args.work)
     problems = args.work / "problems"
     machine = machine_info()
     rows_by_seq: dict[str, dict] = {}
