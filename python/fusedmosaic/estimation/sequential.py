@@ -83,7 +83,7 @@ class SequentialOptions:
     # (with the frames after it) for up to this many more steps, until two frames with visual
     # evidence follow it, so C_p ties it to both sides. 0 fixes it at once (the paper's LBA).
     hold_prior_only_steps: int = 2
-    history_steps: int = 1000  # step summaries and plane estimates kept (diagnostics, bounded)
+    history_steps: int = 1000  # window step summaries kept (diagnostics, bounded)
     seed: int = 0
 
     @classmethod
@@ -143,8 +143,8 @@ class SequentialMosaicker:
         self._plane: np.ndarray | None = None
         self._next_id = 0
         self._last_timestamp = -np.inf
-        # The last history_steps window steps: (last frame id, pi) and C++ step summaries.
-        self.plane_history: deque = deque(maxlen=o.history_steps)
+        # C++ summaries of the last history_steps window steps (each frame's plane is in its
+        # FrameResult).
         self.step_summaries: deque = deque(maxlen=o.history_steps)
         self.num_steps = 0
         # Pair registrations (window / start-up and spatial loop pairs): attempted, registered,
@@ -314,7 +314,6 @@ class SequentialMosaicker:
         for m in self._boot_matches:
             self.window.add_pair(m.frame_l, m.frame_m, *self._subsample(m))
         self._boot_feats, self._boot_matches = [], []
-        self.plane_history.append((ids[-1], self._plane.copy()))
         elapsed = (time.perf_counter() - t0) / len(ids)
         self._finalize(ids, [ba.pose(k) for k in ids], [], elapsed, 0.0, final_step)
 
@@ -337,7 +336,6 @@ class SequentialMosaicker:
         self.step_summaries.append(summary)
         self.num_steps += 1
         self._plane = np.asarray(self.window.plane())
-        self.plane_history.append((ids[-1], self._plane.copy()))
         self._finalize(ids, [self.window.pose(k) for k in ids], gated,
                        summary.step_time_s / len(ids), t_kf / len(ids), final_step)
 
@@ -414,25 +412,24 @@ def run_lba_emt(dataset, *, progress: bool = True,
     mosaicker = SequentialMosaicker(dataset.camera, o)
     results: dict[int, FrameResult] = {}
     latency = np.zeros(n)
-    step_times: list[float] = []
+    step_times: list[float] = []  # every step's (the mosaicker keeps the last history_steps)
+
+    def take(finals: list[FrameResult]) -> None:
+        """Results made final by the last call, and the time of its step (at most one)."""
+        if mosaicker.num_steps > len(step_times):
+            step_times.append(mosaicker.step_summaries[-1].step_time_s)
+        results.update({r.frame_id: r for r in finals})
+
     t_start = time.perf_counter()
     for k in tqdm(range(n), desc="lba-emt", disable=not progress, leave=False):
         image = dataset.frames[k]
         t0 = time.perf_counter()
         valid = dataset.pose_valid is not None and dataset.pose_valid[k]
-        steps_before = mosaicker.num_steps
         mosaicker.add_frame(image, float(dataset.timestamps[k]),
                             dataset.cam_from_world[k] if valid else None)
         latency[k] = time.perf_counter() - t0
-        if mosaicker.num_steps > steps_before:
-            step_times.append(mosaicker.step_summaries[-1].step_time_s)
-        for r in mosaicker.finalized():
-            results[r.frame_id] = r
-    steps_before = mosaicker.num_steps
-    for r in mosaicker.flush():
-        results[r.frame_id] = r
-    if mosaicker.num_steps > steps_before:
-        step_times.append(mosaicker.step_summaries[-1].step_time_s)
+        take(mosaicker.finalized())
+    take(mosaicker.flush())
     total = time.perf_counter() - t_start
     G = np.stack([results[k].homography for k in range(n)])
     poses = np.stack([results[k].pose for k in range(n)])
