@@ -34,17 +34,14 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from fusedmosaic.simulation._options import check_signs
+from fusedmosaic.simulation._options import option as _opt
 from fusedmosaic.simulation.textures import placenta_texture
 
 # Paper 000 Sec. 4.2.3: frames replaced by black frames in the loss-of-visual-information test.
 PAPER_BLACK_FRAMES = [7, 11, 12, 23, 24, 37, 38, 42, 43, 45, 51, 54]
 
 MOTIONS = ("syn", "handheld")
-
-
-def _opt(default, help_text: str):
-    """A dataclass field whose default and one-line help (used by the CLI) sit together."""
-    return field(default=default, metadata={"help": help_text})
 
 
 @dataclass
@@ -101,22 +98,24 @@ class FetoscopyOptions:
             raise ValueError(
                 f"FetoscopyOptions.width/height: must be >= 16 px, got {self.width}x{self.height}"
             )
-        for name in ("focal_factor", "fps", "distance_mm", "tracker_rate_hz"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"FetoscopyOptions.{name}: must be > 0, got {getattr(self, name)}")
-        for name in (
-            "noise_multiplier",
-            "rot_sigma_deg",
-            "trans_sigma_mm",
-            "image_noise_sigma",
-            "tracker_margin_s",
-            "radius_mm",
-            "step_px",
-        ):
-            if not getattr(self, name) >= 0:
-                raise ValueError(
-                    f"FetoscopyOptions.{name}: must be >= 0, got {getattr(self, name)}"
-                )
+        check_signs(
+            self,
+            positive=(
+                "focal_factor",
+                "fps",
+                "distance_mm",
+                "tracker_rate_hz",
+            ),
+            non_negative=(
+                "noise_multiplier",
+                "rot_sigma_deg",
+                "trans_sigma_mm",
+                "image_noise_sigma",
+                "tracker_margin_s",
+                "radius_mm",
+                "step_px",
+            ),
+        )
         if not 0 <= self.distance_variation < 0.9:
             raise ValueError(
                 f"FetoscopyOptions.distance_variation: must be in [0, 0.9), "

@@ -29,21 +29,18 @@ Units and conventions:
 
 import json
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 from scipy.special import erf
 
+from fusedmosaic.simulation._options import check_signs
+from fusedmosaic.simulation._options import option as _opt
 from fusedmosaic.simulation.textures import cell_texture, fibre_bundle_pattern
 
 TRAJECTORIES = ("circle", "spiral")
-
-
-def _opt(default, help_text: str):
-    """A dataclass field whose default and one-line help (used by the CLI) sit together."""
-    return field(default=default, metadata={"help": help_text})
 
 
 @dataclass
@@ -95,37 +92,36 @@ class PcleOptions:
             raise ValueError(
                 f"PcleOptions.width/height: must be >= 32 px, got {self.width}x{self.height}"
             )
-        for name in (
-            "pixel_size_um",
-            "fps",
-            "speed_um_per_frame",
-            "radius_um",
-            "laps",
-            "spiral_turns",
-            "z_period_s",
-            "contact_fade_um",
-            "slip_lag_um",
-            "slip_time_s",
-            "robot_rate_hz",
-            "robot_noise_corr_s",
-            "cell_size_um",
-            "fibre_spacing_px",
-        ):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"PcleOptions.{name}: must be > 0, got {getattr(self, name)}")
-        for name in (
-            "n_frames",
-            "z_amplitude_um",
-            "line_um",
-            "robot_noise",
-            "robot_margin_s",
-            "image_noise_sigma",
-            "noise_floor",
-            "fibre_contrast",
-            "spiral_inner_um",
-        ):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"PcleOptions.{name}: must be >= 0, got {getattr(self, name)}")
+        check_signs(
+            self,
+            positive=(
+                "pixel_size_um",
+                "fps",
+                "speed_um_per_frame",
+                "radius_um",
+                "laps",
+                "spiral_turns",
+                "z_period_s",
+                "contact_fade_um",
+                "slip_lag_um",
+                "slip_time_s",
+                "robot_rate_hz",
+                "robot_noise_corr_s",
+                "cell_size_um",
+                "fibre_spacing_px",
+            ),
+            non_negative=(
+                "n_frames",
+                "z_amplitude_um",
+                "line_um",
+                "robot_noise",
+                "robot_margin_s",
+                "image_noise_sigma",
+                "noise_floor",
+                "fibre_contrast",
+                "spiral_inner_um",
+            ),
+        )
         if self.trajectory == "spiral" and not self.spiral_inner_um < self.radius_um:
             raise ValueError(
                 f"PcleOptions.spiral_inner_um: must be below radius_um "

@@ -1,0 +1,22 @@
+"""Pieces shared by the simulators' option dataclasses (FetoscopyOptions, PcleOptions)."""
+
+from __future__ import annotations
+
+from dataclasses import field
+
+
+def option(default, help_text: str):
+    """A dataclass field whose default and one-line help (used by the CLI) sit together."""
+    return field(default=default, metadata={"help": help_text})
+
+
+def check_signs(options, *, positive=(), non_negative=()) -> None:
+    """Raise ValueError naming the first field of `positive` not > 0, then of `non_negative`
+    not >= 0 (NaN fails both)."""
+    cls = type(options).__name__
+    for names, ok, rule in ((positive, lambda v: v > 0, "> 0"),
+                            (non_negative, lambda v: v >= 0, ">= 0")):
+        for name in names:
+            value = getattr(options, name)
+            if not ok(value):
+                raise ValueError(f"{cls}.{name}: must be {rule}, got {value}")
