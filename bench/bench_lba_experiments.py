@@ -15,7 +15,7 @@ simulator (issue 4, item 5). The suite runs short versions (tests/test_sequentia
    the paper's and the estimated Sigma_p; ba-emt beside them; and the floor of C_EMT + C_p for
    these black frames: the true poses of all textured frames held constant and only the black
    ones estimated. The run's report (plane and pose components against truth and the tracker,
-   the paper's Fig. 10b-c) is written to bench/results/fig10/.
+   the paper's Fig. 10b-c) is written to fig10/ beside the JSON (bench/results/fig10/).
 
     python bench/bench_lba_experiments.py [--seeds 4] [--quick]
                                           [--out bench/results/lba_experiments.json]
@@ -158,7 +158,7 @@ def black_floor(ds, truth_poses, plane, black, sigma) -> float:
     return float(e[sorted(black)].mean())
 
 
-def black_frames(work: Path, n: int) -> dict:
+def black_frames(work: Path, n: int, results: Path) -> dict:
     root = work / "black"
     black = [k for k in PAPER_BLACK_FRAMES if k < n]
     simulate_fetoscopy(root, syn(n, 0, black_frames=black), overwrite=True)
@@ -191,10 +191,10 @@ def black_frames(work: Path, n: int) -> dict:
     report_dir = work / "fig10_run"
     run_dataset(root, "lba-emt", report_dir, progress=False,
                 options=SequentialOptions(motion_sigma=est))
-    dest = RESULTS / "fig10"
+    dest = results / "fig10"
     shutil.rmtree(dest, ignore_errors=True)
     shutil.copytree(report_dir / "plots", dest)
-    out["plots"] = sorted(str(p.relative_to(RESULTS)) for p in dest.iterdir())
+    out["plots"] = sorted(str(p.relative_to(results)) for p in dest.iterdir())
     return out
 
 
@@ -259,7 +259,7 @@ def main() -> None:
         mean["ratio_wo"] = ratio(mean["lba_wo"], mean["ba_wo"])
         res["drift_summary"][label] = mean
     res["emt_noise"] = emt_noise(work)
-    res["black"] = black_frames(work, 62)
+    res["black"] = black_frames(work, 62, args.out.parent)
     finish_run(res, args.out, t_start, tmp)
     args.out.with_suffix(".md").write_text(markdown(res))
     print(args.out.with_suffix(".md").read_text())
