@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from fusedmosaic import _core
+from fusedmosaic.simulation import circle_scene, plane_point_pairs
 
 K = np.array([[450.0, 0.0, 200.0], [0.0, 450.0, 200.0], [0.0, 0.0, 1.0]])
 SIZE = 400
@@ -53,31 +54,11 @@ BUDGET_S = 1.0  # design.md: BA+EMT over ~150 frames / ~1000 pairs, optimisation
 
 def make_problem(n_frames, n_pairs, n_points, rng, laps=4, radius=10.0, depth=35.0):
     """Ground truth, EMT measurements and correspondences of a SYN-like sequence."""
-    normal = np.array([0.06, -0.04, 1.0])
-    normal /= np.linalg.norm(normal)
-    plane = normal / (-depth * normal[2])
-    theta = np.linspace(0.0, 2.0 * np.pi * laps, n_frames, endpoint=False)
-    poses = np.zeros((n_frames, 6))
-    for k, th in enumerate(theta):
-        r = np.array([0.04 * np.sin(th), 0.04 * np.cos(th), 0.1 * np.sin(0.5 * th)])
-        center = np.array([radius * np.cos(th), radius * np.sin(th), 0.5 * np.sin(3 * th)])
-        poses[k] = np.r_[r, -_core.rotation_from_angle_axis(r) @ center]
-
-    centers = np.array([-_core.rotation_from_angle_axis(p[:3]).T @ p[3:] for p in poses])
-    dist = np.linalg.norm(centers[:, None, :2] - centers[None, :, :2], axis=2)
-    candidates = sorted((dist[l, m], l, m) for m in range(n_frames) for l in range(m + 1, n_frames))
-    pairs = []
-    for _, l, m in candidates:
-        pts_m = rng.uniform(0, SIZE, (6 * n_points, 2))
-        pts_l = _core.transfer_points(pts_m, poses[l], poses[m], plane, K)
-        inside = np.all((pts_l >= 0) & (pts_l < SIZE), axis=1)
-        if inside.sum() < n_points:
-            continue
-        pts_m, pts_l = pts_m[inside][:n_points], pts_l[inside][:n_points]
-        pairs.append((l, m, pts_l + rng.normal(0.0, 1.0, pts_l.shape), pts_m))
-        if len(pairs) == n_pairs:
-            break
-
+    poses, plane = circle_scene(n_frames, rng, laps=laps, radius=radius, depth=depth,
+                                normal=(0.06, -0.04, 1.0), rotation_jitter=0.0,
+                                height_jitter=0.5)
+    pairs = plane_point_pairs(poses, plane, K, SIZE, rng, n_points=n_points, noise_px=1.0,
+                              max_pairs=n_pairs)
     emt_sigma = np.r_[np.full(3, np.deg2rad(1.0)), np.full(3, 1.0)]
     emt = poses + rng.normal(0.0, 1.0, poses.shape) * emt_sigma
     plane_init = np.array([0.0, 0.0, -1.0 / 30.0])  # fronto-parallel guess, 5 mm off

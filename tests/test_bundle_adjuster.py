@@ -1,6 +1,6 @@
-"""BundleAdjuster (cpp/fusedmosaic/problem): BAVis and BAVis+EMT on seeded synthetic scenes made
-here with numpy (camera ~35 mm above a tilted plane, moving on a circle, K focal 450 px for
-400x400 frames, correspondences by exact plane transfer plus seeded noise)."""
+"""BundleAdjuster (cpp/fusedmosaic/problem): BAVis and BAVis+EMT on seeded image-free scenes
+(simulation/geometric.py: camera ~35 mm above a tilted plane, moving on a circle, K focal 450 px
+for 400x400 frames, correspondences by exact plane transfer plus seeded noise)."""
 
 import threading
 import time
@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from fusedmosaic import _core
+from fusedmosaic.simulation import circle_scene, plane_point_pairs
 
 K = np.array([[450.0, 0.0, 200.0], [0.0, 450.0, 200.0], [0.0, 0.0, 1.0]])
 SIZE = 400
@@ -16,40 +17,6 @@ EMT_NOISE = np.r_[np.full(3, np.deg2rad(1.0)), np.full(3, 1.0)]  # 1 deg, 1 mm (
 
 
 # ---------------------------------------------------------------- synthetic scenes
-
-
-def make_scene(n_frames, rng, laps=1.0, radius=8.0, depth=35.0):
-    """True poses (cam_from_world, (N, 6)) on a circle and the plane pi (3,)."""
-    normal = np.array([0.08, -0.05, 1.0])
-    normal /= np.linalg.norm(normal)
-    plane = normal / (-depth * normal[2])
-    theta = np.linspace(0.0, 2.0 * np.pi * laps, n_frames, endpoint=False)
-    poses = np.zeros((n_frames, 6))
-    for k, th in enumerate(theta):
-        r = np.array([0.04 * np.sin(th), 0.04 * np.cos(th), 0.1 * np.sin(0.5 * th)])
-        r += rng.normal(0.0, 0.002, 3)
-        center = np.array([radius * np.cos(th), radius * np.sin(th), rng.normal(0.0, 0.3)])
-        poses[k] = np.r_[r, -_core.rotation_from_angle_axis(r) @ center]
-    return poses, plane
-
-
-def make_pairs(poses, plane, rng, n_points=30, noise_px=0.0, max_distance=9.0):
-    """Pairs (l, m, points_l, points_m) between frames whose centres are within max_distance mm;
-    points_l get seeded Gaussian noise."""
-    centers = np.array([-_core.rotation_from_angle_axis(p[:3]).T @ p[3:] for p in poses])
-    pairs = []
-    for m in range(len(poses)):
-        for l in range(m + 1, len(poses)):
-            if np.linalg.norm(centers[l] - centers[m]) > max_distance:
-                continue
-            pts_m = rng.uniform(0, SIZE, (8 * n_points, 2))
-            pts_l = _core.transfer_points(pts_m, poses[l], poses[m], plane, K)
-            inside = np.all((pts_l >= 0) & (pts_l < SIZE), axis=1)
-            if inside.sum() < n_points:
-                continue
-            pts_m, pts_l = pts_m[inside][:n_points], pts_l[inside][:n_points]
-            pairs.append((l, m, pts_l + rng.normal(0.0, noise_px, pts_l.shape), pts_m))
-    return pairs
 
 
 def build(poses_init, pairs, plane_init, emt=None, **options):
@@ -84,9 +51,10 @@ PLANE_GUESS = np.array([0.0, 0.0, -1.0 / 30.0])  # fronto-parallel, 5 mm off
 @pytest.fixture(scope="module")
 def scene():
     rng = np.random.default_rng(7)
-    poses, plane = make_scene(20, rng)
-    exact = make_pairs(poses, plane, rng, n_points=30, noise_px=0.0)
-    noisy = make_pairs(poses, plane, rng, n_points=30, noise_px=1.0)
+    poses, plane = circle_scene(20, rng)
+    exact = plane_point_pairs(poses, plane, K, SIZE, rng, n_points=30, max_distance=9.0)
+    noisy = plane_point_pairs(poses, plane, K, SIZE, rng, n_points=30, noise_px=1.0,
+                              max_distance=9.0)
     emt = poses + rng.normal(0.0, 1.0, poses.shape) * EMT_NOISE
     return dict(poses=poses, plane=plane, exact=exact, noisy=noisy, emt=emt)
 

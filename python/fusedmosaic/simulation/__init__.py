@@ -1,5 +1,6 @@
 """Simulators with exact ground truth: the fetoscopy SYN replica (+ hand-held variant) of paper
-000 and the robot-scanned pCLE setup of paper 004, and their procedural textures."""
+000 and the robot-scanned pCLE setup of paper 004, their procedural textures, and image-free
+geometric scenes (poses, plane, exact correspondences) for the solver core."""
 
 from fusedmosaic.simulation.fetoscopy import (
     PAPER_BLACK_FRAMES,
@@ -10,6 +11,7 @@ from fusedmosaic.simulation.fetoscopy import (
     induced_homographies,
     simulate_fetoscopy,
 )
+from fusedmosaic.simulation.geometric import circle_scene, plane_point_pairs
 from fusedmosaic.simulation.pcle import PcleOptions, PcleScene, generate_pcle, simulate_pcle
 from fusedmosaic.simulation.textures import cell_texture, fibre_bundle_pattern, placenta_texture
 
@@ -20,12 +22,14 @@ __all__ = [
     "PcleOptions",
     "PcleScene",
     "cell_texture",
+    "circle_scene",
     "fibre_bundle_pattern",
     "frame_to_reference_truth",
     "generate_fetoscopy",
     "generate_pcle",
     "induced_homographies",
     "placenta_texture",
+    "plane_point_pairs",
     "simulate_fetoscopy",
     "simulate_pcle",
 ]
