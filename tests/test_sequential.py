@@ -247,6 +247,32 @@ def test_sequence_shorter_than_the_bootstrap(work):
     assert r["report"]["window_step_ms"]["steps"] == 0
 
 
+def test_startup_matches_only_predicted_overlaps(work):
+    """The start-up frames are matched against the earlier ones whose footprint, predicted from
+    the tracker and a provisional plane, overlaps by >= 30 % (startup_min_overlap), not all."""
+    data = simulate_fetoscopy(work / "startup45", FetoscopyOptions(n_frames=45, laps=45 / 37.5))
+    ds = read_dataset(data)
+    counts, errors = {}, {}
+    for overlap in (0.0, 0.3):  # 0 = every earlier start-up frame
+        options = SequentialOptions(startup_min_overlap=overlap)
+        mosaicker = SequentialMosaicker(ds.camera, options)
+        for k in range(40):  # the start-up only (bootstrap_frames = 40)
+            mosaicker.add_frame(ds.frames[k], float(ds.timestamps[k]), ds.cam_from_world[k])
+        counts[overlap] = dict(mosaicker.pair_counts)
+        res = run_lba_emt(ds, progress=False, options=options)
+        errors[overlap] = mosaic_error(frame_errors(res.homographies, ds.ground_truth, 400, 400))
+    assert counts[0.0]["attempted"] == 40 * 39 // 2
+    every, overlapping = counts[0.0], counts[0.3]
+    # measured on this sequence: 780 -> 283 attempts, 276 of them registered (369 of 780 with
+    # all pairs), 20.7k of the 23.5k correspondences: the skipped pairs that do register overlap
+    # little and carry few points
+    assert overlapping["attempted"] < 0.5 * every["attempted"]
+    assert overlapping["registered"] > 0.9 * overlapping["attempted"]
+    assert overlapping["correspondences"] > 0.8 * every["correspondences"]
+    assert errors[0.3] <= 1.25 * errors[0.0]  # measured 0.128 vs 0.121 px
+    assert errors[0.3] < 0.3 and errors[0.0] < 0.3  # px, against the simulator's truth
+
+
 def test_loss_of_visual_content_fig10(work):
     data = simulate_fetoscopy(work / "black62", FetoscopyOptions(
         n_frames=62, laps=62 / 37.5, black_frames=list(PAPER_BLACK_FRAMES)))

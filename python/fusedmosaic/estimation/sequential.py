@@ -34,6 +34,7 @@ from fusedmosaic.estimation.keyframes import KeyframeIndex
 from fusedmosaic.estimation.plane import estimate_plane
 from fusedmosaic.methods import MethodResult
 from fusedmosaic.registration.features import FeatureExtractor, FeatureOptions
+from fusedmosaic.registration.pair_selection import footprint_polygons, overlap_fraction
 from fusedmosaic.registration.pairs import MatchOptions, match_pair
 
 # Paper presets (Sec. 4.2): (W, chi_e, K, frames per cluster).
@@ -68,13 +69,15 @@ class SequentialOptions:
     # cannot repair it later: pairs between fixed cameras pin pi to their scale.
     # Measured on SYN-150: 15 frames -> e_M 0.30 px (plane 2.4 % deep), 25 -> 0.30, 40 -> 0.14.
     bootstrap_frames: int = 40
-    # Start-up frames are matched against every bootstrap_stride-th earlier start-up frame (and
-    # the window). 1 = all pairs, so the start-up adjustment is BA+EMT over the first frames
-    # exactly as ba-emt with --pair-selection all: every later frame is tied to it, and on SYN 152
-    # its e_M over frames 0-39 equals that of ba-emt run on those 40 frames alone (0.129 px;
-    # stride 4, ~190 instead of 780 attempts: 0.147). Cost measured on SYN: start-up frames
-    # 30.7 instead of 28.2 ms median, the start-up adjustment frame 154 instead of 106 ms.
-    bootstrap_stride: int = 1
+    # Start-up frames are matched against the window and every earlier start-up frame whose
+    # footprint, predicted from the tracker poses and a provisional plane (from the start-up
+    # pairs registered so far), overlaps theirs by >= this fraction of the smaller one (as
+    # ba-emt's EMT-guided pairs); 0 = all earlier start-up frames. The start-up adjustment is then
+    # ba-emt over the first frames with (nearly) all pairs that can register: every later frame is
+    # tied to it. On SYN 152 (bench/bench_sequential.py, bench_lba_experiments.py) all pairs gave
+    # e_M 0.136 px where a sparse stride-4 subset gave 0.152 (lba/ba 1.42 vs 1.59), but cost ORB
+    # 13 s over the 40 frames; the overlap test keeps the accuracy at a fraction of the attempts.
+    startup_min_overlap: float = 0.3
     # Spatial loop pairs (beyond the paper's Eq. 25 window; its Sec. 5 proposes such a
     # spatio-temporal window): each new frame is also matched against up to this many retained
     # older frames whose footprint, predicted from the drift-free tracker pose, overlaps it.
@@ -120,6 +123,7 @@ class SequentialMosaicker:
         self.distortion = camera.distortion
         self.size = (camera.width, camera.height)
         self._outline = self._frame_outline(camera)
+        self._fov_radius = camera.fov_mask_radius
         costs = _core.BundleAdjusterOptions(
             sigma_v_px=o.sigma_v_px, loss=o.loss, linear_solver=o.linear_solver,
             max_iterations=o.max_iterations, function_tolerance=1e-6, num_threads=1)
@@ -191,10 +195,8 @@ class SequentialMosaicker:
         timings["features"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
-        if self._plane is None:  # start-up: the window plus a sparse set of older frames
-            recent = {f.frame_id for _, f in self._recent}
-            against = [f for f in self._boot_feats if f.frame_id in recent
-                       or f.frame_id % self.options.bootstrap_stride == 0]
+        if self._plane is None:  # start-up: the window and the older frames that overlap
+            against = self._startup_candidates(tracker_pose)
         else:
             against = [f for _, f in self._recent]
         matches = [match_pair(feats, f_old, self.size, self.options.matching)
@@ -277,6 +279,35 @@ class SequentialMosaicker:
         near = [i for i in near if np.linalg.norm(self._loop_centroids[i] - centre)
                 < self._loop_radius]
         return [match_pair(feats, self._loop_feats[i], self.size, o.matching) for i in near]
+
+    def _startup_candidates(self, tracker_pose) -> list:
+        """Earlier start-up frames to match a new one against: those of the window, and the
+        others whose footprint, predicted from the tracker poses and a provisional plane,
+        overlaps the new frame's by >= startup_min_overlap. All of them while no plane can be
+        estimated yet, or when the new frame or an older one has no tracker pose."""
+        o = self.options
+        if tracker_pose is None or o.startup_min_overlap <= 0:
+            return list(self._boot_feats)
+        tracked = {p["id"]: p["tracker"] for p in self._pending if p["tracker"] is not None}
+        table = np.full((self._next_id, 6), np.nan)
+        for i, z in tracked.items():
+            table[i] = z
+        try:
+            plane = estimate_plane(self._boot_matches, table, self.K)
+        except ValueError:  # no registered start-up pair with tracker poses yet
+            return list(self._boot_feats)
+        recent = {f.frame_id for _, f in self._recent}
+        own = footprint_polygons(np.eye(3)[None], *self.size, self._fov_radius)[0]
+        against = []
+        for f in self._boot_feats:
+            i = f.frame_id
+            if i not in recent and i in tracked:
+                G = _core.transfer_homography(tracker_pose, tracked[i], plane, self.K)
+                poly = footprint_polygons(G[None], *self.size, self._fov_radius)[0]
+                if overlap_fraction(own, poly) < o.startup_min_overlap:
+                    continue
+            against.append(f)
+        return against
 
     def _predict_pose(self) -> np.ndarray | None:
         if len(self._poses) < 2:

@@ -47,6 +47,18 @@ def footprint_polygons(homographies: np.ndarray, width: int, height: int,
     return polys
 
 
+def overlap_fraction(a: np.ndarray | None, b: np.ndarray | None, area_a: float | None = None,
+                     area_b: float | None = None) -> float:
+    """Intersection area of two convex footprints (footprint_polygons) over the smaller one's
+    area; 0 when either is None. Pass the areas when they are already known."""
+    if a is None or b is None:
+        return 0.0
+    area_a = cv2.contourArea(a) if area_a is None else area_a
+    area_b = cv2.contourArea(b) if area_b is None else area_b
+    inter, _ = cv2.intersectConvexConvex(a, b)
+    return float(inter / max(min(area_a, area_b), 1e-9))
+
+
 def emt_guided_pairs(predicted: np.ndarray, width: int, height: int, *,
                      min_overlap: float = 0.3, max_per_frame: int | None = 20,
                      fov_radius: float | None = None, temporal_window: int = 2,
@@ -79,8 +91,7 @@ def emt_guided_pairs(predicted: np.ndarray, width: int, height: int, *,
                 continue
             if np.linalg.norm(centres[l] - centres[m]) > radii[l] + radii[m]:
                 continue  # bounding circles apart: cannot overlap
-            inter, _ = cv2.intersectConvexConvex(polys[l], polys[m])
-            frac = inter / max(min(areas[l], areas[m]), 1e-9)
+            frac = overlap_fraction(polys[l], polys[m], areas[l], areas[m])
             if frac >= min_overlap:
                 candidates.append((frac, m))
         chosen = [m for _, m in candidates if l - m <= temporal_window]
