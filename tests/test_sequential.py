@@ -210,10 +210,11 @@ def test_drift_fig8(drift_results):
 
 
 def test_lba_close_to_ba_emt(drift_results):
-    # The issue asks <= 1.25x. Measured over four SYN sequences (150/152 frames, seeds 0-2):
-    # 1.16-1.50x against EMT-guided BA+EMT, both well under 0.2 px; a window frame has ~6 pairs,
-    # a BA frame ~35. The bound asserted here is the weaker 2x; the 1.25x goal is not met on
-    # every seed (see the issue note).
+    # The issue asks <= 1.25x. Measured by bench/bench_lba_experiments.py on SYN 152, seeds 0-3:
+    # 1.50 / 1.98 / 0.54 / 1.02 x ba-emt (all pairs), ratio of the means 1.28, all under 0.15 px.
+    # Even BA+EMT over only the frames seen so far (a causal method with a full adjustment per
+    # step) is 1.18 / 1.51 / 0.79 / 1.05 x. The bound asserted here is the weaker 2x; the 1.25x
+    # goal is not met on every seed (see the issue note).
     assert drift_results["lba-emt"]["e_M_px"] <= 2.0 * drift_results["ba-emt"]["e_M_px"]
 
 
