@@ -100,6 +100,10 @@ VARIANTS = {  # filter variants, run with both robot files (#3 / #5)
         "c_match = normalize(1 - SSIM, k=8, x_r=0.5) (Eq. 15) instead of the raw SSIM",
         RobotPriorOptions(c_match_normalize=(8.0, 0.5)),
     ),
+    "flat-field": (
+        "frames divided by the fibre pattern (mean of the recording) before NCC, not in the paper",
+        RobotPriorOptions(flat_field=True),
+    ),
 }
 RUN = {"ncc": run_ncc, "robot": run_robot, "kalman-robot": run_kalman_robot}
 
@@ -127,6 +131,8 @@ def _runs(root: Path, variants: bool) -> dict:
                 out[f"{label} {name}"] = run_kalman_robot(
                     data[robot_file], progress=False, options=options
                 )
+            if options.flat_field:  # preprocessing: the image-only chain changes too
+                out[f"#1 {name}"] = run_ncc(data["robot.csv"], progress=False, options=options)
     return out, data["robot.csv"]
 
 

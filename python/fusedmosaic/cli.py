@@ -69,6 +69,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
         from fusedmosaic.estimation.motion import motion_sigma_from_recording
 
         overrides["motion_sigma"] = tuple(motion_sigma_from_recording(args.motion_sigma_from))
+    if args.flat_field:
+        if args.method not in ("ncc", "kalman-robot"):
+            raise ValueError(f"--flat-field applies to ncc and kalman-robot, not {args.method}")
+        from fusedmosaic.estimation.translation import RobotPriorOptions
+
+        options = RobotPriorOptions(flat_field=True)
     if args.pair_selection:
         if args.method not in ("ba", "ba-emt", "emt"):
             raise ValueError(f"--pair-selection applies to ba, ba-emt and emt, not {args.method}")
@@ -274,6 +280,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="ba-emt / lba-emt: estimate the constant-velocity prior's Sigma_p from "
                           "an independent recording's truth_poses.csv (paper 000 Sec. 4.2) "
                           "instead of the paper's appendix values")
+    run.add_argument("--flat-field", action="store_true",
+                     help="ncc / kalman-robot: divide the frames by the fibre bundle's fixed "
+                          "pattern (the mean of the recording's frames) before registration")
     run.add_argument("--allow-untracked", action="store_true",
                      help="flag frames outside the tracker's time span instead of failing")
     from fusedmosaic.compositing import BLENDS

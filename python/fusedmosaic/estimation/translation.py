@@ -59,7 +59,12 @@ from tqdm import tqdm
 
 from fusedmosaic.estimation.kalman import KalmanOptions, RobotKalmanFilter, normalize
 from fusedmosaic.methods import MethodResult
-from fusedmosaic.registration.ncc import aligned_overlap_ssim, register_ncc
+from fusedmosaic.registration.ncc import (
+    aligned_overlap_ssim,
+    fixed_pattern_gain,
+    flat_field,
+    register_ncc,
+)
 
 __all__ = [
     "ESTIMATES",
@@ -127,6 +132,12 @@ class RobotPriorOptions:
     # bench/bench_pcle_cases.py ("ssim-normalized"): it flags low-contrast frames that still
     # register correctly, which then follow the (noisier) robot.
     c_match_normalize: tuple[float, float] | None = None
+    # Not in the paper: divide every frame by the fibre bundle's fixed pattern, the mean of the
+    # recording's frames (registration/ncc.py fixed_pattern_gain), before NCC and SSIM. For raw
+    # fibre-bundle frames whose honeycomb NCC can lock on at low contrast. Batch methods only
+    # (the mean needs the whole recording); RobotPriorMosaicker takes a pattern directly.
+    # Measured in bench/bench_pcle_cases.py ("flat-field").
+    flat_field: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.kalman, KalmanOptions):
@@ -266,12 +277,20 @@ class RobotPriorMosaicker:
         converts robot positions and is required by the ``robot`` and ``fused`` estimates.
     options : :class:`RobotPriorOptions`, default paper settings.
     estimate : ``"fused"`` (X_f, default), ``"image"`` (X_m) or ``"robot"`` (X_r).
+    fixed_pattern : optional (H, W) gain image of the fibre bundle's fixed pattern (e.g.
+        ``registration.ncc.fixed_pattern_gain`` of a calibration recording); every frame is
+        divided by it before registration.
 
     Memory is bounded: only the anchor frame's image is kept.
     """
 
     def __init__(
-        self, camera, options: RobotPriorOptions | None = None, *, estimate: str = "fused"
+        self,
+        camera,
+        options: RobotPriorOptions | None = None,
+        *,
+        estimate: str = "fused",
+        fixed_pattern: np.ndarray | None = None,
     ) -> None:
         if estimate not in ESTIMATES:
             raise ValueError(f"estimate must be one of {tuple(ESTIMATES)}, got {estimate!r}")
@@ -292,6 +311,17 @@ class RobotPriorMosaicker:
         if pixel_size is not None and not (np.isfinite(pixel_size) and pixel_size > 0):
             raise ValueError(f"{source}: pixel_size_um must be a positive number, got {pixel_size}")
         self.pixel_size_um = None if pixel_size is None else float(pixel_size)
+        self.fixed_pattern = None
+        if fixed_pattern is not None:
+            gain = np.asarray(fixed_pattern, dtype=np.float32)
+            if gain.shape != (self.height, self.width):
+                raise ValueError(
+                    f"fixed_pattern: expected a ({self.height}, {self.width}) gain image (the "
+                    f"camera's size), got shape {gain.shape}"
+                )
+            if not (np.isfinite(gain).all() and (gain > 0).all()):
+                raise ValueError("fixed_pattern: gains must be finite and > 0")
+            self.fixed_pattern = gain
         self.reset()
 
     def reset(self) -> None:
@@ -394,6 +424,8 @@ class RobotPriorMosaicker:
         gray = None
         if image is not None:
             gray = self._prepare_image(image, i)
+            if self.fixed_pattern is not None:
+                gray = flat_field(gray, self.fixed_pattern)
         elif self.estimate != "robot":
             raise ValueError(f"frame {i}: an image is needed for the {self.estimate!r} estimate")
         blank = gray is not None and float(np.ptp(gray)) == 0.0
@@ -538,8 +570,15 @@ def _run(
         dataset.require_robot(method)
         dataset.require_pixel_size(method)
     options = RobotPriorOptions() if options is None else options
-    mosaicker = RobotPriorMosaicker(dataset.camera, options, estimate=estimate)
     n = len(dataset)
+    pattern = None
+    if options.flat_field and estimate != "robot":
+        try:
+            pattern = fixed_pattern_gain(dataset.frames[k] for k in range(n))
+        except ValueError as error:
+            raise ValueError(f"{dataset.root}: flat field: {error}") from None
+    mosaicker = RobotPriorMosaicker(dataset.camera, options, estimate=estimate,
+                                    fixed_pattern=pattern)
     robot = dataset.robot_xy_um
     results: list[FrameResult] = []
     read_s = 0.0

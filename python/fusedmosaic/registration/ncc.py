@@ -26,6 +26,12 @@ those frames (~6 ms at 512x448).
 
 ``aligned_overlap_ssim`` gives the matching confidence ``c_match`` of Sec. II-C: the structural
 similarity (Wang et al. 2004, the paper's ref. [17]) of the overlap of the two frames once aligned.
+
+``fixed_pattern_gain`` / ``flat_field`` (optional, not in the paper): raw fibre-bundle frames carry
+the bundle's honeycomb, fixed in the image while the tissue moves, and at low contrast NCC can
+lock on it at zero shift. Dividing each frame by the pattern (flat-field correction, as the
+endomicroscope's own calibration does) removes it; here the pattern is the per-pixel mean of a
+recording's frames, over which the moving tissue averages out.
 """
 
 from __future__ import annotations
@@ -37,6 +43,8 @@ import numpy as np
 
 __all__ = [
     "NccResult",
+    "fixed_pattern_gain",
+    "flat_field",
     "register_ncc",
     "aligned_overlap_ssim",
     "structural_similarity",
@@ -538,3 +546,41 @@ def aligned_overlap_ssim(
     if not data_range > 0.0:
         return 0.0  # both overlaps constant and equal in value: no structure to compare
     return float(np.clip(structural_similarity(a, b, data_range=data_range), 0.0, 1.0))
+
+
+def fixed_pattern_gain(frames, *, floor: float = 0.05) -> np.ndarray:
+    """Per-pixel gain of a fibre bundle's fixed pattern (mean 1, >= floor), float32 (H, W): the
+    mean of a recording's gray frames. The tissue must move across the recording for it to
+    average out; frames of differing sizes or fewer than two raise ValueError."""
+    total, count = None, 0
+    for k, frame in enumerate(frames):
+        frame = np.asarray(frame)
+        if frame.ndim == 3 and frame.shape[2] == 3:
+            frame = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+        gray = _as_gray_float32(frame, f"frame {k}")
+        if total is None:
+            total = np.zeros(gray.shape, np.float64)
+        elif gray.shape != total.shape:
+            raise ValueError(f"frame {k}: {gray.shape[1]}x{gray.shape[0]} differs from frame 0's "
+                             f"{total.shape[1]}x{total.shape[0]}; no common fixed pattern")
+        total += gray
+        count += 1
+    if count < 2:
+        raise ValueError(f"the fixed pattern is the mean of a recording's frames: got {count} "
+                         "frame(s), need at least 2 (over which the tissue moves)")
+    mean = total / count
+    level = float(mean.mean())
+    if not level > 0.0:
+        raise ValueError("the fixed pattern is the mean of the frames, and they are all black")
+    return np.maximum(mean / level, floor).astype(np.float32)
+
+
+def flat_field(image: np.ndarray, gain: np.ndarray) -> np.ndarray:
+    """image / gain (flat-field correction); uint8 stays uint8 (rounded, clipped to 0..255) so
+    that SSIM keeps its 8-bit constants, anything else becomes float32."""
+    if image.shape != gain.shape:
+        raise ValueError(f"image {image.shape} and fixed-pattern gain {gain.shape} differ in size")
+    out = image.astype(np.float32) / gain
+    if image.dtype == np.uint8:
+        return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+    return out
