@@ -117,22 +117,28 @@ def _events(root: Path) -> dict[str, np.ndarray]:
     }
 
 
-def _runs(root: Path, variants: bool) -> dict:
-    """All cases (and filter variants) on one dataset folder: MethodResults keyed by label."""
+def _variant_names(variants) -> list[str]:
+    """True: every non-default variant; False: none; else the names given."""
+    if variants is True:
+        return [v for v in VARIANTS if v != "default"]
+    return list(variants or [])
+
+
+def _runs(root: Path, variants) -> dict:
+    """All cases (and filter variants, see _variant_names) on one dataset folder: MethodResults
+    keyed by label."""
     data = {f: read_dataset(root, robot_file=f) for f in ("robot.csv", "robot_noisy.csv")}
     out = {}
     for label, (method, robot_file, _, _) in CASES.items():
         out[label] = RUN[method](data[robot_file], progress=False)
-    if variants:
-        for name, (_, options) in VARIANTS.items():
-            if name == "default":
-                continue
-            for label, robot_file in (("#3", "robot.csv"), ("#5", "robot_noisy.csv")):
-                out[f"{label} {name}"] = run_kalman_robot(
-                    data[robot_file], progress=False, options=options
-                )
-            if options.flat_field:  # preprocessing: the image-only chain changes too
-                out[f"#1 {name}"] = run_ncc(data["robot.csv"], progress=False, options=options)
+    for name in _variant_names(variants):
+        options = VARIANTS[name][1]
+        for label, robot_file in (("#3", "robot.csv"), ("#5", "robot_noisy.csv")):
+            out[f"{label} {name}"] = run_kalman_robot(
+                data[robot_file], progress=False, options=options
+            )
+        if options.flat_field:  # preprocessing: the image-only chain changes too
+            out[f"#1 {name}"] = run_ncc(data["robot.csv"], progress=False, options=options)
     return out, data["robot.csv"]
 
 
@@ -193,7 +199,7 @@ def _error_entry(result, dataset, events) -> dict:
     return {k: float(np.nansum(step[m])) for k, m in classes.items()}
 
 
-def evaluate_trajectory(name: str, root: Path, variants: bool = True) -> dict:
+def evaluate_trajectory(name: str, root: Path, variants=True) -> dict:
     results, dataset = _runs(root, variants)
     events = _events(root)
     n = len(dataset)
@@ -207,9 +213,8 @@ def evaluate_trajectory(name: str, root: Path, variants: bool = True) -> dict:
         }
     tests = {}
     pairs = [("#4", "#5"), ("#2", "#3")]
-    if variants:
-        pairs += [("#4", f"#5 {v}") for v in VARIANTS if v != "default"]
-        pairs += [("#2", f"#3 {v}") for v in VARIANTS if v != "default"]
+    pairs += [("#4", f"#5 {v}") for v in _variant_names(variants)]
+    pairs += [("#2", f"#3 {v}") for v in _variant_names(variants)]
     for a, b in pairs:
         tests[f"{a} vs {b}"] = {
             "even": _wilcoxon(errors[a][idx], errors[b][idx]),
@@ -588,16 +593,18 @@ def markdown(report: dict) -> str:
             "## Other seeds (defaults otherwise; means at the n evenly spaced frames)",
             "",
             "| trajectory | seed | #1 | #2 | #3 | #4 | #5 | #3/#2 | p #4 vs #5 | "
-            "c_img<0.5 events | c_img>0.5 good |",
-            "|---|---|---|---|---|---|---|---|---|---|---|",
+            "c_img<0.5 events | c_img>0.5 good | flat-field #1 | flat-field #5 | "
+            "flat-field #3/#2 |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         for r in report["seeds"]:
-            m = r["mean_even_um"]
+            m, f = r["mean_even_um"], r["flat_field_mean_even_um"]
             lines.append(
                 f"| {r['trajectory']} | {r['seed']} | {m['#1']:.1f} | {m['#2']:.1f} | "
                 f"{m['#3']:.1f} | {m['#4']:.1f} | {m['#5']:.1f} | {m['#3'] / m['#2']:.2f} | "
                 f"{r['p_4_vs_5_even']:.2g} | {100 * r['c_img_event_low']:.0f} % | "
-                f"{100 * r['c_img_good_high']:.0f} % |"
+                f"{100 * r['c_img_good_high']:.0f} % | {f['#1']:.1f} | {f['#5']:.1f} | "
+                f"{f['#3'] / m['#2']:.2f} |"
             )
         lines.append("")
     t = report["streaming"]
@@ -665,7 +672,7 @@ def main() -> None:
                     replace(PcleOptions(trajectory=name), seed=seed),
                     overwrite=True,
                 )
-                ev = evaluate_trajectory(name, root, variants=False)
+                ev = evaluate_trajectory(name, root, variants=("flat-field",))
                 idx = evenly_spaced(ev["frames"], N_EVEN[name])
                 e = ev["_errors"]
                 report["seeds"].append(
@@ -679,6 +686,10 @@ def main() -> None:
                         ],
                         "c_img_event_low": ev["c_img"]["event_low"]["fraction"],
                         "c_img_good_high": ev["c_img"]["good_high"]["fraction"],
+                        "flat_field_mean_even_um": {
+                            k: ev["stats_um"][f"{k} flat-field"]["even"]["mean"]
+                            for k in ("#1", "#3", "#5")
+                        },
                     }
                 )
             print(f"seed {seed}: done ({time.perf_counter() - t_start:.0f} s)")
