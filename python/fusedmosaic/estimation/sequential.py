@@ -284,6 +284,15 @@ class SequentialMosaicker:
                 < self._loop_radius]
         return [match_pair(feats, self._loop_feats[i], self.size, o.matching) for i in near]
 
+    def _pending_tracker_poses(self) -> tuple[dict, np.ndarray]:
+        """Tracker poses of the pending frames: {id: pose} and an (n, 6) table by frame id,
+        NaN where a frame has none."""
+        tracked = {p["id"]: p["tracker"] for p in self._pending if p["tracker"] is not None}
+        table = np.full((self._next_id, 6), np.nan)
+        for i, z in tracked.items():
+            table[i] = z
+        return tracked, table
+
     def _startup_candidates(self, tracker_pose) -> list:
         """Earlier start-up frames to match a new one against: those of the window, and the
         others whose footprint, predicted from the tracker poses and a provisional plane,
@@ -292,10 +301,7 @@ class SequentialMosaicker:
         o = self.options
         if tracker_pose is None or o.startup_min_overlap <= 0:
             return list(self._boot_feats)
-        tracked = {p["id"]: p["tracker"] for p in self._pending if p["tracker"] is not None}
-        table = np.full((self._next_id, 6), np.nan)
-        for i, z in tracked.items():
-            table[i] = z
+        tracked, table = self._pending_tracker_poses()
         try:
             plane = estimate_plane(self._boot_matches, table, self.K)
         except ValueError:  # no registered start-up pair with tracker poses yet
@@ -323,10 +329,7 @@ class SequentialMosaicker:
     def _bootstrap(self, final_step: bool = False) -> None:
         """BA+EMT over the first frames (all their pairs): plane and poses to start from."""
         t0 = time.perf_counter()
-        tracked = {p["id"]: p["tracker"] for p in self._pending if p["tracker"] is not None}
-        table = np.full((self._next_id, 6), np.nan)
-        for i, z in tracked.items():
-            table[i] = z
+        tracked, table = self._pending_tracker_poses()
         usable = [m for m in self._boot_matches if m.frame_l in tracked and m.frame_m in tracked]
         if not usable:
             raise ValueError(f"no pair among the first {len(self._pending)} frames could be "
