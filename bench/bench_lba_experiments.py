@@ -7,10 +7,11 @@ simulator (issue 4, item 5). The suite runs short versions (tests/test_sequentia
    kind (seed + 100, ground-truth poses; the paper's Sec. 4.2 procedure). Also e_M after
    removing the best single homography common to all frames (cv2.findHomography over every
    frame's grid points): the part of e_M that is a global error of the reference frame.
-   And a causal reference (paper Sigma_p): frames (a, b] take their e_j from BA+EMT over the
-   frames 0..b only, b every half lap from the start-up length on: what a method that freezes
-   each result with the full adjustment of everything seen so far would reach (the paper's
-   assumption (ii), without LBA's window), against which lba-emt's e_M can be read.
+   And a reference close to causal (paper Sigma_p): frames a..b-1 take their e_j from BA+EMT
+   over the first b frames only, b every half lap from the start-up length on (so a frame sees
+   at most half a lap ahead): roughly what a method that freezes each result after a full
+   adjustment of everything seen so far would reach (the paper's assumption (ii) without LBA's
+   window), against which lba-emt's e_M can be read.
 2. EMT noise (Fig. 9): 17 frames (a 6-frame start-up bundle adjustment so most frames go through
    the window), noise multipliers nu = 0.25 ... 4: lba-emt vs the EMT poses with the true plane.
 3. Loss of visual content (Fig. 10): 62 frames with the paper's 12 black frames. e_M on black
@@ -98,8 +99,9 @@ def global_part_removed(ds, res) -> float:
 
 
 def causal_ba_emt(ds, start: int) -> float:
-    """e_M where frames (a, b] come from BA+EMT over frames 0..b (b = start, then every half
-    lap, then the last frame): each result frozen with everything seen up to it."""
+    """e_M where frames a..b-1 come from BA+EMT over the first b frames (b = start, then every
+    half lap, then the sequence length): each block frozen after a full adjustment of
+    everything seen up to its end."""
     n = len(ds.frames)
     ends = sorted({*range(start, n, round(FRAMES_PER_LAP / 2)), n})
     e = np.full(n, np.nan)
@@ -238,8 +240,8 @@ def markdown(res: dict) -> str:
     lines += md_table(["seed", "Sigma_p", "lba-emt e_M", "ba-emt e_M", "lba/ba",
                        "lba e_M w/o global", "ba e_M w/o global", "lba drift",
                        "pairwise drift"], rows)
-    lines += ["", "Causal reference, paper Sigma_p (frames (a, b] from BA+EMT over frames 0..b, b "
-              "every half lap from the start-up length):", ""]
+    lines += ["", "Causal reference, paper Sigma_p (frames a..b-1 from BA+EMT over the first b "
+              "frames, b every half lap from the start-up length):", ""]
     lines += md_table(["seed", "causal ba-emt e_M", "ba-emt e_M", "causal/ba", "lba-emt e_M",
                        "lba/causal"],
                       [[r["seed"], fmt(r["causal ba-emt paper"]["e_M_px"], 3),

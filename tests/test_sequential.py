@@ -271,6 +271,9 @@ def test_startup_matches_only_predicted_overlaps(work):
     assert overlapping["registered"] > 0.9 * overlapping["attempted"]
     assert overlapping["correspondences"] > 0.8 * every["correspondences"]
     assert errors[0.3] <= 1.25 * errors[0.0]  # measured 0.128 vs 0.121 px
+    for bad in (float("nan"), 1.5, -0.1):
+        with pytest.raises(ValueError, match=r"startup_min_overlap must be a fraction in \[0, 1\]"):
+            SequentialMosaicker(ds.camera, SequentialOptions(startup_min_overlap=bad))
     assert errors[0.3] < 0.3 and errors[0.0] < 0.3  # px, against the simulator's truth
 
 

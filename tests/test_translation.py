@@ -480,11 +480,16 @@ def test_flat_field_removes_the_fibre_pattern(small_scene):
 
 def test_flat_field_option_end_to_end(small, tmp_path):
     ds = read_dataset(small)
-    result = run_ncc(ds, progress=False, options=RobotPriorOptions(flat_field=True))
     cam = ds.camera
-    errors = position_errors_um(result.homographies, ds.ground_truth, cam.width, cam.height,
-                                cam.pixel_size_um)
-    assert np.isfinite(errors).all() and errors.max() < 3.0  # µm, clean sequence
+
+    def errors(options):
+        result = run_ncc(ds, progress=False, options=options)
+        return position_errors_um(result.homographies, ds.ground_truth, cam.width, cam.height,
+                                  cam.pixel_size_um)
+
+    flat, raw = errors(RobotPriorOptions(flat_field=True)), errors(RobotPriorOptions())
+    # measured on this clean sequence: mean 0.10 µm with the pattern divided out, 0.24 without
+    assert np.isfinite(flat).all() and flat.mean() < raw.mean()
     out = tmp_path / "flat"
     assert main(["--quiet", "run", str(small), "--method", "kalman-robot", "--out", str(out),
                  "--no-report", "--flat-field"]) == 0
@@ -500,9 +505,28 @@ def test_flat_field_bad_input(small, tmp_path, capsys):
         fixed_pattern_gain([np.ones((8, 8), np.uint8), np.ones((8, 9), np.uint8)])
     with pytest.raises(ValueError, match=r"fixed_pattern: expected a \(48, 64\) gain image"):
         RobotPriorMosaicker(Camera(64, 48, pixel_size_um=1.0), fixed_pattern=np.ones((64, 48)))
-    with pytest.raises(ValueError, match=r"fixed_pattern: gains must be finite and > 0"):
+    with pytest.raises(ValueError, match=r"fixed_pattern: gains must be finite, >= 0 and not"):
         RobotPriorMosaicker(Camera(64, 48, pixel_size_um=1.0), fixed_pattern=np.zeros((48, 64)))
     assert main(["run", str(small), "--method", "robot", "--out", str(tmp_path / "r"),
                  "--flat-field"]) == 2
     assert "--flat-field applies to ncc and kalman-robot, not robot" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()
+
+
+def test_flat_field_masks_dark_pixels_and_keeps_blank_frames_blank(small_scene):
+    """Pixels without signal (gain 0) stay 0 instead of being amplified; a constant frame is
+    still recognised as blank (checked before the division); a pattern is scaled to mean 1."""
+    from fusedmosaic.registration.ncc import fixed_pattern_gain, flat_field
+
+    frames = [small_scene.render(k).copy() for k in range(small_scene.n_frames)]
+    for k, f in enumerate(frames):  # outside the field of view: dark noise (0-2 grey levels)
+        f[:, :20] = np.random.default_rng(k).integers(0, 3, (f.shape[0], 20))
+    gain = fixed_pattern_gain(frames)
+    assert (gain[:, :20] == 0).all() and (gain[:, 20:] > 0).all()
+    assert (flat_field(frames[0], gain)[:, :20] == 0).all()
+    camera = Camera(SMALL.width, SMALL.height, pixel_size_um=1.0)
+    m = RobotPriorMosaicker(camera, estimate="image", fixed_pattern=100.0 * gain)
+    np.testing.assert_allclose(m.fixed_pattern[gain > 0].mean(), 1.0, rtol=1e-5)
+    m.add_frame(frames[0], 0.0)
+    blank = m.add_frame(np.full_like(frames[0], 200), 0.1)
+    assert blank.status.startswith("unplaced") and "blank" in blank.status

@@ -123,6 +123,9 @@ class SequentialMosaicker:
 
     def __init__(self, camera, options: SequentialOptions | None = None):
         self.options = o = options or SequentialOptions()
+        if not 0.0 <= o.startup_min_overlap <= 1.0:
+            raise ValueError("SequentialOptions.startup_min_overlap must be a fraction in [0, 1], "
+                             f"got {o.startup_min_overlap}")
         self.K = camera.require_camera_matrix("lba-emt")
         self.distortion = camera.distortion
         self.size = (camera.width, camera.height)
@@ -297,7 +300,8 @@ class SequentialMosaicker:
         """Earlier start-up frames to match a new one against: those of the window, and the
         others whose footprint, predicted from the tracker poses and a provisional plane,
         overlaps the new frame's by >= startup_min_overlap. All of them while no plane can be
-        estimated yet, or when the new frame or an older one has no tracker pose."""
+        estimated yet, or when the new frame has no tracker pose; an older frame without a
+        tracker pose or a predicted footprint is always tried."""
         o = self.options
         if tracker_pose is None or o.startup_min_overlap <= 0:
             return list(self._boot_feats)
@@ -314,7 +318,9 @@ class SequentialMosaicker:
             if i not in recent and i in tracked:
                 G = _core.transfer_homography(tracker_pose, tracked[i], plane, self.K)
                 poly = footprint_polygons(G[None], *self.size, self._fov_radius)[0]
-                if overlap_fraction(own, poly) < o.startup_min_overlap:
+                # poly None: the provisional plane puts the footprint behind the camera; no
+                # prediction, so the frame is tried
+                if poly is not None and overlap_fraction(own, poly) < o.startup_min_overlap:
                     continue
             against.append(f)
         return against

@@ -278,8 +278,9 @@ class RobotPriorMosaicker:
     options : :class:`RobotPriorOptions`, default paper settings.
     estimate : ``"fused"`` (X_f, default), ``"image"`` (X_m) or ``"robot"`` (X_r).
     fixed_pattern : optional (H, W) gain image of the fibre bundle's fixed pattern (e.g.
-        ``registration.ncc.fixed_pattern_gain`` of a calibration recording); every frame is
-        divided by it before registration.
+        ``registration.ncc.fixed_pattern_gain`` of a calibration recording), scaled here to mean
+        1 over its non-zero pixels; every frame is divided by it before registration, pixels of
+        gain 0 (no signal, e.g. outside the field of view) become 0.
 
     Memory is bounded: only the anchor frame's image is kept.
     """
@@ -319,9 +320,9 @@ class RobotPriorMosaicker:
                     f"fixed_pattern: expected a ({self.height}, {self.width}) gain image (the "
                     f"camera's size), got shape {gain.shape}"
                 )
-            if not (np.isfinite(gain).all() and (gain > 0).all()):
-                raise ValueError("fixed_pattern: gains must be finite and > 0")
-            self.fixed_pattern = gain
+            if not (np.isfinite(gain).all() and (gain >= 0).all() and gain.max() > 0):
+                raise ValueError("fixed_pattern: gains must be finite, >= 0 and not all 0")
+            self.fixed_pattern = gain / float(gain[gain > 0].mean())  # mean 1 where it has signal
         self.reset()
 
     def reset(self) -> None:
@@ -424,11 +425,11 @@ class RobotPriorMosaicker:
         gray = None
         if image is not None:
             gray = self._prepare_image(image, i)
-            if self.fixed_pattern is not None:
-                gray = flat_field(gray, self.fixed_pattern)
         elif self.estimate != "robot":
             raise ValueError(f"frame {i}: an image is needed for the {self.estimate!r} estimate")
-        blank = gray is not None and float(np.ptp(gray)) == 0.0
+        blank = gray is not None and float(np.ptp(gray)) == 0.0  # before any flat-field
+        if gray is not None and self.fixed_pattern is not None:
+            gray = flat_field(gray, self.fixed_pattern)
         timings = dict.fromkeys(STAGES, 0.0)
         nan = float("nan")
         conf = dict.fromkeys(CONFIDENCES, nan)
@@ -572,7 +573,7 @@ def _run(
     options = RobotPriorOptions() if options is None else options
     n = len(dataset)
     pattern = None
-    if options.flat_field and estimate != "robot":
+    if options.flat_field and estimate != "robot" and n > 1:  # one frame: nothing to register
         try:
             pattern = fixed_pattern_gain(dataset.frames[k] for k in range(n))
         except ValueError as error:

@@ -549,14 +549,20 @@ def aligned_overlap_ssim(
 
 
 def fixed_pattern_gain(frames, *, floor: float = 0.05) -> np.ndarray:
-    """Per-pixel gain of a fibre bundle's fixed pattern (mean 1, >= floor), float32 (H, W): the
-    mean of a recording's gray frames. The tissue must move across the recording for it to
-    average out; frames of differing sizes or fewer than two raise ValueError."""
+    """Per-pixel gain of a fibre bundle's fixed pattern, float32 (H, W): the mean of a
+    recording's frames (gray, BGR or BGRA) scaled to mean 1; pixels whose mean is below
+    ``floor`` (no signal, e.g. outside a circular field of view) get gain 0, which
+    :func:`flat_field` turns into 0 instead of amplifying their noise. The tissue must move
+    across the recording for it to average out; frames of differing sizes or fewer than two
+    raise ValueError."""
     total, count = None, 0
     for k, frame in enumerate(frames):
         frame = np.asarray(frame)
-        if frame.ndim == 3 and frame.shape[2] == 3:
-            frame = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+        if frame.ndim == 3 and frame.shape[2] in (3, 4):
+            code = cv2.COLOR_BGR2GRAY if frame.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+            if frame.dtype not in (np.uint8, np.uint16, np.float32):
+                frame = frame.astype(np.float32)
+            frame = cv2.cvtColor(frame, code)
         gray = _as_gray_float32(frame, f"frame {k}")
         if total is None:
             total = np.zeros(gray.shape, np.float64)
@@ -572,15 +578,18 @@ def fixed_pattern_gain(frames, *, floor: float = 0.05) -> np.ndarray:
     level = float(mean.mean())
     if not level > 0.0:
         raise ValueError("the fixed pattern is the mean of the frames, and they are all black")
-    return np.maximum(mean / level, floor).astype(np.float32)
+    gain = mean / level
+    return np.where(gain >= floor, gain, 0.0).astype(np.float32)
 
 
 def flat_field(image: np.ndarray, gain: np.ndarray) -> np.ndarray:
-    """image / gain (flat-field correction); uint8 stays uint8 (rounded, clipped to 0..255) so
-    that SSIM keeps its 8-bit constants, anything else becomes float32."""
+    """image / gain (flat-field correction), 0 where the gain is 0; uint8 stays uint8
+    (rounded, clipped to 0..255) so that SSIM keeps its 8-bit constants, anything else becomes
+    float32."""
     if image.shape != gain.shape:
         raise ValueError(f"image {image.shape} and fixed-pattern gain {gain.shape} differ in size")
-    out = image.astype(np.float32) / gain
+    out = np.zeros(image.shape, np.float32)
+    np.divide(image.astype(np.float32), gain, out=out, where=gain > 0)
     if image.dtype == np.uint8:
         return np.clip(np.rint(out), 0, 255).astype(np.uint8)
     return out
