@@ -53,7 +53,6 @@ import time
 from collections import deque
 from dataclasses import asdict, dataclass, field, replace
 
-import cv2
 import numpy as np
 from tqdm import tqdm
 
@@ -63,6 +62,7 @@ from fusedmosaic.registration.ncc import (
     aligned_overlap_ssim,
     fixed_pattern_gain,
     flat_field,
+    gray_from_color,
     register_ncc,
 )
 
@@ -358,12 +358,7 @@ class RobotPriorMosaicker:
     # -- input checks --------------------------------------------------------------------------
 
     def _prepare_image(self, image, index: int) -> np.ndarray:
-        image = np.asarray(image)
-        if image.ndim == 3 and image.shape[2] in (3, 4):
-            code = cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
-            if image.dtype not in (np.uint8, np.uint16, np.float32):
-                image = image.astype(np.float32)
-            image = cv2.cvtColor(image, code)
+        image = gray_from_color(image)
         if image.ndim != 2:
             raise ValueError(
                 f"frame {index}: expected a (H, W) gray or (H, W, 3) BGR image, got an array of "

@@ -45,6 +45,7 @@ __all__ = [
     "NccResult",
     "fixed_pattern_gain",
     "flat_field",
+    "gray_from_color",
     "register_ncc",
     "aligned_overlap_ssim",
     "structural_similarity",
@@ -548,6 +549,18 @@ def aligned_overlap_ssim(
     return float(np.clip(structural_similarity(a, b, data_range=data_range), 0.0, 1.0))
 
 
+def gray_from_color(image) -> np.ndarray:
+    """(H, W, 3) BGR or (H, W, 4) BGRA -> (H, W) gray (OpenCV weights; other dtypes via
+    float32); any other array is returned as is (callers check its shape)."""
+    image = np.asarray(image)
+    if image.ndim == 3 and image.shape[2] in (3, 4):
+        code = cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+        if image.dtype not in (np.uint8, np.uint16, np.float32):
+            image = image.astype(np.float32)
+        image = cv2.cvtColor(image, code)
+    return image
+
+
 def fixed_pattern_gain(frames, *, floor: float = 0.05) -> np.ndarray:
     """Per-pixel gain of a fibre bundle's fixed pattern, float32 (H, W): the mean of a
     recording's frames (gray, BGR or BGRA) scaled to mean 1; pixels whose mean is below
@@ -557,13 +570,7 @@ def fixed_pattern_gain(frames, *, floor: float = 0.05) -> np.ndarray:
     raise ValueError."""
     total, count = None, 0
     for k, frame in enumerate(frames):
-        frame = np.asarray(frame)
-        if frame.ndim == 3 and frame.shape[2] in (3, 4):
-            code = cv2.COLOR_BGR2GRAY if frame.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
-            if frame.dtype not in (np.uint8, np.uint16, np.float32):
-                frame = frame.astype(np.float32)
-            frame = cv2.cvtColor(frame, code)
-        gray = _as_gray_float32(frame, f"frame {k}")
+        gray = _as_gray_float32(gray_from_color(frame), f"frame {k}")
         if total is None:
             total = np.zeros(gray.shape, np.float64)
         elif gray.shape != total.shape:
