@@ -131,6 +131,9 @@ class SequentialMosaicker:
         self.size = (camera.width, camera.height)
         self._outline = self._frame_outline(camera)
         self._fov_radius = camera.fov_mask_radius
+        # this frame's own footprint in its pixels (start-up pair selection)
+        self._own_footprint = footprint_polygons(np.eye(3)[None], *self.size,
+                                                 self._fov_radius)[0]
         costs = _core.BundleAdjusterOptions(
             sigma_v_px=o.sigma_v_px, loss=o.loss, linear_solver=o.linear_solver,
             max_iterations=o.max_iterations, function_tolerance=1e-6, num_threads=1)
@@ -311,19 +314,16 @@ class SequentialMosaicker:
         except ValueError:  # no registered start-up pair with tracker poses yet
             return list(self._boot_feats)
         recent = {f.frame_id for _, f in self._recent}
-        own = footprint_polygons(np.eye(3)[None], *self.size, self._fov_radius)[0]
-        against = []
-        for f in self._boot_feats:
-            i = f.frame_id
-            if i not in recent and i in tracked:
-                G = _core.transfer_homography(tracker_pose, tracked[i], plane, self.K)
-                poly = footprint_polygons(G[None], *self.size, self._fov_radius)[0]
-                # poly None: the provisional plane puts the footprint behind the camera; no
-                # prediction, so the frame is tried
-                if poly is not None and overlap_fraction(own, poly) < o.startup_min_overlap:
-                    continue
-            against.append(f)
-        return against
+        older = [f.frame_id for f in self._boot_feats
+                 if f.frame_id not in recent and f.frame_id in tracked]
+        G = np.array([_core.transfer_homography(tracker_pose, tracked[i], plane, self.K)
+                      for i in older]).reshape(-1, 3, 3)
+        polys = footprint_polygons(G, *self.size, self._fov_radius)
+        # poly None: the provisional plane puts the footprint behind the camera; no prediction,
+        # so the frame is tried
+        skip = {i for i, poly in zip(older, polys, strict=True) if poly is not None
+                and overlap_fraction(self._own_footprint, poly) < o.startup_min_overlap}
+        return [f for f in self._boot_feats if f.frame_id not in skip]
 
     def _predict_pose(self) -> np.ndarray | None:
         if len(self._poses) < 2:
