@@ -220,6 +220,25 @@ def test_blank_frame_follows_the_robot_and_the_chain_resumes(small, small_scene)
     assert np.abs(image[7].position - truth[7]).max() < 0.5
 
 
+@pytest.mark.parametrize("blank", [range(1, 4), range(1, 14)], ids=["first-frames", "all"])
+def test_blank_frames_before_sigma_r0_is_known_follow_the_robot(small, small_scene, blank):
+    """Until sigma_r0 is measured the robot is uninformative next to the image (Sec. II-B), but
+    a frame without image evidence still has the robot: the fused estimate follows it (it
+    stayed at the origin before), and the chain resumes once the frames are textured."""
+    dataset = read_dataset(small)  # perfect robot on a clean scan: following it is exact
+    frames = [dataset.frames[k] for k in range(len(dataset))]
+    for k in blank:
+        frames[k] = np.zeros_like(frames[k])
+    truth = small_scene.homographies[:, :2, 2]
+    fused = _stream(dataset, frames=frames)
+    robot = _stream(dataset, "robot", frames=frames)
+    for k in blank:
+        assert fused[k].status == "prior-only" and np.isinf(fused[k].sigma_robot0)
+        np.testing.assert_allclose(fused[k].position, robot[k].position, atol=1e-9)
+    errors = np.linalg.norm(np.stack([r.position for r in fused]) - truth, axis=1)
+    assert errors.max() < 0.5, errors  # was 36 px at the third blank frame
+
+
 def test_blank_frame_without_robot_sample_is_unplaced(small):
     dataset = read_dataset(small)
     frames = [dataset.frames[k] for k in range(len(dataset))]

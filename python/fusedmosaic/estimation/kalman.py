@@ -525,8 +525,11 @@ class RobotKalmanFilter:
         mu_like = self._position + (dx_img if image_ok else 0.0)  # Eq. 5
         previous = self._position
         if np.isinf(var_rob) and np.isinf(var_img):
-            # Robot missing and c_img = 0: the image is the only information left; use it.
-            position, variance = mu_like, np.full(2, np.inf)
+            # Neither variance is finite (a missing or failed input, or a robot whose sigma_r0
+            # is not known yet, e.g. the first frames blank): the displacement that exists is
+            # the only information left; the image's when both do (c_img = 0 only then).
+            position = mu_like if image_ok else mu_prior
+            variance = np.full(2, np.inf)
             prior_variance = float("inf")
         elif opt.propagate_variance:
             var_prior = self._variance + var_rob  # (2,), P- = P(i-1) + Q
