@@ -5,9 +5,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import sys
 import time
 import typing
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -42,15 +44,21 @@ def _dataclass_from_args(cls: type, args: argparse.Namespace):
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from fusedmosaic import simulation
+    from fusedmosaic.io.output import check_output_dir
 
     t0 = time.perf_counter()
+    target = check_output_dir(args.out, "dataset folder")
+    if target.is_dir() and any(target.iterdir()) and not args.overwrite:
+        raise ValueError(f"{target}: exists and is not empty (choose another folder, or pass "
+                         "--overwrite to replace it and everything in it)")
     if args.kind == "fetoscopy":
         options = _dataclass_from_args(simulation.FetoscopyOptions, args)
         if options.black_frames == []:  # bare --black-frames: the paper's list (Sec. 4.2.3)
             options.black_frames = list(simulation.PAPER_BLACK_FRAMES)
-        out = simulation.simulate_fetoscopy(args.out, options)
+        out = simulation.simulate_fetoscopy(args.out, options, overwrite=args.overwrite)
     else:
-        out = simulation.simulate_pcle(args.out, _dataclass_from_args(simulation.PcleOptions, args))
+        out = simulation.simulate_pcle(args.out, _dataclass_from_args(simulation.PcleOptions, args),
+                                       overwrite=args.overwrite)
     size = sum(p.stat().st_size for p in Path(out).rglob("*") if p.is_file())
     _say(args, f"wrote {args.kind} dataset to {out} ({size / 1e6:.1f} MB) "
                f"in {time.perf_counter() - t0:.1f} s")
@@ -60,6 +68,9 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     from fusedmosaic.runner import run_dataset
 
+    if not math.isfinite(args.fps) or args.fps <= 0:
+        raise ValueError(f"--fps: must be a finite number of frames per second > 0, got "
+                         f"{args.fps}")
     options = None
     overrides: dict = {}
     if args.motion_sigma_from:
@@ -137,17 +148,50 @@ def _format_table(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def _json_text(obj) -> str:
+    return json.dumps(obj, indent=2, allow_nan=True)
+
+
 def _write_json_atomic(path: Path, obj) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(obj, indent=2, allow_nan=True))
-    tmp.replace(path)
+    """path written through a unique temporary file beside it (removed on any failure)."""
+    import tempfile
+
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
+    try:
+        with open(fd, "w") as f:
+            f.write(_json_text(obj))
+        Path(tmp).replace(path)
+    finally:
+        Path(tmp).unlink(missing_ok=True)
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from fusedmosaic.evaluation import compare_position_errors, evaluate_output
+    from fusedmosaic.io import OutputWriter
+    from fusedmosaic.io.output import check_output_dir
 
+    if args.positions is not None and args.positions < 1:
+        raise ValueError(f"--positions: the number of evenly spaced frames must be >= 1, got "
+                         f"{args.positions}")
     outs = [Path(args.out), *(Path(p) for p in args.compare or [])]
+    # Where the results go is checked first; nothing is written until everything succeeded.
+    json_path = Path(args.json) if args.json else outs[0] / "evaluation.json"
+    md_path = json_path.with_suffix(".md")
+    if json_path.is_dir():
+        raise ValueError(f"--json {json_path}: is a folder; give a file name, e.g. "
+                         f"{json_path / 'evaluation.json'}")
+    if md_path == json_path:
+        raise ValueError(f"--json {json_path}: the report goes to NAME.md beside NAME.json; "
+                         "give a .json file name")
+    try:
+        check_output_dir(json_path.parent, "folder of the evaluation JSON",
+                         create_parent=False)
+    except ValueError as exc:
+        raise ValueError(f"--json {json_path}: {exc}") from None
     results = [evaluate_output(o, args.truth, positions_n=args.positions) for o in outs]
+    for r in results:
+        if "dataset_warning" in r:
+            print(f"fusedmosaic: warning: {r['dataset_warning']}", file=sys.stderr)
     report: dict = {"results": results}
     if len(results) > 1 and "position_errors_um" in results[0]:
         base = np.array([np.nan if e is None else e for e in results[0]["position_errors_um"]])
@@ -156,22 +200,32 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             other = np.array([np.nan if e is None else e for e in r["position_errors_um"]])
             test = compare_position_errors(base, other)
             report["wilcoxon"].append({"a": results[0]["output"], "b": r["output"], **test})
+    loaded = None if args.no_report else _load_for_report(outs, args.truth)
     _say(args, _format_table(results))
     for w in report.get("wilcoxon", []):
         _say(args, f"Wilcoxon signed-rank {Path(w['a']).name} vs {Path(w['b']).name}: "
                    f"p = {w['p_value']:.3g} (n = {w['n']})")
-    json_path = Path(args.json) if args.json else outs[0] / "evaluation.json"
-    _write_json_atomic(json_path, report)
+    plots = md_path.stem + "_plots"
+    # json, .md and plots replace the previous evaluation there as one set, or not at all.
+    with OutputWriter(json_path.parent,
+                      replaces=[json_path.name, md_path.name, plots + "/"]) as w:
+        w.write_text(json_path.name, _json_text(report))
+        if loaded is not None:
+            from fusedmosaic.evaluation.report import write_report
+
+            runs, truth = loaded
+            write_report(w.path(md_path.name).parent, runs, truth, name=md_path.name,
+                         title="fusedmosaic evaluation", plots_dir=plots)
     _say(args, f"wrote {json_path}")
-    if not args.no_report:
-        md = _evaluation_report(outs, args.truth, json_path.with_suffix(".md"))
-        _say(args, f"wrote {md} (plots in {md.parent / (md.stem + '_plots')})")
+    if loaded is not None:
+        _say(args, f"wrote {md_path} (plots in {md_path.parent / plots})")
     return 0
 
 
-def _evaluation_report(outs: list[Path], truth_root, md_path: Path) -> Path:
-    """evaluation.md + <stem>_plots/: e_j of every output on one plot, poses, plane, timing."""
-    from fusedmosaic.evaluation.report import load_run, load_truth, write_report
+def _load_for_report(outs: list[Path], truth_root):
+    """What evaluation.md shows (e_j of every output on one plot, poses, plane, timing), read
+    and checked before anything is written."""
+    from fusedmosaic.evaluation.report import load_run, load_truth
 
     truth = load_truth(truth_root)
     runs = [load_run(o, truth.frame_ids) for o in outs]
@@ -179,9 +233,7 @@ def _evaluation_report(outs: list[Path], truth_root, md_path: Path) -> Path:
     for r in runs:  # the same method twice: tell them apart by folder
         if labels.count(r.label) > 1:
             r.label = f"{r.label} ({Path(r.output).name})"
-    md_path.parent.mkdir(parents=True, exist_ok=True)
-    return write_report(md_path.parent, runs, truth, name=md_path.name,
-                        title="fusedmosaic evaluation", plots_dir=md_path.stem + "_plots")
+    return runs, truth
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -189,9 +241,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from fusedmosaic.compositing import BlendOptions, render_mosaic
     from fusedmosaic.evaluation import evaluate_output
     from fusedmosaic.io import read_dataset, read_homographies_csv
+    from fusedmosaic.io.output import check_output_dir
     from fusedmosaic.runner import run_dataset
 
-    root = Path(args.out)
+    root = check_output_dir(args.out, "demo folder")
     data = root / "dataset"
     t0 = time.perf_counter()
     if not (data / "camera.yaml").is_file():
@@ -261,6 +314,8 @@ def build_parser() -> argparse.ArgumentParser:
         p = sim_sub.add_parser(kind, help=f"{kind} dataset (see fusedmosaic.simulation)",
                                parents=[quiet])
         p.add_argument("out", help="output dataset folder (must not exist or be empty)")
+        p.add_argument("--overwrite", action="store_true",
+                       help="replace OUT and everything in it if it exists and is not empty")
         _add_dataclass_options(p, cls)
         p.set_defaults(func=_cmd_simulate)
 
@@ -331,14 +386,34 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Warnings from numpy and friends as one line, without the source line they came from."""
+    print(f"fusedmosaic: warning: {message}", file=sys.stderr)
+
+
+def _os_error(exc: OSError) -> str:
+    paths = [p for p in (exc.filename, exc.filename2) if p is not None]
+    where = " -> ".join(str(p) for p in paths)
+    what = exc.strerror or str(exc)
+    return f"{where}: {what}" if where else what
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return args.func(args)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            return args.func(args)
     except ValueError as exc:  # bad input: one clear line, no traceback
         print(f"fusedmosaic: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # the file system refused (full disk, permissions, ...)
+        print(f"fusedmosaic: error: {_os_error(exc)}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:  # the outputs are written atomically: nothing partial is left
+        print("fusedmosaic: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import dataclasses
+import json
+import math
 import time
 from pathlib import Path
 
 import numpy as np
 
 from fusedmosaic import methods
+from fusedmosaic.io.output import RUN_OUTPUTS
 
 # What each method needs from the dataset beyond frames and camera.yaml.
 NEEDS_TRACKING = {"ba-emt", "lba-emt", "emt"}
@@ -31,10 +34,20 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
     video: path of an MP4 of the mosaic's sequential creation (None: no video).
     report: also write report.md with PNG plots (plots/).
     Returns a short summary for the terminal."""
+    from fusedmosaic.evaluation.provenance import dataset_fingerprint
     from fusedmosaic.io import OutputWriter, read_dataset
 
     timings: dict[str, float] = {}
     run_method = methods.get(method)  # unknown method fails before any reading
+    if isinstance(fps, bool) or not isinstance(fps, (int, float, np.number)) \
+            or not (math.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps: must be a finite number > 0, got {fps}")
+    out = Path(out)
+    check_out_outside_dataset(out, Path(dataset_root))
+    if video is not None:
+        from fusedmosaic.compositing.video import check_video_suffix
+
+        check_video_suffix(video)
     t0 = time.perf_counter()
     dataset = read_dataset(dataset_root, fps=fps, robot_file=robot_file,
                            allow_untracked=allow_untracked)
@@ -48,32 +61,38 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
         dataset.require_pixel_size(method)
     timings["read_dataset"] = time.perf_counter() - t0
 
-    result = run_method(dataset, progress=progress, options=options)
-    timings.update(result.timings)
-    G = result.homographies
-    placed = np.isfinite(G).all(axis=(1, 2))
+    # OUT (and the video's folder) are checked before the computation; the outputs are
+    # collected in a temporary folder and replace OUT's previous run as a whole at the end.
+    if video is not None and not _inside(Path(video), out):
+        from fusedmosaic.io.output import check_output_dir
 
-    report_json = {
-        "method": method,
-        "paper_name": methods.REGISTRY[method][1],
-        "dataset": str(Path(dataset_root).resolve()),
-        "frames": len(G),
-        "placed": int(placed.sum()),
-        "parameters": result.parameters,
-        "timings_s": timings,
-        "frame_status": result.status,
-        **result.details,
-    }
-    errors = None
-    if dataset.ground_truth is not None:
-        from fusedmosaic.evaluation import drift_ratio, frame_errors, mosaic_error
+        check_output_dir(Path(video).parent, "video's folder")
+    with OutputWriter(out, replaces=previous_outputs(out)) as w:
+        result = run_method(dataset, progress=progress, options=options)
+        timings.update(result.timings)
+        G = result.homographies
+        placed = np.isfinite(G).all(axis=(1, 2))
 
-        errors = frame_errors(G, dataset.ground_truth, dataset.camera.width,
-                              dataset.camera.height)
-        report_json["metrics"] = {
-            "e_M_px": mosaic_error(errors), "drift_ratio": drift_ratio(errors),
-            "max_e_j_px": float(np.nanmax(errors)) if np.isfinite(errors).any() else None}
-    with OutputWriter(out) as w:
+        report_json = {
+            "method": method,
+            "paper_name": methods.REGISTRY[method][1],
+            "dataset": str(Path(dataset_root).resolve()),
+            "dataset_fingerprint": dataset_fingerprint(dataset),
+            "frames": len(G),
+            "placed": int(placed.sum()),
+            "parameters": result.parameters,
+            "timings_s": timings,
+            "frame_status": result.status,
+            **result.details,
+        }
+        if dataset.ground_truth is not None:
+            from fusedmosaic.evaluation import drift_ratio, frame_errors, mosaic_error
+
+            errors = frame_errors(G, dataset.ground_truth, dataset.camera.width,
+                                  dataset.camera.height)
+            report_json["metrics"] = {
+                "e_M_px": mosaic_error(errors), "drift_ratio": drift_ratio(errors),
+                "max_e_j_px": float(np.nanmax(errors)) if np.isfinite(errors).any() else None}
         w.write_homographies(dataset.frame_ids, G)
         if result.poses is not None:
             w.write_poses(dataset.frame_ids, result.poses)
@@ -88,14 +107,44 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
                                         "distance_mm": float(1.0 / np.linalg.norm(plane)),
                                         "camera_plane_distance_mm": dist})
         outputs = compose_outputs(w, dataset, result, G, blend=blend, canvas=canvas, video=video,
-                                  out=Path(out), progress=progress, timings=timings)
+                                  out=out, progress=progress, timings=timings)
         report_json["mosaic"] = outputs["mosaic"]
         if report:
             t0 = time.perf_counter()
             write_run_report(w, dataset, method, result, G, outputs, timings)
             timings["report"] = time.perf_counter() - t0
+        report_json["outputs"] = sorted({*w.written(), "report.json"})
         w.write_json("report.json", report_json)
-    return _summary(method, G, Path(out), report_json, outputs, report)
+    return _summary(method, G, out, report_json, outputs, report)
+
+
+def check_out_outside_dataset(out: Path, dataset_root: Path) -> None:
+    """OUT equal to the dataset folder or inside it (e.g. in frames/) would mix outputs into the
+    dataset: mosaic.png among the frames, report.json beside camera.yaml."""
+    root = dataset_root.resolve()
+    if root.is_dir() and _inside(out, root, or_equal=True):
+        where = "is the dataset folder" if out.resolve() == root else \
+            f"is inside the dataset folder {dataset_root}"
+        raise ValueError(f"{out}: the output folder {where}; writing there would corrupt the "
+                         "dataset: choose --out outside it")
+
+
+def previous_outputs(out: Path) -> list[str]:
+    """The output set a new run in OUT replaces: the known names, plus the files the previous
+    run listed in its report.json (e.g. a video inside OUT)."""
+    names = list(RUN_OUTPUTS)
+    try:
+        listed = json.loads((out / "report.json").read_text()).get("outputs")
+    except (OSError, ValueError, AttributeError):  # absent or not ours: the known names only
+        return names
+    if isinstance(listed, list):
+        names += [n for n in listed if isinstance(n, str) and n not in names]
+    return names
+
+
+def _inside(path: Path, folder: Path, *, or_equal: bool = False) -> bool:
+    path, folder = path.resolve(), folder.resolve()
+    return (or_equal and path == folder) or folder in path.parents
 
 
 def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=None, video=None,
@@ -164,10 +213,11 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
     if video is not None:
         t0 = time.perf_counter()
         target = Path(video)
-        try:  # a video inside OUT goes through the atomic writer with everything else
+        # Inside OUT or not, the video goes through the atomic writer with everything else.
+        if _inside(target, out):
             path = w.path(str(target.resolve().relative_to(out.resolve())))
-        except ValueError:
-            path = target
+        else:
+            path = w.external_path(target)
         n = write_creation_video(path, dataset.frames, G, cam.width, cam.height,
                                  (plan.x0, plan.y0, plan.x1, plan.y1), use=plan.use, mask=mask,
                                  blend=blend, fps=25.0, gains=gains, frame_ids=ids,

@@ -18,6 +18,16 @@ from fusedmosaic.compositing.blending import BlendOptions, as_blend_options, fov
 from fusedmosaic.compositing.incremental import IncrementalCanvas
 
 OUTLINE_BGR = (0, 255, 0)  # the current frame's outline: green
+# Containers that take OpenCV's 'mp4v' (MPEG-4 part 2) stream; others (.gif, .txt, none) fail.
+VIDEO_SUFFIXES = (".mp4", ".m4v", ".mov", ".avi", ".mkv")
+
+
+def check_video_suffix(path: str | Path) -> None:
+    """ValueError naming `path` unless its extension is one the mp4v writer supports."""
+    if Path(path).suffix.lower() not in VIDEO_SUFFIXES:
+        raise ValueError(f"{path}: unsupported video file extension "
+                         f"{Path(path).suffix or '(none)'!r}; use one of "
+                         f"{', '.join(VIDEO_SUFFIXES)}")
 
 
 def fov_outline(width: int, height: int, mask: np.ndarray | None = None,
@@ -51,6 +61,7 @@ class MosaicVideoWriter:
             options = BlendOptions("linear", border_px=options.border_px)
         if not fps > 0:
             raise ValueError(f"video fps must be > 0, got {fps}")
+        check_video_suffix(path)
         self.path = Path(path)
         x0, y0, x1, y1 = bounds
         self.scale = min(1.0, max_side / max(x1 - x0, y1 - y0))

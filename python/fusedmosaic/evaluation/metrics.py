@@ -31,7 +31,8 @@ def grid_points(width: int, height: int, n: int = GRID_SIZE) -> np.ndarray:
 def _apply(H: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """Applies each (3,3) of H (N,3,3) to pts (P,2): returns (N,P,2)."""
     hom = np.einsum("nij,pj->npi", H, np.hstack([pts, np.ones((len(pts), 1))]))
-    return hom[..., :2] / hom[..., 2:]
+    with np.errstate(divide="ignore", invalid="ignore"):  # degenerate rows: inf/NaN, unplaced
+        return hom[..., :2] / hom[..., 2:]
 
 
 def _check_stack(H: np.ndarray, name: str) -> np.ndarray:
@@ -122,16 +123,31 @@ def compare_position_errors(errors_a: np.ndarray, errors_b: np.ndarray) -> dict:
     ok = np.isfinite(errors_a) & np.isfinite(errors_b)
     if ok.sum() < 2:
         raise ValueError("Wilcoxon test needs at least 2 frames placed by both methods")
-    res = stats.wilcoxon(errors_a[ok], errors_b[ok])
-    return {"n": int(ok.sum()), "statistic": float(res.statistic), "p_value": float(res.pvalue),
+    if np.all(errors_a[ok] == errors_b[ok]):  # no difference at all: nothing to rank
+        statistic, p_value = 0.0, 1.0
+    else:
+        res = stats.wilcoxon(errors_a[ok], errors_b[ok])
+        statistic, p_value = float(res.statistic), float(res.pvalue)
+    return {"n": int(ok.sum()), "statistic": statistic, "p_value": p_value,
             "mean_a": float(errors_a[ok].mean()), "mean_b": float(errors_b[ok].mean())}
 
 
 def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
                     positions_n: int | None = None) -> dict:
-    """Scores an output folder's homographies.csv against a dataset's ground_truth.csv."""
+    """Scores an output folder's homographies.csv against a dataset's ground_truth.csv.
+
+    positions_n: also the position statistics at that many evenly spaced frames (>= 1).
+    When the output's report.json records another dataset than `truth_root`, the result's
+    "dataset_warning" says so (see evaluation.provenance)."""
+    from fusedmosaic.evaluation.provenance import dataset_mismatch
+    from fusedmosaic.evaluation.report import read_json_object
     from fusedmosaic.io import read_dataset, read_homographies_csv
 
+    if positions_n is not None and (isinstance(positions_n, bool)
+                                    or not isinstance(positions_n, (int, np.integer))
+                                    or positions_n < 1):
+        raise ValueError(f"positions: the number of evenly spaced frames must be an integer "
+                         f">= 1, got {positions_n!r}")
     out_dir, truth_root = Path(out_dir), Path(truth_root)
     dataset = read_dataset(truth_root)
     if dataset.ground_truth is None:
@@ -161,6 +177,11 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
         "drift_ratio": drift_ratio(errors),
         "e_j_px": [None if not np.isfinite(e) else float(e) for e in errors],
     }
+    report_path = out_dir / "report.json"
+    if report_path.is_file():
+        warning = dataset_mismatch(read_json_object(report_path), dataset, report_path)
+        if warning:
+            result["dataset_warning"] = warning
     if dataset.camera.pixel_size_um:
         err_um = position_errors_um(G_est, dataset.ground_truth, w, h,
                                     dataset.camera.pixel_size_um)

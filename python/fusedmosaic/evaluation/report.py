@@ -150,8 +150,54 @@ def truth_from_dataset(ds) -> TruthRecord:
         truth.poses = _align(ids, poses, truth.frame_ids)
     plane_path = root / "truth_plane.json"
     if plane_path.is_file():
-        truth.plane = np.asarray(json.loads(plane_path.read_text())["plane"], np.float64)
+        truth.plane = read_plane_json(plane_path)
     return truth
+
+
+def read_json_object(path: Path) -> dict:
+    """A JSON file whose top level is an object; ValueError naming the file otherwise."""
+    try:
+        obj = json.loads(Path(path).read_text())
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a text (UTF-8) JSON file") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno}, column "
+                         f"{exc.colno})") from None
+    if not isinstance(obj, dict):
+        raise ValueError(f"{path}: expected a JSON object {{...}} at the top level, got "
+                         f"{type(obj).__name__}")
+    return obj
+
+
+def read_plane_json(path: Path) -> np.ndarray:
+    """pi (3,) from plane.json / truth_plane.json ({"plane": [x, y, z], ...})."""
+    obj = read_json_object(path)
+    if "plane" not in obj:
+        raise ValueError(f"{path}: no \"plane\" entry")
+    try:
+        plane = np.asarray(obj["plane"], np.float64)
+    except (TypeError, ValueError):
+        plane = None
+    if plane is None or plane.shape != (3,) or not np.isfinite(plane).all() \
+            or not plane.any():
+        raise ValueError(f"{path}: \"plane\" must be 3 finite numbers, not all zero; got "
+                         f"{obj['plane']!r:.80}")
+    return plane
+
+
+def _check_report(report: dict, path: Path) -> dict:
+    """The parts of a run's report.json that evaluate reads, with their types checked."""
+    expected = {"method": (str, "string"), "timings_s": (dict, "object"),
+                "mosaic": (dict, "object"), "plane_history": (list, "array")}
+    for key, (kind, name) in expected.items():
+        if key in report and report[key] is not None and not isinstance(report[key], kind):
+            raise ValueError(f"{path}: \"{key}\" must be a JSON {name}, got "
+                             f"{type(report[key]).__name__}")
+    skipped = (report.get("mosaic") or {}).get("skipped_frames")
+    if skipped is not None and (not isinstance(skipped, dict)
+                                or not all(k.lstrip("-").isdigit() for k in skipped)):
+        raise ValueError(f"{path}: \"mosaic\".\"skipped_frames\" must map frame ids to reasons")
+    return report
 
 
 def _align(ids: np.ndarray, values: np.ndarray, frame_ids: np.ndarray) -> np.ndarray:
@@ -179,18 +225,22 @@ def load_run(out_dir: str | Path, frame_ids: np.ndarray | None = None) -> RunRec
         G = _align(ids, G.reshape(-1, 9), frame_ids).reshape(-1, 3, 3)
     report = {}
     if (out / "report.json").is_file():
-        report = json.loads((out / "report.json").read_text())
-    run = RunRecord(report.get("method", out.name), G, output=str(out),
-                    timings={k: v for k, v in report.get("timings_s", {}).items()
+        report = _check_report(read_json_object(out / "report.json"), out / "report.json")
+    run = RunRecord(report.get("method") or out.name, G, output=str(out),
+                    timings={k: v for k, v in (report.get("timings_s") or {}).items()
                              if isinstance(v, (int, float))})
-    if report.get("mosaic", {}).get("skipped_frames"):
-        run.skipped = {int(k): v for k, v in report["mosaic"]["skipped_frames"].items()}
+    if (report.get("mosaic") or {}).get("skipped_frames"):
+        run.skipped = {int(k): str(v) for k, v in report["mosaic"]["skipped_frames"].items()}
     if (out / "poses.csv").is_file():
         pids, poses = read_poses_csv(out / "poses.csv")
         run.poses = _align(pids, poses, frame_ids if frame_ids is not None else ids)
     if (out / "plane.json").is_file():
-        run.plane = np.asarray(json.loads((out / "plane.json").read_text())["plane"], float)
-    run.plane_history = plane_history_per_frame(report.get("plane_history"), len(G))
+        run.plane = read_plane_json(out / "plane.json")
+    try:
+        run.plane_history = plane_history_per_frame(report.get("plane_history"), len(G))
+    except (TypeError, ValueError, KeyError, IndexError):
+        raise ValueError(f"{out / 'report.json'}: \"plane_history\" is neither (N, 3) planes "
+                         "nor steps of {\"frame\": k, \"plane\": [x, y, z]}") from None
     return run
 
 

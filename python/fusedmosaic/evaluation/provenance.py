@@ -1,0 +1,57 @@
+"""Which dataset an output was computed from: `run` records a cheap fingerprint in report.json,
+`evaluate` compares it with the dataset given as --truth (a mismatch is warned about, not an
+error: datasets get moved, and a moved dataset keeps its fingerprint)."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+# Small files that tell datasets apart; the frames themselves are summarised by count and size.
+FINGERPRINT_FILES = ("camera.yaml", "frames.csv", "ground_truth.csv")
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()[:16]
+
+
+def dataset_fingerprint(dataset) -> dict:
+    """{frames, width, height, sha256: {file: first 16 hex digits}} of a read Dataset; files of
+    FINGERPRINT_FILES that are absent are left out."""
+    root = Path(dataset.root)
+    return {
+        "frames": int(len(dataset.frame_ids)),
+        "width": int(dataset.camera.width),
+        "height": int(dataset.camera.height),
+        "sha256": {name: _sha256(root / name) for name in FINGERPRINT_FILES
+                   if (root / name).is_file()},
+    }
+
+
+def dataset_mismatch(report: dict, dataset, report_path: str | Path) -> str | None:
+    """A warning when report.json's recorded dataset differs from `dataset`, else None.
+
+    With a recorded fingerprint only the fingerprint counts (a moved copy matches); without one
+    (older outputs), a different path is reported."""
+    recorded = report.get("dataset_fingerprint")
+    here = Path(dataset.root)
+    where = f"{report_path} records the dataset {report.get('dataset', '(unknown)')}"
+    if isinstance(recorded, dict):
+        now = dataset_fingerprint(dataset)
+        differ = [key for key in ("frames", "width", "height") if recorded.get(key) != now[key]]
+        old_files = recorded.get("sha256") if isinstance(recorded.get("sha256"), dict) else {}
+        differ += [name for name in sorted(set(old_files) | set(now["sha256"]))
+                   if old_files.get(name) != now["sha256"].get(name)]
+        if differ:
+            return (f"{where}, but {here} differs from it ({', '.join(differ)}): the scores "
+                    "may compare the output with another dataset's ground truth")
+        return None
+    recorded_path = report.get("dataset")
+    if isinstance(recorded_path, str) and Path(recorded_path).resolve() != here.resolve():
+        return (f"{where}, not {here.resolve()}: check that --truth is the dataset the output "
+                "was computed from")
+    return None
