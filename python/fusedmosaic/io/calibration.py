@@ -2,19 +2,27 @@
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+DISTORTION_COUNTS = (4, 5, 8, 12, 14)  # lengths cv2.undistortPoints accepts
+K_LAYOUT_TOLERANCE = 1e-9  # K's fixed entries (last row 0 0 1, K[1, 0] = 0), after text rounding
+# Generous sanity bound, not a tuned one: a focal length over 10^4 image sizes is a field of view
+# under 0.006 degrees, i.e. a unit error (e.g. fx in µm or nm), not an endoscope.
+MAX_FOCAL_IMAGE_SIZES = 1e4
+
 
 @dataclass(eq=False)
 class Camera:
     """Image size and optional intrinsics of the endoscope camera.
 
-    camera_matrix : (3, 3) float64 K, needed by the pose methods only.
-    distortion : (k,) OpenCV distortion coefficients, or None.
+    camera_matrix : (3, 3) float64 K = [fx s cx; 0 fy cy; 0 0 1] with fx, fy > 0, needed by the
+        pose methods only.
+    distortion : (k,) OpenCV distortion coefficients (k = 4, 5, 8, 12 or 14), or None.
     pixel_size_um : µm per pixel (pCLE robot methods convert robot µm to pixels with it).
     fov_mask_radius : px, radius of the circular field of view centred on the image centre.
     source : where the camera came from, used in error messages.
@@ -29,40 +37,92 @@ class Camera:
     source: str = field(default="camera.yaml", compare=False, repr=False)
 
     def __post_init__(self) -> None:
-        if int(self.width) != self.width or int(self.height) != self.height:
-            raise ValueError(
-                f"{self.source}: image size must be integer, got {self.width}x{self.height}"
-            )
+        for key, value in (("image_width", self.width), ("image_height", self.height)):
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+                raise ValueError(f"{self.source}: {key}: expected a number, got {value!r}")
+            if not float(value).is_integer():
+                raise ValueError(f"{self.source}: {key} must be an integer, got {value!r}")
+            if value <= 0:
+                raise ValueError(f"{self.source}: {key} must be positive, got {value!r}")
         self.width, self.height = int(self.width), int(self.height)
-        if self.width <= 0 or self.height <= 0:
-            raise ValueError(
-                f"{self.source}: image size must be positive, got {self.width}x{self.height}"
-            )
         if self.camera_matrix is not None:
-            K = np.asarray(self.camera_matrix, dtype=np.float64)
-            if K.shape != (3, 3):
-                got = "x".join(map(str, K.shape)) if K.ndim == 2 else f"shape {K.shape}"
-                raise ValueError(f"{self.source}: camera_matrix: expected a 3x3 matrix, got {got}")
-            if not np.all(np.isfinite(K)):
-                raise ValueError(f"{self.source}: camera_matrix contains NaN or inf")
-            if K[0, 0] <= 0 or K[1, 1] <= 0:
-                raise ValueError(
-                    f"{self.source}: camera_matrix: focal lengths must be positive, "
-                    f"got fx={K[0, 0]!r}, fy={K[1, 1]!r}"
-                )
-            self.camera_matrix = K
+            self.camera_matrix = self._checked_camera_matrix(self.camera_matrix)
         if self.distortion is not None:
             d = np.asarray(self.distortion, dtype=np.float64).reshape(-1)
             if not np.all(np.isfinite(d)):
-                raise ValueError(f"{self.source}: distortion_coefficients contain NaN or inf")
+                raise ValueError(f"{self.source}: distortion_coefficients: contains NaN or inf")
+            if d.size not in DISTORTION_COUNTS:
+                raise ValueError(
+                    f"{self.source}: distortion_coefficients: {d.size} values; OpenCV takes "
+                    f"{', '.join(map(str, DISTORTION_COUNTS[:-1]))} or {DISTORTION_COUNTS[-1]}"
+                )
             self.distortion = d
         for name in ("pixel_size_um", "fov_mask_radius"):
             value = getattr(self, name)
             if value is not None:
-                value = float(value)
+                try:
+                    value = float(value)
+                except (TypeError, ValueError):
+                    raise ValueError(
+                        f"{self.source}: {name}: expected a number, got {value!r}"
+                    ) from None
                 if not np.isfinite(value) or value <= 0:
                     raise ValueError(f"{self.source}: {name} must be positive, got {value!r}")
                 setattr(self, name, value)
+        if self.fov_mask_radius is not None:
+            # The pixel centre nearest the image centre, tested as fov_mask() does.
+            cx, cy = (self.width - 1) / 2.0, (self.height - 1) / 2.0
+            nearest = (self.width // 2 - cx) ** 2 + (self.height // 2 - cy) ** 2
+            if not nearest <= self.fov_mask_radius**2:
+                raise ValueError(
+                    f"{self.source}: fov_mask_radius {self.fov_mask_radius!r} px leaves the "
+                    f"field-of-view mask empty (no pixel centre that close to the image centre; "
+                    f"the nearest is {np.sqrt(nearest):.3g} px away)"
+                )
+
+    def _checked_camera_matrix(self, camera_matrix) -> np.ndarray:
+        where = f"{self.source}: camera_matrix"
+        try:
+            K = np.array(camera_matrix, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"{where}: expected a 3x3 matrix of numbers") from None
+        if K.shape != (3, 3):
+            got = "x".join(map(str, K.shape)) if K.ndim == 2 else f"shape {K.shape}"
+            raise ValueError(f"{where}: expected a 3x3 matrix, got {got}")
+        if not np.all(np.isfinite(K)):
+            raise ValueError(f"{where}: contains NaN or inf")
+        if np.abs(K[2] - (0.0, 0.0, 1.0)).max() > K_LAYOUT_TOLERANCE:
+            hint = (
+                " (the matrix looks transposed)"
+                if np.abs(K[:, 2] - (0.0, 0.0, 1.0)).max() <= K_LAYOUT_TOLERANCE
+                else ""
+            )
+            raise ValueError(
+                f"{where}: last row must be 0 0 1 (K = [fx s cx; 0 fy cy; 0 0 1]), got "
+                f"{' '.join(f'{v:g}' for v in K[2])}{hint}"
+            )
+        if abs(K[1, 0]) > K_LAYOUT_TOLERANCE:
+            raise ValueError(
+                f"{where}: element (1, 0) must be 0 (K = [fx s cx; 0 fy cy; 0 0 1]), "
+                f"got {K[1, 0]:g}"
+            )
+        K[2], K[1, 0] = (0.0, 0.0, 1.0), 0.0
+        fx, fy = float(K[0, 0]), float(K[1, 1])
+        if fx <= 0 or fy <= 0:
+            raise ValueError(f"{where}: focal lengths must be positive, got fx={fx!r}, fy={fy!r}")
+        max_focal = MAX_FOCAL_IMAGE_SIZES * max(self.width, self.height)
+        if max(fx, fy) > max_focal:
+            raise ValueError(
+                f"{where}: focal length fx={fx:g}, fy={fy:g} px is over {max_focal:g} px "
+                f"({MAX_FOCAL_IMAGE_SIZES:g} image sizes, a field of view under 0.006 degrees)"
+            )
+        # The C++ core's invertibility test (SlidingWindow): |det K| > 1e-12 |K|_F^3.
+        if not abs(np.linalg.det(K)) > 1e-12 * np.linalg.norm(K) ** 3:
+            raise ValueError(
+                f"{where}: numerically singular (fx={fx:g}, fy={fy:g}, "
+                f"cx={K[0, 2]:g}, cy={K[1, 2]:g})"
+            )
+        return K
 
     @property
     def size(self) -> tuple[int, int]:
@@ -98,55 +158,100 @@ class Camera:
 
 def read_camera_yaml(path: str | Path) -> Camera:
     """Read ``camera.yaml`` (keys: image_width, image_height, [camera_matrix,
-    distortion_coefficients, pixel_size_um, fov_mask_radius])."""
+    distortion_coefficients, pixel_size_um, fov_mask_radius]). Every problem, including an
+    OpenCV parse error, is a ValueError naming the file (and the key)."""
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"{path}: file not found")
+    if not path.read_bytes().strip():
+        raise ValueError(f"{path}: empty file, expected OpenCV FileStorage YAML with {_KEYS}")
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
         opened = fs.isOpened() and fs.root().isMap()
-    except Exception as e:  # cv2.error, or SystemError wrapping it
-        raise ValueError(f"{path}: cannot parse as OpenCV FileStorage YAML ({e})") from None
+    except (cv2.error, SystemError) as e:  # SystemError wraps a cv2.error from the constructor
+        reason = _reason(e)
+        raise ValueError(f"{path}: cannot parse as OpenCV FileStorage YAML ({reason})") from None
     if not opened:
-        raise ValueError(f"{path}: cannot parse as OpenCV FileStorage YAML")
+        raise ValueError(f"{path}: cannot parse as OpenCV FileStorage YAML with {_KEYS}")
     try:
-
-        def number(key: str, required: bool = False) -> float | None:
-            node = fs.getNode(key)
-            if node.empty() or node.isNone():
-                if required:
-                    raise ValueError(f"{path}: missing key {key!r}")
-                return None
-            if not (node.isInt() or node.isReal()):
-                raise ValueError(f"{path}: {key}: expected a number")
-            value = node.real()
-            if np.isnan(value):
-                raise ValueError(f"{path}: {key} is NaN")
-            return value
-
-        def matrix(key: str) -> np.ndarray | None:
-            node = fs.getNode(key)
-            if node.empty() or node.isNone():
-                return None
-            if node.isSeq():  # plain YAML list; 9 numbers are read as a row-major 3x3
-                values = np.array([node.at(i).real() for i in range(node.size())])
-                return values.reshape(3, 3) if values.size == 9 else values[None, :]
-            mat = node.mat() if node.isMap() else None
-            if mat is None:
-                raise ValueError(f"{path}: {key}: expected an !!opencv-matrix or a list")
-            return np.asarray(mat, dtype=np.float64)
-
-        return Camera(
-            width=number("image_width", required=True),
-            height=number("image_height", required=True),
-            camera_matrix=matrix("camera_matrix"),
-            distortion=matrix("distortion_coefficients"),
-            pixel_size_um=number("pixel_size_um"),
-            fov_mask_radius=number("fov_mask_radius"),
-            source=str(path),
-        )
+        return _read_camera(fs, path)
+    except (cv2.error, SystemError) as e:
+        raise ValueError(f"{path}: cannot read ({_reason(e)})") from None
     finally:
         fs.release()
+
+
+_KEYS = "image_width, image_height[, camera_matrix, ...]"
+
+
+def _reason(error: Exception) -> str:
+    """OpenCV's own one-line reason, without its source location."""
+    context = error.__context__ if isinstance(error, SystemError) else None
+    error = context if isinstance(context, cv2.error) else error
+    return str(getattr(error, "err", None) or error).strip()
+
+
+def _read_camera(fs: cv2.FileStorage, path: Path) -> Camera:
+    def number(key: str, required: bool = False) -> float | None:
+        node = fs.getNode(key)
+        if node.empty() or node.isNone():
+            if required:
+                raise ValueError(f"{path}: missing key {key!r}")
+            return None
+        if not (node.isInt() or node.isReal()):
+            raise ValueError(f"{path}: {key}: expected a number")
+        value = node.real()
+        if np.isnan(value):
+            raise ValueError(f"{path}: {key} is NaN")
+        return value
+
+    def numbers_of(key: str, node: cv2.FileNode) -> list[float]:
+        values = []
+        for i in range(node.size()):
+            item = node.at(i)
+            if not (item.isInt() or item.isReal()):
+                text = item.string() if item.isString() else "not a number"
+                raise ValueError(f"{path}: {key}: element {i + 1} is not a number ({text!r})")
+            values.append(item.real())
+        return values
+
+    def matrix(key: str) -> np.ndarray | None:
+        node = fs.getNode(key)
+        if node.empty() or node.isNone():
+            return None
+        if node.isSeq():  # plain YAML list; 9 numbers are read as a row-major 3x3
+            values = np.array(numbers_of(key, node), dtype=np.float64)
+            return values.reshape(3, 3) if values.size == 9 else values[None, :]
+        if not node.isMap():
+            raise ValueError(f"{path}: {key}: expected an !!opencv-matrix or a list")
+        rows, cols, data = (node.getNode(k) for k in ("rows", "cols", "data"))
+        if not (rows.isInt() and cols.isInt() and data.isSeq()):
+            raise ValueError(f"{path}: {key}: an !!opencv-matrix needs rows, cols and data: [...]")
+        r, c = int(rows.real()), int(cols.real())
+        values = numbers_of(key, data)
+        if r < 0 or c < 0 or len(values) != r * c:
+            raise ValueError(
+                f"{path}: {key}: !!opencv-matrix data has {len(values)} values but "
+                f"rows x cols = {r} x {c}"
+            )
+        try:
+            mat = node.mat()
+        except (cv2.error, SystemError) as e:
+            reason = _reason(e)
+            raise ValueError(f"{path}: {key}: cannot read the !!opencv-matrix ({reason})") from None
+        if mat is None:
+            raise ValueError(f"{path}: {key}: cannot read the !!opencv-matrix")
+        return np.asarray(mat, dtype=np.float64).reshape(r, c)
+
+    return Camera(
+        width=number("image_width", required=True),
+        height=number("image_height", required=True),
+        camera_matrix=matrix("camera_matrix"),
+        distortion=matrix("distortion_coefficients"),
+        pixel_size_um=number("pixel_size_um"),
+        fov_mask_radius=number("fov_mask_radius"),
+        source=str(path),
+    )
 
 
 def write_camera_yaml(path: str | Path, camera: Camera) -> None:

@@ -137,8 +137,8 @@ def read_dataset(
 def _read_frame_times(root: Path, n_images: int, fps: float) -> tuple[np.ndarray, np.ndarray]:
     path = root / "frames.csv"
     if not path.exists():
-        if not fps > 0:
-            raise ValueError(f"fps must be positive, got {fps!r}")
+        if not 0 < fps < np.inf:  # inf would give every frame timestamp 0
+            raise ValueError(f"fps must be positive and finite, got {fps!r}")
         frame_ids = np.arange(n_images, dtype=np.int64)
         return frame_ids, frame_ids / float(fps)
     table, rows = read_table(path, ["frame", "timestamp"], integer=["frame"])

@@ -7,6 +7,7 @@ same convention as the C++ core (rotation angle = norm, right-handed about the a
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,6 +20,11 @@ TRACKING_COLUMNS = ["timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw"]
 ROBOT_COLUMNS = ["timestamp", "x", "y"]
 QUATERNION_NORM_TOLERANCE = 1e-3
 ROTATION_TOLERANCE = 1e-4  # hand_eye.txt is often written with ~6 decimals
+# Generous physical bound, not a tuned one: no tracker, robot or hand-eye offset spans a
+# kilometre. Larger values are unit errors or corrupt rows, and squaring them (plane fit,
+# distances) overflows.
+MAX_TRANSLATION_MM = 1e6
+MAX_ROBOT_UM = 1e3 * MAX_TRANSLATION_MM
 
 
 @dataclass(eq=False)
@@ -46,6 +52,18 @@ class TrackingSamples:
                     f"TrackingSamples.{name}: expected shape {shape}, "
                     f"got {getattr(self, name).shape}"
                 )
+        norms = np.linalg.norm(self.quaternions, axis=1)
+        bad = np.flatnonzero(self.valid & ~((norms > 0) & np.isfinite(norms)))
+        if bad.size:
+            raise ValueError(
+                f"TrackingSamples.quaternions: sample {bad[0]} is valid but its quaternion "
+                f"{self.quaternions[bad[0]].tolist()} has norm {norms[bad[0]]:g}"
+            )
+        bad = np.flatnonzero(self.valid & ~np.all(np.isfinite(self.translations), axis=1))
+        if bad.size:
+            raise ValueError(
+                f"TrackingSamples.translations: sample {bad[0]} is valid but not finite"
+            )
 
     def __len__(self) -> int:
         return self.timestamps.size
@@ -85,12 +103,7 @@ def read_tracking_csv(path: str | Path) -> TrackingSamples:
         )
     valid = valid.astype(bool)
     values = np.stack([table[c] for c in TRACKING_COLUMNS[1:]], axis=1)
-    nan_row, nan_col = np.nonzero(~np.isfinite(values) & valid[:, None])
-    if nan_row.size:
-        raise ValueError(
-            f"{path}: row {rows[nan_row[0]]}, column "
-            f"{TRACKING_COLUMNS[1 + nan_col[0]]!r}: NaN or empty value in a valid row"
-        )
+    _check_values(path, rows, values, TRACKING_COLUMNS[1:], valid, "mm", MAX_TRANSLATION_MM, 3)
     quaternions = values[:, 3:]
     norms = np.linalg.norm(quaternions, axis=1)
     off = np.flatnonzero(valid & (np.abs(norms - 1.0) > QUATERNION_NORM_TOLERANCE))
@@ -101,6 +114,27 @@ def read_tracking_csv(path: str | Path) -> TrackingSamples:
         )
     quaternions[valid] /= norms[valid, None]
     return TrackingSamples(timestamps, values[:, :3], quaternions, valid)
+
+
+def _check_values(path, rows, values, columns, valid, unit: str, bound: float, n_bounded: int):
+    """Raise naming the row and column of the first NaN/empty value, infinite value, or value
+    beyond ``bound`` (first ``n_bounded`` columns only); rows with ``valid`` False are skipped."""
+    checked = np.ones(len(values), bool) if valid is None else valid
+    beyond = np.zeros(values.shape, bool)
+    beyond[:, :n_bounded] = np.abs(values[:, :n_bounded]) > bound
+    in_valid_row = "" if valid is None else " in a valid row"
+    for mask, problem in (
+        (np.isnan(values), f"NaN or empty value{in_valid_row}"),
+        (np.isinf(values), f"infinite value{in_valid_row}"),
+        (beyond, f"beyond the {bound:g} {unit} bound (1 km), not physical"),
+    ):
+        row, col = np.nonzero(mask & checked[:, None])
+        if row.size:
+            value = values[row[0], col[0]].item()
+            shown = "" if np.isnan(value) else f" ({value:g})"
+            raise ValueError(
+                f"{path}: row {rows[row[0]]}, column {columns[col[0]]!r}: {problem}{shown}"
+            )
 
 
 def write_tracking_csv(path: str | Path, samples: TrackingSamples) -> None:
@@ -119,14 +153,23 @@ def read_hand_eye(path: str | Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"{path}: file not found")
+    if not path.read_bytes().strip():
+        raise ValueError(f"{path}: empty file, expected a 4x4 matrix")
     try:
-        T = np.loadtxt(path, dtype=np.float64, ndmin=2)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # "input contained no data": see below
+            T = np.loadtxt(path, dtype=np.float64, ndmin=2)
     except ValueError as e:
         raise ValueError(f"{path}: cannot parse as a 4x4 matrix of numbers ({e})") from None
     if T.shape != (4, 4):
         raise ValueError(f"{path}: expected a 4x4 matrix, got {T.shape[0]}x{T.shape[1]}")
     if not np.all(np.isfinite(T)):
         raise ValueError(f"{path}: NaN or inf in the matrix")
+    if np.abs(T[:3, 3]).max() > MAX_TRANSLATION_MM:
+        raise ValueError(
+            f"{path}: translation {T[:3, 3].tolist()} mm is beyond the "
+            f"{MAX_TRANSLATION_MM:g} mm bound (1 km), not physical"
+        )
     R = T[:3, :3]
     if (
         np.abs(R.T @ R - np.eye(3)).max() > ROTATION_TOLERANCE
@@ -156,12 +199,7 @@ def read_robot_csv(path: str | Path) -> RobotSamples:
     table, rows = read_table(path, ROBOT_COLUMNS)
     check_increasing(path, rows, table["timestamp"], "timestamp")
     xy = np.stack([table["x"], table["y"]], axis=1)
-    nan_row, nan_col = np.nonzero(~np.isfinite(xy))
-    if nan_row.size:
-        raise ValueError(
-            f"{path}: row {rows[nan_row[0]]}, column "
-            f"{ROBOT_COLUMNS[1 + nan_col[0]]!r}: NaN or empty value"
-        )
+    _check_values(path, rows, xy, ROBOT_COLUMNS[1:], None, "µm", MAX_ROBOT_UM, 2)
     return RobotSamples(table["timestamp"], xy)
 
 

@@ -1,20 +1,37 @@
-"""Frame access: ``frames/*.png`` (sorted by name) or one ``video.*`` file, read lazily."""
+"""Frame access: ``frames/*.png`` (in natural name order) or one ``video.*`` file, read lazily."""
 
 from __future__ import annotations
 
+import re
+import threading
+from collections import OrderedDict
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+_DIGITS = re.compile(r"(\d+)")
+VIDEO_READ_AHEAD = 8  # a request up to this many frames ahead decodes forward instead of seeking
+VIDEO_RECENT_FRAMES = 4  # frames decoded on the way, kept for threads asking slightly out of order
+
+
+def natural_key(name: str) -> tuple:
+    """Sort key comparing digit runs by value: ``frame_2`` < ``frame_10``. For zero-padded names
+    of equal width this is plain name order; ties (``f01`` vs ``f1``) fall back to the name."""
+    parts = _DIGITS.split(name)  # text, digits, text, ...: the types alternate at fixed places
+    return (*(int(p) if i % 2 else p for i, p in enumerate(parts)), name)
+
 
 class FrameSource(Sequence):
-    """Sequence of frames read from disk on demand; no image is kept in memory.
+    """Sequence of frames read from disk on demand; no image is kept in memory (a video source
+    keeps at most ``VIDEO_RECENT_FRAMES`` decoded frames it skipped over).
 
     Items are uint8 (H, W) or (H, W, 3) BGR as stored (an alpha channel is dropped; a video is
-    always decoded to BGR). With ``expected_size=(w, h)`` every image is checked against it.
-    Video sources decode sequentially and seek for random access; they are not thread-safe.
+    always decoded to BGR). With ``expected_size=(w, h)`` every image is checked against it, and
+    every image must have the channel count of the first one read (all grey or all BGR).
+    Thread-safe: a video is decoded sequentially under a lock (seek + decode are one step), seeking
+    only for jumps backwards or more than ``VIDEO_READ_AHEAD`` frames ahead.
     """
 
     def __init__(
@@ -32,7 +49,10 @@ class FrameSource(Sequence):
         self.expected_size = expected_size
         self.size_source = size_source
         self._capture: cv2.VideoCapture | None = None
-        self._next = 0  # index the capture will decode next
+        self._next = 0  # index the capture will decode next; -1 = unknown, seek first
+        self._recent: OrderedDict[int, np.ndarray] = OrderedDict()  # skipped decoded frames
+        self._lock = threading.Lock()  # guards the capture, _next and _recent
+        self._channels: tuple[int, str] | None = None  # channel count of the first image, its name
         if self.paths is not None:
             self._length = len(self.paths)
         else:
@@ -56,12 +76,15 @@ class FrameSource(Sequence):
         expected_size: tuple[int, int] | None = None,
         size_source: str = "camera.yaml",
     ) -> FrameSource:
-        """Find ``frames/*.png`` or a single ``video.*`` under ``dataset_root``."""
+        """Find ``frames/*.png`` or a single ``video.*`` under ``dataset_root``. Frames are in
+        natural name order (digit runs by value: ``frame_2.png`` before ``frame_10.png``)."""
         root = Path(dataset_root)
         frames_dir = root / "frames"
         videos = sorted(p for p in root.glob("video.*") if p.is_file())
         if frames_dir.is_dir():
-            paths = sorted(frames_dir.glob("*.png"))
+            # As the shell's frames/*.png: hidden files (e.g. macOS ._000005.png) are not frames.
+            found = (p for p in frames_dir.glob("*.png") if not p.name.startswith("."))
+            paths = sorted(found, key=lambda p: natural_key(p.name))
             if not paths:
                 raise ValueError(f"{frames_dir}: no frames (*.png)")
             return cls(paths, expected_size=expected_size, size_source=size_source)
@@ -96,9 +119,14 @@ class FrameSource(Sequence):
         self.close()
 
     def close(self) -> None:
-        if getattr(self, "_capture", None) is not None:
-            self._capture.release()
-            self._capture = None
+        lock = getattr(self, "_lock", None)
+        if lock is None:  # __init__ failed early
+            return
+        with lock:
+            if self._capture is not None:
+                self._capture.release()
+                self._capture = None
+            self._recent.clear()
 
     def _open_capture(self) -> cv2.VideoCapture:
         if self._capture is None:
@@ -110,15 +138,30 @@ class FrameSource(Sequence):
         return self._capture
 
     def _read_video(self, i: int) -> np.ndarray | None:
-        capture = self._open_capture()
-        if i != self._next:
-            capture.set(cv2.CAP_PROP_POS_FRAMES, i)
-        ok, image = capture.read()
-        self._next = i + 1
-        return image if ok else None
+        with self._lock:  # one cv2.VideoCapture: concurrent seek/decode crashes FFmpeg
+            image = self._recent.pop(i, None)
+            if image is not None:
+                return image
+            capture = self._open_capture()
+            if self._next < 0 or not 0 <= i - self._next <= VIDEO_READ_AHEAD:
+                capture.set(cv2.CAP_PROP_POS_FRAMES, i)
+                self._next = i
+            while True:
+                ok, image = capture.read()
+                if not ok:
+                    self._next = -1  # position unknown after a failed decode
+                    return None
+                self._next += 1
+                if self._next > i:
+                    return image
+                self._recent[self._next - 1] = image  # skipped: another thread may want it
+                if len(self._recent) > VIDEO_RECENT_FRAMES:
+                    self._recent.popitem(last=False)
 
     def _check(self, image: np.ndarray | None, name) -> np.ndarray:
         if image is None:
+            if self.video is not None:
+                raise ValueError(f"{name}: cannot read image (video truncated or corrupt?)")
             raise ValueError(f"{name}: cannot read image")
         if image.dtype != np.uint8:
             raise ValueError(f"{name}: expected an 8-bit image, got {image.dtype}")
@@ -133,7 +176,23 @@ class FrameSource(Sequence):
                     f"{name}: image is {image.shape[1]}x{image.shape[0]} but "
                     f"{self.size_source} says {w}x{h}"
                 )
+        channels = 1 if image.ndim == 2 else image.shape[2]
+        if self._channels is None:
+            with self._lock:
+                if self._channels is None:
+                    self._channels = (channels, str(name))
+        if channels != self._channels[0]:
+            first, first_name = self._channels
+            raise ValueError(
+                f"{name}: {_describe(channels)} but {first_name} has {_describe(first)}; "
+                "frames must be all grey or all colour"
+            )
         return image
+
+
+def _describe(channels: int) -> str:
+    kind = {1: "grey", 3: "BGR colour"}.get(channels, "unsupported")
+    return f"{channels} channel(s) ({kind})"
 
 
 def write_frames(frames_dir: str | Path, images: Iterable[np.ndarray]) -> int:
