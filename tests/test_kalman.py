@@ -244,6 +244,22 @@ def test_missing_inputs():
         kf.update((np.nan, 0.0), (np.nan, 0.0), c_match=0.5)
 
 
+@pytest.mark.parametrize("propagate", [False, True])
+def test_unknown_robot_noise_without_usable_image_follows_the_robot(propagate):
+    """sigma_r0 = inf (robot noise not measured yet): a missing image, or one with c_img = 0,
+    leaves the robot displacement as the information to follow, not a standstill."""
+    kf = RobotKalmanFilter(KalmanOptions(sigma_robot0=np.inf, propagate_variance=propagate))
+    d, _ = circle_displacements(12)
+    for k in range(8):  # past the warm-up: c_img comes from Eq. 16
+        s = kf.update(d[k], d[k] + 5.0, c_match=0.9)
+        np.testing.assert_allclose(s.displacement, d[k], atol=1e-12)  # image only: robot inf
+    s = kf.update((np.nan, np.nan), d[8], c_match=np.nan)
+    np.testing.assert_allclose(s.displacement, d[8], atol=1e-12)
+    s = kf.update(d[9] + 40.0, d[9], c_match=0.0)  # an image judged worthless: c_img = 0
+    assert s.c_img == 0.0
+    np.testing.assert_allclose(s.displacement, d[9], atol=1e-12)
+
+
 def test_missing_inputs_with_propagated_variance():
     kf = RobotKalmanFilter(KalmanOptions(propagate_variance=True, c_rob0=1.0))
     s = kf.update((np.nan, np.nan), (1.0, 0.0), c_match=np.nan)  # predict only: P = 0 + 1

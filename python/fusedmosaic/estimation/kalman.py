@@ -525,10 +525,11 @@ class RobotKalmanFilter:
         mu_like = self._position + (dx_img if image_ok else 0.0)  # Eq. 5
         previous = self._position
         if np.isinf(var_rob) and np.isinf(var_img):
-            # Neither variance is finite (a missing or failed input, or a robot whose sigma_r0
-            # is not known yet, e.g. the first frames blank): the displacement that exists is
-            # the only information left; the image's when both do (c_img = 0 only then).
-            position = mu_like if image_ok else mu_prior
+            # Neither variance is finite: the image is missing or has c_img = 0, and the robot is
+            # missing or its sigma_r0 is not known yet (e.g. the first frames blank). A robot
+            # displacement, even of unknown noise, beats an image judged worthless; without one,
+            # the image's is the only information left.
+            position = mu_prior if robot_ok else mu_like
             variance = np.full(2, np.inf)
             prior_variance = float("inf")
         elif opt.propagate_variance:
