@@ -3,6 +3,7 @@ key or row/column and the problem; video frame sources are safe to read from sev
 
 from __future__ import annotations
 
+import json
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -21,7 +22,12 @@ from fusedmosaic.io import (
     read_tracking_csv,
     write_dataset,
 )
-from fusedmosaic.io.video import VIDEO_READ_AHEAD, VIDEO_RECENT_FRAMES, natural_key
+from fusedmosaic.io.video import (
+    VIDEO_READ_AHEAD,
+    VIDEO_RECENT_FRAMES,
+    natural_key,
+    sort_frame_names,
+)
 
 W, H = 32, 24
 K_DATA = "[40.5, 0., 15.5, 0., 41.25, 11.5, 0., 0., 1.]"
@@ -108,11 +114,39 @@ def test_truncated_video_names_file_and_frame_from_threads(tmp_path):
     assert len(frames) == 12  # the header still claims 12 frames
     with (
         ThreadPoolExecutor(2) as pool,
-        pytest.raises(ValueError, match=r"video\.avi frame \d+: cannot read image \(video trunc"),
+        pytest.raises(
+            ValueError,
+            match=r"video\.avi frame \d+( \(decoded on the way to frame \d+\))?: cannot read "
+            r"image \(video trunc",
+        ),
     ):
         list(pool.map(frames.__getitem__, range(12)))
     for k in (2, 0):  # after the failed decode the position is unknown: seek, do not guess
         np.testing.assert_array_equal(frames[k], expected[k])
+
+
+def test_failed_decode_during_read_ahead_names_the_failing_frame(tmp_path):
+    _write_video(tmp_path / "full.avi", 12)
+    data = (tmp_path / "full.avi").read_bytes()
+    root = tmp_path / "ds"
+    root.mkdir()
+    (root / "video.avi").write_bytes(data[: len(data) * 6 // 10])
+    capture = cv2.VideoCapture(str(root / "video.avi"))
+    first_bad = 0
+    while capture.read()[0]:
+        first_bad += 1
+    capture.release()
+    wanted = first_bad + 2
+    assert 0 < first_bad and wanted < 12 and wanted - 1 <= VIDEO_READ_AHEAD  # decoded forward
+    frames = FrameSource.open(root)
+    frames[0]
+    with pytest.raises(
+        ValueError,
+        match=rf"video\.avi frame {first_bad} \(decoded on the way to frame {wanted}\): cannot "
+        r"read image \(video truncated",
+    ):
+        frames[wanted]
+    frames.close()
     frames.close()
 
 
@@ -149,12 +183,66 @@ def test_natural_order_equals_name_order_for_padded_names():
     names = [f"img{k:05d}_{j:03d}.png" for k in (0, 3, 10, 99, 100) for j in (0, 7, 12)]
     shuffled = list(np.random.default_rng(2).permutation(names))
     assert sorted(shuffled, key=natural_key) == sorted(shuffled)
+    assert sort_frame_names(shuffled) == sorted(shuffled)
+    # Padded decimal timestamps: name order, natural order and decimal order agree.
+    stamps = [f"{1637000000 + k * 0.04:.3f}.png" for k in (0, 1, 2, 24, 25, 26, 250)]
+    shuffled = list(np.random.default_rng(3).permutation(stamps))
+    assert sort_frame_names(shuffled) == sorted(shuffled) == stamps
     assert sorted(["f10.png", "f9.png", "f010.png", "g1.png"], key=natural_key) == [
         "f9.png",
         "f010.png",
         "f10.png",
         "g1.png",
     ]
+
+
+def test_natural_key_compares_any_two_names():
+    # A name that is a prefix of another at a digit run used to compare int with str.
+    assert sorted(["x.png1.png", "x.png"], key=natural_key) == ["x.png", "x.png1.png"]
+    assert sorted(["a1b", "a1", "a", "a0b2", "1"], key=natural_key) == [
+        "1",
+        "a",
+        "a0b2",
+        "a1",
+        "a1b",
+    ]
+    assert sort_frame_names(["x.png1.png", "x.png"]) == ["x.png", "x.png1.png"]
+
+
+@pytest.mark.parametrize(
+    ("names", "example"),
+    [
+        (  # str(float) timestamps: .5 < .25 < .125 as whole numbers
+            ["1637000000.5.png", "1637000000.25.png", "1637000000.125.png", "1637000001.0.png"],
+            r"'1637000000\.5\.png' and '1637000000\.125\.png'",
+        ),
+        (["t_0.1.png", "t_0.08.png", "t_0.040.png"], r"'t_0\.1\.png' and 't_0\.040\.png'"),
+        (["v1.9.png", "v1.10.png"], r"'v1\.9\.png' and 'v1\.10\.png'"),  # or versions?
+        (["f1.png", "f1.5.png", "f1.25.png"], r"'f1\.5\.png' and 'f1\.25\.png'"),
+    ],
+)
+def test_ambiguous_decimal_frame_names_are_refused(tmp_path, names, example):
+    frames_dir = tmp_path / "ds" / "frames"
+    frames_dir.mkdir(parents=True)
+    for name in names:
+        cv2.imwrite(str(frames_dir / name), np.zeros((H, W), np.uint8))
+    with pytest.raises(
+        ValueError,
+        match=r"ds/frames: frame names order differently when their numbers are read as decimals "
+        rf"or as whole numbers \(e\.g\. {example}\); rename the frames with zero-padded frame "
+        r"numbers",
+    ):
+        FrameSource.open(tmp_path / "ds")
+
+
+def test_unambiguous_decimal_frame_names_keep_natural_order():
+    # Decimals with the same digits in every name (a date), or fractions of equal length: the
+    # whole-number and decimal readings agree, so the natural order stands.
+    dated = [f"2023.11.21_frame_{k}.png" for k in (0, 1, 2, 10, 11)]
+    assert sort_frame_names(reversed(dated)) == dated
+    halves = ["t_1.5.png", "t_2.5.png", "t_10.5.png"]  # plain name order: 1.5, 10.5, 2.5
+    assert sort_frame_names(reversed(halves)) == halves
+    assert sort_frame_names(["f1.5.png", "f1.png", "f2.png"]) == ["f1.png", "f1.5.png", "f2.png"]
 
 
 def test_grey_and_colour_frames_mixed(tmp_path):
@@ -183,53 +271,34 @@ def test_grey_and_colour_frames_mixed(tmp_path):
     [
         (
             _opencv_matrix("camera_matrix", 3, 3, "[480., 0., 199.5, 0., 480.]"),
-            r"camera_matrix: !!opencv-matrix data has 5 values but rows x cols = 3 x 3",
+            r"camera_matrix: matrix data has 5 values but rows x cols = 3 x 3",
         ),
         (
             _opencv_matrix("camera_matrix", 3, 3, "[a, 0, 1, 0, 1, 1, 0, 0, 1]"),
             r"camera_matrix: element 1 is not a number \('a'\)",
         ),
         (
-            _opencv_matrix("camera_matrix", 3, 3, K_DATA, dt="q"),  # cv2.error inside OpenCV
-            r"camera_matrix: cannot read the !!opencv-matrix \(Invalid data type",
-        ),
-        (
             "camera_matrix: [40.5, 0, 15.5, 0, x, 11.5, 0, 0, 1]\n",
             r"camera_matrix: element 5 is not a number \('x'\)",
         ),
         (
-            "camera_matrix: [480, 0, 199.5, 0, 480, 199.5, 0, 0, 0]\n",
-            r"camera_matrix: last row must be 0 0 1 .*got 0 0 0$",
+            "camera_matrix: [40.5, 0, 15.5, 0, 41]\n",
+            r"camera_matrix: expected a 3x3 matrix, got 1x5",
         ),
+        ("camera_matrix: [1, 0, 0, 0, 1, 0, 0, 0, .inf]\n", r"camera_matrix: contains NaN or inf"),
         (
-            "camera_matrix: [480, 0, 0, 0, 480, 0, 199.5, 199.5, 1]\n",
-            r"camera_matrix: last row must be 0 0 1 .*got 199.5 199.5 1 \(the matrix looks "
-            r"transposed\)",
-        ),
-        (
-            "camera_matrix: [480, 0, 15, 2, 480, 11, 0, 0, 1]\n",
-            r"camera_matrix: element \(1, 0\) must be 0",
-        ),
-        (
-            "camera_matrix: [-480, 0, 15, 0, 480, 11, 0, 0, 1]\n",
-            r"camera_matrix: focal lengths must be positive, got fx=-480.0",
-        ),
-        (
-            "camera_matrix: [1e12, 0, 15, 0, 1e12, 11, 0, 0, 1]\n",
-            r"camera_matrix: focal length fx=1e\+12, fy=1e\+12 px is over 320000 px",
-        ),
-        (
-            "camera_matrix: [1e-4, 0, 200, 0, 1e-4, 200, 0, 0, 1]\n",
-            r"camera_matrix: numerically singular \(fx=0.0001",
+            "camera_matrix: {rows: 3, cols: 3}\n",
+            r"camera_matrix: a matrix map needs rows, cols and data: \[\.\.\.\] \(!!opencv-matrix",
         ),
         (
             "distortion_coefficients: [0.1, 0.2, 0.3]\n",
             r"distortion_coefficients: 3 values; OpenCV takes 4, 5, 8, 12 or 14",
         ),
         (
-            _opencv_matrix("distortion_coefficients", 1, 6, "[0, 0, 0, 0, 0, 0]"),
+            _opencv_matrix("distortion_coefficients", 1, 6, "[0, 0, 0, 0, 0.1, 0]"),
             r"distortion_coefficients: 6 values; OpenCV takes",
         ),
+        ("distortion_coefficients: [0, .nan, 0, 0]\n", r"distortion_coefficients: contains NaN"),
         ("fov_mask_radius: 0.5\n", r"fov_mask_radius 0.5 px leaves the field-of-view mask empty"),
     ],
 )
@@ -237,6 +306,71 @@ def test_bad_camera_yaml(tmp_path, body, match):
     path = _camera_yaml(tmp_path, body)
     with pytest.raises(ValueError, match=r"camera\.yaml: " + match):
         read_camera_yaml(path)
+
+
+@pytest.mark.parametrize(
+    ("data", "match"),
+    [
+        ("[480, 0, 199.5, 0, 480, 199.5, 0, 0, 0]", r"last row must be 0 0 1 .*got 0 0 0;"),
+        ("[480, 0, 199.5, 0, 480, 199.5, 0, 0, -1]", r"last row must be 0 0 1 .*got 0 0 -1;"),
+        ("[480, 0, 199.5, 0, 480, 199.5, 1e-5, 0, 1]", r"last row must be 0 0 1 .*got 1e-05 0 1;"),
+        (  # transposed, also when scaled
+            "[480, 0, 0, 0, 480, 0, 199.5, 199.5, 1]",
+            r"last row must be 0 0 1 .*got 199\.5 199\.5 1 \(the matrix looks transposed\);",
+        ),
+        (
+            "[960, 0, 0, 0, 960, 0, 399, 399, 2]",
+            r"last row must be 0 0 1 .*got 399 399 2 \(the matrix looks transposed\);",
+        ),
+        (
+            "[480, 0, 15, 0.0012345678, 480, 11, 0, 0, 1]",
+            r"element \(1, 0\) must be 0 .*got 0\.0012345678;",
+        ),
+        ("[-480, 0, 15, 0, 480, 11, 0, 0, 1]", r"focal lengths must be positive, got fx=-480.0"),
+        (
+            "[1e12, 0, 15, 0, 1e12, 11, 0, 0, 1]",
+            r"focal length fx=1e\+12, fy=1e\+12 px is over 320000 px",
+        ),
+        ("[1e-4, 0, 200, 0, 1e-4, 200, 0, 0, 1]", r"numerically singular \(fx=0.0001"),
+    ],
+)
+def test_camera_matrix_checked_when_a_pose_method_needs_it(tmp_path, data, match):
+    # A placeholder K is fine for methods without K (pairwise, ncc, robot, kalman-robot): the
+    # file loads, and the layout/bound/singularity checks run when a pose method asks for K.
+    camera = read_camera_yaml(_camera_yaml(tmp_path, f"camera_matrix: {data}\n"))
+    np.testing.assert_array_equal(camera.camera_matrix.ravel(), json.loads(data))
+    with pytest.raises(
+        ValueError,
+        match=r"camera\.yaml: camera_matrix: " + match + r".* method 'ba-emt' needs the camera",
+    ):
+        camera.require_camera_matrix("ba-emt")
+
+
+def test_placeholder_camera_matrix_loads_for_methods_without_k(tmp_path):
+    camera = Camera(W, H, camera_matrix=np.zeros((3, 3)), pixel_size_um=1.0)
+    root = write_dataset(
+        tmp_path / "ds", camera=camera, frames=[np.zeros((H, W), np.uint8)] * 2, timestamps=None
+    )
+    ds = read_dataset(root)  # as for ncc / robot / kalman-robot
+    assert ds.camera.camera_matrix.tolist() == np.zeros((3, 3)).tolist()
+    assert ds.require_pixel_size("ncc") == 1.0
+    with pytest.raises(
+        ValueError, match=r"camera\.yaml: camera_matrix: last row must be .* method 'ba' needs"
+    ):
+        ds.require_camera_matrix("ba")
+
+
+def test_camera_matrix_scaled_or_float32_is_normalised():
+    K = np.array([[480.1, 0.5, 199.7], [0.0, 480.3, 199.3], [0.0, 0.0, 1.0]])
+    for given in (2.0 * K, K.astype(np.float32), K / np.float32(1.0000001)):
+        camera = Camera(400, 400, camera_matrix=given)
+        np.testing.assert_allclose(camera.require_camera_matrix("ba"), K, rtol=1e-6)
+        assert camera.camera_matrix[2].tolist() == [0.0, 0.0, 1.0]
+        assert camera.camera_matrix[1, 0] == 0.0
+    # float32 arithmetic: K[2, 2] = 0.99999994 (refused by the old absolute 1e-9 check)
+    K32 = (K.astype(np.float32) * np.float32(3.0)) / np.float32(3.0)
+    K32[2, 2] = np.float32(0.99999994)
+    assert Camera(400, 400, camera_matrix=K32).require_camera_matrix("ba")[2, 2] == 1.0
 
 
 def test_good_camera_yaml_variants(tmp_path):
@@ -249,6 +383,89 @@ def test_good_camera_yaml_variants(tmp_path):
     camera = read_camera_yaml(path)
     assert camera.camera_matrix[2].tolist() == [0, 0, 1] and camera.distortion.shape == (8,)
     assert np.count_nonzero(camera.fov_mask()) == 4
+    # The numbers as written; the storage type dt is not used (OpenCV refused dt: q).
+    for dt in ("f", "q"):
+        path = _camera_yaml(tmp_path, _opencv_matrix("camera_matrix", 3, 3, K_DATA, dt=dt))
+        K = read_camera_yaml(path).require_camera_matrix("ba")
+        assert K.tolist() == [[40.5, 0, 15.5], [0, 41.25, 11.5], [0, 0, 1]]
+    path = _camera_yaml(tmp_path, "camera_matrix: [81, 0, 31, 0, 82.5, 23, 0, 0, 2]\n")
+    assert read_camera_yaml(path).camera_matrix[:2].tolist() == [[40.5, 0, 15.5], [0, 41.25, 11.5]]
+
+
+@pytest.mark.parametrize(
+    "body",
+    [
+        "distortion_coefficients: []\n",
+        _opencv_matrix("distortion_coefficients", 0, 0, "[]"),
+        "distortion_coefficients: [0, 0, 0]\n",  # any length: zeros are no distortion
+        _opencv_matrix("distortion_coefficients", 1, 5, "[0., 0., 0., 0., 0.]"),
+        "distortion_coefficients: {rows: 1, cols: 0, data: []}\n",  # ROS D: []
+    ],
+)
+def test_empty_or_zero_distortion_means_none(tmp_path, body):
+    camera = read_camera_yaml(_camera_yaml(tmp_path, body))
+    assert camera.distortion is None
+    assert Camera(W, H, distortion=[]).distortion is None
+    assert Camera(W, H, distortion=np.zeros(8)).distortion is None
+
+
+ROS_CAMERA_INFO = """\
+image_width: 640
+image_height: 480
+camera_name: fetoscope
+camera_matrix:
+  rows: 3
+  cols: 3
+  data: [512.3417, 0, 321.2047, 0, 513.0261, 238.8652, 0, 0, 1]
+distortion_model: {model}
+distortion_coefficients:
+  rows: 1
+  cols: {n}
+  data: [{d}]
+rectification_matrix:
+  rows: 3
+  cols: 3
+  data: [1, 0, 0, 0, 1, 0, 0, 0, 1]
+projection_matrix:
+  rows: 3
+  cols: 4
+  data: [508.1169, 0, 322.0891, 0, 0, 510.3952, 239.5573, 0, 0, 0, 1, 0]
+"""
+ROS_D = "-0.3412, 0.1265, 0.000413, -0.000788, 0"
+
+
+@pytest.mark.parametrize("header", ["", "%YAML:1.0\n---\n"])
+def test_ros_camera_info_yaml(tmp_path, header):
+    # As written by ROS camera_calibration_parsers: untagged {rows, cols, data} maps, no dt.
+    path = tmp_path / "camera.yaml"
+    path.write_text(header + ROS_CAMERA_INFO.format(model="plumb_bob", n=5, d=ROS_D))
+    camera = read_camera_yaml(path)
+    assert camera.size == (640, 480)
+    assert camera.require_camera_matrix("ba").tolist() == [
+        [512.3417, 0, 321.2047],
+        [0, 513.0261, 238.8652],
+        [0, 0, 1],
+    ]
+    assert camera.distortion.tolist() == [-0.3412, 0.1265, 0.000413, -0.000788, 0]
+    d8 = ROS_D + ", 0.01, 0, 0"
+    path.write_text(ROS_CAMERA_INFO.format(model="rational_polynomial", n=8, d=d8))
+    assert read_camera_yaml(path).distortion.shape == (8,)
+    path.write_text(ROS_CAMERA_INFO.format(model="plumb_bob", n=0, d=""))  # ROS D: []
+    assert read_camera_yaml(path).distortion is None
+
+
+@pytest.mark.parametrize(
+    ("model", "shown"), [("equidistant", "'equidistant'"), ("3", "not a string")]
+)
+def test_ros_distortion_model_other_than_pinhole_refused(tmp_path, model, shown):
+    path = tmp_path / "camera.yaml"
+    path.write_text(ROS_CAMERA_INFO.format(model=model, n=4, d="0.1, 0.01, 0.001, 0.0001"))
+    with pytest.raises(
+        ValueError,
+        match=rf"camera\.yaml: distortion_model: {shown} is not supported; expected plumb_bob or "
+        r"rational_polynomial",
+    ):
+        read_camera_yaml(path)
 
 
 def test_empty_camera_yaml(tmp_path):

@@ -10,10 +10,16 @@ import cv2
 import numpy as np
 
 DISTORTION_COUNTS = (4, 5, 8, 12, 14)  # lengths cv2.undistortPoints accepts
-K_LAYOUT_TOLERANCE = 1e-9  # K's fixed entries (last row 0 0 1, K[1, 0] = 0), after text rounding
+# ROS camera_info distortion models that are OpenCV's pinhole model (5 and 8 coefficients);
+# "equidistant" (fisheye) is a different projection and is refused.
+DISTORTION_MODELS = ("plumb_bob", "rational_polynomial")
+# K's fixed entries (last row 0 0 c, K[1, 0] = 0), relative to the scale of their row: text
+# rounding and float32 storage (K[2, 2] = 0.99999994) pass, a transposed K does not.
+K_LAYOUT_TOLERANCE = 1e-6
 # Generous sanity bound, not a tuned one: a focal length over 10^4 image sizes is a field of view
 # under 0.006 degrees, i.e. a unit error (e.g. fx in µm or nm), not an endoscope.
 MAX_FOCAL_IMAGE_SIZES = 1e4
+_KEYS = "image_width, image_height[, camera_matrix, ...]"  # named in parse errors
 
 
 @dataclass(eq=False)
@@ -21,8 +27,13 @@ class Camera:
     """Image size and optional intrinsics of the endoscope camera.
 
     camera_matrix : (3, 3) float64 K = [fx s cx; 0 fy cy; 0 0 1] with fx, fy > 0, needed by the
-        pose methods only.
-    distortion : (k,) OpenCV distortion coefficients (k = 4, 5, 8, 12 or 14), or None.
+        pose methods only. On entry it must only be a finite 3x3 matrix (methods that do not use
+        it may carry a placeholder); its layout, focal bound and invertibility are checked by
+        require_camera_matrix(). A valid K with last row 0 0 c (c > 0) is divided by c.
+    distortion : (k,) OpenCV distortion coefficients (k = 4, 5, 8, 12 or 14), or None; an empty
+        or all-zero vector (ROS ``D: []``) means no distortion and becomes None. OpenCV's
+        undistortion ignores the skew K[0, 1] when distortion is given (negligible for
+        endoscopes, whose skew is 0).
     pixel_size_um : µm per pixel (pCLE robot methods convert robot µm to pixels with it).
     fov_mask_radius : px, radius of the circular field of view centred on the image centre.
     source : where the camera came from, used in error messages.
@@ -46,12 +57,18 @@ class Camera:
                 raise ValueError(f"{self.source}: {key} must be positive, got {value!r}")
         self.width, self.height = int(self.width), int(self.height)
         if self.camera_matrix is not None:
-            self.camera_matrix = self._checked_camera_matrix(self.camera_matrix)
+            self.camera_matrix = self._finite_camera_matrix(self.camera_matrix)
+            try:  # a valid K is stored normalised; an invalid one fails in require_camera_matrix
+                self.camera_matrix = self._checked_camera_matrix(self.camera_matrix)
+            except ValueError:
+                pass
         if self.distortion is not None:
             d = np.asarray(self.distortion, dtype=np.float64).reshape(-1)
             if not np.all(np.isfinite(d)):
                 raise ValueError(f"{self.source}: distortion_coefficients: contains NaN or inf")
-            if d.size not in DISTORTION_COUNTS:
+            if d.size == 0 or not d.any():  # ROS D: [] or zeros: no distortion
+                d = None
+            elif d.size not in DISTORTION_COUNTS:
                 raise ValueError(
                     f"{self.source}: distortion_coefficients: {d.size} values; OpenCV takes "
                     f"{', '.join(map(str, DISTORTION_COUNTS[:-1]))} or {DISTORTION_COUNTS[-1]}"
@@ -80,7 +97,7 @@ class Camera:
                     f"the nearest is {np.sqrt(nearest):.3g} px away)"
                 )
 
-    def _checked_camera_matrix(self, camera_matrix) -> np.ndarray:
+    def _finite_camera_matrix(self, camera_matrix) -> np.ndarray:
         where = f"{self.source}: camera_matrix"
         try:
             K = np.array(camera_matrix, dtype=np.float64)
@@ -91,20 +108,24 @@ class Camera:
             raise ValueError(f"{where}: expected a 3x3 matrix, got {got}")
         if not np.all(np.isfinite(K)):
             raise ValueError(f"{where}: contains NaN or inf")
-        if np.abs(K[2] - (0.0, 0.0, 1.0)).max() > K_LAYOUT_TOLERANCE:
-            hint = (
-                " (the matrix looks transposed)"
-                if np.abs(K[:, 2] - (0.0, 0.0, 1.0)).max() <= K_LAYOUT_TOLERANCE
-                else ""
-            )
+        return K
+
+    def _checked_camera_matrix(self, K: np.ndarray) -> np.ndarray:
+        """K (finite 3x3) checked as a pose method needs it, divided by K[2, 2]."""
+        where = f"{self.source}: camera_matrix"
+        c = K[2, 2]
+        if not (c > 0 and np.abs(K[2, :2]).max() <= K_LAYOUT_TOLERANCE * c):
+            transposed = c > 0 and np.abs(K[:2, 2]).max() <= K_LAYOUT_TOLERANCE * c
+            hint = " (the matrix looks transposed)" if transposed else ""
             raise ValueError(
-                f"{where}: last row must be 0 0 1 (K = [fx s cx; 0 fy cy; 0 0 1]), got "
-                f"{' '.join(f'{v:g}' for v in K[2])}{hint}"
+                f"{where}: last row must be 0 0 1 (K = [fx s cx; 0 fy cy; 0 0 1]; 0 0 c with "
+                f"c > 0 is divided by c), got {_numbers(K[2])}{hint}"
             )
-        if abs(K[1, 0]) > K_LAYOUT_TOLERANCE:
+        K = K / c
+        if abs(K[1, 0]) > K_LAYOUT_TOLERANCE * np.abs(K[1, 1:]).max():
             raise ValueError(
                 f"{where}: element (1, 0) must be 0 (K = [fx s cx; 0 fy cy; 0 0 1]), "
-                f"got {K[1, 0]:g}"
+                f"got {K[1, 0]:.10g}"
             )
         K[2], K[1, 0] = (0.0, 0.0, 1.0), 0.0
         fx, fy = float(K[0, 0]), float(K[1, 1])
@@ -139,12 +160,17 @@ class Camera:
         return np.where(inside, np.uint8(255), np.uint8(0))
 
     def require_camera_matrix(self, method: str) -> np.ndarray:
-        """Return K, or raise naming the file and the method that needs it."""
+        """Return K = [fx s cx; 0 fy cy; 0 0 1], or raise naming the file, the problem and the
+        method that needs it (layout, focal bound and invertibility are checked here, so that
+        methods without K accept a placeholder)."""
         if self.camera_matrix is None:
             raise ValueError(
                 f"{self.source}: no camera_matrix; method {method!r} needs the camera intrinsics"
             )
-        return self.camera_matrix
+        try:
+            return self._checked_camera_matrix(self._finite_camera_matrix(self.camera_matrix))
+        except ValueError as e:
+            raise ValueError(f"{e}; method {method!r} needs the camera intrinsics") from None
 
     def require_pixel_size(self, method: str) -> float:
         """Return pixel_size_um, or raise naming the file and the method that needs it."""
@@ -158,8 +184,11 @@ class Camera:
 
 def read_camera_yaml(path: str | Path) -> Camera:
     """Read ``camera.yaml`` (keys: image_width, image_height, [camera_matrix,
-    distortion_coefficients, pixel_size_um, fov_mask_radius]). Every problem, including an
-    OpenCV parse error, is a ValueError naming the file (and the key)."""
+    distortion_coefficients, pixel_size_um, fov_mask_radius]). Matrices may be
+    ``!!opencv-matrix``, a plain list (9 numbers: row-major 3x3) or ROS camera_info's
+    ``{rows, cols, data}``; a ROS ``distortion_model`` must be plumb_bob or rational_polynomial.
+    Every problem, including an OpenCV parse error, is a ValueError naming the file (and the
+    key)."""
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"{path}: file not found")
@@ -181,7 +210,9 @@ def read_camera_yaml(path: str | Path) -> Camera:
         fs.release()
 
 
-_KEYS = "image_width, image_height[, camera_matrix, ...]"
+def _numbers(values) -> str:
+    """Values as text with enough digits to show why a check failed (0.99999994 is not 1)."""
+    return " ".join(f"{v:.10g}" for v in values)
 
 
 def _reason(error: Exception) -> str:
@@ -224,24 +255,32 @@ def _read_camera(fs: cv2.FileStorage, path: Path) -> Camera:
             return values.reshape(3, 3) if values.size == 9 else values[None, :]
         if not node.isMap():
             raise ValueError(f"{path}: {key}: expected an !!opencv-matrix or a list")
+        # An !!opencv-matrix, or ROS camera_info's untagged {rows, cols, data} without dt: the
+        # matrix is built from the numbers as written (dt, the storage type, is not needed).
         rows, cols, data = (node.getNode(k) for k in ("rows", "cols", "data"))
         if not (rows.isInt() and cols.isInt() and data.isSeq()):
-            raise ValueError(f"{path}: {key}: an !!opencv-matrix needs rows, cols and data: [...]")
+            raise ValueError(
+                f"{path}: {key}: a matrix map needs rows, cols and data: [...] "
+                "(!!opencv-matrix or ROS camera_info)"
+            )
         r, c = int(rows.real()), int(cols.real())
         values = numbers_of(key, data)
         if r < 0 or c < 0 or len(values) != r * c:
             raise ValueError(
-                f"{path}: {key}: !!opencv-matrix data has {len(values)} values but "
-                f"rows x cols = {r} x {c}"
+                f"{path}: {key}: matrix data has {len(values)} values but rows x cols = {r} x {c}"
             )
-        try:
-            mat = node.mat()
-        except (cv2.error, SystemError) as e:
-            reason = _reason(e)
-            raise ValueError(f"{path}: {key}: cannot read the !!opencv-matrix ({reason})") from None
-        if mat is None:
-            raise ValueError(f"{path}: {key}: cannot read the !!opencv-matrix")
-        return np.asarray(mat, dtype=np.float64).reshape(r, c)
+        return np.array(values, dtype=np.float64).reshape(r, c)
+
+    model = fs.getNode("distortion_model")  # ROS camera_info; OpenCV files have none
+    if not (model.empty() or model.isNone()):
+        name = model.string().strip() if model.isString() else None
+        if name not in DISTORTION_MODELS:
+            shown = repr(name) if name is not None else "not a string"
+            raise ValueError(
+                f"{path}: distortion_model: {shown} is not supported; expected "
+                f"{' or '.join(DISTORTION_MODELS)} (OpenCV's pinhole model; fisheye/equidistant "
+                "lenses are not)"
+            )
 
     return Camera(
         width=number("image_width", required=True),

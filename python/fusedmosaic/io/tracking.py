@@ -103,7 +103,16 @@ def read_tracking_csv(path: str | Path) -> TrackingSamples:
         )
     valid = valid.astype(bool)
     values = np.stack([table[c] for c in TRACKING_COLUMNS[1:]], axis=1)
-    _check_values(path, rows, values, TRACKING_COLUMNS[1:], valid, "mm", MAX_TRANSLATION_MM, 3)
+    _check_values(
+        path,
+        rows,
+        values,
+        TRACKING_COLUMNS[1:],
+        valid,
+        unit="mm",
+        bound=MAX_TRANSLATION_MM,
+        n_bounded=3,
+    )
     quaternions = values[:, 3:]
     norms = np.linalg.norm(quaternions, axis=1)
     off = np.flatnonzero(valid & (np.abs(norms - 1.0) > QUATERNION_NORM_TOLERANCE))
@@ -116,7 +125,9 @@ def read_tracking_csv(path: str | Path) -> TrackingSamples:
     return TrackingSamples(timestamps, values[:, :3], quaternions, valid)
 
 
-def _check_values(path, rows, values, columns, valid, unit: str, bound: float, n_bounded: int):
+def _check_values(
+    path, rows, values, columns, valid, *, unit: str, bound: float, n_bounded: int
+) -> None:
     """Raise naming the row and column of the first NaN/empty value, infinite value, or value
     beyond ``bound`` (first ``n_bounded`` columns only); rows with ``valid`` False are skipped."""
     checked = np.ones(len(values), bool) if valid is None else valid
@@ -199,7 +210,9 @@ def read_robot_csv(path: str | Path) -> RobotSamples:
     table, rows = read_table(path, ROBOT_COLUMNS)
     check_increasing(path, rows, table["timestamp"], "timestamp")
     xy = np.stack([table["x"], table["y"]], axis=1)
-    _check_values(path, rows, xy, ROBOT_COLUMNS[1:], None, "µm", MAX_ROBOT_UM, 2)
+    _check_values(
+        path, rows, xy, ROBOT_COLUMNS[1:], None, unit="µm", bound=MAX_ROBOT_UM, n_bounded=2
+    )
     return RobotSamples(table["timestamp"], xy)
 
 

@@ -18,9 +18,47 @@ VIDEO_RECENT_FRAMES = 4  # frames decoded on the way, kept for threads asking sl
 
 def natural_key(name: str) -> tuple:
     """Sort key comparing digit runs by value: ``frame_2`` < ``frame_10``. For zero-padded names
-    of equal width this is plain name order; ties (``f01`` vs ``f1``) fall back to the name."""
-    parts = _DIGITS.split(name)  # text, digits, text, ...: the types alternate at fixed places
-    return (*(int(p) if i % 2 else p for i, p in enumerate(parts)), name)
+    of equal width this is plain name order; ties (``f01`` vs ``f1``) fall back to the name.
+
+    The key is a tuple of (text, number) pairs, number -1 after the last digit run, so keys of any
+    two names compare (``x.png`` before ``x.png1.png``)."""
+    parts = _DIGITS.split(name)  # text, digits, text, ..., text
+    pairs = tuple((parts[i], int(parts[i + 1])) for i in range(0, len(parts) - 1, 2))
+    return (*pairs, (parts[-1], -1)), name
+
+
+def _decimal_key(name: str) -> tuple:
+    """As natural_key, but a digit run right after ``<digits>.`` is a decimal fraction (compared
+    as text: ``.125`` < ``.25`` < ``.5``). Fractions are recognised by their text segment being
+    exactly ``.``, so two pairs with equal text are of the same kind and always compare."""
+    parts = _DIGITS.split(name)
+    pairs = []
+    for i in range(0, len(parts) - 1, 2):
+        fraction = i > 0 and parts[i] == "."
+        digits = parts[i + 1]
+        pairs.append((parts[i], -1, digits) if fraction else (parts[i], int(digits), ""))
+    return (*pairs, (parts[-1], -1, "")), name
+
+
+def sort_frame_names(names: Iterable[str], folder: str | Path = "frames") -> list[str]:
+    """Frame file names in natural order (``frame_2.png`` before ``frame_10.png``).
+
+    Names with decimal numbers (``1637000000.5.png``, ``t_0.08.png``) are ambiguous: a decimal
+    timestamp and a version-like ``1.10`` order the other way. When reading such numbers as
+    decimal fractions or as whole numbers gives different orders, raise instead of guessing.
+    The ``.png`` suffix is left out of the comparison, so ``f1.png`` comes before ``f1.5.png``.
+    """
+    stems = {name: name[:-4] if name.lower().endswith(".png") else name for name in names}
+    natural = sorted(stems, key=lambda n: (natural_key(stems[n]), n))
+    decimal = sorted(stems, key=lambda n: (_decimal_key(stems[n]), n))
+    for a, b in zip(natural, decimal, strict=True):
+        if a != b:  # a precedes b by whole numbers, b precedes a by decimals
+            raise ValueError(
+                f"{folder}: frame names order differently when their numbers are read as "
+                f"decimals or as whole numbers (e.g. {a!r} and {b!r}); rename the frames with "
+                "zero-padded frame numbers (000000.png, 000001.png, ...)"
+            )
+    return natural
 
 
 class FrameSource(Sequence):
@@ -77,16 +115,17 @@ class FrameSource(Sequence):
         size_source: str = "camera.yaml",
     ) -> FrameSource:
         """Find ``frames/*.png`` or a single ``video.*`` under ``dataset_root``. Frames are in
-        natural name order (digit runs by value: ``frame_2.png`` before ``frame_10.png``)."""
+        natural name order (digit runs by value: ``frame_2.png`` before ``frame_10.png``); names
+        whose decimal numbers make that order ambiguous are refused (see sort_frame_names)."""
         root = Path(dataset_root)
         frames_dir = root / "frames"
         videos = sorted(p for p in root.glob("video.*") if p.is_file())
         if frames_dir.is_dir():
             # As the shell's frames/*.png: hidden files (e.g. macOS ._000005.png) are not frames.
-            found = (p for p in frames_dir.glob("*.png") if not p.name.startswith("."))
-            paths = sorted(found, key=lambda p: natural_key(p.name))
-            if not paths:
+            found = [p.name for p in frames_dir.glob("*.png") if not p.name.startswith(".")]
+            if not found:
                 raise ValueError(f"{frames_dir}: no frames (*.png)")
+            paths = [frames_dir / name for name in sort_frame_names(found, frames_dir)]
             return cls(paths, expected_size=expected_size, size_source=size_source)
         if len(videos) > 1:
             raise ValueError(
@@ -108,7 +147,10 @@ class FrameSource(Sequence):
         if self.paths is not None:
             image, name = cv2.imread(str(self.paths[i]), cv2.IMREAD_UNCHANGED), self.paths[i]
         else:
-            image, name = self._read_video(i), f"{self.video} frame {i}"
+            image, failed = self._read_video(i)
+            name = f"{self.video} frame {i}"
+            if image is None and failed != i:  # a frame decoded on the way to i failed
+                name = f"{self.video} frame {failed} (decoded on the way to frame {i})"
         return self._check(image, name)
 
     def __iter__(self) -> Iterator[np.ndarray]:
@@ -137,11 +179,12 @@ class FrameSource(Sequence):
                 raise ValueError(f"{self.video}: cannot open video")
         return self._capture
 
-    def _read_video(self, i: int) -> np.ndarray | None:
+    def _read_video(self, i: int) -> tuple[np.ndarray | None, int]:
+        """Frame i, or None and the index of the frame whose decoding failed."""
         with self._lock:  # one cv2.VideoCapture: concurrent seek/decode crashes FFmpeg
             image = self._recent.pop(i, None)
             if image is not None:
-                return image
+                return image, i
             capture = self._open_capture()
             if self._next < 0 or not 0 <= i - self._next <= VIDEO_READ_AHEAD:
                 capture.set(cv2.CAP_PROP_POS_FRAMES, i)
@@ -149,11 +192,11 @@ class FrameSource(Sequence):
             while True:
                 ok, image = capture.read()
                 if not ok:
-                    self._next = -1  # position unknown after a failed decode
-                    return None
+                    failed, self._next = self._next, -1  # position unknown after a failed decode
+                    return None, failed
                 self._next += 1
                 if self._next > i:
-                    return image
+                    return image, i
                 self._recent[self._next - 1] = image  # skipped: another thread may want it
                 if len(self._recent) > VIDEO_RECENT_FRAMES:
                     self._recent.popitem(last=False)
