@@ -47,3 +47,19 @@ def test_unknown_method_and_cli_error_line(untracked, tmp_path, capsys):
     code = main(["run", str(untracked), "--method", "pairwise", "--out", str(tmp_path / "o")])
     assert code == 2
     assert "fusedmosaic: error:" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("run", "method"),
+    [("run_bundle", "'ba-emt'"), ("run_emt", "'emt'")],
+)
+def test_library_entry_points_check_the_camera_matrix(tmp_path, run, method):
+    """Called directly (not through run_dataset), the pose methods still refuse a K whose
+    layout is wrong (here transposed), naming the file and the method."""
+    from fusedmosaic.estimation import bundle
+    from fusedmosaic.io import read_dataset
+
+    data = write_dataset(tmp_path / "data", camera=Camera(160, 120, camera_matrix=K.T),
+                         frames=noise_frames(3), timestamps=np.arange(3) / 25.0)
+    with pytest.raises(ValueError, match=rf"camera\.yaml: camera_matrix.*{method} needs"):
+        getattr(bundle, run)(read_dataset(data), progress=False)

@@ -207,7 +207,7 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
                use_emt: bool = True) -> MethodResult:
     """BAVis+EMT (use_emt=True, Eq. 17-20) or BAVis (visual cost only)."""
     o = options or BundleOptions()
-    K = dataset.camera.camera_matrix
+    K = dataset.camera.require_camera_matrix("ba-emt" if use_emt else "ba")
     dist = dataset.camera.distortion
     n = len(dataset.frames)
     rng = np.random.default_rng(o.seed)
@@ -281,7 +281,7 @@ def run_emt(dataset, *, progress: bool = True, options: BundleOptions | None = N
             plane: np.ndarray | None = None) -> MethodResult:
     """EMT baseline: tracker poses + a plane (estimated from EMT-guided pairs unless given)."""
     o = options or BundleOptions(pair_selection="emt-guided")
-    K = dataset.camera.camera_matrix
+    K = dataset.camera.require_camera_matrix("emt")
     timings: dict[str, float] = {}
     details: dict = {}
     if plane is None:
