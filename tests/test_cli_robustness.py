@@ -14,6 +14,8 @@ import pytest
 from fusedmosaic import methods
 from fusedmosaic.cli import main
 from fusedmosaic.io import OutputWriter, read_homographies_csv, write_homographies_csv
+from fusedmosaic.io.output import MANIFEST
+from fusedmosaic.runner import run_dataset
 
 SYSFS = Path("/sys")  # writing there is refused even to root (the tests may run as root)
 
@@ -101,9 +103,45 @@ def test_simulate_into_a_non_empty_folder_names_the_cli_flag(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "exists and is not empty" in err and "--overwrite" in err
     assert "overwrite=True" not in err
-    assert main(["--quiet", "simulate", "pcle", str(out), "--n-frames", "3", "--width", "64",
-                 "--height", "56", "--overwrite"]) == 0
-    assert (out / "camera.yaml").is_file() and not (out / "notes.txt").exists()
+    small = ["--n-frames", "3", "--width", "64", "--height", "56", "--overwrite"]
+    # --overwrite replaces only a dataset, never a folder of the user's files
+    assert main(["--quiet", "simulate", "pcle", str(out), *small]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"fusedmosaic: error: {out}: refusing to overwrite: it does not look like a "
+                   "dataset (no camera.yaml or simulation.json), and overwriting would delete "
+                   "everything in it; choose a new folder, or empty it yourself\n")
+    assert listing(tmp_path) == ["d", "d/notes.txt"]
+    (out / "notes.txt").unlink()
+    assert main(["--quiet", "simulate", "pcle", str(out), *small]) == 0  # empty: no overwrite
+    (out / "extra.txt").write_text("old run's file")
+    assert main(["--quiet", "simulate", "pcle", str(out), *small]) == 0  # a dataset: replaced
+    assert (out / "camera.yaml").is_file() and not (out / "extra.txt").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d"]  # no .d.old-* or .d.tmp-*
+
+
+@pytest.mark.parametrize("where", [".", "..", "../d"])
+def test_simulate_overwrite_refuses_the_current_folder_and_its_parents(tmp_path, monkeypatch,
+                                                                      capsys, where):
+    """`simulate pcle . --overwrite` used to fail with EBUSY and leave a `..old-*` folder."""
+    cwd = tmp_path / "proj" / "d"
+    cwd.mkdir(parents=True)
+    (cwd / "camera.yaml").write_text("looks like a dataset")  # even then: it is the cwd
+    (cwd / "thesis.tex").write_text("mine")
+    monkeypatch.chdir(cwd)
+    before = listing(tmp_path)
+    assert main(["--quiet", "simulate", "pcle", where, "--n-frames", "3", "--width", "64",
+                 "--height", "56", "--overwrite"]) == 2
+    err = capsys.readouterr().err
+    what = "is the current folder" if where != ".." else f"holds the current folder {cwd}"
+    assert err == (f"fusedmosaic: error: {where}: refusing to overwrite: it {what}; choose a "
+                   "new folder\n")
+    assert listing(tmp_path) == before
+    # the library refuses too
+    from fusedmosaic.simulation import PcleOptions, simulate_pcle
+
+    with pytest.raises(ValueError, match=r"refusing to overwrite: it is the current folder"):
+        simulate_pcle(".", PcleOptions(n_frames=3, width=64, height=56), overwrite=True)
+    assert listing(tmp_path) == before
 
 
 def test_os_error_is_one_line_naming_the_path(data, tmp_path, monkeypatch, capsys):
@@ -148,11 +186,97 @@ def test_a_new_run_replaces_the_previous_output_set(data, tmp_path, capsys):
     assert run(data / "feto", out, "pairwise") == 0
     # emt's plane, poses and video, and the evaluation of the emt run, are gone; the user's
     # file stays
-    assert listing(out) == ["homographies.csv", "mosaic.png", "notes.txt", "report.json"]
+    assert listing(out) == [MANIFEST, "homographies.csv", "mosaic.png", "notes.txt",
+                            "report.json"]
     assert json.loads((out / "report.json").read_text())["method"] == "pairwise"
     assert main(["--quiet", "evaluate", str(out), "--truth", str(data / "feto")]) == 0
     md = (out / "evaluation.md").read_text()
     assert "| pairwise |" in md and "## Plane" not in md and "## Camera poses" not in md
+
+
+def test_a_run_never_deletes_the_users_files(data, tmp_path, capsys):
+    """Review 4 #1: only what a fusedmosaic run recorded is replaced; a user's plots/, report.md
+    and evaluation.md in OUT survive a --no-report run (with no record, and with one)."""
+    out = tmp_path / "myproj"
+    (out / "plots").mkdir(parents=True)
+    mine = {"plots/fig.png": "mine", "report.md": "notes", "evaluation.md": "notes",
+            "evaluation_plots": "a file named like a folder we might write", "other.txt": "k"}
+    for name, text in mine.items():
+        (out / name).write_text(text)
+    for _ in range(2):  # the second run finds the first run's record
+        assert run(data / "feto", out, "emt") == 0
+        assert {n: (out / n).read_text() for n in mine} == mine
+    assert json.loads((out / MANIFEST).read_text())["sets"]["run"]["files"] == [
+        "homographies.csv", "mosaic.png", "plane.json", "poses.csv", "report.json"]
+    # with a report, the run's own report.md replaces the user's (a name it writes), and its
+    # plots go beside the user's figure in plots/; a later --no-report run removes only those
+    assert main(["--quiet", "run", str(data / "feto"), "--method", "emt", "--out",
+                 str(out)]) == 0
+    ours = sorted(p.name for p in (out / "plots").iterdir() if p.name != "fig.png")
+    assert ours and (out / "report.md").read_text() != "notes"
+    assert run(data / "feto", out, "pairwise") == 0
+    assert listing(out / "plots") == ["fig.png"] and not (out / "report.md").exists()
+    assert (out / "evaluation.md").read_text() == "notes" and no_temp(tmp_path)
+
+
+def test_a_foreign_report_json_deletes_nothing(data, tmp_path, capsys):
+    out = tmp_path / "foreign"
+    (out / "mydata").mkdir(parents=True)
+    (out / "mydata" / "a.csv").write_text("precious")
+    (out / "summary.csv").write_text("precious")
+    (out / "plane.json").write_text("{}")
+    foreign = [{"tool": "other", "outputs": ["mydata/", "summary.csv", "plane.json"]},
+               {"method": "emt", "outputs": ["mydata/", "summary.csv"]},  # no fingerprint
+               {"method": "not-ours", "dataset_fingerprint": {}, "outputs": ["mydata/"]}]
+    for report in foreign:
+        (out / "report.json").write_text(json.dumps(report))
+        (out / MANIFEST).unlink(missing_ok=True)
+        assert run(data / "feto", out, "pairwise") == 0
+        assert (out / "mydata" / "a.csv").read_text() == "precious"
+        assert (out / "summary.csv").read_text() == "precious"
+        assert (out / "plane.json").exists() == (report.get("method") != "emt")
+        (out / "plane.json").write_text("{}")
+
+
+def test_an_older_fusedmosaic_run_is_replaced_by_its_report(data, tmp_path, capsys):
+    """Without a manifest (outputs of an older version), a recognisably fusedmosaic
+    report.json still tells what to replace: audit 4 #6, stale plane.json / poses.csv."""
+    out = tmp_path / "out"
+    assert main(["--quiet", "run", str(data / "feto"), "--method", "emt", "--out",
+                 str(out)]) == 0
+    (out / MANIFEST).unlink()
+    (out / "plots" / "mine.png").write_text("x")
+    report = json.loads((out / "report.json").read_text())
+    assert "plots/" not in report["outputs"] and "plane.json" in report["outputs"]
+    report["outputs"] = sorted({*report["outputs"], "plots/"})  # as the previous version wrote
+    (out / "report.json").write_text(json.dumps(report))
+    assert run(data / "feto", out, "pairwise") == 0  # listed (fingerprint present): all gone
+    assert listing(out) == [MANIFEST, "homographies.csv", "mosaic.png", "report.json"]
+    # the oldest reports: no fingerprint and no "outputs": plane.json and poses.csv only
+    assert run(data / "feto", out, "emt") == 0
+    (out / MANIFEST).unlink()
+    report = json.loads((out / "report.json").read_text())
+    del report["dataset_fingerprint"], report["outputs"]
+    (out / "report.json").write_text(json.dumps(report))
+    assert run(data / "feto", out, "pairwise") == 0
+    assert listing(out) == [MANIFEST, "homographies.csv", "mosaic.png", "report.json"]
+    assert main(["--quiet", "evaluate", str(out), "--truth", str(data / "feto")]) == 0
+    assert "## Plane" not in (out / "evaluation.md").read_text()
+
+
+def test_an_evaluation_of_other_outputs_survives_a_run(data, emt_out, tmp_path, capsys):
+    """An evaluation written into OUT that scores other folders is not OUT's run's: kept."""
+    out = tmp_path / "out"
+    assert run(data / "feto", out, "pairwise") == 0
+    assert main(["--quiet", "evaluate", str(emt_out), "--truth", str(data / "feto"),
+                 "--json", str(out / "emt_eval.json")]) == 0
+    assert main(["--quiet", "evaluate", str(out), "--truth", str(data / "feto")]) == 0
+    assert run(data / "feto", out, "emt") == 0
+    names = listing(out)
+    assert "emt_eval.json" in names and "emt_eval.md" in names and "emt_eval_plots" in names
+    assert "evaluation.json" not in names and "evaluation_plots" not in names
+    sets = json.loads((out / MANIFEST).read_text())["sets"]
+    assert sorted(sets) == ["evaluation:emt_eval.json", "run"]
 
 
 def test_a_folder_named_like_an_output_fails_before_anything_moves(data, tmp_path, computed,
@@ -221,7 +345,8 @@ def test_evaluate_json_destination(data, emt_out, tmp_path, monkeypatch, capsys)
     # a missing folder is created, like --out and --video
     assert main(["--quiet", "evaluate", str(emt_out), "--truth", truth,
                  "--json", "new/sub/e.json"]) == 0
-    assert listing(tmp_path / "new") == ["sub", "sub/e.json", "sub/e.md", "sub/e_plots"] + [
+    assert listing(tmp_path / "new") == ["sub", f"sub/{MANIFEST}", "sub/e.json", "sub/e.md",
+                                         "sub/e_plots"] + [
         f"sub/e_plots/{p.name}" for p in sorted((tmp_path / "new/sub/e_plots").iterdir())]
     (tmp_path / "folder").mkdir()
     assert main(["evaluate", str(emt_out), "--truth", truth, "--json", "folder"]) == 2
@@ -240,9 +365,136 @@ def test_evaluate_json_destination(data, emt_out, tmp_path, monkeypatch, capsys)
     assert not list((tmp_path / "folder").iterdir()) and no_temp(emt_out.parent)
 
 
+def test_evaluate_json_keeps_the_users_md_and_plots(data, emt_out, tmp_path, capsys):
+    """Review 4 #2: `evaluate --json DIR/NAME.json` replaces NAME.md and NAME_plots/ only when
+    a fusedmosaic evaluation wrote them."""
+    res = tmp_path / "res"
+    (res / "summary_plots").mkdir(parents=True)
+    (res / "summary.md").write_text("my own summary")
+    (res / "summary_plots" / "a.png").write_text("x")
+    truth = str(data / "feto")
+    argv = ["--quiet", "evaluate", str(emt_out), "--truth", truth, "--json",
+            str(res / "summary.json")]
+    assert main([*argv, "--no-report"]) == 0  # the user's report and plots stay
+    assert listing(res) == [MANIFEST, "summary.json", "summary.md", "summary_plots",
+                            "summary_plots/a.png"]
+    assert (res / "summary.md").read_text() == "my own summary"
+    # a report would overwrite them: refused before anything is computed or written
+    before = {p: p.read_bytes() for p in res.rglob("*") if p.is_file()}
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err == (f"fusedmosaic: error: --json {res / 'summary.json'}: the report would replace "
+                   f"{res / 'summary.md'}, which no fusedmosaic evaluation wrote; choose another "
+                   "--json name, move that file, or pass --no-report\n")
+    (res / "summary.md").unlink()
+    assert main(argv) == 2
+    assert f"the report's plots would go into {res / 'summary_plots'}, a folder no " in (
+        capsys.readouterr().err)
+    (res / "summary.md").write_text("my own summary")
+    assert {p: p.read_bytes() for p in res.rglob("*") if p.is_file()} == before
+    # once a fusedmosaic evaluation wrote them, the next one replaces them, and --no-report
+    # removes them again
+    (res / "summary.md").unlink()
+    shutil.rmtree(res / "summary_plots")
+    assert main(argv) == 0 and main(argv) == 0
+    assert (res / "summary.md").read_text().startswith("# fusedmosaic evaluation")
+    assert main([*argv, "--no-report"]) == 0
+    assert listing(res) == [MANIFEST, "summary.json"] and no_temp(tmp_path)
+
+
+def test_evaluate_json_of_an_older_version_counts_as_ours(data, emt_out, tmp_path, capsys):
+    res = tmp_path / "res"
+    res.mkdir()
+    (res / "e.json").write_text(json.dumps({"results": []}))  # an older evaluation, no manifest
+    (res / "e.md").write_text("old report")
+    (res / "e_plots").mkdir()
+    (res / "e_plots" / "old.png").write_text("x")
+    assert main(["--quiet", "evaluate", str(emt_out), "--truth", str(data / "feto"), "--json",
+                 str(res / "e.json")]) == 0
+    assert (res / "e.md").read_text() != "old report" and not (res / "e_plots/old.png").exists()
+
+
+def test_outputs_are_staged_inside_an_existing_folder(data, emt_out, tmp_path, monkeypatch,
+                                                      capsys):
+    """Review 4 #3: `--json ~/e.json` must work when ~'s parent is not writable: an existing
+    folder is staged inside (only it needs write access); a new one beside it."""
+    import tempfile
+
+    import fusedmosaic.io.output as output
+
+    home = tmp_path / "ro" / "home"
+    home.mkdir(parents=True)
+    refused = []
+
+    def not_in_ro(make):  # as if tmp_path/ro were read-only (the tests may run as root)
+        def guarded(*args, dir=None, **kwargs):
+            if Path(dir).resolve() == (tmp_path / "ro").resolve():
+                refused.append(dir)
+                raise PermissionError(13, "Permission denied", str(dir))
+            return make(*args, dir=dir, **kwargs)
+        return guarded
+
+    monkeypatch.setattr(output.tempfile, "mkdtemp", not_in_ro(tempfile.mkdtemp))
+    monkeypatch.setattr(output.tempfile, "mkstemp", not_in_ro(tempfile.mkstemp))
+    assert main(["--quiet", "evaluate", str(emt_out), "--truth", str(data / "feto"), "--json",
+                 str(home / "e.json")]) == 0
+    assert (home / "e.json").is_file() and refused == [] and no_temp(tmp_path)
+    assert run(data / "feto", home, "pairwise") == 0
+    assert (home / "mosaic.png").is_file() and refused == [] and no_temp(tmp_path)
+    # a folder that must be created needs its parent
+    assert run(data / "feto", tmp_path / "ro" / "new", "pairwise") == 2
+    assert capsys.readouterr().err == (
+        f"fusedmosaic: error: {tmp_path / 'ro' / 'new'}: cannot write in {tmp_path / 'ro'} (the "
+        "output folder is created there): Permission denied\n")
+
+
+def test_stale_staging_folders_of_a_killed_run_are_removed(data, tmp_path, capsys):
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)
+    dead = int(done.stdout)  # a process that has exited
+    out = tmp_path / "out"
+    out.mkdir()
+    stale = [out / f".fusedmosaic.tmp-{dead}-abc", tmp_path / f".new.fusedmosaic.tmp-{dead}-x"]
+    alive = out / f".fusedmosaic.tmp-{os.getpid()}-running"  # another writer, still running
+    for folder in (*stale, alive):
+        folder.mkdir()
+        (folder / "creation.mp4").write_text("partial")
+    (out / ".fusedmosaic.tmp-notes").mkdir()  # no pid: not a staging folder of ours
+    assert run(data / "feto", out, "pairwise") == 0
+    assert run(data / "feto", tmp_path / "new", "pairwise") == 0
+    assert not any(p.exists() for p in stale)
+    assert alive.is_dir() and (out / ".fusedmosaic.tmp-notes").is_dir()
+
+
+def test_ctrl_c_during_the_commit_is_deferred_until_it_is_complete(tmp_path, monkeypatch):
+    import signal
+
+    import fusedmosaic.io.output as output
+
+    replace = os.replace
+    moved = []
+
+    def interrupted_replace(src, dst):
+        if not moved:
+            os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C right after the first file
+        moved.append(dst)
+        return replace(src, dst)
+
+    monkeypatch.setattr(output.os, "replace", interrupted_replace)
+    out = tmp_path / "out"
+    with pytest.raises(KeyboardInterrupt), OutputWriter(out, record="run") as w:
+        for name in ("a.csv", "b.png", "c/d.json"):
+            w.write_text(name, name)
+    assert listing(out) == [MANIFEST, "a.csv", "b.png", "c", "c/d.json"]  # all, not one
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler and no_temp(tmp_path)
+
+
 @pytest.mark.parametrize(("value", "message"), [
-    ("-3", "--positions: the number of evenly spaced frames must be >= 1, got -3"),
-    ("0", "--positions: the number of evenly spaced frames must be >= 1, got 0"),
+    ("-3", "--positions: the number of evenly spaced frames must be an integer >= 1, got -3"),
+    ("0", "--positions: the number of evenly spaced frames must be an integer >= 1, got 0"),
     ("2.5", "argument --positions: invalid int value: '2.5'"),
 ])
 def test_evaluate_positions_must_be_a_positive_integer(data, emt_out, capsys, value, message):
@@ -279,14 +531,36 @@ def test_evaluate_warns_about_another_dataset(data, emt_out, tmp_path, capsys):
     assert "dataset_warning" not in json.loads((pcle / "evaluation.json").read_text())["results"][0]
 
 
+def test_a_run_without_ground_truth_matches_its_dataset(data, tmp_path, capsys):
+    """Review 4 #12: a run on a copy with the ground truth held out is the same dataset."""
+    nogt = tmp_path / "nogt"
+    shutil.copytree(data / "feto", nogt)
+    (nogt / "ground_truth.csv").unlink()
+    assert run(nogt, tmp_path / "o", "emt") == 0
+    assert main(["--quiet", "evaluate", str(tmp_path / "o"), "--truth", str(data / "feto"),
+                 "--no-report"]) == 0
+    assert capsys.readouterr().err == ""
+    (nogt / "camera.yaml").write_text((nogt / "camera.yaml").read_text() + "\n# edited\n")
+    assert run(nogt, tmp_path / "o", "emt") == 0
+    assert main(["--quiet", "evaluate", str(tmp_path / "o"), "--truth", str(data / "feto"),
+                 "--no-report"]) == 0
+    assert "differs from it (camera.yaml)" in capsys.readouterr().err
+
+
 # --------------------------------------------------------------------------- 16, 18, 20: run
 
 
 @pytest.mark.parametrize("fps", ["inf", "nan", "0", "-25"])
 def test_fps_must_be_finite_and_positive(data, tmp_path, computed, capsys, fps):
     assert run(data / "feto", tmp_path / "o", "emt", "--fps", fps) == 2
-    assert "error: --fps: must be a finite number of frames per second > 0" in (
-        capsys.readouterr().err)
+    assert capsys.readouterr().err == (f"fusedmosaic: error: --fps must be positive and finite, "
+                                       f"got {float(fps)}\n")
+    assert computed == [] and listing(tmp_path) == []
+    # the library says the same, naming its own argument (one check: io.dataset.check_fps)
+    with pytest.raises(ValueError, match=r"^fps must be positive and finite, got inf$"):
+        run_dataset(data / "feto", "emt", tmp_path / "o", fps=float("inf"))
+    with pytest.raises(ValueError, match=r"^fps must be positive and finite, got True$"):
+        run_dataset(data / "feto", "emt", tmp_path / "o", fps=True)
     assert computed == [] and listing(tmp_path) == []
 
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import sys
 import time
 import typing
@@ -44,13 +43,16 @@ def _dataclass_from_args(cls: type, args: argparse.Namespace):
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from fusedmosaic import simulation
+    from fusedmosaic.io.dataset import check_replaceable_dataset
     from fusedmosaic.io.output import check_output_dir
 
     t0 = time.perf_counter()
     target = check_output_dir(args.out, "dataset folder")
-    if target.is_dir() and any(target.iterdir()) and not args.overwrite:
-        raise ValueError(f"{target}: exists and is not empty (choose another folder, or pass "
-                         "--overwrite to replace it and everything in it)")
+    if target.is_dir() and any(target.iterdir()):
+        if not args.overwrite:
+            raise ValueError(f"{target}: exists and is not empty (choose another folder, or pass "
+                             "--overwrite to replace the dataset in it)")
+        check_replaceable_dataset(target)  # not the cwd, a parent of it, or a non-dataset
     if args.kind == "fetoscopy":
         options = _dataclass_from_args(simulation.FetoscopyOptions, args)
         if options.black_frames == []:  # bare --black-frames: the paper's list (Sec. 4.2.3)
@@ -66,11 +68,10 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    from fusedmosaic.io.dataset import check_fps
     from fusedmosaic.runner import run_dataset
 
-    if not math.isfinite(args.fps) or args.fps <= 0:
-        raise ValueError(f"--fps: must be a finite number of frames per second > 0, got "
-                         f"{args.fps}")
+    check_fps(args.fps, "--fps")
     options = None
     overrides: dict = {}
     if args.motion_sigma_from:
@@ -112,8 +113,8 @@ def _blend_options(args: argparse.Namespace):
     preference); None when no compositing flag is given."""
     from fusedmosaic.compositing import BlendOptions
 
-    if args.blend is None and not args.border and args.bands is None \
-            and not args.gain_compensation:
+    if (args.blend is None and not args.border and args.bands is None
+            and not args.gain_compensation):
         return None
     return BlendOptions(blend=args.blend, border_px=args.border or 0.0,
                         bands=args.bands if args.bands is not None else BlendOptions.bands,
@@ -152,27 +153,13 @@ def _json_text(obj) -> str:
     return json.dumps(obj, indent=2, allow_nan=True)
 
 
-def _write_json_atomic(path: Path, obj) -> None:
-    """path written through a unique temporary file beside it (removed on any failure)."""
-    import tempfile
-
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
-    try:
-        with open(fd, "w") as f:
-            f.write(_json_text(obj))
-        Path(tmp).replace(path)
-    finally:
-        Path(tmp).unlink(missing_ok=True)
-
-
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from fusedmosaic.evaluation import compare_position_errors, evaluate_output
-    from fusedmosaic.io import OutputWriter
-    from fusedmosaic.io.output import check_output_dir
+    from fusedmosaic.evaluation.metrics import check_positions_n
+    from fusedmosaic.io.output import OutputWriter, check_output_dir
 
-    if args.positions is not None and args.positions < 1:
-        raise ValueError(f"--positions: the number of evenly spaced frames must be >= 1, got "
-                         f"{args.positions}")
+    if args.positions is not None:
+        check_positions_n(args.positions, "--positions")
     outs = [Path(args.out), *(Path(p) for p in args.compare or [])]
     # Where the results go is checked first; nothing is written until everything succeeded.
     json_path = Path(args.json) if args.json else outs[0] / "evaluation.json"
@@ -188,6 +175,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                          create_parent=False)
     except ValueError as exc:
         raise ValueError(f"--json {json_path}: {exc}") from None
+    plots = md_path.stem + "_plots"
+    older = _check_report_destination(json_path, plots, report=not args.no_report)
     results = [evaluate_output(o, args.truth, positions_n=args.positions) for o in outs]
     for r in results:
         if "dataset_warning" in r:
@@ -205,10 +194,14 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     for w in report.get("wilcoxon", []):
         _say(args, f"Wilcoxon signed-rank {Path(w['a']).name} vs {Path(w['b']).name}: "
                    f"p = {w['p_value']:.3g} (n = {w['n']})")
-    plots = md_path.stem + "_plots"
-    # json, .md and plots replace the previous evaluation there as one set, or not at all.
-    with OutputWriter(json_path.parent,
-                      replaces=[json_path.name, md_path.name, plots + "/"]) as w:
+    # json, .md and plots replace the previous evaluation of that name as one set, or not at
+    # all; an evaluation of the output folder it is written into goes when that folder is run
+    # again.
+    here = json_path.parent.resolve()
+    expects = [json_path.name] + ([] if loaded is None else [md_path.name, plots + "/"])
+    with OutputWriter(json_path.parent, record=f"evaluation:{json_path.name}",
+                      stale_after_run=any(o.resolve() == here for o in outs), expects=expects,
+                      replaces=older) as w:
         w.write_text(json_path.name, _json_text(report))
         if loaded is not None:
             from fusedmosaic.evaluation.report import write_report
@@ -220,6 +213,41 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if loaded is not None:
         _say(args, f"wrote {md_path} (plots in {md_path.parent / plots})")
     return 0
+
+
+def _check_report_destination(json_path: Path, plots: str, *, report: bool) -> list[str]:
+    """NAME.md and NAME_plots/ beside --json NAME.json are replaced only when a fusedmosaic
+    evaluation wrote them: recorded in the folder's manifest, or (older versions) NAME.json is
+    an evaluation (a "results" list). Otherwise they are the user's: with a report to write,
+    that is an error; without, they are left alone.
+
+    Returns the older version's names for OutputWriter(replaces=...)."""
+    from fusedmosaic.io.output import read_json_object, read_manifest
+
+    md_path = json_path.with_suffix(".md")
+    sets = read_manifest(json_path.parent) or {}
+    recorded = {f for s in sets.values() for f in s["files"]}
+    older: list[str] = []
+    if f"evaluation:{json_path.name}" not in sets:
+        try:
+            previous = read_json_object(json_path)
+        except (OSError, ValueError):
+            previous = {}
+        if isinstance(previous.get("results"), list):
+            older = [md_path.name, plots + "/"]
+    if not report:
+        return older
+    if md_path.exists() and md_path.name not in recorded and md_path.name not in older:
+        raise ValueError(f"--json {json_path}: the report would replace {md_path}, which no "
+                         "fusedmosaic evaluation wrote; choose another --json name, move that "
+                         "file, or pass --no-report")
+    plots_dir = json_path.parent / plots
+    if (plots_dir.exists() and not any(f.startswith(plots + "/") for f in recorded)
+            and plots + "/" not in older):
+        raise ValueError(f"--json {json_path}: the report's plots would go into {plots_dir}, "
+                         "a folder no fusedmosaic evaluation wrote; choose another --json name, "
+                         "move that folder, or pass --no-report")
+    return older
 
 
 def _load_for_report(outs: list[Path], truth_root):
@@ -241,7 +269,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from fusedmosaic.compositing import BlendOptions, render_mosaic
     from fusedmosaic.evaluation import evaluate_output
     from fusedmosaic.io import read_dataset, read_homographies_csv
-    from fusedmosaic.io.output import check_output_dir
+    from fusedmosaic.io.output import OutputWriter, check_output_dir
     from fusedmosaic.runner import run_dataset
 
     root = check_output_dir(args.out, "demo folder")
@@ -269,11 +297,11 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     cam = dataset.camera
     seams = render_mosaic(dataset.frames, G, cam.width, cam.height, mask=cam.fov_mask(),
                           blend=BlendOptions("linear", border_px=1.5)).image
-    import cv2
-
-    cv2.imwrite(str(out / "mosaic_seams.png"), seams)
     result = evaluate_output(out, data)
-    _write_json_atomic(out / "evaluation.json", result)
+    with OutputWriter(out, record="demo", stale_after_run=True,
+                      expects=["mosaic_seams.png", "evaluation.json"]) as w:
+        w.write_image("mosaic_seams.png", seams)
+        w.write_text("evaluation.json", _json_text(result))
     _say(args, _format_table([result]))
     _say(args, f"[demo] {method}: {result['placed']}/{result['frames']} frames placed, "
                f"e_M = {result['e_M_px']:.2f} px, drift ratio {result['drift_ratio']:.2f}; "
@@ -315,7 +343,9 @@ def build_parser() -> argparse.ArgumentParser:
                                parents=[quiet])
         p.add_argument("out", help="output dataset folder (must not exist or be empty)")
         p.add_argument("--overwrite", action="store_true",
-                       help="replace OUT and everything in it if it exists and is not empty")
+                       help="replace an earlier dataset in OUT with everything in it (OUT must "
+                            "hold camera.yaml or simulation.json, and not be the current folder "
+                            "or hold it)")
         _add_dataclass_options(p, cls)
         p.set_defaults(func=_cmd_simulate)
 

@@ -3,15 +3,14 @@
 from __future__ import annotations
 
 import dataclasses
-import json
-import math
 import time
 from pathlib import Path
 
 import numpy as np
 
 from fusedmosaic import methods
-from fusedmosaic.io.output import RUN_OUTPUTS
+from fusedmosaic.io.dataset import check_fps
+from fusedmosaic.io.output import OutputWriter, is_under, read_json_object
 
 # What each method needs from the dataset beyond frames and camera.yaml.
 NEEDS_TRACKING = {"ba-emt", "lba-emt", "emt"}
@@ -35,13 +34,11 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
     report: also write report.md with PNG plots (plots/).
     Returns a short summary for the terminal."""
     from fusedmosaic.evaluation.provenance import dataset_fingerprint
-    from fusedmosaic.io import OutputWriter, read_dataset
+    from fusedmosaic.io import read_dataset
 
     timings: dict[str, float] = {}
     run_method = methods.get(method)  # unknown method fails before any reading
-    if isinstance(fps, bool) or not isinstance(fps, (int, float, np.number)) \
-            or not (math.isfinite(fps) and fps > 0):
-        raise ValueError(f"fps: must be a finite number > 0, got {fps}")
+    check_fps(fps)
     out = Path(out)
     check_out_outside_dataset(out, Path(dataset_root))
     if video is not None:
@@ -62,12 +59,19 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
     timings["read_dataset"] = time.perf_counter() - t0
 
     # OUT (and the video's folder) are checked before the computation; the outputs are
-    # collected in a temporary folder and replace OUT's previous run as a whole at the end.
-    if video is not None and not _inside(Path(video), out):
+    # collected in a temporary folder and replace OUT's previous run at the end: the files that
+    # run recorded (and evaluations of it), never files fusedmosaic did not write.
+    if video is not None and not is_under(video, out):
         from fusedmosaic.io.output import check_output_dir
 
         check_output_dir(Path(video).parent, "video's folder")
-    with OutputWriter(out, replaces=previous_outputs(out)) as w:
+    expects = ["homographies.csv", "mosaic.png", "report.json"]
+    if report:
+        expects += ["report.md", "plots/"]
+    if video is not None and is_under(video, out):
+        expects.append(Path(video).resolve().relative_to(out.resolve()).as_posix())
+    with OutputWriter(out, record="run", stale_after_run=True, new_run=True, expects=expects,
+                      replaces=older_run_outputs(out)) as w:
         result = run_method(dataset, progress=progress, options=options)
         timings.update(result.timings)
         G = result.homographies
@@ -122,29 +126,29 @@ def check_out_outside_dataset(out: Path, dataset_root: Path) -> None:
     """OUT equal to the dataset folder or inside it (e.g. in frames/) would mix outputs into the
     dataset: mosaic.png among the frames, report.json beside camera.yaml."""
     root = dataset_root.resolve()
-    if root.is_dir() and _inside(out, root, or_equal=True):
-        where = "is the dataset folder" if out.resolve() == root else \
-            f"is inside the dataset folder {dataset_root}"
+    if root.is_dir() and is_under(out, root, or_equal=True):
+        where = ("is the dataset folder" if out.resolve() == root
+                 else f"is inside the dataset folder {dataset_root}")
         raise ValueError(f"{out}: the output folder {where}; writing there would corrupt the "
                          "dataset: choose --out outside it")
 
 
-def previous_outputs(out: Path) -> list[str]:
-    """The output set a new run in OUT replaces: the known names, plus the files the previous
-    run listed in its report.json (e.g. a video inside OUT)."""
-    names = list(RUN_OUTPUTS)
+def older_run_outputs(out: Path) -> list[str]:
+    """What a run of an older fusedmosaic (no "run" record in OUT's manifest) left in OUT and
+    a new run replaces; only when OUT's report.json is recognisably ours (method registered):
+    the files it lists under "outputs" when it also records a dataset fingerprint, else the
+    method-dependent plane.json and poses.csv (an emt run's plane beside a pairwise run's
+    homographies would be read as pairwise's). Nothing for a foreign or absent report.json."""
     try:
-        listed = json.loads((out / "report.json").read_text()).get("outputs")
-    except (OSError, ValueError, AttributeError):  # absent or not ours: the known names only
-        return names
-    if isinstance(listed, list):
-        names += [n for n in listed if isinstance(n, str) and n not in names]
-    return names
-
-
-def _inside(path: Path, folder: Path, *, or_equal: bool = False) -> bool:
-    path, folder = path.resolve(), folder.resolve()
-    return (or_equal and path == folder) or folder in path.parents
+        report = read_json_object(out / "report.json")
+    except (OSError, ValueError):
+        return []
+    if not isinstance(report.get("method"), str) or report["method"] not in methods.REGISTRY:
+        return []
+    listed = report.get("outputs")
+    if isinstance(report.get("dataset_fingerprint"), dict) and isinstance(listed, list):
+        return [name for name in listed if isinstance(name, str)]
+    return ["plane.json", "poses.csv"]
 
 
 def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=None, video=None,
@@ -214,7 +218,7 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
         t0 = time.perf_counter()
         target = Path(video)
         # Inside OUT or not, the video goes through the atomic writer with everything else.
-        if _inside(target, out):
+        if is_under(target, out):
             path = w.path(str(target.resolve().relative_to(out.resolve())))
         else:
             path = w.external_path(target)

@@ -132,6 +132,14 @@ def compare_position_errors(errors_a: np.ndarray, errors_b: np.ndarray) -> dict:
             "mean_a": float(errors_a[ok].mean()), "mean_b": float(errors_b[ok].mean())}
 
 
+def check_positions_n(positions_n, what: str = "positions") -> None:
+    """The number of evenly spaced frames for the position statistics: an integer >= 1."""
+    if (isinstance(positions_n, bool) or not isinstance(positions_n, (int, np.integer))
+            or positions_n < 1):
+        raise ValueError(f"{what}: the number of evenly spaced frames must be an integer >= 1, "
+                         f"got {positions_n!r}")
+
+
 def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
                     positions_n: int | None = None) -> dict:
     """Scores an output folder's homographies.csv against a dataset's ground_truth.csv.
@@ -140,14 +148,11 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
     When the output's report.json records another dataset than `truth_root`, the result's
     "dataset_warning" says so (see evaluation.provenance)."""
     from fusedmosaic.evaluation.provenance import dataset_mismatch
-    from fusedmosaic.evaluation.report import read_json_object
     from fusedmosaic.io import read_dataset, read_homographies_csv
+    from fusedmosaic.io.output import read_json_object
 
-    if positions_n is not None and (isinstance(positions_n, bool)
-                                    or not isinstance(positions_n, (int, np.integer))
-                                    or positions_n < 1):
-        raise ValueError(f"positions: the number of evenly spaced frames must be an integer "
-                         f">= 1, got {positions_n!r}")
+    if positions_n is not None:
+        check_positions_n(positions_n)
     out_dir, truth_root = Path(out_dir), Path(truth_root)
     dataset = read_dataset(truth_root)
     if dataset.ground_truth is None:

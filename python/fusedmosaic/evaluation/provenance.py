@@ -27,8 +27,9 @@ def dataset_fingerprint(dataset) -> dict:
         "frames": int(len(dataset.frame_ids)),
         "width": int(dataset.camera.width),
         "height": int(dataset.camera.height),
-        "sha256": {name: _sha256(root / name) for name in FINGERPRINT_FILES
-                   if (root / name).is_file()},
+        "sha256": {
+            name: _sha256(root / name) for name in FINGERPRINT_FILES if (root / name).is_file()
+        },
     }
 
 
@@ -44,14 +45,23 @@ def dataset_mismatch(report: dict, dataset, report_path: str | Path) -> str | No
         now = dataset_fingerprint(dataset)
         differ = [key for key in ("frames", "width", "height") if recorded.get(key) != now[key]]
         old_files = recorded.get("sha256") if isinstance(recorded.get("sha256"), dict) else {}
-        differ += [name for name in sorted(set(old_files) | set(now["sha256"]))
-                   if old_files.get(name) != now["sha256"].get(name)]
+        # Only files both sides have: a run on a copy without ground_truth.csv (held out) is
+        # still the same dataset.
+        differ += [
+            name
+            for name in sorted(set(old_files) & set(now["sha256"]))
+            if old_files[name] != now["sha256"][name]
+        ]
         if differ:
-            return (f"{where}, but {here} differs from it ({', '.join(differ)}): the scores "
-                    "may compare the output with another dataset's ground truth")
+            return (
+                f"{where}, but {here} differs from it ({', '.join(differ)}): the scores "
+                "may compare the output with another dataset's ground truth"
+            )
         return None
     recorded_path = report.get("dataset")
     if isinstance(recorded_path, str) and Path(recorded_path).resolve() != here.resolve():
-        return (f"{where}, not {here.resolve()}: check that --truth is the dataset the output "
-                "was computed from")
+        return (
+            f"{where}, not {here.resolve()}: check that --truth is the dataset the output "
+            "was computed from"
+        )
     return None

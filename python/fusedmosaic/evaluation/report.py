@@ -16,11 +16,12 @@ the plane's distance and (az, elev) the direction of its normal.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from fusedmosaic.io.output import read_json_object, read_plane_json
 
 PLOTS_DIR = "plots"
 # Methods in green first, then colours that differ from the tracker (blue) and the truth (red).
@@ -152,37 +153,6 @@ def truth_from_dataset(ds) -> TruthRecord:
     if plane_path.is_file():
         truth.plane = read_plane_json(plane_path)
     return truth
-
-
-def read_json_object(path: Path) -> dict:
-    """A JSON file whose top level is an object; ValueError naming the file otherwise."""
-    try:
-        obj = json.loads(Path(path).read_text())
-    except UnicodeDecodeError:
-        raise ValueError(f"{path}: not a text (UTF-8) JSON file") from None
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno}, column "
-                         f"{exc.colno})") from None
-    if not isinstance(obj, dict):
-        raise ValueError(f"{path}: expected a JSON object {{...}} at the top level, got "
-                         f"{type(obj).__name__}")
-    return obj
-
-
-def read_plane_json(path: Path) -> np.ndarray:
-    """pi (3,) from plane.json / truth_plane.json ({"plane": [x, y, z], ...})."""
-    obj = read_json_object(path)
-    if "plane" not in obj:
-        raise ValueError(f"{path}: no \"plane\" entry")
-    try:
-        plane = np.asarray(obj["plane"], np.float64)
-    except (TypeError, ValueError):
-        plane = None
-    if plane is None or plane.shape != (3,) or not np.isfinite(plane).all() \
-            or not plane.any():
-        raise ValueError(f"{path}: \"plane\" must be 3 finite numbers, not all zero; got "
-                         f"{obj['plane']!r:.80}")
-    return plane
 
 
 def _check_report(report: dict, path: Path) -> dict:

@@ -6,6 +6,7 @@ A dataset is a folder with ``frames/*.png`` or ``video.*``, ``camera.yaml`` and 
 
 from __future__ import annotations
 
+import math
 import os
 import shutil
 import tempfile
@@ -134,11 +135,22 @@ def read_dataset(
     return dataset
 
 
+def check_fps(fps, what: str = "fps") -> float:
+    """The frame rate that gives timestamps without frames.csv: a finite number > 0 (inf would
+    give every frame timestamp 0). ``what`` names it in the message (e.g. "--fps")."""
+    if (
+        isinstance(fps, bool)
+        or not isinstance(fps, (int, float, np.number))
+        or not (math.isfinite(fps) and fps > 0)
+    ):
+        raise ValueError(f"{what} must be positive and finite, got {fps}")
+    return float(fps)
+
+
 def _read_frame_times(root: Path, n_images: int, fps: float) -> tuple[np.ndarray, np.ndarray]:
     path = root / "frames.csv"
     if not path.exists():
-        if not 0 < fps < np.inf:  # inf would give every frame timestamp 0
-            raise ValueError(f"fps must be positive and finite, got {fps!r}")
+        check_fps(fps)
         frame_ids = np.arange(n_images, dtype=np.int64)
         return frame_ids, frame_ids / float(fps)
     table, rows = read_table(path, ["frame", "timestamp"], integer=["frame"])
@@ -189,8 +201,10 @@ def write_dataset(
     written last, verbatim (they may replace a generated file, e.g. to build a bad dataset).
     """
     root = Path(root)
-    if root.exists() and (not root.is_dir() or any(root.iterdir())) and not overwrite:
-        raise ValueError(f"{root}: exists and is not empty (pass overwrite=True to replace it)")
+    if root.exists() and (not root.is_dir() or any(root.iterdir())):
+        if not overwrite:
+            raise ValueError(f"{root}: exists and is not empty (pass overwrite=True to replace it)")
+        check_replaceable_dataset(root)
     root.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{root.name}.tmp-", dir=root.parent))
     try:
@@ -235,17 +249,42 @@ def write_dataset(
     return root
 
 
+def check_replaceable_dataset(root: str | Path) -> None:
+    """overwrite replaces a whole folder, so only an earlier dataset: never the current folder
+    or one that holds it, nor a folder without camera.yaml or simulation.json (the user's files,
+    a project, a home folder). ValueError naming the folder otherwise."""
+    root = Path(root)
+    here, target = Path.cwd().resolve(), root.resolve()
+    if target == here or target in here.parents:
+        what = "is the current folder" if target == here else f"holds the current folder {here}"
+        raise ValueError(f"{root}: refusing to overwrite: it {what}; choose a new folder")
+    if not root.is_dir() or not any(
+        (root / n).is_file() for n in ("camera.yaml", "simulation.json")
+    ):
+        raise ValueError(
+            f"{root}: refusing to overwrite: it does not look like a dataset (no camera.yaml or "
+            "simulation.json), and overwriting would delete everything in it; choose a new "
+            "folder, or empty it yourself"
+        )
+
+
 def _replace_dir(src: Path, dst: Path) -> None:
-    """Rename ``src`` to ``dst``, replacing an existing ``dst`` (moved aside first)."""
-    if not dst.exists():
+    """Rename ``src`` to ``dst``, replacing an existing ``dst`` (moved aside first, and put back
+    if the rename fails; kept in ``.NAME.old-*`` if even that fails)."""
+    dst = Path(os.path.abspath(dst))  # "a/.." -> its real name, without following symlinks
+    if not dst.exists() and not dst.is_symlink():
         os.replace(src, dst)
         return
     old = Path(tempfile.mkdtemp(prefix=f".{dst.name}.old-", dir=dst.parent))
-    os.replace(dst, old / dst.name)
+    try:
+        os.replace(dst, old / dst.name)
+    except BaseException:
+        old.rmdir()
+        raise
     try:
         os.replace(src, dst)
     except BaseException:
         os.replace(old / dst.name, dst)
+        old.rmdir()
         raise
-    finally:
-        shutil.rmtree(old, ignore_errors=True)
+    shutil.rmtree(old, ignore_errors=True)

@@ -1,13 +1,20 @@
-"""Atomic writer for ``fusedmosaic run … --out OUT`` (design.md, "Output contract")."""
+"""Atomic writer for ``fusedmosaic run … --out OUT`` (design.md, "Output contract").
+
+Which files in a folder are fusedmosaic's is recorded, never guessed: every writer with a
+``record`` lists what it wrote in the folder's hidden manifest (MANIFEST), and a later writer
+removes only files that such a record names. Anything else in the folder belongs to the user."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import shutil
+import signal
 import tempfile
-from collections.abc import Iterable
+import threading
+from collections.abc import Iterable, Iterator
 from pathlib import Path, PurePath
 from typing import Any
 
@@ -16,114 +23,203 @@ import numpy as np
 
 from fusedmosaic.io.homographies import write_homographies_csv, write_poses_csv
 
-# Everything `fusedmosaic run` (and `evaluate`, `demo`) may leave in OUT. A run replaces the whole
-# set: members it does not write again are removed on commit, so OUT never mixes two runs
-# (e.g. an earlier method's plane.json next to a method that estimates no plane). Folders end
-# with "/"; anything else in OUT belongs to the user and is kept.
-RUN_OUTPUTS = (
-    "homographies.csv", "poses.csv", "plane.json", "mosaic.png", "report.json", "report.md",
-    "plots/", "evaluation.json", "evaluation.md", "evaluation_plots/", "mosaic_seams.png",
-)
+# {"written_by": "fusedmosaic", "format": 1, "sets": {KEY: {"files": [...], "stale_after_run":
+# bool}}}: KEY is "run", "demo" or "evaluation:NAME.json"; files are relative to the folder.
+MANIFEST = ".fusedmosaic-outputs.json"
+# Staging folders: OUT/.fusedmosaic.tmp-PID-* (OUT exists) or PARENT/.OUT.fusedmosaic.tmp-PID-*.
+TEMP_TAG = ".fusedmosaic.tmp-"
 
 
 def _describe(exc: OSError) -> str:
     return exc.strerror or type(exc).__name__
 
 
-def check_output_dir(out_dir: str | Path, what: str = "output folder", *,
-                     create_parent: bool = True) -> Path:
+def check_output_dir(
+    out_dir: str | Path, what: str = "output folder", *, create_parent: bool = True
+) -> Path:
     """Checks, before any work, that ``out_dir`` can be created or written: it is a folder or
-    does not exist, no part of its path is a file, and a file can be created in it and in its
-    parent (where OutputWriter stages the outputs). The parent is created if missing; with
-    create_parent=False nothing is created and the nearest existing ancestor is probed instead.
+    does not exist, and no part of its path is a file. An existing folder must be writable
+    (OutputWriter stages inside it); a missing one is created later, so its parent must be
+    writable (staged there). The parent is created if missing; with create_parent=False nothing
+    is created and the nearest existing ancestor is probed instead.
 
     Raises ValueError naming the path and the problem. Returns ``out_dir`` as a Path."""
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ValueError(f"{out}: exists and is not a folder (the {what} must be a folder)")
-    existing = next((p for p in out.parents if p.exists()), Path("."))
-    if not existing.is_dir():  # a file where a folder should be
-        raise ValueError(f"{out}: cannot create the {what}: {existing} is a file")
-    if create_parent:
-        try:
-            out.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise ValueError(f"{out}: cannot create the {what}'s parent folder {out.parent}: "
-                             f"{_describe(exc)}") from None
-        existing = out.parent
-    for directory in (existing, out) if out.is_dir() else (existing,):
-        try:
-            fd, probe = tempfile.mkstemp(prefix=".fusedmosaic-probe-", dir=directory)
-        except OSError as exc:
-            why = " (outputs are staged there, beside it)" if directory == out.parent else ""
-            raise ValueError(f"{out}: cannot write in {directory}{why}: "
-                             f"{_describe(exc)}") from None
-        os.close(fd)
-        os.unlink(probe)
+    if out.is_dir():
+        directory, why = out, ""
+    else:
+        existing = next((p for p in out.parents if p.exists()), Path("."))
+        if not existing.is_dir():  # a file where a folder should be
+            raise ValueError(f"{out}: cannot create the {what}: {existing} is a file")
+        if create_parent:
+            try:
+                out.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise ValueError(
+                    f"{out}: cannot create the {what}'s parent folder {out.parent}: "
+                    f"{_describe(exc)}"
+                ) from None
+            existing = out.parent
+        directory, why = existing, f" (the {what} is created there)"
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".fusedmosaic-probe-", dir=directory)
+    except OSError as exc:
+        raise ValueError(f"{out}: cannot write in {directory}{why}: {_describe(exc)}") from None
+    os.close(fd)
+    os.unlink(probe)
     return out
 
 
+def read_json_object(path: str | Path) -> dict:
+    """A JSON file whose top level is an object; ValueError naming the file otherwise."""
+    try:
+        obj = json.loads(Path(path).read_text())
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a text (UTF-8) JSON file") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(
+            f"{path}: not valid JSON ({exc.msg} at line {exc.lineno}, column {exc.colno})"
+        ) from None
+    if not isinstance(obj, dict):
+        raise ValueError(
+            f"{path}: expected a JSON object {{...}} at the top level, got {type(obj).__name__}"
+        )
+    return obj
+
+
+def read_plane_json(path: str | Path) -> np.ndarray:
+    """pi (3,) from plane.json / truth_plane.json ({"plane": [x, y, z], ...})."""
+    obj = read_json_object(path)
+    if "plane" not in obj:
+        raise ValueError(f'{path}: no "plane" entry')
+    try:
+        plane = np.asarray(obj["plane"], np.float64)
+    except (TypeError, ValueError):
+        plane = None
+    if plane is None or plane.shape != (3,) or not np.isfinite(plane).all() or not plane.any():
+        raise ValueError(
+            f'{path}: "plane" must be 3 finite numbers, not all zero; got {obj["plane"]!r:.80}'
+        )
+    return plane
+
+
+def read_manifest(folder: str | Path) -> dict[str, dict] | None:
+    """The output sets recorded in ``folder``'s MANIFEST: {key: {"files": [...],
+    "stale_after_run": bool}}; None when there is no readable fusedmosaic manifest (then
+    nothing in the folder is known to be ours)."""
+    try:
+        obj = read_json_object(Path(folder) / MANIFEST)
+    except (OSError, ValueError):
+        return None
+    if obj.get("written_by") != "fusedmosaic" or not isinstance(obj.get("sets"), dict):
+        return None
+    sets = {}
+    for key, entry in obj["sets"].items():
+        if isinstance(entry, dict) and isinstance(entry.get("files"), list):
+            files = [
+                f for f in entry["files"] if isinstance(f, str) and _is_relative_inside(PurePath(f))
+            ]
+            sets[key] = {"files": files, "stale_after_run": entry.get("stale_after_run") is True}
+    return sets
+
+
+def is_under(path: str | Path, folder: str | Path, *, or_equal: bool = False) -> bool:
+    """Whether ``path`` lies inside ``folder`` (both resolved; or is it, with or_equal)."""
+    path, folder = Path(path).resolve(), Path(folder).resolve()
+    return (or_equal and path == folder) or folder in path.parents
+
+
 class OutputWriter:
-    """Collect output files in a temporary folder next to ``out_dir`` and move them into
-    ``out_dir`` (created if needed) only when the ``with`` block exits normally; on an exception
-    the temporary folder is removed and ``out_dir`` is left untouched.
+    """Collect output files in a hidden temporary folder and move them into ``out_dir`` only
+    when the ``with`` block exits normally; on an exception (Ctrl-C included) the temporary
+    folder is removed and ``out_dir`` is left untouched.
 
-    Each file is moved with os.replace, so a reader of ``out_dir`` never sees a partial file;
-    existing files of the same name are replaced. Before anything is moved, every destination is
-    checked (a folder where a file goes, or the reverse, fails the whole commit).
+    The temporary folder is inside ``out_dir`` when it exists (same file system, and only the
+    folder itself needs to be writable), else beside it, where ``out_dir`` is created. Each file
+    is moved with os.replace, so a reader never sees a partial file; files of the same name are
+    replaced. Before anything is moved, every destination is checked (a folder where a file
+    goes, or the reverse, fails the whole commit). Temporary folders of a killed process are
+    removed by the next writer in the same place.
 
-    replaces: names (relative to OUT; folders end with "/") of an earlier output set that this
-        one supersedes: those not written again are removed on commit. Other files in
-        ``out_dir`` are kept. The default replaces nothing.
+    record: key under which the written files are listed in ``out_dir``'s MANIFEST. The files
+        an earlier writer recorded under the same key and that are not written again are
+        removed (e.g. report.md after a run with --no-report). None: no record, and nothing
+        but the written files is touched.
+    stale_after_run: the set describes the run in ``out_dir`` (an evaluation of it): a later
+        run there removes it.
+    new_run: this writer is a run: it also removes every recorded set marked stale_after_run.
+    expects: names (relative to OUT, folders end with "/") the writer will surely write,
+        checked up front for a folder/file of the other kind.
+    replaces: names of an earlier output set that the caller recognised as fusedmosaic's
+        without a manifest record (older versions): used only when ``record`` has no entry in
+        the manifest; those not written again are removed (a name ending in "/" as a folder).
 
     ``__enter__`` checks up front that ``out_dir`` can be written (check_output_dir), so a bad
     OUT fails before the computation, with a ValueError.
     """
 
-    def __init__(self, out_dir: str | Path, *, replaces: Iterable[str] = ()) -> None:
+    def __init__(
+        self,
+        out_dir: str | Path,
+        *,
+        record: str | None = None,
+        stale_after_run: bool = False,
+        new_run: bool = False,
+        expects: Iterable[str] = (),
+        replaces: Iterable[str] = (),
+    ) -> None:
         self.out_dir = Path(out_dir)
+        self.record = record
+        self.stale_after_run = stale_after_run
+        self.new_run = new_run
+        self.expects = list(expects)
         self.replaces = list(replaces)
         self._tmp: Path | None = None
         self._external: list[tuple[Path, Path]] = []  # (temp, target) outside OUT
 
     def __enter__(self) -> OutputWriter:
         check_output_dir(self.out_dir)
-        for name in self.replaces:  # a user's folder named like one of our files (or reverse)
+        for name in self.expects:  # a user's folder named like one of our files (or reverse)
             self._check_kind(self.out_dir / name.rstrip("/"), name.endswith("/"))
-        self._tmp = Path(
-            tempfile.mkdtemp(prefix=f".{self.out_dir.name}.tmp-", dir=self.out_dir.parent)
-        )
+        if self.out_dir.is_dir():
+            where, prefix = self.out_dir, TEMP_TAG
+        else:
+            where, prefix = self.out_dir.parent, f".{self.out_dir.name}{TEMP_TAG}"
+        _remove_stale_temps(where, prefix)
+        self._tmp = Path(tempfile.mkdtemp(prefix=f"{prefix}{os.getpid()}-", dir=where))
         return self
 
     @staticmethod
     def _check_kind(target: Path, is_dir: bool) -> None:
         if is_dir and target.exists() and not target.is_dir():
-            raise ValueError(f"{target}: is a file; the output needs a folder of that name "
-                             "(remove or rename it)")
+            raise ValueError(
+                f"{target}: is a file; the output needs a folder of that name (remove or rename it)"
+            )
         if not is_dir and target.is_dir():
-            raise ValueError(f"{target}: is a folder; the output needs a file of that name "
-                             "(remove or rename it)")
+            raise ValueError(
+                f"{target}: is a folder; the output needs a file of that name (remove or rename it)"
+            )
 
     def __exit__(self, exc_type, exc, tb) -> None:
         tmp, self._tmp = self._tmp, None
         external, self._external = self._external, []
-        try:
-            if exc_type is None:
-                self._commit(tmp, external)
-        finally:
-            shutil.rmtree(tmp, ignore_errors=True)
-            for temp, _ in external:
-                temp.unlink(missing_ok=True)
+        with _interrupts_deferred():  # Ctrl-C here would leave a half-moved set or the temp
+            try:
+                if exc_type is None:
+                    self._commit(tmp, external)
+            finally:
+                shutil.rmtree(tmp, ignore_errors=True)
+                for temp, _ in external:
+                    temp.unlink(missing_ok=True)
 
     def _commit(self, tmp: Path, external: list[tuple[Path, Path]]) -> None:
-        whole = {name.rstrip("/") for name in self.replaces if name.endswith("/")}
         moves: list[tuple[Path, Path]] = []  # planned first: fail before moving anything
-        written: set[str] = set()
 
         def plan(src: Path, relative: PurePath) -> None:
             target = self.out_dir / relative
-            written.add(str(relative))
-            if src.is_dir() and str(relative) not in whole and target.is_dir():
+            if src.is_dir() and target.is_dir():
                 for child in sorted(src.iterdir()):  # merge: keep the user's other files
                     plan(child, relative / child.name)
                 return
@@ -134,57 +230,94 @@ class OutputWriter:
             plan(entry, PurePath(entry.name))
         for _, target in external:
             self._check_kind(target, False)
+        written = self._written(tmp)
+        stale_files, stale_folders, manifest = self._superseded(written)
         self.out_dir.mkdir(parents=True, exist_ok=True)
+        for folder in stale_folders:  # an older version's recorded folder, e.g. "plots/"
+            shutil.rmtree(self.out_dir / folder)
+        for name in stale_files:
+            target = self.out_dir / name
+            if target.is_file() or target.is_symlink():
+                target.unlink()
+                self._remove_empty_parents(target)
         for src, target in moves:
-            if src.is_dir() and target.is_dir():  # a folder the run owns: replaced whole
-                shutil.rmtree(target)
             target.parent.mkdir(parents=True, exist_ok=True)
             os.replace(src, target)
         for temp, target in external:
             if temp.exists():
                 os.replace(temp, target)
-        for name in self.replaces:  # the earlier run's outputs that this run did not write
-            relative = PurePath(name.rstrip("/"))
-            if not _inside(relative) or str(relative) in written:
-                continue
-            target = self.out_dir / relative
-            if name.endswith("/") and target.is_dir() and not target.is_symlink():
-                shutil.rmtree(target)
-            elif not name.endswith("/") and (target.is_file() or target.is_symlink()):
-                target.unlink()
-                for folder in target.parents:  # e.g. OUT/videos/, emptied by this removal
-                    if folder == self.out_dir or not folder.is_relative_to(self.out_dir) \
-                            or any(folder.iterdir()):
-                        break
-                    folder.rmdir()
+        if manifest is not None:
+            self._write_manifest(tmp, manifest)
+
+    def _superseded(self, written: list[str]) -> tuple[list[str], list[str], dict | None]:
+        """(files to remove, folders to remove whole, the new manifest sets or None)."""
+        if self.record is None:
+            return [], [], None
+        sets = read_manifest(self.out_dir) or {}
+        replaced = {self.record} | {
+            k for k, s in sets.items() if self.new_run and s["stale_after_run"]
+        }
+        kept = {k: s for k, s in sets.items() if k not in replaced}
+        keep = set(written).union(*(s["files"] for s in kept.values()))
+        stale = {f for k in replaced & sets.keys() for f in sets[k]["files"]}
+        folders = []
+        if self.record not in sets:  # no record yet: the caller's recognised older set
+            for name in self.replaces:
+                relative = PurePath(name.rstrip("/"))
+                if not _is_relative_inside(relative) or str(relative) in keep:
+                    continue
+                target = self.out_dir / relative
+                if name.endswith("/"):
+                    if target.is_dir() and not target.is_symlink():
+                        folders.append(str(relative))
+                else:
+                    stale.add(str(relative))
+        for s in kept.values():  # a file now written by this set is no longer theirs
+            s["files"] = [f for f in s["files"] if f not in written]
+        kept[self.record] = {"files": written, "stale_after_run": self.stale_after_run}
+        return sorted(stale - keep), folders, kept
+
+    def _write_manifest(self, tmp: Path, sets: dict) -> None:
+        sets = {k: s for k, s in sets.items() if s["files"]}
+        target = self.out_dir / MANIFEST
+        if not sets:
+            target.unlink(missing_ok=True)
+            return
+        temp = tmp / MANIFEST
+        obj = {"written_by": "fusedmosaic", "format": 1, "sets": sets}
+        temp.write_text(json.dumps(obj, indent=2) + "\n")
+        os.replace(temp, target)
+
+    def _remove_empty_parents(self, target: Path) -> None:
+        for folder in target.parents:  # e.g. OUT/videos/, emptied by this removal
+            if folder == self.out_dir or not folder.is_relative_to(self.out_dir):
+                break
+            if any(folder.iterdir()):
+                break
+            folder.rmdir()
 
     def path(self, name: str) -> Path:
         """Temporary path for ``name`` (relative to OUT); write the file there yourself."""
         if self._tmp is None:
             raise RuntimeError("OutputWriter: use it as a context manager (with OutputWriter(…))")
         relative = PurePath(name)
-        if not _inside(relative):
+        if not _is_relative_inside(relative) or relative.parts[0] == MANIFEST:
             raise ValueError(f"OutputWriter: {name!r} must be a relative path inside OUT")
         path = self._tmp / relative
         path.parent.mkdir(parents=True, exist_ok=True)
         return path
 
     def written(self) -> list[str]:
-        """What has been written so far, relative to OUT: files, and "name/" for a folder the
-        writer replaces whole (e.g. "plots/")."""
+        """The files written so far, relative to OUT (POSIX separators), sorted."""
         if self._tmp is None:
             raise RuntimeError("OutputWriter: use it as a context manager (with OutputWriter(…))")
-        whole = {name for name in self.replaces if name.endswith("/")}
-        names = []
-        for path in sorted(self._tmp.rglob("*")):
-            relative = path.relative_to(self._tmp).as_posix()
-            top = relative.split("/")[0] + "/"
-            if top in whole:
-                if relative + "/" == top:
-                    names.append(top)
-            elif path.is_file():
-                names.append(relative)
-        return names
+        return self._written(self._tmp)
+
+    @staticmethod
+    def _written(tmp: Path) -> list[str]:
+        return sorted(
+            p.relative_to(tmp).as_posix() for p in tmp.rglob("*") if p.is_file() or p.is_symlink()
+        )
 
     def external_path(self, target: str | Path) -> Path:
         """Temporary path for a file outside OUT (e.g. a video elsewhere): written beside
@@ -241,5 +374,49 @@ def to_jsonable(obj: Any) -> Any:
     return obj
 
 
-def _inside(relative: PurePath) -> bool:
+def _is_relative_inside(relative: PurePath) -> bool:
+    """A relative path that stays inside the folder it is relative to."""
     return bool(relative.parts) and not relative.is_absolute() and ".." not in relative.parts
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # e.g. another user's process: alive
+        return True
+    return True
+
+
+def _remove_stale_temps(folder: Path, prefix: str) -> None:
+    """Staging folders ``prefix``PID-* in ``folder`` whose process is gone (killed before its
+    clean-up could run): ours by name, and nobody will commit them."""
+    try:
+        entries = list(folder.iterdir())
+    except OSError:
+        return
+    for entry in entries:
+        pid = entry.name[len(prefix) :].split("-", 1)[0] if entry.name.startswith(prefix) else ""
+        if pid.isdigit() and entry.is_dir() and not entry.is_symlink() and not _pid_alive(int(pid)):
+            shutil.rmtree(entry, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def _interrupts_deferred() -> Iterator[None]:
+    """SIGINT during the block is delivered (as KeyboardInterrupt) after it, so a commit or a
+    clean-up is never cut in half. Only the main thread can set handlers; elsewhere a no-op."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: received.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if received:
+        if callable(previous):
+            previous(signal.SIGINT, None)
+        elif previous == signal.SIG_DFL:
+            raise KeyboardInterrupt
