@@ -7,6 +7,15 @@ memory grows with the area covered (16 bytes per pixel for colour), not with the
 
 Blending: `linear`, `average` or `last` (see blending.py); multi-band blending needs every frame
 before the seams are known and is offline only (`render_mosaic`).
+
+Input: frames are uint8, (H, W) gray or (H, W, 3) BGR, as the dataset contract and the reader
+give them (design.md). Other pixel types are refused rather than guessed: the offline compositor
+(`render_mosaic`) takes pixel values at face value as 0..255, so a float 0..1 frame renders black
+and a 16-bit one saturates; convert first (`np.clip(np.rint(f * 255), 0, 255).astype(np.uint8)`
+for 0..1 floats, `(f >> 8).astype(np.uint8)` for 16-bit). A refused call (exception) changes
+nothing. A frame whose footprint would grow the canvas bounds beyond `max_pixels` (a stray
+placement far from the rest) is skipped and recorded in `skipped`, like an unplaced one, since
+`render()` of the whole canvas needs a bounds-sized array.
 """
 
 from __future__ import annotations
@@ -53,6 +62,8 @@ class IncrementalCanvas:
         self.options = options
         self.tile_size = int(tile_size)
         self.scale = float(scale)
+        if not max_pixels > 0:
+            raise ValueError(f"max_pixels must be > 0, got {max_pixels}")
         self.max_pixels = int(max_pixels)
         self.absurd_area_factor = absurd_area_factor
         self._warpers: dict[int | None, FrameWarper] = {None: FrameWarper(width, height, mask,
@@ -76,50 +87,94 @@ class IncrementalCanvas:
             self._warpers[key] = FrameWarper(self.width, self.height, mask, self.options)
         return self._warpers[key]
 
-    def _screen(self, G: np.ndarray) -> str | None:
+    def _screen(self, G: np.ndarray) -> tuple[str | None, float]:
+        """(reason to leave the frame out or None, footprint area)."""
         if not np.isfinite(G).all():
-            return "not placed"
+            return "not placed", np.nan
         quad = footprints(G[None], self.width, self.height)[0]
         if not np.isfinite(quad).all():
-            return "footprint behind the camera"
+            return "footprint behind the camera", np.nan
         quad = quad.astype(np.float32)
         if not cv2.isContourConvex(quad):
-            return "non-convex footprint"
+            return "non-convex footprint", np.nan
         area = cv2.contourArea(quad)
         if self._areas and area > self.absurd_area_factor * float(np.median(self._areas)):
-            return f"footprint area {area / np.median(self._areas):.0f} x the recent median"
-        self._areas.append(area)
-        return None
+            return f"footprint area {area / np.median(self._areas):.0f} x the recent median", area
+        return None, area
+
+    def _check_image(self, image, name: int) -> np.ndarray:
+        if image is None:
+            raise TypeError(f"frame {name}: image is None; expected an (H, W) gray or (H, W, 3) "
+                            "BGR uint8 array")
+        image = np.asarray(image)
+        if image.dtype != np.uint8:
+            hint = ""
+            if image.dtype.kind == "f":
+                hint = " (0..1 floats: np.clip(np.rint(image * 255), 0, 255).astype(np.uint8))"
+            elif image.dtype.kind in "iu" and image.dtype.itemsize > 1:
+                hint = " (16-bit: (image >> 8).astype(np.uint8))"
+            raise ValueError(f"frame {name}: image is {image.dtype}, expected uint8: the canvas "
+                             f"does not guess the value range; convert it first{hint}")
+        if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] not in (1, 3, 4)):
+            raise ValueError(f"frame {name}: expected an (H, W) gray or (H, W, 3) BGR image, got "
+                             f"shape {image.shape}")
+        return image
+
+    def _bounds_with(self, box: Box) -> Box:
+        b = self.bounds
+        return box if b is None else (min(b[0], box[0]), min(b[1], box[1]),
+                                      max(b[2], box[2]), max(b[3], box[3]))
 
     def add(self, image: np.ndarray, homography: np.ndarray, mask: np.ndarray | None = None,
             *, gain: float = 1.0) -> Box | None:
         """Blends one frame placed by `homography` (frame -> reference). mask: this frame's field
         of view if it differs from the canvas's. Returns the canvas box that changed, or None if
-        the frame was left out (unplaced, footprint behind the camera, non-convex, or > 20 x the
-        recent median area; see `skipped`)."""
-        self._calls += 1
+        the frame was left out (unplaced, footprint behind the camera, non-convex, > 20 x the
+        recent median area, or growing the canvas bounds beyond `max_pixels`; see `skipped`).
+
+        Raises TypeError (None image), ValueError (pixel type other than uint8, wrong size or
+        channel count, homography not 3x3) or CanvasTooLargeError (the tiles would exceed
+        `max_pixels`); a call that raises changes nothing, and the next call has the same frame
+        number."""
+        name = self._calls
+        image = self._check_image(image, name)
         G = np.asarray(homography, np.float64)
         if G.shape != (3, 3):
-            raise ValueError(f"homography must be 3x3, got {G.shape}")
-        reason = self._screen(G)
-        if reason is not None:
-            self.skipped.append((self._calls - 1, reason))
-            return None
+            raise ValueError(f"frame {name}: homography must be 3x3, got {G.shape}")
+        warper = self._warper(mask)
+        image = warper._check_image(image, name)  # size and channels, before any state change
+        reason, area = self._screen(G)
         if self.scale != 1.0:
             G = np.diag([self.scale, self.scale, 1.0]) @ G
-        warper = self._warper(mask)
-        box = warper.box(G)
-        T = self.tile_size
-        tiles = [(ty, tx) for ty in range(box[1] // T, (box[3] - 1) // T + 1)
-                 for tx in range(box[0] // T, (box[2] - 1) // T + 1)]
-        new = sum(key not in self.tiles for key in tiles)
-        if (len(self.tiles) + new) * T * T > self.max_pixels:
-            raise CanvasTooLargeError(
-                f"live canvas would need {(len(self.tiles) + new) * T * T} pixels of tiles, above "
-                f"the budget of {self.max_pixels} pixels (frame {self._calls - 1} lands at "
-                f"x {box[0]}..{box[2]}, y {box[1]}..{box[3]})")
-        patch = warper.warp(image, G, gain=gain, name=self._calls - 1)
+        box = warper.box(G) if reason is None else None
+        if reason is None and box is None:
+            reason = "footprint behind the camera"
+        if reason is None:
+            # The tiles under the footprint: the area covered is over budget -> error; within
+            # budget, but the bounding box would be (a stray placement far from the rest, which
+            # render() of the whole canvas could not allocate) -> the frame is left out.
+            T = self.tile_size
+            tiles = [(ty, tx) for ty in range(box[1] // T, (box[3] - 1) // T + 1)
+                     for tx in range(box[0] // T, (box[2] - 1) // T + 1)]
+            new = sum(key not in self.tiles for key in tiles)
+            if (len(self.tiles) + new) * T * T > self.max_pixels:
+                raise CanvasTooLargeError(
+                    f"live canvas would need {(len(self.tiles) + new) * T * T} pixels of tiles, "
+                    f"above the budget of {self.max_pixels} pixels (frame {name} lands at "
+                    f"x {box[0]}..{box[2]}, y {box[1]}..{box[3]})")
+            x0, y0, x1, y1 = self._bounds_with(box)
+            if (x1 - x0) * (y1 - y0) > self.max_pixels:
+                reason = (f"would grow the canvas bounds to {x1 - x0} x {y1 - y0} pixels, above "
+                          f"max_pixels {self.max_pixels} (frame lands at x {box[0]}..{box[2]}, "
+                          f"y {box[1]}..{box[3]}: a stray placement?)")
+        if reason is not None:
+            self._calls += 1
+            self.skipped.append((name, reason))
+            return None
+        patch = warper.warp(image, G, gain=gain, name=name)
         channels = patch.data.shape[2]
+        self._calls += 1
+        self._areas.append(area)
         if self._channels is None:
             self._channels = channels
         for key in tiles:
@@ -127,9 +182,7 @@ class IncrementalCanvas:
             if tile is None:
                 tile = self.tiles[key] = np.zeros((T, T, channels), np.float32)
             accumulate(tile, key[1] * T, key[0] * T, patch, self.options.blend)
-        b = self.bounds
-        self.bounds = box if b is None else (min(b[0], box[0]), min(b[1], box[1]),
-                                             max(b[2], box[2]), max(b[3], box[3]))
+        self.bounds = self._bounds_with(box)
         self.frames_added += 1
         return box
 
@@ -140,11 +193,23 @@ class IncrementalCanvas:
 
     def render(self, box: Box | None = None) -> np.ndarray:
         """uint8 (h, w, C) view of `box` (default: everything so far); empty pixels are black.
-        Cost proportional to the box."""
+        Cost proportional to the box; a box of more than `max_pixels` pixels raises
+        CanvasTooLargeError (render a part of it instead)."""
         if self._channels is None:
             raise ValueError("no frame added yet")
         box = self.bounds if box is None else box
-        x0, y0, x1, y1 = box
+        try:
+            x0, y0, x1, y1 = (int(v) for v in box)
+        except (TypeError, ValueError):
+            raise ValueError(f"render: box must be (x0, y0, x1, y1) integers, got {box!r}"
+                             ) from None
+        if not (x1 > x0 and y1 > y0):
+            raise ValueError(f"render: empty box {box!r} (need x1 > x0 and y1 > y0)")
+        if (x1 - x0) * (y1 - y0) > self.max_pixels:
+            raise CanvasTooLargeError(
+                f"render: the view of x {x0}..{x1}, y {y0}..{y1} is {x1 - x0} x {y1 - y0} "
+                f"pixels, above the budget of {self.max_pixels} pixels (max_pixels); render a "
+                "smaller box")
         C = self._channels - 1
         out = np.zeros((y1 - y0, x1 - x0, C), np.uint8)
         T = self.tile_size

@@ -45,10 +45,35 @@ frames whose image was trusted (``c_img >= 0.5``), floored at ``robot_sigma_floo
 ``robot_unknown_at_start``: the paper relies on the image at the start, Sec. II-B; else
 ``KalmanOptions.sigma_robot0`` is used). With
 ``adaptive_robot_sigma=False`` the filter is the paper's with fixed ``sigma_robot0``.
+
+Robot gating (not in the paper). Eq. 17-18 bound the robot's confidence below by
+``c_rob >= 1 - c_img`` (``c_sp`` compares speed *ratios*, so it saturates), whatever the size of
+the disagreement: with an accurate robot (small ``sigma_r0``) one grossly wrong sample (a
+glitch of +5 mm) still outweighs a confident image, and because the next robot displacement
+was taken from that sample, the error went on into every later frame. So, as the fetoscopy
+tracker is gated (``SequentialOptions.gate_chi2``): a robot displacement that disagrees with a
+trusted registration (``c_img >= robot_sigma_c_img``) by more than ``robot_gate_sigmas x
+sigma_r0`` and more than ``robot_gate_fraction`` of the frame's smaller side is left out of the
+filter (the frame follows the image, ``c_rob = 0``), kept out of the ``sigma_r0`` estimate, and
+the next robot displacement is taken from the last sample that was not gated; the frame is
+flagged ``FrameResult.robot_gated``. After ``robot_gate_rebase`` gated frames in a row the robot
+is taken to have a new offset and is re-anchored at the current frame.
+
+Input checks (streaming): timestamps are real numbers in seconds, below ``MAX_TIMESTAMP_S`` and
+at most ``MAX_FRAME_GAP_S`` after the previous frame (a larger value is a unit mix-up: ms, µs or
+ns given as s); robot positions are real numbers within the dataset reader's 1 km bound
+(``fusedmosaic.io.tracking.MAX_ROBOT_UM``). A refused call raises (``TypeError`` for a wrong
+type, ``ValueError`` otherwise, naming the frame and the argument) and changes nothing.
+:meth:`RobotPriorMosaicker.add_frame` is not re-entrant: a call made while another thread is
+inside it raises ``RuntimeError`` (serialise the calls); calls from different threads one after
+the other are fine.
 """
 
 from __future__ import annotations
 
+import copy
+import numbers
+import threading
 import time
 from collections import deque
 from dataclasses import asdict, dataclass, field, replace
@@ -57,6 +82,7 @@ import numpy as np
 from tqdm import tqdm
 
 from fusedmosaic.estimation.kalman import KalmanOptions, RobotKalmanFilter, normalize
+from fusedmosaic.io.tracking import MAX_ROBOT_UM
 from fusedmosaic.methods import MethodResult
 from fusedmosaic.registration.ncc import (
     aligned_overlap_ssim,
@@ -81,6 +107,11 @@ __all__ = [
 ESTIMATES = {"image": ("ncc", "X_m"), "robot": ("robot", "X_r"), "fused": ("kalman-robot", "X_f")}
 CONFIDENCES = ("c_img", "c_rob", "c_angle", "c_speed", "c_match", "c_sp")
 STAGES = ("ncc", "ssim", "filter")
+# s; a timestamp above this is not in seconds (1e10 s is the year 2286 as Unix time; a Unix
+# time in ms, µs or ns is 1e12 and above).
+MAX_TIMESTAMP_S = 1e10
+# s; frames of one sequence more than a day apart: a unit mix-up or a corrupt clock.
+MAX_FRAME_GAP_S = 86_400.0
 
 
 @dataclass(frozen=True)
@@ -138,6 +169,18 @@ class RobotPriorOptions:
     # (the mean needs the whole recording); RobotPriorMosaicker takes a pattern directly.
     # Measured in bench/bench_pcle_cases.py ("flat-field").
     flat_field: bool = False
+    # Robot gating (module docstring), not in the paper: a robot displacement disagreeing with a
+    # trusted registration (c_img >= robot_sigma_c_img) by more than both bounds is a glitch.
+    # Measured on the simulator's circle and spiral, seeds 0-4, both robot files
+    # (bench_pcle_cases.py): disagreements on trusted frames reach 115 px (stick-slip
+    # catch-up, 0.26 of the 448 px side) and 13 x sigma_r0 (noisy robot); half the frame's
+    # smaller side (the registration overlap of two frames is more than that) and 20 sigma_r0
+    # leave all of them alone. None: no gating.
+    robot_gate_fraction: float | None = 0.5
+    robot_gate_sigmas: float = 20.0
+    # Gated frames in a row after which the robot is re-anchored (a lasting offset, e.g. the
+    # robot re-homed, rather than a single bad sample).
+    robot_gate_rebase: int = 3
 
     def __post_init__(self) -> None:
         if not isinstance(self.kalman, KalmanOptions):
@@ -187,6 +230,21 @@ class RobotPriorOptions:
                 "RobotPriorOptions.robot_sigma_c_img must be in [0, 1], got "
                 f"{self.robot_sigma_c_img}"
             )
+        if self.robot_gate_fraction is not None and not (
+            np.isfinite(self.robot_gate_fraction) and self.robot_gate_fraction > 0.0
+        ):
+            raise ValueError(
+                "RobotPriorOptions.robot_gate_fraction must be a finite number > 0 or None, got "
+                f"{self.robot_gate_fraction}"
+            )
+        if not self.robot_gate_sigmas > 0.0:
+            raise ValueError(
+                f"RobotPriorOptions.robot_gate_sigmas must be > 0, got {self.robot_gate_sigmas}"
+            )
+        if self.robot_gate_rebase < 1:
+            raise ValueError(
+                f"RobotPriorOptions.robot_gate_rebase must be >= 1, got {self.robot_gate_rebase}"
+            )
         if self.c_match_normalize is not None:
             values = np.asarray(self.c_match_normalize, dtype=np.float64)
             if values.shape != (2,) or not np.isfinite(values).all() or not values[0] > 0.0:
@@ -227,6 +285,9 @@ class FrameResult:
         handed to the filter (relative to the previous placed position; NaN when missing).
     timings : seconds per stage: ``ncc`` (forward + backward), ``ssim`` (c_match), ``filter``
         (confidences + Eqs. 4-8), ``total`` (the whole call).
+    robot_gated : True when the robot sample was left out as a glitch (module docstring): the
+        frame follows the image (``c_rob = 0``, ``c_sp`` NaN); ``displacement_robot`` is the
+        rejected robot displacement.
     """
 
     index: int
@@ -248,6 +309,7 @@ class FrameResult:
     displacement_image: np.ndarray
     displacement_robot: np.ndarray
     timings: dict[str, float]
+    robot_gated: bool = False
 
     @property
     def placed(self) -> bool:
@@ -282,7 +344,8 @@ class RobotPriorMosaicker:
         1 over its non-zero pixels; every frame is divided by it before registration, pixels of
         gain 0 (no signal, e.g. outside the field of view) become 0.
 
-    Memory is bounded: only the anchor frame's image is kept.
+    Memory is bounded: only the anchor frame's image is kept. Not re-entrant: concurrent
+    :meth:`add_frame` / :meth:`reset` calls raise ``RuntimeError``; serialise them.
     """
 
     def __init__(
@@ -323,15 +386,37 @@ class RobotPriorMosaicker:
             if not (np.isfinite(gain).all() and (gain >= 0).all() and gain.max() > 0):
                 raise ValueError("fixed_pattern: gains must be finite, >= 0 and not all 0")
             self.fixed_pattern = gain / float(gain[gain > 0].mean())  # mean 1 where it has signal
-        self.reset()
+        # Largest robot-image disagreement (px) that is never gated, whatever sigma_r0.
+        fraction = self.options.robot_gate_fraction
+        self._gate_floor_px = (
+            np.inf if fraction is None else fraction * min(self.width, self.height)
+        )
+        self._busy = threading.Lock()
+        self._reset()
+
+    def _enter(self, what: str) -> None:
+        if not self._busy.acquire(blocking=False):
+            raise RuntimeError(
+                f"RobotPriorMosaicker.{what} called while another call is running on this "
+                "mosaicker (from another thread): it is not re-entrant; serialise the calls "
+                "(e.g. one capture thread, or a lock around add_frame)"
+            )
 
     def reset(self) -> None:
         """Start a new sequence: the next frame becomes the reference (frame 0)."""
+        self._enter("reset")
+        try:
+            self._reset()
+        finally:
+            self._busy.release()
+
+    def _reset(self) -> None:
         self._count = 0
         self._last_timestamp = -np.inf
         self._anchor: _Anchor | None = None
         self._robot_origin_um = _NAN2  # robot position at frame 0
         self._robot_anchor: tuple[np.ndarray, np.ndarray] | None = None  # (robot µm, X_f)
+        self._gated_in_a_row = 0
         self._innovations: deque[np.ndarray] = deque(maxlen=self.options.robot_sigma_window)
         self._kf = RobotKalmanFilter(self.options.kalman) if self.estimate == "fused" else None
 
@@ -379,14 +464,56 @@ class RobotPriorMosaicker:
                 raise ValueError(f"frame {index}: image contains NaN or infinite pixels")
         return image
 
+    def _prepare_timestamp(self, timestamp, index: int) -> float:
+        if isinstance(timestamp, np.ndarray) and timestamp.ndim == 0:
+            timestamp = timestamp[()]
+        if isinstance(timestamp, bool | np.bool_) or not isinstance(timestamp, numbers.Real):
+            raise TypeError(
+                f"frame {index}: timestamp must be a real number (s), got "
+                f"{type(timestamp).__name__} {timestamp!r:.60}"
+            )
+        t = float(timestamp)
+        previous = self._last_timestamp
+        if not np.isfinite(t) or t <= previous:
+            raise ValueError(
+                f"frame {index}: timestamp {t!r} is not finite or not after the previous frame's "
+                f"({previous!r})"
+            )
+        gap = t - previous  # inf at frame 0
+        if abs(t) > MAX_TIMESTAMP_S or (np.isfinite(gap) and gap > MAX_FRAME_GAP_S):
+            after = f", {gap:.3g} s after the previous frame" if np.isfinite(gap) else ""
+            raise ValueError(
+                f"frame {index}: timestamp {t!r}{after}: beyond the bounds of a recording in "
+                f"seconds (|t| <= {MAX_TIMESTAMP_S:g} s, at most {MAX_FRAME_GAP_S:g} s = 1 day "
+                "between frames); a unit mix-up (ms, µs or ns given as s)?"
+            )
+        return t
+
     def _prepare_robot(self, robot_xy_um, index: int) -> np.ndarray:
         if robot_xy_um is None:
             return _NAN2
-        r = np.asarray(robot_xy_um, dtype=np.float64)
+        r = np.asarray(robot_xy_um)
+        if r.dtype.kind == "O":  # e.g. a list holding None or complex numbers
+            try:
+                r = r.astype(np.float64)
+            except (TypeError, ValueError):
+                pass  # still object: refused below
+        if r.dtype.kind not in "iuf":
+            kind = {"c": "complex", "b": "bool", "U": "str", "S": "bytes"}.get(r.dtype.kind)
+            raise TypeError(
+                f"frame {index}: robot_xy_um must be two real numbers (µm), got "
+                f"{kind or 'non-numeric'} values {robot_xy_um!r:.60}"
+            )
+        r = r.astype(np.float64)
         if r.shape != (2,):
             raise ValueError(f"frame {index}: robot_xy_um must have shape (2,), got {r.shape}")
         if np.isinf(r).any():
             raise ValueError(f"frame {index}: robot_xy_um is infinite: {r}")
+        if (np.abs(r) > MAX_ROBOT_UM).any():  # NaN compares False: a missing sample passes
+            raise ValueError(
+                f"frame {index}: robot_xy_um {r} is beyond the {MAX_ROBOT_UM:g} µm bound (1 km), "
+                "not a physical position (a unit mix-up? µm expected)"
+            )
         return r if np.isfinite(r).all() else _NAN2
 
     # -- the streaming step --------------------------------------------------------------------
@@ -406,16 +533,26 @@ class RobotPriorMosaicker:
         ------
         ValueError
             Naming the frame: a size differing from the camera's, bad pixel values or shapes, a
-            timestamp not after the previous one.
+            timestamp not after the previous one or beyond the bounds (``MAX_TIMESTAMP_S``,
+            ``MAX_FRAME_GAP_S``), a robot position beyond ``MAX_ROBOT_UM``.
+        TypeError
+            Naming the frame and the argument: a timestamp or robot position that is not real
+            numbers (a string, None, complex).
+        RuntimeError
+            When another thread is inside ``add_frame`` on this mosaicker (not re-entrant).
+
+        A call that raises changes nothing: the next call is frame ``frame_count`` again.
         """
         t_start = time.perf_counter()
+        self._enter("add_frame")
+        try:
+            return self._add_frame(image, timestamp, robot_xy_um, t_start)
+        finally:
+            self._busy.release()
+
+    def _add_frame(self, image, timestamp, robot_xy_um, t_start: float) -> FrameResult:
         i = self._count
-        t = float(timestamp)
-        if not np.isfinite(t) or t <= self._last_timestamp:
-            raise ValueError(
-                f"frame {i}: timestamp {t!r} is not finite or not after the previous frame's "
-                f"({self._last_timestamp!r})"
-            )
+        t = self._prepare_timestamp(timestamp, i)
         robot = self._prepare_robot(robot_xy_um, i)
         gray = None
         if image is not None:
@@ -430,6 +567,7 @@ class RobotPriorMosaicker:
         conf = dict.fromkeys(CONFIDENCES, nan)
         score, sigma_r = nan, nan
         dx_img_f, dx_rob_f = _NAN2, _NAN2
+        robot_gated = False
 
         # Robot position X_r (Eq. 3), relative to frame 0.
         if i == 0:
@@ -514,12 +652,19 @@ class RobotPriorMosaicker:
                 if sigma_r != kf.options.sigma_robot0:
                     kf.options = replace(kf.options, sigma_robot0=sigma_r)
                 c_match = conf["c_match"] if image_ok else 0.0
-                step = kf.update(dx_img_f, dx_rob_f, c_match)
+                if image_ok and robot_ok:
+                    robot_gated = self._robot_glitch(kf, dx_img_f, dx_rob_f, c_match, sigma_r)
+                step = kf.update(dx_img_f, _NAN2 if robot_gated else dx_rob_f, c_match)
                 for name in CONFIDENCES:
                     conf[name] = float(getattr(step, name))
                 x_f = position = step.position
                 status = "placed" if image_ok else "prior-only"
-                if image_ok and robot_ok and step.c_img >= self.options.robot_sigma_c_img:
+                if (
+                    image_ok
+                    and robot_ok
+                    and not robot_gated
+                    and step.c_img >= self.options.robot_sigma_c_img
+                ):
                     self._innovations.append(dx_rob_f - dx_img_f)
             timings["filter"] = time.perf_counter() - t0
 
@@ -532,7 +677,13 @@ class RobotPriorMosaicker:
         ):
             self._anchor = _Anchor(i, gray, x_m.copy(), x_f.copy())
         if self.estimate == "fused" and placed and np.isfinite(robot).all():
-            self._robot_anchor = (robot.copy(), x_f.copy())
+            # A gated sample is not an anchor: the next robot displacement is taken from the
+            # last good one, unless the robot has been gated so often in a row that it more
+            # likely moved its origin than glitched.
+            self._gated_in_a_row = self._gated_in_a_row + 1 if robot_gated else 0
+            if not robot_gated or self._gated_in_a_row >= self.options.robot_gate_rebase:
+                self._robot_anchor = (robot.copy(), x_f.copy())
+                self._gated_in_a_row = 0
         self._count += 1
         self._last_timestamp = t
         timings["total"] = time.perf_counter() - t_start
@@ -551,8 +702,21 @@ class RobotPriorMosaicker:
             displacement_image=np.array(dx_img_f),
             displacement_robot=np.array(dx_rob_f),
             timings=timings,
+            robot_gated=robot_gated,
             **conf,
         )
+
+    def _robot_glitch(self, kf, dx_image, dx_robot, c_match: float, sigma_r: float) -> bool:
+        """Whether the robot displacement is a gross outlier next to a trusted registration
+        (module docstring, "Robot gating"). The image confidence c_img (Eq. 16) does not depend
+        on the robot; it is read from a trial update of a copy of the filter."""
+        bound = self._gate_floor_px  # sigma_r0 not known yet (inf): the floor alone
+        if np.isfinite(sigma_r):
+            bound = max(self.options.robot_gate_sigmas * sigma_r, bound)
+        if not np.abs(dx_robot - dx_image).max() > bound:  # also False for bound = inf
+            return False
+        trial = copy.deepcopy(kf).update(dx_image, _NAN2, c_match)
+        return bool(trial.c_img >= self.options.robot_sigma_c_img)
 
 
 # -- batch methods (`fusedmosaic run --method ncc|robot|kalman-robot`) ---------------------------
@@ -602,6 +766,7 @@ def _run(
         "confidences": {name: column(name) for name in CONFIDENCES},
         "ncc_score": column("ncc_score"),
         "sigma_robot0_px": column("sigma_robot0"),
+        "robot_gated": [r.index for r in results if r.robot_gated],
         "trajectories_px": {
             "X_m": np.stack(column("position_image")),
             "X_r": np.stack(column("position_robot")),
