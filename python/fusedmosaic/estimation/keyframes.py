@@ -45,6 +45,20 @@ class KeyframeIndex:
     def __len__(self) -> int:
         return len(self._blocks)
 
+    def snapshot(self) -> tuple:
+        """The index's state, for restore() (a caller rolling back a failed step)."""
+        open_ = None if self._open is None else _Block(list(self._open.frame_ids),
+                                                        list(self._open.centroids))
+        return OrderedDict(self._blocks), open_, self._next_id, self.rng.bit_generator.state
+
+    def restore(self, state: tuple) -> None:
+        blocks, open_, next_id, rng_state = state
+        self._blocks = OrderedDict(blocks)  # closed blocks are never changed, only dropped
+        self._open = None if open_ is None else _Block(list(open_.frame_ids),
+                                                       list(open_.centroids))
+        self._next_id = next_id
+        self.rng.bit_generator.state = rng_state
+
     def add(self, frame_id: int, centroid: np.ndarray) -> list[int]:
         """Adds an estimated frame's centroid (reference pixels). Returns frame ids to forget."""
         if self._open is None:

@@ -13,12 +13,43 @@ provisional placement from its tracker pose (or the motion prediction) and the c
 State is bounded: features only for the frames the window matches against, images never, and
 keyframe candidates in a bounded spatial reservoir (estimation/keyframes.py) whose evicted frames
 are forgotten by the C++ window too.
+
+Input contract of `add_frame` (checked before anything changes; a refused call raises and leaves
+the mosaicker as it was, so the frame can be corrected and sent again with the same timestamp):
+- image: numpy array, uint8, (H, W) gray, (H, W, 3) BGR or (H, W, 4) BGRA (alpha ignored), of
+  the camera's size. Other dtypes (uint16, float, bool) are refused, not rescaled, as the
+  dataset reader refuses non-8-bit images: the scaling of a 16-bit or float image is the
+  caller's to choose. None, lists and other shapes are refused (TypeError / ValueError).
+- timestamp: a finite real number of seconds, increasing, and at most
+  `SequentialOptions.max_timestamp_gap_s` (1 day) after the previous frame's: a larger jump is
+  taken for a unit mix-up (ns or ms given as s) and refused, since it would block every later
+  frame.
+- tracker_pose: None, or 6 finite real numbers [r, t] (cam_from_world, angle-axis rad, mm) with
+  |t| within the dataset reader's 1 km bound (io.tracking.MAX_TRANSLATION_MM). The rotation
+  vector is canonicalised to norm <= pi (the same rotation written with norm > pi, as a
+  quaternion with w < 0 converts to, gives the same mosaic).
+A tracker sample that jumps from the last trusted one faster than
+`tracker_max_speed_mm_s` / `tracker_max_angular_speed` allow (plus a noise margin) is a glitch:
+it is dropped before it reaches the window (the frame is placed from its images and the motion
+prior, and flagged `tracker_gated`), since a window step initialised from it does not recover.
+Smaller errors are gated by the window step (`gate_chi2`).
+
+Failure safety: everything a call changes is staged; if anything raises inside the call
+(including KeyboardInterrupt), the Python state is restored and the C++ window rebuilt from a
+mirror of its frames, pairs and plane, so the next call continues as if the failed one had not
+happened. Only if that restoration itself fails is the mosaicker marked unusable: every later
+call then raises a RuntimeError saying why; `reset()` starts a new mosaic. The mosaicker is not
+re-entrant: a second thread calling it while a call is running gets a RuntimeError.
 """
 
 from __future__ import annotations
 
+import copy
+import numbers
+import threading
 import time
 from collections import deque
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -32,6 +63,7 @@ from fusedmosaic.estimation.bundle import (
 )
 from fusedmosaic.estimation.keyframes import KeyframeIndex
 from fusedmosaic.estimation.plane import estimate_plane
+from fusedmosaic.io.tracking import MAX_TRANSLATION_MM
 from fusedmosaic.methods import MethodResult
 from fusedmosaic.registration.features import FeatureExtractor, FeatureOptions
 from fusedmosaic.registration.pair_selection import footprint_polygons, overlap_fraction
@@ -94,6 +126,20 @@ class SequentialOptions:
     # evidence follow it, so C_p ties it to both sides. 0 fixes it at once (the paper's LBA).
     hold_prior_only_steps: int = 2
     history_steps: int = 1000  # window step summaries kept (diagnostics, bounded)
+    # Input guards (not from the paper). A timestamp more than this after the previous frame's
+    # is refused as a unit mix-up (e.g. ns as s): accepted, it would block every later frame.
+    max_timestamp_gap_s: float = 86400.0  # 1 day
+    # A tracker sample whose camera centre moved from the last trusted sample's by more than
+    # tracker_max_speed_mm_s * dt + tracker_jump_margin_mm (or rotated more than
+    # tracker_max_angular_speed * dt + tracker_jump_margin_rad) is a glitch and dropped before
+    # the window sees it. Generous physical bounds for a hand-held endoscope (1 m/s, 1 turn/s)
+    # plus a margin far above tracker noise (~1 mm, ~1 deg): gross errors within them are
+    # gated by the window step (+5 to +20 mm, +10 to +30 deg measured), larger ones made the
+    # step diverge from the sample (a +10 m glitch on one frame: e_M 1131 px on 30 frames).
+    tracker_max_speed_mm_s: float = 1000.0
+    tracker_max_angular_speed: float = 2 * np.pi  # rad/s
+    tracker_jump_margin_mm: float = 50.0
+    tracker_jump_margin_rad: float = 0.5
     seed: int = 0
 
     @classmethod
@@ -111,11 +157,24 @@ class FrameResult:
     timestamp: float
     homography: np.ndarray  # (3, 3) frame -> reference (NaN when unplaced)
     pose: np.ndarray  # (6,) cam_from_world
-    status: str  # "placed" | "prior-only" | "provisional" | "unplaced: ..."
+    status: str  # "placed" | "prior-only" | "provisional" | "unplaced: ..." (not final)
     final: bool
+    # its tracker sample was down-weighted by the window step (gate_chi2) or dropped as a
+    # glitch (tracker_max_speed_mm_s ...) before reaching the window
     tracker_gated: bool = False
     timings: dict[str, float] = field(default_factory=dict)
     plane: np.ndarray | None = None  # (3,) pi of the step that made the frame final
+
+
+def canonical_rotation_vector(r: np.ndarray) -> np.ndarray:
+    """The angle-axis vector of norm <= pi for the rotation r (any norm) stands for: the pose
+    prior compares angle-axis components, so the same rotation must have one vector (e.g.
+    -axis * (2 pi - theta), from a quaternion with w < 0, becomes axis * theta)."""
+    theta = float(np.linalg.norm(r))
+    if theta <= np.pi:
+        return r
+    wrapped = np.remainder(theta + np.pi, 2 * np.pi) - np.pi  # in [-pi, pi)
+    return r * (wrapped / theta)
 
 
 class SequentialMosaicker:
@@ -126,6 +185,12 @@ class SequentialMosaicker:
         if not 0.0 <= o.startup_min_overlap <= 1.0:
             raise ValueError("SequentialOptions.startup_min_overlap must be a fraction in [0, 1], "
                              f"got {o.startup_min_overlap}")
+        for name in ("max_timestamp_gap_s", "tracker_max_speed_mm_s", "tracker_max_angular_speed",
+                     "tracker_jump_margin_mm", "tracker_jump_margin_rad"):
+            value = getattr(o, name)
+            if not (isinstance(value, numbers.Real) and value > 0):
+                raise ValueError(f"SequentialOptions.{name} must be > 0, got {value!r}")
+        self._camera = camera
         self.K = camera.require_camera_matrix("lba-emt")
         self.distortion = camera.distortion
         self.size = (camera.width, camera.height)
@@ -140,8 +205,18 @@ class SequentialMosaicker:
         if o.motion_sigma is not None:
             costs.motion_sigma = np.asarray(o.motion_sigma, np.float64)
         self._costs = costs
-        self.window = _core.SlidingWindow(self.K, _core.SlidingWindowOptions(
-            window_size=o.window_size, num_new=o.num_new, costs=costs))
+        self._window_options = _core.SlidingWindowOptions(
+            window_size=o.window_size, num_new=o.num_new, costs=costs)
+        self.window = _core.SlidingWindow(self.K, self._window_options)
+        # What the C++ window holds, to rebuild it when a call fails half-way (_transaction):
+        # frame id -> (pose or None while pending, tracker sample, sigma scale, fixed), the
+        # pairs by (frame_l, frame_m) -> (points_l, points_m), the plane.
+        self._mirror_frames: dict[int, tuple] = {}
+        self._mirror_pairs: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        self._mirror_plane: np.ndarray | None = None
+        self._window_touched = False
+        self._lock = threading.Lock()
+        self._broken: str | None = None  # why the mosaicker is unusable (failed restoration)
         self.extractor = FeatureExtractor(o.features, camera.fov_mask())
         self.keyframes = KeyframeIndex(o.frames_per_cluster, max_blocks=o.max_keyframe_blocks,
                                        cell_size_px=0.5 * max(self.size),
@@ -160,6 +235,7 @@ class SequentialMosaicker:
         self._plane: np.ndarray | None = None
         self._next_id = 0
         self._last_timestamp = -np.inf
+        self._trusted: tuple | None = None  # last tracker sample kept: (time, centre, R)
         # C++ summaries of the last history_steps window steps (each frame's plane is in its
         # FrameResult).
         self.step_summaries: deque = deque(maxlen=o.history_steps)
@@ -183,21 +259,227 @@ class SequentialMosaicker:
                   tracker_pose: np.ndarray | None = None) -> FrameResult:
         """Adds the next frame. tracker_pose: (6,) cam_from_world from the EM tracker after
         hand-eye (None when there is no valid sample). Returns this frame's result, final if
-        its step ran now, else provisional; `finalized()` hands out the frames made final."""
-        k = self._next_id
+        its step ran now, else provisional; `finalized()` hands out the frames made final.
+
+        Raises TypeError / ValueError, naming the frame id and the argument, for a call it
+        refuses (see the module docstring for the input contract); the state is then unchanged.
+        A frame it keeps never raises: while the start-up cannot initialise the plane yet (no
+        registered pair with tracker poses), it is returned with an "unplaced: ..." status."""
+        with self._exclusive("add_frame"):
+            k = self._next_id
+            image = self._check_image(k, image)
+            timestamp = self._check_timestamp(k, timestamp)
+            tracker_pose = self._check_tracker_pose(k, tracker_pose)
+            return self._transaction(self._add_frame, k, image, timestamp, tracker_pose)
+
+    def finalized(self) -> list[FrameResult]:
+        """Frames made final by the last add_frame / flush call (in order)."""
+        return list(self._finalized)
+
+    def flush(self) -> list[FrameResult]:
+        """Estimates any pending frames (end of sequence) and returns their final results.
+        Raises ValueError (state unchanged) if the start-up frames still have no registered
+        pair with tracker poses to initialise the plane."""
+        with self._exclusive("flush"):
+            return self._transaction(self._flush)
+
+    def reset(self) -> None:
+        """Forgets everything: a new mosaic with the same camera and options (also the way out
+        of the unusable state that a failed restoration leaves, see the module docstring)."""
+        with self._exclusive("reset", check_usable=False):
+            lock = self._lock
+            self.__init__(self._camera, self.options)
+            self._lock = lock
+
+    # ------------------------------------------------------------- call guards and rollback
+    @contextmanager
+    def _exclusive(self, what: str, check_usable: bool = True):
+        if not self._lock.acquire(blocking=False):
+            raise RuntimeError(f"{what} called concurrently from two threads; the mosaicker is "
+                               "not re-entrant — serialise calls")
+        try:
+            if check_usable and self._broken is not None:
+                raise RuntimeError(f"SequentialMosaicker is unusable: {self._broken}; call "
+                                   "reset() to start a new mosaic")
+            yield
+        finally:
+            self._lock.release()
+
+    def _check_image(self, k: int, image) -> np.ndarray:
+        if not isinstance(image, np.ndarray):
+            raise TypeError(f"frame {k}: image must be a numpy array (H, W) or (H, W, 3) uint8, "
+                            f"got {type(image).__name__}")
+        if not (image.ndim == 2 or (image.ndim == 3 and image.shape[2] in (3, 4))):
+            raise ValueError(f"frame {k}: image shape {image.shape} is not (H, W) gray, "
+                             "(H, W, 3) BGR or (H, W, 4) BGRA")
+        if image.dtype != np.uint8:
+            raise ValueError(f"frame {k}: image dtype {image.dtype} is not supported, expected "
+                             "uint8 (8-bit gray or BGR, as the dataset reader); scale and "
+                             "convert the image first")
         if image.shape[1::-1] != self.size:
             raise ValueError(f"frame {k}: image size {image.shape[1]}x{image.shape[0]} differs "
                              f"from the camera's {self.size[0]}x{self.size[1]}")
-        if not timestamp > self._last_timestamp:
-            raise ValueError(f"frame {k}: timestamp {timestamp} does not increase "
-                             f"(previous {self._last_timestamp})")
-        if tracker_pose is not None:
-            tracker_pose = np.asarray(tracker_pose, np.float64)
-            if tracker_pose.shape != (6,) or not np.isfinite(tracker_pose).all():
-                raise ValueError(f"frame {k}: tracker_pose must be 6 finite values "
-                                 f"[r, t] (cam_from_world), got {tracker_pose!r}")
+        return image
+
+    def _check_timestamp(self, k: int, timestamp) -> float:
+        if (not isinstance(timestamp, numbers.Real)
+                or isinstance(timestamp, (bool, np.bool_))):
+            raise TypeError(f"frame {k}: timestamp must be a real number of seconds, got "
+                            f"{type(timestamp).__name__} {timestamp!r}")
+        t = float(timestamp)
+        if not np.isfinite(t):
+            raise ValueError(f"frame {k}: timestamp {t} is not finite")
+        previous = self._last_timestamp
+        if not t > previous:
+            raise ValueError(f"frame {k}: timestamp {t} does not increase "
+                             f"(previous {previous})")
+        gap = self.options.max_timestamp_gap_s
+        if np.isfinite(previous) and t - previous > gap:
+            raise ValueError(f"frame {k}: timestamp {t} is {t - previous:g} s after the previous "
+                             f"frame's ({previous}), more than max_timestamp_gap_s ({gap:g} s); "
+                             "timestamps are seconds: were ns or ms passed?")
+        return t
+
+    def _check_tracker_pose(self, k: int, tracker_pose) -> np.ndarray | None:
+        if tracker_pose is None:
+            return None
+        pose = np.asarray(tracker_pose)
+        if pose.dtype.kind not in "iuf":
+            raise TypeError(f"frame {k}: tracker_pose must be 6 real numbers [r, t] "
+                            f"(cam_from_world), got dtype {pose.dtype}: {tracker_pose!r}")
+        pose = pose.astype(np.float64)  # a copy: the caller's array is never kept
+        if pose.shape != (6,) or not np.isfinite(pose).all():
+            raise ValueError(f"frame {k}: tracker_pose must be 6 finite values "
+                             f"[r, t] (cam_from_world), got {tracker_pose!r}")
+        # |t| is the camera's distance from the tracker origin (t = -R c); the max first, so
+        # that the norm of a huge vector cannot overflow
+        if (np.abs(pose[3:]).max() > MAX_TRANSLATION_MM
+                or np.linalg.norm(pose[3:]) > MAX_TRANSLATION_MM):
+            raise ValueError(f"frame {k}: tracker_pose translation {pose[3:].tolist()} mm puts "
+                             "the camera beyond the dataset reader's bound of "
+                             f"{MAX_TRANSLATION_MM:g} mm (1 km) from the tracker origin, not "
+                             "physical")
+        pose[:3] = canonical_rotation_vector(pose[:3])
+        return pose
+
+    def _transaction(self, call, *args):
+        """Runs call(*args); if it raises (anything, KeyboardInterrupt too), restores the state
+        from before it and re-raises."""
+        saved = self._save()
+        self._window_touched = False
+        try:
+            return call(*args)
+        except BaseException as exc:
+            try:
+                self._restore(saved)
+            except BaseException as failure:
+                self._broken = (f"restoring the state after {type(exc).__name__} ({exc}) failed "
+                                f"with {type(failure).__name__} ({failure})")
+                raise RuntimeError(f"SequentialMosaicker is unusable: {self._broken}; call "
+                                   "reset() to start a new mosaic") from exc
+            raise
+
+    _SAVED = ("_next_id", "_last_timestamp", "_trusted", "_reference_pose", "_plane",
+              "num_steps", "_finalized", "_boot_feats", "_boot_matches", "_loop_feats",
+              "_loop_centroids", "_poses", "pair_counts", "_mirror_frames", "_mirror_pairs",
+              "_mirror_plane")
+
+    def _save(self) -> dict:
+        """What a call may change, copied (shallowly: the values it replaces, never mutates)."""
+        saved = {name: copy.copy(getattr(self, name)) for name in self._SAVED}
+        saved["_recent"] = deque(self._recent, maxlen=self._recent.maxlen)
+        saved["step_summaries"] = deque(self.step_summaries, maxlen=self.step_summaries.maxlen)
+        saved["_pending"] = [dict(p, timings=dict(p["timings"])) for p in self._pending]
+        saved["rng"] = self.rng.bit_generator.state
+        saved["keyframes"] = self.keyframes.snapshot()
+        return saved
+
+    def _restore(self, saved: dict) -> None:
+        self.rng.bit_generator.state = saved.pop("rng")
+        self.keyframes.restore(saved.pop("keyframes"))
+        for name, value in saved.items():
+            setattr(self, name, value)
+        if self._window_touched:
+            self._rebuild_window()
+
+    def _rebuild_window(self) -> None:
+        """A new C++ window holding what the mirror says the old one held."""
+        window = _core.SlidingWindow(self.K, self._window_options)
+        if self._mirror_plane is not None:
+            window.set_plane(self._mirror_plane)
+        for k, (pose, emt, scale, fixed) in self._mirror_frames.items():
+            window.add_frame(k, pose, emt, fixed=fixed)
+            if scale != 1.0:
+                window.set_emt_sigma_scale(k, scale)
+        for (l, m), (pl, pm) in self._mirror_pairs.items():
+            window.add_pair(l, m, pl, pm)
+        self.window = window
+        self._window_touched = False
+
+    # C++ window updates go through these, which keep the mirror (for _rebuild_window).
+    def _win_add_frame(self, k, initial, emt, fixed=False) -> None:
+        self._window_touched = True
+        self.window.add_frame(k, initial, emt, fixed=fixed)
+        self._mirror_frames[k] = (initial, emt, 1.0, fixed)
+
+    def _win_add_pair(self, l, m, pl, pm) -> None:
+        self._window_touched = True
+        self.window.add_pair(l, m, pl, pm)
+        self._mirror_pairs[(l, m)] = (pl, pm)
+
+    def _win_set_plane(self, plane) -> None:
+        self._window_touched = True
+        self.window.set_plane(plane)
+        self._mirror_plane = np.array(plane, np.float64)
+
+    def _win_set_scale(self, k, scale) -> None:
+        self._window_touched = True
+        self.window.set_emt_sigma_scale(k, scale)
+        initial, emt, _, fixed = self._mirror_frames[k]
+        self._mirror_frames[k] = (initial, emt, scale, fixed)
+
+    def _win_solved(self, ids, summary_call, *args):
+        """window.step / redo; afterwards the solved frames are fixed at their new poses."""
+        self._window_touched = True
+        summary = summary_call(*args)
+        for k in ids:
+            _, emt, scale, _ = self._mirror_frames[k]
+            self._mirror_frames[k] = (np.asarray(self.window.pose(k)), emt, scale, True)
+        self._mirror_plane = np.asarray(self.window.plane())
+        return summary
+
+    def _win_forget(self, ids) -> None:
+        self._window_touched = True
+        self.window.forget(ids)
+        gone = set(ids)
+        for k in gone:
+            self._mirror_frames.pop(k, None)
+        self._mirror_pairs = {key: v for key, v in self._mirror_pairs.items()
+                              if key[0] not in gone and key[1] not in gone}
+
+    # ------------------------------------------------------------------------- the frame step
+    def _plausible(self, timestamp: float, pose: np.ndarray) -> bool:
+        """Whether a tracker sample is within the speed bounds of the last trusted one."""
+        R = _core.rotation_from_angle_axis(pose[:3])
+        centre = -R.T @ pose[3:]
+        if self._trusted is not None:
+            o = self.options
+            t0, centre0, R0 = self._trusted
+            dt = timestamp - t0
+            moved = float(np.linalg.norm(centre - centre0))
+            turned = float(np.arccos(np.clip((np.trace(R0.T @ R) - 1) / 2, -1.0, 1.0)))
+            if (moved > o.tracker_max_speed_mm_s * dt + o.tracker_jump_margin_mm
+                    or turned > o.tracker_max_angular_speed * dt + o.tracker_jump_margin_rad):
+                return False
+        self._trusted = (timestamp, centre, R)
+        return True
+
+    def _add_frame(self, k, image, timestamp, tracker_pose) -> FrameResult:
         self._next_id += 1
         self._last_timestamp = timestamp
+        dropped = tracker_pose is not None and not self._plausible(timestamp, tracker_pose)
+        if dropped:
+            tracker_pose = None
         timings: dict[str, float] = {}
 
         t0 = time.perf_counter()
@@ -215,45 +497,49 @@ class SequentialMosaicker:
         timings["matching"] = time.perf_counter() - t0
         ok = [m for m in matches if m.ok]
         self._count_pairs(matches, ok)
-        for p in self._pending:  # a registered pair is visual evidence for both frames
-            if any(m.frame_m == p["id"] for m in ok):
-                p["visual"] = True
+        self._pending = [dict(p, visual=True) if any(m.frame_m == p["id"] for m in ok) else p
+                         for p in self._pending]  # a registered pair: evidence for both frames
         self._pending.append({"id": k, "timestamp": timestamp, "tracker": tracker_pose,
                               "visual": bool(ok), "timings": timings, "features": feats,
-                              "held": 0})
+                              "held": 0, "dropped": dropped})
         self._finalized = []
+        waiting = False
         if self._plane is None:  # bootstrap: keep everything until the initial adjustment
             self._boot_feats.append(feats)
             self._boot_matches += ok
             if len(self._pending) >= self.options.bootstrap_frames:
-                self._bootstrap()
+                waiting = not self._bootstrap()
         else:
-            self.window.add_frame(k, None, tracker_pose)
             t0 = time.perf_counter()
             loop_matches = self._match_loops(k, feats, tracker_pose)
             loops = [m for m in loop_matches if m.ok]
             self._count_pairs(loop_matches, loops, "loop_")
+            pairs = [(m.frame_l, m.frame_m, *self._subsample(m)) for m in ok + loops]
             timings["matching"] += time.perf_counter() - t0
-            for m in ok + loops:
-                self.window.add_pair(m.frame_l, m.frame_m, *self._subsample(m))
+            self._win_add_frame(k, None, tracker_pose)
+            for pair in pairs:
+                self._win_add_pair(*pair)
             self._pending[-1]["visual"] = bool(ok or loops)
             if sum(p["held"] == 0 for p in self._pending) >= self.options.num_new:
                 self._step()
         for r in self._finalized:
             if r.frame_id == k:
                 return r
-        return self._provisional(k, timestamp, tracker_pose, timings)
+        result = self._provisional(k, timestamp, tracker_pose, timings)
+        result.tracker_gated = dropped
+        if waiting:
+            result.status = ("unplaced: waiting for a registered pair with tracker poses to "
+                             "initialise the plane")
+        return result
 
-    def finalized(self) -> list[FrameResult]:
-        """Frames made final by the last add_frame / flush call (in order)."""
-        return list(self._finalized)
-
-    def flush(self) -> list[FrameResult]:
-        """Estimates any pending frames (end of sequence) and returns their final results."""
+    def _flush(self) -> list[FrameResult]:
         self._finalized = []
         if self._pending:
             if self._plane is None:
-                self._bootstrap(final_step=True)
+                if not self._bootstrap(final_step=True):
+                    raise ValueError(
+                        f"no pair among the first {len(self._pending)} frames could be "
+                        "registered with tracker poses: the plane cannot be initialised")
             else:
                 self._step(final_step=True)
         return list(self._finalized)
@@ -332,14 +618,14 @@ class SequentialMosaicker:
         velocity = _core.compose_poses(self._poses[b], _core.invert_pose(self._poses[a]))
         return _core.compose_poses(velocity, self._poses[b])
 
-    def _bootstrap(self, final_step: bool = False) -> None:
-        """BA+EMT over the first frames (all their pairs): plane and poses to start from."""
+    def _bootstrap(self, final_step: bool = False) -> bool:
+        """BA+EMT over the first frames (all their pairs): plane and poses to start from.
+        False (nothing done) while no registered pair has tracker poses for both frames."""
         t0 = time.perf_counter()
         tracked, table = self._pending_tracker_poses()
         usable = [m for m in self._boot_matches if m.frame_l in tracked and m.frame_m in tracked]
         if not usable:
-            raise ValueError(f"no pair among the first {len(self._pending)} frames could be "
-                             "registered with tracker poses: the plane cannot be initialised")
+            return False
         plane = estimate_plane(usable, table, self.K)
         o = self.options
         ba_options = _core.BundleAdjusterOptions(sigma_v_px=o.sigma_v_px, loss=o.loss,
@@ -355,14 +641,15 @@ class SequentialMosaicker:
         ba.set_plane(plane)
         ba.solve()
         self._plane = np.asarray(ba.plane())
-        self.window.set_plane(self._plane)
+        self._win_set_plane(self._plane)
         for k in ids:
-            self.window.add_frame(k, ba.pose(k), tracked.get(k), fixed=True)
+            self._win_add_frame(k, np.asarray(ba.pose(k)), tracked.get(k), fixed=True)
         for m in self._boot_matches:
-            self.window.add_pair(m.frame_l, m.frame_m, *self._subsample(m))
+            self._win_add_pair(m.frame_l, m.frame_m, *self._subsample(m))
         self._boot_feats, self._boot_matches = [], []
         elapsed = (time.perf_counter() - t0) / len(ids)
         self._finalize(ids, [ba.pose(k) for k in ids], [], elapsed, 0.0, final_step)
+        return True
 
     def _step(self, final_step: bool = False) -> None:
         t0 = time.perf_counter()
@@ -371,15 +658,15 @@ class SequentialMosaicker:
         keyframe_ids = self.keyframes.select(self.options.num_clusters, exclude)
         t_kf = time.perf_counter() - t0
         if any(p["held"] for p in self._pending):  # frames held back by the last step
-            summary = self.window.redo(ids, keyframe_ids)
+            summary = self._win_solved(ids, self.window.redo, ids, keyframe_ids)
         else:
-            summary = self.window.step(keyframe_ids)
+            summary = self._win_solved(ids, self.window.step, keyframe_ids)
         gated = [p["id"] for p, d2 in zip(self._pending, summary.emt_mahalanobis2, strict=True)
                  if np.isfinite(d2) and d2 > self.options.gate_chi2 and p["visual"]]
         if gated:
             for k in gated:
-                self.window.set_emt_sigma_scale(k, self.options.gate_sigma_scale)
-            summary = self.window.redo(ids, keyframe_ids)
+                self._win_set_scale(k, self.options.gate_sigma_scale)
+            summary = self._win_solved(ids, self.window.redo, ids, keyframe_ids)
         self.step_summaries.append(summary)
         self.num_steps += 1
         self._plane = np.asarray(self.window.plane())
@@ -421,11 +708,12 @@ class SequentialMosaicker:
             p["timings"]["keyframe_selection"] = keyframe_per_frame
             status = "placed" if p["visual"] else "prior-only"
             self._finalized.append(FrameResult(k, p["timestamp"], G, pose, status, True,
-                                               k in gated, p["timings"], self._plane.copy()))
+                                               k in gated or p["dropped"], p["timings"],
+                                               self._plane.copy()))
         for old in sorted(self._poses)[:-2]:
             del self._poses[old]  # keep only what the motion prediction needs
         if forget:
-            self.window.forget(forget)
+            self._win_forget(forget)
             for i in forget:
                 self._loop_feats.pop(i, None)
                 self._loop_centroids.pop(i, None)
