@@ -368,3 +368,128 @@ def test_concurrent_calls_are_refused_and_other_threads_may_call_in_turn(scene, 
     thread.start()
     thread.join()
     assert_same(scene.finish(m, results), baseline[0])
+
+
+# --------------------------------------------- review 5: a tracker world where |r| is near pi
+def rotate_world(poses, Q):
+    """The same cameras in a tracker world rotated by Q (cam_from_world R -> R Q)."""
+    out = np.array(poses, dtype=np.float64)
+    for k in range(len(out)):
+        R = _core.rotation_from_angle_axis(out[k, :3]) @ Q
+        out[k, :3] = _core.angle_axis_from_rotation(R)
+    return out
+
+
+LOOKING_DOWN = np.diag([1.0, -1.0, -1.0])  # z-up tracker, scope looking down: |r| = pi
+
+
+def test_world_alignment_round_trip_and_invariance(scene):
+    from fusedmosaic.estimation.world import (
+        plane_from_aligned,
+        plane_to_aligned,
+        poses_from_aligned,
+        poses_to_aligned,
+        world_rotation,
+    )
+
+    poses = rotate_world(scene.tracker, LOOKING_DOWN)
+    assert world_rotation(scene.tracker) is None  # near identity: nothing changes
+    R = world_rotation(poses)
+    aligned = poses_to_aligned(poses, R)
+    assert np.abs(aligned[0, :3]).max() < 1e-12  # the first camera has rotation identity
+    assert np.linalg.norm(aligned[:, :3], axis=1).max() < 1.0  # far from pi
+    np.testing.assert_allclose(aligned[:, 3:], poses[:, 3:])  # translations unchanged
+    back = poses_from_aligned(aligned, R)
+    for k in range(N):  # the same rotations (vectors may differ by 2 pi near pi)
+        np.testing.assert_allclose(_core.rotation_from_angle_axis(back[k, :3]),
+                                   _core.rotation_from_angle_axis(poses[k, :3]), atol=1e-12)
+    plane = np.array([0.01, -0.02, -0.03])
+    np.testing.assert_allclose(plane_from_aligned(plane_to_aligned(plane, R), R), plane)
+    K = scene.camera.camera_matrix
+    np.testing.assert_allclose(
+        _core.frame_to_reference(aligned, plane_to_aligned(plane, R), K),
+        _core.frame_to_reference(poses, plane, K), atol=1e-9)
+
+
+def test_tracker_world_near_pi_gives_the_same_mosaic(scene, baseline):
+    """A z-up tracker with the scope looking down puts every rotation at |r| ~ pi, where tracker
+    noise flips the angle-axis vector by ~2 pi (e_M was 45 239 px): the mosaicker works in a
+    world where the first camera is identity and reports poses in the tracker's world."""
+    tracker = rotate_world(scene.tracker, LOOKING_DOWN)
+    assert np.linalg.norm(tracker[:, :3], axis=1).min() > 2.9
+    m = scene.mosaicker()
+    results = scene.feed(m, range(N), {}, tracker)
+    G = scene.finish(m, results)
+    errors = frame_errors(G, scene.truth, SIZE, SIZE)
+    assert errors.mean() < max(2 * baseline[1].mean(), 0.5), errors
+    # poses come back in the tracker's (rotated) world: within a few degrees of its samples
+    for k in range(N):
+        R_est = _core.rotation_from_angle_axis(results[k].pose[:3])
+        R_trk = _core.rotation_from_angle_axis(tracker[k, :3])
+        angle = np.degrees(np.arccos(np.clip((np.trace(R_est.T @ R_trk) - 1) / 2, -1, 1)))
+        assert angle < 5.0, (k, angle)
+    truth_plane_dot = results[N - 1].plane @ m.plane  # the property: same world as the results
+    assert np.isclose(truth_plane_dot, m.plane @ m.plane)
+
+
+def test_a_bad_first_tracker_sample_does_not_poison_the_glitch_filter(scene, baseline):
+    """The first sample 10 m off, or a glitch right after a long dropout: the filter compares
+    against a trusted reference, re-anchors after tracker_reanchor_after disagreeing samples
+    and caps the gap it allows for."""
+    tracker = scene.tracker.copy()
+    tracker[0, 3] += 1e4
+    m = scene.mosaicker()
+    results = scene.feed(m, range(N), {}, tracker)
+    G = scene.finish(m, results)
+    errors = frame_errors(G, scene.truth, SIZE, SIZE)
+    assert [k for k in range(N) if results[k].tracker_gated] == [0]  # only the bad sample
+    assert errors.mean() < 1.0, errors
+    # a long dropout (frames 6..12 without tracker) then a +10 m glitch: dropped
+    tracker = scene.tracker.copy()
+    tracker[AT, 3] += 1e4
+    m = scene.mosaicker()
+    results = {}
+    for k in range(N):
+        pose = None if 6 <= k < AT else tracker[k]
+        m.add_frame(scene.frames[k], scene.timestamps[k] + (30.0 if k >= AT else 0.0), pose)
+        results.update({f.frame_id: f for f in m.finalized()})
+    G = scene.finish(m, results)
+    assert results[AT].tracker_gated
+    assert frame_errors(G, scene.truth, SIZE, SIZE).mean() < 1.0
+
+
+def test_ba_emt_in_a_tracker_world_near_pi(tmp_path):
+    """ba-emt runs in the aligned world too and returns poses and plane in the tracker's."""
+    from dataclasses import replace
+
+    from fusedmosaic.estimation.bundle import run_bundle
+    from fusedmosaic.io import read_dataset
+    from fusedmosaic.simulation import simulate_fetoscopy
+
+    root = simulate_fetoscopy(tmp_path / "d", FetoscopyOptions(n_frames=16, width=SIZE,
+                                                               height=SIZE, laps=16 / 37.5,
+                                                               seed=3))
+    dataset = read_dataset(root)
+    rotated = replace(dataset, cam_from_world=rotate_world(dataset.cam_from_world, LOOKING_DOWN))
+    assert np.linalg.norm(rotated.cam_from_world[:, :3], axis=1).min() > 2.9
+    plain = run_bundle(dataset, progress=False)
+    turned = run_bundle(rotated, progress=False)
+    e_plain = frame_errors(plain.homographies, dataset.ground_truth, SIZE, SIZE).mean()
+    e_turned = frame_errors(turned.homographies, dataset.ground_truth, SIZE, SIZE).mean()
+    assert e_turned < max(2 * e_plain, 0.5), (e_turned, e_plain)
+    # the plane comes back in the rotated world: pi' = Q^T pi
+    np.testing.assert_allclose(turned.plane, LOOKING_DOWN.T @ plain.plane, rtol=0.05, atol=1e-4)
+    R_est = _core.rotation_from_angle_axis(turned.poses[5, :3])
+    R_ref = _core.rotation_from_angle_axis(plain.poses[5, :3]) @ LOOKING_DOWN
+    assert np.abs(R_est - R_ref).max() < 0.05
+
+
+def test_motion_sigma_from_a_recording_in_a_tracker_world_near_pi(scene):
+    """Sigma_p estimated from poses whose rotations sit at |r| ~ pi equals the estimate in the
+    unrotated world (the angle-axis second differences would otherwise be ~2 pi)."""
+    from fusedmosaic.estimation.motion import estimate_motion_sigma
+
+    plain = estimate_motion_sigma(scene.tracker)
+    turned = estimate_motion_sigma(rotate_world(scene.tracker, LOOKING_DOWN))
+    np.testing.assert_allclose(turned, plain, rtol=0.02)
+    assert turned[:3].max() < 0.1  # rad: ~2 pi without the alignment

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -18,6 +18,12 @@ from tqdm import tqdm
 
 from fusedmosaic import _core
 from fusedmosaic.estimation.plane import estimate_plane
+from fusedmosaic.estimation.world import (
+    plane_from_aligned,
+    poses_from_aligned,
+    poses_to_aligned,
+    world_rotation,
+)
 from fusedmosaic.methods import MethodResult
 from fusedmosaic.registration.features import FeatureOptions, extract_features
 from fusedmosaic.registration.pair_selection import all_pairs, emt_guided_pairs, window_pairs
@@ -205,9 +211,19 @@ def _pair_details(front: FrontEnd) -> dict:
 
 def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None = None,
                use_emt: bool = True) -> MethodResult:
-    """BAVis+EMT (use_emt=True, Eq. 17-20) or BAVis (visual cost only)."""
-    o = options or BundleOptions()
+    """BAVis+EMT (use_emt=True, Eq. 17-20) or BAVis (visual cost only). With the EMT, the
+    adjustment runs in a world rotated so that the first tracked camera is not near a rotation
+    of pi (estimation/world.py); poses and plane are returned in the tracker's world."""
     K = dataset.camera.require_camera_matrix("ba-emt" if use_emt else "ba")
+    rotation = world_rotation(dataset.cam_from_world) if use_emt else None
+    if rotation is not None:
+        aligned = replace(dataset, cam_from_world=poses_to_aligned(dataset.cam_from_world,
+                                                                   rotation))
+        result = run_bundle(aligned, progress=progress, options=options, use_emt=use_emt)
+        result.poses = poses_from_aligned(result.poses, rotation)
+        result.plane = plane_from_aligned(result.plane, rotation)
+        return result
+    o = options or BundleOptions()
     dist = dataset.camera.distortion
     n = len(dataset.frames)
     rng = np.random.default_rng(o.seed)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from fusedmosaic import _core
+from fusedmosaic.estimation.world import poses_to_aligned, world_rotation
 
 # Appendix Eq. 30 (std devs: rad x3, mm x3), the default when no motion data is given.
 PAPER_MOTION_SIGMA = np.array([0.0044, 0.0044, 0.0044, 15.2178, 15.2178, 15.2178])
@@ -37,7 +38,12 @@ def constant_velocity_residuals(poses: np.ndarray) -> np.ndarray:
 def estimate_motion_sigma(poses: np.ndarray, *, floor: tuple[float, float] = (1e-4, 0.01)
                           ) -> np.ndarray:
     """Per-component RMS of the constant-velocity residual (6,), rotations then translations,
-    floored at (rad, mm) so a perfectly smooth recording does not give a zero deviation."""
+    floored at (rad, mm) so a perfectly smooth recording does not give a zero deviation. The
+    residuals are taken in the world the pose methods work in (estimation/world.py): angle-axis
+    differences near a rotation of pi would otherwise be ~2 pi."""
+    poses = np.asarray(poses, np.float64)
+    if poses.ndim == 2 and poses.shape[1:] == (6,):
+        poses = poses_to_aligned(poses, world_rotation(poses))
     r = constant_velocity_residuals(poses)
     sigma = np.sqrt(np.mean(r**2, axis=0))
     sigma[:3] = np.maximum(sigma[:3], floor[0])

@@ -63,6 +63,12 @@ from fusedmosaic.estimation.bundle import (
 )
 from fusedmosaic.estimation.keyframes import KeyframeIndex
 from fusedmosaic.estimation.plane import estimate_plane
+from fusedmosaic.estimation.world import (
+    plane_from_aligned,
+    poses_from_aligned,
+    poses_to_aligned,
+    world_rotation,
+)
 from fusedmosaic.io.tracking import MAX_TRANSLATION_MM
 from fusedmosaic.methods import MethodResult
 from fusedmosaic.registration.features import FeatureExtractor, FeatureOptions
@@ -140,6 +146,12 @@ class SequentialOptions:
     tracker_max_angular_speed: float = 2 * np.pi  # rad/s
     tracker_jump_margin_mm: float = 50.0
     tracker_jump_margin_rad: float = 0.5
+    # dt in those bounds is capped at this (s), so that a glitch after a tracker dropout is
+    # still caught; and after this many dropped samples in a row the newest becomes the
+    # reference (the reference itself was the glitch, e.g. a bad first sample, or the tracker
+    # moved for good), as the pCLE robot gate re-anchors.
+    tracker_max_gap_s: float = 1.0
+    tracker_reanchor_after: int = 3
     seed: int = 0
 
     @classmethod
@@ -186,7 +198,8 @@ class SequentialMosaicker:
             raise ValueError("SequentialOptions.startup_min_overlap must be a fraction in [0, 1], "
                              f"got {o.startup_min_overlap}")
         for name in ("max_timestamp_gap_s", "tracker_max_speed_mm_s", "tracker_max_angular_speed",
-                     "tracker_jump_margin_mm", "tracker_jump_margin_rad"):
+                     "tracker_jump_margin_mm", "tracker_jump_margin_rad", "tracker_max_gap_s",
+                     "tracker_reanchor_after"):
             value = getattr(o, name)
             if not (isinstance(value, numbers.Real) and value > 0):
                 raise ValueError(f"SequentialOptions.{name} must be > 0, got {value!r}")
@@ -215,7 +228,7 @@ class SequentialMosaicker:
         self._mirror_pairs: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         self._mirror_plane: np.ndarray | None = None
         self._window_touched = False
-        self._lock = threading.Lock()
+        self._lock = getattr(self, "_lock", None) or threading.Lock()  # reset() keeps it
         self._broken: str | None = None  # why the mosaicker is unusable (failed restoration)
         self.extractor = FeatureExtractor(o.features, camera.fov_mask())
         self.keyframes = KeyframeIndex(o.frames_per_cluster, max_blocks=o.max_keyframe_blocks,
@@ -236,6 +249,12 @@ class SequentialMosaicker:
         self._next_id = 0
         self._last_timestamp = -np.inf
         self._trusted: tuple | None = None  # last tracker sample kept: (time, centre, R)
+        self._implausible_run = 0  # tracker samples dropped in a row (re-anchor after 3)
+        self._chain: tuple[int, ...] = ()  # frames whose samples the current reference accepted
+        # The world the window works in (estimation/world.py): decided by the first tracker
+        # sample, rotated when that camera is near a rotation of pi in the tracker's frame.
+        self._world_decided = False
+        self._world_rotation: np.ndarray | None = None
         # C++ summaries of the last history_steps window steps (each frame's plane is in its
         # FrameResult).
         self.step_summaries: deque = deque(maxlen=o.history_steps)
@@ -244,6 +263,13 @@ class SequentialMosaicker:
         # correspondences of the registered ones.
         self.pair_counts = {"attempted": 0, "registered": 0, "correspondences": 0,
                             "loop_attempted": 0, "loop_registered": 0}
+
+    @property
+    def plane(self) -> np.ndarray | None:
+        """The current plane pi = n / d in the tracker's world (None before the start-up)."""
+        if self._plane is None:
+            return None
+        return plane_from_aligned(self._plane, self._world_rotation)
 
     @staticmethod
     def _frame_outline(camera) -> np.ndarray:
@@ -382,7 +408,8 @@ class SequentialMosaicker:
     _SAVED = ("_next_id", "_last_timestamp", "_trusted", "_reference_pose", "_plane",
               "num_steps", "_finalized", "_boot_feats", "_boot_matches", "_loop_feats",
               "_loop_centroids", "_poses", "pair_counts", "_mirror_frames", "_mirror_pairs",
-              "_mirror_plane")
+              "_mirror_plane", "_implausible_run", "_world_decided", "_world_rotation",
+              "_chain")
 
     def _save(self) -> dict:
         """What a call may change, copied (shallowly: the values it replaces, never mutates)."""
@@ -458,28 +485,68 @@ class SequentialMosaicker:
                               if key[0] not in gone and key[1] not in gone}
 
     # ------------------------------------------------------------------------- the frame step
-    def _plausible(self, timestamp: float, pose: np.ndarray) -> bool:
-        """Whether a tracker sample is within the speed bounds of the last trusted one."""
+    def _plausible(self, timestamp: float, pose: np.ndarray) -> str:
+        """Whether a tracker sample is within the speed bounds of the last trusted one: "ok",
+        "drop", or "reanchor" (the tracker_reanchor_after-th disagreeing sample in a row,
+        which becomes the new reference)."""
         R = _core.rotation_from_angle_axis(pose[:3])
         centre = -R.T @ pose[3:]
         if self._trusted is not None:
             o = self.options
             t0, centre0, R0 = self._trusted
-            dt = timestamp - t0
+            # a long gap allows at most tracker_max_gap_s of motion, so that a glitch after a
+            # dropout is still caught
+            dt = min(timestamp - t0, o.tracker_max_gap_s)
             moved = float(np.linalg.norm(centre - centre0))
             turned = float(np.arccos(np.clip((np.trace(R0.T @ R) - 1) / 2, -1.0, 1.0)))
             if (moved > o.tracker_max_speed_mm_s * dt + o.tracker_jump_margin_mm
                     or turned > o.tracker_max_angular_speed * dt + o.tracker_jump_margin_rad):
-                return False
+                self._implausible_run += 1
+                if self._implausible_run < self.options.tracker_reanchor_after:
+                    return "drop"
+                # that many samples in a row disagree with the reference: the reference was the
+                # glitch (e.g. a bad first sample) or the tracker moved for good; start again
+                self._implausible_run = 0
+                self._trusted = (timestamp, centre, R)
+                return "reanchor"
+        self._implausible_run = 0
         self._trusted = (timestamp, centre, R)
-        return True
+        return "ok"
+
+    def _reanchor_startup(self) -> None:
+        """During the start-up (nothing in the window yet): the samples dropped in the run that
+        made the tracker re-anchor agree with the new reference and are restored; those the
+        old reference had accepted (e.g. a bad first sample) are dropped instead."""
+        old = set(self._chain)
+        pending = []
+        for p in self._pending:
+            if p["id"] in old and p["tracker"] is not None:
+                p = dict(p, tracker=None, dropped=True)
+            elif p["dropped"] and p.get("sample") is not None and p["id"] > max(old, default=-1):
+                p = dict(p, tracker=p["sample"], dropped=False)
+            pending.append(p)
+        self._pending = pending
+        self._chain = tuple(p["id"] for p in pending if p["tracker"] is not None)
 
     def _add_frame(self, k, image, timestamp, tracker_pose) -> FrameResult:
         self._next_id += 1
         self._last_timestamp = timestamp
-        dropped = tracker_pose is not None and not self._plausible(timestamp, tracker_pose)
+        if tracker_pose is not None:
+            if not self._world_decided:
+                self._world_rotation = world_rotation(tracker_pose)
+                self._world_decided = True
+            tracker_pose = poses_to_aligned(tracker_pose, self._world_rotation)
+        verdict = None if tracker_pose is None else self._plausible(timestamp, tracker_pose)
+        dropped = verdict == "drop"
+        sample = tracker_pose  # kept with a dropped frame: a re-anchoring may restore it
         if dropped:
             tracker_pose = None
+        if verdict == "reanchor" and self._plane is None:
+            self._reanchor_startup()
+        elif verdict == "reanchor":
+            self._chain = ()
+        if verdict in ("ok", "reanchor") and self._plane is None:  # start-up only: bounded
+            self._chain = self._chain + (k,)
         timings: dict[str, float] = {}
 
         t0 = time.perf_counter()
@@ -501,7 +568,7 @@ class SequentialMosaicker:
                          for p in self._pending]  # a registered pair: evidence for both frames
         self._pending.append({"id": k, "timestamp": timestamp, "tracker": tracker_pose,
                               "visual": bool(ok), "timings": timings, "features": feats,
-                              "held": 0, "dropped": dropped})
+                              "held": 0, "dropped": dropped, "sample": sample})
         self._finalized = []
         waiting = False
         if self._plane is None:  # bootstrap: keep everything until the initial adjustment
@@ -707,9 +774,9 @@ class SequentialMosaicker:
             p["timings"]["window_solve"] = solve_per_frame
             p["timings"]["keyframe_selection"] = keyframe_per_frame
             status = "placed" if p["visual"] else "prior-only"
-            self._finalized.append(FrameResult(k, p["timestamp"], G, pose, status, True,
-                                               k in gated or p["dropped"], p["timings"],
-                                               self._plane.copy()))
+            self._finalized.append(FrameResult(
+                k, p["timestamp"], G, poses_from_aligned(pose, self._world_rotation), status,
+                True, k in gated or p["dropped"], p["timings"], self.plane))
         for old in sorted(self._poses)[:-2]:
             del self._poses[old]  # keep only what the motion prediction needs
         if forget:
@@ -735,7 +802,8 @@ class SequentialMosaicker:
             return FrameResult(k, timestamp, nan, np.full(6, np.nan),
                                "unplaced: waiting for the first window step", False,
                                timings=timings)
-        return FrameResult(k, timestamp, self._to_reference(pose), pose, "provisional", False,
+        return FrameResult(k, timestamp, self._to_reference(pose),
+                           poses_from_aligned(pose, self._world_rotation), "provisional", False,
                            timings=timings)
 
 
@@ -793,5 +861,5 @@ def run_lba_emt(dataset, *, progress: bool = True,
         "plane_history": [results[k].plane.tolist() for k in range(n)],
     }
     status = [results[k].status for k in range(n)]
-    return MethodResult(G, status, poses=poses, plane=mosaicker._plane, timings=timings,
+    return MethodResult(G, status, poses=poses, plane=mosaicker.plane, timings=timings,
                         parameters=asdict(o), details=details)
