@@ -493,3 +493,32 @@ def test_motion_sigma_from_a_recording_in_a_tracker_world_near_pi(scene):
     turned = estimate_motion_sigma(rotate_world(scene.tracker, LOOKING_DOWN))
     np.testing.assert_allclose(turned, plain, rtol=0.02)
     assert turned[:3].max() < 0.1  # rad: ~2 pi without the alignment
+
+
+def test_startup_waiting_for_the_tracker_is_bounded(scene):
+    """With the tracker off, the start-up keeps at most startup_wait_frames frames (matching
+    cost and memory bounded) and hands the oldest out as final and unplaced; once the tracker
+    comes on, the kept frames and the new ones are placed."""
+    m = SequentialMosaicker(scene.camera,
+                            SequentialOptions(bootstrap_frames=8, startup_wait_frames=10))
+    final = {}
+    for k in range(18):
+        assert m.add_frame(scene.frames[k], scene.timestamps[k], None).frame_id == k
+        final.update({f.frame_id: f for f in m.finalized()})
+        assert len(m._pending) <= 10 and len(m._boot_feats) <= 10
+    assert sorted(final) == list(range(8))
+    for f in final.values():
+        assert f.final and np.isnan(f.homography).all()
+        assert f.status == ("unplaced: no registered pair with tracker poses within the "
+                            "start-up's 10 frames")
+    for k in range(18, N):
+        m.add_frame(scene.frames[k], scene.timestamps[k], scene.tracker[k])
+        final.update({f.frame_id: f for f in m.finalized()})
+    final.update({f.frame_id: f for f in m.flush()})
+    assert sorted(final) == list(range(N))
+    # frame 18 alone has a tracker pose: still waiting, frame 8 goes too; 19 makes the pair
+    assert final[8].status.startswith("unplaced: no registered pair")
+    assert all(final[k].status in ("placed", "prior-only") for k in range(9, N))
+    with pytest.raises(ValueError, match=r"startup_wait_frames must be >= bootstrap_frames"):
+        SequentialMosaicker(scene.camera,
+                            SequentialOptions(bootstrap_frames=8, startup_wait_frames=7))

@@ -152,6 +152,9 @@ class SequentialOptions:
     # moved for good), as the pCLE robot gate re-anchors.
     tracker_max_gap_s: float = 1.0
     tracker_reanchor_after: int = 3
+    # Frames the start-up keeps while it waits for a registered pair with tracker poses (the
+    # tracker switched on late); older ones are handed out unplaced. 2 x bootstrap_frames.
+    startup_wait_frames: int = 80
     seed: int = 0
 
     @classmethod
@@ -199,10 +202,13 @@ class SequentialMosaicker:
                              f"got {o.startup_min_overlap}")
         for name in ("max_timestamp_gap_s", "tracker_max_speed_mm_s", "tracker_max_angular_speed",
                      "tracker_jump_margin_mm", "tracker_jump_margin_rad", "tracker_max_gap_s",
-                     "tracker_reanchor_after"):
+                     "tracker_reanchor_after", "startup_wait_frames"):
             value = getattr(o, name)
             if not (isinstance(value, numbers.Real) and value > 0):
                 raise ValueError(f"SequentialOptions.{name} must be > 0, got {value!r}")
+        if o.startup_wait_frames < o.bootstrap_frames:
+            raise ValueError("SequentialOptions.startup_wait_frames must be >= bootstrap_frames, "
+                             f"got {o.startup_wait_frames} < {o.bootstrap_frames}")
         self._camera = camera
         self.K = camera.require_camera_matrix("lba-emt")
         self.distortion = camera.distortion
@@ -576,6 +582,8 @@ class SequentialMosaicker:
             self._boot_matches += ok
             if len(self._pending) >= self.options.bootstrap_frames:
                 waiting = not self._bootstrap()
+            if waiting:
+                self._drop_oldest_startup_frames()
         else:
             t0 = time.perf_counter()
             loop_matches = self._match_loops(k, feats, tracker_pose)
@@ -598,6 +606,26 @@ class SequentialMosaicker:
             result.status = ("unplaced: waiting for a registered pair with tracker poses to "
                              "initialise the plane")
         return result
+
+    def _drop_oldest_startup_frames(self) -> None:
+        """While the start-up waits for a registered pair with tracker poses (e.g. the tracker
+        switched on late), keep at most startup_wait_frames frames: the oldest are handed out
+        as final and unplaced, with their features and pairs, so that the per-frame cost
+        (matching against the kept frames) and the memory stay bounded. The first frame placed
+        later becomes the reference."""
+        excess = len(self._pending) - self.options.startup_wait_frames
+        if excess <= 0:
+            return
+        gone, self._pending = self._pending[:excess], self._pending[excess:]
+        ids = {p["id"] for p in gone}
+        self._boot_feats = [f for f in self._boot_feats if f.frame_id not in ids]
+        self._boot_matches = [m for m in self._boot_matches
+                              if m.frame_l not in ids and m.frame_m not in ids]
+        status = ("unplaced: no registered pair with tracker poses within the start-up's "
+                  f"{self.options.startup_wait_frames} frames")
+        self._finalized = self._finalized + [
+            FrameResult(p["id"], p["timestamp"], np.full((3, 3), np.nan), np.full(6, np.nan),
+                        status, True, p["dropped"], p["timings"]) for p in gone]
 
     def _flush(self) -> list[FrameResult]:
         self._finalized = []
