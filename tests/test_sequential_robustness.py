@@ -522,3 +522,12 @@ def test_startup_waiting_for_the_tracker_is_bounded(scene):
     with pytest.raises(ValueError, match=r"startup_wait_frames must be >= bootstrap_frames"):
         SequentialMosaicker(scene.camera,
                             SequentialOptions(bootstrap_frames=8, startup_wait_frames=7))
+
+
+def test_keyframe_blocks_shorter_than_the_window_are_refused(scene):
+    """A keyframe block shorter than the window's fixed part could be evicted while still in
+    the window, and the rolled-back step would then fail on every call (review 5 #11)."""
+    with pytest.raises(ValueError, match=r"frames_per_cluster must be >= window_size - 1, got 2"):
+        SequentialMosaicker(scene.camera, SequentialOptions(window_size=5, frames_per_cluster=2))
+    for preset in ("syn", "phb", "ex"):
+        SequentialMosaicker(scene.camera, SequentialOptions.preset(preset))

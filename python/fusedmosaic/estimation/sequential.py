@@ -206,6 +206,11 @@ class SequentialMosaicker:
             value = getattr(o, name)
             if not (isinstance(value, numbers.Real) and value > 0):
                 raise ValueError(f"SequentialOptions.{name} must be > 0, got {value!r}")
+        if o.frames_per_cluster < o.window_size - 1:
+            # a keyframe block shorter than the fixed part of the window can be evicted while
+            # its frames are still in the window (every preset has frames_per_cluster >= W)
+            raise ValueError("SequentialOptions.frames_per_cluster must be >= window_size - 1, "
+                             f"got {o.frames_per_cluster} < {o.window_size} - 1")
         if o.startup_wait_frames < o.bootstrap_frames:
             raise ValueError("SequentialOptions.startup_wait_frames must be >= bootstrap_frames, "
                              f"got {o.startup_wait_frames} < {o.bootstrap_frames}")
