@@ -261,10 +261,8 @@ class SequentialMosaicker:
         self._last_timestamp = -np.inf
         self._trusted: tuple | None = None  # last tracker sample kept: (time, centre, R)
         self._implausible_run = 0  # tracker samples dropped in a row (re-anchor after 3)
-        self._chain: tuple[int, ...] = ()  # frames whose samples the current reference accepted
         # The world the window works in (estimation/world.py): decided by the first tracker
         # sample, rotated when that camera is near a rotation of pi in the tracker's frame.
-        self._world_decided = False
         self._world_rotation: np.ndarray | None = None
         # C++ summaries of the last history_steps window steps (each frame's plane is in its
         # FrameResult).
@@ -419,8 +417,7 @@ class SequentialMosaicker:
     _SAVED = ("_next_id", "_last_timestamp", "_trusted", "_reference_pose", "_plane",
               "num_steps", "_finalized", "_boot_feats", "_boot_matches", "_loop_feats",
               "_loop_centroids", "_poses", "pair_counts", "_mirror_frames", "_mirror_pairs",
-              "_mirror_plane", "_implausible_run", "_world_decided", "_world_rotation",
-              "_chain")
+              "_mirror_plane", "_implausible_run", "_world_rotation")
 
     def _save(self) -> dict:
         """What a call may change, copied (shallowly: the values it replaces, never mutates)."""
@@ -527,8 +524,10 @@ class SequentialMosaicker:
     def _reanchor_startup(self) -> None:
         """During the start-up (nothing in the window yet): the samples dropped in the run that
         made the tracker re-anchor agree with the new reference and are restored; those the
-        old reference had accepted (e.g. a bad first sample) are dropped instead."""
-        old = set(self._chain)
+        old reference had accepted (e.g. a bad first sample) are dropped instead. In the
+        start-up every pending sample still kept was accepted by the current reference (a
+        re-anchoring drops the others), so those are the old reference's."""
+        old = {p["id"] for p in self._pending if p["tracker"] is not None}
         pending = []
         for p in self._pending:
             if p["id"] in old and p["tracker"] is not None:
@@ -537,15 +536,13 @@ class SequentialMosaicker:
                 p = dict(p, tracker=p["sample"], dropped=False)
             pending.append(p)
         self._pending = pending
-        self._chain = tuple(p["id"] for p in pending if p["tracker"] is not None)
 
     def _add_frame(self, k, image, timestamp, tracker_pose) -> FrameResult:
         self._next_id += 1
         self._last_timestamp = timestamp
         if tracker_pose is not None:
-            if not self._world_decided:
+            if self._trusted is None:  # the first tracker sample decides the world
                 self._world_rotation = world_rotation(tracker_pose)
-                self._world_decided = True
             tracker_pose = poses_to_aligned(tracker_pose, self._world_rotation)
         verdict = None if tracker_pose is None else self._plausible(timestamp, tracker_pose)
         dropped = verdict == "drop"
@@ -554,10 +551,6 @@ class SequentialMosaicker:
             tracker_pose = None
         if verdict == "reanchor" and self._plane is None:
             self._reanchor_startup()
-        elif verdict == "reanchor":
-            self._chain = ()
-        if verdict in ("ok", "reanchor") and self._plane is None:  # start-up only: bounded
-            self._chain = self._chain + (k,)
         timings: dict[str, float] = {}
 
         t0 = time.perf_counter()
