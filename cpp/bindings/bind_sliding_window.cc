@@ -50,7 +50,11 @@ void BindSlidingWindow(py::module_& m) {
                      "C_v blocks take the poses of the step's fixed cameras as values, so\n"
                      "autodiff runs over the free parameters only (same residuals)")
       .def_readwrite("full_report", &SlidingWindowOptions::full_report,
-                     "keep Ceres' FullReport() in each step summary (diagnostics)");
+                     "keep Ceres' FullReport() in each step summary (diagnostics)")
+      .def_readwrite("plane_max_relative_std", &SlidingWindowOptions::plane_max_relative_std,
+                     "plane observability gate: a step whose costs give pi a relative std\n"
+                     "sqrt(trace(Cov_pi)) / |pi| above this is solved again with pi held\n"
+                     "(0: never held; the std is still reported)");
 
   py::class_<WindowStepSummary>(m, "WindowStepSummary", "Result of SlidingWindow.step().")
       .def_readonly("frame_ids", &WindowStepSummary::frame_ids)
@@ -77,6 +81,11 @@ void BindSlidingWindow(py::module_& m) {
                     "correspondences of pairs of two fixed cameras (they constrain pi only)")
       .def_readonly("num_residuals", &WindowStepSummary::num_residuals)
       .def_readonly("num_free_parameters", &WindowStepSummary::num_free_parameters)
+      .def_readonly("plane_relative_std", &WindowStepSummary::plane_relative_std,
+                    "sqrt(trace(Cov_pi)) / |pi| from the step's costs (NaN: pi not free;\n"
+                    "inf: rank-deficient, pi unobservable)")
+      .def_readonly("plane_held", &WindowStepSummary::plane_held,
+                    "pi kept its value from before the step (no visual cost, or the gate)")
       .def_readonly("preprocessor_time_s", &WindowStepSummary::preprocessor_time_s)
       .def_readonly("evaluation_time_s", &WindowStepSummary::evaluation_time_s,
                     "Ceres residual + Jacobian evaluation time")

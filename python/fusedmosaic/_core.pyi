@@ -283,6 +283,9 @@ class SlidingWindowOptions:
     costs: BundleAdjusterOptions
     fold_fixed_cameras: bool  # fixed cameras enter costs as values, not parameters (faster)
     full_report: bool  # keep Ceres' FullReport() in each step summary
+    plane_max_relative_std: float
+    """Plane observability gate: a step whose costs leave pi with a relative standard deviation
+    sqrt(trace(Cov_pi)) / |pi| above this is solved again with pi held (0: never)."""
 
     def __init__(
         self, window_size: int = 5, num_new: int = 3, costs: BundleAdjusterOptions | None = None
@@ -312,6 +315,9 @@ class WindowStepSummary:
     num_fixed_pair_correspondences: int  # in pairs of two fixed cameras: constrain pi only
     num_residuals: int
     num_free_parameters: int
+    plane_relative_std: float
+    """sqrt(trace(Cov_pi)) / |pi| from the step's costs; NaN: pi not free; inf: unobservable."""
+    plane_held: bool  # pi kept its value from before the step (no visual cost, or the gate)
     preprocessor_time_s: float
     evaluation_time_s: float
     linear_solver_time_s: float
