@@ -13,13 +13,24 @@ give them (design.md). Other pixel types are refused rather than guessed: the of
 (`render_mosaic`) takes pixel values at face value as 0..255, so a float 0..1 frame renders black
 and a 16-bit one saturates; convert first (`np.clip(np.rint(f * 255), 0, 255).astype(np.uint8)`
 for 0..1 floats, `(f >> 8).astype(np.uint8)` for 16-bit). A refused call (exception) changes
-nothing. A frame whose footprint would grow the canvas bounds beyond `max_pixels` (a stray
-placement far from the rest) is skipped and recorded in `skipped`, like an unplaced one, since
-`render()` of the whole canvas needs a bounds-sized array.
+nothing.
+
+Budget (`max_pixels`): it bounds the memory actually held, the pixels of the allocated tiles
+(`tile_pixels`; a frame that would take them above it is refused with CanvasTooLargeError), and
+the size of any one `render()` view. It does not bound the bounding box: a long or diagonal sweep
+has a bounding box growing with the square of its length while its tiles grow with the length,
+and all its frames are kept; once the bounding box is above `max_pixels`, `render()` of the
+whole canvas raises CanvasTooLargeError and the caller renders sub-boxes (e.g. the box `add`
+returned). Only a stray frame is left out for the bounding box: one that would grow the bounds
+beyond `max_pixels` while landing more than `stray_diagonals` (10) of its own diagonals away
+from every frame placed so far (a wild jump such as a placement 1e6 px off; it is recorded in
+`skipped`, like an unplaced frame). A far frame that keeps the bounds within `max_pixels` is
+kept, as is anything landing near the content already there.
 """
 
 from __future__ import annotations
 
+import math
 from collections import deque
 
 import cv2
@@ -44,12 +55,19 @@ class IncrementalCanvas:
     >>> for image, G in stream:            # G: frame -> reference homography
     ...     box = canvas.add(image, G)     # None if the frame was left out
     ...     view = canvas.render(box)      # only the part that changed
+
+    max_pixels: budget in canvas pixels for the allocated tiles (`tile_pixels`, 16 bytes each
+    for colour) and for one `render()` view; not for the bounding box (see the module notes).
+    stray_diagonals: a frame that would grow the bounds beyond `max_pixels` is left out as a
+    stray if it lands more than this many of its footprint diagonals from every placed frame;
+    math.inf never leaves a frame out for its position.
     """
 
     def __init__(self, width: int, height: int, *, mask: np.ndarray | None = None,
                  blend: str | BlendOptions = "linear", tile_size: int = 256,
                  scale: float = 1.0, max_pixels: int = 400_000_000,
-                 absurd_area_factor: float = ABSURD_AREA_FACTOR) -> None:
+                 absurd_area_factor: float = ABSURD_AREA_FACTOR,
+                 stray_diagonals: float = 10.0) -> None:
         options = as_blend_options(blend)
         if options.blend == "multiband":
             raise ValueError("multiband blending needs the whole sequence (its seams depend on "
@@ -65,11 +83,15 @@ class IncrementalCanvas:
         if not max_pixels > 0:
             raise ValueError(f"max_pixels must be > 0, got {max_pixels}")
         self.max_pixels = int(max_pixels)
+        if not stray_diagonals > 0:
+            raise ValueError(f"stray_diagonals must be > 0, got {stray_diagonals}")
+        self.stray_diagonals = float(stray_diagonals)
         self.absurd_area_factor = absurd_area_factor
         self._warpers: dict[int | None, FrameWarper] = {None: FrameWarper(width, height, mask,
                                                                           options)}
         self.tiles: dict[tuple[int, int], np.ndarray] = {}
         self.bounds: Box | None = None
+        self._last_box: Box | None = None  # the last placed frame's
         self.frames_added = 0
         self.skipped: list[tuple[int, str]] = []  # (call number, reason)
         self._areas: deque[float] = deque(maxlen=101)
@@ -125,17 +147,34 @@ class IncrementalCanvas:
         return box if b is None else (min(b[0], box[0]), min(b[1], box[1]),
                                       max(b[2], box[2]), max(b[3], box[3]))
 
+    def _is_stray(self, box: Box) -> bool:
+        """True if `box` lands more than `stray_diagonals` of its diagonals from every frame
+        placed so far: checked against the last placed frame (the usual neighbour in a sweep),
+        then, for a jump, against the allocated tiles (a return near earlier content is not a
+        stray; tiles over-cover the footprints by less than a tile, so this errs towards keeping).
+        """
+        reach = self.stray_diagonals * math.hypot(box[2] - box[0], box[3] - box[1])
+        if self._last_box is None or _gap(box, self._last_box) <= reach:
+            return False
+        T = self.tile_size
+        keys = np.array(list(self.tiles), np.int64).reshape(-1, 2) * T  # (y, x) tile corners
+        dx = np.maximum(0, np.maximum(keys[:, 1] - box[2], box[0] - keys[:, 1] - T))
+        dy = np.maximum(0, np.maximum(keys[:, 0] - box[3], box[1] - keys[:, 0] - T))
+        return not bool((np.hypot(dx, dy) <= reach).any())
+
     def add(self, image: np.ndarray, homography: np.ndarray, mask: np.ndarray | None = None,
             *, gain: float = 1.0) -> Box | None:
         """Blends one frame placed by `homography` (frame -> reference). mask: this frame's field
         of view if it differs from the canvas's. Returns the canvas box that changed, or None if
         the frame was left out (unplaced, footprint behind the camera, non-convex, > 20 x the
-        recent median area, or growing the canvas bounds beyond `max_pixels`; see `skipped`).
+        recent median area, or a stray: growing the canvas bounds beyond `max_pixels` while
+        landing more than `stray_diagonals` frame diagonals from every placed frame; see
+        `skipped`). A frame near the content is kept however large the bounding box gets.
 
         Raises TypeError (None image), ValueError (pixel type other than uint8, wrong size or
-        channel count, homography not 3x3) or CanvasTooLargeError (the tiles would exceed
-        `max_pixels`); a call that raises changes nothing, and the next call has the same frame
-        number."""
+        channel count, homography not 3x3) or CanvasTooLargeError (the allocated tiles would
+        exceed `max_pixels`); a call that raises changes nothing, and the next call has the same
+        frame number."""
         name = self._calls
         image = self._check_image(image, name)
         G = np.asarray(homography, np.float64)
@@ -150,9 +189,19 @@ class IncrementalCanvas:
         if reason is None and box is None:
             reason = "footprint behind the camera"
         if reason is None:
-            # The tiles under the footprint: the area covered is over budget -> error; within
-            # budget, but the bounding box would be (a stray placement far from the rest, which
-            # render() of the whole canvas could not allocate) -> the frame is left out.
+            # A stray (a jump far from every placed frame that would take the bounding box
+            # beyond the budget) is left out; a frame near the content is kept however large
+            # the bounding box gets, since only the tiles hold memory (render() of a box over
+            # the budget raises instead). Then the tiles under the footprint: the area covered
+            # over budget -> error.
+            bounds = self._bounds_with(box)
+            x0, y0, x1, y1 = bounds
+            if (bounds != self.bounds and (x1 - x0) * (y1 - y0) > self.max_pixels
+                    and self._is_stray(box)):
+                reason = (f"would grow the canvas bounds to {x1 - x0} x {y1 - y0} pixels, above "
+                          f"max_pixels {self.max_pixels} (frame lands at x {box[0]}..{box[2]}, "
+                          f"y {box[1]}..{box[3]}: a stray placement?)")
+        if reason is None:
             T = self.tile_size
             tiles = [(ty, tx) for ty in range(box[1] // T, (box[3] - 1) // T + 1)
                      for tx in range(box[0] // T, (box[2] - 1) // T + 1)]
@@ -161,12 +210,8 @@ class IncrementalCanvas:
                 raise CanvasTooLargeError(
                     f"live canvas would need {(len(self.tiles) + new) * T * T} pixels of tiles, "
                     f"above the budget of {self.max_pixels} pixels (frame {name} lands at "
-                    f"x {box[0]}..{box[2]}, y {box[1]}..{box[3]})")
-            x0, y0, x1, y1 = self._bounds_with(box)
-            if (x1 - x0) * (y1 - y0) > self.max_pixels:
-                reason = (f"would grow the canvas bounds to {x1 - x0} x {y1 - y0} pixels, above "
-                          f"max_pixels {self.max_pixels} (frame lands at x {box[0]}..{box[2]}, "
-                          f"y {box[1]}..{box[3]}: a stray placement?)")
+                    f"x {box[0]}..{box[2]}, y {box[1]}..{box[3]}); raise max_pixels, lower "
+                    "scale, or start a new canvas")
         if reason is not None:
             self._calls += 1
             self.skipped.append((name, reason))
@@ -183,6 +228,7 @@ class IncrementalCanvas:
                 tile = self.tiles[key] = np.zeros((T, T, channels), np.float32)
             accumulate(tile, key[1] * T, key[0] * T, patch, self.options.blend)
         self.bounds = self._bounds_with(box)
+        self._last_box = box
         self.frames_added += 1
         return box
 
@@ -191,13 +237,19 @@ class IncrementalCanvas:
     def nbytes(self) -> int:
         return sum(t.nbytes for t in self.tiles.values())
 
+    @property
+    def tile_pixels(self) -> int:
+        """Canvas pixels held in tiles: the memory `max_pixels` bounds."""
+        return len(self.tiles) * self.tile_size * self.tile_size
+
     def render(self, box: Box | None = None) -> np.ndarray:
-        """uint8 (h, w, C) view of `box` (default: everything so far); empty pixels are black.
-        Cost proportional to the box; a box of more than `max_pixels` pixels raises
-        CanvasTooLargeError (render a part of it instead)."""
+        """uint8 (h, w, C) view of `box` (default: everything so far, `bounds`); empty pixels are
+        black. Cost proportional to the box; a box of more than `max_pixels` pixels raises
+        CanvasTooLargeError (render a part of it instead). The default box can be above the
+        budget with the tiles far below it (a long or diagonal sweep: see the module notes)."""
         if self._channels is None:
             raise ValueError("no frame added yet")
-        box = self.bounds if box is None else box
+        given, box = box, self.bounds if box is None else box
         try:
             x0, y0, x1, y1 = (int(v) for v in box)
         except (TypeError, ValueError):
@@ -206,10 +258,12 @@ class IncrementalCanvas:
         if not (x1 > x0 and y1 > y0):
             raise ValueError(f"render: empty box {box!r} (need x1 > x0 and y1 > y0)")
         if (x1 - x0) * (y1 - y0) > self.max_pixels:
+            whole = (" (the whole canvas: its bounding box; the tiles hold "
+                     f"{self.tile_pixels} pixels)") if given is None else ""
             raise CanvasTooLargeError(
                 f"render: the view of x {x0}..{x1}, y {y0}..{y1} is {x1 - x0} x {y1 - y0} "
-                f"pixels, above the budget of {self.max_pixels} pixels (max_pixels); render a "
-                "smaller box")
+                f"pixels, above the budget of {self.max_pixels} pixels (max_pixels){whole}; "
+                "render a smaller box, e.g. the one add() returned")
         C = self._channels - 1
         out = np.zeros((y1 - y0, x1 - x0, C), np.uint8)
         T = self.tile_size
@@ -223,3 +277,10 @@ class IncrementalCanvas:
                 sub = tile[ay0 - ty * T:ay1 - ty * T, ax0 - tx * T:ax1 - tx * T]
                 out[ay0 - y0:ay1 - y0, ax0 - x0:ax1 - x0] = resolve(sub)[0]
         return out[:, :, 0] if C == 1 else out
+
+
+def _gap(a: Box, b: Box) -> float:
+    """Distance between two boxes (0 if they touch or overlap)."""
+    dx = max(0, b[0] - a[2], a[0] - b[2])
+    dy = max(0, b[1] - a[3], a[1] - b[3])
+    return math.hypot(dx, dy)
