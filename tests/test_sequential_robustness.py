@@ -179,7 +179,8 @@ def test_single_tracker_glitch_leaves_the_other_frames_alone(scene, baseline, of
     m = scene.mosaicker()
     results = scene.feed(m, range(N), {}, tracker)
     G = scene.finish(m, results)
-    assert results[AT].tracker_gated and results[AT].status == "placed"
+    assert results[AT].tracker_gated and results[AT].tracker_dropped
+    assert results[AT].status == "placed"
     assert not any(results[k].tracker_gated for k in range(N) if k != AT)
     missing = list(scene.tracker)
     missing[AT] = None
@@ -205,7 +206,7 @@ def test_plausible_tracker_motion_is_never_dropped(scene, monkeypatch):
     results = scene.feed(m, range(N), {}, tracker)
     scene.finish(m, results)
     assert len(verdicts) == N and all(verdicts)
-    assert results[AT].tracker_gated  # by the window step
+    assert results[AT].tracker_gated and not results[AT].tracker_dropped  # by the window step
 
 
 # ------------------------------------------------------------------ item 6: rollback
@@ -443,6 +444,7 @@ def test_a_bad_first_tracker_sample_does_not_poison_the_glitch_filter(scene, bas
     G = scene.finish(m, results)
     errors = frame_errors(G, scene.truth, SIZE, SIZE)
     assert [k for k in range(N) if results[k].tracker_gated] == [0]  # only the bad sample
+    assert results[0].tracker_dropped
     assert errors.mean() < 1.0, errors
     # a long dropout (frames 6..12 without tracker) then a +10 m glitch: dropped
     tracker = scene.tracker.copy()
@@ -454,7 +456,7 @@ def test_a_bad_first_tracker_sample_does_not_poison_the_glitch_filter(scene, bas
         m.add_frame(scene.frames[k], scene.timestamps[k] + (30.0 if k >= AT else 0.0), pose)
         results.update({f.frame_id: f for f in m.finalized()})
     G = scene.finish(m, results)
-    assert results[AT].tracker_gated
+    assert results[AT].tracker_gated and results[AT].tracker_dropped
     assert frame_errors(G, scene.truth, SIZE, SIZE).mean() < 1.0
 
 

@@ -186,10 +186,12 @@ class FrameResult:
     status: str  # "placed" | "prior-only" | "provisional" | "unplaced: ..." (not final)
     final: bool
     # its tracker sample was down-weighted by the window step (gate_chi2) or dropped as a
-    # glitch (tracker_max_speed_mm_s ...) before reaching the window
+    # glitch (tracker_max_speed_mm_s ...) before reaching the window; tracker_dropped tells which
     tracker_gated: bool = False
     timings: dict[str, float] = field(default_factory=dict)
     plane: np.ndarray | None = None  # (3,) pi of the step that made the frame final
+    # its tracker sample was dropped as a glitch and never used (implies tracker_gated)
+    tracker_dropped: bool = False
 
 
 def canonical_rotation_vector(r: np.ndarray) -> np.ndarray:
@@ -615,7 +617,7 @@ class SequentialMosaicker:
             if r.frame_id == k:
                 return r
         result = self._provisional(k, timestamp, tracker_pose, timings)
-        result.tracker_gated = dropped
+        result.tracker_gated = result.tracker_dropped = dropped
         if waiting:
             result.status = ("unplaced: waiting for a registered pair with tracker poses to "
                              "initialise the plane")
@@ -639,7 +641,8 @@ class SequentialMosaicker:
                   f"{self.options.startup_wait_frames} frames")
         self._finalized = self._finalized + [
             FrameResult(p["id"], p["timestamp"], np.full((3, 3), np.nan), np.full(6, np.nan),
-                        status, True, p["dropped"], p["timings"]) for p in gone]
+                        status, True, p["dropped"], p["timings"],
+                        tracker_dropped=p["dropped"]) for p in gone]
 
     def _flush(self) -> list[FrameResult]:
         self._finalized = []
@@ -818,7 +821,7 @@ class SequentialMosaicker:
             status = "placed" if p["visual"] else "prior-only"
             self._finalized.append(FrameResult(
                 k, p["timestamp"], G, poses_from_aligned(pose, self._world_rotation), status,
-                True, k in gated or p["dropped"], p["timings"], self.plane))
+                True, k in gated or p["dropped"], p["timings"], self.plane, p["dropped"]))
         for old in sorted(self._poses)[:-2]:
             del self._poses[old]  # keep only what the motion prediction needs
         if forget:
@@ -911,6 +914,7 @@ def run_lba_emt(dataset, *, progress: bool = True,
                   "loop_attempted": c["loop_attempted"],
                   "loop_registered": c["loop_registered"]},
         "tracker_gated": [k for k in range(n) if results[k].tracker_gated],
+        "tracker_dropped": [k for k in range(n) if results[k].tracker_dropped],
         # the plane observability gate (SequentialOptions.plane_max_relative_std)
         "plane_gate": _plane_gate_details(np.array(plane_std), o.plane_max_relative_std),
         # per frame: the plane of the step that made the frame final
