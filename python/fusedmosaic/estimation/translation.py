@@ -57,13 +57,20 @@ sigma_r0`` and more than ``robot_gate_fraction`` of the frame's smaller side is 
 filter (the frame follows the image, ``c_rob = 0``), kept out of the ``sigma_r0`` estimate, and
 the next robot displacement is taken from the last sample that was not gated; the frame is
 flagged ``FrameResult.robot_gated``. After ``robot_gate_rebase`` gated frames in a row the robot
-is taken to have a new offset and is re-anchored at the current frame.
+is taken to have a new offset and is re-anchored at the current frame. The bounds are per frame:
+when the robot returns after frames without a sample (a dropout), its displacement spans those
+frames too and differs from the registration by the image chain's drift over them, which the
+returning robot is there to correct; so the bounds are allowed once per frame spanned (the
+drift each frame would have been let through with), and such a re-acquisition is kept out of
+the ``sigma_r0`` estimate (not a one-frame disagreement).
 
 Input checks (streaming): timestamps are real numbers in seconds, below ``MAX_TIMESTAMP_S`` and
 at most ``MAX_FRAME_GAP_S`` after the previous frame (a larger value is a unit mix-up: ms, µs or
 ns given as s); robot positions are real numbers within the dataset reader's 1 km bound
 (``fusedmosaic.io.tracking.MAX_ROBOT_UM``). A refused call raises (``TypeError`` for a wrong
-type, ``ValueError`` otherwise, naming the frame and the argument) and changes nothing.
+type, ``ValueError`` otherwise, naming the frame and the argument) and changes nothing; so does
+a call interrupted later (an exception or ``KeyboardInterrupt`` inside the registration, the
+filter or the anchor updates): the state saved at its start is put back before it re-raises.
 :meth:`RobotPriorMosaicker.add_frame` is not re-entrant: a call made while another thread is
 inside it raises ``RuntimeError`` (serialise the calls); calls from different threads one after
 the other are fine.
@@ -175,7 +182,8 @@ class RobotPriorOptions:
     # (bench_pcle_cases.py): disagreements on trusted frames reach 115 px (stick-slip
     # catch-up, 0.26 of the 448 px side) and 13 x sigma_r0 (noisy robot); half the frame's
     # smaller side (the registration overlap of two frames is more than that) and 20 sigma_r0
-    # leave all of them alone. None: no gating.
+    # leave all of them alone. None: no gating. Both are per frame: a robot sample returning
+    # after k frames without one (a dropout) spans k + 1 frames and is allowed k + 1 times them.
     robot_gate_fraction: float | None = 0.5
     robot_gate_sigmas: float = 20.0
     # Gated frames in a row after which the robot is re-anchored (a lasting offset, e.g. the
@@ -416,6 +424,9 @@ class RobotPriorMosaicker:
         self._anchor: _Anchor | None = None
         self._robot_origin_um = _NAN2  # robot position at frame 0
         self._robot_anchor: tuple[np.ndarray, np.ndarray] | None = None  # (robot µm, X_f)
+        # Frames placed from the image alone, for want of a robot sample, since the robot anchor:
+        # the robot displacement spans that many more image steps than the image displacement.
+        self._steps_without_robot = 0
         self._gated_in_a_row = 0
         self._innovations: deque[np.ndarray] = deque(maxlen=self.options.robot_sigma_window)
         self._kf = RobotKalmanFilter(self.options.kalman) if self.estimate == "fused" else None
@@ -541,7 +552,9 @@ class RobotPriorMosaicker:
         RuntimeError
             When another thread is inside ``add_frame`` on this mosaicker (not re-entrant).
 
-        A call that raises changes nothing: the next call is frame ``frame_count`` again.
+        A call that raises changes nothing: the next call is frame ``frame_count`` again. The
+        input is checked before anything changes, and any exception after that (including
+        ``KeyboardInterrupt``) puts back the state saved at the start of the call.
         """
         t_start = time.perf_counter()
         self._enter("add_frame")
@@ -559,6 +572,47 @@ class RobotPriorMosaicker:
             gray = self._prepare_image(image, i)
         elif self.estimate != "robot":
             raise ValueError(f"frame {i}: an image is needed for the {self.estimate!r} estimate")
+        # The input is valid; from here on the state changes. Whatever interrupts it (an
+        # exception in a registration, Ctrl-C between the filter update and the anchors), the
+        # state is put back as it was, so the caller can give the frame again or go on.
+        saved = self._state()
+        try:
+            return self._place(i, t, robot, gray, t_start)
+        except BaseException:
+            self._restore(saved)
+            raise
+
+    def _state(self) -> tuple:
+        """Everything :meth:`_place` changes, for :meth:`_restore`. The filter and the deque are
+        changed in place, so they are copied (the filter is small: 0.05-0.1 ms, ~1 % of a
+        512x448 frame); the rest is only ever replaced, never changed in place."""
+        return (
+            self._count,
+            self._last_timestamp,
+            self._anchor,
+            self._robot_origin_um,
+            self._robot_anchor,
+            self._steps_without_robot,
+            self._gated_in_a_row,
+            copy.copy(self._innovations),
+            copy.deepcopy(self._kf),
+        )
+
+    def _restore(self, state: tuple) -> None:
+        (
+            self._count,
+            self._last_timestamp,
+            self._anchor,
+            self._robot_origin_um,
+            self._robot_anchor,
+            self._steps_without_robot,
+            self._gated_in_a_row,
+            self._innovations,
+            self._kf,
+        ) = state
+
+    def _place(self, i: int, t: float, robot: np.ndarray, gray, t_start: float) -> FrameResult:
+        """Frame i, validated: register, fuse, move the anchors (changes the state)."""
         blank = gray is not None and float(np.ptp(gray)) == 0.0  # before any flat-field
         if gray is not None and self.fixed_pattern is not None:
             gray = flat_field(gray, self.fixed_pattern)
@@ -653,7 +707,9 @@ class RobotPriorMosaicker:
                     kf.options = replace(kf.options, sigma_robot0=sigma_r)
                 c_match = conf["c_match"] if image_ok else 0.0
                 if image_ok and robot_ok:
-                    robot_gated = self._robot_glitch(kf, dx_img_f, dx_rob_f, c_match, sigma_r)
+                    robot_gated = self._robot_glitch(
+                        kf, dx_img_f, dx_rob_f, c_match, sigma_r, self._steps_without_robot
+                    )
                 step = kf.update(dx_img_f, _NAN2 if robot_gated else dx_rob_f, c_match)
                 for name in CONFIDENCES:
                     conf[name] = float(getattr(step, name))
@@ -663,6 +719,7 @@ class RobotPriorMosaicker:
                     image_ok
                     and robot_ok
                     and not robot_gated
+                    and self._steps_without_robot == 0  # a re-acquisition spans many steps
                     and step.c_img >= self.options.robot_sigma_c_img
                 ):
                     self._innovations.append(dx_rob_f - dx_img_f)
@@ -683,7 +740,13 @@ class RobotPriorMosaicker:
             self._gated_in_a_row = self._gated_in_a_row + 1 if robot_gated else 0
             if not robot_gated or self._gated_in_a_row >= self.options.robot_gate_rebase:
                 self._robot_anchor = (robot.copy(), x_f.copy())
+                self._steps_without_robot = 0
                 self._gated_in_a_row = 0
+        elif self.estimate == "fused" and placed and self._robot_anchor is not None:
+            # No robot sample: the frame was placed by the image alone, one more step of image
+            # drift the next robot displacement spans. (An unplaced frame is no step: the next
+            # registration spans it, against the same anchor.)
+            self._steps_without_robot += 1
         self._count += 1
         self._last_timestamp = t
         timings["total"] = time.perf_counter() - t_start
@@ -706,13 +769,28 @@ class RobotPriorMosaicker:
             **conf,
         )
 
-    def _robot_glitch(self, kf, dx_image, dx_robot, c_match: float, sigma_r: float) -> bool:
+    def _robot_glitch(
+        self, kf, dx_image, dx_robot, c_match: float, sigma_r: float, steps_without_robot: int
+    ) -> bool:
         """Whether the robot displacement is a gross outlier next to a trusted registration
         (module docstring, "Robot gating"). The image confidence c_img (Eq. 16) does not depend
-        on the robot; it is read from a trial update of a copy of the filter."""
+        on the robot; it is read from a trial update of a copy of the filter.
+
+        ``steps_without_robot``: frames placed from the image alone since the robot anchor, for
+        want of a robot sample. The robot displacement then spans 1 + that many image steps
+        while the registration spans one, and their difference holds the image chain's drift
+        over those steps (a re-acquisition after a robot dropout). The bound is per step, so it
+        is allowed once per step spanned: a drift that each step would have been let through
+        with is let through over the span, and the returning robot corrects it (gated, it would
+        be re-anchored at the drifted X_f after robot_gate_rebase frames, its correction lost
+        for good). Not gating at all after a dropout would let a gross glitch at the robot's
+        return through; this way +5 mm is still gated after up to 21 frames without the robot
+        at 512x448 px of 1 µm. Gated frames do not widen it: a lasting offset keeps being gated
+        until the rebase, whatever its size."""
         bound = self._gate_floor_px  # sigma_r0 not known yet (inf): the floor alone
         if np.isfinite(sigma_r):
             bound = max(self.options.robot_gate_sigmas * sigma_r, bound)
+        bound *= 1 + steps_without_robot
         if not np.abs(dx_robot - dx_image).max() > bound:  # also False for bound = inf
             return False
         trial = copy.deepcopy(kf).update(dx_image, _NAN2, c_match)
