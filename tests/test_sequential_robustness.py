@@ -102,7 +102,7 @@ def bad_calls(scene):
         ((image, np.inf, pose), ValueError, "frame 13: timestamp inf is not finite"),
         ((image, scene.timestamps[k - 1], pose), ValueError, "timestamp .* does not increase"),
         ((image, 1e300, pose), ValueError,
-         "frame 13: timestamp 1e\\+300 is .* more than max_timestamp_gap_s .* ns or ms"),
+         r"frame 13: timestamp 1e\+300 is beyond \|t\| <= 1e\+10 s .*ms, µs or ns"),
         ((image, t * 1e9, pose), ValueError, "more than max_timestamp_gap_s"),
         ((image, t, "abc"), TypeError, "frame 13: tracker_pose must be 6 real numbers"),
         ((image, t, pose.astype(complex)), TypeError, "tracker_pose .* dtype complex128"),
@@ -136,6 +136,17 @@ def test_timestamp_gap_bound_is_an_option(scene):
     assert m.add_frame(scene.frames[1], 1.0, scene.tracker[1]).frame_id == 1
     with pytest.raises(ValueError, match="max_timestamp_gap_s must be > 0, got -1"):
         SequentialMosaicker(scene.camera, SequentialOptions(max_timestamp_gap_s=-1))
+
+
+def test_first_timestamp_in_nanoseconds_is_refused_as_the_robot_mosaicker_does(scene):
+    """Review 5 #8: the first frame stamped in ns used to be accepted, and then every later
+    frame in s was refused until reset(). Both mosaickers share io.tracking's check now."""
+    m = scene.mosaicker()
+    with pytest.raises(ValueError, match=r"frame 0: timestamp 1\.7e\+18 is beyond \|t\| <= "
+                                         r"1e\+10 s .* a unit mix-up \(ms, µs or ns"):
+        m.add_frame(scene.frames[0], 1.7e18, scene.tracker[0])
+    assert m.add_frame(scene.frames[0], np.array(1.7e9), scene.tracker[0]).frame_id == 0
+    assert m.add_frame(scene.frames[1], 1.7e9 + 0.04, scene.tracker[1]).frame_id == 1
 
 
 # ------------------------------------------------------------------ item 4: rotation vectors

@@ -422,7 +422,7 @@ def test_frames_of_differing_sizes_streaming():
             r"frame 1: robot_xy_um must have "
             r"shape \(2,\)",
         ),
-        (lambda m, f: m.add_frame(f, -1.0, (0.0, 0.0)), r"frame 1: timestamp -1\.0 is not"),
+        (lambda m, f: m.add_frame(f, -1.0, (0.0, 0.0)), r"frame 1: timestamp -1\.0 does not"),
         (lambda m, f: m.add_frame(f, 1.0, (np.inf, 0.0)), r"frame 1: robot_xy_um is infinite"),
         (lambda m, f: m.add_frame(None, 1.0, (0.0, 0.0)), r"frame 1: an image is needed"),
         (lambda m, f: m.add_frame(f[None], 1.0, (0.0, 0.0)), r"frame 1: expected a \(H, W\)"),

@@ -20,10 +20,11 @@ the mosaicker as it was, so the frame can be corrected and sent again with the s
   the camera's size. Other dtypes (uint16, float, bool) are refused, not rescaled, as the
   dataset reader refuses non-8-bit images: the scaling of a 16-bit or float image is the
   caller's to choose. None, lists and other shapes are refused (TypeError / ValueError).
-- timestamp: a finite real number of seconds, increasing, and at most
-  `SequentialOptions.max_timestamp_gap_s` (1 day) after the previous frame's: a larger jump is
-  taken for a unit mix-up (ns or ms given as s) and refused, since it would block every later
-  frame.
+- timestamp: a finite real number of seconds, increasing, |t| <= io.tracking.MAX_TIMESTAMP_S
+  (1e10 s) and at most `SequentialOptions.max_timestamp_gap_s` (1 day) after the previous
+  frame's: a larger value is taken for a unit mix-up (ms, µs or ns given as s) and refused,
+  since it would block every later frame (the same checks as RobotPriorMosaicker,
+  io.tracking.check_stream_timestamp).
 - tracker_pose: None, or 6 finite real numbers [r, t] (cam_from_world, angle-axis rad, mm) with
   |t| within the dataset reader's 1 km bound (io.tracking.MAX_TRANSLATION_MM). The rotation
   vector is canonicalised to norm <= pi (the same rotation written with norm > pi, as a
@@ -69,7 +70,7 @@ from fusedmosaic.estimation.world import (
     poses_to_aligned,
     world_rotation,
 )
-from fusedmosaic.io.tracking import MAX_TRANSLATION_MM
+from fusedmosaic.io.tracking import MAX_TRANSLATION_MM, check_stream_timestamp
 from fusedmosaic.methods import MethodResult
 from fusedmosaic.registration.features import FeatureExtractor, FeatureOptions
 from fusedmosaic.registration.pair_selection import footprint_polygons, overlap_fraction
@@ -375,23 +376,9 @@ class SequentialMosaicker:
         return image
 
     def _check_timestamp(self, k: int, timestamp) -> float:
-        if (not isinstance(timestamp, numbers.Real)
-                or isinstance(timestamp, (bool, np.bool_))):
-            raise TypeError(f"frame {k}: timestamp must be a real number of seconds, got "
-                            f"{type(timestamp).__name__} {timestamp!r}")
-        t = float(timestamp)
-        if not np.isfinite(t):
-            raise ValueError(f"frame {k}: timestamp {t} is not finite")
-        previous = self._last_timestamp
-        if not t > previous:
-            raise ValueError(f"frame {k}: timestamp {t} does not increase "
-                             f"(previous {previous})")
-        gap = self.options.max_timestamp_gap_s
-        if np.isfinite(previous) and t - previous > gap:
-            raise ValueError(f"frame {k}: timestamp {t} is {t - previous:g} s after the previous "
-                             f"frame's ({previous}), more than max_timestamp_gap_s ({gap:g} s); "
-                             "timestamps are seconds: were ns or ms passed?")
-        return t
+        return check_stream_timestamp(k, timestamp, self._last_timestamp,
+                                      max_gap_s=self.options.max_timestamp_gap_s,
+                                      gap_name="max_timestamp_gap_s")
 
     def _check_tracker_pose(self, k: int, tracker_pose) -> np.ndarray | None:
         if tracker_pose is None:

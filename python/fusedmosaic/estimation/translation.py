@@ -79,7 +79,6 @@ the other are fine.
 from __future__ import annotations
 
 import copy
-import numbers
 import threading
 import time
 from collections import deque
@@ -89,7 +88,12 @@ import numpy as np
 from tqdm import tqdm
 
 from fusedmosaic.estimation.kalman import KalmanOptions, RobotKalmanFilter, normalize
-from fusedmosaic.io.tracking import MAX_ROBOT_UM
+from fusedmosaic.io.tracking import (  # noqa: F401  (MAX_FRAME_GAP_S, MAX_TIMESTAMP_S: API)
+    MAX_FRAME_GAP_S,
+    MAX_ROBOT_UM,
+    MAX_TIMESTAMP_S,
+    check_stream_timestamp,
+)
 from fusedmosaic.methods import MethodResult
 from fusedmosaic.registration.ncc import (
     aligned_overlap_ssim,
@@ -114,11 +118,6 @@ __all__ = [
 ESTIMATES = {"image": ("ncc", "X_m"), "robot": ("robot", "X_r"), "fused": ("kalman-robot", "X_f")}
 CONFIDENCES = ("c_img", "c_rob", "c_angle", "c_speed", "c_match", "c_sp")
 STAGES = ("ncc", "ssim", "filter")
-# s; a timestamp above this is not in seconds (1e10 s is the year 2286 as Unix time; a Unix
-# time in ms, µs or ns is 1e12 and above).
-MAX_TIMESTAMP_S = 1e10
-# s; frames of one sequence more than a day apart: a unit mix-up or a corrupt clock.
-MAX_FRAME_GAP_S = 86_400.0
 
 
 @dataclass(frozen=True)
@@ -476,29 +475,7 @@ class RobotPriorMosaicker:
         return image
 
     def _prepare_timestamp(self, timestamp, index: int) -> float:
-        if isinstance(timestamp, np.ndarray) and timestamp.ndim == 0:
-            timestamp = timestamp[()]
-        if isinstance(timestamp, bool | np.bool_) or not isinstance(timestamp, numbers.Real):
-            raise TypeError(
-                f"frame {index}: timestamp must be a real number (s), got "
-                f"{type(timestamp).__name__} {timestamp!r:.60}"
-            )
-        t = float(timestamp)
-        previous = self._last_timestamp
-        if not np.isfinite(t) or t <= previous:
-            raise ValueError(
-                f"frame {index}: timestamp {t!r} is not finite or not after the previous frame's "
-                f"({previous!r})"
-            )
-        gap = t - previous  # inf at frame 0
-        if abs(t) > MAX_TIMESTAMP_S or (np.isfinite(gap) and gap > MAX_FRAME_GAP_S):
-            after = f", {gap:.3g} s after the previous frame" if np.isfinite(gap) else ""
-            raise ValueError(
-                f"frame {index}: timestamp {t!r}{after}: beyond the bounds of a recording in "
-                f"seconds (|t| <= {MAX_TIMESTAMP_S:g} s, at most {MAX_FRAME_GAP_S:g} s = 1 day "
-                "between frames); a unit mix-up (ms, µs or ns given as s)?"
-            )
-        return t
+        return check_stream_timestamp(index, timestamp, self._last_timestamp)
 
     def _prepare_robot(self, robot_xy_um, index: int) -> np.ndarray:
         if robot_xy_um is None:

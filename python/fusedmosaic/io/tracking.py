@@ -7,6 +7,7 @@ same convention as the C++ core (rotation angle = norm, right-handed about the a
 
 from __future__ import annotations
 
+import numbers
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +26,41 @@ ROTATION_TOLERANCE = 1e-4  # hand_eye.txt is often written with ~6 decimals
 # distances) overflows.
 MAX_TRANSLATION_MM = 1e6
 MAX_ROBOT_UM = 1e3 * MAX_TRANSLATION_MM
+# s; a timestamp above this is not in seconds (1e10 s is the year 2286 as Unix time; a Unix
+# time in ms, µs or ns is 1e12 and above).
+MAX_TIMESTAMP_S = 1e10
+# s; frames of one sequence more than a day apart: a unit mix-up or a corrupt clock.
+MAX_FRAME_GAP_S = 86_400.0
+
+
+def check_stream_timestamp(index: int, timestamp, previous: float, *,
+                           max_gap_s: float = MAX_FRAME_GAP_S,
+                           gap_name: str = "MAX_FRAME_GAP_S") -> float:
+    """The timestamp (s) of streamed frame `index` as a float, after the checks both streaming
+    mosaickers make: a real number (a 0-d array is taken), finite, after `previous` (the last
+    accepted frame's, -inf before the first), |t| <= MAX_TIMESTAMP_S and at most `max_gap_s`
+    after `previous`. Raises TypeError / ValueError naming the frame; `gap_name` names the
+    bound in the message (an option or a constant)."""
+    if isinstance(timestamp, np.ndarray) and timestamp.ndim == 0:
+        timestamp = timestamp[()]
+    if isinstance(timestamp, bool | np.bool_) or not isinstance(timestamp, numbers.Real):
+        raise TypeError(f"frame {index}: timestamp must be a real number (s), got "
+                        f"{type(timestamp).__name__} {timestamp!r:.60}")
+    t = float(timestamp)
+    if not np.isfinite(t):
+        raise ValueError(f"frame {index}: timestamp {t!r} is not finite")
+    if not t > previous:
+        raise ValueError(f"frame {index}: timestamp {t!r} does not increase (previous frame's "
+                         f"{previous!r})")
+    units = "timestamps are seconds: a unit mix-up (ms, µs or ns given as s)?"
+    if abs(t) > MAX_TIMESTAMP_S:
+        raise ValueError(f"frame {index}: timestamp {t!r} is beyond |t| <= {MAX_TIMESTAMP_S:g} s "
+                         f"(the year 2286 as Unix time); {units}")
+    if np.isfinite(previous) and t - previous > max_gap_s:
+        raise ValueError(f"frame {index}: timestamp {t!r} is {t - previous:.3g} s after the "
+                         f"previous frame's ({previous!r}), more than {gap_name} "
+                         f"({max_gap_s:g} s); {units}")
+    return t
 
 
 @dataclass(eq=False)
