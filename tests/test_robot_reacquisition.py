@@ -132,7 +132,7 @@ def test_robot_returning_after_a_drifting_dropout_is_not_gated_and_corrects_the_
 )
 def test_a_gross_robot_glitch_is_still_gated(pcle, dropout, glitch):
     """+5 mm on one frame: after the robot came back, or at its return after a short or the
-    long dropout (41 frames spanned: 41 x 80 px = 3.3 mm < 5 mm, still a glitch here)."""
+    long dropout (41 frames spanned; the bound is capped at 4 x 80 px)."""
     robot = pcle.robot_xy_um.copy()
     robot[dropout] = np.nan
     baseline = _run(pcle, robot)
@@ -144,6 +144,28 @@ def test_a_gross_robot_glitch_is_still_gated(pcle, dropout, glitch):
     assert out[glitch].c_rob == 0.0 and out[glitch].displacement_robot[0] > 4000.0
     # the next sample is taken against the last good one: the run is the baseline again
     np.testing.assert_allclose(_errors(out, pcle), _errors(baseline, pcle), atol=0.5)
+
+
+def test_the_widening_is_capped_so_a_glitch_after_a_long_dropout_is_gated(tmp_path):
+    """Review 6 #1: widened once per missing frame without a cap, the bound passed 5 mm after 62
+    missing frames here (63 x 80 px), the robot anchor moved to the glitch and the rebase locked
+    it in: 4529 px off to the end of the scan. Capped at robot_gate_max_span (4) bounds, the
+    glitch is gated after a 65-frame dropout, and the run is the one without it."""
+    pcle = read_dataset(simulate_pcle(tmp_path / "long", replace(SCAN, n_frames=110)))
+    robot = pcle.robot_xy_um.copy()
+    robot[10:75] = np.nan
+    baseline = _run(pcle, robot)
+    assert _gated(baseline) == []
+    robot[75, 0] += GLITCH_UM
+    out = _run(pcle, robot)
+    assert _gated(out) == [75]
+    np.testing.assert_allclose(_errors(out, pcle), _errors(baseline, pcle), atol=0.5)
+    assert _errors(out, pcle).max() < 5.0
+
+
+def test_bad_span_cap_is_refused():
+    with pytest.raises(ValueError, match="robot_gate_max_span must be an integer >= 1, got 0"):
+        translation.RobotPriorOptions(robot_gate_max_span=0)
 
 
 @pytest.mark.parametrize("dropout", [range(0), DROPOUT], ids=["no-dropout", "at-the-return"])

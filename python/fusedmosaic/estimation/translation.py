@@ -61,7 +61,8 @@ is taken to have a new offset and is re-anchored at the current frame. The bound
 when the robot returns after frames without a sample (a dropout), its displacement spans those
 frames too and differs from the registration by the image chain's drift over them, which the
 returning robot is there to correct; so the bounds are allowed once per frame spanned (the
-drift each frame would have been let through with), and such a re-acquisition is kept out of
+drift each frame would have been let through with), up to ``robot_gate_max_span`` times (a
+larger jump stays a glitch however long the dropout), and such a re-acquisition is kept out of
 the ``sigma_r0`` estimate (not a one-frame disagreement).
 
 Input checks (streaming): timestamps are real numbers in seconds, below ``MAX_TIMESTAMP_S`` and
@@ -188,6 +189,13 @@ class RobotPriorOptions:
     # Gated frames in a row after which the robot is re-anchored (a lasting offset, e.g. the
     # robot re-homed, rather than a single bad sample).
     robot_gate_rebase: int = 3
+    # After a robot dropout the bound is allowed once per frame the returning robot's displacement
+    # spans (the image chain's drift it corrects), up to this many times: a drift of up to
+    # 4 x the bound (2 frames' smaller side at the default fraction) is corrected, a larger jump
+    # is gated as a glitch however long the dropout. Uncapped, a +5 mm glitch at the robot's
+    # return passed after 22 missing frames at 512x448 px of 1 µm, the robot anchor moved to it
+    # and the rebase locked the offset in (4529 px off to the end of a 110-frame scan).
+    robot_gate_max_span: int = 4
 
     def __post_init__(self) -> None:
         if not isinstance(self.kalman, KalmanOptions):
@@ -247,6 +255,12 @@ class RobotPriorOptions:
         if not self.robot_gate_sigmas > 0.0:
             raise ValueError(
                 f"RobotPriorOptions.robot_gate_sigmas must be > 0, got {self.robot_gate_sigmas}"
+            )
+        if not (isinstance(self.robot_gate_max_span, int | np.integer)
+                and self.robot_gate_max_span >= 1):
+            raise ValueError(
+                "RobotPriorOptions.robot_gate_max_span must be an integer >= 1, got "
+                f"{self.robot_gate_max_span!r}"
             )
         if self.robot_gate_rebase < 1:
             raise ValueError(
@@ -760,14 +774,14 @@ class RobotPriorMosaicker:
         is allowed once per step spanned: a drift that each step would have been let through
         with is let through over the span, and the returning robot corrects it (gated, it would
         be re-anchored at the drifted X_f after robot_gate_rebase frames, its correction lost
-        for good). Not gating at all after a dropout would let a gross glitch at the robot's
-        return through; this way +5 mm is still gated after up to 21 frames without the robot
-        at 512x448 px of 1 µm. Gated frames do not widen it: a lasting offset keeps being gated
-        until the rebase, whatever its size."""
+        for good), up to robot_gate_max_span times: not gating after a dropout, or widening
+        without a cap, would let a gross glitch at the robot's return through, and the anchor
+        would move to it for good. Gated frames do not widen it: a lasting offset keeps being
+        gated until the rebase, whatever its size."""
         bound = self._gate_floor_px  # sigma_r0 not known yet (inf): the floor alone
         if np.isfinite(sigma_r):
             bound = max(self.options.robot_gate_sigmas * sigma_r, bound)
-        bound *= 1 + steps_without_robot
+        bound *= min(1 + steps_without_robot, self.options.robot_gate_max_span)
         if not np.abs(dx_robot - dx_image).max() > bound:  # also False for bound = inf
             return False
         trial = copy.deepcopy(kf).update(dx_image, _NAN2, c_match)
