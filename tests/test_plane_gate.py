@@ -30,10 +30,10 @@ def pair_points(pose_l, pose_m, plane, n=40, seed=0):
     return _core.transfer_points(pm, pose_l, pose_m, plane, K), pm
 
 
-def window(limit, plane=PLANE):
-    """Fixed cameras 0-3 (pairs 1-0 and 3-2 between fixed cameras only, which see pi alone) and
-    a pending camera 4 with its tracker sample; plane set to `plane`."""
-    o = _core.SlidingWindowOptions(window_size=3, num_new=1)
+def window(limit, plane=PLANE, costs=None, pairs=((1, 0), (3, 2))):
+    """Fixed cameras 0-3 and a pending camera 4 with its tracker sample; by default pairs 1-0
+    and 3-2, between fixed cameras only, which see pi alone; plane set to `plane`."""
+    o = _core.SlidingWindowOptions(window_size=3, num_new=1, costs=costs)
     o.plane_max_relative_std = limit
     w = _core.SlidingWindow(K, o)
     w.set_plane(plane)
@@ -41,9 +41,32 @@ def window(limit, plane=PLANE):
     for k in range(4):
         w.add_frame(k, poses[k], poses[k], fixed=True)
     w.add_frame(4, None, poses[4])
-    for l, m in ((1, 0), (3, 2)):
+    for l, m in pairs:
         w.add_pair(l, m, *pair_points(poses[l], poses[m], PLANE, seed=l))
     return w, poses
+
+
+def transfer_jacobian(poses, pairs, free):
+    """d(whitened transfer residuals)/d([pose of `free` or nothing, pi]) by central differences,
+    sigma_v = 1 px."""
+    blocks = []
+    for l, m in pairs:
+        _, pm = pair_points(poses[l], poses[m], PLANE, seed=l)
+
+        def residuals(x, l=l, m=m, pm=pm):
+            p = poses.copy()
+            if free is not None:
+                p[free] = x[:6]
+            return _core.transfer_points(pm, p[l], p[m], x[-3:], K).ravel()
+
+        x0 = np.concatenate([poses[free] if free is not None else [], PLANE])
+        cols = []
+        for i in range(x0.size):
+            d = np.zeros(x0.size)
+            d[i] = 1e-7
+            cols.append((residuals(x0 + d) - residuals(x0 - d)) / 2e-7)
+        blocks.append(np.stack(cols, axis=1))
+    return np.vstack(blocks)
 
 
 def test_reported_std_is_the_marginal_covariance_of_pi():
@@ -53,18 +76,36 @@ def test_reported_std_is_the_marginal_covariance_of_pi():
     s = w.step([0, 1])
     assert not s.plane_held
     np.testing.assert_allclose(w.plane(), PLANE, atol=1e-12)  # noise-free: pi stays exact
-    rows = []
-    for l, m in ((1, 0), (3, 2)):
-        _, pm = pair_points(poses[l], poses[m], PLANE, seed=l)
-        cols = []
-        for i in range(3):
-            d = np.zeros(3)
-            d[i] = 1e-7
-            plus = _core.transfer_points(pm, poses[l], poses[m], PLANE + d, K)
-            minus = _core.transfer_points(pm, poses[l], poses[m], PLANE - d, K)
-            cols.append(((plus - minus) / 2e-7).ravel())
-        rows.append(np.stack(cols, axis=1))
-    J = np.vstack(rows)
+    J = transfer_jacobian(poses, ((1, 0), (3, 2)), free=None)
+    expected = np.sqrt(np.trace(np.linalg.inv(J.T @ J))) / np.linalg.norm(PLANE)
+    assert s.plane_relative_std == pytest.approx(expected, rel=1e-4)
+
+
+def test_std_marginalises_the_free_cameras():
+    """Pose-plane cross terms: a pair between the free camera and a fixed one, tracker and
+    motion priors off so that J is the transfer residuals' alone. Cov_pi is the plane block of
+    (J^T J)^-1 over [pose 4, pi] (dropping the cross terms would give a smaller value)."""
+    costs = _core.BundleAdjusterOptions(use_emt=False, use_motion_prior=False)
+    pairs = ((1, 0), (4, 3))
+    w, poses = window(limit=0.0, costs=costs, pairs=pairs)
+    s = w.step([0, 1])
+    J = transfer_jacobian(poses, pairs, free=4)
+    cov = np.linalg.inv(J.T @ J)[-3:, -3:]
+    expected = np.sqrt(np.trace(cov)) / np.linalg.norm(PLANE)
+    assert s.plane_relative_std == pytest.approx(expected, rel=1e-4)
+    plane_only = J[:, -3:]
+    assert expected > 1.05 * np.sqrt(np.trace(np.linalg.inv(plane_only.T @ plane_only))) / \
+        np.linalg.norm(PLANE)
+
+
+def test_a_free_camera_without_any_cost_does_not_hide_pi():
+    """Review 6 #2: with no prior and no pair the free camera's directions carry no
+    information, but they do not move pi: the std is the fixed pairs' (was inf, and the plane
+    was held although the pairs observe it)."""
+    costs = _core.BundleAdjusterOptions(use_emt=False, use_motion_prior=False)
+    w, poses = window(limit=0.0, costs=costs)
+    s = w.step([0, 1])
+    J = transfer_jacobian(poses, ((1, 0), (3, 2)), free=None)
     expected = np.sqrt(np.trace(np.linalg.inv(J.T @ J))) / np.linalg.norm(PLANE)
     assert s.plane_relative_std == pytest.approx(expected, rel=1e-4)
 
@@ -81,6 +122,12 @@ def test_a_step_that_cannot_observe_pi_keeps_the_previous_plane():
     assert held.plane_held and held.plane_relative_std == pytest.approx(s.plane_relative_std)
     np.testing.assert_array_equal(w.plane(), start)
     np.testing.assert_allclose(w.pose(4), poses[4], atol=1e-9)  # its tracker sample, exact
+    # Redo (the tracker gate's re-solve) goes through the same gate.
+    w.set_emt_sigma_scale(4, 10.0)
+    redone = w.redo([4], [0, 1])
+    assert redone.plane_held and redone.plane_relative_std == pytest.approx(
+        s.plane_relative_std)
+    np.testing.assert_array_equal(w.plane(), start)
 
 
 def test_no_visual_cost_holds_pi_and_reports_no_std():

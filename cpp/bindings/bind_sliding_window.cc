@@ -82,8 +82,8 @@ void BindSlidingWindow(py::module_& m) {
       .def_readonly("num_residuals", &WindowStepSummary::num_residuals)
       .def_readonly("num_free_parameters", &WindowStepSummary::num_free_parameters)
       .def_readonly("plane_relative_std", &WindowStepSummary::plane_relative_std,
-                    "sqrt(trace(Cov_pi)) / |pi| from the step's costs (NaN: pi not free;\n"
-                    "inf: rank-deficient, pi unobservable)")
+                    "sqrt(trace(Cov_pi)) / |pi before the step| from the step's costs (NaN:\n"
+                    "no visual cost; inf: pi unobservable; a held step: its first solve's)")
       .def_readonly("plane_held", &WindowStepSummary::plane_held,
                     "pi kept its value from before the step (no visual cost, or the gate)")
       .def_readonly("preprocessor_time_s", &WindowStepSummary::preprocessor_time_s)

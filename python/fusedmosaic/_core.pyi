@@ -316,7 +316,8 @@ class WindowStepSummary:
     num_residuals: int
     num_free_parameters: int
     plane_relative_std: float
-    """sqrt(trace(Cov_pi)) / |pi| from the step's costs; NaN: pi not free; inf: unobservable."""
+    """sqrt(trace(Cov_pi)) / |pi before the step| from the step's costs; NaN: no visual cost;
+    inf: pi unobservable; for a step the gate held, its first solve's value."""
     plane_held: bool  # pi kept its value from before the step (no visual cost, or the gate)
     preprocessor_time_s: float
     evaluation_time_s: float

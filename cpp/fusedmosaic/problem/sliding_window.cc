@@ -1,6 +1,6 @@
 #include "fusedmosaic/problem/sliding_window.h"
 
-#include <Eigen/Cholesky>
+#include <Eigen/Eigenvalues>
 #include <ceres/autodiff_cost_function.h>
 #include <ceres/crs_matrix.h>
 #include <ceres/problem.h>
@@ -96,13 +96,15 @@ double Seconds(std::chrono::steady_clock::time_point since) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
 }
 
-// sqrt(trace(Cov_pi)) / |pi| at the solution: the marginal covariance of the plane given every
-// cost of the step, Cov = (J^T J)^-1 over the free parameters (residuals are whitened by their
-// sigmas, so it is absolute). Infinite when J^T J is singular (pi not observable). Built from
-// one Jacobian evaluation: ceres::Covariance (DENSE_SVD) took ~6 ms on a SYN step of 11k
-// residuals, three times the step itself; this takes a fraction of a millisecond.
+// sqrt(trace(Cov_pi)) / plane_norm at the solution: the marginal covariance of the plane given
+// every cost of the step, Cov = (J^T J)^+ over the free parameters (residuals are whitened by
+// their sigmas, so it is absolute). A direction of J^T J without information that moves pi makes
+// pi unobservable (inf); one confined to the poses (a free camera without any cost) does not
+// concern pi and is left out, as the pseudo-inverse does. Built from one Jacobian evaluation:
+// ceres::Covariance (DENSE_SVD) took ~6 ms on a SYN step of 11k residuals, three times the step
+// itself; this takes ~0.6 ms, mostly the evaluation.
 double PlaneRelativeStd(ceres::Problem* problem, double* plane,
-                        const std::vector<double*>& free_poses) {
+                        const std::vector<double*>& free_poses, double plane_norm) {
   ceres::Problem::EvaluateOptions eo;
   eo.parameter_blocks = free_poses;
   eo.parameter_blocks.push_back(plane);  // the plane's columns are the last three
@@ -110,8 +112,10 @@ double PlaneRelativeStd(ceres::Problem* problem, double* plane,
   if (!problem->Evaluate(eo, nullptr, nullptr, nullptr, &crs)) {
     return std::numeric_limits<double>::infinity();
   }
-  // J^T J (lower triangle, which LDLT reads), accumulated row by row: most rows touch only pi.
-  Eigen::MatrixXd H = Eigen::MatrixXd::Zero(crs.num_cols, crs.num_cols);
+  // J^T J (lower triangle, which the eigensolver reads), accumulated row by row: most rows
+  // touch only pi.
+  const int n = crs.num_cols;
+  Eigen::MatrixXd H = Eigen::MatrixXd::Zero(n, n);
   for (int r = 0; r < crs.num_rows; ++r) {
     for (int a = crs.rows[r]; a < crs.rows[r + 1]; ++a) {
       const double va = crs.values[a];
@@ -121,16 +125,20 @@ double PlaneRelativeStd(ceres::Problem* problem, double* plane,
       }
     }
   }
-  const Eigen::LDLT<Eigen::MatrixXd> ldlt(H);
-  const Eigen::VectorXd d = ldlt.vectorD();
-  if (ldlt.info() != Eigen::Success || !(d.minCoeff() > 1e-12 * d.maxCoeff())) {
-    return std::numeric_limits<double>::infinity();
+  const Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(H);
+  if (eig.info() != Eigen::Success) return std::numeric_limits<double>::infinity();
+  const Eigen::VectorXd& lambda = eig.eigenvalues();  // ascending
+  const double tolerance = 1e-12 * std::max(lambda(n - 1), 0.0);
+  double trace = 0.0;
+  for (int k = 0; k < n; ++k) {
+    const auto v_plane = eig.eigenvectors().col(k).tail<kPlaneSize>();
+    if (lambda(k) > tolerance) {
+      trace += v_plane.squaredNorm() / lambda(k);
+    } else if (v_plane.norm() > 1e-6) {
+      return std::numeric_limits<double>::infinity();
+    }
   }
-  Eigen::MatrixXd unit = Eigen::MatrixXd::Zero(H.rows(), kPlaneSize);
-  unit.bottomRows(kPlaneSize).setIdentity();
-  const double trace = ldlt.solve(unit).bottomRows(kPlaneSize).trace();
-  const double norm = Eigen::Map<const Eigen::Vector3d>(plane).norm();
-  return std::sqrt(std::max(0.0, trace)) / norm;
+  return std::sqrt(trace) / plane_norm;
 }
 
 }  // namespace
@@ -324,11 +332,14 @@ WindowStepSummary SlidingWindow::Solve(std::vector<int> free_ids,
   if (!out.plane_held && limit > 0.0 && !(out.plane_relative_std <= limit)) {
     plane_ = plane_before;
     for (size_t i = 0; i < free_ids.size(); ++i) frames_.at(free_ids[i]).pose = poses_before[i];
-    const double relative_std = out.plane_relative_std;
-    const int first_iterations = out.iterations;
+    const WindowStepSummary first = out;
     out = SolveOnce(free_ids, keyframe_ids, /*hold_plane=*/true);
-    out.plane_relative_std = relative_std;
-    out.iterations += first_iterations;
+    out.plane_relative_std = first.plane_relative_std;
+    out.iterations += first.iterations;
+    out.solve_time_s += first.solve_time_s;
+    out.preprocessor_time_s += first.preprocessor_time_s;
+    out.evaluation_time_s += first.evaluation_time_s;
+    out.linear_solver_time_s += first.linear_solver_time_s;
   }
 
   for (int id : free_ids) {
@@ -349,6 +360,7 @@ WindowStepSummary SlidingWindow::SolveOnce(const std::vector<int>& free_ids,
                                            const std::vector<int>& keyframe_ids,
                                            bool hold_plane) {
   const BundleAdjusterOptions& c = options_.costs;
+  const double plane_norm_before = Eigen::Map<const Eigen::Vector3d>(plane_.data()).norm();
   WindowStepSummary out;
   out.frame_ids = free_ids;
   out.fixed_ids = WindowIdsLocked(static_cast<int>(free_ids.size()));
@@ -510,7 +522,8 @@ WindowStepSummary SlidingWindow::SolveOnce(const std::vector<int>& free_ids,
     if (plane_free) {
       std::vector<double*> free_poses;
       for (int id : free_ids) free_poses.push_back(frames_.at(id).pose.data());
-      out.plane_relative_std = PlaneRelativeStd(&problem, plane_.data(), free_poses);
+      out.plane_relative_std =
+          PlaneRelativeStd(&problem, plane_.data(), free_poses, plane_norm_before);
     }
   } else {
     out.termination = "NO_RESIDUALS";
