@@ -16,6 +16,7 @@ from fusedmosaic.simulation import FetoscopyOptions, generate_fetoscopy
 K = np.array([[450.0, 0, 199.5], [0, 450.0, 199.5], [0, 0, 1]])
 PLANE = np.array([0.0, 0.0, -1 / 35.0])
 STEP = np.array([0.004, -0.003, 0.01, 0.9, 0.4, 0.05])  # constant velocity per frame
+NEVER = 1e9  # a limit no step reaches: the std is computed, the plane never held
 
 
 def trajectory(n):
@@ -72,7 +73,7 @@ def transfer_jacobian(poses, pairs, free):
 def test_reported_std_is_the_marginal_covariance_of_pi():
     # Only the pairs of fixed cameras involve pi, so Cov_pi = (J_pi^T J_pi)^-1 with J_pi the
     # derivative of their whitened transfer residuals (sigma_v = 1 px), by central differences.
-    w, poses = window(limit=0.0)
+    w, poses = window(limit=NEVER)
     s = w.step([0, 1])
     assert not s.plane_held
     np.testing.assert_allclose(w.plane(), PLANE, atol=1e-12)  # noise-free: pi stays exact
@@ -87,7 +88,7 @@ def test_std_marginalises_the_free_cameras():
     (J^T J)^-1 over [pose 4, pi] (dropping the cross terms would give a smaller value)."""
     costs = _core.BundleAdjusterOptions(use_emt=False, use_motion_prior=False)
     pairs = ((1, 0), (4, 3))
-    w, poses = window(limit=0.0, costs=costs, pairs=pairs)
+    w, poses = window(limit=NEVER, costs=costs, pairs=pairs)
     s = w.step([0, 1])
     J = transfer_jacobian(poses, pairs, free=4)
     cov = np.linalg.inv(J.T @ J)[-3:, -3:]
@@ -103,7 +104,7 @@ def test_a_free_camera_without_any_cost_does_not_hide_pi():
     information, but they do not move pi: the std is the fixed pairs' (was inf, and the plane
     was held although the pairs observe it)."""
     costs = _core.BundleAdjusterOptions(use_emt=False, use_motion_prior=False)
-    w, poses = window(limit=0.0, costs=costs)
+    w, poses = window(limit=NEVER, costs=costs)
     s = w.step([0, 1])
     J = transfer_jacobian(poses, ((1, 0), (3, 2)), free=None)
     expected = np.sqrt(np.trace(np.linalg.inv(J.T @ J))) / np.linalg.norm(PLANE)
@@ -112,7 +113,7 @@ def test_a_free_camera_without_any_cost_does_not_hide_pi():
 
 def test_a_step_that_cannot_observe_pi_keeps_the_previous_plane():
     start = PLANE * 1.2  # the pairs say PLANE: a free pi moves there
-    w, _ = window(limit=0.0, plane=start)
+    w, _ = window(limit=NEVER, plane=start)
     s = w.step([0, 1])
     assert not s.plane_held
     np.testing.assert_allclose(w.plane(), PLANE, rtol=1e-6, atol=1e-8)
@@ -141,6 +142,14 @@ def test_no_visual_cost_holds_pi_and_reports_no_std():
     assert s.plane_held and np.isnan(s.plane_relative_std)
 
 
+def test_limit_zero_turns_the_gate_and_its_cost_off():
+    start = PLANE * 1.2
+    w, _ = window(limit=0.0, plane=start)
+    s = w.step([0, 1])
+    assert not s.plane_held and np.isnan(s.plane_relative_std)
+    np.testing.assert_allclose(w.plane(), PLANE, rtol=1e-6, atol=1e-8)
+
+
 @pytest.mark.parametrize("value", [-0.1, float("nan"), float("inf")])
 def test_bad_limit_is_refused(value):
     o = _core.SlidingWindowOptions()
@@ -151,6 +160,8 @@ def test_bad_limit_is_refused(value):
     with pytest.raises(ValueError, match=r"SequentialOptions.plane_max_relative_std must be "
                                          r"finite and >= 0 \(0 disables the plane gate\)"):
         SequentialMosaicker(camera, SequentialOptions(plane_max_relative_std=value))
+    with pytest.raises(ValueError, match=r"plane_max_relative_std .* got True"):
+        SequentialMosaicker(camera, SequentialOptions(plane_max_relative_std=True))
 
 
 def test_weak_texture_keeps_the_plane_and_stays_within_the_tracker_error():

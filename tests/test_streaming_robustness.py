@@ -101,6 +101,25 @@ def test_bad_timestamp_or_robot_is_refused_and_changes_nothing(
     np.testing.assert_array_equal(_positions(out), _positions(baseline))
 
 
+def test_a_reused_capture_buffer_gives_the_same_result(pcle, baseline):
+    """Review 6 #10: a live loop that reads every frame into one buffer (cv2's
+    VideoCapture.read(image)) overwrote the registration anchor, which was the caller's array."""
+    m = RobotPriorMosaicker(pcle.camera)
+    buffer = np.empty_like(pcle.frames[0])
+    out = {}
+    for k in range(len(pcle)):
+        np.copyto(buffer, pcle.frames[k])
+        out[k] = m.add_frame(buffer, pcle.timestamps[k], pcle.robot_xy_um[k])
+    np.testing.assert_array_equal(_positions(out), _positions(baseline))
+
+
+def test_timestamp_beyond_the_float_range_is_refused():
+    m = RobotPriorMosaicker(Camera(64, 48, pixel_size_um=1.0), estimate="robot")
+    with pytest.raises(ValueError, match=r"frame 0: timestamp 1000000.* is not finite"):
+        m.add_frame(None, 10**400, (0.0, 0.0))
+    assert m.frame_count == 0
+
+
 def test_a_day_long_gap_is_accepted():
     """The bound is on the gap, not the clock: a Unix time in s and a gap of 1 day are fine."""
     m = RobotPriorMosaicker(Camera(64, 48, pixel_size_um=1.0), estimate="robot")

@@ -54,7 +54,7 @@ void BindSlidingWindow(py::module_& m) {
       .def_readwrite("plane_max_relative_std", &SlidingWindowOptions::plane_max_relative_std,
                      "plane observability gate: a step whose costs give pi a relative std\n"
                      "sqrt(trace(Cov_pi)) / |pi| above this is solved again with pi held\n"
-                     "(0: never held; the std is still reported)");
+                     "(0: gate and std computation off, plane_relative_std NaN)");
 
   py::class_<WindowStepSummary>(m, "WindowStepSummary", "Result of SlidingWindow.step().")
       .def_readonly("frame_ids", &WindowStepSummary::frame_ids)
@@ -83,7 +83,8 @@ void BindSlidingWindow(py::module_& m) {
       .def_readonly("num_free_parameters", &WindowStepSummary::num_free_parameters)
       .def_readonly("plane_relative_std", &WindowStepSummary::plane_relative_std,
                     "sqrt(trace(Cov_pi)) / |pi before the step| from the step's costs (NaN:\n"
-                    "no visual cost; inf: pi unobservable; a held step: its first solve's)")
+                    "no visual cost or gate off; inf: pi unobservable; a held step: its\n"
+                    "first solve's)")
       .def_readonly("plane_held", &WindowStepSummary::plane_held,
                     "pi kept its value from before the step (no visual cost, or the gate)")
       .def_readonly("preprocessor_time_s", &WindowStepSummary::preprocessor_time_s)

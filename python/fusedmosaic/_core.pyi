@@ -285,7 +285,8 @@ class SlidingWindowOptions:
     full_report: bool  # keep Ceres' FullReport() in each step summary
     plane_max_relative_std: float
     """Plane observability gate: a step whose costs leave pi with a relative standard deviation
-    sqrt(trace(Cov_pi)) / |pi| above this is solved again with pi held (0: never)."""
+    sqrt(trace(Cov_pi)) / |pi| above this is solved again with pi held (0: gate and std
+    computation off)."""
 
     def __init__(
         self, window_size: int = 5, num_new: int = 3, costs: BundleAdjusterOptions | None = None
@@ -316,8 +317,8 @@ class WindowStepSummary:
     num_residuals: int
     num_free_parameters: int
     plane_relative_std: float
-    """sqrt(trace(Cov_pi)) / |pi before the step| from the step's costs; NaN: no visual cost;
-    inf: pi unobservable; for a step the gate held, its first solve's value."""
+    """sqrt(trace(Cov_pi)) / |pi before the step| from the step's costs; NaN: no visual cost
+    or the gate off; inf: pi unobservable; for a step the gate held, its first solve's value."""
     plane_held: bool  # pi kept its value from before the step (no visual cost, or the gate)
     preprocessor_time_s: float
     evaluation_time_s: float

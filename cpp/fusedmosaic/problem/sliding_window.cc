@@ -519,7 +519,7 @@ WindowStepSummary SlidingWindow::SolveOnce(const std::vector<int>& free_ids,
     out.visual_cost = term_cost(visual_blocks);
     out.emt_cost = term_cost(emt_blocks);
     out.motion_cost = term_cost(motion_blocks);
-    if (plane_free) {
+    if (plane_free && options_.plane_max_relative_std > 0.0) {
       std::vector<double*> free_poses;
       for (int id : free_ids) free_poses.push_back(frames_.at(id).pose.data());
       out.plane_relative_std =

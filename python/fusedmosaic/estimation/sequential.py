@@ -141,7 +141,8 @@ class SequentialOptions:
     # 65 % of frames without a registered pair) a step whose only visual evidence was one pair
     # between tracker-placed cameras moved pi to infinity: frames at 238 px, e_M 13.2 px; gated:
     # max 24.9 px, e_M 7.3 px (the tracker alone with the true plane: max 34.3, e_M 17.2 px).
-    # 0 disables it.
+    # The std costs one more Jacobian evaluation per step (~0.6 ms on SYN, bench_plane_gate);
+    # 0 disables the gate and that cost.
     plane_max_relative_std: float = 0.02
     history_steps: int = 1000  # window step summaries kept (diagnostics, bounded)
     # Input guards (not from the paper). A timestamp more than this after the previous frame's
@@ -221,6 +222,7 @@ class SequentialMosaicker:
             if not (isinstance(value, numbers.Real) and value > 0):
                 raise ValueError(f"SequentialOptions.{name} must be > 0, got {value!r}")
         if not (isinstance(o.plane_max_relative_std, numbers.Real)
+                and not isinstance(o.plane_max_relative_std, bool | np.bool_)
                 and 0 <= o.plane_max_relative_std < np.inf):
             raise ValueError("SequentialOptions.plane_max_relative_std must be finite and >= 0 "
                              f"(0 disables the plane gate), got {o.plane_max_relative_std!r}")
@@ -808,7 +810,8 @@ class SequentialMosaicker:
             status = "placed" if p["visual"] else "prior-only"
             self._finalized.append(FrameResult(
                 k, p["timestamp"], G, poses_from_aligned(pose, self._world_rotation), status,
-                True, k in gated or p["dropped"], p["timings"], self.plane, p["dropped"]))
+                True, k in gated or p["dropped"], p["timings"], self.plane,
+                tracker_dropped=p["dropped"]))
         for old in sorted(self._poses)[:-2]:
             del self._poses[old]  # keep only what the motion prediction needs
         if forget:
@@ -839,14 +842,13 @@ class SequentialMosaicker:
                            timings=timings)
 
 
-def _plane_gate_details(relative_std: np.ndarray, limit: float) -> dict:
-    """Steps whose costs saw pi, and how many of them the gate held (relative std above the
-    limit; inf: pi unobservable), with the median relative std of the others."""
-    seen = relative_std[~np.isnan(relative_std)]
-    held = seen > limit if limit > 0 else np.zeros(seen.shape, bool)
-    kept = seen[~held]
-    return {"steps_seeing_plane": int(seen.size), "held": int(held.sum()),
-            "median_relative_std": float(np.median(kept)) if kept.size else None}
+def _plane_gate_details(steps: list[tuple[float, bool]]) -> dict:
+    """Steps whose costs saw pi (a std, NaN without visual cost or with the gate disabled),
+    how many of them the gate held, and the median relative std of the others."""
+    seen = [(std, held) for std, held in steps if not np.isnan(std)]
+    kept = [std for std, held in seen if not held]
+    return {"steps_seeing_plane": len(seen), "held": sum(held for _, held in seen),
+            "median_relative_std": float(np.median(kept)) if kept else None}
 
 
 def run_lba_emt(dataset, *, progress: bool = True,
@@ -858,13 +860,14 @@ def run_lba_emt(dataset, *, progress: bool = True,
     results: dict[int, FrameResult] = {}
     latency = np.zeros(n)
     step_times: list[float] = []  # every step's (the mosaicker keeps the last history_steps)
-    plane_std: list[float] = []  # every step's plane_relative_std (NaN: no visual cost)
+    plane_steps: list[tuple[float, bool]] = []  # every step's (plane_relative_std, plane_held)
 
     def take(finals: list[FrameResult]) -> None:
         """Results made final by the last call, and the time of its step (at most one)."""
         if mosaicker.num_steps > len(step_times):
             step_times.append(mosaicker.step_summaries[-1].step_time_s)
-            plane_std.append(mosaicker.step_summaries[-1].plane_relative_std)
+            summary = mosaicker.step_summaries[-1]
+            plane_steps.append((summary.plane_relative_std, summary.plane_held))
         results.update({r.frame_id: r for r in finals})
 
     t_start = time.perf_counter()
@@ -903,7 +906,7 @@ def run_lba_emt(dataset, *, progress: bool = True,
         "tracker_gated": [k for k in range(n) if results[k].tracker_gated],
         "tracker_dropped": [k for k in range(n) if results[k].tracker_dropped],
         # the plane observability gate (SequentialOptions.plane_max_relative_std)
-        "plane_gate": _plane_gate_details(np.array(plane_std), o.plane_max_relative_std),
+        "plane_gate": _plane_gate_details(plane_steps),
         # per frame: the plane of the step that made the frame final
         "plane_history": [results[k].plane.tolist() for k in range(n)],
     }

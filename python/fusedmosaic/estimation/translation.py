@@ -723,7 +723,8 @@ class RobotPriorMosaicker:
             and not blank
             and (i == 0 or self._anchor is None or np.isfinite(dx).all())
         ):
-            self._anchor = _Anchor(i, gray, x_m.copy(), x_f.copy())
+            # a copy: a live caller may reuse its capture buffer for the next frame
+            self._anchor = _Anchor(i, np.array(gray), x_m.copy(), x_f.copy())
         if self.estimate == "fused" and placed and np.isfinite(robot).all():
             # A gated sample is not an anchor: the next robot displacement is taken from the
             # last good one, unless the robot has been gated so often in a row that it more

@@ -46,9 +46,12 @@ def check_stream_timestamp(index: int, timestamp, previous: float, *,
     if isinstance(timestamp, bool | np.bool_) or not isinstance(timestamp, numbers.Real):
         raise TypeError(f"frame {index}: timestamp must be a real number (s), got "
                         f"{type(timestamp).__name__} {timestamp!r:.60}")
-    t = float(timestamp)
+    try:
+        t = float(timestamp)
+    except OverflowError:  # a Python int beyond the float range
+        t = float("inf")
     if not np.isfinite(t):
-        raise ValueError(f"frame {index}: timestamp {t!r} is not finite")
+        raise ValueError(f"frame {index}: timestamp {timestamp!r:.60} is not finite")
     if not t > previous:
         raise ValueError(f"frame {index}: timestamp {t!r} does not increase (previous frame's "
                          f"{previous!r})")
