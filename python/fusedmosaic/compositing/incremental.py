@@ -26,6 +26,20 @@ beyond `max_pixels` while landing more than `stray_diagonals` (10) of its own di
 from every frame placed so far (a wild jump such as a placement 1e6 px off; it is recorded in
 `skipped`, like an unplaced frame). A far frame that keeps the bounds within `max_pixels` is
 kept, as is anything landing near the content already there.
+
+A genuine far jump (the estimator re-localised the scope elsewhere on the surface) looks like a
+stray at first. After `stray_rebase` (3) strays in a row that are mutually consistent (each
+within `stray_diagonals` of its own diagonals of the previous stray), the new place is accepted,
+as the robot gate's `robot_gate_rebase` accepts a new robot offset: the first `stray_rebase` - 1
+stay in `skipped`, the `stray_rebase`-th is placed (its call number is recorded in `rebased`)
+and so is everything after it near it, since it is now placed content. A placed frame ends the
+run, so an isolated stray between frames near the content is skipped and changes nothing, and
+strays at different far places do not add up (a stray far from the previous one starts a new
+run); a frame left out for another reason (unplaced, behind the camera, ...) has no position
+and neither counts nor ends the run. An accepted far place costs only the tiles under its
+footprints (the tile budget still applies); the bounding box then spans both places, so
+`render()` of the whole raises and the caller renders sub-boxes. `stray_rebase=None` never
+accepts a far place (every later frame near it is a stray too).
 """
 
 from __future__ import annotations
@@ -61,13 +75,16 @@ class IncrementalCanvas:
     stray_diagonals: a frame that would grow the bounds beyond `max_pixels` is left out as a
     stray if it lands more than this many of its footprint diagonals from every placed frame;
     math.inf never leaves a frame out for its position.
+    stray_rebase: after this many consistent strays in a row (each within `stray_diagonals`
+    diagonals of the previous one, no frame placed in between) the last of them is placed and
+    the new place is kept (`rebased` lists those frames' call numbers); None never does.
     """
 
     def __init__(self, width: int, height: int, *, mask: np.ndarray | None = None,
                  blend: str | BlendOptions = "linear", tile_size: int = 256,
                  scale: float = 1.0, max_pixels: int = 400_000_000,
                  absurd_area_factor: float = ABSURD_AREA_FACTOR,
-                 stray_diagonals: float = 10.0) -> None:
+                 stray_diagonals: float = 10.0, stray_rebase: int | None = 3) -> None:
         options = as_blend_options(blend)
         if options.blend == "multiband":
             raise ValueError("multiband blending needs the whole sequence (its seams depend on "
@@ -86,6 +103,12 @@ class IncrementalCanvas:
         if not stray_diagonals > 0:
             raise ValueError(f"stray_diagonals must be > 0, got {stray_diagonals}")
         self.stray_diagonals = float(stray_diagonals)
+        if stray_rebase is not None and not (isinstance(stray_rebase, int | np.integer)
+                                             and not isinstance(stray_rebase, bool)
+                                             and stray_rebase >= 1):
+            raise ValueError(f"stray_rebase must be an integer >= 1 or None, got "
+                             f"{stray_rebase!r}")
+        self.stray_rebase = None if stray_rebase is None else int(stray_rebase)
         self.absurd_area_factor = absurd_area_factor
         self._warpers: dict[int | None, FrameWarper] = {None: FrameWarper(width, height, mask,
                                                                           options)}
@@ -94,6 +117,9 @@ class IncrementalCanvas:
         self._last_box: Box | None = None  # the last placed frame's
         self.frames_added = 0
         self.skipped: list[tuple[int, str]] = []  # (call number, reason)
+        self.rebased: list[int] = []  # call numbers of the frames placed as a new far place
+        self._strays = 0  # consistent strays in a row since the last placed frame
+        self._stray_box: Box | None = None  # the last of them
         self._areas: deque[float] = deque(maxlen=101)
         self._calls = 0
         self._channels: int | None = None
@@ -147,13 +173,16 @@ class IncrementalCanvas:
         return box if b is None else (min(b[0], box[0]), min(b[1], box[1]),
                                       max(b[2], box[2]), max(b[3], box[3]))
 
+    def _reach(self, box: Box) -> float:
+        return self.stray_diagonals * math.hypot(box[2] - box[0], box[3] - box[1])
+
     def _is_stray(self, box: Box) -> bool:
         """True if `box` lands more than `stray_diagonals` of its diagonals from every frame
         placed so far: checked against the last placed frame (the usual neighbour in a sweep),
         then, for a jump, against the allocated tiles (a return near earlier content is not a
         stray; tiles over-cover the footprints by less than a tile, so this errs towards keeping).
         """
-        reach = self.stray_diagonals * math.hypot(box[2] - box[0], box[3] - box[1])
+        reach = self._reach(box)
         if self._last_box is None or _gap(box, self._last_box) <= reach:
             return False
         T = self.tile_size
@@ -169,7 +198,9 @@ class IncrementalCanvas:
         the frame was left out (unplaced, footprint behind the camera, non-convex, > 20 x the
         recent median area, or a stray: growing the canvas bounds beyond `max_pixels` while
         landing more than `stray_diagonals` frame diagonals from every placed frame; see
-        `skipped`). A frame near the content is kept however large the bounding box gets.
+        `skipped`). A frame near the content is kept however large the bounding box gets. The
+        `stray_rebase`-th consistent stray in a row is placed instead, accepting the new place
+        (see the module notes).
 
         Raises TypeError (None image), ValueError (pixel type other than uint8, wrong size or
         channel count, homography not 3x3) or CanvasTooLargeError (the allocated tiles would
@@ -188,6 +219,8 @@ class IncrementalCanvas:
         box = warper.box(G) if reason is None else None
         if reason is None and box is None:
             reason = "footprint behind the camera"
+        strays = None  # the run of consistent strays if this frame is left out as one
+        rebase = False  # the frame is placed as the end of such a run
         if reason is None:
             # A stray (a jump far from every placed frame that would take the bounding box
             # beyond the budget) is left out; a frame near the content is kept however large
@@ -198,9 +231,17 @@ class IncrementalCanvas:
             x0, y0, x1, y1 = bounds
             if (bounds != self.bounds and (x1 - x0) * (y1 - y0) > self.max_pixels
                     and self._is_stray(box)):
-                reason = (f"would grow the canvas bounds to {x1 - x0} x {y1 - y0} pixels, above "
-                          f"max_pixels {self.max_pixels} (frame lands at x {box[0]}..{box[2]}, "
-                          f"y {box[1]}..{box[3]}: a stray placement?)")
+                # A run of strays each near the previous one is a new place (re-localisation),
+                # not a glitch: its stray_rebase-th frame is placed, and the frames after it
+                # land near placed content.
+                strays = (self._strays + 1 if self._stray_box is not None
+                          and _gap(box, self._stray_box) <= self._reach(box) else 1)
+                if self.stray_rebase is not None and strays >= self.stray_rebase:
+                    strays, rebase = None, True
+                else:
+                    reason = (f"would grow the canvas bounds to {x1 - x0} x {y1 - y0} pixels, "
+                              f"above max_pixels {self.max_pixels} (frame lands at x "
+                              f"{box[0]}..{box[2]}, y {box[1]}..{box[3]}: a stray placement?)")
         if reason is None:
             T = self.tile_size
             tiles = [(ty, tx) for ty in range(box[1] // T, (box[3] - 1) // T + 1)
@@ -215,6 +256,8 @@ class IncrementalCanvas:
         if reason is not None:
             self._calls += 1
             self.skipped.append((name, reason))
+            if strays is not None:
+                self._strays, self._stray_box = strays, box
             return None
         patch = warper.warp(image, G, gain=gain, name=name)
         channels = patch.data.shape[2]
@@ -229,6 +272,9 @@ class IncrementalCanvas:
             accumulate(tile, key[1] * T, key[0] * T, patch, self.options.blend)
         self.bounds = self._bounds_with(box)
         self._last_box = box
+        self._strays, self._stray_box = 0, None
+        if rebase:
+            self.rebased.append(name)
         self.frames_added += 1
         return box
 
