@@ -13,6 +13,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from _faults import raise_once
 
 import fusedmosaic.estimation.translation as translation
 from fusedmosaic.estimation.kalman import RobotKalmanFilter
@@ -191,17 +192,7 @@ def _once(original, exception, *, call_through=False):
     """A stand-in for `original` that raises `exception` at its first call once armed
     (``state["armed"] = True``), after running the original when `call_through`, then behaves
     as the original again."""
-    state = {"armed": False}
-
-    def replacement(*args, **kwargs):
-        if state["armed"]:
-            state["armed"] = False
-            if call_through:
-                original(*args, **kwargs)
-            raise exception
-        return original(*args, **kwargs)
-
-    return replacement, state
+    return raise_once(original, exception, call_through=call_through, armed=False)
 
 
 INTERRUPTS = {

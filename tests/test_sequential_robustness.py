@@ -8,6 +8,7 @@ import threading
 
 import numpy as np
 import pytest
+from _faults import raise_once
 
 import fusedmosaic.estimation.sequential as sequential
 from fusedmosaic import _core
@@ -228,18 +229,7 @@ class Boom(RuntimeError):
 def once(target, name, exception, *, call_through=False):
     """Replaces target.name by a version that raises `exception` on its first call (after
     running the original when call_through), then behaves normally."""
-    original = getattr(target, name)
-    state = {"armed": True}
-
-    def replacement(*args, **kwargs):
-        if state["armed"]:
-            state["armed"] = False
-            if call_through:
-                original(*args, **kwargs)
-            raise exception
-        return original(*args, **kwargs)
-
-    return replacement, state
+    return raise_once(getattr(target, name), exception, call_through=call_through)
 
 
 class WindowProxy:
