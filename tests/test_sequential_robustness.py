@@ -19,6 +19,7 @@ from fusedmosaic.estimation.sequential import (
 )
 from fusedmosaic.evaluation import frame_errors
 from fusedmosaic.io import Camera
+from fusedmosaic.registration.pairs import MatchOptions
 from fusedmosaic.simulation import FetoscopyOptions, generate_fetoscopy
 
 N, SIZE, AT = 24, 200, 13  # frames, image size, the frame where things go wrong
@@ -137,6 +138,15 @@ def test_timestamp_gap_bound_is_an_option(scene):
     assert m.add_frame(scene.frames[1], 1.0, scene.tracker[1]).frame_id == 1
     with pytest.raises(ValueError, match="max_timestamp_gap_s must be > 0, got -1"):
         SequentialMosaicker(scene.camera, SequentialOptions(max_timestamp_gap_s=-1))
+
+
+def test_matching_threads_give_the_same_mosaic(scene, baseline):
+    """The pairs of a frame are matched on a thread pool when matching.num_threads > 1; each
+    pair's result does not depend on the thread (OpenCV's RANSAC seeds its own generator)."""
+    for threads in (1, 2):
+        m = SequentialMosaicker(scene.camera, SequentialOptions(
+            bootstrap_frames=8, matching=MatchOptions(num_threads=threads)))
+        np.testing.assert_array_equal(scene.finish(m, scene.feed(m, range(N), {})), baseline[0])
 
 
 def test_first_timestamp_in_nanoseconds_is_refused_as_the_robot_mosaicker_does(scene):

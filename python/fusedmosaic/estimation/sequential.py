@@ -50,6 +50,7 @@ import numbers
 import threading
 import time
 from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 
@@ -87,7 +88,11 @@ class SequentialOptions:
     num_clusters: int = 3  # K of K-means
     frames_per_cluster: int = 5  # consecutive frames picked per cluster
     features: FeatureOptions = field(default_factory=FeatureOptions)
-    matching: MatchOptions = field(default_factory=lambda: MatchOptions(num_threads=1))
+    # The new frame's pairs (window + loop, ~6) are matched on num_threads threads (2: the
+    # cores of the target machine; the window step is single-threaded). ORB, 400x400 SYN, 700
+    # frames, 1 and 2 threads interleaved in one run on a 2-core machine: 24.4-24.9 frames/s,
+    # median 38.5-39.5 ms -> 32.1-32.3 frames/s, 29.9-30.7 ms; the mosaics are identical.
+    matching: MatchOptions = field(default_factory=MatchOptions)
     max_points_per_pair: int = 100  # inliers kept per pair
     sigma_v_px: float = 1.0  # px (Sec. 4.2)
     # Constant-velocity prior std devs (rad x3, mm x3); None = the paper's appendix values.
@@ -262,6 +267,8 @@ class SequentialMosaicker:
         self._window_touched = False
         self._lock = getattr(self, "_lock", None) or threading.Lock()  # reset() keeps it
         self._broken: str | None = None  # why the mosaicker is unusable (failed restoration)
+        # matching threads, made on first use; reset() keeps them
+        self._pool = getattr(self, "_pool", None)
         self.extractor = FeatureExtractor(o.features, camera.fov_mask())
         self.keyframes = KeyframeIndex(o.frames_per_cluster, max_blocks=o.max_keyframe_blocks,
                                        cell_size_px=0.5 * max(self.size),
@@ -569,8 +576,7 @@ class SequentialMosaicker:
             against = self._startup_candidates(tracker_pose)
         else:
             against = [f for _, f in self._recent]
-        matches = [match_pair(feats, f_old, self.size, self.options.matching)
-                   for f_old in against]
+        matches = self._match(feats, against)
         self._recent.append((k, feats))
         timings["matching"] = time.perf_counter() - t0
         ok = [m for m in matches if m.ok]
@@ -675,7 +681,18 @@ class SequentialMosaicker:
         near = ids[np.argsort(dist)][: o.loop_pairs]
         near = [i for i in near if np.linalg.norm(self._loop_centroids[i] - centre)
                 < self._loop_radius]
-        return [match_pair(feats, self._loop_feats[i], self.size, o.matching) for i in near]
+        return self._match(feats, [self._loop_feats[i] for i in near])
+
+    def _match(self, feats, others: list) -> list:
+        """match_pair of the new frame against each of `others`, in order; with
+        matching.num_threads > 1 on a thread pool (OpenCV's matcher and RANSAC release the GIL,
+        and the pair results do not depend on the thread: RANSAC seeds its own generator)."""
+        o = self.options.matching
+        if o.num_threads <= 1 or len(others) <= 1:
+            return [match_pair(feats, f, self.size, o) for f in others]
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(o.num_threads, thread_name_prefix="fusedmosaic-match")
+        return list(self._pool.map(lambda f: match_pair(feats, f, self.size, o), others))
 
     def _pending_tracker_poses(self) -> tuple[dict, np.ndarray]:
         """Tracker poses of the pending frames: {id: pose} and an (n, 6) table by frame id,
