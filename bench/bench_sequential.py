@@ -320,21 +320,24 @@ def markdown(res: dict) -> str:
              f"{res['machine']['load_start']} / {res['machine']['load_end']}; "
              f"total bench time {res['total_s']:.0f} s. 400x400 SYN frames, "
              f"{FRAMES_PER_LAP} frames per lap, preset SYN (W=5, chi_e=3, K=3x5).", "",
-             "## Budgets", "", "Budgets are on wall time; the CPU rows use process CPU time, "
-             "which other processes' load does not inflate.", "",
+             "## Budgets", "", "Budgets are on wall time.", "",
              "| figure | value | budget | met |", "|---|---|---|---|"]
     names = {"step_median_ms": "window step, median (ms)", "step_p95_ms": "window step, p95 (ms)",
              "orb_frames_per_s": "end to end ORB, frames/s (steady state)",
              "orb_frames_per_s_all": "end to end ORB, frames/s (all frames, incl. bootstrap)",
              "drift_ratio": "long run drift ratio", "unplaced": "long run unplaced frames",
-             "latency_growth": "p95 latency 3000-3300 / 100-400",
-             "orb_cpu_frames_per_s": "end to end ORB, CPU frames/s (steady state)",
-             "latency_growth_cpu": "p95 CPU per frame 3000-3300 / 100-400"}
+             "latency_growth": "p95 latency 3000-3300 / 100-400"}
     for key, name in names.items():
         c = b[key]
         op = "<=" if c["at_most"] else ">="
         lines.append(f"| {name} | {c['value']:.3g} | {op} {c['budget']:g} | "
                      f"{'yes' if c['met'] else '**no**'} |")
+    d = res["cpu_diagnostics"]
+    lines += ["", "Process CPU time (diagnostic, not a budget: other processes' load does not "
+              "inflate it, but it sums every thread, so with the new frame's pairs matched on "
+              f"{res['matching_threads']} threads 1 / CPU time per frame is not a frame rate): "
+              f"end to end ORB {d['orb_cpu_frames_per_s']:.3g} frames of CPU time per s; "
+              f"p95 CPU per frame 3000-3300 / 100-400 {d['latency_growth_cpu']:.3g}."]
     s = res["window_step"]
     lines += ["", "## Window step (long ORB run, all steps)", "",
               "| | median | p95 |", "|---|---|---|"]
@@ -502,11 +505,12 @@ def main() -> None:
         "unplaced": check(acc["unplaced"], 0, at_most=True),
         "latency_growth": check(late / early if late else float("nan"), MAX_LATENCY_GROWTH,
                                 at_most=True),
-        "latency_growth_cpu": check(cpu_late / cpu_early if cpu_late else float("nan"),
-                                    MAX_LATENCY_GROWTH, at_most=True),
-        "orb_cpu_frames_per_s": check(tp["orb"]["cpu_frames_per_s_steady"], MIN_ORB_FPS,
-                                      at_most=False),
     }
+    res["cpu_diagnostics"] = {
+        "latency_growth_cpu": cpu_late / cpu_early if cpu_late else float("nan"),
+        "orb_cpu_frames_per_s": tp["orb"]["cpu_frames_per_s_steady"],
+    }
+    res["matching_threads"] = SequentialOptions().matching.num_threads
     res["total_s"] = time.perf_counter() - t_bench
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(res, indent=2) + "\n")
