@@ -92,9 +92,10 @@ struct WindowStepSummary {
   int num_free_parameters = 0;
   // Plane observability (SlidingWindowOptions::plane_max_relative_std): the relative standard
   // deviation of pi from this step's costs, relative to |pi| before the step (NaN when pi had no
-  // visual cost in the step or the gate is disabled; inf when pi is not observable: J^T J singular in a direction that
-  // moves pi; for a step the gate held, the value of its first solve), and whether pi kept its
-  // value from before the step. The times and iterations of a held step cover both solves.
+  // visual cost in the step or the gate is disabled; inf when pi is not observable: J^T J
+  // singular in a direction that moves pi; for a step the gate held, the value of its first
+  // solve), and whether pi kept its value from before the step. The times and iterations of a
+  // held step cover both solves.
   double plane_relative_std = std::numeric_limits<double>::quiet_NaN();
   bool plane_held = false;
   // Ceres' time split (s): building the reduced problem, residual + Jacobian evaluation, linear

@@ -183,7 +183,8 @@ class RobotPriorOptions:
     # catch-up, 0.26 of the 448 px side) and 13 x sigma_r0 (noisy robot); half the frame's
     # smaller side (the registration overlap of two frames is more than that) and 20 sigma_r0
     # leave all of them alone. None: no gating. Both are per frame: a robot sample returning
-    # after k frames without one (a dropout) spans k + 1 frames and is allowed k + 1 times them.
+    # after k frames without one (a dropout) spans k + 1 frames and is allowed k + 1 times them,
+    # up to robot_gate_max_span times.
     robot_gate_fraction: float | None = 0.5
     robot_gate_sigmas: float = 20.0
     # Gated frames in a row after which the robot is re-anchored (a lasting offset, e.g. the
@@ -348,10 +349,6 @@ class _Anchor:
 
 
 _NAN2 = np.full(2, np.nan)
-
-
-def _same(value):
-    return value
 
 
 class RobotPriorMosaicker:
@@ -577,15 +574,16 @@ class RobotPriorMosaicker:
             self._restore(saved)
             raise
 
-    # Everything _place changes, for _restore. The filter and the deque are changed in place,
-    # so they are copied (the filter is small: 0.05-0.1 ms, ~1 % of a 512x448 frame); the rest
-    # is only ever replaced, never changed in place.
+    # Everything _place changes, for _restore. Copied shallowly (the values are replaced, the
+    # innovations deque is appended to), the filter deeply (it is changed in place; small:
+    # 0.05-0.1 ms, ~1 % of a 512x448 frame).
     _STATE = ("_count", "_last_timestamp", "_anchor", "_robot_origin_um", "_robot_anchor",
-              "_steps_without_robot", "_gated_in_a_row", "_innovations", "_kf")
-    _COPY = {"_innovations": copy.copy, "_kf": copy.deepcopy}
+              "_steps_without_robot", "_gated_in_a_row", "_innovations")
 
     def _state(self) -> dict:
-        return {name: self._COPY.get(name, _same)(getattr(self, name)) for name in self._STATE}
+        state = {name: copy.copy(getattr(self, name)) for name in self._STATE}
+        state["_kf"] = copy.deepcopy(self._kf)
+        return state
 
     def _restore(self, state: dict) -> None:
         for name, value in state.items():
@@ -687,9 +685,7 @@ class RobotPriorMosaicker:
                     kf.options = replace(kf.options, sigma_robot0=sigma_r)
                 c_match = conf["c_match"] if image_ok else 0.0
                 if image_ok and robot_ok:
-                    robot_gated = self._robot_glitch(
-                        kf, dx_img_f, dx_rob_f, c_match, sigma_r, self._steps_without_robot
-                    )
+                    robot_gated = self._robot_glitch(kf, dx_img_f, dx_rob_f, c_match, sigma_r)
                 step = kf.update(dx_img_f, _NAN2 if robot_gated else dx_rob_f, c_match)
                 for name in CONFIDENCES:
                     conf[name] = float(getattr(step, name))
@@ -750,15 +746,13 @@ class RobotPriorMosaicker:
             **conf,
         )
 
-    def _robot_glitch(
-        self, kf, dx_image, dx_robot, c_match: float, sigma_r: float, steps_without_robot: int
-    ) -> bool:
+    def _robot_glitch(self, kf, dx_image, dx_robot, c_match: float, sigma_r: float) -> bool:
         """Whether the robot displacement is a gross outlier next to a trusted registration
         (module docstring, "Robot gating"). The image confidence c_img (Eq. 16) does not depend
         on the robot; it is read from a trial update of a copy of the filter.
 
-        ``steps_without_robot``: frames placed from the image alone since the robot anchor, for
-        want of a robot sample. The robot displacement then spans 1 + that many image steps
+        ``_steps_without_robot``: frames placed from the image alone since the robot anchor,
+        for want of a robot sample. The robot displacement then spans 1 + that many image steps
         while the registration spans one, and their difference holds the image chain's drift
         over those steps (a re-acquisition after a robot dropout). The bound is per step, so it
         is allowed once per step spanned: a drift that each step would have been let through
@@ -771,7 +765,7 @@ class RobotPriorMosaicker:
         bound = self._gate_floor_px  # sigma_r0 not known yet (inf): the floor alone
         if np.isfinite(sigma_r):
             bound = max(self.options.robot_gate_sigmas * sigma_r, bound)
-        bound *= min(1 + steps_without_robot, self.options.robot_gate_max_span)
+        bound *= min(1 + self._steps_without_robot, self.options.robot_gate_max_span)
         if not np.abs(dx_robot - dx_image).max() > bound:  # also False for bound = inf
             return False
         trial = copy.deepcopy(kf).update(dx_image, _NAN2, c_match)
