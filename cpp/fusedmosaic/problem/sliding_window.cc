@@ -322,25 +322,7 @@ WindowStepSummary SlidingWindow::Solve(std::vector<int> free_ids,
   const BundleAdjusterOptions& c = options_.costs;
   InitialisePending(free_ids);
 
-  // Starting values, to solve again with pi held if the step cannot observe it.
-  const std::array<double, kPlaneSize> plane_before = plane_;
-  std::vector<std::array<double, kPoseSize>> poses_before;
-  for (int id : free_ids) poses_before.push_back(frames_.at(id).pose);
-
-  WindowStepSummary out = SolveOnce(free_ids, keyframe_ids, /*hold_plane=*/false);
-  const double limit = options_.plane_max_relative_std;
-  if (!out.plane_held && limit > 0.0 && !(out.plane_relative_std <= limit)) {
-    plane_ = plane_before;
-    for (size_t i = 0; i < free_ids.size(); ++i) frames_.at(free_ids[i]).pose = poses_before[i];
-    const WindowStepSummary first = out;
-    out = SolveOnce(free_ids, keyframe_ids, /*hold_plane=*/true);
-    out.plane_relative_std = first.plane_relative_std;
-    out.iterations += first.iterations;
-    out.solve_time_s += first.solve_time_s;
-    out.preprocessor_time_s += first.preprocessor_time_s;
-    out.evaluation_time_s += first.evaluation_time_s;
-    out.linear_solver_time_s += first.linear_solver_time_s;
-  }
+  WindowStepSummary out = SolveStep(free_ids, keyframe_ids);
 
   for (int id : free_ids) {
     Frame& f = frames_.at(id);
@@ -356,9 +338,8 @@ WindowStepSummary SlidingWindow::Solve(std::vector<int> free_ids,
   return out;
 }
 
-WindowStepSummary SlidingWindow::SolveOnce(const std::vector<int>& free_ids,
-                                           const std::vector<int>& keyframe_ids,
-                                           bool hold_plane) {
+WindowStepSummary SlidingWindow::SolveStep(const std::vector<int>& free_ids,
+                                           const std::vector<int>& keyframe_ids) {
   const BundleAdjusterOptions& c = options_.costs;
   const double plane_norm_before = Eigen::Map<const Eigen::Vector3d>(plane_.data()).norm();
   WindowStepSummary out;
@@ -477,57 +458,79 @@ WindowStepSummary SlidingWindow::SolveOnce(const std::vector<int>& free_ids,
       problem.SetParameterBlockConstant(frames_.at(id).pose.data());
     }
   }
-  const bool plane_free =
-      problem.HasParameterBlock(plane_.data()) && !visual_blocks.empty() && !hold_plane;
+  const bool plane_free = problem.HasParameterBlock(plane_.data()) && !visual_blocks.empty();
   if (problem.HasParameterBlock(plane_.data()) && !plane_free) {
     problem.SetParameterBlockConstant(plane_.data());
   }
   out.plane_held = !plane_free;
   out.num_visual_blocks = static_cast<int>(visual_blocks.size());
 
-  if (problem.NumResidualBlocks() > 0) {
-    ceres::Solver::Options so;
-    so.linear_solver_type = WindowLinearSolver(c.linear_solver);
-    so.max_num_iterations = c.max_iterations;
-    so.function_tolerance = c.function_tolerance;
-    so.gradient_tolerance = c.gradient_tolerance;
-    so.parameter_tolerance = c.parameter_tolerance;
-    so.num_threads = c.num_threads;
-    so.logging_type = ceres::SILENT;
+  if (problem.NumResidualBlocks() == 0) {
+    out.termination = "NO_RESIDUALS";
+    return out;
+  }
+  ceres::Solver::Options so;
+  so.linear_solver_type = WindowLinearSolver(c.linear_solver);
+  so.max_num_iterations = c.max_iterations;
+  so.function_tolerance = c.function_tolerance;
+  so.gradient_tolerance = c.gradient_tolerance;
+  so.parameter_tolerance = c.parameter_tolerance;
+  so.num_threads = c.num_threads;
+  so.logging_type = ceres::SILENT;
+  // Runs the solver; a second run (pi held) adds its counts and times to the first's.
+  auto solve = [&](bool first) {
     ceres::Solver::Summary summary;
     ceres::Solve(so, &problem, &summary);
-    out.iterations = static_cast<int>(summary.iterations.size()) - 1;
-    out.initial_cost = summary.initial_cost;
+    if (first) {
+      out.initial_cost = summary.initial_cost;
+      out.iterations = 0;
+    }
+    out.iterations += static_cast<int>(summary.iterations.size()) - 1;
     out.final_cost = summary.final_cost;
-    out.solve_time_s = summary.total_time_in_seconds;
-    out.preprocessor_time_s = summary.preprocessor_time_in_seconds;
-    out.evaluation_time_s =
+    out.solve_time_s += summary.total_time_in_seconds;
+    out.preprocessor_time_s += summary.preprocessor_time_in_seconds;
+    out.evaluation_time_s +=
         summary.residual_evaluation_time_in_seconds + summary.jacobian_evaluation_time_in_seconds;
-    out.linear_solver_time_s = summary.linear_solver_time_in_seconds;
+    out.linear_solver_time_s += summary.linear_solver_time_in_seconds;
     out.num_residuals = summary.num_residuals;
     out.num_free_parameters = summary.num_effective_parameters_reduced;
-    if (options_.full_report) out.full_report = summary.FullReport();
+    if (options_.full_report) out.full_report += summary.FullReport();
     out.termination = ceres::TerminationTypeToString(summary.termination_type);
-    auto term_cost = [&problem](const std::vector<ceres::ResidualBlockId>& ids) {
-      if (ids.empty()) return 0.0;
-      ceres::Problem::EvaluateOptions eo;
-      eo.residual_blocks = ids;
-      double cost = 0.0;
-      problem.Evaluate(eo, &cost, nullptr, nullptr, nullptr);
-      return cost;
-    };
-    out.visual_cost = term_cost(visual_blocks);
-    out.emt_cost = term_cost(emt_blocks);
-    out.motion_cost = term_cost(motion_blocks);
-    if (plane_free && options_.plane_max_relative_std > 0.0) {
-      std::vector<double*> free_poses;
-      for (int id : free_ids) free_poses.push_back(frames_.at(id).pose.data());
-      out.plane_relative_std =
-          PlaneRelativeStd(&problem, plane_.data(), free_poses, plane_norm_before);
+  };
+
+  // Starting values, to solve again with pi held if the step cannot observe it.
+  const std::array<double, kPlaneSize> plane_before = plane_;
+  std::vector<std::array<double, kPoseSize>> poses_before;
+  for (int id : free_ids) poses_before.push_back(frames_.at(id).pose);
+
+  solve(/*first=*/true);
+  const double limit = options_.plane_max_relative_std;
+  if (plane_free && limit > 0.0) {
+    std::vector<double*> free_poses;
+    for (int id : free_ids) free_poses.push_back(frames_.at(id).pose.data());
+    out.plane_relative_std =
+        PlaneRelativeStd(&problem, plane_.data(), free_poses, plane_norm_before);
+    if (!(out.plane_relative_std <= limit)) {
+      // Same residual blocks, pi constant at its value before the step: the problem points at
+      // plane_ and the poses, so restoring them restarts the solve from the same values.
+      plane_ = plane_before;
+      for (size_t i = 0; i < free_ids.size(); ++i) frames_.at(free_ids[i]).pose = poses_before[i];
+      problem.SetParameterBlockConstant(plane_.data());
+      out.plane_held = true;
+      solve(/*first=*/false);
     }
-  } else {
-    out.termination = "NO_RESIDUALS";
   }
+  auto term_cost = [&problem](const std::vector<ceres::ResidualBlockId>& ids) {
+    if (ids.empty()) return 0.0;
+    ceres::Problem::EvaluateOptions eo;
+    eo.residual_blocks = ids;
+    double cost = 0.0;
+    problem.Evaluate(eo, &cost, nullptr, nullptr, nullptr);
+    return cost;
+  };
+  out.visual_cost = term_cost(visual_blocks);
+  out.emt_cost = term_cost(emt_blocks);
+  out.motion_cost = term_cost(motion_blocks);
   return out;
 }
 

@@ -164,8 +164,8 @@ class SlidingWindow {
   std::vector<int> WindowIdsLocked(int num_new) const;
   void InitialisePending(const std::vector<int>& ids);
   WindowStepSummary Solve(std::vector<int> free_ids, const std::vector<int>& keyframe_ids);
-  WindowStepSummary SolveOnce(const std::vector<int>& free_ids,
-                              const std::vector<int>& keyframe_ids, bool hold_plane);
+  WindowStepSummary SolveStep(const std::vector<int>& free_ids,
+                              const std::vector<int>& keyframe_ids);
 
   mutable std::mutex mutex_;
   Eigen::Matrix3d camera_matrix_;

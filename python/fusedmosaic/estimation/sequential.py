@@ -63,6 +63,7 @@ from fusedmosaic.estimation.bundle import (
     subsample_inliers,
     undistort_points,
 )
+from fusedmosaic.estimation.guard import exclusive_call
 from fusedmosaic.estimation.keyframes import KeyframeIndex
 from fusedmosaic.estimation.plane import estimate_plane
 from fusedmosaic.estimation.world import (
@@ -357,16 +358,11 @@ class SequentialMosaicker:
     # ------------------------------------------------------------- call guards and rollback
     @contextmanager
     def _exclusive(self, what: str, check_usable: bool = True):
-        if not self._lock.acquire(blocking=False):
-            raise RuntimeError(f"{what} called concurrently from two threads; the mosaicker is "
-                               "not re-entrant — serialise calls")
-        try:
+        with exclusive_call(self._lock, "SequentialMosaicker", what):
             if check_usable and self._broken is not None:
                 raise RuntimeError(f"SequentialMosaicker is unusable: {self._broken}; call "
                                    "reset() to start a new mosaic")
             yield
-        finally:
-            self._lock.release()
 
     def _check_image(self, k: int, image) -> np.ndarray:
         if not isinstance(image, np.ndarray):

@@ -88,6 +88,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 from tqdm import tqdm
 
+from fusedmosaic.estimation.guard import exclusive_call
 from fusedmosaic.estimation.kalman import KalmanOptions, RobotKalmanFilter, normalize
 from fusedmosaic.io.tracking import (  # noqa: F401  (MAX_FRAME_GAP_S, MAX_TIMESTAMP_S: API)
     MAX_FRAME_GAP_S,
@@ -416,21 +417,10 @@ class RobotPriorMosaicker:
         self._busy = threading.Lock()
         self._reset()
 
-    def _enter(self, what: str) -> None:
-        if not self._busy.acquire(blocking=False):
-            raise RuntimeError(
-                f"RobotPriorMosaicker.{what} called while another call is running on this "
-                "mosaicker (from another thread): it is not re-entrant; serialise the calls "
-                "(e.g. one capture thread, or a lock around add_frame)"
-            )
-
     def reset(self) -> None:
         """Start a new sequence: the next frame becomes the reference (frame 0)."""
-        self._enter("reset")
-        try:
+        with exclusive_call(self._busy, "RobotPriorMosaicker", "reset"):
             self._reset()
-        finally:
-            self._busy.release()
 
     def _reset(self) -> None:
         self._count = 0
@@ -549,11 +539,8 @@ class RobotPriorMosaicker:
         ``KeyboardInterrupt``) puts back the state saved at the start of the call.
         """
         t_start = time.perf_counter()
-        self._enter("add_frame")
-        try:
+        with exclusive_call(self._busy, "RobotPriorMosaicker", "add_frame"):
             return self._add_frame(image, timestamp, robot_xy_um, t_start)
-        finally:
-            self._busy.release()
 
     def _add_frame(self, image, timestamp, robot_xy_um, t_start: float) -> FrameResult:
         i = self._count
