@@ -91,6 +91,20 @@ double EvaluateCost(ceres::Problem& problem, const std::vector<ceres::ResidualBl
 
 }  // namespace
 
+ceres::Solver::Options SolverOptionsFor(const BundleAdjusterOptions& options,
+                                        ceres::LinearSolverType linear_solver) {
+  ceres::Solver::Options so;
+  so.linear_solver_type = linear_solver;
+  so.max_num_iterations = options.max_iterations;
+  so.function_tolerance = options.function_tolerance;
+  so.gradient_tolerance = options.gradient_tolerance;
+  so.parameter_tolerance = options.parameter_tolerance;
+  so.num_threads = options.num_threads;
+  so.logging_type = ceres::SILENT;
+  so.minimizer_progress_to_stdout = false;
+  return so;
+}
+
 void BundleAdjusterOptions::Validate() const {
   CheckPositive(sigma_v_px, "sigma_v_px");
   CheckSigma(emt_sigma, "emt_sigma");
@@ -350,15 +364,8 @@ SolveSummary BundleAdjuster::Solve() {
     }
   }
 
-  ceres::Solver::Options solver_options;
-  solver_options.linear_solver_type = LinearSolverFromString(options_.linear_solver);
-  solver_options.max_num_iterations = options_.max_iterations;
-  solver_options.function_tolerance = options_.function_tolerance;
-  solver_options.gradient_tolerance = options_.gradient_tolerance;
-  solver_options.parameter_tolerance = options_.parameter_tolerance;
-  solver_options.num_threads = options_.num_threads;
-  solver_options.logging_type = ceres::SILENT;
-  solver_options.minimizer_progress_to_stdout = false;
+  ceres::Solver::Options solver_options =
+      SolverOptionsFor(options_, LinearSolverFromString(options_.linear_solver));
   std::string error;
   if (!solver_options.IsValid(&error)) throw std::invalid_argument("solve: " + error);
 

@@ -25,6 +25,8 @@
 // and no constraint is added. Disconnected groups of frames keep their own relative freedom.
 #pragma once
 
+#include <ceres/solver.h>
+
 #include <Eigen/Core>
 #include <array>
 #include <map>
@@ -63,6 +65,10 @@ struct BundleAdjusterOptions {
   // Throws std::invalid_argument naming the offending field.
   void Validate() const;
 };
+
+// Ceres options for one solve under `options`: its stopping criteria and threads, silent.
+ceres::Solver::Options SolverOptionsFor(const BundleAdjusterOptions& options,
+                                        ceres::LinearSolverType linear_solver);
 
 struct SolveSummary {
   int iterations = 0;  // successful + unsuccessful steps

@@ -469,14 +469,7 @@ WindowStepSummary SlidingWindow::SolveStep(const std::vector<int>& free_ids,
     out.termination = "NO_RESIDUALS";
     return out;
   }
-  ceres::Solver::Options so;
-  so.linear_solver_type = WindowLinearSolver(c.linear_solver);
-  so.max_num_iterations = c.max_iterations;
-  so.function_tolerance = c.function_tolerance;
-  so.gradient_tolerance = c.gradient_tolerance;
-  so.parameter_tolerance = c.parameter_tolerance;
-  so.num_threads = c.num_threads;
-  so.logging_type = ceres::SILENT;
+  const ceres::Solver::Options so = SolverOptionsFor(c, WindowLinearSolver(c.linear_solver));
   // Runs the solver; a second run (pi held) adds its counts and times to the first's.
   auto solve = [&](bool first) {
     ceres::Solver::Summary summary;
