@@ -509,20 +509,29 @@ def test_evaluate_positions_must_be_a_positive_integer(data, emt_out, capsys, va
     assert not (emt_out / "evaluation.json").exists()
 
 
-def test_evaluate_warns_about_another_dataset(data, emt_out, tmp_path, capsys):
+def test_evaluate_refuses_or_warns_about_another_dataset(data, emt_out, tmp_path, capsys):
     pcle = tmp_path / "p"
     assert run(data / "pcle", pcle, "robot") == 0
     report = json.loads((pcle / "report.json").read_text())
     assert report["dataset_fingerprint"]["frames"] == 8
     assert set(report["dataset_fingerprint"]["sha256"]) == {"camera.yaml", "frames.csv",
                                                             "ground_truth.csv"}
-    # the fetoscopy truth also has 8 frames: scored, but with a warning
+    # the fetoscopy truth also has 8 frames, but of another size: refused (e_j's grid of points
+    # is the truth's frame), nothing written
     assert main(["--quiet", "evaluate", str(pcle), "--truth", str(data / "feto"),
-                 "--no-report"]) == 0
+                 "--no-report"]) == 2
+    assert (f"{pcle / 'report.json'}: the output was computed on 128x112 frames, the truth "
+            f"dataset {data / 'feto'} has 400x400 frames" in capsys.readouterr().err)
+    assert not (pcle / "evaluation.json").exists()
+    # another pCLE recording of the same size: scored, but with a warning
+    other = tmp_path / "other"
+    assert main(["--quiet", "simulate", "pcle", str(other), "--n-frames", "8", "--width", "128",
+                 "--height", "112", "--trajectory", "spiral"]) == 0
+    assert main(["--quiet", "evaluate", str(pcle), "--truth", str(other), "--no-report"]) == 0
     err = capsys.readouterr().err
     assert err.startswith(f"fusedmosaic: warning: {pcle / 'report.json'} records the dataset "
-                          f"{(data / 'pcle').resolve()}, but {data / 'feto'} differs from it")
-    assert "camera.yaml" in err and "ground_truth.csv" in err
+                          f"{(data / 'pcle').resolve()}, but {other} differs from it")
+    assert "ground_truth.csv" in err
     # a moved copy of the right dataset is fine
     moved = tmp_path / "moved"
     shutil.copytree(data / "pcle", moved)

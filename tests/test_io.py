@@ -484,3 +484,26 @@ def test_write_dataset_refuses_to_overwrite(tmp_path):
     _write(tmp_path, 3, overwrite=True)
     assert len(read_dataset(root).frames) == 3
     assert [p.name for p in tmp_path.iterdir()] == ["ds"]
+
+
+def test_camera_pose_from_one_live_sample():
+    """One tracker sample through the hand-eye gives the pose interpolate_camera_poses gives at
+    that sample's time; bad samples are refused with the reason."""
+    from fusedmosaic.io import TrackingSamples, camera_pose_from_sample, interpolate_camera_poses
+    from fusedmosaic.simulation import FetoscopyOptions, generate_fetoscopy
+
+    s = generate_fetoscopy(FetoscopyOptions(n_frames=8, motion="handheld"))
+    samples = TrackingSamples(s.tracker_timestamps, s.tracker_translations,
+                              s.tracker_quaternions, s.tracker_valid)
+    at = [2, 5, 9]
+    expected, valid = interpolate_camera_poses(samples, s.tracker_timestamps[at], s.hand_eye)
+    assert valid.all()
+    got = [camera_pose_from_sample(s.tracker_translations[i], s.tracker_quaternions[i],
+                                   s.hand_eye) for i in at]
+    np.testing.assert_allclose(got, expected, atol=1e-12)
+    with pytest.raises(ValueError, match="quaternion is zero"):
+        camera_pose_from_sample([0, 0, 0], [0, 0, 0, 0])
+    with pytest.raises(ValueError, match="must be finite"):
+        camera_pose_from_sample([0, np.nan, 0], [0, 0, 0, 1])
+    with pytest.raises(ValueError, match=r"translation \(3,\), quaternion \(4,\)"):
+        camera_pose_from_sample([0, 0], [0, 0, 0, 1])

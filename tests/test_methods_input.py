@@ -41,6 +41,24 @@ def test_no_registrable_pair(untracked, tmp_path, method):
     assert not (tmp_path / "out").exists()
 
 
+def test_ba_with_untextured_reference_frame(tmp_path):
+    """Frames 1-3 register with each other, frame 0 (the output's reference) is black: the
+    visual-only adjustment cannot place anything relative to it and says so."""
+    import cv2
+
+    rng = np.random.default_rng(1)
+    scene = cv2.GaussianBlur(rng.integers(0, 255, (200, 260), dtype=np.uint8), (5, 5), 1.5)
+    frames = [np.zeros((120, 160), np.uint8)] + [scene[8 * k:8 * k + 120, 6 * k:6 * k + 160]
+                                                 for k in (1, 2, 3)]
+    data = write_dataset(tmp_path / "data", camera=Camera(160, 120, camera_matrix=K),
+                         frames=frames, timestamps=np.arange(4) / 25.0)
+    with pytest.raises(ValueError, match=r"data: frame 0, the reference of every output "
+                       r"homography, has no registered pair \([1-9]\d* pairs registered between "
+                       r"other frames\).*ba-emt and lba-emt"):
+        run_dataset(data, "ba", tmp_path / "out", progress=False)
+    assert not (tmp_path / "out").exists()
+
+
 def test_unknown_method_and_cli_error_line(untracked, tmp_path, capsys):
     with pytest.raises(ValueError, match="unknown method 'nope'; available: lba-emt, ba-emt"):
         run_dataset(untracked, "nope", tmp_path / "out")

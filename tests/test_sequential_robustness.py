@@ -110,7 +110,8 @@ def bad_calls(scene):
         ((image, t, pose.astype(complex)), TypeError, "tracker_pose .* dtype complex128"),
         ((image, t, [0, 0, 0, None, 0, 0]), TypeError, "tracker_pose .* dtype object"),
         ((image, t, pose[:5]), ValueError, "frame 13: tracker_pose must be 6 finite values"),
-        ((image, t, np.full(6, np.nan)), ValueError, "tracker_pose must be 6 finite values"),
+        ((image, t, np.r_[np.full(5, np.nan), 1.0]), ValueError,
+         "tracker_pose must be 6 finite values"),
         ((image, t, far), ValueError, r"frame 13: tracker_pose translation .* bound .* \(1 km\)"),
         ((image, t, huge), ValueError, r"tracker_pose translation .* bound .* \(1 km\)"),
     ]

@@ -253,6 +253,12 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
         init = _visual_initialisation(n, ok, K)
         plane = np.array([0.0, 0.0, -1.0])
         frames = [k for k in range(n) if np.isfinite(init[k]).all()]
+        if len(frames) < 2:
+            raise ValueError(
+                f"{dataset.root}: frame 0, the reference of every output homography, has no "
+                f"registered pair ({len(ok)} pairs registered between other frames): the visual "
+                "cost alone cannot place any frame relative to it; ba-emt and lba-emt place "
+                "untextured frames from the tracker")
     timings["initialisation"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

@@ -10,6 +10,9 @@
 
 A frame is final once its step has run (every chi_e frames); until then `add_frame` returns a
 provisional placement from its tracker pose (or the motion prediction) and the current plane.
+The first `bootstrap_frames` (40) frames are final only after the start-up adjustment; until
+then their provisional placements are chained through their registered pairs to frame 0 (a
+frame without one: from the tracker poses and the plane of the start-up pairs so far).
 State is bounded: features only for the frames the window matches against, images never, and
 keyframe candidates in a bounded spatial reservoir (estimation/keyframes.py) whose evicted frames
 are forgotten by the C++ window too.
@@ -25,10 +28,13 @@ the mosaicker as it was, so the frame can be corrected and sent again with the s
   frame's: a larger value is taken for a unit mix-up (ms, µs or ns given as s) and refused,
   since it would block every later frame (the same checks as RobotPriorMosaicker,
   io.tracking.check_stream_timestamp).
-- tracker_pose: None, or 6 finite real numbers [r, t] (cam_from_world, angle-axis rad, mm) with
-  |t| within the dataset reader's 1 km bound (io.tracking.MAX_TRANSLATION_MM). The rotation
-  vector is canonicalised to norm <= pi (the same rotation written with norm > pi, as a
-  quaternion with w < 0 converts to, gives the same mosaic).
+- tracker_pose: None (or 6 NaN, as read_dataset writes a tracker gap) for a frame without a
+  tracker sample, or 6 finite real numbers [r, t]: the CAMERA's pose cam_from_world
+  (angle-axis rad, mm), i.e. the tracker sample composed with the hand-eye transform
+  (io.camera_pose_from_sample does it for one live sample), with |t| within the dataset
+  reader's 1 km bound (io.tracking.MAX_TRANSLATION_MM). The rotation vector is canonicalised
+  to norm <= pi (the same rotation written with norm > pi, as a quaternion with w < 0 converts
+  to, gives the same mosaic).
 A tracker sample that jumps from the last trusted one faster than
 `tracker_max_speed_mm_s` / `tracker_max_angular_speed` allow (plus a noise margin) is a glitch:
 it is dropped before it reaches the window (the frame is placed from its images and the motion
@@ -286,6 +292,12 @@ class SequentialMosaicker:
         self._poses: dict[int, np.ndarray] = {}  # last two estimated poses, for prediction
         self._reference_pose: np.ndarray | None = None
         self._plane: np.ndarray | None = None
+        # Provisional placements in the start-up, until its adjustment gives self._plane: start-up
+        # frame -> reference homographies chained through each frame's best registered pair
+        # (PairVis over <= bootstrap_frames frames), else from the tracker poses and the plane of
+        # the start-up pairs registered so far.
+        self._startup_G: dict[int, np.ndarray] = {}
+        self._startup_plane: np.ndarray | None = None
         self._next_id = 0
         self._last_timestamp = -np.inf
         self._trusted: tuple | None = None  # last tracker sample kept: (time, centre, R)
@@ -301,6 +313,11 @@ class SequentialMosaicker:
         # correspondences of the registered ones.
         self.pair_counts = {"attempted": 0, "registered": 0, "correspondences": 0,
                             "loop_attempted": 0, "loop_registered": 0}
+
+    @property
+    def frame_count(self) -> int:
+        """Frames accepted since the last :meth:`reset`: the id the next frame will get."""
+        return self._next_id
 
     @property
     def plane(self) -> np.ndarray | None:
@@ -393,6 +410,8 @@ class SequentialMosaicker:
             raise TypeError(f"frame {k}: tracker_pose must be 6 real numbers [r, t] "
                             f"(cam_from_world), got dtype {pose.dtype}: {tracker_pose!r}")
         pose = pose.astype(np.float64)  # a copy: the caller's array is never kept
+        if pose.shape == (6,) and np.isnan(pose).all():
+            return None  # no sample, as read_dataset writes a tracker gap (Dataset.cam_from_world)
         if pose.shape != (6,) or not np.isfinite(pose).all():
             raise ValueError(f"frame {k}: tracker_pose must be 6 finite values "
                              f"[r, t] (cam_from_world), got {tracker_pose!r}")
@@ -425,6 +444,7 @@ class SequentialMosaicker:
             raise
 
     _SAVED = ("_next_id", "_last_timestamp", "_trusted", "_reference_pose", "_plane",
+              "_startup_G", "_startup_plane",
               "num_steps", "_finalized", "_boot_feats", "_boot_matches", "_loop_feats",
               "_loop_centroids", "_poses", "pair_counts", "_mirror_frames", "_mirror_pairs",
               "_mirror_plane", "_implausible_run", "_world_rotation")
@@ -587,6 +607,7 @@ class SequentialMosaicker:
         if self._plane is None:  # bootstrap: keep everything until the initial adjustment
             self._boot_feats.append(feats)
             self._boot_matches += ok
+            self._chain_startup(k, ok)
             if len(self._pending) >= self.options.bootstrap_frames:
                 waiting = not self._bootstrap()
             if waiting:
@@ -713,6 +734,7 @@ class SequentialMosaicker:
             plane = estimate_plane(self._boot_matches, table, self.K)
         except ValueError:  # no registered start-up pair with tracker poses yet
             return list(self._boot_feats)
+        self._startup_plane = plane
         recent = {f.frame_id for _, f in self._recent}
         older = [f.frame_id for f in self._boot_feats
                  if f.frame_id not in recent and f.frame_id in tracked]
@@ -755,6 +777,7 @@ class SequentialMosaicker:
         ba.set_plane(plane)
         ba.solve()
         self._plane = np.asarray(ba.plane())
+        self._startup_G, self._startup_plane = {}, None
         self._win_set_plane(self._plane)
         for k in ids:
             self._win_add_frame(k, np.asarray(ba.pose(k)), tracked.get(k), fixed=True)
@@ -843,16 +866,42 @@ class SequentialMosaicker:
         q = np.hstack([self._outline, np.ones((len(self._outline), 1))]) @ G.T
         return (q[:, :2] / q[:, 2:]).mean(axis=0)
 
+    def _chain_startup(self, k: int, ok: list) -> None:
+        """Start-up frame k's provisional homography: frame 0 is the reference; a later frame
+        is chained through its registered pair with the most inliers to a chained frame."""
+        if k == 0:
+            self._startup_G[k] = np.eye(3)
+            return
+        chained = [m for m in ok if m.frame_m in self._startup_G]
+        if chained:
+            best = max(chained, key=lambda m: m.n_inliers)
+            G = self._startup_G[best.frame_m] @ np.linalg.inv(best.H_lm)  # H_lm: old -> new
+            self._startup_G[k] = G / G[2, 2]
+
     def _provisional(self, k, timestamp, tracker_pose, timings) -> FrameResult:
+        """Frame k before its step: placed from its tracker pose (else the motion prediction)
+        and the current plane. In the start-up, before any step: chained through its registered
+        pairs to frame 0 (_chain_startup), else from its tracker pose, frame 0's and the
+        start-up plane (the tracker's accuracy, tens of pixels: a live preview)."""
         pose = tracker_pose if tracker_pose is not None else self._predict_pose()
-        if pose is None or self._plane is None or self._reference_pose is None:
+        plane, reference = self._plane, self._reference_pose
+        if plane is None and k in self._startup_G:
+            reported = (np.full(6, np.nan) if pose is None
+                        else poses_from_aligned(pose, self._world_rotation))
+            return FrameResult(k, timestamp, self._startup_G[k].copy(), reported, "provisional",
+                               False, timings=timings)
+        if plane is None:
+            first = self._pending[0] if self._pending else None
+            plane = self._startup_plane
+            reference = first["tracker"] if first is not None and first["id"] == 0 else None
+        if pose is None or plane is None or reference is None:
             nan = np.full((3, 3), np.nan)
             return FrameResult(k, timestamp, nan, np.full(6, np.nan),
                                "unplaced: waiting for the first window step", False,
                                timings=timings)
-        return FrameResult(k, timestamp, self._to_reference(pose),
-                           poses_from_aligned(pose, self._world_rotation), "provisional", False,
-                           timings=timings)
+        G = _core.transfer_homography(reference, pose, plane, self.K)
+        return FrameResult(k, timestamp, G, poses_from_aligned(pose, self._world_rotation),
+                           "provisional", False, timings=timings)
 
 
 def _plane_gate_details(steps: list[tuple[float, bool]]) -> dict:

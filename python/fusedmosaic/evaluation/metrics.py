@@ -146,8 +146,8 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
 
     positions_n: also the position statistics at that many evenly spaced frames (>= 1).
     When the output's report.json records another dataset than `truth_root`, the result's
-    "dataset_warning" says so (see evaluation.provenance)."""
-    from fusedmosaic.evaluation.provenance import dataset_mismatch
+    "dataset_warning" says so; frames of another size are refused (see evaluation.provenance)."""
+    from fusedmosaic.evaluation.provenance import check_frame_size, dataset_mismatch
     from fusedmosaic.io import read_dataset, read_homographies_csv
     from fusedmosaic.io.output import read_json_object
 
@@ -160,6 +160,10 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
     est_path = out_dir / "homographies.csv"
     if not est_path.is_file():
         raise ValueError(f"{est_path}: file not found")
+    report_path = out_dir / "report.json"
+    report = read_json_object(report_path) if report_path.is_file() else None
+    if report is not None:
+        check_frame_size(report, dataset, report_path)
     ids, G_est = read_homographies_csv(est_path)
     truth_ids = dataset.frame_ids
     if not np.array_equal(np.sort(ids), np.sort(truth_ids)):
@@ -182,9 +186,8 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
         "drift_ratio": drift_ratio(errors),
         "e_j_px": [None if not np.isfinite(e) else float(e) for e in errors],
     }
-    report_path = out_dir / "report.json"
-    if report_path.is_file():
-        warning = dataset_mismatch(read_json_object(report_path), dataset, report_path)
+    if report is not None:
+        warning = dataset_mismatch(report, dataset, report_path)
         if warning:
             result["dataset_warning"] = warning
     if dataset.camera.pixel_size_um:

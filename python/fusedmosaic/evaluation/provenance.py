@@ -1,6 +1,7 @@
 """Which dataset an output was computed from: `run` records a cheap fingerprint in report.json,
 `evaluate` compares it with the dataset given as --truth (a mismatch is warned about, not an
-error: datasets get moved, and a moved dataset keeps its fingerprint)."""
+error: datasets get moved, and a moved dataset keeps its fingerprint; but frames of another size
+are an error, since e_j's grid of points comes from the truth's frame size)."""
 
 from __future__ import annotations
 
@@ -65,3 +66,19 @@ def dataset_mismatch(report: dict, dataset, report_path: str | Path) -> str | No
             "was computed from"
         )
     return None
+
+
+def check_frame_size(report: dict, dataset, report_path: str | Path) -> None:
+    """ValueError when report.json records frames of another size than `dataset`'s: e_j is
+    measured on a grid over the truth's frame, so the scores would mean nothing."""
+    recorded = report.get("dataset_fingerprint")
+    if not isinstance(recorded, dict):
+        return
+    size = (recorded.get("width"), recorded.get("height"))
+    here = (int(dataset.camera.width), int(dataset.camera.height))
+    if size != here:
+        raise ValueError(
+            f"{report_path}: the output was computed on {size[0]}x{size[1]} frames, the truth "
+            f"dataset {dataset.root} has {here[0]}x{here[1]} frames; e_j compares points of the "
+            "truth's frame, so the scores would mean nothing (wrong --truth?)"
+        )

@@ -12,6 +12,7 @@ from fusedmosaic.io.output import OutputWriter, to_jsonable
 from fusedmosaic.io.tracking import (
     RobotSamples,
     TrackingSamples,
+    camera_pose_from_sample,
     interpolate_camera_poses,
     interpolate_robot,
     read_hand_eye,
@@ -30,6 +31,7 @@ __all__ = [
     "OutputWriter",
     "RobotSamples",
     "TrackingSamples",
+    "camera_pose_from_sample",
     "interpolate_camera_poses",
     "interpolate_robot",
     "read_camera_yaml",

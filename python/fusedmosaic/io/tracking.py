@@ -326,14 +326,37 @@ def interpolate_camera_poses(
         t_ts = np.stack(
             [np.interp(t, ts, samples.translations[samples.valid][:, j]) for j in range(3)], axis=1
         )
-        # world_from_cam = [R_ts | t_ts] @ [R_sc | t_sc]
-        R_sc = Rotation.from_matrix(X[:3, :3])
-        R_wc = R_ts * R_sc
-        t_wc = R_ts.apply(X[:3, 3]) + t_ts
-        R_cw = R_wc.inv()
-        cam_from_world[valid, :3] = R_cw.as_rotvec()
-        cam_from_world[valid, 3:] = -R_cw.apply(t_wc)
+        cam_from_world[valid] = _cam_from_world(R_ts, t_ts, X)
     return cam_from_world, valid
+
+
+def _cam_from_world(R_ts: Rotation, t_ts: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """[angle-axis, t] (N, 6) of cam_from_world from tracker_from_sensor and sensor_from_camera
+    X: world_from_cam = [R_ts | t_ts] @ X."""
+    R_wc = R_ts * Rotation.from_matrix(X[:3, :3])
+    t_wc = R_ts.apply(X[:3, 3]) + t_ts
+    R_cw = R_wc.inv()
+    return np.hstack([R_cw.as_rotvec().reshape(-1, 3), -R_cw.apply(t_wc).reshape(-1, 3)])
+
+
+def camera_pose_from_sample(translation, quaternion, sensor_from_camera=None) -> np.ndarray:
+    """The camera pose cam_from_world [angle-axis (rad), t (mm)] of ONE tracker sample
+    (tracker_from_sensor: translation in mm, quaternion x, y, z, w as in tracking.csv) through
+    the hand-eye transform sensor_from_camera (4x4, identity if None): what
+    ``SequentialMosaicker.add_frame`` takes as ``tracker_pose`` in a live loop, where the sample
+    after the frame time is not there yet to interpolate (interpolate_camera_poses does that
+    for recorded samples). Raises ValueError for non-finite values or a zero quaternion."""
+    t = np.asarray(translation, dtype=np.float64)
+    q = np.asarray(quaternion, dtype=np.float64)
+    X = np.eye(4) if sensor_from_camera is None else np.asarray(sensor_from_camera, np.float64)
+    if t.shape != (3,) or q.shape != (4,) or X.shape != (4, 4):
+        raise ValueError(f"tracker sample: expected translation (3,), quaternion (4,) and a 4x4 "
+                         f"hand-eye, got {t.shape}, {q.shape}, {X.shape}")
+    if not (np.isfinite(t).all() and np.isfinite(q).all() and np.isfinite(X).all()):
+        raise ValueError("tracker sample: translation, quaternion and hand-eye must be finite")
+    if np.linalg.norm(q) < 1e-9:
+        raise ValueError("tracker sample: the quaternion is zero (no rotation)")
+    return _cam_from_world(Rotation.from_quat(q), t, X)[0]
 
 
 def interpolate_robot(
