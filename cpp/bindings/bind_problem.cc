@@ -176,8 +176,8 @@ void BindProblem(py::module_& m) {
       m, "BundleAdjuster",
       "Bundle adjustment of frame poses and the plane: BAVis (use_emt=False) and BAVis+EMT\n"
       "(seed 000, Eq. 17). Owns the parameters, keyed by frame id. Without EMT priors the gauge\n"
-      "is fixed by holding the first frame constant and |plane| fixed. Calls from other threads\n"
-      "wait while solve() runs.")
+      "is fixed by holding the first (lowest-id) frame constant and |plane| fixed. Calls from\n"
+      "other threads wait while solve() runs.")
       .def(py::init([](const Mat& camera_matrix, const BundleAdjusterOptions& options) {
              return std::make_unique<BundleAdjuster>(CheckCameraMatrix(camera_matrix), options);
            }),

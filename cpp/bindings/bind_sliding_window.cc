@@ -56,7 +56,7 @@ void BindSlidingWindow(py::module_& m) {
                      "sqrt(trace(Cov_pi)) / |pi| above this is solved again with pi held\n"
                      "(0: gate and std computation off, plane_relative_std NaN)");
 
-  py::class_<WindowStepSummary>(m, "WindowStepSummary", "Result of SlidingWindow.step().")
+  py::class_<WindowStepSummary>(m, "WindowStepSummary", "Result of SlidingWindow.step() / redo().")
       .def_readonly("frame_ids", &WindowStepSummary::frame_ids)
       .def_readonly("fixed_ids", &WindowStepSummary::fixed_ids)
       .def_readonly("keyframe_ids", &WindowStepSummary::keyframe_ids)

@@ -216,8 +216,8 @@ class SolveSummary:
 class BundleAdjuster:
     """Bundle adjustment of frame poses and the plane: BAVis (use_emt=False) and BAVis+EMT
     (seed 000, Eq. 17). Owns the parameters, keyed by frame id. Without EMT priors the gauge
-    is fixed by holding the first (lowest-id) frame constant and |plane| fixed. Not
-    thread-safe: do not modify an adjuster while it solves.
+    is fixed by holding the first (lowest-id) frame constant and |plane| fixed. Calls from
+    other threads wait while solve() runs.
     """
 
     def __init__(self, camera_matrix: _ArrayLike, options: BundleAdjusterOptions = ...) -> None:

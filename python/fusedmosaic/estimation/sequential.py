@@ -90,6 +90,30 @@ PRESETS = {"syn": (5, 3, 3, 5), "phb": (3, 1, 3, 3), "ex": (12, 6, 3, 12)}
 
 @dataclass
 class SequentialOptions:
+    """Options of :class:`SequentialMosaicker` (LBAVis+EMT); defaults are the paper's SYN preset.
+
+    Window (Sec. 3.4, 4.2): ``window_size`` W cameras per step of which ``num_new`` (chi_e) are
+    new; ``num_clusters`` K-means clusters of older frames, ``frames_per_cluster`` consecutive
+    keyframes picked from each (``max_keyframe_blocks`` bounds the candidates kept); the other
+    presets with :meth:`preset` ("syn", "phb", "ex").
+    Registration: ``features`` (detector "sift" or "orb"), ``matching`` (ratio test, RANSAC,
+    threads), ``max_points_per_pair`` inliers kept per pair.
+    Costs: ``sigma_v_px`` (px), ``motion_sigma`` (rad x3, mm x3; None = the paper's appendix
+    values), ``loss``, ``linear_solver``, ``max_iterations``.
+    Start-up: the first ``bootstrap_frames`` frames are adjusted together (BA+EMT) before the
+    window starts, matched by predicted overlap (``startup_min_overlap``, a fraction);
+    ``startup_wait_frames`` bounds the wait for a tracker.
+    Beyond the paper (0 disables each): ``loop_pairs`` spatial loop pairs per frame (at least
+    ``loop_min_separation`` frames back), ``hold_prior_only_steps``, the plane observability
+    gate ``plane_max_relative_std``.
+    Tracker checks: ``gate_chi2`` / ``gate_sigma_scale`` down-weight a sample that disagrees
+    with the images; ``tracker_max_speed_mm_s`` (mm/s), ``tracker_max_angular_speed`` (rad/s),
+    ``tracker_jump_margin_mm`` / ``_rad``, ``tracker_max_gap_s`` (s) and
+    ``tracker_reanchor_after`` drop glitches. ``max_timestamp_gap_s`` (s) refuses unit
+    mix-ups. ``history_steps`` window step summaries are kept; ``seed`` seeds the keyframe
+    picks. The comments at each field in the source give the measurements behind the values.
+    """
+
     window_size: int = 5  # W (Sec. 4.2, SYN preset)
     num_new: int = 3  # chi_e, cameras estimated per step
     num_clusters: int = 3  # K of K-means
@@ -193,6 +217,20 @@ class SequentialOptions:
 
 @dataclass
 class FrameResult:
+    """What :meth:`SequentialMosaicker.add_frame` returns for a frame (and ``finalized()`` /
+    ``flush()`` once it is final).
+
+    frame_id: 0-based count of accepted frames. timestamp: s, as given. homography: (3, 3)
+    frame -> reference (frame 0's pixel grid), NaN when unplaced. pose: (6,) cam_from_world
+    [angle-axis rad, t mm] in the tracker's world (NaN when unknown). status: "placed" (final,
+    with visual evidence), "prior-only" (final, from the tracker and motion priors alone: no
+    registered pair), "provisional" (not final yet) or "unplaced: <why>". final: whether the
+    estimate will not change. tracker_gated: its tracker sample was down-weighted by the
+    window step (gate_chi2) or dropped as a glitch; tracker_dropped: dropped (never used).
+    timings: seconds per stage (features, matching, window_solve, keyframe_selection). plane:
+    (3,) pi = n / d of the step that made the frame final.
+    """
+
     frame_id: int
     timestamp: float
     homography: np.ndarray  # (3, 3) frame -> reference (NaN when unplaced)
