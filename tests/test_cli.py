@@ -74,3 +74,72 @@ def test_run_with_motion_sigma_from_an_independent_recording(datasets, tmp_path,
                  "--motion-sigma-from", str(other)]) == 2
     assert "--motion-sigma-from applies to ba-emt and lba-emt" in capsys.readouterr().err
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+
+def test_run_feature_options(datasets, tmp_path, capsys):
+    feto = tmp_path / "feto"  # a slower sweep than the fixture's: the frames overlap
+    assert main(["--quiet", "simulate", "fetoscopy", str(feto), "--n-frames", "12",
+                 "--laps", "0.3"]) == 0
+    out = tmp_path / "orb"
+    assert main(["--quiet", "run", str(feto), "--method", "ba-emt", "--out", str(out),
+                 "--no-report", "--detector", "orb", "--max-features", "800",
+                 "--detect-max-side", "300", "--clahe"]) == 0
+    features = json.loads((out / "report.json").read_text())["parameters"]["features"]
+    assert features["detector"] == "orb" and features["max_features"] == 800
+    assert features["max_image_side"] == 300 and features["clahe"] is True
+    out = tmp_path / "emt"
+    assert main(["--quiet", "run", str(feto), "--method", "emt", "--out", str(out),
+                 "--no-report", "--detector", "orb"]) == 0
+    parameters = json.loads((out / "report.json").read_text())["parameters"]
+    assert parameters["pair_selection"] == "emt-guided"  # the EMT baseline's own default
+    for extra, message in (
+            (["--method", "ncc", "--detector", "orb"],
+             "--detector / --max-features / --clahe / --detect-max-side apply to lba-emt"),
+            (["--method", "pairwise", "--max-features", "0"], "--max-features must be >= 1"),
+            (["--method", "pairwise", "--detect-max-side", "16"],
+             "--detect-max-side must be >= 32")):
+        assert main(["run", str(feto), "--out", str(tmp_path / "bad"), *extra]) == 2
+        assert message in capsys.readouterr().err
+        assert not (tmp_path / "bad").exists()
+
+
+def test_flags_are_named_in_errors(datasets, tmp_path, capsys):
+    with pytest.raises(SystemExit) as done:
+        main(["--version"])
+    assert done.value.code == 0 and capsys.readouterr().out.startswith("fusedmosaic 0.")
+    with pytest.raises(SystemExit):  # argparse choices: the help lists them, errors name them
+        main(["simulate", "fetoscopy", str(tmp_path / "s"), "--motion", "circular"])
+    assert "argument --motion: invalid choice: 'circular'" in capsys.readouterr().err
+    assert main(["simulate", "fetoscopy", str(tmp_path / "s"), "--n-frames", "0"]) == 2
+    assert "fusedmosaic: error: --n-frames: must be >= 1, got 0" in capsys.readouterr().err
+    feto = datasets / "feto"
+    for extra, message in ((["--border", "-1"], "--border must be >= 0 (pixels), got -1.0"),
+                           (["--bands", "0"], "--bands must be in 1..10, got 0"),
+                           (["--tile-size", "3"], "--tile-size must be >= 64 (pixels), got 3"),
+                           (["--max-canvas-pixels", "0"], "--max-canvas-pixels must be > 0")):
+        assert main(["run", str(feto), "--method", "emt", "--out", str(tmp_path / "o"),
+                     *extra]) == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "s").exists() and not (tmp_path / "o").exists()
+    # position errors in µm need a pixel size: a fetoscopy truth is refused, not ignored
+    out = tmp_path / "exact"
+    out.mkdir()
+    write_homographies_csv(out / "homographies.csv", *read_homographies_csv(
+        feto / "ground_truth.csv"))
+    assert main(["evaluate", str(out), "--truth", str(feto), "--positions", "3"]) == 2
+    assert "camera.yaml: no pixel_size_um, so no position errors" in capsys.readouterr().err
+
+
+def test_run_dataset_checks_compositing_options_before_estimating(datasets, tmp_path):
+    from fusedmosaic.compositing import BlendOptions, CanvasOptions
+    from fusedmosaic.runner import run_dataset
+
+    def refuse(**kwargs):
+        raise AssertionError("the method ran")
+
+    for kwargs, message in (({"blend": BlendOptions(border_px=-2)}, "border_px must be >= 0"),
+                            ({"blend": "mean"}, "blend must be one of"),
+                            ({"canvas": CanvasOptions(tile_size=8)}, "tile_size must be >= 64")):
+        with pytest.raises(ValueError, match=message):
+            run_dataset(datasets / "feto", "pairwise", tmp_path / "o", progress=False, **kwargs)
+    assert not (tmp_path / "o").exists()

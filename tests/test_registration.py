@@ -53,6 +53,38 @@ def test_known_homography_recovered(texture, detector):
     assert np.median(np.linalg.norm(moved - res.points_l, axis=1)) < 1.0
 
 
+@pytest.mark.parametrize("detector", ["sift", "orb"])
+def test_detection_on_a_shrunk_copy_maps_keypoints_to_full_resolution(texture, detector):
+    # Frames at twice the size, detected at half size (max_image_side): the keypoints are in
+    # full-resolution pixels, so the recovered homography is the full-resolution one.
+    S = np.diag([2.0, 2.0, 1.0])
+    A = S @ similarity(0, 1, -250, -250)
+    B = S @ np.array([[1.02, 0.03, -270], [-0.02, 0.99, -236], [2e-5, -1e-5, 1.0]])
+    size = (2 * SIZE[0], 2 * SIZE[1])
+    img_m, img_l = (cv2.warpPerspective(texture, H, size, flags=cv2.INTER_LINEAR) for H in (A, B))
+    mask = np.zeros((size[1], size[0]), np.uint8)
+    cv2.circle(mask, (size[0] // 2, size[1] // 2), 280, 255, -1)
+    ext = FeatureExtractor(FeatureOptions(detector=detector, max_features=1500,
+                                          max_image_side=SIZE[0]), mask)
+    fm, fl = ext.extract(img_m, 0), ext.extract(img_l, 1)
+    inside = mask[np.round(fm.points[:, 1]).astype(int), np.round(fm.points[:, 0]).astype(int)]
+    assert len(fm) > 100 and (inside > 0).all()  # the mask applies at the shrunk size too
+    assert fm.points[:, 0].max() > SIZE[0] and fm.points[:, 1].max() > SIZE[1]
+    res = match_pair(fl, fm, size, MatchOptions())
+    assert res.ok, res.status
+    true_lm = B @ np.linalg.inv(A)
+    err = frame_errors(res.H_lm[None], (true_lm / true_lm[2, 2])[None], *size)[0]
+    assert err < 1.0  # px at full resolution (0.5 px at the detection scale)
+    moved = cv2.perspectiveTransform(res.points_m[None], true_lm)[0]
+    assert np.median(np.linalg.norm(moved - res.points_l, axis=1)) < 2.0
+
+
+@pytest.mark.parametrize("side", [0, 31, 400.0, True])
+def test_bad_max_image_side_is_refused(side):
+    with pytest.raises(ValueError, match="max_image_side must be an integer >= 32"):
+        FeatureExtractor(FeatureOptions(max_image_side=side))
+
+
 def test_black_frame_and_unrelated_frames_are_reported(texture):
     ext = FeatureExtractor()
     f0 = ext.extract(view(texture, similarity(0, 1, -100, -100)), 0)

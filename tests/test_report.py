@@ -4,6 +4,7 @@ the report, evaluate --compare, --quiet, the end summary."""
 import json
 import re
 import shutil
+import warnings
 from pathlib import Path
 
 import cv2
@@ -168,14 +169,27 @@ def test_quiet_prints_nothing(dataset, tmp_path, capsys):
     assert (out / "mosaic.png").is_file() and not (out / "report.md").exists()
 
 
-def test_canvas_budget_is_a_clean_cli_error(dataset, tmp_path, capsys):
-    code = main(["run", str(dataset), "--method", "emt", "--out", str(tmp_path / "b"),
-                 "--max-canvas-pixels", "1000"])
-    assert code == 2
-    err = capsys.readouterr().err
-    assert re.search(r"fusedmosaic: error: mosaic canvas of \d+ x \d+ pixels .* exceeds the "
-                     r"budget of 1000 pixels", err)
-    assert not (tmp_path / "b").exists()
+def test_canvas_budget_skips_the_mosaic_but_keeps_the_estimates(dataset, tmp_path, capsys):
+    out = tmp_path / "b"
+    with warnings.catch_warnings():
+        warnings.simplefilter("default")  # as outside pytest: the CLI prints it
+        code = main(["run", str(dataset), "--method", "emt", "--out", str(out),
+                     "--max-canvas-pixels", "1000", "--video", str(out / "v.mp4")])
+    assert code == 0
+    captured = capsys.readouterr()
+    assert re.search(r"fusedmosaic: warning: .*b: mosaic.png and .*v.mp4 not written: mosaic "
+                     r"canvas of \d+ x \d+ pixels .* exceeds the budget of 1000 pixels .* The "
+                     r"estimates \(homographies.csv, report.json, ...\) are written.",
+                     captured.err)
+    assert "mosaic  not written (above the canvas budget: see report.json)" in captured.out
+    assert not (out / "mosaic.png").exists() and not (out / "v.mp4").exists()
+    report = json.loads((out / "report.json").read_text())
+    assert "exceeds the budget of 1000 pixels" in report["mosaic"]["skipped"]
+    assert report["mosaic"]["file"] is None and report["mosaic"]["video"]["file"] is None
+    assert "mosaic.png" not in report["outputs"]
+    ids, G = read_homographies_csv(out / "homographies.csv")
+    assert len(G) == report["frames"] and np.isfinite(G).all()
+    assert "Mosaic not written: mosaic canvas of" in (out / "report.md").read_text()
 
 
 def test_demo_says_where_to_look(tmp_path, capsys):

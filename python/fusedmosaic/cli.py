@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import re
 import sys
 import time
 import typing
@@ -34,7 +35,8 @@ def _add_dataclass_options(parser: argparse.ArgumentParser, cls: type) -> None:
             item = typing.get_args(base)[0] if typing.get_args(base) else str
             parser.add_argument(flag, nargs="*", type=item, default=default, help=help_text)
         else:
-            parser.add_argument(flag, type=base, default=default, help=help_text)
+            parser.add_argument(flag, type=base, default=default, help=help_text,
+                                choices=f.metadata.get("choices"))
 
 
 def _dataclass_from_args(cls: type, args: argparse.Namespace):
@@ -42,7 +44,6 @@ def _dataclass_from_args(cls: type, args: argparse.Namespace):
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
-    from fusedmosaic import simulation
     from fusedmosaic.io.dataset import check_replaceable_dataset
     from fusedmosaic.io.output import check_output_dir
 
@@ -53,6 +54,20 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
             raise ValueError(f"{target}: exists and is not empty (choose another folder, or pass "
                              "--overwrite to replace the dataset in it)")
         check_replaceable_dataset(target)  # not the cwd, a parent of it, or a non-dataset
+    try:
+        out = _simulate(args)
+    except ValueError as exc:  # "FetoscopyOptions.n_frames: ..." -> "--n-frames: ..."
+        raise ValueError(re.sub(r"\b(?:FetoscopyOptions|PcleOptions)\.(\w+)",
+                                lambda m: "--" + m.group(1).replace("_", "-"), str(exc))) from None
+    size = sum(p.stat().st_size for p in Path(out).rglob("*") if p.is_file())
+    _say(args, f"wrote {args.kind} dataset to {out} ({size / 1e6:.1f} MB) "
+               f"in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _simulate(args: argparse.Namespace) -> Path:
+    from fusedmosaic import simulation
+
     if args.kind == "fetoscopy":
         options = _dataclass_from_args(simulation.FetoscopyOptions, args)
         if options.black_frames == []:  # bare --black-frames: the paper's list (Sec. 4.2.3)
@@ -61,10 +76,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     else:
         out = simulation.simulate_pcle(args.out, _dataclass_from_args(simulation.PcleOptions, args),
                                        overwrite=args.overwrite)
-    size = sum(p.stat().st_size for p in Path(out).rglob("*") if p.is_file())
-    _say(args, f"wrote {args.kind} dataset to {out} ({size / 1e6:.1f} MB) "
-               f"in {time.perf_counter() - t0:.1f} s")
-    return 0
+    return Path(out)
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -91,6 +103,19 @@ def _cmd_run(args: argparse.Namespace) -> int:
         if args.method not in ("ba", "ba-emt", "emt"):
             raise ValueError(f"--pair-selection applies to ba, ba-emt and emt, not {args.method}")
         overrides["pair_selection"] = args.pair_selection
+    features = _feature_options(args)
+    if features is not None:
+        if args.method not in FEATURE_METHODS:
+            raise ValueError(f"--detector / --max-features / --clahe / --detect-max-side apply "
+                             f"to {', '.join(FEATURE_METHODS)}, not {args.method}")
+        overrides["features"] = features
+        if args.method == "pairwise":
+            from fusedmosaic.estimation.pairwise import PairwiseOptions
+
+            options = PairwiseOptions(features=features)
+            overrides = {}
+        elif args.method == "emt":  # the EMT baseline's own default pair selection
+            overrides.setdefault("pair_selection", "emt-guided")
     if overrides and args.method == "lba-emt":
         from fusedmosaic.estimation.sequential import SequentialOptions
 
@@ -108,11 +133,37 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+FEATURE_METHODS = ("lba-emt", "ba-emt", "ba", "emt", "pairwise")
+
+
+def _feature_options(args: argparse.Namespace):
+    """FeatureOptions from --detector/--max-features/--clahe/--detect-max-side, or None."""
+    from fusedmosaic.registration.features import FeatureOptions
+
+    if (args.detector is None and args.max_features is None and not args.clahe
+            and args.detect_max_side is None):
+        return None
+    options = FeatureOptions(clahe=args.clahe, max_image_side=args.detect_max_side)
+    if args.detector is not None:
+        options.detector = args.detector
+    if args.max_features is not None:
+        if args.max_features < 1:
+            raise ValueError(f"--max-features must be >= 1, got {args.max_features}")
+        options.max_features = args.max_features
+    if args.detect_max_side is not None and args.detect_max_side < 32:
+        raise ValueError(f"--detect-max-side must be >= 32 (pixels), got {args.detect_max_side}")
+    return options
+
+
 def _blend_options(args: argparse.Namespace):
     """BlendOptions from --blend/--border/--bands/--gain-compensation (blend None: the method's
     preference); None when no compositing flag is given."""
     from fusedmosaic.compositing import BlendOptions
 
+    if not (np.isfinite(args.border) and args.border >= 0):
+        raise ValueError(f"--border must be >= 0 (pixels), got {args.border}")
+    if args.bands is not None and not 1 <= args.bands <= 10:
+        raise ValueError(f"--bands must be in 1..10, got {args.bands}")
     if (args.blend is None and not args.border and args.bands is None
             and not args.gain_compensation):
         return None
@@ -126,8 +177,12 @@ def _canvas_options(args: argparse.Namespace):
 
     canvas = CanvasOptions()
     if args.max_canvas_pixels is not None:
+        if args.max_canvas_pixels <= 0:
+            raise ValueError(f"--max-canvas-pixels must be > 0, got {args.max_canvas_pixels}")
         canvas.max_pixels = args.max_canvas_pixels
     if args.tile_size is not None:
+        if args.tile_size < 64:
+            raise ValueError(f"--tile-size must be >= 64 (pixels), got {args.tile_size}")
         canvas.tile_size = args.tile_size
     return canvas
 
@@ -326,10 +381,11 @@ def _say(args: argparse.Namespace, text: str) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from fusedmosaic import methods, simulation
+    from fusedmosaic import __version__, methods, simulation
 
     parser = argparse.ArgumentParser(prog="fusedmosaic", description=__doc__)
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     quiet = argparse.ArgumentParser(add_help=False)  # --quiet after the command works too
     quiet.add_argument("--quiet", action="store_true", default=argparse.SUPPRESS,
@@ -350,7 +406,8 @@ def build_parser() -> argparse.ArgumentParser:
         p.set_defaults(func=_cmd_simulate)
 
     run = sub.add_parser("run", help="mosaic a dataset with one method", parents=[quiet])
-    run.add_argument("dataset")
+    run.add_argument("dataset", help="dataset folder (camera.yaml, frames/ or video, tracking "
+                                     "or robot file; see the README's dataset contract)")
     run.add_argument("--method", required=True,
                      help="one of: " + (", ".join(methods.available()) or "(none yet)"))
     run.add_argument("--out", required=True, help="output folder")
@@ -370,6 +427,18 @@ def build_parser() -> argparse.ArgumentParser:
                           "pattern (the mean of the recording's frames) before registration")
     run.add_argument("--allow-untracked", action="store_true",
                      help="flag frames outside the tracker's time span instead of failing")
+    feat = run.add_argument_group("features (lba-emt, ba-emt, ba, emt, pairwise)")
+    feat.add_argument("--detector", choices=["sift", "orb"],
+                      help="keypoint detector: sift (the paper's, default) or orb (faster)")
+    feat.add_argument("--max-features", type=int, metavar="N",
+                      help="strongest keypoints kept per frame (default 1000)")
+    feat.add_argument("--clahe", action="store_true",
+                      help="contrast-limited histogram equalisation before detection "
+                           "(low-contrast tissue)")
+    feat.add_argument("--detect-max-side", type=int, metavar="PX",
+                      help="detect on a copy of each frame shrunk to at most PX pixels on its "
+                           "longer side, keypoints mapped back to full resolution (faster on "
+                           "HD video; default: full resolution)")
     from fusedmosaic.compositing import BLENDS
 
     comp = run.add_argument_group("mosaic, video and report")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +46,7 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
         from fusedmosaic.compositing.video import check_video_suffix
 
         check_video_suffix(video)
+    check_compositing_options(blend, canvas)  # before minutes of estimation, not after
     t0 = time.perf_counter()
     dataset = read_dataset(dataset_root, fps=fps, robot_file=robot_file,
                            allow_untracked=allow_untracked)
@@ -122,6 +124,19 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
     return _summary(method, G, out, report_json, outputs, report)
 
 
+def check_compositing_options(blend, canvas) -> None:
+    """Raises ValueError for blend / canvas options compose_outputs would refuse."""
+    from fusedmosaic.compositing import BlendOptions, CanvasOptions
+
+    if isinstance(blend, str):
+        BlendOptions(blend).validate()
+    elif isinstance(blend, BlendOptions):  # its blend None: the method's, any is fine
+        dataclasses.replace(blend, blend=blend.blend or "linear").validate()
+    elif blend is not None:
+        raise ValueError(f"blend must be a blend name or BlendOptions, got {type(blend).__name__}")
+    (canvas or CanvasOptions()).validate()
+
+
 def check_out_outside_dataset(out: Path, dataset_root: Path) -> None:
     """OUT equal to the dataset folder or inside it (e.g. in frames/) would mix outputs into the
     dataset: mosaic.png among the frames, report.json beside camera.yaml."""
@@ -154,10 +169,14 @@ def older_run_outputs(out: Path) -> list[str]:
 def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=None, video=None,
                     out: Path, progress: bool, timings: dict[str, float]) -> dict:
     """mosaic.png (one piece, or tile by tile above CanvasOptions.in_memory_pixels), and the
-    creation video if asked; fills `timings`; returns what report.json says about them."""
+    creation video if asked; fills `timings`; returns what report.json says about them.
+
+    A canvas above the pixel budget (CanvasTooLargeError, raised before anything is allocated)
+    skips the mosaic and the video with a warning; the estimates are still written."""
     from fusedmosaic.compositing import (
         BlendOptions,
         CanvasOptions,
+        CanvasTooLargeError,
         frame_gains,
         plan_canvas,
         render_mosaic,
@@ -177,8 +196,17 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
     canvas = canvas or CanvasOptions()
     canvas.validate()
     t0 = time.perf_counter()
-    plan = plan_canvas(G, cam.width, cam.height, max_pixels=canvas.max_pixels,
-                       absurd_area_factor=canvas.absurd_area_factor)
+    try:
+        plan = plan_canvas(G, cam.width, cam.height, max_pixels=canvas.max_pixels,
+                           absurd_area_factor=canvas.absurd_area_factor)
+    except CanvasTooLargeError as exc:
+        skipped = ["mosaic.png"] + ([str(video)] if video is not None else [])
+        warnings.warn(f"{out}: {' and '.join(skipped)} not written: {exc}. The estimates "
+                      "(homographies.csv, report.json, ...) are written.", stacklevel=3)
+        info = {"file": None, "skipped": str(exc)}
+        if video is not None:
+            info["video"] = {"file": None, "skipped": str(exc)}
+        return {"mosaic": info, "plan": None, "video": None}
     gains = None
     if blend.gain_compensation:
         gains = frame_gains(dataset.frames, G, cam.width, cam.height, mask=mask, use=plan.use,
@@ -243,12 +271,20 @@ def write_run_report(w, dataset, method: str, result, G: np.ndarray, outputs: di
     )
 
     ids = dataset.frame_ids
+    plan, mosaic = outputs["plan"], outputs["mosaic"]
+    if plan is None:
+        note = f"Mosaic not written: {mosaic['skipped']}"
+    else:
+        note = (f"Mosaic: {mosaic['width']} x {mosaic['height']} px, {mosaic['blend']} blending"
+                f"{', tiled' if mosaic['tiled'] else ''}; its pixel (0, 0) is reference pixel "
+                f"{tuple(mosaic['origin_reference_px'])}.")
     run = RunRecord(method, G, poses=result.poses,
                     plane=None if result.plane is None else np.asarray(result.plane, float),
                     plane_history=plane_history_per_frame(result.details.get("plane_history"),
                                                           len(G)),
                     timings=dict(timings),
-                    skipped={int(ids[k]): why for k, why in outputs["plan"].skipped.items()},
+                    skipped={} if plan is None else {int(ids[k]): why
+                                                    for k, why in plan.skipped.items()},
                     output=".")
     directory = w.path("report.md").parent
     video = outputs.get("video")
@@ -259,11 +295,7 @@ def write_run_report(w, dataset, method: str, result, G: np.ndarray, outputs: di
             video = str(Path(video).resolve())
     write_report(directory, [run], truth_from_dataset(dataset),
                  title=f"fusedmosaic run: {method} ({methods.REGISTRY[method][1]})",
-                 mosaic="mosaic.png", video=video,
-                 notes=[f"Mosaic: {outputs['mosaic']['width']} x {outputs['mosaic']['height']} px,"
-                        f" {outputs['mosaic']['blend']} blending"
-                        f"{', tiled' if outputs['mosaic']['tiled'] else ''}; its pixel (0, 0) is "
-                        f"reference pixel {tuple(outputs['mosaic']['origin_reference_px'])}."])
+                 mosaic=None if plan is None else "mosaic.png", video=video, notes=[note])
 
 
 def _summary(method: str, G: np.ndarray, out: Path, report_json: dict, outputs: dict,
@@ -273,12 +305,15 @@ def _summary(method: str, G: np.ndarray, out: Path, report_json: dict, outputs: 
     if "metrics" in report_json:
         msg += f" (e_M = {report_json['metrics']['e_M_px']:.3f} px)"
     m = outputs["mosaic"]
-    detail = f"{m['width']} x {m['height']} px, {m['blend']}"
-    if m["tiled"]:
-        detail += ", tiled"
-    if m["skipped_frames"]:
-        detail += f", {len(m['skipped_frames'])} frame(s) left out: see report.json"
-    lines = [msg, f"  mosaic  {out / 'mosaic.png'}  ({detail})"]
+    if outputs["plan"] is None:
+        lines = [msg, "  mosaic  not written (above the canvas budget: see report.json)"]
+    else:
+        detail = f"{m['width']} x {m['height']} px, {m['blend']}"
+        if m["tiled"]:
+            detail += ", tiled"
+        if m["skipped_frames"]:
+            detail += f", {len(m['skipped_frames'])} frame(s) left out: see report.json"
+        lines = [msg, f"  mosaic  {out / 'mosaic.png'}  ({detail})"]
     if report:
         lines.append(f"  report  {out / 'report.md'}  (plots in {out / 'plots'})")
     if outputs["video"] is not None:

@@ -190,6 +190,10 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
         warning = dataset_mismatch(report, dataset, report_path)
         if warning:
             result["dataset_warning"] = warning
+    if positions_n is not None and not dataset.camera.pixel_size_um:
+        raise ValueError(f"{truth_root / 'camera.yaml'}: no pixel_size_um, so no position "
+                         f"errors in µm at {positions_n} evenly spaced frames (a pCLE "
+                         "measure): leave out positions_n (--positions)")
     if dataset.camera.pixel_size_um:
         err_um = position_errors_um(G_est, dataset.ground_truth, w, h,
                                     dataset.camera.pixel_size_um)

@@ -275,6 +275,8 @@ def _outside_span(
         raise ValueError(
             f"{source}: {int(outside.sum())} frames outside the {what}'s time span "
             f"[{t0:.6g}, {t1:.6g}] s; first offending frame index {i} at t={frame_times[i]:.6g} s"
+            " (fusedmosaic run: --allow-untracked flags such frames instead; without frames.csv "
+            "the frame times come from --fps)"
         )
     return outside
 

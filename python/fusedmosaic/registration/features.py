@@ -28,6 +28,10 @@ class FeatureOptions:
     clahe_tiles: int = 8
     mask_margin_px: int = 6  # keep keypoints this far inside the field of view
     border_threshold: int = 12  # grey level below which a border pixel counts as black
+    # Detect on a copy whose longer side is at most this many pixels (area-averaged), keypoints
+    # mapped back to full-resolution pixels. None: full resolution. For live HD video: at
+    # 1280x720 ORB detection is ~30 ms per frame at full size (bench/bench_detect_scale.py).
+    max_image_side: int | None = None
 
 
 @dataclass
@@ -68,7 +72,13 @@ class FeatureExtractor:
         self.options = options or FeatureOptions()
         if self.options.detector not in ("sift", "orb"):
             raise ValueError(f"detector must be 'sift' or 'orb', got {self.options.detector!r}")
+        side = self.options.max_image_side
+        if side is not None and (isinstance(side, bool) or not isinstance(side, int | np.integer)
+                                 or side < 32):
+            raise ValueError(f"max_image_side must be an integer >= 32 (pixels) or None, got "
+                             f"{side!r}")
         self._mask = None if mask is None else self._shrink(mask)
+        self._small_masks: dict[tuple, np.ndarray] = {}  # fixed mask at detection sizes
 
     def _shrink(self, mask: np.ndarray) -> np.ndarray:
         m = self.options.mask_margin_px
@@ -96,16 +106,41 @@ class FeatureExtractor:
         if mask is not None and mask.shape != gray.shape:
             raise ValueError(f"frame {frame_id}: mask shape {mask.shape} differs from the image "
                              f"{gray.shape}")
+        binary = self.options.detector == "orb"
+        if gray.max() <= self.options.border_threshold:  # no visual content (e.g. black frame)
+            return Features(frame_id, np.zeros((0, 2)), None, binary)
+        full_size = gray.shape[1], gray.shape[0]
+        size = self._detection_size(full_size)
+        if size != full_size:
+            gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
+            mask = None if mask is None else self._small_mask(mask, size, mask is self._mask)
         if self.options.clahe:
             clahe = cv2.createCLAHE(self.options.clahe_clip_limit,
                                     (self.options.clahe_tiles, self.options.clahe_tiles))
             gray = clahe.apply(gray)
-        binary = self.options.detector == "orb"
-        if gray.max() <= self.options.border_threshold:  # no visual content (e.g. black frame)
-            return Features(frame_id, np.zeros((0, 2)), None, binary)
         keypoints, descriptors = self._detector().detectAndCompute(gray, mask)
         points = np.array([kp.pt for kp in keypoints], np.float64).reshape(-1, 2)
+        if size != full_size:  # pixel centres: x_full + 0.5 = (x_small + 0.5) * W / w
+            scale = np.array(full_size, np.float64) / np.array(size, np.float64)
+            points = (points + 0.5) * scale - 0.5
         return Features(frame_id, points, descriptors, binary)
+
+    def _detection_size(self, full_size: tuple[int, int]) -> tuple[int, int]:
+        side = self.options.max_image_side
+        if side is None or max(full_size) <= side:
+            return full_size
+        s = side / max(full_size)
+        return max(1, round(full_size[0] * s)), max(1, round(full_size[1] * s))
+
+    def _small_mask(self, mask: np.ndarray, size: tuple[int, int], fixed: bool) -> np.ndarray:
+        """The mask at detection size: only pixels entirely inside the full-size mask."""
+        if fixed and size in self._small_masks:
+            return self._small_masks[size]
+        small = cv2.resize(mask, size, interpolation=cv2.INTER_AREA)
+        small = np.where(small >= 255, 255, 0).astype(np.uint8)
+        if fixed:
+            self._small_masks[size] = small
+        return small
 
 
 def extract_features(frames, frame_indices, camera_mask: np.ndarray | None,

@@ -5,9 +5,13 @@ from __future__ import annotations
 from dataclasses import field
 
 
-def option(default, help_text: str):
-    """A dataclass field whose default and one-line help (used by the CLI) sit together."""
-    return field(default=default, metadata={"help": help_text})
+def option(default, help_text: str, choices: tuple | None = None):
+    """A dataclass field whose default, one-line help and allowed values (used by the CLI) sit
+    together."""
+    metadata = {"help": help_text}
+    if choices is not None:
+        metadata["choices"] = choices
+    return field(default=default, metadata=metadata)
 
 
 def check_signs(options, *, positive=(), non_negative=()) -> None:

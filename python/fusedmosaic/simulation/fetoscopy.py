@@ -48,7 +48,8 @@ MOTIONS = ("syn", "handheld")
 class FetoscopyOptions:
     """Options of :func:`generate_fetoscopy` (the CLI builds its flags from these fields)."""
 
-    motion: str = _opt("syn", "'syn' (paper 000 Sec. 4.1: xy-translation circles) or 'handheld'")
+    motion: str = _opt("syn", "'syn' (paper 000 Sec. 4.1: xy-translation circles) or 'handheld'",
+                       choices=MOTIONS)
     n_frames: int = _opt(150, "frames (paper 000 Sec. 4.2.1 uses 152 SYN frames)")
     width: int = _opt(400, "frame width, px (paper's SYN frames are 368x378)")
     height: int = _opt(400, "frame height, px")

@@ -48,8 +48,8 @@ class PcleOptions:
     """Options of :func:`generate_pcle` (the CLI builds its flags from these fields)."""
 
     trajectory: str = _opt(
-        "circle", "'circle' or 'spiral' (lines at both ends), paper 004 Sec. IV-A"
-    )
+        "circle", "'circle' or 'spiral' (lines at both ends), paper 004 Sec. IV-A",
+        choices=TRAJECTORIES)
     width: int = _opt(512, "frame width, px (paper 004 Sec. III-B: 512x448 exported images)")
     height: int = _opt(448, "frame height, px")
     pixel_size_um: float = _opt(1.0, "µm/px (~500 µm field of view, paper 004 Sec. III-B)")
