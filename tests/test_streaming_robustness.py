@@ -173,6 +173,7 @@ def test_concurrent_add_frame_raises_and_sequential_threads_work(pcle, baseline,
     _feed(m, pcle, range(8, len(pcle)), out=out)
     np.testing.assert_array_equal(_positions(out), _positions(baseline))
     assert [out[k].index for k in sorted(out)] == list(range(len(pcle)))
+    assert all(out[k].frame_id == out[k].index for k in out)  # the sequential result's name
 
 
 # -- RobotPriorMosaicker: a grossly wrong robot sample is gated ----------------------------------

@@ -291,15 +291,20 @@ def translation_homography(position) -> np.ndarray:
 class FrameResult:
     """What :meth:`RobotPriorMosaicker.add_frame` returns for one frame.
 
-    index : frame number in the stream (0 = the reference).
+    index : frame number in the stream (0 = the reference); also as ``frame_id``, the name
+        SequentialMosaicker's FrameResult uses.
     position : (2,) px, the chosen estimate (X_m, X_r or X_f) relative to frame 0; NaN when the
         frame could not be placed.
     homography : (3, 3) frame -> reference translation, all-NaN when unplaced.
     status : ``placed`` (image evidence used), ``prior-only`` (placed from the robot alone) or
-        ``unplaced: <reason>``.
+        ``unplaced: <reason>``; frame 0, the reference, is always ``placed`` (so with
+        ``estimate="robot"`` every later frame is ``prior-only``).
     c_img, c_rob, c_angle, c_speed, c_match, c_sp : the confidences of Eqs. 13-18 for the fused
         estimate (NaN when not computed: frame 0, other estimates, missing inputs); ``c_match``
-        is also given for the image estimate.
+        is also given for the image estimate. ``c_img`` and ``c_rob`` are the weights of Eqs.
+        7-8: until enough frames give c_angle / c_speed / c_sp they hold the paper's initial
+        values c_img = 1 and c_rob = 10 (KalmanOptions.c_img0 / c_rob0), which is why c_rob is
+        not bounded by 1.
     ncc_score : mean forward/backward peak NCC (NaN without a registration).
     position_image, position_robot, position_fused : (2,) X_m, X_r, X_f where computed (NaN
         otherwise): the fused estimate also reports X_m and X_r for comparison.
@@ -337,6 +342,10 @@ class FrameResult:
     @property
     def placed(self) -> bool:
         return bool(np.isfinite(self.position).all())
+
+    @property
+    def frame_id(self) -> int:
+        return self.index
 
 
 @dataclass
