@@ -23,27 +23,14 @@ from pathlib import Path
 
 import numpy as np
 from _common import fmt, machine_info, md_table, write_json
-from bench_sequential import FRAMES_PER_LAP, stream, throughput
+from bench_sequential import make_scene, stream, throughput
 
 from fusedmosaic.estimation.sequential import SequentialOptions
 from fusedmosaic.evaluation import drift_ratio
-from fusedmosaic.io import Camera, TrackingSamples, interpolate_camera_poses
 from fusedmosaic.registration.features import FeatureOptions
-from fusedmosaic.simulation.fetoscopy import FetoscopyOptions, generate_fetoscopy
 
 SIZES = ((400, 400), (720, 576), (1280, 720))
 SIDES = (None, 512, 400)  # max_image_side; None = full resolution
-
-
-def scene_at(size: tuple[int, int], n_frames: int):
-    scene = generate_fetoscopy(FetoscopyOptions(n_frames=n_frames, laps=n_frames / FRAMES_PER_LAP,
-                                                width=size[0], height=size[1]))
-    camera = Camera(*scene.size, camera_matrix=scene.camera_matrix,
-                    fov_mask_radius=scene.fov_mask_radius)
-    samples = TrackingSamples(scene.tracker_timestamps, scene.tracker_translations,
-                              scene.tracker_quaternions, scene.tracker_valid)
-    poses, valid = interpolate_camera_poses(samples, scene.timestamps, scene.hand_eye)
-    return scene, camera, poses, valid
 
 
 def main() -> None:
@@ -55,7 +42,7 @@ def main() -> None:
     load_start = [round(x, 2) for x in os.getloadavg()]
     rows = []
     for size in SIZES:
-        scene, camera, poses, valid = scene_at(size, args.frames)
+        scene, camera, poses, valid = make_scene(args.frames, size)
         for side in SIDES:
             if side is not None and side >= max(size):
                 continue  # nothing to shrink

@@ -141,9 +141,9 @@ def stats_ms(x) -> dict:
             "mean": float(np.mean(x)), "max": float(np.max(x)), "n": int(len(x))}
 
 
-def make_scene(n_frames: int):
-    scene = generate_fetoscopy(FetoscopyOptions(n_frames=n_frames,
-                                                laps=n_frames / FRAMES_PER_LAP))
+def make_scene(n_frames: int, size: tuple[int, int] = (400, 400)):
+    scene = generate_fetoscopy(FetoscopyOptions(n_frames=n_frames, laps=n_frames / FRAMES_PER_LAP,
+                                                width=size[0], height=size[1]))
     camera = Camera(*scene.size, camera_matrix=scene.camera_matrix,
                     fov_mask_radius=scene.fov_mask_radius)
     samples = TrackingSamples(scene.tracker_timestamps, scene.tracker_translations,
