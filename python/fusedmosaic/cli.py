@@ -331,6 +331,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     data = root / "dataset"
     t0 = time.perf_counter()
     if not (data / "camera.yaml").is_file():
+        if args.frames < 1:
+            raise ValueError(f"--frames must be >= 1, got {args.frames}")
         simulation.simulate_fetoscopy(data, simulation.FetoscopyOptions(
             n_frames=args.frames, motion=args.motion))
         _say(args, f"[demo] simulated a {args.motion} fetoscopy sequence ({args.frames} frames, "
@@ -359,7 +361,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         w.write_text("evaluation.json", _json_text(result))
     _say(args, _format_table([result]))
     _say(args, f"[demo] {method}: {result['placed']}/{result['frames']} frames placed, "
-               f"e_M = {result['e_M_px']:.2f} px, drift ratio {result['drift_ratio']:.2f}; "
+               f"e_M = {result['e_M_px']:.3f} px, drift ratio {result['drift_ratio']:.2f}; "
                f"{time.perf_counter() - t0:.0f} s in all. Look at:")
     for name, what in (("report.md", "report: accuracy per frame, poses vs tracker vs truth, "
                                      "plane, timing (plots in plots/)"),
@@ -477,7 +479,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="simulate, mosaic with the best method, report, video",
                           parents=[quiet])
     demo.add_argument("--out", default="demo_out", help="folder for everything (default demo_out)")
-    demo.add_argument("--frames", type=int, default=150, help="frames to simulate (default 150)")
+    demo.add_argument("--frames", "--n-frames", type=int, default=150,
+                      help="frames to simulate (default 150)")
     demo.add_argument("--motion", choices=simulation.fetoscopy.MOTIONS, default="syn",
                       help="syn: the paper's circular SYN sequence; handheld: a free-hand sweep "
                            "over a tilted plane with a circular field of view")
