@@ -92,6 +92,14 @@ def test_run_feature_options(datasets, tmp_path, capsys):
                  "--no-report", "--detector", "orb"]) == 0
     parameters = json.loads((out / "report.json").read_text())["parameters"]
     assert parameters["pair_selection"] == "emt-guided"  # the EMT baseline's own default
+    for method, extra in (("pairwise", []), ("lba-emt", ["--motion-sigma-from", str(feto)])):
+        out = tmp_path / method
+        assert main(["--quiet", "run", str(feto), "--method", method, "--out", str(out),
+                     "--no-report", "--detector", "orb", *extra]) == 0
+        parameters = json.loads((out / "report.json").read_text())["parameters"]
+        assert parameters["features"]["detector"] == "orb"
+        if extra:  # both overrides reach SequentialOptions
+            assert parameters["motion_sigma"] is not None
     for extra, message in (
             (["--method", "ncc", "--detector", "orb"],
              "--detector / --max-features / --clahe / --detect-max-side apply to lba-emt"),
@@ -132,12 +140,16 @@ def test_flags_are_named_in_errors(datasets, tmp_path, capsys):
     assert "camera.yaml: no pixel_size_um, so no position errors" in capsys.readouterr().err
 
 
-def test_run_dataset_checks_compositing_options_before_estimating(datasets, tmp_path):
+def test_run_dataset_checks_compositing_options_before_estimating(datasets, tmp_path,
+                                                                  monkeypatch):
+    from fusedmosaic import runner
     from fusedmosaic.compositing import BlendOptions, CanvasOptions
     from fusedmosaic.runner import run_dataset
 
-    def refuse(**kwargs):
+    def refuse(*args, **kwargs):
         raise AssertionError("the method ran")
+
+    monkeypatch.setattr(runner.methods, "get", lambda name: refuse)
 
     for kwargs, message in (({"blend": BlendOptions(border_px=-2)}, "border_px must be >= 0"),
                             ({"blend": "mean"}, "blend must be one of"),

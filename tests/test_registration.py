@@ -79,6 +79,24 @@ def test_detection_on_a_shrunk_copy_maps_keypoints_to_full_resolution(texture, d
     assert np.median(np.linalg.norm(moved - res.points_l, axis=1)) < 2.0
 
 
+def test_shrunk_detection_keypoints_sit_where_full_resolution_ones_do(texture):
+    # An image made by doubling every pixel of `small`: ORB on it shrunk back by 2 finds the
+    # keypoints of `small`, which in full-resolution pixels ((x + 0.5) * 2 - 0.5) must coincide
+    # with ORB's on the full image at the same corners, to well under a pixel. A 0/1 mask is
+    # taken as 0/255.
+    small = view(texture, similarity(0, 1, -250, -250))
+    full = cv2.resize(small, (2 * SIZE[0], 2 * SIZE[1]), interpolation=cv2.INTER_NEAREST)
+    mask = np.zeros(full.shape, np.uint8)
+    mask[40:-40, 40:-40] = 1
+    shrunk = FeatureExtractor(FeatureOptions(detector="orb", max_image_side=SIZE[0]),
+                              mask).extract(full)
+    ref = FeatureExtractor(FeatureOptions(detector="orb")).extract(small)
+    assert len(shrunk) > 300
+    expected = (ref.points + 0.5) * 2 - 0.5
+    d = np.linalg.norm(shrunk.points[:, None] - expected[None], axis=2).min(axis=1)
+    assert np.median(d) < 0.1
+
+
 @pytest.mark.parametrize("side", [0, 31, 400.0, True])
 def test_bad_max_image_side_is_refused(side):
     with pytest.raises(ValueError, match="max_image_side must be an integer >= 32"):

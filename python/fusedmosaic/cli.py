@@ -459,7 +459,8 @@ def build_parser() -> argparse.ArgumentParser:
     comp.add_argument("--no-report", action="store_true",
                       help="skip report.md and its plots")
     comp.add_argument("--max-canvas-pixels", type=int, default=None,
-                      help="refuse mosaics larger than this (default 400 000 000)")
+                      help="skip (with a warning) mosaics larger than this many pixels; the "
+                           "estimates are still written (default 400 000 000)")
     comp.add_argument("--tile-size", type=int, default=None,
                       help="tile size (px) for mosaics rendered tile by tile (default 1024)")
     run.set_defaults(func=_cmd_run)

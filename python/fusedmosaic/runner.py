@@ -201,8 +201,10 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
                            absurd_area_factor=canvas.absurd_area_factor)
     except CanvasTooLargeError as exc:
         skipped = ["mosaic.png"] + ([str(video)] if video is not None else [])
-        warnings.warn(f"{out}: {' and '.join(skipped)} not written: {exc}. The estimates "
-                      "(homographies.csv, report.json, ...) are written.", stacklevel=3)
+        kept = (" (an earlier file at the video's path is left as it was)"
+                if video is not None and not is_under(video, out) else "")
+        warnings.warn(f"{out}: {' and '.join(skipped)} not written{kept}: {exc}. The "
+                      "estimates (homographies.csv, report.json, ...) are written.", stacklevel=3)
         info = {"file": None, "skipped": str(exc)}
         if video is not None:
             info["video"] = {"file": None, "skipped": str(exc)}

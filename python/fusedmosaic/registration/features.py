@@ -67,6 +67,10 @@ def fov_mask_from_image(image: np.ndarray, threshold: int = 12) -> np.ndarray | 
     return mask
 
 
+def _binary(mask: np.ndarray) -> np.ndarray:
+    return np.where(np.asarray(mask) > 0, 255, 0).astype(np.uint8)
+
+
 class FeatureExtractor:
     """Detects keypoints in frames of one camera; reusable and thread-safe per call."""
 
@@ -79,7 +83,8 @@ class FeatureExtractor:
                                  or side < 32):
             raise ValueError(f"max_image_side must be an integer >= 32 (pixels) or None, got "
                              f"{side!r}")
-        self._mask = None if mask is None else self._shrink(mask)
+        # OpenCV takes any non-zero mask value as inside; 255 is what the shrink below expects
+        self._mask = None if mask is None else self._shrink(_binary(mask))
         self._small_masks: dict[tuple, np.ndarray] = {}  # fixed mask at detection sizes
 
     def _shrink(self, mask: np.ndarray) -> np.ndarray:
