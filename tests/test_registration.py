@@ -99,7 +99,8 @@ def test_shrunk_detection_keypoints_sit_where_full_resolution_ones_do(texture):
 
 @pytest.mark.parametrize("side", [0, 31, 400.0, True])
 def test_bad_max_image_side_is_refused(side):
-    with pytest.raises(ValueError, match="max_image_side must be an integer >= 32"):
+    with pytest.raises(ValueError, match=r"max_image_side must be >= 32 \(pixels\), an integer, or "
+                                         "None"):
         FeatureExtractor(FeatureOptions(max_image_side=side))
 
 

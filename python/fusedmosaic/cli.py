@@ -81,7 +81,7 @@ def _simulate(args: argparse.Namespace) -> Path:
 
 def _cmd_run(args: argparse.Namespace) -> int:
     from fusedmosaic.io.dataset import check_fps
-    from fusedmosaic.runner import run_dataset
+    from fusedmosaic.runner import check_compositing_options, run_dataset
 
     check_fps(args.fps, "--fps")
     options = None
@@ -124,11 +124,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
         from fusedmosaic.estimation.bundle import BundleOptions
 
         options = BundleOptions(**overrides)
+    blend, canvas = _blend_options(args), _canvas_options(args)
+    check_compositing_options(blend, canvas, names=COMPOSITING_FLAGS)  # errors name the flags
     summary = run_dataset(args.dataset, args.method, args.out, fps=args.fps,
                           robot_file=args.robot_file, allow_untracked=args.allow_untracked,
-                          progress=_progress(args), options=options, blend=_blend_options(args),
-                          canvas=_canvas_options(args), video=args.video,
-                          report=not args.no_report)
+                          progress=_progress(args), options=options, blend=blend,
+                          canvas=canvas, video=args.video, report=not args.no_report)
     _say(args, summary)
     return 0
 
@@ -150,9 +151,13 @@ def _feature_options(args: argparse.Namespace):
         if args.max_features < 1:
             raise ValueError(f"--max-features must be >= 1, got {args.max_features}")
         options.max_features = args.max_features
-    if args.detect_max_side is not None and args.detect_max_side < 32:
-        raise ValueError(f"--detect-max-side must be >= 32 (pixels), got {args.detect_max_side}")
+    options.validate(names={"max_image_side": "--detect-max-side"})
     return options
+
+
+# compositing option fields -> the flags that set them (for check_compositing_options' messages)
+COMPOSITING_FLAGS = {"blend": "--blend", "border_px": "--border", "bands": "--bands",
+                     "max_pixels": "--max-canvas-pixels", "tile_size": "--tile-size"}
 
 
 def _blend_options(args: argparse.Namespace):
@@ -160,10 +165,6 @@ def _blend_options(args: argparse.Namespace):
     preference); None when no compositing flag is given."""
     from fusedmosaic.compositing import BlendOptions
 
-    if not (np.isfinite(args.border) and args.border >= 0):
-        raise ValueError(f"--border must be >= 0 (pixels), got {args.border}")
-    if args.bands is not None and not 1 <= args.bands <= 10:
-        raise ValueError(f"--bands must be in 1..10, got {args.bands}")
     if (args.blend is None and not args.border and args.bands is None
             and not args.gain_compensation):
         return None
@@ -177,12 +178,8 @@ def _canvas_options(args: argparse.Namespace):
 
     canvas = CanvasOptions()
     if args.max_canvas_pixels is not None:
-        if args.max_canvas_pixels <= 0:
-            raise ValueError(f"--max-canvas-pixels must be > 0, got {args.max_canvas_pixels}")
         canvas.max_pixels = args.max_canvas_pixels
     if args.tile_size is not None:
-        if args.tile_size < 64:
-            raise ValueError(f"--tile-size must be >= 64 (pixels), got {args.tile_size}")
         canvas.tile_size = args.tile_size
     return canvas
 

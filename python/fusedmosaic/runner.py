@@ -124,17 +124,18 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
     return _summary(method, G, out, report_json, outputs, report)
 
 
-def check_compositing_options(blend, canvas) -> None:
-    """Raises ValueError for blend / canvas options compose_outputs would refuse."""
+def check_compositing_options(blend, canvas, names: dict[str, str] | None = None) -> None:
+    """Raises ValueError for blend / canvas options compose_outputs cannot use; `names` maps
+    option fields to what the messages call them (the CLI's flags)."""
     from fusedmosaic.compositing import BlendOptions, CanvasOptions
 
     if isinstance(blend, str):
-        BlendOptions(blend).validate()
+        BlendOptions(blend).validate(names)
     elif isinstance(blend, BlendOptions):  # its blend None: the method's, any is fine
-        dataclasses.replace(blend, blend=blend.blend or "linear").validate()
+        dataclasses.replace(blend, blend=blend.blend or "linear").validate(names)
     elif blend is not None:
         raise ValueError(f"blend must be a blend name or BlendOptions, got {type(blend).__name__}")
-    (canvas or CanvasOptions()).validate()
+    (canvas or CanvasOptions()).validate(names)
 
 
 def check_out_outside_dataset(out: Path, dataset_root: Path) -> None:
@@ -170,6 +171,7 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
                     out: Path, progress: bool, timings: dict[str, float]) -> dict:
     """mosaic.png (one piece, or tile by tile above CanvasOptions.in_memory_pixels), and the
     creation video if asked; fills `timings`; returns what report.json says about them.
+    The options were checked by run_dataset (check_compositing_options).
 
     A canvas above the pixel budget (CanvasTooLargeError, raised before anything is allocated)
     skips the mosaic and the video with a warning; the estimates are still written."""
@@ -192,9 +194,7 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
         blend = BlendOptions(blend)
     elif blend.blend is None:  # options given, blend left to the method
         blend = dataclasses.replace(blend, blend=result.blend)
-    blend.validate()
     canvas = canvas or CanvasOptions()
-    canvas.validate()
     t0 = time.perf_counter()
     try:
         plan = plan_canvas(G, cam.width, cam.height, max_pixels=canvas.max_pixels,

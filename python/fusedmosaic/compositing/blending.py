@@ -38,13 +38,18 @@ class BlendOptions:
     bands: int = 5  # multiband pyramid levels below full resolution (OpenCV's stitching default)
     gain_compensation: bool = False  # Brown & Lowe (2007) Sec. 6: one gain per frame
 
-    def validate(self) -> None:
+    def validate(self, names: dict[str, str] | None = None) -> None:
+        """ValueError for a bad field; `names` maps fields to what the messages call them
+        (e.g. the CLI's flags)."""
+        name = (names or {}).get
         if self.blend not in BLENDS:
-            raise ValueError(f"blend must be one of {', '.join(BLENDS)}; got {self.blend!r}")
+            raise ValueError(f"{name('blend', 'blend')} must be one of {', '.join(BLENDS)}; got "
+                             f"{self.blend!r}")
         if not np.isfinite(self.border_px) or self.border_px < 0:
-            raise ValueError(f"border_px must be >= 0 px, got {self.border_px}")
+            raise ValueError(f"{name('border_px', 'border_px')} must be >= 0 (pixels), got "
+                             f"{self.border_px}")
         if not 1 <= int(self.bands) <= 10:
-            raise ValueError(f"bands must be in 1..10, got {self.bands}")
+            raise ValueError(f"{name('bands', 'bands')} must be in 1..10, got {self.bands}")
 
 
 def as_blend_options(blend: str | BlendOptions | None) -> BlendOptions:

@@ -46,11 +46,16 @@ class CanvasOptions:
     cache_mb: float = 32.0  # warped frames kept for neighbouring tiles (256 MB: no faster, bench)
     absurd_area_factor: float = ABSURD_AREA_FACTOR
 
-    def validate(self) -> None:
-        if self.max_pixels <= 0 or self.in_memory_pixels <= 0:
-            raise ValueError("max_pixels and in_memory_pixels must be positive")
+    def validate(self, names: dict[str, str] | None = None) -> None:
+        """ValueError for a bad field; `names` maps fields to what the messages call them
+        (e.g. the CLI's flags)."""
+        name = (names or {}).get
+        for key in ("max_pixels", "in_memory_pixels"):
+            if getattr(self, key) <= 0:
+                raise ValueError(f"{name(key, key)} must be > 0, got {getattr(self, key)}")
         if self.tile_size < 64:
-            raise ValueError(f"tile_size must be >= 64 px, got {self.tile_size}")
+            raise ValueError(f"{name('tile_size', 'tile_size')} must be >= 64 (pixels), got "
+                             f"{self.tile_size}")
 
 
 def _corners(width: int, height: int) -> np.ndarray:

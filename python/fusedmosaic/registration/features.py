@@ -35,6 +35,19 @@ class FeatureOptions:
     # precise as the shrunk image's pixels.
     max_image_side: int | None = None
 
+    def validate(self, names: dict[str, str] | None = None) -> None:
+        """ValueError for a bad field; `names` maps fields to what the messages call them
+        (e.g. the CLI's flags)."""
+        name = (names or {}).get
+        if self.detector not in ("sift", "orb"):
+            raise ValueError(f"{name('detector', 'detector')} must be 'sift' or 'orb', got "
+                             f"{self.detector!r}")
+        side = self.max_image_side
+        if side is not None and (isinstance(side, bool) or not isinstance(side, int | np.integer)
+                                 or side < 32):
+            raise ValueError(f"{name('max_image_side', 'max_image_side')} must be >= 32 "
+                             f"(pixels), an integer, or None; got {side!r}")
+
 
 @dataclass
 class Features:
@@ -76,13 +89,7 @@ class FeatureExtractor:
 
     def __init__(self, options: FeatureOptions | None = None, mask: np.ndarray | None = None):
         self.options = options or FeatureOptions()
-        if self.options.detector not in ("sift", "orb"):
-            raise ValueError(f"detector must be 'sift' or 'orb', got {self.options.detector!r}")
-        side = self.options.max_image_side
-        if side is not None and (isinstance(side, bool) or not isinstance(side, int | np.integer)
-                                 or side < 32):
-            raise ValueError(f"max_image_side must be an integer >= 32 (pixels) or None, got "
-                             f"{side!r}")
+        self.options.validate()
         # OpenCV takes any non-zero mask value as inside; 255 is what the shrink below expects
         self._mask = None if mask is None else self._shrink(_binary(mask))
         self._small_masks: dict[tuple, np.ndarray] = {}  # fixed mask at detection sizes
