@@ -9,6 +9,10 @@ median of each stage per frame, and the accuracy against the simulator's true ho
 in full-resolution pixels, and divided by the shrink factor: the same error in pixels of the
 detection image). Frames are rendered before each timed call (not counted).
 
+Then, at 1280x720 with detection at max side 512, fewer image pairs per frame (matching is the
+main cost there): the SYN preset without loop pairs (window pairs only) and the PHB preset
+(W = 3, chi_e = 1) with and without loop pairs, against the default (SYN preset, 2 loop pairs).
+
     python bench/bench_detect_scale.py [--frames 250] [--out bench/results/detect_scale.json]
 
 Writes the JSON and a markdown table beside it (detect_scale.md).
@@ -31,6 +35,13 @@ from fusedmosaic.registration.features import FeatureOptions
 
 SIZES = ((400, 400), (720, 576), (1280, 720))
 SIDES = (None, 512, 400)  # max_image_side; None = full resolution
+PAIRS_SIZE, PAIRS_SIDE = (1280, 720), 512
+PAIR_CONFIGS = {  # label -> (preset, loop_pairs)
+    "SYN preset, 2 loop pairs (default)": ("syn", 2),
+    "SYN preset, no loop pairs": ("syn", 0),
+    "PHB preset, 2 loop pairs": ("phb", 2),
+    "PHB preset, no loop pairs": ("phb", 0),
+}
 
 
 def main() -> None:
@@ -48,35 +59,47 @@ def main() -> None:
                 continue  # nothing to shrink
             options = SequentialOptions(features=FeatureOptions(detector="orb",
                                                                 max_image_side=side))
-            run = stream(scene, camera, poses, valid, args.frames, options)
-            t = throughput(run)
-            lo = t["steady_from_frame"]
-            shrink = 1.0 if side is None else side / max(size)
-            e = run["errors"]
-            row = {"width": size[0], "height": size[1], "max_image_side": side,
-                   "shrink": shrink,
-                   "frames_per_s_steady": t["frames_per_s_steady"],
-                   "latency_ms_steady": t["latency_ms_steady"],
-                   "stage_median_ms": {s: float(np.median(v[lo:]) * 1e3)
-                                       for s, v in run["stages"].items()},
-                   "e_M_px": float(np.nanmean(e)),
-                   "e_M_detection_px": float(np.nanmean(e)) * shrink,
-                   "max_e_j_px": float(np.nanmax(e)), "drift_ratio": drift_ratio(e),
-                   "unplaced": run["unplaced"],
-                   "registered_pairs_per_frame":
-                       run["pairs"]["registered_per_frame_after_bootstrap"]}
-            rows.append(row)
-            stages = {k: round(v, 2) for k, v in row["stage_median_ms"].items()}
-            print(f"{size[0]}x{size[1]} side {side}: {row['frames_per_s_steady']:.1f} "
-                  f"frames/s, stages {stages}, e_M {row['e_M_px']:.3f} px, "
-                  f"unplaced {row['unplaced']}", flush=True)
+            rows.append(measure(scene, camera, poses, valid, args.frames, size, side, options))
+    pair_rows = []
+    scene, camera, poses, valid = make_scene(args.frames, PAIRS_SIZE)
+    for label, (preset, loops) in PAIR_CONFIGS.items():
+        options = SequentialOptions.preset(
+            preset, loop_pairs=loops,
+            features=FeatureOptions(detector="orb", max_image_side=PAIRS_SIDE))
+        row = measure(scene, camera, poses, valid, args.frames, PAIRS_SIZE, PAIRS_SIDE, options)
+        pair_rows.append({"configuration": label, "preset": preset, "loop_pairs": loops,
+                          **row})
     res = {"machine": machine_info(), "frames": args.frames, "detector": "orb",
            "load_average_start": load_start, "load_average_end": [round(x, 2) for x in
                                                                   os.getloadavg()],
-           "runtime_s": time.perf_counter() - t_bench, "rows": rows}
+           "runtime_s": time.perf_counter() - t_bench, "rows": rows, "pair_rows": pair_rows}
     write_json(args.out, res)
     args.out.with_suffix(".md").write_text(markdown(res))
     print(f"wrote {args.out}")
+
+
+def measure(scene, camera, poses, valid, frames, size, side, options) -> dict:
+    """One streamed run: steady-state throughput, stage medians, accuracy, pairs per frame."""
+    run = stream(scene, camera, poses, valid, frames, options)
+    t = throughput(run)
+    lo = t["steady_from_frame"]
+    shrink = 1.0 if side is None else side / max(size)
+    e = run["errors"]
+    row = {"width": size[0], "height": size[1], "max_image_side": side, "shrink": shrink,
+           "frames_per_s_steady": t["frames_per_s_steady"],
+           "latency_ms_steady": t["latency_ms_steady"],
+           "stage_median_ms": {s: float(np.median(v[lo:]) * 1e3)
+                               for s, v in run["stages"].items()},
+           "e_M_px": float(np.nanmean(e)),
+           "e_M_detection_px": float(np.nanmean(e)) * shrink,
+           "max_e_j_px": float(np.nanmax(e)), "drift_ratio": drift_ratio(e),
+           "unplaced": run["unplaced"],
+           "registered_pairs_per_frame": run["pairs"]["registered_per_frame_after_bootstrap"]}
+    stages = {k: round(v, 2) for k, v in row["stage_median_ms"].items()}
+    print(f"{size[0]}x{size[1]} side {side}, W={options.window_size} chi_e={options.num_new} "
+          f"loops {options.loop_pairs}: {row['frames_per_s_steady']:.1f} frames/s, stages "
+          f"{stages}, e_M {row['e_M_px']:.3f} px, unplaced {row['unplaced']}", flush=True)
+    return row
 
 
 def markdown(res: dict) -> str:
@@ -96,6 +119,17 @@ def markdown(res: dict) -> str:
     lines += md_table(["frames", "detect max side", "frames/s", "latency median ms",
                        "features ms", "matching ms", "window solve ms", "e_M px",
                        "e_M px (detection scale)", "drift", "unplaced"], rows)
+    w, h = PAIRS_SIZE
+    lines += ["", f"Fewer pairs per frame at {w}x{h}, detection at max side {PAIRS_SIDE}:", ""]
+    rows = [[r["configuration"], fmt(r["registered_pairs_per_frame"], 1),
+             fmt(r["frames_per_s_steady"], 1),
+             fmt(r["latency_ms_steady"]["median"], 1), fmt(r["stage_median_ms"]["matching"], 1),
+             fmt(r["stage_median_ms"]["window_solve"], 2), fmt(r["e_M_px"], 3),
+             fmt(r["max_e_j_px"], 2), fmt(r["drift_ratio"]), r["unplaced"]]
+            for r in res["pair_rows"]]
+    lines += md_table(["configuration", "registered pairs per frame",
+                       "frames/s", "latency median ms", "matching ms", "window solve ms",
+                       "e_M px", "max e_j px", "drift", "unplaced"], rows)
     return "\n".join(lines) + "\n"
 
 

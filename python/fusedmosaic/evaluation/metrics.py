@@ -30,9 +30,10 @@ def grid_points(width: int, height: int, n: int = GRID_SIZE) -> np.ndarray:
 
 def _apply(H: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """Applies each (3,3) of H (N,3,3) to pts (P,2): returns (N,P,2)."""
-    hom = np.einsum("nij,pj->npi", H, np.hstack([pts, np.ones((len(pts), 1))]))
+    # batched matmul (BLAS), (N, 3, P): ~3x faster than the equivalent einsum at 100^2 points
+    hom = np.matmul(H, np.hstack([pts, np.ones((len(pts), 1))]).T)
     with np.errstate(divide="ignore", invalid="ignore"):  # degenerate rows: inf/NaN, unplaced
-        return hom[..., :2] / hom[..., 2:]
+        return np.moveaxis(hom[:, :2] / hom[:, 2:], 1, 2)
 
 
 def _check_stack(H: np.ndarray, name: str) -> np.ndarray:
