@@ -129,7 +129,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     summary = run_dataset(args.dataset, args.method, args.out, fps=args.fps,
                           robot_file=args.robot_file, allow_untracked=args.allow_untracked,
                           progress=_progress(args), options=options, blend=blend,
-                          canvas=canvas, video=args.video, report=not args.no_report)
+                          canvas=canvas, video=args.video, report=not args.no_report,
+                          live=args.live)
     _say(args, summary)
     return 0
 
@@ -426,6 +427,11 @@ def build_parser() -> argparse.ArgumentParser:
                           "pattern (the mean of the recording's frames) before registration")
     run.add_argument("--allow-untracked", action="store_true",
                      help="flag frames outside the tracker's time span instead of failing")
+    run.add_argument("--live", action="store_true",
+                     help="lba-emt / kalman-robot: replay the recording as a live source on this "
+                          "machine (frames at their timestamps with the newest tracker/robot "
+                          "sample; frames arriving while one is processed are dropped, except "
+                          "the newest); report.json 'live' gives drops and latency")
     feat = run.add_argument_group("features (lba-emt, ba-emt, ba, emt, pairwise)")
     feat.add_argument("--detector", choices=["sift", "orb"],
                       help="keypoint detector: sift (the paper's, default) or orb (faster)")

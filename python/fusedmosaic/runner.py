@@ -23,7 +23,7 @@ NEEDS_PIXEL_SIZE = {"ncc", "robot", "kalman-robot"}
 def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: float = 25.0,
                 robot_file: str = "robot.csv", allow_untracked: bool = False,
                 progress: bool = True, blend=None, options=None, canvas=None,
-                video: str | Path | None = None, report: bool = True) -> str:
+                video: str | Path | None = None, report: bool = True, live: bool = False) -> str:
     """Runs `method` on a dataset folder and writes the output contract into `out`.
 
     blend: a blend name ("linear", "multiband", "average", "last") or a
@@ -33,12 +33,24 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
     canvas: compositing.CanvasOptions (pixel budget, tiling); None: defaults.
     video: path of an MP4 of the mosaic's sequential creation (None: no video).
     report: also write report.md with PNG plots (plots/).
+    live: replay the recording as a live source through the method's streaming form (frames at
+        their timestamps, the newest tracker / robot sample, frames dropped while busy; see
+        estimation.live), for lba-emt and kalman-robot.
     Returns a short summary for the terminal."""
     from fusedmosaic.evaluation.provenance import dataset_fingerprint
     from fusedmosaic.io import read_dataset
 
     timings: dict[str, float] = {}
     run_method = methods.get(method)  # unknown method fails before any reading
+    if live:
+        from functools import partial
+
+        from fusedmosaic.estimation.live import LIVE_METHODS, replay_live
+
+        if method not in LIVE_METHODS:
+            raise ValueError(f"live replay: method {method!r} has no streaming form; use one "
+                             f"of {', '.join(LIVE_METHODS)}")
+        run_method = partial(replay_live, method=method)
     check_fps(fps)
     out = Path(out)
     check_out_outside_dataset(out, Path(dataset_root))
@@ -318,6 +330,11 @@ def _summary(method: str, G: np.ndarray, out: Path, report_json: dict, outputs: 
         lines = [msg, f"  mosaic  {out / 'mosaic.png'}  ({detail})"]
     if report:
         lines.append(f"  report  {out / 'report.md'}  (plots in {out / 'plots'})")
+    if "live" in report_json:
+        live = report_json["live"]
+        lines.append(f"  live    {live['frames_dropped']} frame(s) dropped; latency median "
+                     f"{live['latency_ms']['median']:.1f} ms, p95 {live['latency_ms']['p95']:.1f}"
+                     f" ms (frame interval {live['frame_interval_ms']:.1f} ms)")
     if outputs["video"] is not None:
         lines.append(f"  video   {outputs['video']}")
     return "\n".join(lines)

@@ -1,0 +1,190 @@
+"""Live replay: a recorded dataset fed to a streaming mosaicker as a live source would feed it.
+
+``fusedmosaic run DATA --method lba-emt --live`` (or ``kalman-robot``) answers "what would this
+recording have looked like live, on this machine?":
+
+- frame k arrives at its timestamp (relative to frame 0's) and gets the newest tracker (or robot)
+  sample taken at or before that time, as a live loop has it: no interpolation towards a sample
+  that has not arrived yet; a sample older than ``max_sample_age_s`` counts as none (a tracker
+  dropout), so the frame is placed from the images and the motion prior;
+- frames are processed one at a time, each as soon as the previous one is done; when frames
+  arrived while the mosaicker was busy, only the newest of them is processed and the others are
+  dropped (a capture queue of one frame: the live view never falls behind), with the status
+  "unplaced: dropped ...";
+- the clock is virtual: each call's measured wall time (or ``processing_time(k)``, for what-if
+  studies and tests) advances it, so the replay runs as fast as the machine allows and the drops
+  are those the measured times imply. Frames are read from disk outside the timed calls.
+
+Latency of a processed frame = waiting (arrival until the previous frame is done) + its own
+processing; the result of ``add_frame`` (for lba-emt the provisional placement shown live) is
+then available. The homographies written are the final ones (lba-emt: after the frame's window
+step), as in the offline run.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+from tqdm import tqdm
+
+from fusedmosaic.io.tracking import camera_pose_from_sample
+from fusedmosaic.methods import MethodResult
+
+__all__ = ["LIVE_METHODS", "replay_live", "newest_sample_index"]
+
+LIVE_METHODS = ("lba-emt", "kalman-robot")
+DROPPED = "unplaced: dropped (live replay: arrived while frame {busy} was being processed)"
+
+
+def newest_sample_index(sample_times: np.ndarray, t: float, max_age_s: float) -> int | None:
+    """Index of the newest sample taken at or before ``t`` and at most ``max_age_s`` before it;
+    None when there is none (``sample_times`` increasing)."""
+    i = int(np.searchsorted(sample_times, t, side="right")) - 1
+    if i < 0 or t - sample_times[i] > max_age_s:
+        return None
+    return i
+
+
+def _schedule(arrival: np.ndarray, process: Callable[[int], float]) -> tuple[list, dict]:
+    """Runs `process(k)` (returns its duration, s) on the frames a one-slot capture queue hands
+    over; returns the dropped frames as (k, frame being processed) and the latency per
+    processed frame (s)."""
+    n = len(arrival)
+    dropped, latency = [], {}
+    free_at, k, busy = -np.inf, 0, -1
+    while k < n:
+        if arrival[k] >= free_at:  # idle: frame k is taken when it arrives
+            j = k
+        else:  # busy: the newest frame that arrived meanwhile is taken, the others dropped
+            j = int(np.searchsorted(arrival, free_at, side="right")) - 1
+            dropped += [(i, busy) for i in range(k, j)]
+        start = max(arrival[j], free_at)
+        free_at = start + process(j)
+        latency[j] = free_at - arrival[j]
+        busy, k = j, j + 1
+    return dropped, latency
+
+
+def replay_live(dataset, method: str, *, options=None, progress: bool = True,
+                max_sample_age_s: float = 0.1,
+                processing_time: Callable[[int], float] | None = None) -> MethodResult:
+    """Replays `dataset` through the streaming form of `method` (``LIVE_METHODS``) as a live
+    source: see the module docstring. ``options``: the method's options (SequentialOptions or
+    RobotPriorOptions). ``max_sample_age_s``: the newest tracker / robot sample older than this
+    at a frame's time is not used (0.1 s = 4 periods of a 40 Hz tracker). ``processing_time``:
+    k -> seconds, replaces the measured time of frame k's call (what-if studies, tests)."""
+    if method not in LIVE_METHODS:
+        raise ValueError(f"live replay: method {method!r} has no streaming form; use one of "
+                         f"{', '.join(LIVE_METHODS)}")
+    if not (np.isfinite(max_sample_age_s) and max_sample_age_s >= 0):
+        raise ValueError(f"live replay: max_sample_age_s must be a finite number >= 0, got "
+                         f"{max_sample_age_s}")
+    n = len(dataset)
+    times = np.asarray(dataset.timestamps, dtype=np.float64)
+    arrival = times - times[0]
+    mosaicker, feed = _streaming(dataset, method, options, max_sample_age_s)
+    finals: dict[int, object] = {}  # dataset index -> final result
+    order: list[int] = []  # dataset index of each processed frame, in order
+    processing: dict[int, float] = {}
+    bar = tqdm(total=n, desc=f"{method} live", disable=not progress, leave=False)
+
+    def process(k: int) -> float:
+        image = dataset.frames[k]  # read before the timed call: a live frame is in memory
+        t0 = time.perf_counter()
+        results = feed(k, image)
+        elapsed = time.perf_counter() - t0
+        order.append(k)
+        take(results)
+        bar.update(k + 1 - bar.n)
+        processing[k] = elapsed if processing_time is None else float(processing_time(k))
+        return processing[k]
+
+    def take(results) -> None:
+        for r in results:  # the mosaicker numbers the frames it was given 0, 1, ...
+            finals[order[r.frame_id]] = r
+
+    try:
+        dropped, latency = _schedule(arrival, process)
+        if method == "lba-emt":
+            take(mosaicker.flush())
+    finally:
+        bar.close()
+    status = [None] * n
+    for k, busy in dropped:
+        status[k] = DROPPED.format(busy=int(dataset.frame_ids[busy]))
+    G = np.full((n, 3, 3), np.nan)
+    poses = np.full((n, 6), np.nan) if method == "lba-emt" else None
+    for k, r in finals.items():
+        G[k], status[k] = r.homography, r.status
+        if poses is not None:
+            poses[k] = r.pose
+    lat = np.array([latency[k] for k in sorted(latency)]) * 1e3
+    proc = np.array([processing[k] for k in sorted(processing)]) * 1e3
+    details = {"live": {
+        "frames_processed": len(latency), "frames_dropped": len(dropped),
+        "dropped": [int(dataset.frame_ids[k]) for k, _ in dropped],
+        "latency_ms": {"median": float(np.median(lat)), "p95": float(np.percentile(lat, 95)),
+                       "max": float(lat.max())},
+        "processing_ms": {"median": float(np.median(proc)),
+                          "p95": float(np.percentile(proc, 95)), "max": float(proc.max())},
+        "frame_interval_ms": float(np.median(np.diff(arrival)) * 1e3) if n > 1 else None,
+        "max_sample_age_s": max_sample_age_s,
+        "processing_time": "measured" if processing_time is None else "given"}}
+    plane = getattr(mosaicker, "plane", None)
+    parameters = {"live": True, **_parameters(options, method)}
+    return MethodResult(G, status, poses=poses, plane=None if plane is None else np.asarray(plane),
+                        timings={"processing": float(proc.sum() / 1e3)}, parameters=parameters,
+                        details=details, blend="linear" if method == "lba-emt" else "average")
+
+
+def _parameters(options, method: str) -> dict:
+    from dataclasses import asdict
+
+    if options is None:
+        from fusedmosaic.estimation.sequential import SequentialOptions
+        from fusedmosaic.estimation.translation import RobotPriorOptions
+
+        options = SequentialOptions() if method == "lba-emt" else RobotPriorOptions()
+    return asdict(options)
+
+
+def _streaming(dataset, method: str, options, max_age: float):
+    """The mosaicker and a feed(k, image) that hands it frame k with its newest sample and
+    returns the results made final by that call."""
+    if method == "lba-emt":
+        from fusedmosaic.estimation.sequential import SequentialMosaicker
+
+        dataset.require_tracking(method)
+        mosaicker = SequentialMosaicker(dataset.camera, options)
+        tracking = dataset.tracking
+        ok = np.ones(len(tracking.timestamps), bool) if tracking.valid is None else tracking.valid
+        sample_times = tracking.timestamps[ok]
+        translations, quaternions = tracking.translations[ok], tracking.quaternions[ok]
+
+        def feed(k: int, image) -> None:
+            t = float(dataset.timestamps[k])
+            i = newest_sample_index(sample_times, t, max_age)
+            pose = None if i is None else camera_pose_from_sample(
+                translations[i], quaternions[i], dataset.hand_eye)
+            mosaicker.add_frame(image, t, pose)
+            return mosaicker.finalized()
+
+        return mosaicker, feed
+    from fusedmosaic.estimation.translation import RobotPriorMosaicker
+
+    dataset.require_robot(method)
+    dataset.require_pixel_size(method)
+    if options is not None and options.flat_field:
+        raise ValueError("live replay: flat_field needs the fibre pattern of the whole recording "
+                         "(not known live); run without --flat-field")
+    mosaicker = RobotPriorMosaicker(dataset.camera, options)
+    robot = dataset.robot
+
+    def feed(k: int, image) -> None:
+        t = float(dataset.timestamps[k])
+        i = newest_sample_index(robot.timestamps, t, max_age)
+        return [mosaicker.add_frame(image, t, None if i is None else robot.xy_um[i])]
+
+    return mosaicker, feed
