@@ -8,13 +8,14 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from fusedmosaic.cli import main
-from fusedmosaic.estimation.live import newest_sample_index, replay_live
+from fusedmosaic.estimation.live import _schedule, newest_sample_index, replay_live
 from fusedmosaic.estimation.sequential import SequentialOptions, run_lba_emt
 from fusedmosaic.estimation.translation import RobotPriorOptions
 from fusedmosaic.evaluation import frame_errors, mosaic_error
-from fusedmosaic.io import read_dataset
+from fusedmosaic.io import read_dataset, read_poses_csv
 from fusedmosaic.registration.features import FeatureOptions
 from fusedmosaic.simulation import FetoscopyOptions, PcleOptions, simulate_fetoscopy, simulate_pcle
 
@@ -39,12 +40,57 @@ def _e_M(ds, result):
 
 
 def test_newest_sample_index():
-    times = np.array([0.0, 0.025, 0.05, 0.075])
-    assert newest_sample_index(times, 0.04, 0.1) == 1  # the newest at or before, not the nearest
-    assert newest_sample_index(times, 0.05, 0.1) == 2  # a sample at the frame time counts
-    assert newest_sample_index(times, -0.01, 0.1) is None  # no sample yet
-    assert newest_sample_index(times, 0.2, 0.1) is None  # the newest is 0.125 s old
-    assert newest_sample_index(times, 0.17, 0.1) == 3
+    times = np.array([0.0, 0.25, 0.5, 0.75])
+    assert newest_sample_index(times, 0.4, 0.5) == 1  # the newest at or before, not the nearest
+    assert newest_sample_index(times, 0.5, 0.5) == 2  # a sample at the frame time counts
+    assert newest_sample_index(times, -0.01, 0.5) is None  # no sample yet
+    assert newest_sample_index(times, 1.25, 0.5) == 3  # exactly max_age old: still used
+    assert newest_sample_index(times, 1.25 + 2**-20, 0.5) is None  # older: none
+
+
+def _one_slot_queue(arrival, duration):
+    """Reference: an event-by-event one-slot capture queue. A frame arriving while the
+    mosaicker is busy replaces the waiting one (dropped); a frame arriving exactly when the
+    processing ends counts as already there. Returns [(dropped, busy)], {frame: latency}."""
+    dropped, latency = [], {}
+    free_at, current, waiting = -np.inf, None, None
+    for k, a in enumerate(arrival):
+        while waiting is not None and free_at < a:  # the processor took the waiting frame
+            current, free_at = waiting, free_at + duration[waiting]
+            latency[current], waiting = free_at - arrival[current], None
+        if waiting is None and free_at <= a:  # idle: frame k at once
+            current, free_at = k, a + duration[k]
+            latency[k] = duration[k]
+        else:
+            if waiting is not None:
+                dropped.append((waiting, current))
+            waiting = k
+    if waiting is not None:
+        latency[waiting] = free_at + duration[waiting] - arrival[waiting]
+    return dropped, latency
+
+
+def test_schedule_matches_an_event_simulation_of_the_queue():
+    rng = np.random.default_rng(4)
+    for _ in range(300):
+        n = int(rng.integers(1, 12))
+        # dyadic times (multiples of 1/8): exact ties between arrivals and ends happen
+        arrival = np.cumsum(np.concatenate([[0], rng.integers(1, 4, n - 1)])) / 8.0
+        duration = rng.integers(0, 24, n) / 8.0
+        expected = _one_slot_queue(arrival, duration)
+        got = _schedule(arrival, lambda k, d=duration: float(d[k]))
+        assert got[0] == expected[0]
+        assert got[1] == pytest.approx(expected[1])
+
+
+def test_slow_mosaicker_drops_runs_of_frames(pcle):
+    """Each call 3.4 intervals T: frame 0 ends at 3.4 T, frames 1-3 arrived, 3 is taken and
+    ends at 6.8 T (4-6 arrived: 6 taken), then 10.2 T (7-10: 10 taken), 13.6 T (13 taken)."""
+    ds = read_dataset(pcle)
+    interval = float(np.median(np.diff(ds.timestamps)))
+    live = replay_live(ds, "kalman-robot", progress=False,
+                       processing_time=lambda k: 3.4 * interval).details["live"]
+    assert live["dropped"] == [1, 2, 4, 5, 7, 8, 9, 11, 12]
 
 
 def test_busy_mosaicker_drops_all_but_the_newest_frame(pcle):
@@ -96,6 +142,16 @@ def test_lba_emt_replay_with_the_newest_tracker_sample(syn):
     assert e_live < 1.5 * e_offline + 0.1
     assert res.poses.shape == (len(ds), 6) and np.isfinite(res.poses).all()
     assert res.parameters["live"] is True
+    assert res.details["live"]["frames_without_sample"] == []
+    # camera centres against the truth (mm): through the hand-eye transform as offline
+    # (measured median 0.75 mm; without the hand-eye ~4.6 mm)
+    _, truth = read_poses_csv(ds.root / "truth_poses.csv")
+
+    def centres(p):
+        R = Rotation.from_rotvec(p[:, :3]).as_matrix()
+        return -np.einsum("nji,nj->ni", R, p[:, 3:])
+
+    assert np.median(np.linalg.norm(centres(res.poses) - centres(truth), axis=1)) < 1.5
 
 
 def test_lba_emt_replay_with_drops_places_the_processed_frames(syn):
@@ -120,6 +176,9 @@ def test_live_refuses_methods_without_a_streaming_form(pcle):
         replay_live(ds, "ba-emt", progress=False)
     with pytest.raises(ValueError, match=r"max_sample_age_s must be a finite number >= 0"):
         replay_live(ds, "kalman-robot", progress=False, max_sample_age_s=float("nan"))
+    with pytest.raises(ValueError, match=r"processing_time\(0\) must be a finite number >= 0, "
+                                         r"got nan"):
+        replay_live(ds, "kalman-robot", progress=False, processing_time=lambda k: float("nan"))
     with pytest.raises(ValueError, match=r"flat_field needs the fibre pattern of the whole "
                                          r"recording"):
         replay_live(ds, "kalman-robot", progress=False,
@@ -139,3 +198,26 @@ def test_cli_run_live(pcle, tmp_path, capsys):
                  str(tmp_path / "x")]) != 0
     assert "live replay: method 'ncc' has no streaming form" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+
+
+def test_stale_samples_are_not_used_and_reported(pcle):
+    """A sample older than max_sample_age_s is no sample: with 0 s only frames taken exactly at
+    a robot sample get one; the others are listed and still handled (image only)."""
+    ds = read_dataset(pcle)
+    res = replay_live(ds, "kalman-robot", progress=False, max_sample_age_s=0.0,
+                      processing_time=lambda k: 0.0)
+    robot_times = set(ds.robot.timestamps.tolist())
+    expected = [int(ds.frame_ids[k]) for k in range(len(ds))
+                if float(ds.timestamps[k]) not in robot_times]
+    assert expected  # the robot is not sampled at every frame time
+    assert res.details["live"]["frames_without_sample"] == expected
+    default = replay_live(ds, "kalman-robot", progress=False, processing_time=lambda k: 0.0)
+    assert default.details["live"]["frames_without_sample"] == []
+    assert default.parameters["robot_file"] == "robot.csv"
+
+
+def test_cli_run_live_on_one_frame(tmp_path, capsys):
+    data = simulate_pcle(tmp_path / "one", replace(PCLE, n_frames=1))
+    assert main(["run", str(data), "--method", "kalman-robot", "--live", "--out",
+                 str(tmp_path / "out"), "--no-report"]) == 0
+    assert "(frame interval n/a)" in capsys.readouterr().out

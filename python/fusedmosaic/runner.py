@@ -332,9 +332,11 @@ def _summary(method: str, G: np.ndarray, out: Path, report_json: dict, outputs: 
         lines.append(f"  report  {out / 'report.md'}  (plots in {out / 'plots'})")
     if "live" in report_json:
         live = report_json["live"]
+        interval = live["frame_interval_ms"]
         lines.append(f"  live    {live['frames_dropped']} frame(s) dropped; latency median "
                      f"{live['latency_ms']['median']:.1f} ms, p95 {live['latency_ms']['p95']:.1f}"
-                     f" ms (frame interval {live['frame_interval_ms']:.1f} ms)")
+                     f" ms (frame interval "
+                     f"{'n/a' if interval is None else f'{interval:.1f} ms'})")
     if outputs["video"] is not None:
         lines.append(f"  video   {outputs['video']}")
     return "\n".join(lines)

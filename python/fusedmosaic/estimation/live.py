@@ -5,8 +5,9 @@ recording have looked like live, on this machine?":
 
 - frame k arrives at its timestamp (relative to frame 0's) and gets the newest tracker (or robot)
   sample taken at or before that time, as a live loop has it: no interpolation towards a sample
-  that has not arrived yet; a sample older than ``max_sample_age_s`` counts as none (a tracker
-  dropout), so the frame is placed from the images and the motion prior;
+  that has not arrived yet; a sample older than ``max_sample_age_s`` (by default 3 sample
+  periods, the offline gap rule) counts as none (a dropout), so the frame is placed from the
+  images and the priors (report.json "live": "frames_without_sample");
 - frames are processed one at a time, each as soon as the previous one is done; when frames
   arrived while the mosaicker was busy, only the newest of them is processed and the others are
   dropped (a capture queue of one frame: the live view never falls behind), with the status
@@ -25,6 +26,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from tqdm import tqdm
@@ -68,37 +70,49 @@ def _schedule(arrival: np.ndarray, process: Callable[[int], float]) -> tuple[lis
 
 
 def replay_live(dataset, method: str, *, options=None, progress: bool = True,
-                max_sample_age_s: float = 0.1,
+                max_sample_age_s: float | None = None,
                 processing_time: Callable[[int], float] | None = None) -> MethodResult:
     """Replays `dataset` through the streaming form of `method` (``LIVE_METHODS``) as a live
     source: see the module docstring. ``options``: the method's options (SequentialOptions or
     RobotPriorOptions). ``max_sample_age_s``: the newest tracker / robot sample older than this
-    at a frame's time is not used (0.1 s = 4 periods of a 40 Hz tracker). ``processing_time``:
-    k -> seconds, replaces the measured time of frame k's call (what-if studies, tests)."""
+    at a frame's time is not used; None = 3 x the median spacing of the valid samples, the
+    offline path's gap rule (interpolate_camera_poses). ``processing_time``: k -> seconds
+    (finite, >= 0), replaces the measured time of frame k's call (what-if studies, tests)."""
     if method not in LIVE_METHODS:
         raise ValueError(f"live replay: method {method!r} has no streaming form; use one of "
                          f"{', '.join(LIVE_METHODS)}")
-    if not (np.isfinite(max_sample_age_s) and max_sample_age_s >= 0):
+    if max_sample_age_s is not None and not (np.isfinite(max_sample_age_s)
+                                             and max_sample_age_s >= 0):
         raise ValueError(f"live replay: max_sample_age_s must be a finite number >= 0, got "
                          f"{max_sample_age_s}")
     n = len(dataset)
     times = np.asarray(dataset.timestamps, dtype=np.float64)
     arrival = times - times[0]
-    mosaicker, feed = _streaming(dataset, method, options, max_sample_age_s)
+    stream = _streaming(dataset, method, options, max_sample_age_s)
     finals: dict[int, object] = {}  # dataset index -> final result
     order: list[int] = []  # dataset index of each processed frame, in order
-    processing: dict[int, float] = {}
+    processing: dict[int, float] = {}  # the clock's advance per processed frame, s
+    measured = 0.0
     bar = tqdm(total=n, desc=f"{method} live", disable=not progress, leave=False)
 
     def process(k: int) -> float:
+        nonlocal measured
         image = dataset.frames[k]  # read before the timed call: a live frame is in memory
         t0 = time.perf_counter()
-        results = feed(k, image)
+        results = stream.feed(k, image)
         elapsed = time.perf_counter() - t0
+        measured += elapsed
         order.append(k)
         take(results)
         bar.update(k + 1 - bar.n)
-        processing[k] = elapsed if processing_time is None else float(processing_time(k))
+        if processing_time is None:
+            processing[k] = elapsed
+        else:
+            given = float(processing_time(k))
+            if not (np.isfinite(given) and given >= 0):
+                raise ValueError(f"live replay: processing_time({k}) must be a finite number "
+                                 f">= 0, got {given}")
+            processing[k] = given
         return processing[k]
 
     def take(results) -> None:
@@ -108,7 +122,7 @@ def replay_live(dataset, method: str, *, options=None, progress: bool = True,
     try:
         dropped, latency = _schedule(arrival, process)
         if method == "lba-emt":
-            take(mosaicker.flush())
+            take(stream.mosaicker.flush())
     finally:
         bar.close()
     status = [None] * n
@@ -130,61 +144,85 @@ def replay_live(dataset, method: str, *, options=None, progress: bool = True,
         "processing_ms": {"median": float(np.median(proc)),
                           "p95": float(np.percentile(proc, 95)), "max": float(proc.max())},
         "frame_interval_ms": float(np.median(np.diff(arrival)) * 1e3) if n > 1 else None,
-        "max_sample_age_s": max_sample_age_s,
+        "max_sample_age_s": stream.max_age,
+        # processed frames whose newest sample was missing or older than max_sample_age_s
+        "frames_without_sample": [int(dataset.frame_ids[k]) for k in sorted(stream.no_sample)],
         "processing_time": "measured" if processing_time is None else "given"}}
-    plane = getattr(mosaicker, "plane", None)
-    parameters = {"live": True, **_parameters(options, method)}
+    if method == "lba-emt":  # per frame: the plane of the step that made the frame final
+        details["plane_history"] = [None if k not in finals or finals[k].plane is None
+                                    else np.asarray(finals[k].plane).tolist() for k in range(n)]
+    plane = getattr(stream.mosaicker, "plane", None)
+    parameters = {"live": True, **stream.parameters}
     return MethodResult(G, status, poses=poses, plane=None if plane is None else np.asarray(plane),
-                        timings={"processing": float(proc.sum() / 1e3)}, parameters=parameters,
+                        timings={"processing": measured}, parameters=parameters,
                         details=details, blend="linear" if method == "lba-emt" else "average")
 
 
-def _parameters(options, method: str) -> dict:
-    from dataclasses import asdict
-
-    if options is None:
-        from fusedmosaic.estimation.sequential import SequentialOptions
-        from fusedmosaic.estimation.translation import RobotPriorOptions
-
-        options = SequentialOptions() if method == "lba-emt" else RobotPriorOptions()
-    return asdict(options)
-
-
-def _streaming(dataset, method: str, options, max_age: float):
-    """The mosaicker and a feed(k, image) that hands it frame k with its newest sample and
+@dataclass
+class _Stream:
+    """A streaming mosaicker and feed(k, image): hands it frame k with its newest sample and
     returns the results made final by that call."""
+
+    mosaicker: object
+    feed: Callable
+    max_age: float
+    parameters: dict
+    no_sample: set = field(default_factory=set)
+
+
+def _max_age(sample_times: np.ndarray, given: float | None) -> float:
+    if given is not None:
+        return float(given)
+    spacing = np.diff(sample_times)
+    return 3.0 * float(np.median(spacing)) if spacing.size else 0.0
+
+
+def _streaming(dataset, method: str, options, max_age: float | None) -> _Stream:
     if method == "lba-emt":
-        from fusedmosaic.estimation.sequential import SequentialMosaicker
+        from fusedmosaic.estimation.sequential import SequentialMosaicker, SequentialOptions
 
         dataset.require_tracking(method)
+        options = SequentialOptions() if options is None else options
         mosaicker = SequentialMosaicker(dataset.camera, options)
         tracking = dataset.tracking
         ok = np.ones(len(tracking.timestamps), bool) if tracking.valid is None else tracking.valid
         sample_times = tracking.timestamps[ok]
         translations, quaternions = tracking.translations[ok], tracking.quaternions[ok]
+        stream = _Stream(mosaicker, None, _max_age(sample_times, max_age), asdict(options))
 
-        def feed(k: int, image) -> None:
+        def feed(k: int, image) -> list:
             t = float(dataset.timestamps[k])
-            i = newest_sample_index(sample_times, t, max_age)
+            i = newest_sample_index(sample_times, t, stream.max_age)
+            if i is None:
+                stream.no_sample.add(k)
             pose = None if i is None else camera_pose_from_sample(
                 translations[i], quaternions[i], dataset.hand_eye)
             mosaicker.add_frame(image, t, pose)
             return mosaicker.finalized()
 
-        return mosaicker, feed
-    from fusedmosaic.estimation.translation import RobotPriorMosaicker
+        stream.feed = feed
+        return stream
+    from fusedmosaic.estimation.translation import RobotPriorMosaicker, RobotPriorOptions
 
     dataset.require_robot(method)
     dataset.require_pixel_size(method)
-    if options is not None and options.flat_field:
+    options = RobotPriorOptions() if options is None else options
+    if options.flat_field:
         raise ValueError("live replay: flat_field needs the fibre pattern of the whole recording "
                          "(not known live); run without --flat-field")
     mosaicker = RobotPriorMosaicker(dataset.camera, options)
     robot = dataset.robot
+    # as the offline run records them (translation._run)
+    parameters = {"estimate": "fused", "pixel_size_um": mosaicker.pixel_size_um,
+                  "robot_file": dataset.robot_file, **asdict(options)}
+    stream = _Stream(mosaicker, None, _max_age(robot.timestamps, max_age), parameters)
 
-    def feed(k: int, image) -> None:
+    def feed(k: int, image) -> list:
         t = float(dataset.timestamps[k])
-        i = newest_sample_index(robot.timestamps, t, max_age)
+        i = newest_sample_index(robot.timestamps, t, stream.max_age)
+        if i is None:
+            stream.no_sample.add(k)
         return [mosaicker.add_frame(image, t, None if i is None else robot.xy_um[i])]
 
-    return mosaicker, feed
+    stream.feed = feed
+    return stream
