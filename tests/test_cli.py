@@ -111,6 +111,27 @@ def test_run_feature_options(datasets, tmp_path, capsys):
         assert not (tmp_path / "bad").exists()
 
 
+def test_run_lba_emt_presets(datasets, tmp_path, capsys):
+    feto = tmp_path / "feto"
+    assert main(["--quiet", "simulate", "fetoscopy", str(feto), "--n-frames", "12",
+                 "--laps", "0.3"]) == 0
+    out = tmp_path / "phb"
+    assert main(["--quiet", "run", str(feto), "--method", "lba-emt", "--out", str(out),
+                 "--no-report", "--preset", "phb", "--loop-pairs", "1", "--detector",
+                 "orb"]) == 0
+    parameters = json.loads((out / "report.json").read_text())["parameters"]
+    assert (parameters["window_size"], parameters["num_new"], parameters["num_clusters"],
+            parameters["frames_per_cluster"]) == (3, 1, 3, 3)
+    assert parameters["loop_pairs"] == 1 and parameters["features"]["detector"] == "orb"
+    for extra, message in ((["--method", "ba-emt", "--preset", "phb"],
+                            "--preset / --loop-pairs apply to lba-emt, not ba-emt"),
+                           (["--method", "lba-emt", "--loop-pairs", "-1"],
+                            "--loop-pairs must be >= 0, got -1")):
+        assert main(["run", str(feto), "--out", str(tmp_path / "bad"), *extra]) == 2
+        assert message in capsys.readouterr().err
+        assert not (tmp_path / "bad").exists()
+
+
 def test_flags_are_named_in_errors(datasets, tmp_path, capsys):
     with pytest.raises(SystemExit) as done:
         main(["--version"])

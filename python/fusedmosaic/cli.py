@@ -116,10 +116,17 @@ def _cmd_run(args: argparse.Namespace) -> int:
             overrides = {}
         elif args.method == "emt":  # the EMT baseline's own default pair selection
             overrides.setdefault("pair_selection", "emt-guided")
-    if overrides and args.method == "lba-emt":
+    if args.preset is not None or args.loop_pairs is not None:
+        if args.method != "lba-emt":
+            raise ValueError(f"--preset / --loop-pairs apply to lba-emt, not {args.method}")
+        if args.loop_pairs is not None:
+            if args.loop_pairs < 0:
+                raise ValueError(f"--loop-pairs must be >= 0, got {args.loop_pairs}")
+            overrides["loop_pairs"] = args.loop_pairs
+    if args.method == "lba-emt" and (overrides or args.preset is not None):
         from fusedmosaic.estimation.sequential import SequentialOptions
 
-        options = SequentialOptions(**overrides)
+        options = SequentialOptions.preset(args.preset or "syn", **overrides)
     elif overrides:
         from fusedmosaic.estimation.bundle import BundleOptions
 
@@ -427,6 +434,14 @@ def build_parser() -> argparse.ArgumentParser:
                           "pattern (the mean of the recording's frames) before registration")
     run.add_argument("--allow-untracked", action="store_true",
                      help="flag frames outside the tracker's time span instead of failing")
+    run.add_argument("--preset", choices=["syn", "phb", "ex"],
+                     help="lba-emt: the paper's window presets (Sec. 4.2): syn W=5, chi_e=3, "
+                          "K=3 x 5 (default); phb W=3, chi_e=1, K=3 x 3 (fewer pairs per frame: "
+                          "faster on large frames, bench/results/detect_scale.md); ex W=12, "
+                          "chi_e=6, K=3 x 12")
+    run.add_argument("--loop-pairs", type=int, metavar="N",
+                     help="lba-emt: spatial loop pairs per frame (default 2; 0 = the paper's "
+                          "window alone, which drifts to the tracker's accuracy)")
     run.add_argument("--live", action="store_true",
                      help="lba-emt / kalman-robot: replay the recording as a live source on this "
                           "machine (frames at their timestamps with the newest tracker/robot "
