@@ -98,6 +98,20 @@ def global_part_removed(ds, res) -> float:
                                      ds.camera.height))
 
 
+def reference_averaged_error(ds, res, stride: int = 4) -> float:
+    """e_M with every stride-th frame in turn as the reference (homographies and truth
+    re-expressed in frame r's grid, G_r^-1 G_k), averaged over r: e_M (Eq. 29) in frame 0's grid
+    also carries the registration error of frame 0 itself, common to every other frame."""
+    def rebase(G, r):
+        out = np.linalg.inv(G[r]) @ G
+        return out / out[:, 2:, 2:]
+
+    G, T = res.homographies, ds.ground_truth
+    w, h = ds.camera.width, ds.camera.height
+    return float(np.mean([mosaic_error(frame_errors(rebase(G, r), rebase(T, r), w, h))
+                          for r in range(0, len(G), stride) if np.isfinite(G[r]).all()]))
+
+
 def causal_ba_emt(ds, start: int) -> float:
     """e_M where frames a..b-1 come from BA+EMT over the first b frames (b = start, then every
     half lap, then the sequence length): each block frozen after a full adjustment of
