@@ -1,0 +1,128 @@
+"""Live replay on this machine (`fusedmosaic run --live`, estimation/live.py): SYN sequences at
+25 frames/s fed to lba-emt as a live source, and the pCLE circle (10 frames/s) to kalman-robot.
+
+One run. Each configuration simulates its sequence on disk (frames read outside the timed
+calls), then replays it: frames at their timestamps with the newest tracker / robot sample, a
+one-slot capture queue (frames arriving while one is processed are dropped except the newest),
+the virtual clock advanced by each call's measured wall time. Per configuration: frames dropped,
+latency (arrival -> add_frame returns) and processing time per processed frame, e_M of the
+placed frames against the simulator's truth (px), and the same run offline (every frame,
+interpolated tracker poses) for comparison.
+
+    python bench/bench_live.py [--frames 300] [--out bench/results/live.json]
+
+Writes the JSON and a markdown table beside it (live.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+from _common import fmt, machine_info, md_table, work_folder, write_json
+from bench_sequential import FRAMES_PER_LAP
+
+from fusedmosaic.estimation.live import replay_live
+from fusedmosaic.estimation.sequential import SequentialOptions, run_lba_emt
+from fusedmosaic.estimation.translation import run_kalman_robot
+from fusedmosaic.evaluation import frame_errors, mosaic_error, position_errors_um
+from fusedmosaic.io import read_dataset
+from fusedmosaic.registration.features import FeatureOptions
+from fusedmosaic.simulation import FetoscopyOptions, PcleOptions, simulate_fetoscopy, simulate_pcle
+
+CONFIGS = {  # label -> (frame size, detector, detection max side)
+    "400x400 ORB": ((400, 400), "orb", None),
+    "400x400 SIFT": ((400, 400), "sift", None),
+    "720x576 ORB, detection at 512": ((720, 576), "orb", 512),
+    "1280x720 ORB, detection at 512": ((1280, 720), "orb", 512),
+}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--work", type=Path, default=None)
+    ap.add_argument("--out", type=Path, default=Path("bench/results/live.json"))
+    args = ap.parse_args()
+    t_bench = time.perf_counter()
+    load_start = [round(x, 2) for x in os.getloadavg()]
+    rows = []
+    work, tmp = work_folder(args.work)
+    try:
+        for label, (size, detector, side) in CONFIGS.items():
+            root = simulate_fetoscopy(work / label.split()[0], FetoscopyOptions(
+                n_frames=args.frames, laps=args.frames / FRAMES_PER_LAP, width=size[0],
+                height=size[1]), overwrite=True)
+            ds = read_dataset(root)
+            options = SequentialOptions(features=FeatureOptions(detector=detector,
+                                                                max_image_side=side))
+            live = replay_live(ds, "lba-emt", options=options, progress=False)
+            offline = run_lba_emt(ds, progress=False, options=options)
+
+            def e_M(res, ds=ds):
+                return mosaic_error(frame_errors(res.homographies, ds.ground_truth,
+                                                 ds.camera.width, ds.camera.height))
+
+            rows.append(row(label, "lba-emt", ds, live, e_M(live), e_M(offline), "px"))
+        root = simulate_pcle(work / "pcle", PcleOptions(trajectory="circle"), overwrite=True)
+        ds = read_dataset(root, robot_file="robot_noisy.csv")
+        live = replay_live(ds, "kalman-robot", progress=False)
+        offline = run_kalman_robot(ds, progress=False)
+
+        def mean_um(res):
+            cam = ds.camera
+            e = position_errors_um(res.homographies, ds.ground_truth, cam.width, cam.height,
+                                   cam.pixel_size_um)
+            return float(np.nanmean(e))
+
+        rows.append(row("pCLE circle 512x448, noisy robot", "kalman-robot", ds, live,
+                        mean_um(live), mean_um(offline), "µm"))
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+    res = {"machine": machine_info(), "frames": args.frames,
+           "load_average_start": load_start,
+           "load_average_end": [round(x, 2) for x in os.getloadavg()],
+           "runtime_s": time.perf_counter() - t_bench, "rows": rows}
+    write_json(args.out, res)
+    args.out.with_suffix(".md").write_text(markdown(res))
+    print(f"wrote {args.out}")
+
+
+def row(label, method, ds, live, error_live, error_offline, unit) -> dict:
+    d = live.details["live"]
+    r = {"configuration": label, "method": method, "frames": len(ds),
+         "frame_interval_ms": d["frame_interval_ms"], "frames_dropped": d["frames_dropped"],
+         "latency_ms": d["latency_ms"], "processing_ms": d["processing_ms"],
+         "error_live": error_live, "error_offline": error_offline, "error_unit": unit}
+    print(f"{label}: dropped {d['frames_dropped']}/{len(ds)}, latency median "
+          f"{d['latency_ms']['median']:.1f} p95 {d['latency_ms']['p95']:.1f} ms, error "
+          f"{error_live:.3f} (offline {error_offline:.3f}) {unit}", flush=True)
+    return r
+
+
+def markdown(res: dict) -> str:
+    lines = ["# Live replay on this machine", "",
+             f"`python bench/bench_live.py`, one run, {res['runtime_s']:.0f} s; load average "
+             f"{res['load_average_start']} -> {res['load_average_end']} (2 cores). Frames at "
+             "their timestamps, newest tracker/robot sample, one-slot capture queue; latency "
+             "= wait + processing of the processed frames; error of the placed frames (e_M px "
+             "for lba-emt, mean position error µm for kalman-robot) live and offline (every "
+             "frame, interpolated tracker poses).", ""]
+    rows = [[r["configuration"], r["method"], fmt(r["frame_interval_ms"], 0),
+             f"{r['frames_dropped']}/{r['frames']}", fmt(r["processing_ms"]["median"], 1),
+             fmt(r["latency_ms"]["median"], 1), fmt(r["latency_ms"]["p95"], 1),
+             fmt(r["latency_ms"]["max"], 1),
+             f"{fmt(r['error_live'], 3)} {r['error_unit']}",
+             f"{fmt(r['error_offline'], 3)} {r['error_unit']}"] for r in res["rows"]]
+    lines += md_table(["sequence", "method", "frame interval ms", "dropped",
+                       "processing median ms", "latency median ms", "latency p95 ms",
+                       "latency max ms", "error live", "error offline"], rows)
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    main()
