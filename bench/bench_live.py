@@ -1,5 +1,6 @@
 """Live replay on this machine (`fusedmosaic run --live`, estimation/live.py): SYN sequences at
-25 frames/s fed to lba-emt as a live source, and the pCLE circle (10 frames/s) to kalman-robot.
+25 frames/s fed to lba-emt as a live source, and the pCLE circle (10 frames/s, accurate and
+noisy robot) to kalman-robot.
 
 One run. Each configuration simulates its sequence on disk (frames read outside the timed
 calls), then replays it: frames at their timestamps with the newest tracker / robot sample, a
@@ -68,18 +69,19 @@ def main() -> None:
 
             rows.append(row(label, "lba-emt", ds, live, e_M(live), e_M(offline), "px"))
         root = simulate_pcle(work / "pcle", PcleOptions(trajectory="circle"), overwrite=True)
-        ds = read_dataset(root, robot_file="robot_noisy.csv")
-        live = replay_live(ds, "kalman-robot", progress=False)
-        offline = run_kalman_robot(ds, progress=False)
+        for robot_file, which in (("robot.csv", "accurate"), ("robot_noisy.csv", "noisy")):
+            ds = read_dataset(root, robot_file=robot_file)
+            live = replay_live(ds, "kalman-robot", progress=False)
+            offline = run_kalman_robot(ds, progress=False)
 
-        def mean_um(res):
-            cam = ds.camera
-            e = position_errors_um(res.homographies, ds.ground_truth, cam.width, cam.height,
-                                   cam.pixel_size_um)
-            return float(np.nanmean(e))
+            def mean_um(res, ds=ds):
+                cam = ds.camera
+                e = position_errors_um(res.homographies, ds.ground_truth, cam.width,
+                                       cam.height, cam.pixel_size_um)
+                return float(np.nanmean(e))
 
-        rows.append(row("pCLE circle 512x448, noisy robot", "kalman-robot", ds, live,
-                        mean_um(live), mean_um(offline), "µm"))
+            rows.append(row(f"pCLE circle 512x448, {which} robot", "kalman-robot", ds, live,
+                            mean_um(live), mean_um(offline), "µm"))
     finally:
         if tmp is not None:
             tmp.cleanup()

@@ -103,7 +103,12 @@ def test_run_feature_options(datasets, tmp_path, capsys):
     for extra, message in (
             (["--method", "ncc", "--detector", "orb"],
              "--detector / --max-features / --clahe / --detect-max-side apply to lba-emt"),
-            (["--method", "pairwise", "--max-features", "0"], "--max-features must be >= 1"),
+            (["--method", "pairwise", "--max-features", "0"],
+             "--max-features must be an integer in 1..2147483647 (OpenCV's int), got 0"),
+            (["--method", "lba-emt", "--max-features", "5000000000"],
+             "--max-features must be an integer in 1..2147483647 (OpenCV's int), got 5000000000"),
+            (["--method", "lba-emt", "--detect-max-side", "16"],
+             "--detect-max-side must be >= 32 (pixels), an integer; got 16"),
             (["--method", "pairwise", "--detect-max-side", "16"],
              "--detect-max-side must be >= 32")):
         assert main(["run", str(feto), "--out", str(tmp_path / "bad"), *extra]) == 2

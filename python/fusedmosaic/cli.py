@@ -156,10 +156,9 @@ def _feature_options(args: argparse.Namespace):
     if args.detector is not None:
         options.detector = args.detector
     if args.max_features is not None:
-        if args.max_features < 1:
-            raise ValueError(f"--max-features must be >= 1, got {args.max_features}")
         options.max_features = args.max_features
-    options.validate(names={"max_image_side": "--detect-max-side"})
+    options.validate(names={"max_image_side": "--detect-max-side",
+                            "max_features": "--max-features"})
     return options
 
 
@@ -433,7 +432,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="ncc / kalman-robot: divide the frames by the fibre bundle's fixed "
                           "pattern (the mean of the recording's frames) before registration")
     run.add_argument("--allow-untracked", action="store_true",
-                     help="flag frames outside the tracker's time span instead of failing")
+                     help="flag frames outside the tracker's (or the robot's) time span "
+                          "instead of failing (implied by --live)")
     run.add_argument("--preset", choices=["syn", "phb", "ex"],
                      help="lba-emt: the paper's window presets (Sec. 4.2): syn W=5, chi_e=3, "
                           "K=3 x 5 (default); phb W=3, chi_e=1, K=3 x 3 (fewer pairs per frame: "
@@ -449,7 +449,10 @@ def build_parser() -> argparse.ArgumentParser:
                           "the newest); report.json 'live' gives drops and latency")
     feat = run.add_argument_group("features (lba-emt, ba-emt, ba, emt, pairwise)")
     feat.add_argument("--detector", choices=["sift", "orb"],
-                      help="keypoint detector: sift (the paper's, default) or orb (faster)")
+                      help="keypoint detector: sift (the paper's, default) or orb (detection "
+                           "several times cheaper, but more correspondences per pair to "
+                           "match: faster on long sequences and large frames, slower in the "
+                           "40-frame start-up; bench/results/detect_scale.md)")
     feat.add_argument("--max-features", type=int, metavar="N",
                       help="strongest keypoints kept per frame (default 1000)")
     feat.add_argument("--clahe", action="store_true",

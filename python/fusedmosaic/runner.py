@@ -60,8 +60,9 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
         check_video_suffix(video)
     check_compositing_options(blend, canvas)  # before minutes of estimation, not after
     t0 = time.perf_counter()
+    # live replay uses the raw samples (frames without a recent one are listed, not refused)
     dataset = read_dataset(dataset_root, fps=fps, robot_file=robot_file,
-                           allow_untracked=allow_untracked)
+                           allow_untracked=allow_untracked or live)
     if method in NEEDS_TRACKING:
         dataset.require_tracking(method)
     if method in NEEDS_CAMERA_MATRIX:

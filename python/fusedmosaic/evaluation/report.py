@@ -196,7 +196,10 @@ def load_run(out_dir: str | Path, frame_ids: np.ndarray | None = None) -> RunRec
     report = {}
     if (out / "report.json").is_file():
         report = _check_report(read_json_object(out / "report.json"), out / "report.json")
-    run = RunRecord(report.get("method") or out.name, G, output=str(out),
+    label = report.get("method") or out.name
+    if (report.get("parameters") or {}).get("live") is True:
+        label += " (live)"
+    run = RunRecord(label, G, output=str(out),
                     timings={k: v for k, v in (report.get("timings_s") or {}).items()
                              if isinstance(v, (int, float))})
     if (report.get("mosaic") or {}).get("skipped_frames"):

@@ -42,11 +42,20 @@ class FeatureOptions:
         if self.detector not in ("sift", "orb"):
             raise ValueError(f"{name('detector', 'detector')} must be 'sift' or 'orb', got "
                              f"{self.detector!r}")
+        n = self.max_features
+        if isinstance(n, bool) or not isinstance(n, int | np.integer) or not 1 <= n <= C_INT_MAX:
+            raise ValueError(f"{name('max_features', 'max_features')} must be an integer in "
+                             f"1..{C_INT_MAX} (OpenCV's int), got {n!r}")
         side = self.max_image_side
         if side is not None and (isinstance(side, bool) or not isinstance(side, int | np.integer)
                                  or side < 32):
+            # None (full resolution) is the Python default; a caller naming a flag has no None
+            none = "" if names and "max_image_side" in names else ", or None"
             raise ValueError(f"{name('max_image_side', 'max_image_side')} must be >= 32 "
-                             f"(pixels), an integer, or None; got {side!r}")
+                             f"(pixels), an integer{none}; got {side!r}")
+
+
+C_INT_MAX = 2**31 - 1  # OpenCV's detectors take nfeatures as a C int
 
 
 @dataclass
