@@ -116,6 +116,17 @@ def test_run_feature_options(datasets, tmp_path, capsys):
         assert not (tmp_path / "bad").exists()
 
 
+def test_simulate_warns_when_consecutive_frames_barely_overlap(tmp_path, capsys):
+    assert main(["simulate", "fetoscopy", str(tmp_path / "a"), "--n-frames", "20"]) == 0
+    err = capsys.readouterr().err
+    assert ("warning: consecutive frames move by 282 px (median), more than half of the 400 "
+            "px side") in err
+    assert "(e.g. --laps 0.53 for 20 frames)" in err
+    assert main(["simulate", "fetoscopy", str(tmp_path / "b"), "--n-frames", "20", "--laps",
+                 "0.53"]) == 0
+    assert "warning" not in capsys.readouterr().err
+
+
 def test_run_lba_emt_presets(datasets, tmp_path, capsys):
     feto = tmp_path / "feto"
     assert main(["--quiet", "simulate", "fetoscopy", str(feto), "--n-frames", "12",

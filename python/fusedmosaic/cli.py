@@ -62,7 +62,31 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     size = sum(p.stat().st_size for p in Path(out).rglob("*") if p.is_file())
     _say(args, f"wrote {args.kind} dataset to {out} ({size / 1e6:.1f} MB) "
                f"in {time.perf_counter() - t0:.1f} s")
+    if args.kind == "fetoscopy":
+        _warn_low_overlap(out)
     return 0
+
+
+def _warn_low_overlap(root: Path) -> None:
+    """Warns when consecutive simulated frames move by more than half their smaller side (few
+    features can match): --laps is per sequence, so few --n-frames make big steps."""
+    from fusedmosaic.io import read_dataset
+
+    ds = read_dataset(root)
+    w, h = ds.camera.width, ds.camera.height
+    G = ds.ground_truth
+    centre = np.array([(w - 1) / 2, (h - 1) / 2, 1.0])
+    q = G @ centre
+    c = q[:, :2] / q[:, 2:]
+    if len(c) < 2:
+        return
+    step = float(np.median(np.linalg.norm(np.diff(c, axis=0), axis=1)))
+    if step > 0.5 * min(w, h):
+        print(f"fusedmosaic: warning: consecutive frames move by {step:.0f} px (median), more "
+              f"than half of the {min(w, h)} px side: they barely overlap, and the sequential "
+              "methods (lba-emt's window, pairwise) register consecutive frames. --laps is per "
+              "sequence; the SYN motion is ~37.5 frames per lap (e.g. --laps "
+              f"{len(c) / 37.5:.2f} for {len(c)} frames)", file=sys.stderr)
 
 
 def _simulate(args: argparse.Namespace) -> Path:
