@@ -266,6 +266,38 @@ def test_constant_velocity_jacobian_matches_numeric(triple):
     np.testing.assert_allclose(j0, np.diag(1 / sigma), rtol=1e-12)
 
 
+def test_constant_velocity_ratio_repeats_the_motion(triple):
+    """ratio 2 (one dropped frame): the last motion twice; ratio 1 is Eq. 16 bit for bit; the
+    same prediction as motion.predict_constant_velocity; a non-positive ratio is refused."""
+    from fusedmosaic.estimation.motion import predict_constant_velocity
+
+    step = np.array([0.0, 0.0, 0.05, 0.3, 0.1, -0.05])  # rotation about one axis: exact power
+    x0 = np.array([0.0, 0.0, 0.1, 1.0, 2.0, -30.0])
+    x1 = _core.compose_poses(step, x0)
+    x3 = _core.compose_poses(step, _core.compose_poses(step, x1))
+    r, _ = _core.evaluate_constant_velocity(x0, x1, x3, np.ones(6), ratio=2.0)
+    np.testing.assert_allclose(r[:3], 0.0, atol=1e-12)  # the rotation exactly
+    # the translation to first order: |(R - I) t| <= angle x |t| per repeated step
+    assert np.linalg.norm(r[3:]) <= 0.05 * np.linalg.norm(step[3:]) * 1.01
+    pure = np.array([0.0, 0.0, 0.0, 0.3, 0.1, -0.05])  # no rotation: exact
+    y1 = _core.compose_poses(pure, x0)
+    y3 = _core.compose_poses(pure, _core.compose_poses(pure, y1))
+    np.testing.assert_allclose(_core.evaluate_constant_velocity(x0, y1, y3, ratio=2.0)[0], 0.0,
+                               atol=1e-12)
+    x_km2, x_km1 = triple
+    x_k = predicted(x_km2, x_km1) + 0.01
+    np.testing.assert_array_equal(_core.evaluate_constant_velocity(x_km2, x_km1, x_k)[0],
+                                  _core.evaluate_constant_velocity(x_km2, x_km1, x_k,
+                                                                   ratio=1.0)[0])
+    sigma = np.ones(6)
+    r, _ = _core.evaluate_constant_velocity(x_km2, x_km1, x_k, sigma, ratio=0.5)
+    np.testing.assert_allclose(r, x_k - predict_constant_velocity(x_km2, x_km1, 0.5),
+                               atol=1e-12)
+    with pytest.raises(ValueError, match="motion_ratio and motion_sigma_scale must be finite "
+                                         "and > 0"):
+        _core.evaluate_constant_velocity(x_km2, x_km1, x_k, ratio=0.0)
+
+
 def test_constant_velocity_bad_input(triple):
     x_km2, x_km1 = triple
     with pytest.raises(ValueError, match="cam_k_from_world: expected 6 values, got 3"):

@@ -186,14 +186,20 @@ void BindProblem(py::module_& m) {
       .def(
           "add_frame",
           [](BundleAdjuster& self, int frame_id, const Vec& cam_from_world,
-             const std::optional<Eigen::VectorXd>& emt_measurement) {
+             const std::optional<Eigen::VectorXd>& emt_measurement, double motion_ratio,
+             double motion_sigma_scale) {
             std::optional<Vector6d> z;
             if (emt_measurement) z = ToPose(*emt_measurement, "emt_measurement");
-            self.AddFrame(frame_id, ToPose(cam_from_world, "cam_from_world"), z);
+            self.AddFrame(frame_id, ToPose(cam_from_world, "cam_from_world"), z, motion_ratio,
+                          motion_sigma_scale);
           },
           "frame_id"_a, "cam_from_world"_a, "emt_measurement"_a = py::none(),
+          "motion_ratio"_a = 1.0, "motion_sigma_scale"_a = 1.0,
           "Adds a frame.\n\ncam_from_world : (6,) float64 initial pose [r, t]\n"
-          "emt_measurement : (6,) float64 EMT pose z_k [r, t], or None")
+          "emt_measurement : (6,) float64 EMT pose z_k [r, t], or None\n"
+          "motion_ratio, motion_sigma_scale : timing of the constant-velocity prior over frames\n"
+          "    id-2, id-1, id ((t_k - t_k-1) / (t_k-1 - t_k-2) and the sigma_p multiplier; 1, 1\n"
+          "    for evenly spaced frames; estimation.motion.motion_timing)")
       .def(
           "add_pair",
           [](BundleAdjuster& self, int frame_l, int frame_m, const Mat& points_l,

@@ -113,20 +113,23 @@ void BindResiduals(py::module_& m) {
   m.def(
       "evaluate_constant_velocity",
       [](const Vec& cam_km2_from_world, const Vec& cam_km1_from_world, const Vec& cam_k_from_world,
-         const Vec& sigma) {
+         const Vec& sigma, double ratio) {
         const Vector6d x2 = CheckedPose(cam_km2_from_world, "cam_km2_from_world");
         const Vector6d x1 = CheckedPose(cam_km1_from_world, "cam_km1_from_world");
         const Vector6d x0 = CheckedPose(cam_k_from_world, "cam_k_from_world");
+        CheckMotionTiming(ratio, 1.0, "evaluate_constant_velocity");
         std::unique_ptr<ceres::CostFunction> cost(
-            ConstantVelocityCostFunctor::Create(CheckedSigma(sigma, "sigma")));
+            ConstantVelocityCostFunctor::Create(CheckedSigma(sigma, "sigma"), ratio));
         return Evaluate(*cost, {x2.data(), x1.data(), x0.data()});
       },
       "cam_km2_from_world"_a, "cam_km1_from_world"_a, "cam_k_from_world"_a,
-      "sigma"_a = Eigen::VectorXd(kDefaultMotionSigma),
+      "sigma"_a = Eigen::VectorXd(kDefaultMotionSigma), "ratio"_a = 1.0,
       "Constant-velocity prior residual (Eq. 15, 16, 20) S_p (x_k - mu_p), "
       "mu_p = T_{k-1} T_{k-2}^-1 T_{k-1}.\n\n"
       "cam_km2_from_world, cam_km1_from_world, cam_k_from_world : (6,) float64 poses of frames\n"
       "k-2, k-1, k\nsigma : (6,) float64 standard deviations (default: appendix Eq. 30)\n"
+      "ratio : (t_k - t_k-1) / (t_k-1 - t_k-2); the last motion's 6-vector times ratio is\n"
+      "    repeated (1: Eq. 16)\n"
       "Returns (residuals (6,), (J_km2 (6, 6), J_km1 (6, 6), J_k (6, 6))).");
 }
 

@@ -108,14 +108,18 @@ void BindSlidingWindow(py::module_& m) {
       .def(
           "add_frame",
           [](SlidingWindow& self, int frame_id, const std::optional<Eigen::VectorXd>& initial,
-             const std::optional<Eigen::VectorXd>& emt_measurement, bool fixed) {
+             const std::optional<Eigen::VectorXd>& emt_measurement, bool fixed,
+             double motion_ratio, double motion_sigma_scale) {
             self.AddFrame(frame_id, OptionalPose(initial, "initial"),
-                          OptionalPose(emt_measurement, "emt_measurement"), fixed);
+                          OptionalPose(emt_measurement, "emt_measurement"), fixed, motion_ratio,
+                          motion_sigma_scale);
           },
           "frame_id"_a, "initial"_a = py::none(), "emt_measurement"_a = py::none(),
-          "fixed"_a = false,
+          "fixed"_a = false, "motion_ratio"_a = 1.0, "motion_sigma_scale"_a = 1.0,
           "initial, emt_measurement : (6,) float64 cam_from_world [r, t] or None\n"
-          "fixed : already estimated (enters the window fixed; needs initial)")
+          "fixed : already estimated (enters the window fixed; needs initial)\n"
+          "motion_ratio, motion_sigma_scale : timing of the constant-velocity prior linking this\n"
+          "    camera to the two preceding ones (1, 1: evenly spaced; see BundleAdjuster)")
       .def("set_emt_sigma_scale", &SlidingWindow::SetEmtSigmaScale, "frame_id"_a, "scale"_a)
       .def(
           "add_pair",

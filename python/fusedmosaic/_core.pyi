@@ -132,10 +132,13 @@ def evaluate_constant_velocity(
     cam_km1_from_world: _ArrayLike,
     cam_k_from_world: _ArrayLike,
     sigma: _ArrayLike = ...,
+    ratio: float = 1.0,
 ) -> tuple[_Array, tuple[_Array, _Array, _Array]]:
     """Constant-velocity prior (Eq. 15, 16, 20): S_p (x_k - mu_p).
 
-    mu_p = T_{k-1} T_{k-2}^-1 T_{k-1} (poses as rigid transforms).
+    mu_p = T_{k-1} T_{k-2}^-1 T_{k-1} (poses as rigid transforms); with ratio != 1 (frames not
+    evenly spaced, (t_k - t_{k-1}) / (t_{k-1} - t_{k-2})) mu_p = exp(ratio m) T_{k-1}, m the
+    6-vector of T_{k-1} T_{k-2}^-1.
 
     Poses : (6,) for frames k-2, k-1, k; sigma : (6,) standard deviations (default
     DEFAULT_MOTION_SIGMA). Returns (residuals (6,), (J_km2, J_km1, J_k), each (6, 6)).
@@ -238,10 +241,17 @@ class BundleAdjuster:
     @property
     def num_correspondences(self) -> int: ...
     def add_frame(
-        self, frame_id: int, cam_from_world: _ArrayLike, emt_measurement: _ArrayLike | None = None
+        self,
+        frame_id: int,
+        cam_from_world: _ArrayLike,
+        emt_measurement: _ArrayLike | None = None,
+        motion_ratio: float = 1.0,
+        motion_sigma_scale: float = 1.0,
     ) -> None:
-        """Adds a frame. cam_from_world : (6,) initial pose; emt_measurement : (6,) z_k or None.
-        ValueError for a duplicate id."""
+        """Adds a frame. cam_from_world : (6,) initial pose; emt_measurement : (6,) z_k or None;
+        motion_ratio, motion_sigma_scale : timing of the constant-velocity prior over frames
+        id-2, id-1, id (1, 1 for evenly spaced frames; estimation.motion.motion_timing).
+        ValueError for a duplicate id or a timing that is not finite and > 0."""
 
     def add_pair(
         self, frame_l: int, frame_m: int, points_l: _ArrayLike, points_m: _ArrayLike
@@ -341,9 +351,13 @@ class SlidingWindow:
         initial: _ArrayLike | None = None,
         emt_measurement: _ArrayLike | None = None,
         fixed: bool = False,
+        motion_ratio: float = 1.0,
+        motion_sigma_scale: float = 1.0,
     ) -> None:
         """initial, emt_measurement : (6,) cam_from_world or None; ids must increase.
-        fixed : already estimated (enters the window fixed; needs initial)."""
+        fixed : already estimated (enters the window fixed; needs initial).
+        motion_ratio, motion_sigma_scale : timing of the constant-velocity prior linking this
+        camera to the two preceding ones (1, 1: evenly spaced; see BundleAdjuster.add_frame)."""
 
     def set_emt_sigma_scale(self, frame_id: int, scale: float) -> None:
         """Inflates a frame's tracker standard deviations (gating), scale >= 1."""

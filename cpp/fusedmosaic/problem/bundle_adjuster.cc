@@ -153,7 +153,8 @@ const BundleAdjuster::Frame& BundleAdjuster::FindFrame(int frame_id, const char*
 }
 
 void BundleAdjuster::AddFrame(int frame_id, const Pose& cam_from_world,
-                              const std::optional<Pose>& emt_measurement) {
+                              const std::optional<Pose>& emt_measurement, double motion_ratio,
+                              double motion_sigma_scale) {
   std::lock_guard<std::mutex> lock(mutex_);
   if (frames_.count(frame_id)) {
     throw std::invalid_argument("add_frame: frame id " + std::to_string(frame_id) +
@@ -161,9 +162,12 @@ void BundleAdjuster::AddFrame(int frame_id, const Pose& cam_from_world,
   }
   CheckFinite(cam_from_world.data(), kPoseSize, "cam_from_world");
   if (emt_measurement) CheckFinite(emt_measurement->data(), kPoseSize, "emt_measurement");
+  CheckMotionTiming(motion_ratio, motion_sigma_scale, "add_frame");
   Frame frame;
   std::copy(cam_from_world.data(), cam_from_world.data() + kPoseSize, frame.pose.begin());
   frame.emt_measurement = emt_measurement;
+  frame.motion_ratio = motion_ratio;
+  frame.motion_sigma_scale = motion_sigma_scale;
   frames_.emplace(frame_id, std::move(frame));
 }
 
@@ -324,8 +328,9 @@ SolveSummary BundleAdjuster::Solve() {
       auto km2 = frames_.find(id - 2);
       if (km1 == frames_.end() || km2 == frames_.end()) continue;
       motion_blocks.push_back(problem.AddResidualBlock(
-          ConstantVelocityCostFunctor::Create(options_.motion_sigma), nullptr,
-          km2->second.pose.data(), km1->second.pose.data(), frame.pose.data()));
+          ConstantVelocityCostFunctor::Create(options_.motion_sigma * frame.motion_sigma_scale,
+                                              frame.motion_ratio),
+          nullptr, km2->second.pose.data(), km1->second.pose.data(), frame.pose.data()));
     }
   }
 

@@ -106,8 +106,12 @@ class BundleAdjuster {
   BundleAdjuster& operator=(const BundleAdjuster&) = delete;
 
   // Adds a frame with its initial pose (cam_from_world) and optional EMT measurement.
+  // motion_ratio, motion_sigma_scale: timing of the constant-velocity prior linking frames
+  // id-2, id-1, id (see ConstantVelocityCostFunctor; estimation/motion.py motion_timing):
+  // 1, 1 for evenly spaced frames.
   void AddFrame(int frame_id, const Pose& cam_from_world,
-                const std::optional<Pose>& emt_measurement = std::nullopt);
+                const std::optional<Pose>& emt_measurement = std::nullopt,
+                double motion_ratio = 1.0, double motion_sigma_scale = 1.0);
   // Adds the N >= 1 correspondences of a pair, pixels; row i of points_m maps to row i of points_l
   // (transfer m -> l). Frames must exist (std::out_of_range otherwise) and differ.
   void AddPair(int frame_l, int frame_m, const Points& points_l, const Points& points_m);
@@ -134,6 +138,8 @@ class BundleAdjuster {
     std::array<double, kPoseSize> pose{};  // Ceres parameter block; std::map keeps it in place
     std::optional<Pose> emt_measurement;
     bool constant = false;
+    double motion_ratio = 1.0;
+    double motion_sigma_scale = 1.0;
   };
   struct Pair {
     int frame_l = 0;

@@ -182,8 +182,10 @@ const SlidingWindow::Frame& SlidingWindow::FindFrame(int frame_id, const char* w
 }
 
 void SlidingWindow::AddFrame(int frame_id, const std::optional<Pose>& initial,
-                             const std::optional<Pose>& emt_measurement, bool fixed) {
+                             const std::optional<Pose>& emt_measurement, bool fixed,
+                             double motion_ratio, double motion_sigma_scale) {
   std::lock_guard<std::mutex> lock(mutex_);
+  CheckMotionTiming(motion_ratio, motion_sigma_scale, "add_frame");
   if (fixed && !initial) {
     throw std::invalid_argument("add_frame: a fixed frame needs its pose (initial)");
   }
@@ -209,6 +211,8 @@ void SlidingWindow::AddFrame(int frame_id, const std::optional<Pose>& initial,
     frame.emt_measurement = emt_measurement;
   }
   frame.fixed = fixed;
+  frame.motion_ratio = motion_ratio;
+  frame.motion_sigma_scale = motion_sigma_scale;
   frames_.emplace(frame_id, std::move(frame));
 }
 
@@ -284,9 +288,14 @@ void SlidingWindow::InitialisePending(const std::vector<int>& ids) {
         f.pose = prev1->second.pose;
       } else {
         auto prev2 = std::prev(prev1);
-        const auto T1 = RigidTransform<double>::FromPose(prev1->second.pose.data());
-        const auto T2 = RigidTransform<double>::FromPose(prev2->second.pose.data());
-        (T1 * T2.Inverse() * T1).ToPose(f.pose.data());
+        if (f.motion_ratio == 1.0) {
+          const auto T1 = RigidTransform<double>::FromPose(prev1->second.pose.data());
+          const auto T2 = RigidTransform<double>::FromPose(prev2->second.pose.data());
+          (T1 * T2.Inverse() * T1).ToPose(f.pose.data());
+        } else {
+          Eigen::Map<Pose>(f.pose.data()) = PredictConstantVelocity(
+              prev2->second.pose.data(), prev1->second.pose.data(), f.motion_ratio);
+        }
       }
     }
     f.has_initial = true;
@@ -445,7 +454,9 @@ WindowStepSummary SlidingWindow::SolveStep(const std::vector<int>& free_ids,
         auto prev1 = std::prev(it);
         auto prev2 = std::prev(prev1);
         motion_blocks.push_back(problem.AddResidualBlock(
-            ConstantVelocityCostFunctor::Create(c.motion_sigma), nullptr, prev2->second.pose.data(),
+            ConstantVelocityCostFunctor::Create(c.motion_sigma * f.motion_sigma_scale,
+                                                f.motion_ratio),
+            nullptr, prev2->second.pose.data(),
             prev1->second.pose.data(), f.pose.data()));
         for (auto p : {prev1, prev2})
           if (!in_problem.count(p->first)) problem.SetParameterBlockConstant(p->second.pose.data());

@@ -121,8 +121,11 @@ class SlidingWindow {
   // the constant-velocity prediction of the two preceding cameras. fixed: the camera is already
   // estimated (e.g. by the bootstrap bundle adjustment) and enters the window as such; it then
   // needs `initial`.
+  // motion_ratio, motion_sigma_scale: timing of the constant-velocity prior linking this camera
+  // to the two preceding ones (see BundleAdjuster::AddFrame); 1, 1 for evenly spaced frames.
   void AddFrame(int frame_id, const std::optional<Pose>& initial,
-                const std::optional<Pose>& emt_measurement, bool fixed = false);
+                const std::optional<Pose>& emt_measurement, bool fixed = false,
+                double motion_ratio = 1.0, double motion_sigma_scale = 1.0);
   // Inflates the tracker standard deviations of a pending camera (gating, >= 1).
   void SetEmtSigmaScale(int frame_id, double scale);
   void AddPair(int frame_l, int frame_m, const Points& points_l, const Points& points_m);
@@ -152,6 +155,8 @@ class SlidingWindow {
     std::optional<Pose> emt_measurement;
     double emt_sigma_scale = 1.0;
     bool fixed = false;
+    double motion_ratio = 1.0;
+    double motion_sigma_scale = 1.0;
     std::vector<std::pair<int, int>> pair_keys;  // keys into pairs_
   };
   struct Pair {

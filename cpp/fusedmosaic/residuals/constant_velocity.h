@@ -16,6 +16,10 @@
 
 #include <ceres/autodiff_cost_function.h>
 
+#include <cmath>
+#include <stdexcept>
+#include <string>
+
 #include <Eigen/Core>
 
 #include "fusedmosaic/geometry/pose.h"
@@ -28,8 +32,12 @@ inline const Vector6d kDefaultMotionSigma =
     (Vector6d() << 0.0044, 0.0044, 0.0044, 15.2178, 15.2178, 15.2178).finished();
 
 struct ConstantVelocityCostFunctor {
-  explicit ConstantVelocityCostFunctor(const Vector6d& sigma)
-      : sqrt_information_(SqrtInformationFromSigma(sigma)) {}
+  // ratio: (t_k - t_{k-1}) / (t_{k-1} - t_{k-2}) when frames are not evenly spaced (a dropped
+  // frame, a live source falling behind): the last motion is repeated `ratio` times,
+  // T_bar_k = (T_{k-1} T_{k-2}^-1)^ratio T_{k-1}, the power taken on the 6-vector of the motion
+  // (its rotation exactly, its translation to first order in the rotation). 1: Eq. 16.
+  explicit ConstantVelocityCostFunctor(const Vector6d& sigma, double ratio = 1.0)
+      : sqrt_information_(SqrtInformationFromSigma(sigma)), ratio_(ratio) {}
 
   // Each pose: [0..2] angle-axis, [3..5] translation of cam_from_world, for frames k-2, k-1, k.
   // residuals: 6.
@@ -38,7 +46,15 @@ struct ConstantVelocityCostFunctor {
                   const T* const cam_k_from_world, T* residuals_ptr) const {
     const auto T_km1 = RigidTransform<T>::FromPose(cam_km1_from_world);
     const auto T_km2 = RigidTransform<T>::FromPose(cam_km2_from_world);
-    const RigidTransform<T> predicted = T_km1 * T_km2.Inverse() * T_km1;
+    RigidTransform<T> predicted;
+    if (ratio_ == 1.0) {
+      predicted = T_km1 * T_km2.Inverse() * T_km1;
+    } else {
+      T motion[kPoseSize];
+      (T_km1 * T_km2.Inverse()).ToPose(motion);
+      for (int i = 0; i < kPoseSize; ++i) motion[i] *= T(ratio_);
+      predicted = RigidTransform<T>::FromPose(motion) * T_km1;
+    }
     T mu[kPoseSize];
     predicted.ToPose(mu);
     Eigen::Map<Eigen::Matrix<T, 6, 1>> residuals(residuals_ptr);
@@ -47,14 +63,39 @@ struct ConstantVelocityCostFunctor {
     return true;
   }
 
-  static ceres::CostFunction* Create(const Vector6d& sigma = kDefaultMotionSigma) {
+  static ceres::CostFunction* Create(const Vector6d& sigma = kDefaultMotionSigma,
+                                     double ratio = 1.0) {
     return new ceres::AutoDiffCostFunction<ConstantVelocityCostFunctor, kPoseSize, kPoseSize,
                                            kPoseSize, kPoseSize>(
-        new ConstantVelocityCostFunctor(sigma));
+        new ConstantVelocityCostFunctor(sigma, ratio));
   }
 
  private:
   Matrix6d sqrt_information_;
+  double ratio_;
 };
+
+// The prediction of Create(sigma, ratio) for given poses (double), e.g. to initialise a camera.
+inline Vector6d PredictConstantVelocity(const double* cam_km2_from_world,
+                                        const double* cam_km1_from_world, double ratio = 1.0) {
+  const auto T_km1 = RigidTransform<double>::FromPose(cam_km1_from_world);
+  const auto T_km2 = RigidTransform<double>::FromPose(cam_km2_from_world);
+  Vector6d motion;
+  (T_km1 * T_km2.Inverse()).ToPose(motion.data());
+  motion *= ratio;
+  Vector6d out;
+  (RigidTransform<double>::FromPose(motion.data()) * T_km1).ToPose(out.data());
+  return out;
+}
+
+// Checks the timing arguments of an add_frame: ratio and sigma scale finite and > 0.
+inline void CheckMotionTiming(double ratio, double sigma_scale, const char* what) {
+  if (!(std::isfinite(ratio) && ratio > 0 && std::isfinite(sigma_scale) && sigma_scale > 0)) {
+    throw std::invalid_argument(std::string(what) +
+                                ": motion_ratio and motion_sigma_scale must be finite and > 0, "
+                                "got " + std::to_string(ratio) + " and " +
+                                std::to_string(sigma_scale));
+  }
+}
 
 }  // namespace fusedmosaic

@@ -17,6 +17,7 @@ import numpy as np
 from tqdm import tqdm
 
 from fusedmosaic import _core
+from fusedmosaic.estimation.motion import motion_timing
 from fusedmosaic.estimation.plane import estimate_plane
 from fusedmosaic.estimation.world import (
     plane_from_aligned,
@@ -263,9 +264,13 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
 
     t0 = time.perf_counter()
     ba = _adjuster(K, o, use_emt)
+    times = np.asarray(dataset.timestamps, np.float64)
+    nominal = float(np.median(np.diff(times))) if n > 1 else None  # Sigma_p's frame spacing
     for k in frames:
         z = dataset.cam_from_world[k] if use_emt and dataset.pose_valid[k] else None
-        ba.add_frame(k, init[k], z)
+        # C_p over frames k-2, k-1, k follows their timestamps (dropped frames: motion_timing)
+        timing = motion_timing(*times[k - 2:k + 1], nominal) if k >= 2 else (1.0, 1.0)
+        ba.add_frame(k, init[k], z, *timing)
     in_problem = set(frames)
     for m in ok:
         if m.frame_l in in_problem and m.frame_m in in_problem:

@@ -18,6 +18,46 @@ from fusedmosaic.estimation.world import poses_to_aligned, world_rotation
 PAPER_MOTION_SIGMA = np.array([0.0044, 0.0044, 0.0044, 15.2178, 15.2178, 15.2178])
 
 
+# Frame intervals within this relative tolerance of each other and of the nominal interval
+# count as evenly spaced (camera clock jitter): the prior is then exactly Eq. 16.
+EVEN_SPACING_TOLERANCE = 0.01
+
+
+def motion_timing(t_km2: float, t_km1: float, t_k: float, nominal: float | None
+                  ) -> tuple[float, float]:
+    """Timing of the constant-velocity prior over frames k-2, k-1, k (not in the paper, whose
+    frames are evenly spaced): (motion_ratio, motion_sigma_scale) for the C++ add_frame.
+
+    ratio = d2 / d1 with d1 = t_{k-1} - t_{k-2}, d2 = t_k - t_{k-1}: the last motion is
+    repeated ratio times (a dropped frame between k-1 and k: ratio 2). The prediction error then
+    grows with the gaps: for a velocity driven by white noise (a Wiener process),
+    Var(x_k - mu_p) is proportional to d2^2 (d2 + d1), so in units of the nominal interval T
+    (the spacing Sigma_p was estimated at) sigma_p is scaled by
+    sqrt((d2/T)^2 (d2/T + d1/T) / 2), 1 for d1 = d2 = T. Returns (1, 1) (Eq. 16 exactly) when a
+    time or the nominal interval is unknown, the times do not increase, or the spacing is even
+    within EVEN_SPACING_TOLERANCE."""
+    times = np.array([t_km2, t_km1, t_k], np.float64)
+    if nominal is None or not (np.isfinite(nominal) and nominal > 0) or not (
+            np.isfinite(times).all()):
+        return 1.0, 1.0
+    d1, d2 = times[1] - times[0], times[2] - times[1]
+    if d1 <= 0 or d2 <= 0:
+        return 1.0, 1.0
+    u1, u2 = d1 / nominal, d2 / nominal
+    tol = EVEN_SPACING_TOLERANCE
+    if abs(u1 - 1.0) <= tol and abs(u2 - 1.0) <= tol:
+        return 1.0, 1.0
+    return float(d2 / d1), float(np.sqrt(u2 * u2 * (u2 + u1) / 2.0))
+
+
+def predict_constant_velocity(pose_km2: np.ndarray, pose_km1: np.ndarray,
+                              ratio: float = 1.0) -> np.ndarray:
+    """mu_p of Eq. 16 with the last motion repeated `ratio` times (see motion_timing), as the
+    C++ prior computes it: the motion's 6-vector scaled."""
+    motion = np.asarray(_core.compose_poses(pose_km1, _core.invert_pose(pose_km2)), np.float64)
+    return np.asarray(_core.compose_poses(motion * ratio, pose_km1))
+
+
 def constant_velocity_residuals(poses: np.ndarray) -> np.ndarray:
     """(N-2, 6) x_k - mu_p(x_{k-1}, x_{k-2}) with mu_p = T_{k-1} T_{k-2}^-1 T_{k-1} (Eq. 16)."""
     poses = np.asarray(poses, np.float64)

@@ -71,6 +71,11 @@ from fusedmosaic.estimation.bundle import (
 )
 from fusedmosaic.estimation.guard import exclusive_call
 from fusedmosaic.estimation.keyframes import KeyframeIndex
+from fusedmosaic.estimation.motion import (
+    EVEN_SPACING_TOLERANCE,
+    motion_timing,
+    predict_constant_velocity,
+)
 from fusedmosaic.estimation.plane import estimate_plane
 from fusedmosaic.estimation.world import (
     plane_from_aligned,
@@ -307,6 +312,7 @@ class SequentialMosaicker:
         # frame id -> (pose or None while pending, tracker sample, sigma scale, fixed), the
         # pairs by (frame_l, frame_m) -> (points_l, points_m), the plane.
         self._mirror_frames: dict[int, tuple] = {}
+        self._mirror_timing: dict[int, tuple[float, float]] = {}  # id -> C_p timing, if not 1, 1
         self._mirror_pairs: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         self._mirror_plane: np.ndarray | None = None
         self._window_touched = False
@@ -328,6 +334,11 @@ class SequentialMosaicker:
         self._loop_centroids: dict = {}
         self._loop_radius = 0.6 * float(np.hypot(*self.size))  # centroid distance for overlap
         self._poses: dict[int, np.ndarray] = {}  # last two estimated poses, for prediction
+        self._pose_times: dict[int, float] = {}  # and their frames' times
+        # Frame times: the last three frames given (the constant-velocity prior's timing,
+        # motion.motion_timing) and the recent intervals, whose median is the nominal spacing.
+        self._times: dict[int, float] = {}
+        self._intervals: deque = deque(maxlen=200)
         self._reference_pose: np.ndarray | None = None
         self._plane: np.ndarray | None = None
         # Provisional placements in the start-up, until its adjustment gives self._plane: start-up
@@ -485,7 +496,8 @@ class SequentialMosaicker:
               "_startup_G", "_startup_plane",
               "num_steps", "_finalized", "_boot_feats", "_boot_matches", "_loop_feats",
               "_loop_centroids", "_poses", "pair_counts", "_mirror_frames", "_mirror_pairs",
-              "_mirror_plane", "_implausible_run", "_world_rotation")
+              "_mirror_plane", "_implausible_run", "_world_rotation", "_mirror_timing",
+              "_times", "_intervals", "_pose_times")
 
     def _save(self) -> dict:
         """What a call may change, copied (shallowly: the values it replaces, never mutates)."""
@@ -511,7 +523,7 @@ class SequentialMosaicker:
         if self._mirror_plane is not None:
             window.set_plane(self._mirror_plane)
         for k, (pose, emt, scale, fixed) in self._mirror_frames.items():
-            window.add_frame(k, pose, emt, fixed=fixed)
+            window.add_frame(k, pose, emt, fixed, *self._mirror_timing.get(k, (1.0, 1.0)))
             if scale != 1.0:
                 window.set_emt_sigma_scale(k, scale)
         for (l, m), (pl, pm) in self._mirror_pairs.items():
@@ -520,10 +532,12 @@ class SequentialMosaicker:
         self._window_touched = False
 
     # C++ window updates go through these, which keep the mirror (for _rebuild_window).
-    def _win_add_frame(self, k, initial, emt, fixed=False) -> None:
+    def _win_add_frame(self, k, initial, emt, fixed=False, timing=(1.0, 1.0)) -> None:
         self._window_touched = True
-        self.window.add_frame(k, initial, emt, fixed=fixed)
+        self.window.add_frame(k, initial, emt, fixed, *timing)
         self._mirror_frames[k] = (initial, emt, 1.0, fixed)
+        if timing != (1.0, 1.0):
+            self._mirror_timing[k] = timing
 
     def _win_add_pair(self, l, m, pl, pm) -> None:
         self._window_touched = True
@@ -557,6 +571,7 @@ class SequentialMosaicker:
         gone = set(ids)
         for k in gone:
             self._mirror_frames.pop(k, None)
+            self._mirror_timing.pop(k, None)
         self._mirror_pairs = {key: v for key, v in self._mirror_pairs.items()
                               if key[0] not in gone and key[1] not in gone}
 
@@ -607,6 +622,9 @@ class SequentialMosaicker:
 
     def _add_frame(self, k, image, timestamp, tracker_pose) -> FrameResult:
         self._next_id += 1
+        if k - 1 in self._times:
+            self._intervals.append(timestamp - self._times[k - 1])
+        self._times = {i: t for i, t in self._times.items() if i >= k - 2} | {k: timestamp}
         self._last_timestamp = timestamp
         if tracker_pose is not None:
             if self._trusted is None:  # the first tracker sample decides the world
@@ -657,7 +675,7 @@ class SequentialMosaicker:
             self._count_pairs(loop_matches, loops, "loop_")
             pairs = [(m.frame_l, m.frame_m, *self._subsample(m)) for m in ok + loops]
             timings["matching"] += time.perf_counter() - t0
-            self._win_add_frame(k, None, tracker_pose)
+            self._win_add_frame(k, None, tracker_pose, timing=self._timing(k))
             for pair in pairs:
                 self._win_add_pair(*pair)
             self._pending[-1]["visual"] = bool(ok or loops)
@@ -725,7 +743,8 @@ class SequentialMosaicker:
         o = self.options
         if o.loop_pairs <= 0 or not self._loop_feats:
             return []
-        pose = tracker_pose if tracker_pose is not None else self._predict_pose()
+        pose = tracker_pose if tracker_pose is not None else self._predict_pose(
+            self._times.get(k))
         if pose is None:
             return []
         centre = self._centroid(self._to_reference(pose))
@@ -785,12 +804,28 @@ class SequentialMosaicker:
                 and overlap_fraction(self._own_footprint, poly) < o.startup_min_overlap}
         return [f for f in self._boot_feats if f.frame_id not in skip]
 
-    def _predict_pose(self) -> np.ndarray | None:
+    def _timing(self, k: int, times: dict | None = None) -> tuple[float, float]:
+        """C_p timing of frame k over the frames k-2, k-1 given before it (motion_timing);
+        nominal spacing: the median of the recent frame intervals."""
+        times = self._times if times is None else times
+        if k - 2 not in times or k - 1 not in times or k not in times:
+            return 1.0, 1.0
+        nominal = float(np.median(self._intervals)) if self._intervals else None
+        return motion_timing(times[k - 2], times[k - 1], times[k], nominal)
+
+    def _predict_pose(self, timestamp: float | None = None) -> np.ndarray | None:
+        """Constant-velocity prediction from the last two estimated poses, the motion scaled by
+        the time since the last one (when the times are known)."""
         if len(self._poses) < 2:
             return None
         a, b = sorted(self._poses)[-2:]
-        velocity = _core.compose_poses(self._poses[b], _core.invert_pose(self._poses[a]))
-        return _core.compose_poses(velocity, self._poses[b])
+        ratio = 1.0
+        ta, tb = self._pose_times.get(a), self._pose_times.get(b)
+        if timestamp is not None and ta is not None and tb is not None and tb > ta:
+            ratio = (timestamp - tb) / (tb - ta)
+            if abs(ratio - 1.0) <= EVEN_SPACING_TOLERANCE:
+                ratio = 1.0
+        return predict_constant_velocity(self._poses[a], self._poses[b], ratio)
 
     def _bootstrap(self, final_step: bool = False) -> bool:
         """BA+EMT over the first frames (all their pairs): plane and poses to start from.
@@ -808,8 +843,9 @@ class SequentialMosaicker:
         ba = _core.BundleAdjuster(self.K, ba_options)
         ids = [p["id"] for p in self._pending]
         filled = fill_missing_poses(table[ids])
+        times = {p["id"]: p["timestamp"] for p in self._pending}
         for i, k in enumerate(ids):
-            ba.add_frame(k, filled[i], tracked.get(k))
+            ba.add_frame(k, filled[i], tracked.get(k), *self._timing(k, times))
         for m in self._boot_matches:
             ba.add_pair(m.frame_l, m.frame_m, *self._subsample(m))
         ba.set_plane(plane)
@@ -871,6 +907,7 @@ class SequentialMosaicker:
             if self._reference_pose is None:
                 self._reference_pose = pose
             self._poses[k] = pose
+            self._pose_times[k] = p["timestamp"]
             G = self._to_reference(pose)
             centroid = self._centroid(G)
             forget += self.keyframes.add(k, centroid)
@@ -888,6 +925,7 @@ class SequentialMosaicker:
                 tracker_dropped=p["dropped"]))
         for old in sorted(self._poses)[:-2]:
             del self._poses[old]  # keep only what the motion prediction needs
+            self._pose_times.pop(old, None)
         if forget:
             self._win_forget(forget)
             for i in forget:
@@ -921,7 +959,7 @@ class SequentialMosaicker:
         and the current plane. In the start-up, before any step: chained through its registered
         pairs to frame 0 (_chain_startup), else from its tracker pose, frame 0's and the
         start-up plane (the tracker's accuracy, tens of pixels: a live preview)."""
-        pose = tracker_pose if tracker_pose is not None else self._predict_pose()
+        pose = tracker_pose if tracker_pose is not None else self._predict_pose(timestamp)
         plane, reference = self._plane, self._reference_pose
         if plane is None and k in self._startup_G:
             reported = (np.full(6, np.nan) if pose is None
