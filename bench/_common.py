@@ -284,10 +284,12 @@ class ProblemLog:
     def line(self, text: str) -> None:
         self.records.append(text)
 
-    def add_frame(self, k, initial, emt, fixed=False) -> None:
+    def add_frame(self, k, initial, emt, fixed=False, motion_ratio=1.0,
+                  motion_sigma_scale=1.0) -> None:
         a = "0" if initial is None else "1 " + _pose(initial)
         b = "0" if emt is None else "1 " + _pose(emt)
-        self.line(f"add_frame {int(k)} {a} {b} {int(bool(fixed))}")
+        self.line(f"add_frame {int(k)} {a} {b} {int(bool(fixed))} {motion_ratio!r} "
+                  f"{motion_sigma_scale!r}")
 
     def add_pair(self, l, m, pl, pm) -> None:
         pts = np.hstack(
@@ -328,9 +330,9 @@ class BundleRecorder:
     def __getattr__(self, name):
         return getattr(self._ba, name)
 
-    def add_frame(self, k, pose, emt=None):
-        self.log.add_frame(k, pose, emt)
-        return self._ba.add_frame(k, pose, emt)
+    def add_frame(self, k, pose, emt=None, motion_ratio=1.0, motion_sigma_scale=1.0):
+        self.log.add_frame(k, pose, emt, False, motion_ratio, motion_sigma_scale)
+        return self._ba.add_frame(k, pose, emt, motion_ratio, motion_sigma_scale)
 
     def add_pair(self, l, m, pl, pm):
         self.log.add_pair(l, m, pl, pm)
@@ -407,10 +409,11 @@ class WindowRecorder:
     def __getattr__(self, name):
         return getattr(self._window, name)
 
-    def add_frame(self, k, initial=None, emt=None, fixed=False):
+    def add_frame(self, k, initial=None, emt=None, fixed=False, motion_ratio=1.0,
+                  motion_sigma_scale=1.0):
         if self.log:
-            self.log.add_frame(k, initial, emt, fixed)
-        return self._window.add_frame(k, initial, emt, fixed=fixed)
+            self.log.add_frame(k, initial, emt, fixed, motion_ratio, motion_sigma_scale)
+        return self._window.add_frame(k, initial, emt, fixed, motion_ratio, motion_sigma_scale)
 
     def add_pair(self, l, m, pl, pm):
         if self.log:

@@ -102,7 +102,9 @@ def load_problem(path: Path) -> dict:
             if rest[j] == "1":
                 emt = np.array(rest[j + 1 : j + 7], float)
                 j += 6
-            p["calls"].append((name, (k, init, emt, rest[j + 1] == "1")))
+            # optional C_p timing (motion_ratio motion_sigma_scale; older logs: 1 1)
+            timing = tuple(float(x) for x in rest[j + 2 : j + 4]) or (1.0, 1.0)
+            p["calls"].append((name, (k, init, emt, rest[j + 1] == "1", *timing)))
         elif name in ("step", "forget"):
             p["calls"].append((name, ([int(x) for x in rest[1:]],)))
         elif name == "redo":
@@ -156,7 +158,7 @@ def python_replay(p: dict, repeats: int) -> dict:
             ba = _core.BundleAdjuster(p["K"], costs)
             for name, a in p["calls"]:
                 if name == "add_frame":
-                    ba.add_frame(a[0], a[1], a[2])
+                    ba.add_frame(a[0], a[1], a[2], a[4], a[5])
                 elif name == "add_pair":
                     ba.add_pair(*a)
                 elif name == "set_plane":
@@ -180,7 +182,7 @@ def python_replay(p: dict, repeats: int) -> dict:
         w = _core.SlidingWindow(p["K"], wo)
         for name, a in p["calls"]:
             if name == "add_frame":
-                w.add_frame(a[0], a[1], a[2], fixed=a[3])
+                w.add_frame(a[0], a[1], a[2], a[3], a[4], a[5])
             elif name == "add_pair":
                 w.add_pair(*a)
             elif name == "set_plane":

@@ -22,7 +22,8 @@
 //         use_motion_prior
 //   emt_sigma s1..s6          motion_sigma s1..s6
 //   window window_size num_new fold_fixed_cameras             (window files only)
-//   add_frame id has_initial [x1..x6] has_emt [z1..z6] fixed  (ba: fixed is ignored)
+//   add_frame id has_initial [x1..x6] has_emt [z1..z6] fixed [motion_ratio motion_sigma_scale]
+//     (ba: fixed is ignored; the C_p timing is optional, 1 1 when absent)
 //   add_pair l m n            followed by n lines "x_l y_l x_m y_m" (pixels)
 //   set_plane p1 p2 p3
 //   solve                     (ba)
@@ -67,6 +68,7 @@ struct Call {
   std::optional<Vector6d> b;  // EMT measurement
   bool flag = false;          // fixed / constant
   double value = 0.0;         // sigma scale
+  double ratio = 1.0, scale = 1.0;  // add_frame: C_p timing
   Eigen::Vector3d plane = Eigen::Vector3d::Zero();
   std::shared_ptr<Points> points_l, points_m;
 };
@@ -170,6 +172,7 @@ Problem Load(const std::string& path) {
       if (!(in >> has_emt)) Fail(path, line, "add_frame: expected has_emt");
       if (has_emt) c.b = ReadPose(in, path, line);
       if (!(in >> fixed)) Fail(path, line, "add_frame: expected fixed");
+      if (!(in >> c.ratio >> c.scale)) c.ratio = c.scale = 1.0;  // optional C_p timing
       c.ids = {id};
       c.flag = fixed != 0;
       ++p.num_frames;
@@ -308,7 +311,7 @@ std::string RunBundle(const Problem& p, int repeats) {
     BundleAdjuster ba(p.K, p.costs);
     for (const Call& c : p.calls) {
       if (c.name == "add_frame") {
-        ba.AddFrame(c.ids[0], *c.a, c.b);
+        ba.AddFrame(c.ids[0], *c.a, c.b, c.ratio, c.scale);
       } else if (c.name == "add_pair") {
         ba.AddPair(c.ids[0], c.ids[1], *c.points_l, *c.points_m);
       } else if (c.name == "set_plane") {
@@ -366,7 +369,7 @@ std::string RunWindow(const Problem& p, int repeats) {
     redos = 0;
     for (const Call& c : p.calls) {
       if (c.name == "add_frame") {
-        window.AddFrame(c.ids[0], c.a, c.b, c.flag);
+        window.AddFrame(c.ids[0], c.a, c.b, c.flag, c.ratio, c.scale);
       } else if (c.name == "add_pair") {
         window.AddPair(c.ids[0], c.ids[1], *c.points_l, *c.points_m);
       } else if (c.name == "set_plane") {

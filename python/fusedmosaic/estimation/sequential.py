@@ -844,8 +844,9 @@ class SequentialMosaicker:
         ids = [p["id"] for p in self._pending]
         filled = fill_missing_poses(table[ids])
         times = {p["id"]: p["timestamp"] for p in self._pending}
+        timing = {k: self._timing(k, times) for k in ids}
         for i, k in enumerate(ids):
-            ba.add_frame(k, filled[i], tracked.get(k), *self._timing(k, times))
+            ba.add_frame(k, filled[i], tracked.get(k), *timing[k])
         for m in self._boot_matches:
             ba.add_pair(m.frame_l, m.frame_m, *self._subsample(m))
         ba.set_plane(plane)
@@ -854,7 +855,9 @@ class SequentialMosaicker:
         self._startup_G, self._startup_plane = {}, None
         self._win_set_plane(self._plane)
         for k in ids:
-            self._win_add_frame(k, np.asarray(ba.pose(k)), tracked.get(k), fixed=True)
+            # held prior-only frames of the start-up's tail are solved again by the next step
+            self._win_add_frame(k, np.asarray(ba.pose(k)), tracked.get(k), fixed=True,
+                                timing=timing[k])
         for m in self._boot_matches:
             self._win_add_pair(m.frame_l, m.frame_m, *self._subsample(m))
         self._boot_feats, self._boot_matches = [], []
