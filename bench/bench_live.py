@@ -98,9 +98,10 @@ def row(label, method, ds, live, error_live, error_offline, unit) -> dict:
     d = live.details["live"]
     r = {"configuration": label, "method": method, "frames": len(ds),
          "frame_interval_ms": d["frame_interval_ms"], "frames_dropped": d["frames_dropped"],
+         "dropped": d["dropped"],
          "latency_ms": d["latency_ms"], "processing_ms": d["processing_ms"],
          "error_live": error_live, "error_offline": error_offline, "error_unit": unit}
-    print(f"{label}: dropped {d['frames_dropped']}/{len(ds)}, latency median "
+    print(f"{label}: dropped {d['frames_dropped']}/{len(ds)} {d['dropped']}, latency median "
           f"{d['latency_ms']['median']:.1f} p95 {d['latency_ms']['p95']:.1f} ms, error "
           f"{error_live:.3f} (offline {error_offline:.3f}) {unit}", flush=True)
     return r
