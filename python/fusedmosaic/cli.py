@@ -70,14 +70,12 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 def _warn_low_overlap(root: Path) -> None:
     """Warns when consecutive simulated frames move by more than half their smaller side (few
     features can match): --laps is per sequence, so few --n-frames make big steps."""
+    from fusedmosaic.evaluation.metrics import positions_px
     from fusedmosaic.io import read_dataset
 
     ds = read_dataset(root)
     w, h = ds.camera.width, ds.camera.height
-    G = ds.ground_truth
-    centre = np.array([(w - 1) / 2, (h - 1) / 2, 1.0])
-    q = G @ centre
-    c = q[:, :2] / q[:, 2:]
+    c = positions_px(ds.ground_truth, w, h)  # frame centres in the reference grid
     if len(c) < 2:
         return
     step = float(np.median(np.linalg.norm(np.diff(c, axis=0), axis=1)))

@@ -45,11 +45,9 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
     if live:
         from functools import partial
 
-        from fusedmosaic.estimation.live import LIVE_METHODS, replay_live
+        from fusedmosaic.estimation.live import check_live_method, replay_live
 
-        if method not in LIVE_METHODS:
-            raise ValueError(f"live replay: method {method!r} has no streaming form; use one "
-                             f"of {', '.join(LIVE_METHODS)}")
+        check_live_method(method)  # before any reading
         run_method = partial(replay_live, method=method)
     check_fps(fps)
     out = Path(out)

@@ -288,14 +288,10 @@ void SlidingWindow::InitialisePending(const std::vector<int>& ids) {
         f.pose = prev1->second.pose;
       } else {
         auto prev2 = std::prev(prev1);
-        if (f.motion_ratio == 1.0) {
-          const auto T1 = RigidTransform<double>::FromPose(prev1->second.pose.data());
-          const auto T2 = RigidTransform<double>::FromPose(prev2->second.pose.data());
-          (T1 * T2.Inverse() * T1).ToPose(f.pose.data());
-        } else {
-          Eigen::Map<Pose>(f.pose.data()) = PredictConstantVelocity(
-              prev2->second.pose.data(), prev1->second.pose.data(), f.motion_ratio);
-        }
+        PredictConstantVelocity(RigidTransform<double>::FromPose(prev2->second.pose.data()),
+                                RigidTransform<double>::FromPose(prev1->second.pose.data()),
+                                f.motion_ratio)
+            .ToPose(f.pose.data());
       }
     }
     f.has_initial = true;

@@ -31,6 +31,18 @@ namespace fusedmosaic {
 inline const Vector6d kDefaultMotionSigma =
     (Vector6d() << 0.0044, 0.0044, 0.0044, 15.2178, 15.2178, 15.2178).finished();
 
+// mu_p: the motion T_{k-1} T_{k-2}^-1 repeated `ratio` times from T_{k-1} (see below); ratio 1
+// is Eq. 16 exactly (no round trip through the 6-vector).
+template <typename T>
+RigidTransform<T> PredictConstantVelocity(const RigidTransform<T>& T_km2,
+                                          const RigidTransform<T>& T_km1, double ratio) {
+  if (ratio == 1.0) return T_km1 * T_km2.Inverse() * T_km1;
+  T motion[kPoseSize];
+  (T_km1 * T_km2.Inverse()).ToPose(motion);
+  for (int i = 0; i < kPoseSize; ++i) motion[i] *= T(ratio);
+  return RigidTransform<T>::FromPose(motion) * T_km1;
+}
+
 struct ConstantVelocityCostFunctor {
   // ratio: (t_k - t_{k-1}) / (t_{k-1} - t_{k-2}) when frames are not evenly spaced (a dropped
   // frame, a live source falling behind): the last motion is repeated `ratio` times,
@@ -44,19 +56,10 @@ struct ConstantVelocityCostFunctor {
   template <typename T>
   bool operator()(const T* const cam_km2_from_world, const T* const cam_km1_from_world,
                   const T* const cam_k_from_world, T* residuals_ptr) const {
-    const auto T_km1 = RigidTransform<T>::FromPose(cam_km1_from_world);
-    const auto T_km2 = RigidTransform<T>::FromPose(cam_km2_from_world);
-    RigidTransform<T> predicted;
-    if (ratio_ == 1.0) {
-      predicted = T_km1 * T_km2.Inverse() * T_km1;
-    } else {
-      T motion[kPoseSize];
-      (T_km1 * T_km2.Inverse()).ToPose(motion);
-      for (int i = 0; i < kPoseSize; ++i) motion[i] *= T(ratio_);
-      predicted = RigidTransform<T>::FromPose(motion) * T_km1;
-    }
     T mu[kPoseSize];
-    predicted.ToPose(mu);
+    PredictConstantVelocity(RigidTransform<T>::FromPose(cam_km2_from_world),
+                            RigidTransform<T>::FromPose(cam_km1_from_world), ratio_)
+        .ToPose(mu);
     Eigen::Map<Eigen::Matrix<T, 6, 1>> residuals(residuals_ptr);
     for (int i = 0; i < kPoseSize; ++i) residuals[i] = cam_k_from_world[i] - mu[i];
     residuals.applyOnTheLeft(sqrt_information_.template cast<T>());
@@ -74,19 +77,6 @@ struct ConstantVelocityCostFunctor {
   Matrix6d sqrt_information_;
   double ratio_;
 };
-
-// The prediction of Create(sigma, ratio) for given poses (double), e.g. to initialise a camera.
-inline Vector6d PredictConstantVelocity(const double* cam_km2_from_world,
-                                        const double* cam_km1_from_world, double ratio = 1.0) {
-  const auto T_km1 = RigidTransform<double>::FromPose(cam_km1_from_world);
-  const auto T_km2 = RigidTransform<double>::FromPose(cam_km2_from_world);
-  Vector6d motion;
-  (T_km1 * T_km2.Inverse()).ToPose(motion.data());
-  motion *= ratio;
-  Vector6d out;
-  (RigidTransform<double>::FromPose(motion.data()) * T_km1).ToPose(out.data());
-  return out;
-}
 
 // Checks the timing arguments of an add_frame: ratio and sigma scale finite and > 0.
 inline void CheckMotionTiming(double ratio, double sigma_scale, const char* what) {

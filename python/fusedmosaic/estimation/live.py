@@ -38,10 +38,18 @@ from tqdm import tqdm
 from fusedmosaic.io.tracking import camera_pose_from_sample
 from fusedmosaic.methods import MethodResult
 
-__all__ = ["LIVE_METHODS", "replay_live", "newest_sample_index", "extrapolated_robot"]
+__all__ = ["LIVE_METHODS", "replay_live", "check_live_method", "newest_sample_index",
+           "extrapolated_robot"]
 
 LIVE_METHODS = ("lba-emt", "kalman-robot")
 DROPPED = "unplaced: dropped (live replay: arrived while frame {busy} was being processed)"
+
+
+def check_live_method(method: str) -> None:
+    """ValueError unless `method` has a streaming form (LIVE_METHODS)."""
+    if method not in LIVE_METHODS:
+        raise ValueError(f"live replay: method {method!r} has no streaming form; use one of "
+                         f"{', '.join(LIVE_METHODS)}")
 
 
 def newest_sample_index(sample_times: np.ndarray, t: float, max_age_s: float) -> int | None:
@@ -82,9 +90,7 @@ def replay_live(dataset, method: str, *, options=None, progress: bool = True,
     at a frame's time is not used; None = 3 x the median spacing of the valid samples, the
     offline path's gap rule (interpolate_camera_poses). ``processing_time``: k -> seconds
     (finite, >= 0), replaces the measured time of frame k's call (what-if studies, tests)."""
-    if method not in LIVE_METHODS:
-        raise ValueError(f"live replay: method {method!r} has no streaming form; use one of "
-                         f"{', '.join(LIVE_METHODS)}")
+    check_live_method(method)
     if max_sample_age_s is not None and not (np.isfinite(max_sample_age_s)
                                              and max_sample_age_s >= 0):
         raise ValueError(f"live replay: max_sample_age_s must be a finite number >= 0, got "

@@ -71,11 +71,7 @@ from fusedmosaic.estimation.bundle import (
 )
 from fusedmosaic.estimation.guard import exclusive_call
 from fusedmosaic.estimation.keyframes import KeyframeIndex
-from fusedmosaic.estimation.motion import (
-    EVEN_SPACING_TOLERANCE,
-    motion_timing,
-    predict_constant_velocity,
-)
+from fusedmosaic.estimation.motion import motion_timing, predict_constant_velocity
 from fusedmosaic.estimation.plane import estimate_plane
 from fusedmosaic.estimation.world import (
     plane_from_aligned,
@@ -309,10 +305,9 @@ class SequentialMosaicker:
         self._window_options.plane_max_relative_std = o.plane_max_relative_std
         self.window = _core.SlidingWindow(self.K, self._window_options)
         # What the C++ window holds, to rebuild it when a call fails half-way (_transaction):
-        # frame id -> (pose or None while pending, tracker sample, sigma scale, fixed), the
-        # pairs by (frame_l, frame_m) -> (points_l, points_m), the plane.
+        # frame id -> (pose or None while pending, tracker sample, sigma scale, fixed, C_p
+        # timing), the pairs by (frame_l, frame_m) -> (points_l, points_m), the plane.
         self._mirror_frames: dict[int, tuple] = {}
-        self._mirror_timing: dict[int, tuple[float, float]] = {}  # id -> C_p timing, if not 1, 1
         self._mirror_pairs: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         self._mirror_plane: np.ndarray | None = None
         self._window_touched = False
@@ -333,8 +328,8 @@ class SequentialMosaicker:
         self._loop_feats: dict = {}  # one frame per retained keyframe block: its features
         self._loop_centroids: dict = {}
         self._loop_radius = 0.6 * float(np.hypot(*self.size))  # centroid distance for overlap
-        self._poses: dict[int, np.ndarray] = {}  # last two estimated poses, for prediction
-        self._pose_times: dict[int, float] = {}  # and their frames' times
+        # last two estimated poses and their frames' times, for prediction: id -> (pose, time)
+        self._poses: dict[int, tuple[np.ndarray, float]] = {}
         # Frame times: the last three frames given (the constant-velocity prior's timing,
         # motion.motion_timing) and the recent intervals, whose median is the nominal spacing.
         self._times: dict[int, float] = {}
@@ -496,8 +491,8 @@ class SequentialMosaicker:
               "_startup_G", "_startup_plane",
               "num_steps", "_finalized", "_boot_feats", "_boot_matches", "_loop_feats",
               "_loop_centroids", "_poses", "pair_counts", "_mirror_frames", "_mirror_pairs",
-              "_mirror_plane", "_implausible_run", "_world_rotation", "_mirror_timing",
-              "_times", "_intervals", "_pose_times")
+              "_mirror_plane", "_implausible_run", "_world_rotation", "_times",
+              "_intervals")
 
     def _save(self) -> dict:
         """What a call may change, copied (shallowly: the values it replaces, never mutates)."""
@@ -522,8 +517,8 @@ class SequentialMosaicker:
         window = _core.SlidingWindow(self.K, self._window_options)
         if self._mirror_plane is not None:
             window.set_plane(self._mirror_plane)
-        for k, (pose, emt, scale, fixed) in self._mirror_frames.items():
-            window.add_frame(k, pose, emt, fixed, *self._mirror_timing.get(k, (1.0, 1.0)))
+        for k, (pose, emt, scale, fixed, timing) in self._mirror_frames.items():
+            window.add_frame(k, pose, emt, fixed, *timing)
             if scale != 1.0:
                 window.set_emt_sigma_scale(k, scale)
         for (l, m), (pl, pm) in self._mirror_pairs.items():
@@ -535,9 +530,7 @@ class SequentialMosaicker:
     def _win_add_frame(self, k, initial, emt, fixed=False, timing=(1.0, 1.0)) -> None:
         self._window_touched = True
         self.window.add_frame(k, initial, emt, fixed, *timing)
-        self._mirror_frames[k] = (initial, emt, 1.0, fixed)
-        if timing != (1.0, 1.0):
-            self._mirror_timing[k] = timing
+        self._mirror_frames[k] = (initial, emt, 1.0, fixed, timing)
 
     def _win_add_pair(self, l, m, pl, pm) -> None:
         self._window_touched = True
@@ -552,16 +545,16 @@ class SequentialMosaicker:
     def _win_set_scale(self, k, scale) -> None:
         self._window_touched = True
         self.window.set_emt_sigma_scale(k, scale)
-        initial, emt, _, fixed = self._mirror_frames[k]
-        self._mirror_frames[k] = (initial, emt, scale, fixed)
+        initial, emt, _, fixed, timing = self._mirror_frames[k]
+        self._mirror_frames[k] = (initial, emt, scale, fixed, timing)
 
     def _win_solved(self, ids, summary_call, *args):
         """window.step / redo; afterwards the solved frames are fixed at their new poses."""
         self._window_touched = True
         summary = summary_call(*args)
         for k in ids:
-            _, emt, scale, _ = self._mirror_frames[k]
-            self._mirror_frames[k] = (np.asarray(self.window.pose(k)), emt, scale, True)
+            _, emt, scale, _, timing = self._mirror_frames[k]
+            self._mirror_frames[k] = (np.asarray(self.window.pose(k)), emt, scale, True, timing)
         self._mirror_plane = np.asarray(self.window.plane())
         return summary
 
@@ -571,7 +564,6 @@ class SequentialMosaicker:
         gone = set(ids)
         for k in gone:
             self._mirror_frames.pop(k, None)
-            self._mirror_timing.pop(k, None)
         self._mirror_pairs = {key: v for key, v in self._mirror_pairs.items()
                               if key[0] not in gone and key[1] not in gone}
 
@@ -818,14 +810,10 @@ class SequentialMosaicker:
         the time since the last one (when the times are known)."""
         if len(self._poses) < 2:
             return None
-        a, b = sorted(self._poses)[-2:]
-        ratio = 1.0
-        ta, tb = self._pose_times.get(a), self._pose_times.get(b)
-        if timestamp is not None and ta is not None and tb is not None and tb > ta:
-            ratio = (timestamp - tb) / (tb - ta)
-            if abs(ratio - 1.0) <= EVEN_SPACING_TOLERANCE:
-                ratio = 1.0
-        return predict_constant_velocity(self._poses[a], self._poses[b], ratio)
+        (pose_a, ta), (pose_b, tb) = (self._poses[i] for i in sorted(self._poses)[-2:])
+        # the ratio of motion_timing with b's interval as the nominal one (1 when within 1 %)
+        ratio = 1.0 if timestamp is None else motion_timing(ta, tb, timestamp, tb - ta)[0]
+        return predict_constant_velocity(pose_a, pose_b, ratio)
 
     def _bootstrap(self, final_step: bool = False) -> bool:
         """BA+EMT over the first frames (all their pairs): plane and poses to start from.
@@ -909,8 +897,7 @@ class SequentialMosaicker:
             pose = np.asarray(pose)
             if self._reference_pose is None:
                 self._reference_pose = pose
-            self._poses[k] = pose
-            self._pose_times[k] = p["timestamp"]
+            self._poses[k] = (pose, p["timestamp"])
             G = self._to_reference(pose)
             centroid = self._centroid(G)
             forget += self.keyframes.add(k, centroid)
@@ -928,7 +915,6 @@ class SequentialMosaicker:
                 tracker_dropped=p["dropped"]))
         for old in sorted(self._poses)[:-2]:
             del self._poses[old]  # keep only what the motion prediction needs
-            self._pose_times.pop(old, None)
         if forget:
             self._win_forget(forget)
             for i in forget:
