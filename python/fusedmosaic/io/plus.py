@@ -1,0 +1,796 @@
+"""PLUS toolkit sequence metafiles (``*.seq.mha`` / ``*.igs.mha``, or ``.mhd`` + raw data):
+reader, writer, and import into the dataset contract (design.md, "Dataset contract").
+
+A sequence metafile is a MetaImage file: ``Key = Value`` text lines, the last one
+``ElementDataFile`` (``LOCAL``: the pixel data follows that line's newline; else a file name
+relative to the header), then W*H*channels*N bytes, frame-major and row-major within a frame
+(RGB for 3 channels; zlib-compressed as one buffer with ``CompressedData = True``). Per-frame
+fields are ``Seq_Frame<index>_<Name> = <value>``:
+
+- ``Timestamp`` (s);
+- ``ImageStatus``: absent or ``OK`` = the frame has an image;
+- ``<X>To<Y>Transform``: 16 numbers, a row-major 4x4 mapping points from X's coordinates into
+  Y's (mm), so ``SensorToTrackerTransform`` is the dataset's tracker_from_sensor;
+- ``<X>To<Y>TransformStatus``: anything but ``OK`` = no sample (absent = ``OK`` when the
+  transform is there).
+
+``UltrasoundImageOrientation`` (absent = ``MF``) is converted to ``MF``, PLUS's own storage
+order: first letter ``U`` = the columns are mirrored (flip left-right), second letter ``N`` = the
+rows are (flip up-down). PLUS recordings are frame-synchronous: the importer writes one tracker
+sample per frame, at the frame's timestamp.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import tempfile
+import zlib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from fusedmosaic.io._table import format_float
+from fusedmosaic.io.calibration import Camera, read_camera_yaml
+from fusedmosaic.io.dataset import write_dataset
+from fusedmosaic.io.tracking import (
+    MAX_TIMESTAMP_S,
+    MAX_TRANSLATION_MM,
+    ROTATION_TOLERANCE,
+    TrackingSamples,
+    read_hand_eye,
+)
+
+__all__ = [
+    "ImportSummary",
+    "PlusSequence",
+    "SelectedTransform",
+    "import_plus_sequence",
+    "read_plus_sequence",
+    "write_plus_sequence",
+]
+
+SUPPORTED_ELEMENT_TYPES = ("MET_UCHAR",)
+SUPPORTED_CHANNELS = (1, 3)
+# UltrasoundImageOrientation -> (flip left-right, flip up-down) that gives MF. The transposed
+# codes (FM, FU, ...: RF data) and 3-D ones are refused.
+ORIENTATIONS = {"MF": (False, False), "MN": (False, True), "UF": (True, False), "UN": (True, True)}
+# A tracker rotation block must be orthonormal with det +1 to this (PLUS writes ~6 digits).
+RIGID_TOLERANCE = 1e-3
+FRAME_PREFIX = "Seq_Frame"
+_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
+_FRAME_KEY = re.compile(r"Seq_Frame(\d+)_(\S+)\Z")
+_MAX_HEADER_LINE = 1 << 20  # bytes; longer means binary data, not a header line
+_SHOWN = 5  # frames listed in a message
+
+
+def _transform_field(name: str) -> str:
+    """``ProbeToTracker`` or ``ProbeToTrackerTransform`` -> ``ProbeToTrackerTransform``."""
+    return name if name.endswith("Transform") else name + "Transform"
+
+
+def _frames_text(indices) -> str:
+    indices = [int(i) for i in indices]
+    shown = ", ".join(map(str, indices[:_SHOWN]))
+    return shown + (f" and {len(indices) - _SHOWN} more" if len(indices) > _SHOWN else "")
+
+
+@dataclass(eq=False)
+class SelectedTransform:
+    """A transform of every frame, in the requested direction.
+
+    name : the requested field (``SensorToTrackerTransform``); source : the field read (the same,
+    or its inverse ``TrackerToSensorTransform`` when ``inverted``); matrices : (N, 4, 4) float64,
+    NaN where ``ok`` is False; ok : (N,) bool, status OK (the matrices of those frames are
+    checked rigid, finite and within MAX_TRANSLATION_MM).
+    """
+
+    name: str
+    source: str
+    inverted: bool
+    matrices: np.ndarray
+    ok: np.ndarray
+
+
+@dataclass(eq=False)
+class PlusSequence:
+    """A PLUS sequence metafile read by :func:`read_plus_sequence`.
+
+    images : (N, H, W) or (N, H, W, 3) uint8 in the file's channel order (RGB), converted to the
+        MF orientation. Uncompressed data is a read-only ``np.memmap`` (or a flipped view of
+        one): nothing is loaded until a frame is indexed. Compressed data is decompressed once.
+    timestamps : (N,) float64 s, finite and strictly increasing.
+    transforms : field name (``ProbeToTrackerTransform``) -> (N, 4, 4) float64 as written (NaN
+        where the frame has no such field); transform_status : the same names -> (N,) bool, True
+        where the status is OK.
+    image_ok : (N,) bool, False where ImageStatus is not OK (no image for that frame).
+    orientation : the file's UltrasoundImageOrientation (the images are already MF).
+    header : the non-frame header fields, as text.
+    """
+
+    path: Path
+    images: np.ndarray
+    timestamps: np.ndarray
+    transforms: dict[str, np.ndarray]
+    transform_status: dict[str, np.ndarray]
+    image_ok: np.ndarray
+    channels: int
+    width: int
+    height: int
+    orientation: str = "MF"
+    header: dict[str, str] = field(default_factory=dict, repr=False)
+    _fields: list[dict[str, str]] = field(default_factory=list, repr=False)
+
+    def __len__(self) -> int:
+        return self.timestamps.size
+
+    def transform(self, name: str | None = None) -> SelectedTransform:
+        """The transform ``name`` (``SensorToTracker`` or ``SensorToTrackerTransform``) of every
+        frame. A field stored the other way round (``TrackerToSensorTransform``) is inverted.
+        None picks the single ``*ToTrackerTransform`` or ``*ToReferenceTransform`` field.
+        Frames with status OK are checked: finite, rotation block orthonormal with det +1 (to
+        RIGID_TOLERANCE), last row 0 0 0 1, translation within MAX_TRANSLATION_MM. ValueError
+        naming the file (and the frame and field) otherwise."""
+        available = ", ".join(self.transforms) or "none"
+        if name is None:
+            candidates = [
+                n for n in self.transforms if re.search(r"To(Tracker|Reference)Transform\Z", n)
+            ]
+            if len(candidates) != 1:
+                problem = "several" if candidates else "no"
+                raise ValueError(
+                    f"{self.path}: {problem} *ToTrackerTransform / *ToReferenceTransform fields "
+                    f"({available} present); name the transform to import (e.g. "
+                    "transform='ProbeToTracker'; a transform stored the other way round is "
+                    "inverted)"
+                )
+            name = candidates[0]
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"{self.path}: transform name must be a non-empty string, got "
+                             f"{name!r}")
+        name = _transform_field(name)
+        source, inverted = name, False
+        if name not in self.transforms:
+            source = next((n for n in self.transforms if name in _inverse_names(n)), None)
+            if source is None:
+                raise ValueError(
+                    f"{self.path}: no {name} field (nor its inverse); transforms present: "
+                    f"{available}"
+                )
+            inverted = True
+        ok = self.transform_status[source].copy()
+        matrices = self.transforms[source].copy()
+        _check_rigid(self, source, matrices, ok)
+        matrices[~ok] = np.nan
+        if inverted and ok.any():  # rigid inverse of the nearest rotation (the file has ~6 digits)
+            R = Rotation.from_matrix(matrices[ok, :3, :3]).inv().as_matrix()
+            matrices[ok, :3, :3] = R
+            matrices[ok, :3, 3] = -np.einsum("nij,nj->ni", R, matrices[ok, :3, 3])
+            matrices[ok, 3] = [0.0, 0.0, 0.0, 1.0]
+        return SelectedTransform(name, source, inverted, matrices, ok)
+
+    def _key(self, index: int, name: str) -> str:
+        """The field's key as written in the file (its frame index padding), for messages."""
+        keys = self._fields[index] if index < len(self._fields) else {}
+        return keys.get(name, f"{FRAME_PREFIX}{index:04d}_{name}")
+
+
+def _inverse_names(field_name: str) -> set[str]:
+    """``AToBTransform`` -> {``BToATransform``}; every split at a ``To`` leaving two non-empty
+    names counts (``ProbeToTooltipTransform`` -> ``TooltipToProbeTransform`` and
+    ``oltipToProbeToTransform``): only names present in the file are ever matched."""
+    stem = field_name.removesuffix("Transform")
+    return {
+        f"{stem[i + 2:]}To{stem[:i]}Transform"
+        for i in range(1, len(stem) - 2)
+        if stem.startswith("To", i)
+    }
+
+
+def _check_rigid(seq: PlusSequence, source: str, matrices: np.ndarray, ok: np.ndarray) -> None:
+    def fail(mask: np.ndarray, problem: str) -> None:
+        bad = np.flatnonzero(mask)
+        if bad.size:
+            i = int(bad[0])
+            more = f" ({bad.size} frames: {_frames_text(bad)})" if bad.size > 1 else ""
+            raise ValueError(f"{seq.path}: frame {i} ({seq._key(i, source)}): {problem}{more}")
+
+    finite = np.isfinite(matrices).all(axis=(1, 2))
+    fail(ok & ~finite, "status OK but the transform has NaN or inf values")
+    M = np.where(finite[:, None, None], matrices, np.eye(4))
+    R = M[:, :3, :3]
+    off = np.abs(np.einsum("nki,nkj->nij", R, R) - np.eye(3)).max(axis=(1, 2))
+    det = np.linalg.det(R)
+    last = np.abs(M[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1)
+    fail(
+        ok & ((off > RIGID_TOLERANCE) | (det <= 0) | (last > RIGID_TOLERANCE)),
+        f"not a rigid transform (rotation block not orthonormal with det +1 to "
+        f"{RIGID_TOLERANCE:g}, or last row not 0 0 0 1)",
+    )
+    fail(
+        ok & (np.abs(M[:, :3, 3]).max(axis=1) > MAX_TRANSLATION_MM),
+        f"translation beyond the {MAX_TRANSLATION_MM:g} mm bound (1 km), not physical "
+        "(translations must be mm)",
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Reading
+# --------------------------------------------------------------------------------------------
+
+
+def _read_header(path: Path) -> tuple[dict[str, tuple[str, int]], dict[int, dict], int]:
+    """Header fields {key: (value, line)}, frame fields {index: {name: (value, line, key)}}
+    and the byte offset after the ElementDataFile line."""
+    header: dict[str, tuple[str, int]] = {}
+    frames: dict[int, dict[str, tuple[str, int, str]]] = {}
+    with path.open("rb") as f:
+        line_number = 0
+        while True:
+            raw = f.readline(_MAX_HEADER_LINE)
+            if not raw:
+                raise ValueError(
+                    f"{path}: no ElementDataFile line (the header's last line, LOCAL or the data "
+                    "file's name); not a complete MetaImage header"
+                )
+            line_number += 1
+            text = raw.decode("latin-1").strip()
+            if not text:
+                continue
+            key, eq, value = text.partition("=")
+            key, value = key.strip(), value.strip()
+            if not eq or not _KEY.match(key) or len(raw) >= _MAX_HEADER_LINE:
+                raise ValueError(
+                    f"{path}: line {line_number} is not a 'Key = Value' header line (binary data "
+                    "before an ElementDataFile line?)"
+                )
+            m = _FRAME_KEY.match(key)
+            if m is not None:
+                index, name = int(m.group(1)), m.group(2)
+                fields = frames.setdefault(index, {})
+                if name in fields:
+                    raise ValueError(
+                        f"{path}: line {line_number}: {key} repeats line {fields[name][1]}"
+                    )
+                fields[name] = (value, line_number, key)
+                continue
+            if key in header:
+                raise ValueError(f"{path}: line {line_number}: {key} repeats line "
+                                 f"{header[key][1]}")
+            header[key] = (value, line_number)
+            if key == "ElementDataFile":
+                return header, frames, f.tell()
+
+
+def _integers(path: Path, key: str, value: str) -> list[int]:
+    try:
+        return [int(v) for v in value.split()]
+    except ValueError:
+        raise ValueError(f"{path}: {key}: cannot parse {value!r} as integers") from None
+
+
+def _integer(path: Path, key: str, value: str) -> int:
+    values = _integers(path, key, value)
+    if len(values) != 1:
+        raise ValueError(f"{path}: {key}: expected one integer, got {value!r}")
+    return values[0]
+
+
+def _flag(path: Path, header, key: str, default: bool) -> bool:
+    if key not in header:
+        return default
+    value = header[key][0]
+    if value.lower() not in ("true", "false"):
+        raise ValueError(f"{path}: {key}: expected True or False, got {value!r}")
+    return value.lower() == "true"
+
+
+def read_plus_sequence(path: str | Path) -> PlusSequence:
+    """Read a PLUS sequence metafile (``.mha`` with LOCAL data, or ``.mhd`` + its data file).
+
+    Supported: NDims 3 (W H N; NDims 4 with DimSize W H 1 N, PLUS's 2-D data with the z
+    dimension included), MET_UCHAR, 1 or 3 channels, binary data, optionally zlib-compressed
+    (``CompressedData = True``), UltrasoundImageOrientation MF, MN, UF, UN (converted to MF).
+    Every problem is a ValueError naming the file (and the field, line or frame)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: file not found")
+    header, frame_fields, header_end = _read_header(path)
+
+    def value(key: str, required: bool = True) -> str | None:
+        if key not in header:
+            if required:
+                raise ValueError(f"{path}: missing {key} (a sequence metafile needs it)")
+            return None
+        return header[key][0]
+
+    if value("ObjectType", False) not in (None, "Image"):
+        raise ValueError(f"{path}: ObjectType is {value('ObjectType')!r}, expected Image")
+    dims = _integers(path, "DimSize", value("DimSize"))
+    ndims_text = value("NDims", False)
+    ndims = len(dims) if ndims_text is None else _integer(path, "NDims", ndims_text)
+    if len(dims) != ndims:
+        raise ValueError(f"{path}: DimSize has {len(dims)} values but NDims is {ndims}")
+    if ndims == 4 and dims[2] == 1:  # 2-D frames written with their z dimension (PLUS option)
+        dims = [dims[0], dims[1], dims[3]]
+    elif ndims != 3:
+        raise ValueError(
+            f"{path}: NDims is {ndims}; supported: 3 (a 2-D image sequence: DimSize = width "
+            "height frames), or 4 with DimSize width height 1 frames"
+        )
+    width, height, n = dims
+    if width <= 0 or height <= 0 or n <= 0:
+        raise ValueError(f"{path}: DimSize {value('DimSize')!r}: width, height and frames must "
+                         "be positive (a sequence without images cannot be imported)")
+    element_type = value("ElementType")
+    if element_type not in SUPPORTED_ELEMENT_TYPES:
+        raise ValueError(f"{path}: ElementType {element_type} is not supported; supported: "
+                         f"{', '.join(SUPPORTED_ELEMENT_TYPES)} (8-bit images)")
+    channels_text = value("ElementNumberOfChannels", False)
+    channels = 1 if channels_text is None else _integer(
+        path, "ElementNumberOfChannels", channels_text)
+    if channels not in SUPPORTED_CHANNELS:
+        raise ValueError(f"{path}: ElementNumberOfChannels {channels} is not supported; "
+                         "supported: 1 (grey) or 3 (RGB)")
+    if not _flag(path, header, "BinaryData", True):
+        raise ValueError(f"{path}: BinaryData = False (ASCII pixel data) is not supported")
+    compressed = _flag(path, header, "CompressedData", False)
+    orientation = value("UltrasoundImageOrientation", False) or "MF"
+    if orientation.upper() not in ORIENTATIONS:
+        raise ValueError(f"{path}: UltrasoundImageOrientation {orientation!r} is not supported; "
+                         f"supported: {', '.join(ORIENTATIONS)} (absent = MF)")
+    orientation = orientation.upper()
+
+    images = _read_pixels(path, header, header_end, (n, height, width, channels), compressed)
+    if channels == 1:
+        images = images[..., 0]
+    flip_lr, flip_ud = ORIENTATIONS[orientation]
+    if flip_lr:
+        images = images[:, :, ::-1]
+    if flip_ud:
+        images = images[:, ::-1]
+
+    unknown = sorted(i for i in frame_fields if i >= n)
+    if unknown:
+        key = next(iter(frame_fields[unknown[0]].values()))[2]
+        raise ValueError(f"{path}: {key}: frame {unknown[0]} is beyond DimSize's {n} frames "
+                         f"(frames {_frames_text(unknown)})")
+    fields = [frame_fields.get(i, {}) for i in range(n)]
+    timestamps = _timestamps(path, fields)
+    image_ok = np.array([_status_ok(f.get("ImageStatus")) for f in fields], bool)
+    transforms, status = _transforms(path, fields)
+    return PlusSequence(
+        path=path,
+        images=images,
+        timestamps=timestamps,
+        transforms=transforms,
+        transform_status=status,
+        image_ok=image_ok,
+        channels=channels,
+        width=width,
+        height=height,
+        orientation=orientation,
+        header={k: v for k, (v, _) in header.items()},
+        _fields=[{name: key for name, (_, _, key) in f.items()} for f in fields],
+    )
+
+
+def _status_ok(entry) -> bool:
+    """Absent = OK (PLUS's convention for ImageStatus); else OK in any case."""
+    return entry is None or entry[0].upper() == "OK"
+
+
+def _read_pixels(path: Path, header, header_end: int, shape: tuple[int, ...],
+                 compressed: bool) -> np.ndarray:
+    n, height, width, channels = shape
+    expected = n * height * width * channels
+    what = (f"DimSize {width} {height} {n} with {channels} channel(s) of MET_UCHAR needs "
+            f"{expected} bytes")
+    data_file, line = header["ElementDataFile"]
+    if data_file == "LOCAL":
+        data_path, offset = path, header_end
+    else:
+        if data_file.upper().startswith("LIST") or "%" in data_file:
+            raise ValueError(f"{path}: ElementDataFile {data_file!r}: one data file per slice "
+                             "(LIST or a pattern) is not supported; expected LOCAL or one file")
+        data_path, offset = path.parent / data_file, 0
+        if not data_path.is_file():
+            raise ValueError(f"{path}: line {line}: ElementDataFile {data_file!r}: {data_path} "
+                             "not found")
+    size = data_path.stat().st_size
+    if "HeaderSize" in header and data_file != "LOCAL":  # bytes to skip in the data file
+        skip = _integer(path, "HeaderSize", header["HeaderSize"][0])
+        if skip < -1 or (skip == -1 and compressed):
+            raise ValueError(f"{path}: HeaderSize {skip} is not supported (expected >= 0, or -1 "
+                             "for uncompressed data at the end of the file)")
+        offset = max(size - expected, 0) if skip == -1 else skip  # -1: the file's last bytes
+    found = size - offset
+    if not compressed:
+        if found != expected:
+            where = "" if data_path == path else f" ({data_path})"
+            raise ValueError(f"{path}: image data{where} is {found} bytes but {what}: "
+                             f"{'truncated' if found < expected else 'longer than DimSize says'}")
+        return np.memmap(data_path, dtype=np.uint8, mode="r", offset=offset, shape=shape)
+
+    stored = header.get("CompressedDataSize")
+    if stored is not None:
+        parsed = _integer(path, "CompressedDataSize", stored[0])
+        if parsed <= 0:
+            raise ValueError(f"{path}: CompressedDataSize: expected a positive integer, got "
+                             f"{stored[0]!r}")
+        if found != parsed:
+            raise ValueError(f"{path}: compressed image data is {found} bytes but "
+                             f"CompressedDataSize says {parsed}")
+    with data_path.open("rb") as f:
+        f.seek(offset)
+        blob = f.read()
+    inflate = zlib.decompressobj()
+    try:  # at most one byte more than expected: a longer stream is refused, not inflated
+        data = inflate.decompress(blob, expected + 1)
+    except zlib.error as e:
+        raise ValueError(f"{path}: cannot decompress the image data (zlib: {e})") from None
+    if len(data) != expected or not inflate.eof:
+        found_text = f"{len(data)}" if len(data) <= expected else f"more than {expected}"
+        raise ValueError(f"{path}: decompressed image data is {found_text} bytes but {what}")
+    return np.frombuffer(data, np.uint8).reshape(shape)
+
+
+def _timestamps(path: Path, fields: list[dict]) -> np.ndarray:
+    missing = [i for i, f in enumerate(fields) if "Timestamp" not in f]
+    if missing:
+        raise ValueError(f"{path}: no Timestamp for frame(s) {_frames_text(missing)} "
+                         f"(Seq_Frame{missing[0]:04d}_Timestamp)")
+    t = np.empty(len(fields))
+    for i, f in enumerate(fields):
+        text, _, key = f["Timestamp"]
+        try:
+            t[i] = float(text)
+        except ValueError:
+            raise ValueError(f"{path}: frame {i} ({key}): cannot parse {text!r} as a "
+                             "number") from None
+    bad = np.flatnonzero(~np.isfinite(t))
+    if bad.size:
+        raise ValueError(f"{path}: frame(s) {_frames_text(bad)}: timestamp is not finite "
+                         f"({fields[bad[0]]['Timestamp'][2]} = {fields[bad[0]]['Timestamp'][0]})")
+    beyond = np.flatnonzero(np.abs(t) > MAX_TIMESTAMP_S)
+    if beyond.size:
+        raise ValueError(f"{path}: frame {beyond[0]}: timestamp {float(t[beyond[0]])!r} is beyond "
+                         f"|t| <= {MAX_TIMESTAMP_S:g} s; timestamps are seconds (ms, µs or ns?)")
+    back = np.flatnonzero(np.diff(t) <= 0)
+    if back.size:
+        i = int(back[0]) + 1
+        raise ValueError(f"{path}: frame {i}: timestamp {float(t[i])!r} is not after frame "
+                         f"{i - 1}'s {float(t[i - 1])!r}; timestamps must be strictly increasing "
+                         f"({back.size} such frame(s): {_frames_text(back + 1)})")
+    return t
+
+
+def _transforms(path: Path, fields: list[dict]) -> tuple[dict, dict]:
+    n = len(fields)
+    names = sorted({name for f in fields for name in f if name.endswith("Transform")})
+    transforms, status = {}, {}
+    for name in names:
+        M = np.full((n, 4, 4), np.nan)
+        ok = np.zeros(n, bool)
+        for i, f in enumerate(fields):
+            entry = f.get(name)
+            if entry is None:
+                continue  # no sample in this frame
+            text, _, key = entry
+            try:
+                values = [float(v) for v in text.split()]
+            except ValueError:
+                values = []
+            if len(values) != 16:
+                raise ValueError(f"{path}: frame {i} ({key}): cannot parse {text!r} as 16 "
+                                 "numbers (a row-major 4x4 matrix)")
+            M[i] = np.reshape(values, (4, 4))
+            ok[i] = _status_ok(f.get(name + "Status"))
+        transforms[name], status[name] = M, ok
+    return transforms, status
+
+
+# --------------------------------------------------------------------------------------------
+# Writing
+# --------------------------------------------------------------------------------------------
+
+
+def write_plus_sequence(
+    path: str | Path,
+    images,
+    timestamps,
+    transforms: Mapping[str, np.ndarray] | None = None,
+    status: Mapping[str, np.ndarray] | None = None,
+    compress: bool = False,
+    *,
+    image_ok=None,
+) -> Path:
+    """Write a PLUS sequence metafile as PLUS writes it: ``.mha`` with the data inline (LOCAL),
+    or ``.mhd`` with the data in ``<name>.raw`` (``.zraw`` when compressed) beside it.
+
+    images : (N, H, W) or (N, H, W, 3) uint8 (RGB), or a sequence of such frames (written one at
+        a time). timestamps : (N,) s. transforms : name (``SensorToTracker`` or
+        ``SensorToTrackerTransform``) -> (N, 4, 4). status : the same names -> (N,) bool (absent:
+        all OK); frames whose status is False are written INVALID (non-finite matrices as the
+        identity). image_ok : (N,) bool, False = ImageStatus INVALID (the pixels are still
+        written: the data block always holds N frames). compress : zlib (CompressedData).
+    Files are written to temporary names and renamed, so a failure leaves no partial file."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in (".mha", ".mhd"):
+        raise ValueError(f"{path}: expected a .mha (data inline) or .mhd (separate data) name")
+    n = len(images)
+    if n == 0:
+        raise ValueError(f"{path}: no images to write")
+    first = np.asarray(images[0])
+    if first.dtype != np.uint8 or first.ndim not in (2, 3) or (
+            first.ndim == 3 and first.shape[2] not in SUPPORTED_CHANNELS):
+        raise ValueError(f"{path}: images must be uint8 (H, W) or (H, W, 3), got "
+                         f"{first.dtype} {first.shape}")
+    shape = first.shape
+    height, width = shape[:2]
+    channels = 1 if first.ndim == 2 else shape[2]
+    timestamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+    if timestamps.size != n:
+        raise ValueError(f"{path}: {timestamps.size} timestamps for {n} images")
+    ok_image = np.ones(n, bool) if image_ok is None else np.asarray(image_ok, bool).reshape(-1)
+    if ok_image.size != n:
+        raise ValueError(f"{path}: image_ok has {ok_image.size} values for {n} images")
+    fields, oks = {}, {}
+    status = {_transform_field(k): v for k, v in (status or {}).items()}
+    for name, matrices in (transforms or {}).items():
+        name = _transform_field(name)
+        matrices = np.asarray(matrices, dtype=np.float64)
+        if matrices.shape != (n, 4, 4):
+            raise ValueError(f"{path}: transform {name}: expected shape ({n}, 4, 4), got "
+                             f"{matrices.shape}")
+        ok = np.asarray(status.pop(name, np.ones(n, bool)), bool).reshape(-1)
+        if ok.size != n:
+            raise ValueError(f"{path}: status of {name}: {ok.size} values for {n} frames")
+        bad = np.flatnonzero(ok & ~np.isfinite(matrices).all(axis=(1, 2)))
+        if bad.size:
+            raise ValueError(f"{path}: transform {name}: frame {bad[0]} has status OK but "
+                             "non-finite values")
+        fields[name], oks[name] = matrices, ok
+    if status:
+        raise ValueError(f"{path}: status given for {', '.join(status)} without its transform")
+
+    lines = [
+        "ObjectType = Image",
+        "NDims = 3",
+        "AnatomicalOrientation = RAI",
+        "BinaryData = True",
+        "BinaryDataByteOrderMSB = False",
+        "CenterOfRotation = 0 0 0",
+        f"CompressedData = {compress}",
+        None,  # CompressedDataSize, once known
+        f"DimSize = {width} {height} {n}",
+        f"ElementNumberOfChannels = {channels}",
+        "ElementSpacing = 1 1 1",
+        "ElementType = MET_UCHAR",
+        "Kinds = domain domain list",
+        "Offset = 0 0 0",
+        "TransformMatrix = 1 0 0 0 1 0 0 0 1",
+        "UltrasoundImageOrientation = MF",
+        f"UltrasoundImageType = {'RGB_COLOR' if channels == 3 else 'BRIGHTNESS'}",
+    ]
+    for i in range(n):
+        prefix = f"{FRAME_PREFIX}{i:04d}_"
+        lines.append(f"{prefix}FrameNumber = {i}")
+        for name, matrices in fields.items():
+            M = matrices[i] if np.isfinite(matrices[i]).all() else np.eye(4)
+            lines.append(f"{prefix}{name} = {' '.join(_number(v) for v in M.reshape(-1))}")
+            lines.append(f"{prefix}{name}Status = {'OK' if oks[name][i] else 'INVALID'}")
+        t = _number(timestamps[i])
+        lines += [f"{prefix}Timestamp = {t}", f"{prefix}UnfilteredTimestamp = {t}"]
+        lines.append(f"{prefix}ImageStatus = {'OK' if ok_image[i] else 'INVALID'}")
+
+    def frames():
+        for i in range(n):
+            image = np.asarray(images[i])
+            if image.shape != shape or image.dtype != np.uint8:
+                raise ValueError(f"{path}: image {i} is {image.dtype} {image.shape}, the first "
+                                 f"is uint8 {shape}")
+            yield np.ascontiguousarray(image).tobytes()
+
+    data_name = path.name[: -len(path.suffix)] + (".zraw" if compress else ".raw")
+    temps: list[Path] = []
+    try:
+        data_tmp = _temp(path, temps)
+        with data_tmp.open("wb") as f:
+            deflate = zlib.compressobj() if compress else None
+            for chunk in frames():
+                f.write(deflate.compress(chunk) if deflate else chunk)
+            if deflate:
+                f.write(deflate.flush())
+        if compress:
+            lines[7] = f"CompressedDataSize = {data_tmp.stat().st_size}"
+        lines = [line for line in lines if line is not None]
+        lines.append(f"ElementDataFile = {'LOCAL' if suffix == '.mha' else data_name}")
+        header = ("\n".join(lines) + "\n").encode("ascii")
+        if suffix == ".mha":
+            header_tmp = _temp(path, temps)
+            with header_tmp.open("wb") as out, data_tmp.open("rb") as data:
+                out.write(header)
+                while chunk := data.read(1 << 22):
+                    out.write(chunk)
+            os.replace(header_tmp, path)
+        else:
+            header_tmp = _temp(path, temps)
+            header_tmp.write_bytes(header)
+            os.replace(data_tmp, path.parent / data_name)
+            os.replace(header_tmp, path)
+    finally:
+        for tmp in temps:
+            tmp.unlink(missing_ok=True)
+    return path
+
+
+def _temp(path: Path, temps: list[Path]) -> Path:
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
+    os.close(fd)
+    temps.append(Path(name))
+    return temps[-1]
+
+
+def _number(x: float) -> str:
+    """Shortest text that reads back as the same double."""
+    return repr(float(x)) if np.isfinite(x) else str(float(x))
+
+
+# --------------------------------------------------------------------------------------------
+# Import into the dataset contract
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(eq=False)
+class ImportSummary:
+    """What :func:`import_plus_sequence` wrote.
+
+    root : the dataset folder. source : the sequence file. transform : the field imported as
+    tracker_from_sensor (``inverted``: it was stored the other way round). frames : images
+    written; their frame ids are their indices in the sequence. skipped_frames : sequence indices
+    whose ImageStatus is not OK (left out). invalid_samples : sequence indices whose transform
+    status is not OK (tracking.csv rows with valid=0). untracked_frames : written frames outside
+    the OK samples' time span (read_dataset refuses them unless allow_untracked).
+    """
+
+    root: Path
+    source: Path
+    transform: str
+    inverted: bool
+    frames: int
+    skipped_frames: list[int]
+    invalid_samples: list[int]
+    untracked_frames: list[int]
+    width: int
+    height: int
+    channels: int
+    orientation: str
+
+    def __str__(self) -> str:
+        parts = [f"{self.root}: {self.frames} frames {self.width}x{self.height} "
+                 f"{'RGB->BGR' if self.channels == 3 else 'grey'} from {self.source}",
+                 f"tracking.csv from {self.transform}{' (inverted)' if self.inverted else ''}"]
+        if self.orientation != "MF":
+            parts.append(f"orientation {self.orientation} converted to MF")
+        if self.skipped_frames:
+            parts.append(f"skipped frames (ImageStatus not OK): "
+                         f"{_frames_text(self.skipped_frames)}")
+        if self.invalid_samples:
+            parts.append(f"invalid tracker samples: {_frames_text(self.invalid_samples)}")
+        if self.untracked_frames:
+            parts.append(f"frames outside the tracked span: {_frames_text(self.untracked_frames)}")
+        return "; ".join(parts)
+
+
+def import_plus_sequence(
+    path: str | Path,
+    root: str | Path,
+    *,
+    camera: Camera | str | Path,
+    transform: str | None = "SensorToTracker",
+    hand_eye=None,
+    overwrite: bool = False,
+) -> ImportSummary:
+    """Write the dataset folder ``root`` (design.md contract) from a PLUS sequence metafile.
+
+    frames/ : the images whose ImageStatus is OK (RGB converted to BGR, orientation to MF);
+    frames.csv : their sequence indices and timestamps; tracking.csv : one row per sequence
+    frame at its timestamp, ``transform`` as tracker_from_sensor (``SensorToTracker``; stored as
+    ``TrackerToSensor`` it is inverted; None picks the single *ToTracker / *ToReference field),
+    valid=0 where its status is not OK; camera.yaml : ``camera`` (a Camera or a camera.yaml
+    path), whose image size must match; hand_eye.txt : ``hand_eye`` (4x4 sensor_from_camera or
+    a path) when given. Everything is checked before anything is written, and write_dataset
+    writes atomically: a failure leaves no folder (or the previous one, with overwrite).
+    """
+    sequence = read_plus_sequence(path)
+    if isinstance(camera, (str, os.PathLike)):
+        camera = read_camera_yaml(camera)
+    elif not isinstance(camera, Camera):
+        raise ValueError(f"camera must be a fusedmosaic.io.Camera or a camera.yaml path, got "
+                         f"{type(camera).__name__}")
+    if camera.size != (sequence.width, sequence.height):
+        raise ValueError(
+            f"{sequence.path}: images are {sequence.width}x{sequence.height} but "
+            f"{camera.source} says {camera.width}x{camera.height}"
+        )
+    selected = sequence.transform(transform)
+    ok = selected.ok
+    if ok.sum() < 2:
+        raise ValueError(f"{sequence.path}: {selected.source}: {int(ok.sum())} frame(s) with "
+                         "status OK; tracking needs at least 2 samples")
+    sensor_from_camera = None if hand_eye is None else _hand_eye(hand_eye)
+    kept = np.flatnonzero(sequence.image_ok)
+    if kept.size == 0:
+        raise ValueError(f"{sequence.path}: no frame has ImageStatus OK; nothing to import")
+
+    t = sequence.timestamps
+    translations = np.full((len(t), 3), np.nan)
+    quaternions = np.full((len(t), 4), np.nan)
+    translations[ok] = selected.matrices[ok, :3, 3]
+    quaternions[ok] = Rotation.from_matrix(selected.matrices[ok, :3, :3]).as_quat()
+    tracking = TrackingSamples(t, translations, quaternions, ok)
+    t_ok = t[ok]
+    untracked = kept[(t[kept] < t_ok[0]) | (t[kept] > t_ok[-1])]
+
+    def frames():
+        for i in kept:
+            image = sequence.images[i]
+            yield np.ascontiguousarray(image[..., ::-1] if sequence.channels == 3 else image)
+
+    # frames.csv keeps the sequence indices as frame ids (frames left out leave a gap), so the
+    # ids match annotations of the recording; write_dataset would number the images 0..M-1.
+    frames_csv = "frame,timestamp\n" + "".join(f"{i},{format_float(t[i])}\n" for i in kept)
+    written = write_dataset(
+        root,
+        camera=camera,
+        frames=frames(),
+        timestamps=None,
+        tracking=tracking,
+        hand_eye=sensor_from_camera,
+        extra_files={"frames.csv": frames_csv},
+        overwrite=overwrite,
+    )
+    return ImportSummary(
+        root=Path(written),
+        source=sequence.path,
+        transform=selected.source,
+        inverted=selected.inverted,
+        frames=int(kept.size),
+        skipped_frames=np.flatnonzero(~sequence.image_ok).tolist(),
+        invalid_samples=np.flatnonzero(~ok).tolist(),
+        untracked_frames=untracked.tolist(),
+        width=sequence.width,
+        height=sequence.height,
+        channels=sequence.channels,
+        orientation=sequence.orientation,
+    )
+
+
+def _hand_eye(hand_eye) -> np.ndarray:
+    """A 4x4 sensor_from_camera from a path (read_hand_eye) or a matrix, checked as
+    read_hand_eye checks a file."""
+    if isinstance(hand_eye, (str, os.PathLike)):
+        return read_hand_eye(hand_eye)
+    try:
+        T = np.array(hand_eye, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError("hand_eye: expected a 4x4 matrix of numbers or a path") from None
+    if T.shape != (4, 4):
+        raise ValueError(f"hand_eye: expected a 4x4 matrix, got shape {T.shape}")
+    if not np.isfinite(T).all():
+        raise ValueError("hand_eye: NaN or inf in the matrix")
+    if np.abs(T[:3, 3]).max() > MAX_TRANSLATION_MM:
+        raise ValueError(f"hand_eye: translation {T[:3, 3].tolist()} mm is beyond the "
+                         f"{MAX_TRANSLATION_MM:g} mm bound (1 km), not physical")
+    R = T[:3, :3]
+    if (np.abs(R.T @ R - np.eye(3)).max() > ROTATION_TOLERANCE or np.linalg.det(R) <= 0
+            or np.abs(T[3] - [0, 0, 0, 1]).max() > ROTATION_TOLERANCE):
+        raise ValueError(f"hand_eye: not a rigid transform (rotation block not orthonormal with "
+                         f"det +1 to {ROTATION_TOLERANCE:g}, or last row not 0 0 0 1)")
+    return T
+

@@ -1,0 +1,428 @@
+"""PLUS toolkit sequence metafiles (io/plus.py): write / read round trips, import into the
+dataset contract (then ba-emt on it), a hand-written header like a real PLUS recording, and bad
+input (a ValueError naming the file and the problem, no dataset folder left behind)."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import zlib
+from pathlib import Path
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from fusedmosaic.estimation.bundle import BundleOptions
+from fusedmosaic.io import (
+    Camera,
+    TrackingSamples,
+    interpolate_camera_poses,
+    read_dataset,
+    read_homographies_csv,
+    read_tracking_csv,
+    write_tracking_csv,
+)
+from fusedmosaic.io.plus import import_plus_sequence, read_plus_sequence, write_plus_sequence
+from fusedmosaic.registration.features import FeatureOptions
+from fusedmosaic.runner import run_dataset
+from fusedmosaic.simulation import FetoscopyOptions, simulate_fetoscopy
+
+# 30 SYN frames of 200x200; at this size SIFT needs a lower contrast threshold than its default
+# to register most pairs, and EMT-guided pairs keep the run at ~2 s.
+SYN = FetoscopyOptions(n_frames=30, laps=30 / 37.5, width=200, height=200)
+BA_EMT = BundleOptions(features=FeatureOptions(sift_contrast_threshold=0.01),
+                       pair_selection="emt-guided")
+E_M_TOLERANCE_PX = 0.5  # measured 0.09 px (seed 0); the original 40 Hz recording gives the same
+
+
+@pytest.fixture(scope="module")
+def syn(tmp_path_factory):
+    """The simulated dataset, its frames, and the tracker poses interpolated to the frame
+    timestamps (what a frame-synchronous PLUS recording holds) as tracker_from_sensor."""
+    root = simulate_fetoscopy(tmp_path_factory.mktemp("plus") / "syn", SYN)
+    ds = read_dataset(root)
+    cam_from_sensor, valid = interpolate_camera_poses(ds.tracking, ds.timestamps)  # no hand-eye
+    assert valid.all()
+    sensor_in_tracker = Rotation.from_rotvec(cam_from_sensor[:, :3]).inv()
+    T = np.tile(np.eye(4), (len(ds), 1, 1))
+    T[:, :3, :3] = sensor_in_tracker.as_matrix()
+    T[:, :3, 3] = -sensor_in_tracker.apply(cam_from_sensor[:, 3:])
+    bgr = np.stack(list(ds.frames))
+    return SimpleNamespace(root=root, ds=ds, T=T, quaternions=sensor_in_tracker.as_quat(),
+                           bgr=bgr, gray=np.stack([cv2.cvtColor(f, cv2.COLOR_BGR2GRAY)
+                                                   for f in bgr]))
+
+
+def _check_tracking(path: Path, timestamps: np.ndarray, T: np.ndarray, valid, tol: float,
+                    tol_mm: float | None = None):
+    samples = read_tracking_csv(path)
+    np.testing.assert_array_equal(samples.timestamps, timestamps)
+    np.testing.assert_array_equal(samples.valid, valid)
+    ok = samples.valid
+    np.testing.assert_allclose(samples.translations[ok], T[ok, :3, 3], rtol=0,
+                               atol=tol if tol_mm is None else tol_mm)
+    R = Rotation.from_quat(samples.quaternions[ok]).as_matrix()
+    np.testing.assert_allclose(R, T[ok, :3, :3], rtol=0, atol=tol)
+    assert np.isnan(samples.translations[~ok]).all()
+
+
+@pytest.mark.parametrize("compress", [False, True], ids=["raw", "zlib"])
+@pytest.mark.parametrize("suffix", [".mha", ".mhd"])
+@pytest.mark.parametrize("colour", ["gray", "rgb"])
+def test_round_trip_through_a_plus_sequence(syn, tmp_path, colour, suffix, compress):
+    images = syn.bgr[..., ::-1] if colour == "rgb" else syn.gray  # PLUS stores RGB
+    path = write_plus_sequence(tmp_path / f"rec.seq{suffix}", images, syn.ds.timestamps,
+                               {"SensorToTracker": syn.T}, compress=compress)
+    if suffix == ".mhd":
+        raw = tmp_path / ("rec.seq.zraw" if compress else "rec.seq.raw")
+        assert f"ElementDataFile = {raw.name}" in path.read_text()
+    seq = read_plus_sequence(path)
+    assert isinstance(seq.images, np.memmap) is not compress  # lazy unless compressed
+    channels = 1 if images.ndim == 3 else 3
+    assert (seq.width, seq.height, seq.channels, len(seq)) == (200, 200, channels, 30)
+    np.testing.assert_array_equal(seq.images, images)
+    np.testing.assert_array_equal(seq.transforms["SensorToTrackerTransform"], syn.T)
+
+    summary = import_plus_sequence(path, tmp_path / "ds", camera=syn.root / "camera.yaml",
+                                   hand_eye=syn.ds.hand_eye)
+    assert (summary.frames, summary.skipped_frames, summary.invalid_samples) == (30, [], [])
+    assert (summary.transform, summary.inverted) == ("SensorToTrackerTransform", False)
+    ds = read_dataset(tmp_path / "ds")
+    expected = syn.bgr if colour == "rgb" else syn.gray
+    for k in range(len(ds)):
+        np.testing.assert_array_equal(ds.frames[k], expected[k])
+    np.testing.assert_array_equal(ds.frame_ids, np.arange(30))
+    np.testing.assert_array_equal(ds.timestamps, syn.ds.timestamps)
+    _check_tracking(tmp_path / "ds" / "tracking.csv", syn.ds.timestamps, syn.T, np.ones(30, bool),
+                    tol=1e-9)
+    np.testing.assert_allclose(ds.hand_eye, syn.ds.hand_eye, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(ds.camera.camera_matrix, syn.ds.camera.camera_matrix)
+    # the imported dataset's camera poses are the original's at the frame times
+    np.testing.assert_allclose(ds.cam_from_world, syn.ds.cam_from_world, rtol=0, atol=1e-9)
+
+
+def test_imported_recording_runs_like_the_frame_synchronous_original(syn, tmp_path):
+    path = write_plus_sequence(tmp_path / "rec.seq.mha", syn.bgr[..., ::-1], syn.ds.timestamps,
+                               {"SensorToTracker": syn.T})
+    imported = tmp_path / "imported"
+    import_plus_sequence(path, imported, camera=syn.root / "camera.yaml",
+                         hand_eye=syn.root / "hand_eye.txt")
+    shutil.copy(syn.root / "ground_truth.csv", imported / "ground_truth.csv")
+    # The reference: the simulated dataset with its tracker samples replaced by the
+    # frame-synchronous poses the PLUS file holds.
+    reference = shutil.copytree(syn.root, tmp_path / "reference")
+    write_tracking_csv(reference / "tracking.csv",
+                       TrackingSamples(syn.ds.timestamps, syn.T[:, :3, 3], syn.quaternions))
+
+    e_M, G = {}, {}
+    for name, root in (("imported", imported), ("reference", reference)):
+        out = tmp_path / f"out_{name}"
+        run_dataset(root, "ba-emt", out, progress=False, report=False, options=BA_EMT)
+        e_M[name] = json.loads((out / "report.json").read_text())["metrics"]["e_M_px"]
+        G[name] = read_homographies_csv(out / "homographies.csv")[1]
+    assert e_M["imported"] < E_M_TOLERANCE_PX
+    assert e_M["imported"] == pytest.approx(e_M["reference"], rel=0, abs=1e-6)
+    np.testing.assert_allclose(G["imported"], G["reference"], rtol=0, atol=1e-6)
+
+
+# --------------------------------------------------------------------------------------------
+# A header written by hand as PLUS writes it
+# --------------------------------------------------------------------------------------------
+
+FW, FH, FN = 8, 6, 4
+TIMES = [14.374, 14.407, 14.441, 14.474]
+
+
+def _plus_matrix(T: np.ndarray) -> str:
+    return " ".join(f"{v:.6g}" for v in T.reshape(-1))
+
+
+def _tracker_to_probe(k: int) -> np.ndarray:
+    """A tracker -> probe pose as PLUS would record it (a probe ~1 m from the tracker)."""
+    probe_in_tracker = np.eye(4)
+    probe_in_tracker[:3, :3] = Rotation.from_rotvec([0.4 + 0.05 * k, -1.2, 2.0]).as_matrix()
+    probe_in_tracker[:3, 3] = [212.75 + 3 * k, -78.33, -1095.6 + k]
+    return np.linalg.inv(probe_in_tracker)
+
+
+def _real_plus_file(path: Path) -> np.ndarray:
+    """A PLUS-style RGB recording: extra fields, whitespace variants, TrackerToProbe stored the
+    other way round (frame 2 INVALID, its values garbage), a ReferenceToTracker field missing in
+    frame 2, frame 1's image INVALID, orientation UN. Returns the pixels as stored."""
+    lines = [
+        "ObjectType = Image", "NDims = 3", "AnatomicalOrientation = RAI", "BinaryData = True",
+        "BinaryDataByteOrderMSB = False", "CenterOfRotation = 0 0 0", "CompressedData = False",
+        f"DimSize = {FW} {FH} {FN}", "ElementNumberOfChannels = 3", "ElementSpacing = 1 1 1",
+        "ElementType = MET_UCHAR", "Kinds = domain domain list", "Offset = 0 0 0",
+        "TransformMatrix = 1 0 0 0 1 0 0 0 1", "UltrasoundImageOrientation = UN",
+        "UltrasoundImageType = BRIGHTNESS",
+    ]
+    for k in range(FN):
+        p = f"Seq_Frame{k:04d}_"
+        lines.append(f"{p}FrameNumber = {k}")
+        if k == 2:
+            lines += [f"{p}TrackerToProbeTransform = {' '.join(['0'] * 16)}",
+                      f"{p}TrackerToProbeTransformStatus = INVALID"]
+        else:
+            lines += [f"{p}TrackerToProbeTransform =  {_plus_matrix(_tracker_to_probe(k))}  ",
+                      f"{p}TrackerToProbeTransformStatus=OK"]
+            lines += [f"{p}ReferenceToTrackerTransform = 1 0 0 {k} 0 1 0 0 0 0 1 0 0 0 0 1",
+                      f"{p}ReferenceToTrackerTransformStatus = OK"]
+        lines += [f"{p}Timestamp\t= {TIMES[k]}", f"{p}UnfilteredTimestamp = {TIMES[k] + 0.002}",
+                  f"{p}ImageStatus = {'INVALID' if k == 1 else 'OK'}"]
+    lines.append("ElementDataFile = LOCAL")
+    pixels = np.random.default_rng(7).integers(0, 256, (FN, FH, FW, 3), dtype=np.uint8)
+    path.write_bytes(("\n".join(lines) + "\n").encode() + pixels.tobytes())
+    return pixels
+
+
+def test_real_plus_header(tmp_path):
+    path = tmp_path / "Recording.igs.mha"
+    stored = _real_plus_file(path)
+    seq = read_plus_sequence(path)
+    assert seq.orientation == "UN"
+    np.testing.assert_array_equal(seq.images, stored[:, ::-1, ::-1])  # to MF: both flips
+    np.testing.assert_array_equal(seq.image_ok, [True, False, True, True])
+    np.testing.assert_array_equal(seq.timestamps, TIMES)
+    assert sorted(seq.transforms) == ["ReferenceToTrackerTransform", "TrackerToProbeTransform"]
+    np.testing.assert_array_equal(seq.transform_status["ReferenceToTrackerTransform"],
+                                  [True, True, False, True])  # field missing in frame 2
+    assert seq.header["Kinds"] == "domain domain list"
+    # None: the single *ToTracker field
+    assert seq.transform(None).source == "ReferenceToTrackerTransform"
+
+    out = tmp_path / "ds"
+    summary = import_plus_sequence(path, out, camera=Camera(FW, FH), transform="ProbeToTracker")
+    assert (summary.transform, summary.inverted) == ("TrackerToProbeTransform", True)
+    assert (summary.skipped_frames, summary.invalid_samples) == ([1], [2])
+    assert summary.frames == 3 and "skipped frames" in str(summary)
+    assert (out / "frames.csv").read_text().splitlines() == [
+        "frame,timestamp", "0,14.374", "2,14.441", "3,14.474"]  # sequence indices kept
+    ds = read_dataset(out)
+    for j, k in enumerate([0, 2, 3]):  # RGB -> BGR, MF
+        np.testing.assert_array_equal(ds.frames[j], stored[k, ::-1, ::-1, ::-1])
+    probe_in_tracker = np.stack([np.linalg.inv(_tracker_to_probe(k)) for k in range(FN)])
+    # 6 significant digits in the file: rotations to ~1e-6, translations (~1 m) to ~0.01 mm
+    _check_tracking(out / "tracking.csv", np.array(TIMES), probe_in_tracker,
+                    [True, True, False, True], tol=1e-5, tol_mm=0.01)
+    assert not (out / "hand_eye.txt").exists()
+
+
+def test_write_read_status_and_layout_variants(tmp_path):
+    images = np.arange(FN * FH * FW, dtype=np.uint8).reshape(FN, FH, FW)
+    T = np.tile(np.eye(4), (FN, 1, 1))
+    T[:, 0, 3] = np.arange(FN)
+    path = write_plus_sequence(tmp_path / "a.mha", images, TIMES, {"ProbeToReferenceTransform": T},
+                               status={"ProbeToReference": [True, False, True, True]},
+                               image_ok=[True, True, False, True])
+    seq = read_plus_sequence(path)
+    np.testing.assert_array_equal(seq.transform_status["ProbeToReferenceTransform"],
+                                  [True, False, True, True])
+    np.testing.assert_array_equal(seq.image_ok, [True, True, False, True])
+    selected = seq.transform()  # the single *ToReference field
+    assert np.isnan(selected.matrices[1]).all() and selected.matrices[3, 0, 3] == 3.0
+    inverse = seq.transform("ReferenceToProbe")
+    assert inverse.inverted and inverse.matrices[3, 0, 3] == -3.0
+
+    # NDims 4 with a z dimension of 1 (PLUS's Output2DDataWithZDimensionIncluded)
+    _edit(path, r"NDims = 3", "NDims = 4")
+    _edit(path, r"DimSize = 8 6 4", "DimSize = 8 6 1 4")
+    np.testing.assert_array_equal(read_plus_sequence(path).images, images)
+
+    # .mhd whose data file starts with a 16-byte header (HeaderSize)
+    mhd = write_plus_sequence(tmp_path / "b.mhd", images, TIMES)
+    raw = tmp_path / "b.raw"
+    raw.write_bytes(b"x" * 16 + raw.read_bytes())
+    _edit(mhd, r"ElementDataFile", "HeaderSize = 16\nElementDataFile")
+    np.testing.assert_array_equal(read_plus_sequence(mhd).images, images)
+
+
+# --------------------------------------------------------------------------------------------
+# Bad input
+# --------------------------------------------------------------------------------------------
+
+
+def _small(tmp_path: Path, suffix: str = ".mha", compress: bool = False, transforms=None,
+           status=None, image_ok=None) -> Path:
+    """4 grey frames of 8x6 (pixel values < 10, so no header text occurs in the data), the
+    sensor 1 mm apart per frame, frame k at k/25 s."""
+    images = (np.arange(FN * FH * FW) % 10).astype(np.uint8).reshape(FN, FH, FW)
+    if transforms is None:
+        T = np.tile(np.eye(4), (FN, 1, 1))
+        T[:, :3, 3] = np.array([[k, 2.0, 3.0] for k in range(FN)])
+        transforms = {"SensorToTracker": T}
+    return write_plus_sequence(tmp_path / f"rec{suffix}", images, np.arange(FN) / 25.0,
+                               transforms, status=status, compress=compress, image_ok=image_ok)
+
+
+def _edit(path: Path, pattern: str, replacement: str) -> None:
+    """re.sub (first match) in the header of a sequence file, data left as it is."""
+    data = path.read_bytes()
+    end = data.index(b"\n", data.index(b"ElementDataFile")) + 1
+    header = re.sub(pattern, replacement, data[:end].decode(), count=1)
+    path.write_bytes(header.encode() + data[end:])
+
+
+def _refused(tmp_path: Path, path: Path, match: str, names: str | None = None, **kwargs):
+    out = tmp_path / "out"
+    kwargs.setdefault("camera", Camera(FW, FH))
+    with pytest.raises(ValueError, match=match) as info:
+        import_plus_sequence(path, out, **kwargs)
+    assert (names or str(path)) in str(info.value)
+    assert not out.exists() and not list(tmp_path.glob(".out*"))  # nothing left behind
+
+
+def _identity_with(k: int, T: np.ndarray):
+    transforms = np.tile(np.eye(4), (FN, 1, 1))
+    transforms[k] = T
+    return {"SensorToTracker": transforms}
+
+
+def _scaled() -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] *= 1.01
+    return T
+
+
+def _far() -> np.ndarray:
+    T = np.eye(4)
+    T[2, 3] = 2e6  # 2 km
+    return T
+
+
+HEADER_CASES = {  # id: ((pattern, replacement), ...), message
+    "no-ElementDataFile": ((r"ElementDataFile = LOCAL\n", ""), "ElementDataFile"),
+    "garbage-line": ((r"Offset = 0 0 0", "Offset 0 0 0"), r"line 13 is not a 'Key = Value'"),
+    "duplicate-field": ((r"(Seq_Frame0001_Timestamp = .*\n)", r"\1\1"), "repeats line"),
+    "no-DimSize": ((r"DimSize = .*\n", ""), "missing DimSize"),
+    "no-ElementType": ((r"ElementType = .*\n", ""), "missing ElementType"),
+    "NDims-2": ((r"NDims = 3", "NDims = 2"), "DimSize has 3 values but NDims is 2"),
+    "NDims-4-volume": ((r"NDims = 3\n(.*\n)*DimSize = 8 6 4", "NDims = 4\nDimSize = 8 3 2 4"),
+                       "NDims is 4; supported: 3"),
+    "DimSize-unparsable": ((r"DimSize = 8 6 4", "DimSize = 8 x 4"),
+                           r"DimSize: cannot parse '8 x 4' as integers"),
+    "ElementType-ushort": ((r"MET_UCHAR", "MET_USHORT"),
+                           "ElementType MET_USHORT is not supported; supported: MET_UCHAR"),
+    "channels-4": ((r"ElementNumberOfChannels = 1", "ElementNumberOfChannels = 4"),
+                   "ElementNumberOfChannels 4 is not supported"),
+    "ascii-data": ((r"BinaryData = True", "BinaryData = False"), r"ASCII pixel data"),
+    "orientation-FM": ((r"UltrasoundImageOrientation = MF", "UltrasoundImageOrientation = FM"),
+                       "UltrasoundImageOrientation 'FM' is not supported"),
+    "frame-beyond-DimSize": ((r"Seq_Frame0003_FrameNumber", "Seq_Frame0009_FrameNumber"),
+                             "frame 9 is beyond DimSize's 4 frames"),
+    "timestamp-missing": ((r"Seq_Frame0002_Timestamp = .*\n", ""),
+                          r"no Timestamp for frame\(s\) 2"),
+    "timestamp-unparsable": ((r"Seq_Frame0002_Timestamp = .*\n",
+                              "Seq_Frame0002_Timestamp = 0.08s\n"),
+                             r"frame 2 \(Seq_Frame0002_Timestamp\): cannot parse '0.08s'"),
+    "timestamp-nan": ((r"Seq_Frame0002_Timestamp = .*\n", "Seq_Frame0002_Timestamp = nan\n"),
+                      r"frame\(s\) 2: timestamp is not finite"),
+    "timestamp-not-increasing": ((r"Seq_Frame0002_Timestamp = .*\n",
+                                  "Seq_Frame0002_Timestamp = 0.04\n"),
+                                 "frame 2: timestamp 0.04 is not after frame 1's 0.04"),
+    "transform-15-numbers": ((r"(Seq_Frame0001_SensorToTrackerTransform = .*) 1.0\n", r"\1\n"),
+                             r"frame 1 \(Seq_Frame0001_SensorToTrackerTransform\): cannot parse "
+                             r"'.*' as 16 numbers"),
+    "transform-nan": ((r"(Seq_Frame0001_SensorToTrackerTransform = )1.0", r"\1nan"),
+                      r"frame 1 \(Seq_Frame0001_SensorToTrackerTransform\): status OK but the "
+                      "transform has NaN or inf"),
+}
+
+
+@pytest.mark.parametrize("case", HEADER_CASES, ids=list(HEADER_CASES))
+def test_bad_header(tmp_path, case):
+    edit, match = HEADER_CASES[case]
+    path = _small(tmp_path)
+    _edit(path, *edit)
+    _refused(tmp_path, path, match)
+
+
+def test_bad_data(tmp_path):
+    _refused(tmp_path, tmp_path / "nope.seq.mha", "file not found", names="nope.seq.mha")
+    path = _small(tmp_path)
+    data = path.read_bytes()
+    path.write_bytes(data[:-10])
+    _refused(tmp_path, path, "image data is 182 bytes but DimSize 8 6 4 with 1 channel.* needs "
+             "192 bytes: truncated")
+    path.write_bytes(data + b"\0" * 5)
+    _refused(tmp_path, path, "197 bytes but .* needs 192 bytes: longer than DimSize says")
+
+    mhd = _small(tmp_path, ".mhd")
+    raw = tmp_path / "rec.raw"
+    raw.write_bytes(raw.read_bytes()[:100])
+    _refused(tmp_path, mhd, r"image data \(.*rec.raw\) is 100 bytes but .* needs 192 bytes")
+    raw.unlink()
+    _refused(tmp_path, mhd, "ElementDataFile 'rec.raw': .*rec.raw not found")
+
+    zipped = _small(tmp_path, ".mha", compress=True)
+    good = zipped.read_bytes()
+    _edit(zipped, r"CompressedDataSize = (\d+)", "CompressedDataSize = 9999")
+    _refused(tmp_path, zipped, r"compressed image data is \d+ bytes but CompressedDataSize says "
+             "9999")
+    zipped.write_bytes(good[:-20] + bytes(20))  # a corrupt stream
+    _refused(tmp_path, zipped, "cannot decompress the image data")
+    zipped.write_bytes(good)
+    _edit(zipped, r"DimSize = 8 6 4", "DimSize = 8 6 5")  # the stream is one frame short
+    _refused(tmp_path, zipped, "decompressed image data is 192 bytes but DimSize 8 6 5 .* needs "
+             "240 bytes")
+    zipped.write_bytes(good)
+    _edit(zipped, r"DimSize = 8 6 4", "DimSize = 8 6 3")
+    _refused(tmp_path, zipped, "decompressed image data is more than 144 bytes")
+
+
+def test_bad_transforms_camera_and_hand_eye(tmp_path):
+    path = _small(tmp_path)
+    _refused(tmp_path, path, "no ProbeToTrackerTransform field \\(nor its inverse\\); transforms "
+             "present: SensorToTrackerTransform", transform="ProbeToTracker")
+    _refused(tmp_path, path, r"images are 8x6 but .* says 10x6", camera=Camera(10, FH))
+    bad_hand_eye = _scaled()
+    _refused(tmp_path, path, "hand_eye: not a rigid transform", names="hand_eye",
+             hand_eye=bad_hand_eye)
+
+    two = {"SensorToTracker": np.tile(np.eye(4), (FN, 1, 1)),
+           "StylusToTracker": np.tile(np.eye(4), (FN, 1, 1))}
+    _refused(tmp_path, _small(tmp_path, transforms=two),
+             r"several \*ToTrackerTransform .*\(SensorToTrackerTransform, "
+             "StylusToTrackerTransform present\\)", transform=None)
+    none = {"ImageToProbe": np.tile(np.eye(4), (FN, 1, 1))}
+    _refused(tmp_path, _small(tmp_path, transforms=none),
+             r"no \*ToTrackerTransform .*\(ImageToProbeTransform present\)", transform=None)
+
+    _refused(tmp_path, _small(tmp_path, transforms=_identity_with(1, _scaled())),
+             r"frame 1 \(Seq_Frame0001_SensorToTrackerTransform\): not a rigid transform")
+    _refused(tmp_path, _small(tmp_path, transforms=_identity_with(2, _far())),
+             r"frame 2 \(Seq_Frame0002_SensorToTrackerTransform\): translation beyond the 1e\+06 "
+             "mm bound")
+    # the same values with status INVALID are not samples: not checked
+    status = {"SensorToTracker": [True, True, False, True]}
+    summary = import_plus_sequence(
+        _small(tmp_path, transforms=_identity_with(2, _far()), status=status), tmp_path / "ok",
+        camera=Camera(FW, FH))
+    assert summary.invalid_samples == [2]
+
+    _refused(tmp_path, _small(tmp_path, status={"SensorToTracker": [False, True, False, False]}),
+             r"SensorToTrackerTransform: 1 frame\(s\) with status OK; tracking needs at least 2")
+    _refused(tmp_path, _small(tmp_path, image_ok=[False] * FN), "no frame has ImageStatus OK")
+
+
+def test_existing_folder_is_kept(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "mine.txt").write_text("keep")
+    with pytest.raises(ValueError, match="exists and is not empty"):
+        import_plus_sequence(_small(tmp_path), out, camera=Camera(FW, FH))
+    assert [p.name for p in out.iterdir()] == ["mine.txt"]
+
+
+def test_compressed_stream_is_zlib(tmp_path):
+    """CompressedData is one zlib stream of all frames (what PLUS's deflate writes)."""
+    path = _small(tmp_path, compress=True)
+    data = path.read_bytes()
+    start = data.index(b"\n", data.index(b"ElementDataFile")) + 1
+    pixels = zlib.decompress(data[start:])
+    np.testing.assert_array_equal(np.frombuffer(pixels, np.uint8).reshape(FN, FH, FW),
+                                  read_plus_sequence(path).images)
