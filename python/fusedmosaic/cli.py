@@ -1,4 +1,4 @@
-"""`fusedmosaic simulate|run|evaluate|demo` — the command-line entry point."""
+"""`fusedmosaic simulate|run|live|evaluate|demo` — the command-line entry point."""
 
 from __future__ import annotations
 
@@ -141,10 +141,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.preset is not None or args.loop_pairs is not None:
         if args.method != "lba-emt":
             raise ValueError(f"--preset / --loop-pairs apply to lba-emt, not {args.method}")
-        if args.loop_pairs is not None:
-            if args.loop_pairs < 0:
-                raise ValueError(f"--loop-pairs must be >= 0, got {args.loop_pairs}")
-            overrides["loop_pairs"] = args.loop_pairs
+        overrides.update(_loop_pairs(args))
     if args.method == "lba-emt" and (overrides or args.preset is not None):
         from fusedmosaic.estimation.sequential import SequentialOptions
 
@@ -160,6 +157,46 @@ def _cmd_run(args: argparse.Namespace) -> int:
                           progress=_progress(args), options=options, blend=blend,
                           canvas=canvas, video=args.video, report=not args.no_report,
                           live=args.live)
+    _say(args, summary)
+    return 0
+
+
+def _loop_pairs(args: argparse.Namespace) -> dict:
+    if args.loop_pairs is None:
+        return {}
+    if args.loop_pairs < 0:
+        raise ValueError(f"--loop-pairs must be >= 0, got {args.loop_pairs}")
+    return {"loop_pairs": args.loop_pairs}
+
+
+def _cmd_live(args: argparse.Namespace) -> int:
+    from fusedmosaic.estimation.sequential import SequentialOptions
+    from fusedmosaic.runner import check_compositing_options, run_igtl
+
+    overrides = _loop_pairs(args)
+    if args.motion_sigma_from:
+        from fusedmosaic.estimation.motion import motion_sigma_from_recording
+
+        overrides["motion_sigma"] = tuple(motion_sigma_from_recording(args.motion_sigma_from))
+    features = _feature_options(args)
+    if features is not None:
+        overrides["features"] = features
+    options = SequentialOptions.preset(args.preset or "syn", **overrides)
+    for flag, value in (("--max-frames", args.max_frames), ("--duration", args.duration),
+                        ("--frame-timeout", args.frame_timeout)):
+        if value is not None and not (np.isfinite(value) and value > 0):
+            raise ValueError(f"{flag} must be > 0, got {value}")
+    blend, canvas = _blend_options(args), _canvas_options(args)
+    check_compositing_options(blend, canvas, names=COMPOSITING_FLAGS)
+    _say(args, f"live: connecting to {args.address} (Ctrl-C ends the session and writes the "
+               "outputs)")
+    summary = run_igtl(args.address, args.out, record=args.record, camera=args.camera,
+                       transform_device=args.transform, image_device=args.image_device,
+                       hand_eye=args.hand_eye, rgb=not args.bgr, options=options,
+                       max_frames=args.max_frames, duration_s=args.duration,
+                       frame_timeout_s=args.frame_timeout,
+                       overwrite_record=args.overwrite_record, progress=_progress(args),
+                       blend=blend, canvas=canvas, video=args.video, report=not args.no_report)
     _say(args, summary)
     return 0
 
@@ -446,67 +483,60 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--pair-selection", choices=["all", "emt-guided", "window"],
                      help="ba / ba-emt / emt: which image pairs to match (default: all for ba and "
                           "ba-emt as in the paper, emt-guided for emt)")
-    run.add_argument("--motion-sigma-from", metavar="RECORDING",
-                     help="ba-emt / lba-emt: estimate the constant-velocity prior's Sigma_p from "
-                          "an independent recording's truth_poses.csv (paper 000 Sec. 4.2) "
-                          "instead of the paper's appendix values")
     run.add_argument("--flat-field", action="store_true",
                      help="ncc / kalman-robot: divide the frames by the fibre bundle's fixed "
                           "pattern (the mean of the recording's frames) before registration")
     run.add_argument("--allow-untracked", action="store_true",
                      help="flag frames outside the tracker's (or the robot's) time span "
                           "instead of failing (implied by --live)")
-    run.add_argument("--preset", choices=["syn", "phb", "ex"],
-                     help="lba-emt: the paper's window presets (Sec. 4.2): syn W=5, chi_e=3, "
-                          "K=3 x 5 (default); phb W=3, chi_e=1, K=3 x 3 (fewer pairs per frame: "
-                          "faster on large frames, bench/results/detect_scale.md); ex W=12, "
-                          "chi_e=6, K=3 x 12")
-    run.add_argument("--loop-pairs", type=int, metavar="N",
-                     help="lba-emt: spatial loop pairs per frame (default 2; 0 = the paper's "
-                          "window alone, which drifts to the tracker's accuracy)")
     run.add_argument("--live", action="store_true",
                      help="lba-emt / kalman-robot: replay the recording as a live source on this "
                           "machine (frames at their timestamps with the newest tracker/robot "
                           "sample; frames arriving while one is processed are dropped, except "
                           "the newest); report.json 'live' gives drops and latency")
-    feat = run.add_argument_group("features (lba-emt, ba-emt, ba, emt, pairwise)")
-    feat.add_argument("--detector", choices=["sift", "orb"],
-                      help="keypoint detector: sift (the paper's, default) or orb (detection "
-                           "several times cheaper, but more correspondences per pair to "
-                           "match: faster on long sequences and large frames, slower in the "
-                           "40-frame start-up; bench/results/detect_scale.md)")
-    feat.add_argument("--max-features", type=int, metavar="N",
-                      help="strongest keypoints kept per frame (default 1000)")
-    feat.add_argument("--clahe", action="store_true",
-                      help="contrast-limited histogram equalisation before detection "
-                           "(low-contrast tissue)")
-    feat.add_argument("--detect-max-side", type=int, metavar="PX",
-                      help="detect on a copy of each frame shrunk to at most PX pixels on its "
-                           "longer side, keypoints mapped back to full resolution (faster on "
-                           "HD video; default: full resolution)")
-    from fusedmosaic.compositing import BLENDS
-
-    comp = run.add_argument_group("mosaic, video and report")
-    comp.add_argument("--blend", choices=BLENDS,
-                      help="linear (feathering, seed 000), multiband (Laplacian pyramid), average "
-                           "(seed 004), last (newest on top); default: the method's preference")
-    comp.add_argument("--border", type=float, default=0.0, metavar="PX",
-                      help="draw each frame's field-of-view edge as a thin black border of PX "
-                           "pixels, to show the seams (seed 000 Sec. 4.2; e.g. 1.5)")
-    comp.add_argument("--bands", type=int, default=None, help="multiband pyramid levels "
-                      "(default 5)")
-    comp.add_argument("--gain-compensation", action="store_true",
-                      help="equalise the brightness of overlapping frames (one gain per frame)")
-    comp.add_argument("--video", metavar="OUT.mp4",
-                      help="also write a video of the mosaic's sequential creation")
-    comp.add_argument("--no-report", action="store_true",
-                      help="skip report.md and its plots")
-    comp.add_argument("--max-canvas-pixels", type=int, default=None,
-                      help="skip (with a warning) mosaics larger than this many pixels; the "
-                           "estimates are still written (default 400 000 000)")
-    comp.add_argument("--tile-size", type=int, default=None,
-                      help="tile size (px) for mosaics rendered tile by tile (default 1024)")
+    _add_lba_flags(run)
+    _add_feature_flags(run, "features (lba-emt, ba-emt, ba, emt, pairwise)")
+    _add_compositing_flags(run)
     run.set_defaults(func=_cmd_run)
+
+    live = sub.add_parser(
+        "live", parents=[quiet],
+        help="mosaic a live OpenIGTLink stream (e.g. PLUS Server: video + tracker) with lba-emt, "
+             "recording it as a dataset",
+        description="Connects to an OpenIGTLink sender (PLUS Server streaming a tracked "
+                    "endoscope, or any sender of IMAGE and TRANSFORM messages), mosaics each "
+                    "frame with lba-emt as soon as the previous one is done (frames arriving "
+                    "meanwhile are dropped from the mosaic but recorded), records every frame "
+                    "and tracker sample into --record (a dataset: re-run it offline with any "
+                    "method), and when the stream ends (sender closes, --max-frames, --duration "
+                    "or Ctrl-C) writes --out as `run` does.")
+    live.add_argument("address", help="HOST:PORT of the OpenIGTLink sender (port default 18944)")
+    live.add_argument("--camera", required=True, metavar="CAMERA.yaml",
+                      help="camera.yaml of the endoscope (image size, camera matrix)")
+    live.add_argument("--transform", required=True, metavar="DEVICE",
+                      help="TRANSFORM device of the sensor on the endoscope, tracker_from_sensor "
+                           "in mm, e.g. SensorToTracker (its inverse, TrackerToSensor, is "
+                           "accepted)")
+    live.add_argument("--image-device", metavar="DEVICE",
+                      help="IMAGE device of the video (default: the first one heard)")
+    live.add_argument("--hand-eye", metavar="HAND_EYE.txt",
+                      help="4x4 sensor_from_camera (default identity)")
+    live.add_argument("--bgr", action="store_true",
+                      help="colour images are sent BGR (default RGB, as PLUS sends them)")
+    live.add_argument("--record", required=True, metavar="DATA",
+                      help="dataset folder the session is recorded into (new or empty)")
+    live.add_argument("--overwrite-record", action="store_true",
+                      help="replace an earlier dataset in --record")
+    live.add_argument("--out", required=True, help="output folder")
+    live.add_argument("--max-frames", type=int, metavar="N",
+                      help="stop after N frames received")
+    live.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    live.add_argument("--frame-timeout", type=float, default=5.0, metavar="S",
+                      help="error when no frame arrives for S seconds (default 5)")
+    _add_lba_flags(live)
+    _add_feature_flags(live, "features")
+    _add_compositing_flags(live)
+    live.set_defaults(func=_cmd_live)
 
     ev = sub.add_parser("evaluate", help="score an output against a dataset's ground truth",
                         parents=[quiet])
@@ -530,6 +560,67 @@ def build_parser() -> argparse.ArgumentParser:
                            "over a tilted plane with a circular field of view")
     demo.set_defaults(func=_cmd_demo)
     return parser
+
+
+def _add_lba_flags(parser: argparse.ArgumentParser) -> None:
+    """lba-emt (and ba-emt) estimation flags, shared by run and live."""
+    parser.add_argument("--motion-sigma-from", metavar="RECORDING",
+                     help="ba-emt / lba-emt: estimate the constant-velocity prior's Sigma_p from "
+                          "an independent recording's truth_poses.csv (paper 000 Sec. 4.2) "
+                          "instead of the paper's appendix values")
+    parser.add_argument("--preset", choices=["syn", "phb", "ex"],
+                     help="lba-emt: the paper's window presets (Sec. 4.2): syn W=5, chi_e=3, "
+                          "K=3 x 5 (default); phb W=3, chi_e=1, K=3 x 3 (fewer pairs per frame: "
+                          "faster on large frames, bench/results/detect_scale.md); ex W=12, "
+                          "chi_e=6, K=3 x 12")
+    parser.add_argument("--loop-pairs", type=int, metavar="N",
+                     help="lba-emt: spatial loop pairs per frame (default 2; 0 = the paper's "
+                          "window alone, which drifts to the tracker's accuracy)")
+
+
+def _add_feature_flags(parser: argparse.ArgumentParser, title: str) -> None:
+    """Keypoint flags (FeatureOptions), shared by run and live."""
+    feat = parser.add_argument_group(title)
+    feat.add_argument("--detector", choices=["sift", "orb"],
+                      help="keypoint detector: sift (the paper's, default) or orb (detection "
+                           "several times cheaper, but more correspondences per pair to "
+                           "match: faster on long sequences and large frames, slower in the "
+                           "40-frame start-up; bench/results/detect_scale.md)")
+    feat.add_argument("--max-features", type=int, metavar="N",
+                      help="strongest keypoints kept per frame (default 1000)")
+    feat.add_argument("--clahe", action="store_true",
+                      help="contrast-limited histogram equalisation before detection "
+                           "(low-contrast tissue)")
+    feat.add_argument("--detect-max-side", type=int, metavar="PX",
+                      help="detect on a copy of each frame shrunk to at most PX pixels on its "
+                           "longer side, keypoints mapped back to full resolution (faster on "
+                           "HD video; default: full resolution)")
+
+
+def _add_compositing_flags(parser: argparse.ArgumentParser) -> None:
+    """Mosaic, video and report flags, shared by run and live."""
+    from fusedmosaic.compositing import BLENDS
+
+    comp = parser.add_argument_group("mosaic, video and report")
+    comp.add_argument("--blend", choices=BLENDS,
+                      help="linear (feathering, seed 000), multiband (Laplacian pyramid), average "
+                           "(seed 004), last (newest on top); default: the method's preference")
+    comp.add_argument("--border", type=float, default=0.0, metavar="PX",
+                      help="draw each frame's field-of-view edge as a thin black border of PX "
+                           "pixels, to show the seams (seed 000 Sec. 4.2; e.g. 1.5)")
+    comp.add_argument("--bands", type=int, default=None, help="multiband pyramid levels "
+                      "(default 5)")
+    comp.add_argument("--gain-compensation", action="store_true",
+                      help="equalise the brightness of overlapping frames (one gain per frame)")
+    comp.add_argument("--video", metavar="OUT.mp4",
+                      help="also write a video of the mosaic's sequential creation")
+    comp.add_argument("--no-report", action="store_true",
+                      help="skip report.md and its plots")
+    comp.add_argument("--max-canvas-pixels", type=int, default=None,
+                      help="skip (with a warning) mosaics larger than this many pixels; the "
+                           "estimates are still written (default 400 000 000)")
+    comp.add_argument("--tile-size", type=int, default=None,
+                      help="tile size (px) for mosaics rendered tile by tile (default 1024)")
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:

@@ -23,7 +23,8 @@ NEEDS_PIXEL_SIZE = {"ncc", "robot", "kalman-robot"}
 def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: float = 25.0,
                 robot_file: str = "robot.csv", allow_untracked: bool = False,
                 progress: bool = True, blend=None, options=None, canvas=None,
-                video: str | Path | None = None, report: bool = True, live: bool = False) -> str:
+                video: str | Path | None = None, report: bool = True, live: bool = False,
+                result: methods.MethodResult | None = None) -> str:
     """Runs `method` on a dataset folder and writes the output contract into `out`.
 
     blend: a blend name ("linear", "multiband", "average", "last") or a
@@ -36,6 +37,8 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
     live: replay the recording as a live source through the method's streaming form (frames at
         their timestamps, the newest tracker / robot sample, frames dropped while busy; see
         estimation.live), for lba-emt and kalman-robot.
+    result: the method's result, already computed on this dataset (a live session, whose
+        recording the dataset is): only the outputs are written.
     Returns a short summary for the terminal."""
     from fusedmosaic.evaluation.provenance import dataset_fingerprint
     from fusedmosaic.io import read_dataset
@@ -49,6 +52,9 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
 
         check_live_method(method)  # before any reading
         run_method = partial(replay_live, method=method)
+    if result is not None:
+        computed = result
+        run_method = lambda dataset, **_: computed  # noqa: E731
     check_fps(fps)
     out = Path(out)
     check_out_outside_dataset(out, Path(dataset_root))
@@ -61,7 +67,7 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
     # live replay uses the raw samples (frames without a recent one are listed, not refused)
     dataset = read_dataset(dataset_root, fps=fps, robot_file=robot_file,
                            allow_untracked=allow_untracked or live)
-    if method in NEEDS_TRACKING:
+    if method in NEEDS_TRACKING and result is None:  # a live session may have had none
         dataset.require_tracking(method)
     if method in NEEDS_CAMERA_MATRIX:
         dataset.camera.require_camera_matrix(method)
@@ -331,11 +337,129 @@ def _summary(method: str, G: np.ndarray, out: Path, report_json: dict, outputs: 
         lines.append(f"  report  {out / 'report.md'}  (plots in {out / 'plots'})")
     if "live" in report_json:
         live = report_json["live"]
-        interval = live["frame_interval_ms"]
+        interval = live.get("frame_interval_ms")
         lines.append(f"  live    {live['frames_dropped']} frame(s) dropped; latency median "
                      f"{live['latency_ms']['median']:.1f} ms, p95 {live['latency_ms']['p95']:.1f}"
                      f" ms (frame interval "
                      f"{'n/a' if interval is None else f'{interval:.1f} ms'})")
+        if "stopped_by" in live:
+            lines.append(f"  session {live['frames_recorded']} frame(s) recorded, "
+                         f"{live['frames_processed']} processed; stopped: {live['stopped_by']}")
     if outputs["video"] is not None:
         lines.append(f"  video   {outputs['video']}")
     return "\n".join(lines)
+
+
+def _count(items) -> dict[str, int]:
+    counts: dict[str, int] = {}
+    for item in items:
+        counts[item] = counts.get(item, 0) + 1
+    return counts
+
+
+def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
+             transform_device: str, image_device: str | None = None, hand_eye=None,
+             rgb: bool = True, options=None, max_frames: int | None = None,
+             duration_s: float | None = None, frame_timeout_s: float = 5.0,
+             overwrite_record: bool = False, progress: bool = True, blend=None, canvas=None,
+             video: str | Path | None = None, report: bool = True) -> str:
+    """A live lba-emt session on an OpenIGTLink source (io.igtl: e.g. PLUS Server streaming a
+    tracked endoscope): frames and tracker poses are received as they come, each frame is
+    mosaicked as soon as the previous one is done (frames arriving meanwhile are dropped but
+    recorded), until the sender closes the stream, max_frames frames were received, duration_s
+    passed or Ctrl-C. Every received frame and tracker sample is recorded into the dataset
+    folder `record` (re-runnable offline with any method); then the outputs of the live
+    estimates go to `out` as `run` writes them (report.json "live": drops, latency, why the
+    session stopped). camera / hand_eye: a Camera / 4x4 or the path of camera.yaml /
+    hand_eye.txt. Returns the terminal summary."""
+    from dataclasses import asdict
+
+    from fusedmosaic.estimation.live import live_session, session_result
+    from fusedmosaic.estimation.sequential import SequentialOptions
+    from fusedmosaic.io.calibration import Camera, read_camera_yaml
+    from fusedmosaic.io.igtl import IgtlSource
+    from fusedmosaic.io.recorder import DatasetRecorder
+    from fusedmosaic.io.tracking import check_stream_timestamp, read_hand_eye
+
+    if not isinstance(camera, Camera):
+        camera = read_camera_yaml(camera)
+    camera.require_camera_matrix("lba-emt")
+    if hand_eye is not None and not isinstance(hand_eye, np.ndarray):
+        hand_eye = read_hand_eye(hand_eye)
+    for name, value in (("max_frames", max_frames), ("duration_s", duration_s),
+                        ("frame_timeout_s", frame_timeout_s)):
+        if value is not None and not (np.isfinite(value) and value > 0):
+            raise ValueError(f"live session: {name} must be a number > 0, got {value}")
+    options = SequentialOptions() if options is None else options
+    out, record = Path(out), Path(record)
+    check_out_outside_dataset(out, record)
+    if is_under(record, out, or_equal=True):
+        raise ValueError(f"{record}: the recording must not be inside the output folder {out}")
+    if video is not None:
+        from fusedmosaic.compositing.video import check_video_suffix
+
+        check_video_suffix(video)
+    check_compositing_options(blend, canvas)
+    from fusedmosaic.io.output import check_output_dir
+
+    check_output_dir(out, "output folder")
+
+    recorder = DatasetRecorder(record, camera, hand_eye, overwrite=overwrite_record)
+    rejected: dict[str, int] = {}
+    accepting, last_time = True, -np.inf
+
+    def on_frame(frame) -> bool:  # receiver thread: what is recorded and offered to the loop
+        nonlocal last_time
+        image = frame.image
+        problem = None
+        if not accepting:
+            return False
+        if image.dtype != np.uint8 or image.shape[:2] != (camera.height, camera.width) or (
+                image.ndim == 3 and image.shape[2] != 3):
+            problem = (f"a {image.dtype} {'x'.join(map(str, image.shape))} image, expected "
+                       f"uint8 {camera.height}x{camera.width} (camera.yaml), gray or colour")
+        else:
+            try:
+                last_time = check_stream_timestamp(frame.index, frame.timestamp, last_time)
+            except ValueError as exc:
+                problem = str(exc)
+        if problem is not None:
+            rejected[problem] = rejected.get(problem, 0) + 1
+            return False
+        frame.index = recorder.add_frame(image, frame.timestamp)
+        return True
+
+    try:
+        with IgtlSource(address, transform_device=transform_device, image_device=image_device,
+                        rgb=rgb, on_frame=on_frame,
+                        on_sample=lambda s: recorder.add_sample(s.timestamp, s.matrix)) as src:
+            refused = lambda: "".join(  # noqa: E731
+                f"; frames refused: {n} x {why}" for why, n in rejected.items())
+            try:
+                session = live_session(src, camera, hand_eye=hand_eye, options=options,
+                                       max_frames=max_frames, duration_s=duration_s,
+                                       frame_timeout_s=frame_timeout_s)
+            except ValueError as exc:
+                raise ValueError(f"{exc}{refused()}") from None
+            finally:
+                accepting = False
+            dropped = [k for k in src.dropped if k not in session.finals]
+            details = {"address": f"{src.host}:{src.port}", "image_device": src.image_device,
+                       "transform_device": transform_device,
+                       "frames_received": src.received,
+                       "frames_refused": rejected,
+                       "tracker_samples_invalid": _count(why for _, why in src.invalid_samples),
+                       "ignored_devices": sorted(src.ignored_devices)}
+        if not session.processed:
+            raise ValueError(f"live session: no frame was processed ({session.stopped_by})"
+                             f"{refused()}")
+        timestamps = list(recorder.timestamps)
+        recorder.finish()
+    except BaseException:
+        recorder.abort()
+        raise
+    result = session_result(session, timestamps, dropped, parameters=asdict(options),
+                            source_details=details)
+    return run_dataset(record, "lba-emt", out, result=result, allow_untracked=True,
+                       progress=progress, blend=blend,
+                       canvas=canvas, video=video, report=report)

@@ -149,10 +149,7 @@ def replay_live(dataset, method: str, *, options=None, progress: bool = True,
     details = {"live": {
         "frames_processed": len(latency), "frames_dropped": len(dropped),
         "dropped": [int(dataset.frame_ids[k]) for k, _ in dropped],
-        "latency_ms": {"median": float(np.median(lat)), "p95": float(np.percentile(lat, 95)),
-                       "max": float(lat.max())},
-        "processing_ms": {"median": float(np.median(proc)),
-                          "p95": float(np.percentile(proc, 95)), "max": float(proc.max())},
+        "latency_ms": _stats(lat), "processing_ms": _stats(proc),
         "frame_interval_ms": float(np.median(np.diff(arrival)) * 1e3) if n > 1 else None,
         "max_sample_age_s": stream.max_age,
         # processed frames whose newest sample was missing or older than max_sample_age_s
@@ -258,3 +255,127 @@ def _streaming(dataset, method: str, options, max_age: float | None) -> _Stream:
 
     stream.feed = feed
     return stream
+
+
+# ---------------------------------------------------------------------------- a live source
+SESSION_ENDED = "unplaced: received after the session ended (recorded, not processed)"
+DROPPED_LIVE = "unplaced: dropped (live: arrived while frame {busy} was being processed)"
+
+
+@dataclass
+class LiveSession:
+    """What `live_session` measured: per recorded frame (recording ids 0, 1, ...) the final
+    result (`finals`), the frames processed in order, their latency (arrival -> result, s) and
+    processing time (s), the frames without a usable tracker sample, and why the session
+    stopped."""
+
+    finals: dict = field(default_factory=dict)
+    processed: list = field(default_factory=list)
+    latency: dict = field(default_factory=dict)
+    processing: dict = field(default_factory=dict)
+    no_sample: list = field(default_factory=list)
+    ages: list = field(default_factory=list)
+    stopped_by: str = ""
+    plane: object = None
+
+
+def live_session(source, camera, *, hand_eye=None, options=None,
+                 max_frames: int | None = None, duration_s: float | None = None,
+                 frame_timeout_s: float = 5.0, max_sample_age_s: float | None = None,
+                 on_result: Callable | None = None) -> LiveSession:
+    """Runs lba-emt live on `source` (an io.igtl.IgtlSource, or anything with its next_frame /
+    pose_at / received): takes the newest frame as soon as the previous one is done, with the
+    tracker pose at its time, until the stream ends, `max_frames` frames were received,
+    `duration_s` passed, or Ctrl-C (KeyboardInterrupt ends the session normally; the mosaicker
+    is transactional, an interrupted call leaves it as before). on_result(frame, result) is
+    called after each frame (a live preview). The caller records the frames (the source's
+    on_frame) and writes the outputs."""
+    from fusedmosaic.estimation.sequential import SequentialMosaicker, SequentialOptions
+
+    mosaicker = SequentialMosaicker(camera, SequentialOptions() if options is None else options)
+    session = LiveSession()
+    start = time.monotonic()
+
+    def take(results) -> None:
+        for r in results:  # the mosaicker numbers the frames it was given 0, 1, ...
+            session.finals[session.processed[r.frame_id]] = r
+
+    try:
+        while True:
+            frame = source.next_frame(frame_timeout_s)
+            if frame is None:
+                session.stopped_by = "the sender closed the stream"
+                break
+            pose, age = source.pose_at(frame.timestamp, hand_eye, max_age_s=max_sample_age_s)
+            if pose is None:
+                session.no_sample.append(frame.index)
+            elif age is not None:
+                session.ages.append(age)
+            t0 = time.perf_counter()
+            result = mosaicker.add_frame(frame.image, frame.timestamp, pose)
+            done = time.perf_counter()
+            session.processed.append(frame.index)
+            session.latency[frame.index] = done - frame.arrival
+            session.processing[frame.index] = done - t0
+            take(mosaicker.finalized())
+            if on_result is not None:
+                on_result(frame, result)
+            if max_frames is not None and source.received >= max_frames:
+                session.stopped_by = f"{max_frames} frames received (--max-frames)"
+                break
+            if duration_s is not None and time.monotonic() - start >= duration_s:
+                session.stopped_by = f"{duration_s:g} s passed (--duration)"
+                break
+    except KeyboardInterrupt:
+        session.stopped_by = "interrupted (Ctrl-C)"
+    if session.processed:
+        take(mosaicker.flush())
+    session.plane = mosaicker.plane
+    return session
+
+
+def session_result(session: LiveSession, timestamps, dropped: list[int], *,
+                   parameters: dict, source_details: dict) -> MethodResult:
+    """The MethodResult of a live session over the recorded frames (their timestamps): final
+    homographies and poses of the processed frames; the others "unplaced" with why (dropped
+    while busy, or received after the session ended)."""
+    n = len(timestamps)
+    status = [SESSION_ENDED] * n
+    busy_at = {}
+    order = session.processed
+    for a, b in zip(order[:-1], order[1:], strict=True):  # frames between two processed ones
+        for k in range(a + 1, b):
+            busy_at[k] = a
+    for k in dropped:
+        if k < n:
+            status[k] = DROPPED_LIVE.format(busy=busy_at.get(k, "?"))
+    G, poses = np.full((n, 3, 3), np.nan), np.full((n, 6), np.nan)
+    for k, r in session.finals.items():
+        G[k], poses[k], status[k] = r.homography, r.pose, r.status
+    lat = np.array([session.latency[k] for k in session.processed]) * 1e3
+    proc = np.array([session.processing[k] for k in session.processed]) * 1e3
+    details = {"live": {
+        "source": source_details, "stopped_by": session.stopped_by,
+        "frames_recorded": n, "frames_processed": len(session.processed),
+        "frame_interval_ms": float(np.median(np.diff(timestamps)) * 1e3) if n > 1 else None,
+        "frames_dropped": len(dropped), "dropped": [int(k) for k in dropped],
+        "latency_ms": _stats(lat), "processing_ms": _stats(proc),
+        "frames_without_sample": [int(k) for k in session.no_sample],
+        "sample_age_ms": ({"median": float(np.median(session.ages) * 1e3),
+                           "max": float(np.max(session.ages) * 1e3)} if session.ages else None),
+    }}
+    details["plane_history"] = [None if k not in session.finals
+                                or session.finals[k].plane is None
+                                else np.asarray(session.finals[k].plane).tolist()
+                                for k in range(n)]
+    plane = None if session.plane is None else np.asarray(session.plane)
+    return MethodResult(G, status, poses=poses, plane=plane,
+                        timings={"processing": float(sum(session.processing.values()))},
+                        parameters={"live": "openigtlink", **parameters}, details=details)
+
+
+def _stats(values_ms: np.ndarray) -> dict | None:
+    if values_ms.size == 0:
+        return None
+    return {"median": float(np.median(values_ms)), "p95": float(np.percentile(values_ms, 95)),
+            "max": float(values_ms.max())}

@@ -1,0 +1,334 @@
+"""Live input over OpenIGTLink: video frames and tracker poses from a PLUS Server (or any
+OpenIGTLink sender), as an operating-theatre setup streams them.
+
+`IgtlSource` connects to HOST:PORT and receives, on a background thread, IMAGE messages of one
+device (the video) and TRANSFORM messages of one device (the tracked sensor, e.g. PLUS's
+``SensorToTracker``: tracker_from_sensor in mm, as ``tracking.csv``). Messages are decoded with
+pyigtl (the OpenIGTLink reference implementation for Python); the socket loop is ours so that a
+refused connection, a closed stream or a malformed message is a clear error, not a silent
+reconnect.
+
+- Frames: a capture slot of one frame. `next_frame` hands over the newest frame received; frames
+  that arrived while the caller was busy are counted as dropped (`dropped`), the live view never
+  falls behind. Every frame received goes first to ``on_frame`` (the recorder), which may refuse
+  it (returns False: not offered to the loop either).
+- Tracker: every TRANSFORM sample of the device goes to ``on_sample`` and into a bounded history;
+  `pose_at(t)` gives the camera pose at a frame time from it (see there). A sample whose matrix
+  is not finite, not a rotation (orthonormal within 1e-3, det +1), beyond
+  ``MAX_TRANSLATION_MM``, or flagged by the sender (metadata ``TransformStatus`` not ``OK``, as
+  PLUS sends a lost sensor) is kept as an invalid sample: a glitch does not end a session.
+- A transform device named ``BToA`` answers a request for ``AToB`` (inverted).
+
+Timestamps are the messages' own (the sender's clock, seconds since 1970): frame and tracker
+times must come from one clock, as PLUS Server's do.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from fusedmosaic.io.tracking import (
+    MAX_TRANSLATION_MM,
+    TrackingSamples,
+    camera_pose_from_sample,
+    interpolate_camera_poses,
+)
+
+__all__ = ["IgtlSource", "LiveFrame", "TrackerSample", "parse_address"]
+
+DEFAULT_PORT = 18944  # the OpenIGTLink port (PLUS Server's default)
+_HISTORY = 4096  # tracker samples kept for pose_at (100 s at 40 Hz)
+
+
+def parse_address(address: str) -> tuple[str, int]:
+    """'HOST:PORT', 'HOST' (port 18944) or ':PORT' (localhost) -> (host, port); ValueError."""
+    host, sep, port = str(address).rpartition(":")
+    if not sep:
+        host, port = port, str(DEFAULT_PORT)
+    host = host or "127.0.0.1"
+    try:
+        number = int(port)
+    except ValueError:
+        number = -1
+    if not 0 < number < 65536:
+        raise ValueError(f"OpenIGTLink address {address!r}: expected HOST:PORT with a port in "
+                         f"1..65535")
+    return host, number
+
+
+@dataclass
+class LiveFrame:
+    """A received frame: image (H, W) or (H, W, 3) BGR uint8 as sent (checked by the caller),
+    timestamp (s, the sender's), arrival (time.perf_counter() at receipt), index (0-based count
+    of frames received from the device; on_frame may renumber it, e.g. to the recording's frame
+    id, and `dropped` lists these numbers)."""
+
+    image: np.ndarray
+    timestamp: float
+    arrival: float
+    index: int
+
+
+@dataclass
+class TrackerSample:
+    """A TRANSFORM sample: tracker_from_sensor (4, 4) in mm, timestamp (s), valid, and why not."""
+
+    timestamp: float
+    matrix: np.ndarray
+    valid: bool
+    problem: str | None = None
+
+
+class IgtlSource:
+    """OpenIGTLink client for a live session; a context manager (closes the connection).
+
+    image_device: IMAGE device name (None: the first image device heard; others are ignored and
+    listed in `ignored_devices`). transform_device: TRANSFORM device of the tracked sensor (its
+    inverse name is accepted, see the module docstring). rgb: colour images are sent RGB
+    (PLUS) and are converted to BGR. connect_timeout_s: for the TCP connection."""
+
+    def __init__(self, address: str, *, transform_device: str, image_device: str | None = None,
+                 rgb: bool = True, connect_timeout_s: float = 5.0,
+                 on_frame: Callable[[LiveFrame], None] | None = None,
+                 on_sample: Callable[[TrackerSample], None] | None = None) -> None:
+        import pyigtl  # noqa: F401  (fail early, naming the package, if it is missing)
+
+        self.host, self.port = parse_address(address)
+        self.where = f"OpenIGTLink {self.host}:{self.port}"
+        if not transform_device or "To" not in transform_device:
+            raise ValueError(f"{self.where}: transform device {transform_device!r} should be "
+                             f"named like PLUS's FromToTo devices, e.g. SensorToTracker")
+        self.transform_device = transform_device
+        frm, _, to = transform_device.partition("To")
+        self._inverse_device = f"{to}To{frm}"
+        self.image_device = image_device
+        self.rgb = rgb
+        self.on_frame, self.on_sample = on_frame, on_sample
+        self.received = 0  # frames received from the image device
+        self.dropped: list[int] = []  # indices of frames replaced in the slot before being taken
+        self.invalid_samples: list[tuple[float, str]] = []
+        self.ignored_devices: set[str] = set()
+        self.samples: deque[TrackerSample] = deque(maxlen=_HISTORY)
+        self._slot: LiveFrame | None = None
+        self._cond = threading.Condition()
+        self._closed = False
+        self._error: BaseException | None = None
+        self._stop = False
+        try:
+            self._socket = socket.create_connection((self.host, self.port),
+                                                    timeout=connect_timeout_s)
+        except OSError as exc:
+            raise ValueError(f"{self.where}: cannot connect ({exc.strerror or exc}); is the "
+                             f"sender (e.g. PLUS Server) running and listening there?") from None
+        self._socket.settimeout(0.2)
+        self._thread = threading.Thread(target=self._receive_loop, name="igtl-receive",
+                                        daemon=True)
+        self._thread.start()
+
+    # ------------------------------------------------------------------ consumer side
+    def next_frame(self, timeout_s: float) -> LiveFrame | None:
+        """The newest frame not yet taken, waiting up to timeout_s; None when the stream has
+        ended (the sender closed the connection) with no frame left. ValueError when nothing
+        arrives in time, or when the receiver failed (malformed message, callback error)."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while self._slot is None and not self._closed and self._error is None:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    what = (f"IMAGE device {self.image_device}" if self.image_device
+                            else "any IMAGE device")
+                    raise ValueError(f"{self.where}: no frame from {what} in {timeout_s:g} s")
+                self._cond.wait(left)
+            if self._error is not None:
+                raise ValueError(f"{self.where}: {self._error}") from self._error
+            frame, self._slot = self._slot, None
+            return frame
+
+    def pose_at(self, t: float, hand_eye=None, *, max_age_s: float | None = None,
+                wait_s: float = 0.01) -> tuple[np.ndarray | None, float | None]:
+        """Camera pose cam_from_world (6,) at frame time t through the hand-eye, and the age
+        (s) of the newest sample at or before t; (None, age or None) when there is no usable
+        sample. Waits up to wait_s for a sample at or after t (PLUS sends a frame's transform
+        and image with one timestamp, in either order); with valid samples on both sides of t,
+        SLERP + linear interpolation between them (as offline), else the newest one at or
+        before t, held. A sample older than max_age_s (None: 3 x the median spacing of the
+        recent valid samples) counts as none."""
+        deadline = time.monotonic() + wait_s
+        with self._cond:
+            while (not self._closed and self._error is None
+                   and not any(s.timestamp >= t for s in self._tail())):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                self._cond.wait(left)
+            valid = [s for s in self.samples if s.valid]
+        if not valid:
+            return None, None
+        times = np.array([s.timestamp for s in valid])
+        if max_age_s is None:
+            max_age_s = 3.0 * float(np.median(np.diff(times))) if times.size > 1 else np.inf
+        before = int(np.searchsorted(times, t, side="right")) - 1
+        if before < 0:
+            return None, None
+        age = t - times[before]
+        if age > max_age_s:
+            return None, age
+        after = before + 1
+        if times[before] == t or after == times.size or times[after] - times[before] > max_age_s:
+            held = valid[before]  # no sample after t yet (or a gap): the newest one, held
+            return camera_pose_from_sample(held.matrix[:3, 3], _quaternion(held.matrix),
+                                           hand_eye), age
+        pair = valid[before:after + 1]
+        samples = TrackingSamples(times[before:after + 1],
+                                  np.array([s.matrix[:3, 3] for s in pair]),
+                                  np.array([_quaternion(s.matrix) for s in pair]))
+        poses, _ = interpolate_camera_poses(samples, [t], hand_eye, max_gap=np.inf,
+                                            source=self.where)
+        return poses[0], age
+
+    def close(self) -> None:
+        self._stop = True
+        self._thread.join(timeout=2.0)
+        self._socket.close()
+
+    def __enter__(self) -> IgtlSource:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ receiver thread
+    def _tail(self):
+        return list(self.samples)[-4:]
+
+    def _receive_loop(self) -> None:
+        from pyigtl import MessageBase
+
+        try:
+            while not self._stop:
+                header = self._recv_exact(MessageBase.IGTL_HEADER_SIZE)
+                if header is None:
+                    break
+                fields = MessageBase.parse_header(header)
+                body = self._recv_exact(fields["body_size"])
+                if body is None:
+                    break
+                kind, device = fields["message_type"], fields["device_name"]
+                if kind == "IMAGE":
+                    self._on_image(fields, body, device)
+                elif kind == "TRANSFORM":
+                    self._on_transform(fields, body, device)
+        except BaseException as exc:  # reported to the consumer, which raises it
+            with self._cond:
+                self._error = exc
+                self._cond.notify_all()
+            return
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+    def _recv_exact(self, size: int) -> bytes | None:
+        """size bytes, or None when the connection ended (or close() was called) cleanly
+        between messages; a connection ending inside a message is an error."""
+        chunks, got = [], 0
+        while got < size:
+            if self._stop:
+                return None
+            try:
+                chunk = self._socket.recv(min(size - got, 1 << 20))
+            except TimeoutError:
+                continue
+            if not chunk:
+                if got:
+                    raise ConnectionError(f"the connection closed inside a message ({got} of "
+                                          f"{size} bytes)")
+                return None
+            chunks.append(chunk)
+            got += len(chunk)
+        return b"".join(chunks)
+
+    def _on_image(self, fields: dict, body: bytes, device: str) -> None:
+        from pyigtl import ImageMessage
+
+        if self.image_device is None:
+            self.image_device = device
+        if device != self.image_device:
+            self.ignored_devices.add(f"IMAGE {device}")
+            return
+        message = ImageMessage()
+        message.unpack(fields, body)
+        image = _frame_image(message.image, self.rgb)
+        frame = LiveFrame(image, float(fields["timestamp"]), time.perf_counter(), self.received)
+        self.received += 1
+        if self.on_frame is not None and self.on_frame(frame) is False:
+            return  # refused by the caller (e.g. a frame of the wrong size): not offered
+        with self._cond:
+            if self._slot is not None:
+                self.dropped.append(self._slot.index)
+            self._slot = frame
+            self._cond.notify_all()
+
+    def _on_transform(self, fields: dict, body: bytes, device: str) -> None:
+        from pyigtl import TransformMessage
+
+        if device not in (self.transform_device, self._inverse_device):
+            self.ignored_devices.add(f"TRANSFORM {device}")
+            return
+        message = TransformMessage()
+        message.unpack(fields, body)
+        matrix = np.asarray(message.matrix, dtype=np.float64)
+        status = str(message.metadata.get("TransformStatus", "OK"))
+        problem = _rigid_problem(matrix) if status.upper() == "OK" else f"status {status}"
+        if problem is None and device == self._inverse_device:
+            matrix = np.linalg.inv(matrix)
+        sample = TrackerSample(float(fields["timestamp"]), matrix, problem is None, problem)
+        with self._cond:
+            if self.samples and sample.timestamp <= self.samples[-1].timestamp:
+                sample.valid, sample.problem = False, "timestamp not after the previous sample"
+            if not sample.valid:
+                self.invalid_samples.append((sample.timestamp, sample.problem))
+            else:
+                self.samples.append(sample)
+            self._cond.notify_all()
+        if self.on_sample is not None and sample.valid:
+            self.on_sample(sample)
+
+
+def _frame_image(image: np.ndarray, rgb: bool) -> np.ndarray:
+    """An IMAGE message's (1, H, W[, C]) array as the (H, W) gray or (H, W, 3) BGR frame the
+    mosaickers take (alpha dropped); other layouts are returned as they are for the caller's
+    checks to name."""
+    image = np.asarray(image)
+    if image.ndim >= 3 and image.shape[0] == 1:
+        image = image[0]
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    if image.ndim == 3 and image.shape[2] == 4:
+        image = image[:, :, :3]
+    if image.ndim == 3 and image.shape[2] == 3 and rgb:
+        image = image[:, :, ::-1]
+    return np.ascontiguousarray(image)
+
+
+def _rigid_problem(matrix: np.ndarray) -> str | None:
+    if matrix.shape != (4, 4) or not np.isfinite(matrix).all():
+        return "not a finite 4x4 matrix"
+    R = matrix[:3, :3]
+    if np.abs(R.T @ R - np.eye(3)).max() > 1e-3 or np.linalg.det(R) <= 0:
+        return "its 3x3 part is not a rotation"
+    if np.abs(matrix[:3, 3]).max() > MAX_TRANSLATION_MM:
+        return f"translation beyond {MAX_TRANSLATION_MM:g} mm"
+    return None
+
+
+def _quaternion(matrix: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(matrix[:3, :3]).as_quat()

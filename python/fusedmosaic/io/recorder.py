@@ -1,0 +1,113 @@
+"""Recording a live session as a dataset folder (the dataset contract), while it runs.
+
+Frames are written as PNG by a background thread (a live loop does not wait for the disk) into a
+temporary folder next to the destination; `finish` adds frames.csv, tracking.csv (every tracker
+sample, at the tracker's own rate), camera.yaml and hand_eye.txt and renames the folder into
+place, so the recording is complete or absent, never partial; `abort` removes it. The recording
+can then be mosaicked offline with any method (`fusedmosaic run DATA --method ba-emt`).
+"""
+
+from __future__ import annotations
+
+import queue
+import shutil
+import tempfile
+import threading
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from fusedmosaic.io._table import format_float, write_table
+from fusedmosaic.io.calibration import Camera, write_camera_yaml
+from fusedmosaic.io.dataset import _replace_dir, check_replaceable_dataset
+from fusedmosaic.io.tracking import TrackingSamples, write_hand_eye, write_tracking_csv
+
+__all__ = ["DatasetRecorder"]
+
+
+class DatasetRecorder:
+    """Records frames (`add_frame`) and tracker samples (`add_sample`) into dataset folder
+    `root` (must not exist or be empty, unless overwrite replaces an earlier dataset there).
+    Thread-safe: the OpenIGTLink receiver calls it from its thread."""
+
+    def __init__(self, root: str | Path, camera: Camera, hand_eye=None, *,
+                 overwrite: bool = False) -> None:
+        self.root = Path(root)
+        if self.root.exists() and (not self.root.is_dir() or any(self.root.iterdir())):
+            if not overwrite:
+                raise ValueError(f"{self.root}: exists and is not empty (choose a new folder for "
+                                 f"the recording, or allow overwriting an earlier recording)")
+            check_replaceable_dataset(self.root)
+        self.camera, self.hand_eye = camera, hand_eye
+        self.root.parent.mkdir(parents=True, exist_ok=True)
+        self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.root.name}.tmp-", dir=self.root.parent))
+        (self._tmp / "frames").mkdir()
+        self.timestamps: list[float] = []
+        self._samples: list[tuple[float, np.ndarray]] = []
+        self._lock = threading.Lock()
+        self._queue: queue.Queue = queue.Queue()
+        self._error: BaseException | None = None
+        self._writer = threading.Thread(target=self._write_loop, name="recorder", daemon=True)
+        self._writer.start()
+
+    def add_frame(self, image: np.ndarray, timestamp: float) -> int:
+        """Queues a frame for writing; returns its frame id in the recording (0, 1, ...)."""
+        with self._lock:
+            if self._error is not None:
+                raise self._error
+            k = len(self.timestamps)
+            self.timestamps.append(float(timestamp))
+        self._queue.put((k, image))
+        return k
+
+    def add_sample(self, timestamp: float, tracker_from_sensor: np.ndarray) -> None:
+        with self._lock:
+            self._samples.append((float(timestamp), np.asarray(tracker_from_sensor, float)))
+
+    def finish(self) -> Path:
+        """Waits for the frames to be written, writes the tables and renames the recording
+        into place; returns its folder. On failure the temporary folder is removed."""
+        try:
+            self._queue.put(None)
+            self._writer.join()
+            if self._error is not None:
+                raise self._error
+            write_camera_yaml(self._tmp / "camera.yaml", self.camera)
+            write_table(self._tmp / "frames.csv", ["frame", "timestamp"],
+                        ([str(k), format_float(t)] for k, t in enumerate(self.timestamps)))
+            if self._samples:
+                times = np.array([t for t, _ in self._samples])
+                T = np.stack([m for _, m in self._samples])
+                write_tracking_csv(self._tmp / "tracking.csv", TrackingSamples(
+                    times, T[:, :3, 3], Rotation.from_matrix(T[:, :3, :3]).as_quat()))
+            if self.hand_eye is not None:
+                write_hand_eye(self._tmp / "hand_eye.txt", self.hand_eye)
+            _replace_dir(self._tmp, self.root)
+        except BaseException:
+            self.abort()
+            raise
+        return self.root
+
+    def abort(self) -> None:
+        """Discards the recording."""
+        self._queue.put(None)
+        self._writer.join(timeout=10.0)
+        shutil.rmtree(self._tmp, ignore_errors=True)
+
+    def _write_loop(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            if self._error is not None:
+                continue
+            k, image = item
+            path = self._tmp / "frames" / f"{k:06d}.png"
+            try:  # fast PNG (level 1): the disk keeps up with the video
+                if not cv2.imwrite(str(path), image, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+                    raise ValueError(f"{path}: cv2.imwrite failed")
+            except BaseException as exc:
+                with self._lock:
+                    self._error = exc

@@ -1,0 +1,201 @@
+"""Live sessions on an OpenIGTLink source (io/igtl.py, io/recorder.py, `fusedmosaic live`): a
+local sender streams a simulated tracked sequence as PLUS Server would; the session mosaics it
+with lba-emt, records it as a dataset and writes the outputs."""
+
+from __future__ import annotations
+
+import json
+import socket
+
+import numpy as np
+import pytest
+from _igtl_sender import (
+    T0,
+    Sender,
+    dataset_events,
+    image_message,
+    tracker_matrix,
+    transform_message,
+)
+from scipy.spatial.transform import Rotation
+
+from fusedmosaic.cli import main
+from fusedmosaic.estimation.sequential import run_lba_emt
+from fusedmosaic.evaluation import frame_errors, mosaic_error
+from fusedmosaic.io import read_dataset, read_homographies_csv
+from fusedmosaic.io.igtl import IgtlSource, parse_address
+from fusedmosaic.io.tracking import interpolate_camera_poses
+from fusedmosaic.simulation import FetoscopyOptions, simulate_fetoscopy
+
+N = 60
+
+
+@pytest.fixture(scope="module")
+def syn(tmp_path_factory):
+    options = FetoscopyOptions(n_frames=N, laps=N / 37.5, width=300, height=300)
+    return read_dataset(simulate_fetoscopy(tmp_path_factory.mktemp("igtl") / "syn", options))
+
+
+def _live(syn, tmp_path, sender, *extra):
+    return main(["--quiet", "live", f"127.0.0.1:{sender.port}", "--camera",
+                 str(syn.root / "camera.yaml"), "--hand-eye", str(syn.root / "hand_eye.txt"),
+                 "--transform", "SensorToTracker", "--record", str(tmp_path / "rec"), "--out",
+                 str(tmp_path / "out"), "--no-report", *extra])
+
+
+def test_live_session_mosaics_records_and_reports(syn, tmp_path):
+    sender = Sender(dataset_events(syn))
+    assert _live(syn, tmp_path, sender) == 0
+    sender.join()
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    live = report["live"]
+    assert live["stopped_by"] == "the sender closed the stream"
+    assert live["frames_recorded"] == N  # every frame is recorded, dropped or not
+    assert live["frames_processed"] + live["frames_dropped"] <= N
+    assert live["frames_processed"] >= N // 2
+    assert live["frames_without_sample"] == []
+    assert live["source"]["frames_refused"] == {}
+    # the recording is a dataset: the frames as sent, timestamps on the sender's clock, and
+    # the tracker samples at their own rate (float32 on the wire: 1e-4 mm, 1e-6 rad)
+    rec = read_dataset(tmp_path / "rec", allow_untracked=True)
+    assert len(rec) == N
+    for k in (0, N // 2, N - 1):
+        np.testing.assert_array_equal(rec.frames[k], syn.frames[k])
+    np.testing.assert_allclose(rec.timestamps - T0, syn.timestamps, atol=1e-6)
+    sent = syn.tracking.timestamps[syn.tracking.valid]
+    sent = sent[sent <= syn.timestamps[-1]]
+    np.testing.assert_allclose(rec.tracking.timestamps - T0, sent, atol=1e-6)
+    np.testing.assert_allclose(rec.tracking.translations,
+                               syn.tracking.translations[syn.tracking.valid][:sent.size],
+                               atol=1e-4)
+    np.testing.assert_allclose(np.loadtxt(tmp_path / "rec" / "hand_eye.txt"),
+                               np.loadtxt(syn.root / "hand_eye.txt"), atol=1e-12)
+    # the live mosaic against the simulator's truth: within 1 px on 300x300 frames (offline
+    # lba-emt on the same sequence is the reference; live differs by the dropped frames)
+    ids, G = read_homographies_csv(tmp_path / "out" / "homographies.csv")
+    assert list(ids) == list(range(N))
+    placed = np.isfinite(G).all(axis=(1, 2))
+    assert placed.sum() == live["frames_processed"]
+    e_live = mosaic_error(frame_errors(G, syn.ground_truth, 300, 300))
+    e_offline = mosaic_error(frame_errors(run_lba_emt(syn, progress=False).homographies,
+                                          syn.ground_truth, 200, 200))
+    assert e_live < 1.0, (e_live, e_offline)
+    status = report["frame_status"]
+    for k in live["dropped"]:
+        assert status[k].startswith("unplaced: dropped (live")
+
+
+def test_pose_at_interpolates_between_samples_or_holds_the_newest(syn):
+    """The pose at a frame time: SLERP + linear between the samples around it (as offline),
+    the newest one held when no later sample has arrived; inverse device names inverted."""
+    tr = syn.tracking
+    i = np.flatnonzero(tr.valid)[:4]
+    events = [(float(tr.timestamps[j]), _inverse(tr, j)) for j in i]
+    sender = Sender(events, speed=100.0, delay=0.0)
+    with IgtlSource(f":{sender.port}", transform_device="SensorToTracker") as source:
+        sender.join()
+        while source.next_frame(2.0) is not None:  # none sent: ends when the stream closes
+            pass
+        t = 0.5 * (tr.timestamps[i[1]] + tr.timestamps[i[2]])
+        pose, age = source.pose_at(T0 + t, syn.hand_eye, wait_s=0.0)
+        expected, _ = interpolate_camera_poses(tr, [t], syn.hand_eye)
+        np.testing.assert_allclose(pose, expected[0], atol=1e-5)
+        assert age == pytest.approx(t - tr.timestamps[i[1]], abs=1e-6)
+        late = tr.timestamps[i[3]] + 0.01  # after the last sample: held
+        pose, age = source.pose_at(T0 + late, syn.hand_eye, wait_s=0.0)
+        held, _ = interpolate_camera_poses(tr, [tr.timestamps[i[3]]], syn.hand_eye)
+        np.testing.assert_allclose(pose, held[0], atol=1e-5)
+        assert age == pytest.approx(0.01, abs=1e-6)
+        # older than 3 sample periods: no sample
+        assert source.pose_at(T0 + late + 1.0, syn.hand_eye, wait_s=0.0)[0] is None
+        assert source.pose_at(T0 + tr.timestamps[i[0]] - 0.01, wait_s=0.0) == (None, None)
+
+
+def _inverse(tr, j):
+    M = tracker_matrix(tr.translations[j], tr.quaternions[j])
+    return transform_message(np.linalg.inv(M), float(tr.timestamps[j]), "TrackerToSensor")
+
+
+def test_connection_refused_names_the_address(syn, tmp_path, capsys):
+    with socket.create_server(("127.0.0.1", 0)) as s:
+        port = s.getsockname()[1]  # closed again: nothing listens there
+    assert main(["live", f"127.0.0.1:{port}", "--camera", str(syn.root / "camera.yaml"),
+                 "--transform", "SensorToTracker", "--record", str(tmp_path / "rec"),
+                 "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert f"OpenIGTLink 127.0.0.1:{port}: cannot connect" in err
+    assert not (tmp_path / "rec").exists() and not (tmp_path / "out").exists()
+    assert not list(tmp_path.iterdir())  # no temporary recording left either
+
+
+@pytest.mark.parametrize("keep_open, stopped", [
+    (False, "no frame was processed (the sender closed the stream)"),
+    (True, "no frame from IMAGE device Video in 1 s")])
+def test_frames_of_the_wrong_size_are_refused_with_the_reason(syn, tmp_path, capsys, keep_open,
+                                                              stopped):
+    small = np.zeros((100, 120), np.uint8)
+    events = [(0.04 * k, image_message(small, 0.04 * k)) for k in range(5)]
+    if keep_open:  # the sender stays connected (a final message 2 s later)
+        events.append((2.0, image_message(small, 2.0)))
+    sender = Sender(events, delay=0.0)
+    code = _live(syn, tmp_path, sender, "--frame-timeout", "1")
+    sender.join()
+    assert code == 2
+    err = capsys.readouterr().err
+    assert stopped in err
+    assert "frames refused: 5 x a uint8 100x120 image, expected uint8 300x300 (camera.yaml)" in err
+    assert not list(tmp_path.iterdir())
+
+
+def test_stream_cut_inside_a_message(syn, tmp_path, capsys):
+    message = image_message(syn.frames[0], 0.0)
+    sender = Sender([(0.0, message[: len(message) // 2])], delay=0.0)
+    code = _live(syn, tmp_path, sender)
+    sender.join()
+    assert code == 2
+    assert "the connection closed inside a message" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
+
+
+def test_invalid_tracker_samples_are_skipped_not_fatal(syn, tmp_path):
+    """A sample that is not a rigid transform (a corrupt message) or goes back in time is not
+    used or recorded; the session goes on."""
+    events = dataset_events(syn, n_frames=45)
+    bad = np.eye(4)
+    bad[:3, :3] *= 2.0  # scaled: not a rotation
+    mid = len(events) // 2
+    t = events[mid][0]
+    events[mid:mid] = [(t, transform_message(bad, t + 1e-4)),  # after the previous sample
+                       (t, transform_message(np.eye(4), t - 1.0))]  # back in time
+    sender = Sender(events)
+    assert _live(syn, tmp_path, sender) == 0
+    sender.join()
+    live = json.loads((tmp_path / "out" / "report.json").read_text())["live"]
+    assert live["source"]["tracker_samples_invalid"] == {
+        "its 3x3 part is not a rotation": 1, "timestamp not after the previous sample": 1}
+    rec = read_dataset(tmp_path / "rec", allow_untracked=True)
+    R = Rotation.from_quat(rec.tracking.quaternions).as_matrix()
+    assert np.allclose(np.linalg.det(R), 1.0)
+
+
+@pytest.mark.parametrize("address, message", [
+    ("host:0", "port in 1..65535"), ("host:http", "port in 1..65535"),
+    ("host:70000", "port in 1..65535")])
+def test_bad_addresses(address, message):
+    with pytest.raises(ValueError, match=message):
+        parse_address(address)
+
+
+def test_parse_address_defaults():
+    assert parse_address("scanner") == ("scanner", 18944)
+    assert parse_address(":1234") == ("127.0.0.1", 1234)
+
+
+def test_existing_recording_folder_is_refused_before_connecting(syn, tmp_path, capsys):
+    (tmp_path / "rec").mkdir()
+    (tmp_path / "rec" / "notes.txt").write_text("mine")
+    assert main(["live", "127.0.0.1:1", "--camera", str(syn.root / "camera.yaml"),
+                 "--transform", "SensorToTracker", "--record", str(tmp_path / "rec"),
+                 "--out", str(tmp_path / "out")]) == 2
+    assert "rec: exists and is not empty" in capsys.readouterr().err
+    assert (tmp_path / "rec" / "notes.txt").read_text() == "mine"
