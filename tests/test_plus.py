@@ -426,3 +426,26 @@ def test_compressed_stream_is_zlib(tmp_path):
     pixels = zlib.decompress(data[start:])
     np.testing.assert_array_equal(np.frombuffer(pixels, np.uint8).reshape(FN, FH, FW),
                                   read_plus_sequence(path).images)
+
+
+def test_cli_import(syn, tmp_path, capsys):
+    """`fusedmosaic import`: the summary line, files readable with normal permissions, and a
+    bad transform name refused with the fields present (exit 2, no folder)."""
+    from fusedmosaic.cli import main
+
+    seq = write_plus_sequence(tmp_path / "rec.igs.mha", syn.bgr[..., ::-1], syn.ds.timestamps,
+                              {"SensorToTracker": syn.T})
+    assert seq.stat().st_mode & 0o044 == 0o044  # readable by others, as a normal write
+    camera = str(syn.root / "camera.yaml")
+    assert main(["import", str(seq), str(tmp_path / "ds"), "--camera", camera]) == 0
+    out = capsys.readouterr().out
+    assert f"imported {tmp_path / 'ds'}: {len(syn.ds)} frames 200x200 RGB->BGR" in out
+    np.testing.assert_array_equal(read_dataset(tmp_path / "ds").frames[3], syn.bgr[3])
+    assert main(["import", str(seq), str(tmp_path / "ds2"), "--camera", camera,
+                 "--transform", "ProbeToTracker"]) == 2
+    err = capsys.readouterr().err
+    assert "no ProbeToTrackerTransform field (nor its inverse); transforms present: " \
+           "SensorToTrackerTransform" in err
+    assert not (tmp_path / "ds2").exists()
+    assert main(["import", str(seq), str(tmp_path / "ds3"), "--camera", camera,
+                 "--transform", "auto", "--quiet"]) == 0

@@ -1,4 +1,4 @@
-"""`fusedmosaic simulate|run|live|evaluate|demo` — the command-line entry point."""
+"""`fusedmosaic simulate|import|run|live|evaluate|demo` — the command-line entry point."""
 
 from __future__ import annotations
 
@@ -167,6 +167,16 @@ def _loop_pairs(args: argparse.Namespace) -> dict:
     if args.loop_pairs < 0:
         raise ValueError(f"--loop-pairs must be >= 0, got {args.loop_pairs}")
     return {"loop_pairs": args.loop_pairs}
+
+
+def _cmd_import(args: argparse.Namespace) -> int:
+    from fusedmosaic.io.plus import import_plus_sequence
+
+    summary = import_plus_sequence(args.sequence, args.out, camera=args.camera,
+                                   transform=None if args.transform == "auto" else args.transform,
+                                   hand_eye=args.hand_eye, overwrite=args.overwrite)
+    _say(args, f"imported {summary}")
+    return 0
 
 
 def _cmd_live(args: argparse.Namespace) -> int:
@@ -498,6 +508,24 @@ def build_parser() -> argparse.ArgumentParser:
     _add_feature_flags(run, "features (lba-emt, ba-emt, ba, emt, pairwise)")
     _add_compositing_flags(run)
     run.set_defaults(func=_cmd_run)
+
+    imp = sub.add_parser(
+        "import", parents=[quiet],
+        help="turn a PLUS toolkit sequence file (tracked video, .mha/.mhd) into a dataset")
+    imp.add_argument("sequence", help="PLUS sequence metafile (*.seq.mha, *.igs.mha, or .mhd "
+                                      "with its data file)")
+    imp.add_argument("out", help="dataset folder to write (must not exist or be empty)")
+    imp.add_argument("--camera", required=True, metavar="CAMERA.yaml",
+                     help="camera.yaml of the endoscope (its image size must match)")
+    imp.add_argument("--transform", default="SensorToTracker", metavar="NAME",
+                     help="the sensor's transform field, tracker_from_sensor (default "
+                          "SensorToTracker; stored inverted it is inverted back; 'auto' takes "
+                          "the single *ToTracker / *ToReference field)")
+    imp.add_argument("--hand-eye", metavar="HAND_EYE.txt",
+                     help="4x4 sensor_from_camera copied into the dataset (default identity)")
+    imp.add_argument("--overwrite", action="store_true",
+                     help="replace an earlier dataset in OUT")
+    imp.set_defaults(func=_cmd_import)
 
     live = sub.add_parser(
         "live", parents=[quiet],

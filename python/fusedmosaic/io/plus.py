@@ -632,6 +632,9 @@ def write_plus_sequence(
 def _temp(path: Path, temps: list[Path]) -> Path:
     fd, name = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
     os.close(fd)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(name, 0o666 & ~umask)  # the permissions of a file written normally, not 0600
     temps.append(Path(name))
     return temps[-1]
 
