@@ -1,6 +1,8 @@
 """Live replay on this machine (`fusedmosaic run --live`, estimation/live.py): SYN sequences at
 25 frames/s fed to lba-emt as a live source, and the pCLE circle (10 frames/s, accurate and
-noisy robot) to kalman-robot.
+noisy robot) to kalman-robot. The 400x400 sequences are also streamed over OpenIGTLink
+(`fusedmosaic live`, runner.run_igtl) by a sender in another process, in real time, as PLUS
+Server would: the same measures with a real socket, decoding, recording and wall-clock time.
 
 One run. Each configuration simulates its sequence on disk (frames read outside the timed
 calls), then replays it: frames at their timestamps with the newest tracker / robot sample, a
@@ -18,9 +20,13 @@ Writes the JSON and a markdown table beside it (live.md).
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import subprocess
+import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 from _common import fmt, machine_info, md_table, work_folder, write_json
@@ -30,7 +36,7 @@ from fusedmosaic.estimation.live import replay_live
 from fusedmosaic.estimation.sequential import SequentialOptions, run_lba_emt
 from fusedmosaic.estimation.translation import run_kalman_robot
 from fusedmosaic.evaluation import frame_errors, mosaic_error, position_errors_um
-from fusedmosaic.io import read_dataset
+from fusedmosaic.io import read_dataset, read_homographies_csv
 from fusedmosaic.registration.features import FeatureOptions
 from fusedmosaic.simulation import FetoscopyOptions, PcleOptions, simulate_fetoscopy, simulate_pcle
 
@@ -68,6 +74,10 @@ def main() -> None:
                                                  ds.camera.width, ds.camera.height))
 
             rows.append(row(label, "lba-emt", ds, live, e_M(live), e_M(offline), "px"))
+            if size == (400, 400):
+                streamed, G = over_igtl(root, work / f"igtl-{detector}", options)
+                rows.append(row(f"{label}, over OpenIGTLink", "lba-emt (live)", ds, streamed,
+                                e_M(SimpleNamespace(homographies=G)), e_M(offline), "px"))
         root = simulate_pcle(work / "pcle", PcleOptions(trajectory="circle"), overwrite=True)
         for robot_file, which in (("robot.csv", "accurate"), ("robot_noisy.csv", "noisy")):
             ds = read_dataset(root, robot_file=robot_file)
@@ -92,6 +102,40 @@ def main() -> None:
     write_json(args.out, res)
     args.out.with_suffix(".md").write_text(markdown(res))
     print(f"wrote {args.out}")
+
+
+# The sender: tests/_igtl_sender.py in another process (its own interpreter and GIL, as PLUS
+# Server is another program): the dataset's frames and 40 Hz tracker samples in real time.
+SENDER = """
+import sys
+sys.path.insert(0, sys.argv[1])
+from _igtl_sender import Sender, dataset_events
+from fusedmosaic.io import read_dataset
+sender = Sender(dataset_events(read_dataset(sys.argv[2])), delay=0.5)
+print(sender.port, flush=True)
+sender.join()
+"""
+
+
+def over_igtl(root: Path, work: Path, options) -> tuple[SimpleNamespace, np.ndarray]:
+    """Streams the dataset at `root` over OpenIGTLink to run_igtl; its report's "live" entry
+    (as replay_live's details) and the homographies."""
+    from fusedmosaic.runner import run_igtl
+
+    tests = Path(__file__).resolve().parent.parent / "tests"
+    sender = subprocess.Popen([sys.executable, "-c", SENDER, str(tests), str(root)],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        port = int(sender.stdout.readline())
+        run_igtl(f"127.0.0.1:{port}", work / "out", record=work / "rec",
+                 camera=root / "camera.yaml", transform_device="SensorToTracker",
+                 hand_eye=root / "hand_eye.txt", options=options, overwrite_record=True,
+                 progress=False, report=False)
+    finally:
+        sender.wait(timeout=60)
+    report = json.loads((work / "out" / "report.json").read_text())
+    _, G = read_homographies_csv(work / "out" / "homographies.csv")
+    return SimpleNamespace(details=report), G
 
 
 def row(label, method, ds, live, error_live, error_offline, unit) -> dict:

@@ -23,7 +23,7 @@ from fusedmosaic.cli import main
 from fusedmosaic.estimation.sequential import run_lba_emt
 from fusedmosaic.evaluation import frame_errors, mosaic_error
 from fusedmosaic.io import read_dataset, read_homographies_csv
-from fusedmosaic.io.igtl import IgtlSource, parse_address
+from fusedmosaic.io.igtl import IgtlSource, inverse_device_name, parse_address
 from fusedmosaic.io.tracking import interpolate_camera_poses
 from fusedmosaic.simulation import FetoscopyOptions, simulate_fetoscopy
 
@@ -174,7 +174,11 @@ def test_invalid_tracker_samples_are_skipped_not_fatal(syn, tmp_path):
     assert live["source"]["tracker_samples_invalid"] == {
         "its 3x3 part is not a rotation": 1, "timestamp not after the previous sample": 1}
     rec = read_dataset(tmp_path / "rec", allow_untracked=True)
-    R = Rotation.from_quat(rec.tracking.quaternions).as_matrix()
+    # the non-rigid sample is recorded as a missing one (valid=0: the dropout stays visible
+    # offline), the one going back in time is not recorded (tracking.csv is in time order)
+    assert (~rec.tracking.valid).sum() == 1
+    assert rec.tracking.timestamps[~rec.tracking.valid][0] == pytest.approx(T0 + t + 1e-4)
+    R = Rotation.from_quat(rec.tracking.quaternions[rec.tracking.valid]).as_matrix()
     assert np.allclose(np.linalg.det(R), 1.0)
 
 
@@ -199,3 +203,47 @@ def test_existing_recording_folder_is_refused_before_connecting(syn, tmp_path, c
                  "--out", str(tmp_path / "out")]) == 2
     assert "rec: exists and is not empty" in capsys.readouterr().err
     assert (tmp_path / "rec" / "notes.txt").read_text() == "mine"
+
+
+def test_inverse_device_names():
+    assert inverse_device_name("SensorToTracker") == "TrackerToSensor"
+    assert inverse_device_name("ToolToTracker") == "TrackerToTool"  # not 'olToTrackerTo'
+    assert inverse_device_name("TouchProbeToTracker") == "TrackerToTouchProbe"
+    assert inverse_device_name("ProbeToTooltip") == "TooltipToProbe"
+    with pytest.raises(ValueError, match="'Tracker' should be named like PLUS's"):
+        inverse_device_name("Tracker")
+
+
+@pytest.mark.parametrize("cut", ["inside", "huge body"])
+def test_a_stream_failing_mid_session_keeps_what_was_done(syn, tmp_path, cut):
+    """After frames were processed, a stream that breaks (cut inside a message, a corrupt
+    header) ends the session: the recording and the outputs are written, report.json says why.
+    A gray frame among colour ones is refused (a recording is one or the other)."""
+    events = dataset_events(syn, n_frames=45)
+    t = events[-1][0] + 0.04
+    events.insert(len(events) // 2, (events[len(events) // 2][0],
+                                     image_message(np.zeros((300, 300), np.uint8), 0.95)))
+    message = image_message(syn.frames[45], t)
+    if cut == "inside":
+        events.append((t, message[: len(message) // 2]))
+        why = "the connection closed inside a message"
+    else:  # a header announcing a 2**40-byte body
+        events.append((t, message[:42] + (2**40).to_bytes(8, "big") + message[50:]))
+        why = "malformed OpenIGTLink header: a IMAGE message of 1099511627776 bytes"
+    sender = Sender(events)
+    assert _live(syn, tmp_path, sender) == 0
+    sender.join()
+    live = json.loads((tmp_path / "out" / "report.json").read_text())["live"]
+    assert live["stopped_by"].startswith("the stream failed: ") and why in live["stopped_by"]
+    assert live["frames_recorded"] == 45
+    assert list(live["source"]["frames_refused"].values()) == [1]
+    assert "a gray image after colour ones" in next(iter(live["source"]["frames_refused"]))
+    assert len(read_dataset(tmp_path / "rec", allow_untracked=True)) == 45
+
+
+def test_out_inside_the_recording_is_refused_before_connecting(syn, tmp_path, capsys):
+    assert main(["live", "127.0.0.1:1", "--camera", str(syn.root / "camera.yaml"),
+                 "--transform", "SensorToTracker", "--record", str(tmp_path / "rec"),
+                 "--out", str(tmp_path / "rec" / "out")]) == 2
+    assert "must not be the recording folder or inside it" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())

@@ -200,13 +200,24 @@ def _cmd_live(args: argparse.Namespace) -> int:
     check_compositing_options(blend, canvas, names=COMPOSITING_FLAGS)
     _say(args, f"live: connecting to {args.address} (Ctrl-C ends the session and writes the "
                "outputs)")
-    summary = run_igtl(args.address, args.out, record=args.record, camera=args.camera,
-                       transform_device=args.transform, image_device=args.image_device,
-                       hand_eye=args.hand_eye, rgb=not args.bgr, options=options,
-                       max_frames=args.max_frames, duration_s=args.duration,
-                       frame_timeout_s=args.frame_timeout,
-                       overwrite_record=args.overwrite_record, progress=_progress(args),
-                       blend=blend, canvas=canvas, video=args.video, report=not args.no_report)
+    import signal
+
+    def stop(signum, frame):  # a closed terminal or a launcher's stop ends it as Ctrl-C does
+        raise KeyboardInterrupt
+
+    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGTERM, signal.SIGHUP)}
+    try:
+        summary = run_igtl(args.address, args.out, record=args.record, camera=args.camera,
+                           transform_device=args.transform, image_device=args.image_device,
+                           hand_eye=args.hand_eye, rgb=not args.bgr, options=options,
+                           max_frames=args.max_frames, duration_s=args.duration,
+                           frame_timeout_s=args.frame_timeout,
+                           overwrite_record=args.overwrite_record, progress=_progress(args),
+                           blend=blend, canvas=canvas, video=args.video,
+                           report=not args.no_report)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     _say(args, summary)
     return 0
 
@@ -543,8 +554,8 @@ def build_parser() -> argparse.ArgumentParser:
                       help="camera.yaml of the endoscope (image size, camera matrix)")
     live.add_argument("--transform", required=True, metavar="DEVICE",
                       help="TRANSFORM device of the sensor on the endoscope, tracker_from_sensor "
-                           "in mm, e.g. SensorToTracker (its inverse, TrackerToSensor, is "
-                           "accepted)")
+                           "in mm, e.g. SensorToTracker (name it so: a sender that streams "
+                           "TrackerToSensor instead is inverted)")
     live.add_argument("--image-device", metavar="DEVICE",
                       help="IMAGE device of the video (default: the first one heard)")
     live.add_argument("--hand-eye", metavar="HAND_EYE.txt",
@@ -560,7 +571,8 @@ def build_parser() -> argparse.ArgumentParser:
                       help="stop after N frames received")
     live.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     live.add_argument("--frame-timeout", type=float, default=5.0, metavar="S",
-                      help="error when no frame arrives for S seconds (default 5)")
+                      help="a stream silent for S seconds ends the session (before the first "
+                           "frame: an error; default 5)")
     _add_lba_flags(live)
     _add_feature_flags(live, "features")
     _add_compositing_flags(live)

@@ -11,7 +11,12 @@ import numpy as np
 
 from fusedmosaic import methods
 from fusedmosaic.io.dataset import check_fps
-from fusedmosaic.io.output import OutputWriter, is_under, read_json_object
+from fusedmosaic.io.output import (
+    OutputWriter,
+    _interrupts_deferred,
+    is_under,
+    read_json_object,
+)
 
 # What each method needs from the dataset beyond frames and camera.yaml.
 NEEDS_TRACKING = {"ba-emt", "lba-emt", "emt"}
@@ -350,13 +355,6 @@ def _summary(method: str, G: np.ndarray, out: Path, report_json: dict, outputs: 
     return "\n".join(lines)
 
 
-def _count(items) -> dict[str, int]:
-    counts: dict[str, int] = {}
-    for item in items:
-        counts[item] = counts.get(item, 0) + 1
-    return counts
-
-
 def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
              transform_device: str, image_device: str | None = None, hand_eye=None,
              rgb: bool = True, options=None, max_frames: int | None = None,
@@ -393,6 +391,9 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     options = SequentialOptions() if options is None else options
     out, record = Path(out), Path(record)
     check_out_outside_dataset(out, record)
+    if is_under(out, record, or_equal=True):
+        raise ValueError(f"{out}: the output folder must not be the recording folder or inside "
+                         f"it ({record})")
     if is_under(record, out, or_equal=True):
         raise ValueError(f"{record}: the recording must not be inside the output folder {out}")
     if video is not None:
@@ -406,10 +407,10 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
 
     recorder = DatasetRecorder(record, camera, hand_eye, overwrite=overwrite_record)
     rejected: dict[str, int] = {}
-    accepting, last_time = True, -np.inf
+    accepting, first, last_time = True, None, -np.inf
 
     def on_frame(frame) -> bool:  # receiver thread: what is recorded and offered to the loop
-        nonlocal last_time
+        nonlocal first, last_time
         image = frame.image
         problem = None
         if not accepting:
@@ -418,6 +419,10 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                 image.ndim == 3 and image.shape[2] != 3):
             problem = (f"a {image.dtype} {'x'.join(map(str, image.shape))} image, expected "
                        f"uint8 {camera.height}x{camera.width} (camera.yaml), gray or colour")
+        elif first is not None and image.ndim != first:
+            problem = (f"a {'colour' if image.ndim == 3 else 'gray'} image after "
+                       f"{'colour' if first == 3 else 'gray'} ones (a recording is one or the "
+                       f"other)")
         else:
             try:
                 last_time = check_stream_timestamp(frame.index, frame.timestamp, last_time)
@@ -426,21 +431,29 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
         if problem is not None:
             rejected[problem] = rejected.get(problem, 0) + 1
             return False
+        first = image.ndim
         frame.index = recorder.add_frame(image, frame.timestamp)
         return True
 
+    def refused() -> str:
+        return "".join(f"; frames refused: {n} x {why}" for why, n in rejected.items())
+
+    def samples_heard(src) -> str:
+        if src is None or src.valid_samples:
+            return ""
+        heard = ", ".join(sorted(src.ignored_devices)) or "none"
+        return (f"; no valid TRANSFORM sample of {transform_device} arrived (other devices "
+                f"heard: {heard}; see --transform)")
+
+    src = None
     try:
         with IgtlSource(address, transform_device=transform_device, image_device=image_device,
-                        rgb=rgb, on_frame=on_frame,
-                        on_sample=lambda s: recorder.add_sample(s.timestamp, s.matrix)) as src:
-            refused = lambda: "".join(  # noqa: E731
-                f"; frames refused: {n} x {why}" for why, n in rejected.items())
+                        rgb=rgb, on_frame=on_frame, on_sample=lambda s: recorder.add_sample(
+                            s.timestamp, s.matrix if s.valid else None)) as src:
             try:
                 session = live_session(src, camera, hand_eye=hand_eye, options=options,
                                        max_frames=max_frames, duration_s=duration_s,
                                        frame_timeout_s=frame_timeout_s)
-            except ValueError as exc:
-                raise ValueError(f"{exc}{refused()}") from None
             finally:
                 accepting = False
             dropped = [k for k in src.dropped if k not in session.finals]
@@ -448,18 +461,42 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                        "transform_device": transform_device,
                        "frames_received": src.received,
                        "frames_refused": rejected,
-                       "tracker_samples_invalid": _count(why for _, why in src.invalid_samples),
+                       "tracker_samples_valid": src.valid_samples,
+                       "tracker_samples_invalid": dict(src.invalid_samples),
                        "ignored_devices": sorted(src.ignored_devices)}
         if not session.processed:
-            raise ValueError(f"live session: no frame was processed ({session.stopped_by})"
-                             f"{refused()}")
+            raise ValueError(f"live session: no frame was processed ({session.stopped_by})")
         timestamps = list(recorder.timestamps)
-        recorder.finish()
-    except BaseException:
-        recorder.abort()
+        with _interrupts_deferred():
+            recorder.finish()
+    except BaseException as exc:
+        # the recording is the session's safety net: kept whenever it holds a frame
+        kept = False
+        if recorder.timestamps:
+            try:
+                with _interrupts_deferred():
+                    recorder.finish()
+                kept = True
+            except BaseException:
+                recorder.abort()
+        else:
+            recorder.abort()
+        if isinstance(exc, (ValueError, OSError)):
+            note = (f"; the {len(recorder.timestamps)} frame(s) received are recorded in "
+                    f"{record}" if kept else "")
+            raise ValueError(f"{exc}{refused()}{samples_heard(src)}{note}") from None
         raise
     result = session_result(session, timestamps, dropped, parameters=asdict(options),
                             source_details=details)
-    return run_dataset(record, "lba-emt", out, result=result, allow_untracked=True,
-                       progress=progress, blend=blend,
-                       canvas=canvas, video=video, report=report)
+    summary = run_dataset(record, "lba-emt", out, result=result, allow_untracked=True,
+                          progress=progress, blend=blend, canvas=canvas, video=video,
+                          report=report)
+    span = recorder.valid_sample_span()
+    outside = span is None or timestamps[0] < span[0] or timestamps[-1] > span[1]
+    lines = [summary, f"  record  {record}  ({len(timestamps)} frames; re-run offline: "
+                      f"fusedmosaic run {record} --method ba-emt --out OUT2"
+                      f"{' --allow-untracked' if outside else ''})"]
+    if session.no_sample:
+        lines.append(f"  tracker {len(session.no_sample)} frame(s) without a usable sample"
+                     f"{samples_heard(src)}")
+    return "\n".join(lines)

@@ -291,6 +291,7 @@ def live_session(source, camera, *, hand_eye=None, options=None,
     called after each frame (a live preview). The caller records the frames (the source's
     on_frame) and writes the outputs."""
     from fusedmosaic.estimation.sequential import SequentialMosaicker, SequentialOptions
+    from fusedmosaic.io.igtl import StreamTimeout
 
     mosaicker = SequentialMosaicker(camera, SequentialOptions() if options is None else options)
     session = LiveSession()
@@ -302,7 +303,21 @@ def live_session(source, camera, *, hand_eye=None, options=None,
 
     try:
         while True:
-            frame = source.next_frame(frame_timeout_s)
+            left = None if duration_s is None else duration_s - (time.monotonic() - start)
+            if left is not None and left <= 0:
+                session.stopped_by = f"{duration_s:g} s passed (--duration)"
+                break
+            try:
+                frame = source.next_frame(frame_timeout_s if left is None
+                                          else min(frame_timeout_s, left))
+            except ValueError as exc:  # silence, a reset or a corrupt message
+                if left is not None and left <= frame_timeout_s and isinstance(exc,
+                                                                              StreamTimeout):
+                    continue  # the duration ran out first: stopped above
+                if not session.processed:
+                    raise
+                session.stopped_by = f"the stream failed: {exc}"  # what was done is kept
+                break
             if frame is None:
                 session.stopped_by = "the sender closed the stream"
                 break
@@ -311,10 +326,14 @@ def live_session(source, camera, *, hand_eye=None, options=None,
                 session.no_sample.append(frame.index)
             elif age is not None:
                 session.ages.append(age)
+            session.processed.append(frame.index)  # before the call: flush() numbers it
             t0 = time.perf_counter()
-            result = mosaicker.add_frame(frame.image, frame.timestamp, pose)
+            try:
+                result = mosaicker.add_frame(frame.image, frame.timestamp, pose)
+            except BaseException:  # the mosaicker is as before the call
+                session.processed.pop()
+                raise
             done = time.perf_counter()
-            session.processed.append(frame.index)
             session.latency[frame.index] = done - frame.arrival
             session.processing[frame.index] = done - t0
             take(mosaicker.finalized())
@@ -323,13 +342,13 @@ def live_session(source, camera, *, hand_eye=None, options=None,
             if max_frames is not None and source.received >= max_frames:
                 session.stopped_by = f"{max_frames} frames received (--max-frames)"
                 break
-            if duration_s is not None and time.monotonic() - start >= duration_s:
-                session.stopped_by = f"{duration_s:g} s passed (--duration)"
-                break
     except KeyboardInterrupt:
         session.stopped_by = "interrupted (Ctrl-C)"
     if session.processed:
-        take(mosaicker.flush())
+        from fusedmosaic.io.output import _interrupts_deferred
+
+        with _interrupts_deferred():  # a second Ctrl-C waits for the last window step
+            take(mosaicker.flush())
     session.plane = mosaicker.plane
     return session
 
@@ -342,8 +361,8 @@ def session_result(session: LiveSession, timestamps, dropped: list[int], *,
     n = len(timestamps)
     status = [SESSION_ENDED] * n
     busy_at = {}
-    order = session.processed
-    for a, b in zip(order[:-1], order[1:], strict=True):  # frames between two processed ones
+    order = [*session.processed, n]
+    for a, b in zip(order[:-1], order[1:], strict=True):  # frames after a processed one
         for k in range(a + 1, b):
             busy_at[k] = a
     for k in dropped:

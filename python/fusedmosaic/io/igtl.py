@@ -25,6 +25,7 @@ times must come from one clock, as PLUS Server's do.
 
 from __future__ import annotations
 
+import re
 import socket
 import threading
 import time
@@ -41,9 +42,13 @@ from fusedmosaic.io.tracking import (
     interpolate_camera_poses,
 )
 
-__all__ = ["IgtlSource", "LiveFrame", "TrackerSample", "parse_address"]
+__all__ = ["IgtlSource", "LiveFrame", "StreamTimeout", "TrackerSample", "inverse_device_name",
+           "parse_address"]
 
 DEFAULT_PORT = 18944  # the OpenIGTLink port (PLUS Server's default)
+# A message body above this is a corrupt header (an 8K RGB frame is 100 MB), not a frame to buffer.
+MAX_BODY_BYTES = 512 * 2**20
+_BACKWARDS = "timestamp not after the previous sample"
 _HISTORY = 4096  # tracker samples kept for pose_at (100 s at 40 Hz)
 
 
@@ -61,6 +66,20 @@ def parse_address(address: str) -> tuple[str, int]:
         raise ValueError(f"OpenIGTLink address {address!r}: expected HOST:PORT with a port in "
                          f"1..65535")
     return host, number
+
+
+class StreamTimeout(ValueError):
+    """No frame arrived in the time given to next_frame."""
+
+
+def inverse_device_name(name: str, where: str = "OpenIGTLink") -> str:
+    """PLUS names a transform device <From>To<To>: 'ToolToTracker' -> 'TrackerToTool' (the
+    'To' that splits is the one before a capital or digit, after at least one character)."""
+    names = re.fullmatch(r"(.+?)To([A-Z0-9].*)", name or "")
+    if names is None:
+        raise ValueError(f"{where}: transform device {name!r} should be named like PLUS's "
+                         f"<From>To<To> devices, e.g. SensorToTracker")
+    return f"{names[2]}To{names[1]}"
 
 
 @dataclass
@@ -102,18 +121,16 @@ class IgtlSource:
 
         self.host, self.port = parse_address(address)
         self.where = f"OpenIGTLink {self.host}:{self.port}"
-        if not transform_device or "To" not in transform_device:
-            raise ValueError(f"{self.where}: transform device {transform_device!r} should be "
-                             f"named like PLUS's FromToTo devices, e.g. SensorToTracker")
         self.transform_device = transform_device
-        frm, _, to = transform_device.partition("To")
-        self._inverse_device = f"{to}To{frm}"
+        self._inverse_device = inverse_device_name(transform_device, self.where)
         self.image_device = image_device
         self.rgb = rgb
         self.on_frame, self.on_sample = on_frame, on_sample
         self.received = 0  # frames received from the image device
+        self.valid_samples = 0
         self.dropped: list[int] = []  # indices of frames replaced in the slot before being taken
-        self.invalid_samples: list[tuple[float, str]] = []
+        self.invalid_samples: dict[str, int] = {}  # problem -> count
+        self._last_sample_time: float | None = None
         self.ignored_devices: set[str] = set()
         self.samples: deque[TrackerSample] = deque(maxlen=_HISTORY)
         self._slot: LiveFrame | None = None
@@ -144,7 +161,8 @@ class IgtlSource:
                 if left <= 0:
                     what = (f"IMAGE device {self.image_device}" if self.image_device
                             else "any IMAGE device")
-                    raise ValueError(f"{self.where}: no frame from {what} in {timeout_s:g} s")
+                    raise StreamTimeout(f"{self.where}: no frame from {what} in "
+                                        f"{timeout_s:g} s")
                 self._cond.wait(left)
             if self._error is not None:
                 raise ValueError(f"{self.where}: {self._error}") from self._error
@@ -216,7 +234,15 @@ class IgtlSource:
                 header = self._recv_exact(MessageBase.IGTL_HEADER_SIZE)
                 if header is None:
                     break
-                fields = MessageBase.parse_header(header)
+                try:
+                    fields = MessageBase.parse_header(header)
+                except (UnicodeDecodeError, ValueError) as exc:
+                    raise ValueError(f"malformed OpenIGTLink header (type and device name are "
+                                     f"not text: {exc})") from None
+                if fields["body_size"] > MAX_BODY_BYTES:
+                    raise ValueError(f"malformed OpenIGTLink header: a {fields['message_type']} "
+                                     f"message of {fields['body_size']} bytes (more than "
+                                     f"{MAX_BODY_BYTES} bytes)")
                 body = self._recv_exact(fields["body_size"])
                 if body is None:
                     break
@@ -290,15 +316,19 @@ class IgtlSource:
             matrix = np.linalg.inv(matrix)
         sample = TrackerSample(float(fields["timestamp"]), matrix, problem is None, problem)
         with self._cond:
-            if self.samples and sample.timestamp <= self.samples[-1].timestamp:
-                sample.valid, sample.problem = False, "timestamp not after the previous sample"
+            if self._last_sample_time is not None and sample.timestamp <= self._last_sample_time:
+                sample.valid, sample.problem = False, _BACKWARDS
+            else:
+                self._last_sample_time = sample.timestamp
             if not sample.valid:
-                self.invalid_samples.append((sample.timestamp, sample.problem))
+                self.invalid_samples[sample.problem] = self.invalid_samples.get(
+                    sample.problem, 0) + 1
             else:
                 self.samples.append(sample)
+                self.valid_samples += 1
             self._cond.notify_all()
-        if self.on_sample is not None and sample.valid:
-            self.on_sample(sample)
+        if self.on_sample is not None and sample.problem != _BACKWARDS:
+            self.on_sample(sample)  # invalid ones too: the recording keeps the dropout
 
 
 def _frame_image(image: np.ndarray, rgb: bool) -> np.ndarray:

@@ -1,14 +1,18 @@
 """Recording a live session as a dataset folder (the dataset contract), while it runs.
 
-Frames are written as PNG by a background thread (a live loop does not wait for the disk) into a
-temporary folder next to the destination; `finish` adds frames.csv, tracking.csv (every tracker
-sample, at the tracker's own rate), camera.yaml and hand_eye.txt and renames the folder into
+Frames are written as PNG (fast, level 1) by a background thread (a live loop does not wait for
+the disk) into a temporary folder next to the destination. The queue holds at most
+``max_queued`` frames: when the disk cannot keep up, `add_frame` waits (the recording never
+skips a frame, and memory stays bounded; the live view then drops more frames). `finish` adds
+frames.csv, tracking.csv (every tracker sample, at the tracker's own rate, samples the sender
+flagged or that are not rigid as valid=0), camera.yaml and hand_eye.txt and renames the folder into
 place, so the recording is complete or absent, never partial; `abort` removes it. The recording
 can then be mosaicked offline with any method (`fusedmosaic run DATA --method ba-emt`).
 """
 
 from __future__ import annotations
 
+import os
 import queue
 import shutil
 import tempfile
@@ -33,7 +37,7 @@ class DatasetRecorder:
     Thread-safe: the OpenIGTLink receiver calls it from its thread."""
 
     def __init__(self, root: str | Path, camera: Camera, hand_eye=None, *,
-                 overwrite: bool = False) -> None:
+                 overwrite: bool = False, max_queued: int = 64) -> None:
         self.root = Path(root)
         if self.root.exists() and (not self.root.is_dir() or any(self.root.iterdir())):
             if not overwrite:
@@ -45,10 +49,11 @@ class DatasetRecorder:
         self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.root.name}.tmp-", dir=self.root.parent))
         (self._tmp / "frames").mkdir()
         self.timestamps: list[float] = []
-        self._samples: list[tuple[float, np.ndarray]] = []
+        self._samples: list[tuple[float, np.ndarray | None]] = []
         self._lock = threading.Lock()
-        self._queue: queue.Queue = queue.Queue()
+        self._queue: queue.Queue = queue.Queue(maxsize=max_queued)
         self._error: BaseException | None = None
+        self._discard = False
         self._writer = threading.Thread(target=self._write_loop, name="recorder", daemon=True)
         self._writer.start()
 
@@ -62,9 +67,17 @@ class DatasetRecorder:
         self._queue.put((k, image))
         return k
 
-    def add_sample(self, timestamp: float, tracker_from_sensor: np.ndarray) -> None:
+    def add_sample(self, timestamp: float, tracker_from_sensor: np.ndarray | None) -> None:
+        """A tracker sample (4x4 tracker_from_sensor, mm), or None: a missing one (valid=0)."""
         with self._lock:
-            self._samples.append((float(timestamp), np.asarray(tracker_from_sensor, float)))
+            self._samples.append((float(timestamp), None if tracker_from_sensor is None
+                                  else np.asarray(tracker_from_sensor, float)))
+
+    def valid_sample_span(self) -> tuple[float, float] | None:
+        """(first, last) time of the valid tracker samples recorded; None without any."""
+        with self._lock:
+            times = [t for t, m in self._samples if m is not None]
+        return (times[0], times[-1]) if times else None
 
     def finish(self) -> Path:
         """Waits for the frames to be written, writes the tables and renames the recording
@@ -79,11 +92,19 @@ class DatasetRecorder:
                         ([str(k), format_float(t)] for k, t in enumerate(self.timestamps)))
             if self._samples:
                 times = np.array([t for t, _ in self._samples])
-                T = np.stack([m for _, m in self._samples])
+                valid = np.array([m is not None for _, m in self._samples])
+                T = np.stack([np.full((4, 4), np.nan) if m is None else m
+                              for _, m in self._samples])
+                q = np.full((len(times), 4), np.nan)
+                if valid.any():
+                    q[valid] = Rotation.from_matrix(T[valid, :3, :3]).as_quat()
                 write_tracking_csv(self._tmp / "tracking.csv", TrackingSamples(
-                    times, T[:, :3, 3], Rotation.from_matrix(T[:, :3, :3]).as_quat()))
+                    times, T[:, :3, 3], q, valid))
             if self.hand_eye is not None:
                 write_hand_eye(self._tmp / "hand_eye.txt", self.hand_eye)
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(self._tmp, 0o777 & ~umask)  # a folder's usual mode, not mkdtemp's 0700
             _replace_dir(self._tmp, self.root)
         except BaseException:
             self.abort()
@@ -91,9 +112,10 @@ class DatasetRecorder:
         return self.root
 
     def abort(self) -> None:
-        """Discards the recording."""
+        """Discards the recording (the frames still queued are not written)."""
+        self._discard = True
         self._queue.put(None)
-        self._writer.join(timeout=10.0)
+        self._writer.join()
         shutil.rmtree(self._tmp, ignore_errors=True)
 
     def _write_loop(self) -> None:
@@ -101,7 +123,7 @@ class DatasetRecorder:
             item = self._queue.get()
             if item is None:
                 return
-            if self._error is not None:
+            if self._error is not None or self._discard:
                 continue
             k, image = item
             path = self._tmp / "frames" / f"{k:06d}.png"

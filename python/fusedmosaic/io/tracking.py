@@ -263,6 +263,11 @@ def write_robot_csv(path: str | Path, samples: RobotSamples) -> None:
     write_table(path, ROBOT_COLUMNS, rows)
 
 
+def _time(t: float) -> str:
+    """Seconds readable at any magnitude: Unix times keep their milliseconds (1.7e+09 does not)."""
+    return f"{t:.3f}" if abs(t) >= 1e6 else f"{t:.6g}"
+
+
 def _outside_span(
     frame_times: np.ndarray, t0: float, t1: float, source: str, what: str, allow_outside: bool
 ) -> np.ndarray:
@@ -274,7 +279,8 @@ def _outside_span(
         i = int(np.flatnonzero(outside)[0])
         raise ValueError(
             f"{source}: {int(outside.sum())} frames outside the {what}'s time span "
-            f"[{t0:.6g}, {t1:.6g}] s; first offending frame index {i} at t={frame_times[i]:.6g} s"
+            f"[{_time(t0)}, {_time(t1)}] s; first offending frame index {i} at "
+            f"t={_time(frame_times[i])} s"
             " (fusedmosaic run: --allow-untracked flags such frames instead; without frames.csv "
             "the frame times come from --fps)"
         )
