@@ -247,3 +247,35 @@ def test_out_inside_the_recording_is_refused_before_connecting(syn, tmp_path, ca
                  "--out", str(tmp_path / "rec" / "out")]) == 2
     assert "must not be the recording folder or inside it" in capsys.readouterr().err
     assert not list(tmp_path.iterdir())
+
+
+def test_frame_synchronous_sender_transform_after_image(syn):
+    """PLUS Server sends a frame's image and transform with one timestamp; when the transform
+    comes second, pose_at waits for it (age 0: the frame's own sample, not the previous one)."""
+    tr, times = syn.tracking, syn.timestamps[:8]
+    poses, _ = interpolate_camera_poses(tr, times, syn.hand_eye)
+    events = []
+    for k, t in enumerate(times):
+        M = _sensor_in_tracker(syn, float(t))
+        events += [(float(t), image_message(syn.frames[k], float(t))),
+                   (float(t) + 0.004, transform_message(M, float(t)))]
+    sender = Sender(events, delay=0.1)
+    ages = []
+    with IgtlSource(f":{sender.port}", transform_device="SensorToTracker") as source:
+        while (frame := source.next_frame(2.0)) is not None:
+            pose, age = source.pose_at(frame.timestamp, syn.hand_eye)
+            ages.append(age)
+            k = int(np.argmin(np.abs(times + T0 - frame.timestamp)))
+            np.testing.assert_allclose(pose, poses[k], atol=1e-4)
+    sender.join()
+    assert ages and all(a == 0.0 for a in ages)
+
+
+def _sensor_in_tracker(syn, t: float) -> np.ndarray:
+    """tracker_from_sensor at time t, interpolated from the dataset's samples."""
+    cam_from_sensor, _ = interpolate_camera_poses(syn.tracking, [t])  # no hand-eye: the sensor
+    R = Rotation.from_rotvec(cam_from_sensor[0, :3]).inv()
+    M = np.eye(4)
+    M[:3, :3] = R.as_matrix()
+    M[:3, 3] = -R.apply(cam_from_sensor[0, 3:])
+    return M

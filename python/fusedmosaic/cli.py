@@ -526,14 +526,10 @@ def build_parser() -> argparse.ArgumentParser:
     imp.add_argument("sequence", help="PLUS sequence metafile (*.seq.mha, *.igs.mha, or .mhd "
                                       "with its data file)")
     imp.add_argument("out", help="dataset folder to write (must not exist or be empty)")
-    imp.add_argument("--camera", required=True, metavar="CAMERA.yaml",
-                     help="camera.yaml of the endoscope (its image size must match)")
-    imp.add_argument("--transform", default="SensorToTracker", metavar="NAME",
-                     help="the sensor's transform field, tracker_from_sensor (default "
-                          "SensorToTracker; stored inverted it is inverted back; 'auto' takes "
-                          "the single *ToTracker / *ToReference field)")
-    imp.add_argument("--hand-eye", metavar="HAND_EYE.txt",
-                     help="4x4 sensor_from_camera copied into the dataset (default identity)")
+    _add_tracked_camera_flags(
+        imp, transform="the sensor's transform field, tracker_from_sensor (default "
+                       "SensorToTracker; stored inverted it is inverted back; 'auto' takes the "
+                       "single *ToTracker / *ToReference field)", default="SensorToTracker")
     imp.add_argument("--overwrite", action="store_true",
                      help="replace an earlier dataset in OUT")
     imp.set_defaults(func=_cmd_import)
@@ -550,16 +546,12 @@ def build_parser() -> argparse.ArgumentParser:
                     "method), and when the stream ends (sender closes, --max-frames, --duration "
                     "or Ctrl-C) writes --out as `run` does.")
     live.add_argument("address", help="HOST:PORT of the OpenIGTLink sender (port default 18944)")
-    live.add_argument("--camera", required=True, metavar="CAMERA.yaml",
-                      help="camera.yaml of the endoscope (image size, camera matrix)")
-    live.add_argument("--transform", required=True, metavar="DEVICE",
-                      help="TRANSFORM device of the sensor on the endoscope, tracker_from_sensor "
-                           "in mm, e.g. SensorToTracker (name it so: a sender that streams "
-                           "TrackerToSensor instead is inverted)")
+    _add_tracked_camera_flags(
+        live, transform="TRANSFORM device of the sensor on the endoscope, tracker_from_sensor in "
+                        "mm, e.g. SensorToTracker (name it so: a sender that streams "
+                        "TrackerToSensor instead is inverted)", default=None)
     live.add_argument("--image-device", metavar="DEVICE",
                       help="IMAGE device of the video (default: the first one heard)")
-    live.add_argument("--hand-eye", metavar="HAND_EYE.txt",
-                      help="4x4 sensor_from_camera (default identity)")
     live.add_argument("--bgr", action="store_true",
                       help="colour images are sent BGR (default RGB, as PLUS sends them)")
     live.add_argument("--record", required=True, metavar="DATA",
@@ -600,6 +592,19 @@ def build_parser() -> argparse.ArgumentParser:
                            "over a tilted plane with a circular field of view")
     demo.set_defaults(func=_cmd_demo)
     return parser
+
+
+def _add_tracked_camera_flags(parser: argparse.ArgumentParser, *, transform: str,
+                              default: str | None) -> None:
+    """--camera, --transform (required without a default) and --hand-eye: what a tracked
+    endoscope's recording or stream does not carry itself (import and live)."""
+    parser.add_argument("--camera", required=True, metavar="CAMERA.yaml",
+                        help="camera.yaml of the endoscope (image size, camera matrix; the "
+                             "images' size must match)")
+    parser.add_argument("--transform", required=default is None, default=default,
+                        metavar="NAME", help=transform)
+    parser.add_argument("--hand-eye", metavar="HAND_EYE.txt",
+                        help="4x4 sensor_from_camera (default identity)")
 
 
 def _add_lba_flags(parser: argparse.ArgumentParser) -> None:

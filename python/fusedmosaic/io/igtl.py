@@ -49,7 +49,7 @@ DEFAULT_PORT = 18944  # the OpenIGTLink port (PLUS Server's default)
 # A message body above this is a corrupt header (an 8K RGB frame is 100 MB), not a frame to buffer.
 MAX_BODY_BYTES = 512 * 2**20
 _BACKWARDS = "timestamp not after the previous sample"
-_HISTORY = 4096  # tracker samples kept for pose_at (100 s at 40 Hz)
+_HISTORY = 128  # tracker samples kept for pose_at (3 s at 40 Hz)
 
 
 def parse_address(address: str) -> tuple[str, int]:
@@ -128,6 +128,7 @@ class IgtlSource:
         self.on_frame, self.on_sample = on_frame, on_sample
         self.received = 0  # frames received from the image device
         self.valid_samples = 0
+        self._synchronous, self._pose_calls = False, 0
         self.dropped: list[int] = []  # indices of frames replaced in the slot before being taken
         self.invalid_samples: dict[str, int] = {}  # problem -> count
         self._last_sample_time: float | None = None
@@ -173,23 +174,30 @@ class IgtlSource:
                 wait_s: float = 0.01) -> tuple[np.ndarray | None, float | None]:
         """Camera pose cam_from_world (6,) at frame time t through the hand-eye, and the age
         (s) of the newest sample at or before t; (None, age or None) when there is no usable
-        sample. Waits up to wait_s for a sample at or after t (PLUS sends a frame's transform
-        and image with one timestamp, in either order); with valid samples on both sides of t,
-        SLERP + linear interpolation between them (as offline), else the newest one at or
-        before t, held. A sample older than max_age_s (None: 3 x the median spacing of the
-        recent valid samples) counts as none."""
-        deadline = time.monotonic() + wait_s
+        sample. With a frame-synchronous sender (PLUS Server sends a frame's transform and
+        image with one timestamp, in either order: seen once a sample's time equals a frame's)
+        and during the first 5 frames, waits up to wait_s for a sample at or after t; a
+        free-running tracker's next sample is not waited for (up to a sample period of
+        latency for little gain). With valid samples on both sides of t, SLERP + linear
+        interpolation between them (as offline), else the newest one at or before t, held. A
+        sample older than max_age_s (None: 3 x the median spacing of the recent samples)
+        counts as none."""
+        wait = wait_s if (self._synchronous or self._pose_calls < 5) else 0.0
+        self._pose_calls += 1
+        deadline = time.monotonic() + wait
         with self._cond:
             while (not self._closed and self._error is None
-                   and not any(s.timestamp >= t for s in self._tail())):
+                   and not (self.samples and self.samples[-1].timestamp >= t)):
                 left = deadline - time.monotonic()
                 if left <= 0:
                     break
                 self._cond.wait(left)
-            valid = [s for s in self.samples if s.valid]
+            valid = list(self.samples)
         if not valid:
             return None, None
         times = np.array([s.timestamp for s in valid])
+        if times[-1] >= t and np.any(times == t):
+            self._synchronous = True
         if max_age_s is None:
             max_age_s = 3.0 * float(np.median(np.diff(times))) if times.size > 1 else np.inf
         before = int(np.searchsorted(times, t, side="right")) - 1
@@ -223,9 +231,6 @@ class IgtlSource:
         self.close()
 
     # ------------------------------------------------------------------ receiver thread
-    def _tail(self):
-        return list(self.samples)[-4:]
-
     def _receive_loop(self) -> None:
         from pyigtl import MessageBase
 
