@@ -49,6 +49,20 @@ def dataset_events(ds, *, n_frames: int | None = None, device: str = "SensorToTr
     return [(t, m) for t, _, m in events]
 
 
+def robot_events(ds, *, device: str = "RobotToBase") -> list[tuple[float, bytes]]:
+    """(time, message) for a pCLE dataset's frames and robot samples (the probe position as a
+    TRANSFORM's translation, mm, in the image axes), up to the last frame."""
+    times = np.asarray(ds.timestamps)
+    events = [(float(t), 1, image_message(ds.frames[k], float(t))) for k, t in enumerate(times)]
+    for t, xy in zip(ds.robot.timestamps, ds.robot.xy_um, strict=True):
+        if t <= times[-1]:
+            M = np.eye(4)
+            M[:2, 3] = xy / 1e3
+            events.append((float(t), 2, transform_message(M, float(t), device)))
+    events.sort(key=lambda e: (e[0], e[1]))
+    return [(t, m) for t, _, m in events]
+
+
 class Sender:
     """Serves `events` [(time s, bytes)] to the first client, in real time (scaled by `speed`),
     starting `delay` s after it connects; then closes. `port` is the listening port."""

@@ -191,7 +191,13 @@ def _cmd_live(args: argparse.Namespace) -> int:
     features = _feature_options(args)
     if features is not None:
         overrides["features"] = features
-    options = SequentialOptions.preset(args.preset or "syn", **overrides)
+    if args.method == "lba-emt":
+        options = SequentialOptions.preset(args.preset or "syn", **overrides)
+    elif overrides or args.preset is not None:
+        raise ValueError("--preset / --loop-pairs / --motion-sigma-from / feature flags apply "
+                         "to lba-emt, not kalman-robot")
+    else:
+        options = None
     for flag, value in (("--max-frames", args.max_frames), ("--duration", args.duration),
                         ("--frame-timeout", args.frame_timeout)):
         if value is not None and not (np.isfinite(value) and value > 0):
@@ -214,7 +220,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
                            frame_timeout_s=args.frame_timeout,
                            overwrite_record=args.overwrite_record, progress=_progress(args),
                            blend=blend, canvas=canvas, video=args.video,
-                           report=not args.no_report)
+                           report=not args.no_report, method=args.method)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
@@ -536,16 +542,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     live = sub.add_parser(
         "live", parents=[quiet],
-        help="mosaic a live OpenIGTLink stream (e.g. PLUS Server: video + tracker) with lba-emt, "
-             "recording it as a dataset",
+        help="mosaic a live OpenIGTLink stream (e.g. PLUS Server: video + tracker or robot) with "
+             "lba-emt or kalman-robot, recording it as a dataset",
         description="Connects to an OpenIGTLink sender (PLUS Server streaming a tracked "
                     "endoscope, or any sender of IMAGE and TRANSFORM messages), mosaics each "
-                    "frame with lba-emt as soon as the previous one is done (frames arriving "
-                    "meanwhile are dropped from the mosaic but recorded), records every frame "
-                    "and tracker sample into --record (a dataset: re-run it offline with any "
-                    "method), and when the stream ends (sender closes, --max-frames, --duration "
-                    "or Ctrl-C) writes --out as `run` does.")
+                    "frame (lba-emt or kalman-robot) as soon as the previous one is done "
+                    "(frames arriving meanwhile are dropped from the mosaic but recorded), "
+                    "records every frame and tracker / robot sample into --record (a dataset: "
+                    "re-run it offline with any method), and when the stream ends (sender "
+                    "closes, --max-frames, --duration or Ctrl-C) writes --out as `run` does.")
     live.add_argument("address", help="HOST:PORT of the OpenIGTLink sender (port default 18944)")
+    live.add_argument("--method", choices=["lba-emt", "kalman-robot"], default="lba-emt",
+                      help="lba-emt (EM-tracked endoscope, default) or kalman-robot (pCLE: "
+                           "--transform is then the robot's device, its translation the probe "
+                           "position in mm in the image axes; camera.yaml needs pixel_size_um)")
     _add_tracked_camera_flags(
         live, transform="TRANSFORM device of the sensor on the endoscope, tracker_from_sensor in "
                         "mm, e.g. SensorToTracker (name it so: a sender that streams "

@@ -76,7 +76,7 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
         dataset.require_tracking(method)
     if method in NEEDS_CAMERA_MATRIX:
         dataset.camera.require_camera_matrix(method)
-    if method in NEEDS_ROBOT:
+    if method in NEEDS_ROBOT and result is None:
         dataset.require_robot(method)
     if method in NEEDS_PIXEL_SIZE:
         dataset.require_pixel_size(method)
@@ -360,9 +360,12 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
              rgb: bool = True, options=None, max_frames: int | None = None,
              duration_s: float | None = None, frame_timeout_s: float = 5.0,
              overwrite_record: bool = False, progress: bool = True, blend=None, canvas=None,
-             video: str | Path | None = None, report: bool = True) -> str:
-    """A live lba-emt session on an OpenIGTLink source (io.igtl: e.g. PLUS Server streaming a
-    tracked endoscope): frames and tracker poses are received as they come, each frame is
+             video: str | Path | None = None, report: bool = True,
+             method: str = "lba-emt") -> str:
+    """A live session on an OpenIGTLink source (io.igtl: e.g. PLUS Server streaming a tracked
+    endoscope), lba-emt, or kalman-robot with a robot streaming the probe position (the
+    transform's translation, mm, in the image axes; the camera needs pixel_size_um; recorded
+    into robot.csv): frames and tracker poses are received as they come, each frame is
     mosaicked as soon as the previous one is done (frames arriving meanwhile are dropped but
     recorded), until the sender closes the stream, max_frames frames were received, duration_s
     passed or Ctrl-C. Every received frame and tracker sample is recorded into the dataset
@@ -372,23 +375,33 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     hand_eye.txt. Returns the terminal summary."""
     from dataclasses import asdict
 
-    from fusedmosaic.estimation.live import live_session, session_result
+    from fusedmosaic.estimation.live import check_live_method, live_session, session_result
     from fusedmosaic.estimation.sequential import SequentialOptions
     from fusedmosaic.io.calibration import Camera, read_camera_yaml
     from fusedmosaic.io.igtl import IgtlSource
     from fusedmosaic.io.recorder import DatasetRecorder
     from fusedmosaic.io.tracking import check_stream_timestamp, read_hand_eye
 
+    check_live_method(method)
     if not isinstance(camera, Camera):
         camera = read_camera_yaml(camera)
-    camera.require_camera_matrix("lba-emt")
+    if method == "lba-emt":
+        camera.require_camera_matrix(method)
+        options = SequentialOptions() if options is None else options
+    else:
+        from fusedmosaic.estimation.translation import RobotPriorOptions
+
+        camera.require_pixel_size(method)
+        options = RobotPriorOptions() if options is None else options
+        if hand_eye is not None:
+            raise ValueError("live session: a hand-eye applies to lba-emt (a tracked camera), "
+                             "not to kalman-robot")
     if hand_eye is not None and not isinstance(hand_eye, np.ndarray):
         hand_eye = read_hand_eye(hand_eye)
     for name, value in (("max_frames", max_frames), ("duration_s", duration_s),
                         ("frame_timeout_s", frame_timeout_s)):
         if value is not None and not (np.isfinite(value) and value > 0):
             raise ValueError(f"live session: {name} must be a number > 0, got {value}")
-    options = SequentialOptions() if options is None else options
     out, record = Path(out), Path(record)
     check_out_outside_dataset(out, record)
     if is_under(out, record, or_equal=True):
@@ -405,7 +418,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
 
     check_output_dir(out, "output folder")
 
-    recorder = DatasetRecorder(record, camera, hand_eye, overwrite=overwrite_record)
+    recorder = DatasetRecorder(record, camera, hand_eye, overwrite=overwrite_record,
+                               robot=method == "kalman-robot")
     rejected: dict[str, int] = {}
     accepting, first, last_time = True, None, -np.inf
 
@@ -451,7 +465,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                         rgb=rgb, on_frame=on_frame, on_sample=lambda s: recorder.add_sample(
                             s.timestamp, s.matrix if s.valid else None)) as src:
             try:
-                session = live_session(src, camera, hand_eye=hand_eye, options=options,
+                session = live_session(src, camera, method=method, hand_eye=hand_eye,
+                                       options=options,
                                        max_frames=max_frames, duration_s=duration_s,
                                        frame_timeout_s=frame_timeout_s)
             finally:
@@ -486,15 +501,20 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                     f"{record}" if kept else "")
             raise ValueError(f"{exc}{refused()}{samples_heard(src)}{note}") from None
         raise
-    result = session_result(session, timestamps, dropped, parameters=asdict(options),
-                            source_details=details)
-    summary = run_dataset(record, "lba-emt", out, result=result, allow_untracked=True,
+    parameters = asdict(options)
+    if method == "kalman-robot":  # as the offline run records them (translation._run)
+        parameters = {"estimate": "fused", "pixel_size_um": camera.pixel_size_um,
+                      "robot_file": "robot.csv", **parameters}
+    result = session_result(session, timestamps, dropped, parameters=parameters,
+                            source_details=details, method=method)
+    summary = run_dataset(record, method, out, result=result, allow_untracked=True,
                           progress=progress, blend=blend, canvas=canvas, video=video,
                           report=report)
     span = recorder.valid_sample_span()
     outside = span is None or timestamps[0] < span[0] or timestamps[-1] > span[1]
     lines = [summary, f"  record  {record}  ({len(timestamps)} frames; re-run offline: "
-                      f"fusedmosaic run {record} --method ba-emt --out OUT2"
+                      f"fusedmosaic run {record} --method "
+                      f"{'ba-emt' if method == 'lba-emt' else method} --out OUT2"
                       f"{' --allow-untracked' if outside else ''})"]
     if session.no_sample:
         lines.append(f"  tracker {len(session.no_sample)} frame(s) without a usable sample"

@@ -279,22 +279,25 @@ class LiveSession:
     plane: object = None
 
 
-def live_session(source, camera, *, hand_eye=None, options=None,
+def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, options=None,
                  max_frames: int | None = None, duration_s: float | None = None,
                  frame_timeout_s: float = 5.0, max_sample_age_s: float | None = None,
                  on_result: Callable | None = None) -> LiveSession:
-    """Runs lba-emt live on `source` (an io.igtl.IgtlSource, or anything with its next_frame /
-    pose_at / received): takes the newest frame as soon as the previous one is done, with the
-    tracker pose at its time, until the stream ends, `max_frames` frames were received,
-    `duration_s` passed, or Ctrl-C (KeyboardInterrupt ends the session normally; the mosaicker
-    is transactional, an interrupted call leaves it as before). on_result(frame, result) is
-    called after each frame (a live preview). The caller records the frames (the source's
-    on_frame) and writes the outputs."""
-    from fusedmosaic.estimation.sequential import SequentialMosaicker, SequentialOptions
+    """Runs `method` (lba-emt: the tracker pose at each frame's time; kalman-robot: the robot
+    position, the source's translation in mm taken as the probe position in the image axes)
+    live on `source` (an io.igtl.IgtlSource, or anything with its next_frame / pose_at /
+    position_at / received): takes the newest frame as soon as the previous one is done, until
+    the stream ends, `max_frames` frames were received, `duration_s` passed, or Ctrl-C
+    (KeyboardInterrupt ends the session normally; the mosaickers are transactional, an
+    interrupted call leaves them as before). on_result(frame, result) is called after each
+    frame (a live preview). The caller records the frames (the source's on_frame) and writes
+    the outputs."""
     from fusedmosaic.io.igtl import StreamTimeout
 
-    mosaicker = SequentialMosaicker(camera, SequentialOptions() if options is None else options)
+    check_live_method(method)
     session = LiveSession()
+    mosaicker, sample_at = _live_mosaicker(method, source, camera, hand_eye, options,
+                                           max_sample_age_s)
     start = time.monotonic()
 
     def take(results) -> None:
@@ -321,22 +324,22 @@ def live_session(source, camera, *, hand_eye=None, options=None,
             if frame is None:
                 session.stopped_by = "the sender closed the stream"
                 break
-            pose, age = source.pose_at(frame.timestamp, hand_eye, max_age_s=max_sample_age_s)
-            if pose is None:
+            sample, age = sample_at(frame.timestamp)
+            if sample is None:
                 session.no_sample.append(frame.index)
             elif age is not None:
                 session.ages.append(age)
             session.processed.append(frame.index)  # before the call: flush() numbers it
             t0 = time.perf_counter()
             try:
-                result = mosaicker.add_frame(frame.image, frame.timestamp, pose)
+                result = mosaicker.add_frame(frame.image, frame.timestamp, sample)
             except BaseException:  # the mosaicker is as before the call
                 session.processed.pop()
                 raise
             done = time.perf_counter()
             session.latency[frame.index] = done - frame.arrival
             session.processing[frame.index] = done - t0
-            take(mosaicker.finalized())
+            take(mosaicker.finalized() if method == "lba-emt" else [result])
             if on_result is not None:
                 on_result(frame, result)
             if max_frames is not None and source.received >= max_frames:
@@ -344,17 +347,42 @@ def live_session(source, camera, *, hand_eye=None, options=None,
                 break
     except KeyboardInterrupt:
         session.stopped_by = "interrupted (Ctrl-C)"
-    if session.processed:
+    if session.processed and method == "lba-emt":
         from fusedmosaic.io.output import _interrupts_deferred
 
         with _interrupts_deferred():  # a second Ctrl-C waits for the last window step
             take(mosaicker.flush())
-    session.plane = mosaicker.plane
+    session.plane = getattr(mosaicker, "plane", None)
     return session
 
 
+def _live_mosaicker(method: str, source, camera, hand_eye, options, max_age: float | None):
+    """The streaming mosaicker of `method` and sample_at(t) -> (its tracker pose or robot
+    position in µm at t, or None; the sample's age)."""
+    if method == "lba-emt":
+        from fusedmosaic.estimation.sequential import SequentialMosaicker, SequentialOptions
+
+        mosaicker = SequentialMosaicker(camera, SequentialOptions() if options is None
+                                        else options)
+        return mosaicker, lambda t: source.pose_at(t, hand_eye, max_age_s=max_age)
+    from fusedmosaic.estimation.translation import RobotPriorMosaicker, RobotPriorOptions
+
+    options = RobotPriorOptions() if options is None else options
+    if options.flat_field:
+        raise ValueError("live session: flat_field needs the fibre pattern of the whole "
+                         "recording (not known live); run without --flat-field")
+    mosaicker = RobotPriorMosaicker(camera, options)
+
+    def robot_at(t: float):
+        position, age = source.position_at(t, max_age_s=max_age)
+        return (None if position is None else position[:2] * 1e3), age  # mm -> µm
+
+    return mosaicker, robot_at
+
+
 def session_result(session: LiveSession, timestamps, dropped: list[int], *,
-                   parameters: dict, source_details: dict) -> MethodResult:
+                   parameters: dict, source_details: dict,
+                   method: str = "lba-emt") -> MethodResult:
     """The MethodResult of a live session over the recorded frames (their timestamps): final
     homographies and poses of the processed frames; the others "unplaced" with why (dropped
     while busy, or received after the session ended)."""
@@ -368,9 +396,12 @@ def session_result(session: LiveSession, timestamps, dropped: list[int], *,
     for k in dropped:
         if k < n:
             status[k] = DROPPED_LIVE.format(busy=busy_at.get(k, "?"))
-    G, poses = np.full((n, 3, 3), np.nan), np.full((n, 6), np.nan)
+    G = np.full((n, 3, 3), np.nan)
+    poses = np.full((n, 6), np.nan) if method == "lba-emt" else None
     for k, r in session.finals.items():
-        G[k], poses[k], status[k] = r.homography, r.pose, r.status
+        G[k], status[k] = r.homography, r.status
+        if poses is not None:
+            poses[k] = r.pose
     lat = np.array([session.latency[k] for k in session.processed]) * 1e3
     proc = np.array([session.processing[k] for k in session.processed]) * 1e3
     details = {"live": {
@@ -383,14 +414,16 @@ def session_result(session: LiveSession, timestamps, dropped: list[int], *,
         "sample_age_ms": ({"median": float(np.median(session.ages) * 1e3),
                            "max": float(np.max(session.ages) * 1e3)} if session.ages else None),
     }}
-    details["plane_history"] = [None if k not in session.finals
-                                or session.finals[k].plane is None
-                                else np.asarray(session.finals[k].plane).tolist()
-                                for k in range(n)]
+    if method == "lba-emt":
+        details["plane_history"] = [None if k not in session.finals
+                                    or session.finals[k].plane is None
+                                    else np.asarray(session.finals[k].plane).tolist()
+                                    for k in range(n)]
     plane = None if session.plane is None else np.asarray(session.plane)
     return MethodResult(G, status, poses=poses, plane=plane,
                         timings={"processing": float(sum(session.processing.values()))},
-                        parameters={"live": "openigtlink", **parameters}, details=details)
+                        parameters={"live": "openigtlink", **parameters}, details=details,
+                        blend="linear" if method == "lba-emt" else "average")
 
 
 def _stats(values_ms: np.ndarray) -> dict | None:

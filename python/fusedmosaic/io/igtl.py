@@ -174,14 +174,50 @@ class IgtlSource:
                 wait_s: float = 0.01) -> tuple[np.ndarray | None, float | None]:
         """Camera pose cam_from_world (6,) at frame time t through the hand-eye, and the age
         (s) of the newest sample at or before t; (None, age or None) when there is no usable
-        sample. With a frame-synchronous sender (PLUS Server sends a frame's transform and
-        image with one timestamp, in either order: seen once a sample's time equals a frame's)
-        and during the first 5 frames, waits up to wait_s for a sample at or after t; a
-        free-running tracker's next sample is not waited for (up to a sample period of
-        latency for little gain). With valid samples on both sides of t, SLERP + linear
-        interpolation between them (as offline), else the newest one at or before t, held. A
-        sample older than max_age_s (None: 3 x the median spacing of the recent samples)
-        counts as none."""
+        sample (see `_around` for the samples used and the wait). With valid samples on both
+        sides of t, SLERP + linear interpolation between them (as offline), else the newest one
+        at or before t, held."""
+        found = self._around(t, max_age_s, wait_s)
+        if found[0] is None:
+            return None, found[1]
+        pair, age = found
+        if len(pair) == 1:  # no sample after t yet (or a gap): the newest one, held
+            held = pair[0]
+            return camera_pose_from_sample(held.matrix[:3, 3], _quaternion(held.matrix),
+                                           hand_eye), age
+        samples = TrackingSamples([s.timestamp for s in pair],
+                                  np.array([s.matrix[:3, 3] for s in pair]),
+                                  np.array([_quaternion(s.matrix) for s in pair]))
+        poses, _ = interpolate_camera_poses(samples, [t], hand_eye, max_gap=np.inf,
+                                            source=self.where)
+        return poses[0], age
+
+    def position_at(self, t: float, *, max_age_s: float | None = None,
+                    wait_s: float = 0.01) -> tuple[np.ndarray | None, float | None]:
+        """The transform's translation (3,) (mm) at frame time t, and the age of the newest
+        sample at or before t (a robot reporting the probe position: kalman-robot). Linear
+        between the samples around t; past the newest sample, extrapolated along the last two
+        (an accurate robot's sample held 14 ms lags the probe, and the filter, trusting the
+        robot, follows the lag: see estimation.live.extrapolated_robot); one sample: held."""
+        found = self._around(t, max_age_s, wait_s, extrapolate=True)
+        if found[0] is None:
+            return None, found[1]
+        pair, age = found
+        if len(pair) == 1:
+            return pair[0].matrix[:3, 3].copy(), age
+        (t0, p0), (t1, p1) = ((s.timestamp, s.matrix[:3, 3]) for s in pair)
+        return p0 + (p1 - p0) * ((t - t0) / (t1 - t0)), age
+
+    def _around(self, t: float, max_age_s: float | None, wait_s: float,
+                extrapolate: bool = False) -> tuple[list | None, float | None]:
+        """The samples to evaluate at frame time t: [before, after] around it, [newest] at or
+        before it (with extrapolate: [previous, newest] when they are within max_age_s of each
+        other), or (None, age or None) when the newest one at or before t is missing or older
+        than max_age_s (None: 3 x the median spacing of the recent samples). With a
+        frame-synchronous sender (PLUS Server sends a frame's transform and image with one
+        timestamp, in either order: seen once a sample's time equals a frame's) and during the
+        first 5 frames, waits up to wait_s for a sample at or after t; a free-running tracker's
+        next sample is not waited for (up to a sample period of latency for little gain)."""
         wait = wait_s if (self._synchronous or self._pose_calls < 5) else 0.0
         self._pose_calls += 1
         deadline = time.monotonic() + wait
@@ -207,17 +243,15 @@ class IgtlSource:
         if age > max_age_s:
             return None, age
         after = before + 1
-        if times[before] == t or after == times.size or times[after] - times[before] > max_age_s:
-            held = valid[before]  # no sample after t yet (or a gap): the newest one, held
-            return camera_pose_from_sample(held.matrix[:3, 3], _quaternion(held.matrix),
-                                           hand_eye), age
-        pair = valid[before:after + 1]
-        samples = TrackingSamples(times[before:after + 1],
-                                  np.array([s.matrix[:3, 3] for s in pair]),
-                                  np.array([_quaternion(s.matrix) for s in pair]))
-        poses, _ = interpolate_camera_poses(samples, [t], hand_eye, max_gap=np.inf,
-                                            source=self.where)
-        return poses[0], age
+        if times[before] == t:
+            return [valid[before]], age
+        if after < times.size:
+            if times[after] - times[before] <= max_age_s:
+                return [valid[before], valid[after]], age
+            return [valid[before]], age
+        if extrapolate and before > 0 and times[before] - times[before - 1] <= max_age_s:
+            return [valid[before - 1], valid[before]], age
+        return [valid[before]], age
 
     def close(self) -> None:
         self._stop = True

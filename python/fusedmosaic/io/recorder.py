@@ -26,7 +26,13 @@ from scipy.spatial.transform import Rotation
 from fusedmosaic.io._table import format_float, write_table
 from fusedmosaic.io.calibration import Camera, write_camera_yaml
 from fusedmosaic.io.dataset import _replace_dir, check_replaceable_dataset
-from fusedmosaic.io.tracking import TrackingSamples, write_hand_eye, write_tracking_csv
+from fusedmosaic.io.tracking import (
+    RobotSamples,
+    TrackingSamples,
+    write_hand_eye,
+    write_robot_csv,
+    write_tracking_csv,
+)
 
 __all__ = ["DatasetRecorder"]
 
@@ -34,17 +40,19 @@ __all__ = ["DatasetRecorder"]
 class DatasetRecorder:
     """Records frames (`add_frame`) and tracker samples (`add_sample`) into dataset folder
     `root` (must not exist or be empty, unless overwrite replaces an earlier dataset there).
-    Thread-safe: the OpenIGTLink receiver calls it from its thread."""
+    Thread-safe: the OpenIGTLink receiver calls it from its thread. robot: the samples are a
+    robot's probe positions (their translation, mm, in the image axes) and go to robot.csv in µm
+    (valid ones only: robot.csv has no validity column) instead of tracking.csv."""
 
     def __init__(self, root: str | Path, camera: Camera, hand_eye=None, *,
-                 overwrite: bool = False, max_queued: int = 64) -> None:
+                 overwrite: bool = False, max_queued: int = 64, robot: bool = False) -> None:
         self.root = Path(root)
         if self.root.exists() and (not self.root.is_dir() or any(self.root.iterdir())):
             if not overwrite:
                 raise ValueError(f"{self.root}: exists and is not empty (choose a new folder for "
                                  f"the recording, or allow overwriting an earlier recording)")
             check_replaceable_dataset(self.root)
-        self.camera, self.hand_eye = camera, hand_eye
+        self.camera, self.hand_eye, self.robot = camera, hand_eye, robot
         self.root.parent.mkdir(parents=True, exist_ok=True)
         self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.root.name}.tmp-", dir=self.root.parent))
         (self._tmp / "frames").mkdir()
@@ -90,7 +98,12 @@ class DatasetRecorder:
             write_camera_yaml(self._tmp / "camera.yaml", self.camera)
             write_table(self._tmp / "frames.csv", ["frame", "timestamp"],
                         ([str(k), format_float(t)] for k, t in enumerate(self.timestamps)))
-            if self._samples:
+            if self.robot:
+                kept = [(t, m[:2, 3] * 1e3) for t, m in self._samples if m is not None]
+                if kept:
+                    write_robot_csv(self._tmp / "robot.csv", RobotSamples(
+                        [t for t, _ in kept], np.array([xy for _, xy in kept])))
+            elif self._samples:
                 times = np.array([t for t, _ in self._samples])
                 valid = np.array([m is not None for _, m in self._samples])
                 T = np.stack([np.full((4, 4), np.nan) if m is None else m
