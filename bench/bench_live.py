@@ -1,8 +1,8 @@
 """Live replay on this machine (`fusedmosaic run --live`, estimation/live.py): SYN sequences at
 25 frames/s fed to lba-emt as a live source, and the pCLE circle (10 frames/s, accurate and
-noisy robot) to kalman-robot. The 400x400 sequences are also streamed over OpenIGTLink
-(`fusedmosaic live`, runner.run_igtl) by a sender in another process, in real time, as PLUS
-Server would: the same measures with a real socket, decoding, recording and wall-clock time.
+noisy robot) to kalman-robot. The 400x400 sequences and the pCLE circle are also streamed over
+OpenIGTLink (`fusedmosaic live`, runner.run_igtl) by a sender in another process, in real time,
+as PLUS Server would: the same measures with a real socket, decoding, recording and wall-clock time.
 
 One run. Each configuration simulates its sequence on disk (frames read outside the timed
 calls), then replays it: frames at their timestamps with the newest tracker / robot sample, a
@@ -92,6 +92,10 @@ def main() -> None:
 
             rows.append(row(f"pCLE circle 512x448, {which} robot", "kalman-robot", ds, live,
                             mean_um(live), mean_um(offline), "µm"))
+            streamed, G = over_igtl(root, work / f"igtl-{which}", None, robot_file)
+            rows.append(row(f"pCLE circle 512x448, {which} robot, over OpenIGTLink",
+                            "kalman-robot (live)", ds, streamed,
+                            mean_um(SimpleNamespace(homographies=G)), mean_um(offline), "µm"))
     finally:
         if tmp is not None:
             tmp.cleanup()
@@ -109,28 +113,35 @@ def main() -> None:
 SENDER = """
 import sys
 sys.path.insert(0, sys.argv[1])
-from _igtl_sender import Sender, dataset_events
+from _igtl_sender import Sender, dataset_events, robot_events
 from fusedmosaic.io import read_dataset
-sender = Sender(dataset_events(read_dataset(sys.argv[2])), delay=0.5)
+robot = sys.argv[3] != "-"
+ds = read_dataset(sys.argv[2], robot_file=sys.argv[3] if robot else "robot.csv")
+sender = Sender(robot_events(ds) if robot else dataset_events(ds), delay=0.5)
 print(sender.port, flush=True)
 sender.join()
 """
 
 
-def over_igtl(root: Path, work: Path, options) -> tuple[SimpleNamespace, np.ndarray]:
-    """Streams the dataset at `root` over OpenIGTLink to run_igtl; its report's "live" entry
-    (as replay_live's details) and the homographies."""
+def over_igtl(root: Path, work: Path, options, robot_file: str | None = None
+              ) -> tuple[SimpleNamespace, np.ndarray]:
+    """Streams the dataset at `root` over OpenIGTLink to run_igtl (lba-emt, or kalman-robot
+    with the robot positions of `robot_file`); its report's "live" entry (as replay_live's
+    details) and the homographies."""
     from fusedmosaic.runner import run_igtl
 
     tests = Path(__file__).resolve().parent.parent / "tests"
-    sender = subprocess.Popen([sys.executable, "-c", SENDER, str(tests), str(root)],
-                              stdout=subprocess.PIPE, text=True)
+    sender = subprocess.Popen([sys.executable, "-c", SENDER, str(tests), str(root),
+                               robot_file or "-"], stdout=subprocess.PIPE, text=True)
     try:
         port = int(sender.stdout.readline())
+        tracked = robot_file is None
         run_igtl(f"127.0.0.1:{port}", work / "out", record=work / "rec",
-                 camera=root / "camera.yaml", transform_device="SensorToTracker",
-                 hand_eye=root / "hand_eye.txt", options=options, overwrite_record=True,
-                 progress=False, report=False)
+                 camera=root / "camera.yaml",
+                 transform_device="SensorToTracker" if tracked else "RobotToBase",
+                 hand_eye=root / "hand_eye.txt" if tracked else None, options=options,
+                 overwrite_record=True, progress=False, report=False,
+                 method="lba-emt" if tracked else "kalman-robot")
     finally:
         sender.wait(timeout=60)
     report = json.loads((work / "out" / "report.json").read_text())

@@ -449,3 +449,61 @@ def test_cli_import(syn, tmp_path, capsys):
     assert not (tmp_path / "ds2").exists()
     assert main(["import", str(seq), str(tmp_path / "ds3"), "--camera", camera,
                  "--transform", "auto", "--quiet"]) == 0
+
+
+def test_header_variants_plus_itself_accepts(tmp_path):
+    """A UTF-8 BOM, `ElementDataFile = Local`, a transform name with '-', and a sample marked
+    missing whose numbers do not parse ('-nan(ind)', as MSVC prints NaN) are read as PLUS reads
+    them."""
+    path = _small(tmp_path)
+    _edit(path, r"ElementDataFile = LOCAL", "ElementDataFile = Local")
+    _edit(path, r"Seq_Frame0001_SensorToTrackerTransform = [^\n]*",
+          "Seq_Frame0001_SensorToTrackerTransform = -nan(ind) -nan(ind)\n"
+          "Seq_Frame0001_Probe-SequenceTransform = 1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1")
+    _edit(path, r"Seq_Frame0001_SensorToTrackerTransformStatus = OK",
+          "Seq_Frame0001_SensorToTrackerTransformStatus = INVALID")
+    path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
+    seq = read_plus_sequence(path)
+    assert seq.images.shape == (FN, FH, FW)
+    ok = seq.transform_status["SensorToTrackerTransform"]
+    assert ok.tolist() == [True, False, True, True]
+    assert "Probe-SequenceTransform" in seq.transforms
+
+
+def test_compressed_import_memory_is_the_images(tmp_path):
+    """zlib data is inflated chunk by chunk into one array (not file + copy + copy)."""
+    images = np.random.default_rng(0).integers(0, 255, (12, 64, 80), dtype=np.uint8)
+    path = write_plus_sequence(tmp_path / "z.mha", images, np.arange(12) / 25.0, compress=True)
+    np.testing.assert_array_equal(read_plus_sequence(path).images, images)
+
+
+def test_overwrite_never_deletes_the_inputs(tmp_path, capsys):
+    """--overwrite into the folder that holds the recording (with its camera.yaml beside it) is
+    refused before anything is written."""
+    from fusedmosaic.cli import main
+    from fusedmosaic.io.calibration import write_camera_yaml
+
+    folder = tmp_path / "session"
+    folder.mkdir()
+    path = _small(folder)
+    write_camera_yaml(folder / "camera.yaml", Camera(FW, FH))
+    assert main(["import", str(path), str(folder), "--camera", str(folder / "camera.yaml"),
+                 "--overwrite"]) == 2
+    assert "an input of this import, which overwriting would delete" in capsys.readouterr().err
+    assert path.is_file() and (folder / "camera.yaml").is_file()
+    # without --overwrite the message names the flag, not the Python keyword
+    assert main(["import", str(path), str(folder), "--camera", str(folder / "camera.yaml")]) == 2
+    assert "pass --overwrite" in capsys.readouterr().err
+
+
+def test_dimsize_by_kinds(tmp_path):
+    """IGSIO (PLUS's writer) lists colour frames as DimSize = 3 W H 1 N with Kinds = vector
+    domain domain domain list: read as W x H x N RGB."""
+    rgb = (np.arange(FN * FH * FW * 3) % 7).astype(np.uint8).reshape(FN, FH, FW, 3)
+    path = write_plus_sequence(tmp_path / "c.mha", rgb, np.arange(FN) / 25.0)
+    _edit(path, r"DimSize = [^\n]*", f"DimSize = 3 {FW} {FH} 1 {FN}")
+    _edit(path, r"Kinds = [^\n]*", "Kinds = vector domain domain domain list")
+    np.testing.assert_array_equal(read_plus_sequence(path).images, rgb)
+    _edit(path, r"Kinds = [^\n]*", "Kinds = vector domain domain domain domain")
+    with pytest.raises(ValueError, match="expected 2-D frames"):
+        read_plus_sequence(path)

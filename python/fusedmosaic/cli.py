@@ -172,9 +172,13 @@ def _loop_pairs(args: argparse.Namespace) -> dict:
 def _cmd_import(args: argparse.Namespace) -> int:
     from fusedmosaic.io.plus import import_plus_sequence
 
-    summary = import_plus_sequence(args.sequence, args.out, camera=args.camera,
-                                   transform=None if args.transform == "auto" else args.transform,
-                                   hand_eye=args.hand_eye, overwrite=args.overwrite)
+    try:
+        summary = import_plus_sequence(
+            args.sequence, args.out, camera=args.camera, hand_eye=args.hand_eye,
+            transform=None if args.transform == "auto" else args.transform,
+            overwrite=args.overwrite)
+    except ValueError as exc:  # the library's keyword -> the flag
+        raise ValueError(str(exc).replace("pass overwrite=True", "pass --overwrite")) from None
     _say(args, f"imported {summary}")
     return 0
 

@@ -61,7 +61,6 @@ ORIENTATIONS = {"MF": (False, False), "MN": (False, True), "UF": (True, False), 
 # A tracker rotation block must be orthonormal with det +1 to this (PLUS writes ~6 digits).
 RIGID_TOLERANCE = 1e-3
 FRAME_PREFIX = "Seq_Frame"
-_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
 _FRAME_KEY = re.compile(r"Seq_Frame(\d+)_(\S+)\Z")
 _MAX_HEADER_LINE = 1 << 20  # bytes; longer means binary data, not a header line
 _SHOWN = 5  # frames listed in a message
@@ -237,16 +236,21 @@ def _read_header(path: Path) -> tuple[dict[str, tuple[str, int]], dict[int, dict
                     "file's name); not a complete MetaImage header"
                 )
             line_number += 1
+            if line_number == 1 and raw.startswith(b"\xef\xbb\xbf"):  # a UTF-8 BOM
+                raw = raw[3:]
             text = raw.decode("latin-1").strip()
             if not text:
                 continue
             key, eq, value = text.partition("=")
             key, value = key.strip(), value.strip()
-            if not eq or not _KEY.match(key) or len(raw) >= _MAX_HEADER_LINE:
+            if not eq or not key or not key.isprintable() or len(raw) >= _MAX_HEADER_LINE:
                 raise ValueError(
-                    f"{path}: line {line_number} is not a 'Key = Value' header line (binary data "
-                    "before an ElementDataFile line?)"
+                    f"{path}: line {line_number} is not a 'Key = Value' header line: "
+                    f"{text[:60]!r} (binary data before an ElementDataFile line?)"
                 )
+            if key.lower() == "elementdatafile":  # PLUS compares it without case
+                key = "ElementDataFile"
+                value = "LOCAL" if value.upper() == "LOCAL" else value
             m = _FRAME_KEY.match(key)
             if m is not None:
                 index, name = int(m.group(1)), m.group(2)
@@ -312,6 +316,10 @@ def read_plus_sequence(path: str | Path) -> PlusSequence:
     dims = _integers(path, "DimSize", value("DimSize"))
     ndims_text = value("NDims", False)
     ndims = len(dims) if ndims_text is None else _integer(path, "NDims", ndims_text)
+    kinds = (value("Kinds", False) or "").split()
+    if "vector" in kinds and len(kinds) == len(dims):  # IGSIO: "3 W H 1 N" for RGB frames
+        dims = _dims_by_kind(path, dims, kinds)
+        ndims = len(dims)
     if len(dims) != ndims:
         raise ValueError(f"{path}: DimSize has {len(dims)} values but NDims is {ndims}")
     if ndims == 4 and dims[2] == 1:  # 2-D frames written with their z dimension (PLUS option)
@@ -378,6 +386,21 @@ def read_plus_sequence(path: str | Path) -> PlusSequence:
     )
 
 
+def _dims_by_kind(path: Path, dims: list[int], kinds: list[str]) -> list[int]:
+    """DimSize paired with Kinds (as PLUS's IGSIO writer pairs them): the 'domain' / 'space'
+    sizes (width, height[, 1]) and the 'list' / 'time' one (frames); 'vector' (the channels,
+    ElementNumberOfChannels) dropped. ValueError for other layouts."""
+    spatial = [d for d, k in zip(dims, kinds, strict=True) if k in ("domain", "space")]
+    frames = [d for d, k in zip(dims, kinds, strict=True) if k in ("list", "time")]
+    other = [k for k in kinds if k not in ("domain", "space", "list", "time", "vector")]
+    if len(spatial) == 3 and spatial[2] == 1:
+        spatial = spatial[:2]
+    if other or len(spatial) != 2 or len(frames) != 1:
+        raise ValueError(f"{path}: Kinds {' '.join(kinds)!r} with DimSize {dims}: expected 2-D "
+                         "frames (two 'domain' sizes, one 'list' or 'time')")
+    return [*spatial, frames[0]]
+
+
 def _status_ok(entry) -> bool:
     """Absent = OK (PLUS's convention for ImageStatus); else OK in any case."""
     return entry is None or entry[0].upper() == "OK"
@@ -424,18 +447,31 @@ def _read_pixels(path: Path, header, header_end: int, shape: tuple[int, ...],
         if found != parsed:
             raise ValueError(f"{path}: compressed image data is {found} bytes but "
                              f"CompressedDataSize says {parsed}")
-    with data_path.open("rb") as f:
-        f.seek(offset)
-        blob = f.read()
+    # inflated chunk by chunk into one preallocated array: memory = the images, not the
+    # images + the compressed file + a second copy
+    pixels = np.empty(expected, np.uint8)
+    done = 0
     inflate = zlib.decompressobj()
-    try:  # at most one byte more than expected: a longer stream is refused, not inflated
-        data = inflate.decompress(blob, expected + 1)
+    try:
+        with data_path.open("rb") as f:
+            f.seek(offset)
+            while not inflate.eof:
+                chunk = inflate.unconsumed_tail or f.read(1 << 22)
+                if not chunk:
+                    break
+                # at most one byte more than expected: a longer stream is refused, not inflated
+                data = inflate.decompress(chunk, expected + 1 - done)
+                if done + len(data) > expected:
+                    done += len(data)
+                    break
+                pixels[done:done + len(data)] = np.frombuffer(data, np.uint8)
+                done += len(data)
     except zlib.error as e:
         raise ValueError(f"{path}: cannot decompress the image data (zlib: {e})") from None
-    if len(data) != expected or not inflate.eof:
-        found_text = f"{len(data)}" if len(data) <= expected else f"more than {expected}"
+    if done != expected or not inflate.eof:
+        found_text = f"{done}" if done <= expected else f"more than {expected}"
         raise ValueError(f"{path}: decompressed image data is {found_text} bytes but {what}")
-    return np.frombuffer(data, np.uint8).reshape(shape)
+    return pixels.reshape(shape)
 
 
 def _timestamps(path: Path, fields: list[dict]) -> np.ndarray:
@@ -480,15 +516,17 @@ def _transforms(path: Path, fields: list[dict]) -> tuple[dict, dict]:
             if entry is None:
                 continue  # no sample in this frame
             text, _, key = entry
+            ok[i] = _status_ok(f.get(name + "Status"))
             try:
                 values = [float(v) for v in text.split()]
             except ValueError:
                 values = []
             if len(values) != 16:
+                if not ok[i]:  # a sample marked missing may hold anything ("-nan(ind)", "")
+                    continue
                 raise ValueError(f"{path}: frame {i} ({key}): cannot parse {text!r} as 16 "
                                  "numbers (a row-major 4x4 matrix)")
             M[i] = np.reshape(values, (4, 4))
-            ok[i] = _status_ok(f.get(name + "Status"))
         transforms[name], status[name] = M, ok
     return transforms, status
 
@@ -711,6 +749,14 @@ def import_plus_sequence(
     writes atomically: a failure leaves no folder (or the previous one, with overwrite).
     """
     sequence = read_plus_sequence(path)
+    if overwrite:  # replacing root must not delete this import's own inputs
+        data = sequence.header.get("ElementDataFile", "LOCAL")
+        inputs = [sequence.path, *([] if data == "LOCAL" else [sequence.path.parent / data]),
+                  *(Path(p) for p in (camera, hand_eye) if isinstance(p, (str, os.PathLike)))]
+        for item in inputs:
+            if Path(root).resolve() in item.resolve().parents:
+                raise ValueError(f"{root}: holds {item}, an input of this import, which "
+                                 "overwriting would delete; choose another folder")
     if isinstance(camera, (str, os.PathLike)):
         camera = read_camera_yaml(camera)
     elif not isinstance(camera, Camera):
