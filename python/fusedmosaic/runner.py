@@ -380,7 +380,7 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     from fusedmosaic.io.calibration import Camera, read_camera_yaml
     from fusedmosaic.io.igtl import IgtlSource
     from fusedmosaic.io.recorder import DatasetRecorder
-    from fusedmosaic.io.tracking import check_stream_timestamp, read_hand_eye
+    from fusedmosaic.io.tracking import check_stream_timestamp, hand_eye_matrix
 
     check_live_method(method)
     if not isinstance(camera, Camera):
@@ -396,8 +396,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
         if hand_eye is not None:
             raise ValueError("live session: a hand-eye applies to lba-emt (a tracked camera), "
                              "not to kalman-robot")
-    if hand_eye is not None and not isinstance(hand_eye, np.ndarray):
-        hand_eye = read_hand_eye(hand_eye)
+    if hand_eye is not None:
+        hand_eye = hand_eye_matrix(hand_eye)
     for name, value in (("max_frames", max_frames), ("duration_s", duration_s),
                         ("frame_timeout_s", frame_timeout_s)):
         if value is not None and not (np.isfinite(value) and value > 0):

@@ -40,6 +40,7 @@ from fusedmosaic.io.tracking import (
     TrackingSamples,
     camera_pose_from_sample,
     interpolate_camera_poses,
+    rigid_problems,
 )
 
 __all__ = ["IgtlSource", "LiveFrame", "StreamTimeout", "TrackerSample", "inverse_device_name",
@@ -387,12 +388,13 @@ def _frame_image(image: np.ndarray, rgb: bool) -> np.ndarray:
 
 
 def _rigid_problem(matrix: np.ndarray) -> str | None:
-    if matrix.shape != (4, 4) or not np.isfinite(matrix).all():
+    """Why a TRANSFORM's 4x4 (float32 on the wire: rigid to 1e-3) is not a usable sample."""
+    not_finite, not_rigid, far = rigid_problems(matrix, 1e-3)
+    if not_finite[0]:
         return "not a finite 4x4 matrix"
-    R = matrix[:3, :3]
-    if np.abs(R.T @ R - np.eye(3)).max() > 1e-3 or np.linalg.det(R) <= 0:
+    if not_rigid[0]:
         return "its 3x3 part is not a rotation"
-    if np.abs(matrix[:3, 3]).max() > MAX_TRANSLATION_MM:
+    if far[0]:
         return f"translation beyond {MAX_TRANSLATION_MM:g} mm"
     return None
 

@@ -39,9 +39,9 @@ from fusedmosaic.io.dataset import write_dataset
 from fusedmosaic.io.tracking import (
     MAX_TIMESTAMP_S,
     MAX_TRANSLATION_MM,
-    ROTATION_TOLERANCE,
     TrackingSamples,
-    read_hand_eye,
+    hand_eye_matrix,
+    rigid_problems,
 )
 
 __all__ = [
@@ -197,20 +197,15 @@ def _check_rigid(seq: PlusSequence, source: str, matrices: np.ndarray, ok: np.nd
             more = f" ({bad.size} frames: {_frames_text(bad)})" if bad.size > 1 else ""
             raise ValueError(f"{seq.path}: frame {i} ({seq._key(i, source)}): {problem}{more}")
 
-    finite = np.isfinite(matrices).all(axis=(1, 2))
-    fail(ok & ~finite, "status OK but the transform has NaN or inf values")
-    M = np.where(finite[:, None, None], matrices, np.eye(4))
-    R = M[:, :3, :3]
-    off = np.abs(np.einsum("nki,nkj->nij", R, R) - np.eye(3)).max(axis=(1, 2))
-    det = np.linalg.det(R)
-    last = np.abs(M[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1)
+    not_finite, not_rigid, far = rigid_problems(matrices, RIGID_TOLERANCE)
+    fail(ok & not_finite, "status OK but the transform has NaN or inf values")
     fail(
-        ok & ((off > RIGID_TOLERANCE) | (det <= 0) | (last > RIGID_TOLERANCE)),
+        ok & not_rigid,
         f"not a rigid transform (rotation block not orthonormal with det +1 to "
         f"{RIGID_TOLERANCE:g}, or last row not 0 0 0 1)",
     )
     fail(
-        ok & (np.abs(M[:, :3, 3]).max(axis=1) > MAX_TRANSLATION_MM),
+        ok & far,
         f"translation beyond the {MAX_TRANSLATION_MM:g} mm bound (1 km), not physical "
         "(translations must be mm)",
     )
@@ -772,7 +767,7 @@ def import_plus_sequence(
     if ok.sum() < 2:
         raise ValueError(f"{sequence.path}: {selected.source}: {int(ok.sum())} frame(s) with "
                          "status OK; tracking needs at least 2 samples")
-    sensor_from_camera = None if hand_eye is None else _hand_eye(hand_eye)
+    sensor_from_camera = None if hand_eye is None else hand_eye_matrix(hand_eye)
     kept = np.flatnonzero(sequence.image_ok)
     if kept.size == 0:
         raise ValueError(f"{sequence.path}: no frame has ImageStatus OK; nothing to import")
@@ -818,28 +813,4 @@ def import_plus_sequence(
         channels=sequence.channels,
         orientation=sequence.orientation,
     )
-
-
-def _hand_eye(hand_eye) -> np.ndarray:
-    """A 4x4 sensor_from_camera from a path (read_hand_eye) or a matrix, checked as
-    read_hand_eye checks a file."""
-    if isinstance(hand_eye, (str, os.PathLike)):
-        return read_hand_eye(hand_eye)
-    try:
-        T = np.array(hand_eye, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError("hand_eye: expected a 4x4 matrix of numbers or a path") from None
-    if T.shape != (4, 4):
-        raise ValueError(f"hand_eye: expected a 4x4 matrix, got shape {T.shape}")
-    if not np.isfinite(T).all():
-        raise ValueError("hand_eye: NaN or inf in the matrix")
-    if np.abs(T[:3, 3]).max() > MAX_TRANSLATION_MM:
-        raise ValueError(f"hand_eye: translation {T[:3, 3].tolist()} mm is beyond the "
-                         f"{MAX_TRANSLATION_MM:g} mm bound (1 km), not physical")
-    R = T[:3, :3]
-    if (np.abs(R.T @ R - np.eye(3)).max() > ROTATION_TOLERANCE or np.linalg.det(R) <= 0
-            or np.abs(T[3] - [0, 0, 0, 1]).max() > ROTATION_TOLERANCE):
-        raise ValueError(f"hand_eye: not a rigid transform (rotation block not orthonormal with "
-                         f"det +1 to {ROTATION_TOLERANCE:g}, or last row not 0 0 0 1)")
-    return T
 

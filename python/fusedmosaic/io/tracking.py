@@ -8,6 +8,7 @@ same convention as the C++ core (rotation angle = norm, right-handed about the a
 from __future__ import annotations
 
 import numbers
+import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -197,9 +198,24 @@ def write_tracking_csv(path: str | Path, samples: TrackingSamples) -> None:
     write_table(path, [*TRACKING_COLUMNS, "valid"], rows)
 
 
+def rigid_problems(transforms, tolerance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Masks over (N, 4, 4) transforms (or one 4x4): not finite; finite but not rigid (rotation
+    block not orthonormal with det +1 to `tolerance`, or last row not 0 0 0 1); finite with a
+    translation beyond MAX_TRANSLATION_MM. Callers word the problem for their input."""
+    T = np.asarray(transforms, dtype=np.float64).reshape(-1, 4, 4)
+    finite = np.isfinite(T).all(axis=(1, 2))
+    M = np.where(finite[:, None, None], T, np.eye(4))
+    R = M[:, :3, :3]
+    off = np.abs(np.einsum("nki,nkj->nij", R, R) - np.eye(3)).max(axis=(1, 2))
+    last = np.abs(M[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1)
+    rigid = (off <= tolerance) & (np.linalg.det(R) > 0) & (last <= tolerance)
+    far = np.abs(M[:, :3, 3]).max(axis=1) > MAX_TRANSLATION_MM
+    return ~finite, finite & ~rigid, finite & far
+
+
 def read_hand_eye(path: str | Path) -> np.ndarray:
-    """Read the 4x4 rigid sensor_from_camera transform (whitespace-separated text). The rotation
-    block is projected onto the nearest rotation, so text rounding does not leak a scale."""
+    """Read the 4x4 rigid sensor_from_camera transform (whitespace-separated text); checked and
+    projected as `hand_eye_matrix` does."""
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"{path}: file not found")
@@ -213,24 +229,41 @@ def read_hand_eye(path: str | Path) -> np.ndarray:
         raise ValueError(f"{path}: cannot parse as a 4x4 matrix of numbers ({e})") from None
     if T.shape != (4, 4):
         raise ValueError(f"{path}: expected a 4x4 matrix, got {T.shape[0]}x{T.shape[1]}")
-    if not np.all(np.isfinite(T)):
-        raise ValueError(f"{path}: NaN or inf in the matrix")
-    if np.abs(T[:3, 3]).max() > MAX_TRANSLATION_MM:
+    return _checked_hand_eye(T, str(path))
+
+
+def hand_eye_matrix(hand_eye) -> np.ndarray:
+    """A 4x4 sensor_from_camera from a hand_eye.txt path (read_hand_eye) or a matrix, checked
+    the same way (ValueError naming the file, or "hand_eye")."""
+    if isinstance(hand_eye, (str, os.PathLike)):
+        return read_hand_eye(hand_eye)
+    try:
+        T = np.array(hand_eye, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError("hand_eye: expected a 4x4 matrix of numbers or a path") from None
+    if T.shape != (4, 4):
+        raise ValueError(f"hand_eye: expected a 4x4 matrix, got shape {T.shape}")
+    return _checked_hand_eye(T, "hand_eye")
+
+
+def _checked_hand_eye(T: np.ndarray, source: str) -> np.ndarray:
+    """T checked (finite, within 1 km, rigid to ROTATION_TOLERANCE), its rotation block
+    projected onto the nearest rotation so text rounding does not leak a scale."""
+    not_finite, not_rigid, far = rigid_problems(T, ROTATION_TOLERANCE)
+    if not_finite[0]:
+        raise ValueError(f"{source}: NaN or inf in the matrix")
+    if far[0]:
         raise ValueError(
-            f"{path}: translation {T[:3, 3].tolist()} mm is beyond the "
+            f"{source}: translation {T[:3, 3].tolist()} mm is beyond the "
             f"{MAX_TRANSLATION_MM:g} mm bound (1 km), not physical"
         )
-    R = T[:3, :3]
-    if (
-        np.abs(R.T @ R - np.eye(3)).max() > ROTATION_TOLERANCE
-        or np.linalg.det(R) <= 0
-        or np.abs(T[3] - [0, 0, 0, 1]).max() > ROTATION_TOLERANCE
-    ):
+    if not_rigid[0]:
         raise ValueError(
-            f"{path}: not a rigid transform (rotation block not orthonormal with "
+            f"{source}: not a rigid transform (rotation block not orthonormal with "
             f"det +1 to {ROTATION_TOLERANCE:g}, or last row not 0 0 0 1)"
         )
-    u, _, vt = np.linalg.svd(R)
+    T = T.copy()
+    u, _, vt = np.linalg.svd(T[:3, :3])
     T[:3, :3] = u @ vt
     T[3] = [0, 0, 0, 1]
     return T
