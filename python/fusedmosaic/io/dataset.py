@@ -201,12 +201,7 @@ def write_dataset(
     written last, verbatim (they may replace a generated file, e.g. to build a bad dataset).
     """
     root = Path(root)
-    if root.exists() and (not root.is_dir() or any(root.iterdir())):
-        if not overwrite:
-            raise ValueError(f"{root}: exists and is not empty (pass overwrite=True to replace it)")
-        check_replaceable_dataset(root)
-    root.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{root.name}.tmp-", dir=root.parent))
+    tmp = staging_folder(root, overwrite)
     try:
         write_camera_yaml(tmp / "camera.yaml", camera)
         n = write_frames(tmp / "frames", frames)
@@ -247,6 +242,31 @@ def write_dataset(
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return root
+
+
+def staging_folder(root: Path, overwrite: bool,
+                   hint: str = "pass overwrite=True to replace it") -> Path:
+    """Checks that `root` can receive a dataset (absent or empty; with overwrite, an earlier
+    dataset: check_replaceable_dataset) and returns a new empty folder beside it to build the
+    dataset in, for _replace_dir to rename into place; with a folder's usual mode (mkdtemp
+    makes it 0700, which the renamed dataset would keep). ValueError otherwise (`hint` says
+    how to replace)."""
+    if root.exists() and (not root.is_dir() or any(root.iterdir())):
+        if not overwrite:
+            raise ValueError(f"{root}: exists and is not empty ({hint})")
+        check_replaceable_dataset(root)
+    root.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{root.name}.tmp-", dir=root.parent))
+    os.chmod(tmp, created_mode(0o777))
+    return tmp
+
+
+def created_mode(bits: int) -> int:
+    """`bits` (0o666 for a file, 0o777 for a folder) as the umask leaves them on a newly
+    created one: the mode to give what mkstemp / mkdtemp made (0600 / 0700)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return bits & ~umask
 
 
 def check_replaceable_dataset(root: str | Path) -> None:

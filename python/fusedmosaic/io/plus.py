@@ -35,7 +35,7 @@ from scipy.spatial.transform import Rotation
 
 from fusedmosaic.io._table import format_float
 from fusedmosaic.io.calibration import Camera, read_camera_yaml
-from fusedmosaic.io.dataset import write_dataset
+from fusedmosaic.io.dataset import created_mode, write_dataset
 from fusedmosaic.io.tracking import (
     MAX_TIMESTAMP_S,
     MAX_TRANSLATION_MM,
@@ -665,9 +665,7 @@ def write_plus_sequence(
 def _temp(path: Path, temps: list[Path]) -> Path:
     fd, name = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
     os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(name, 0o666 & ~umask)  # the permissions of a file written normally, not 0600
+    os.chmod(name, created_mode(0o666))  # the permissions of a file written normally
     temps.append(Path(name))
     return temps[-1]
 

@@ -12,10 +12,8 @@ can then be mosaicked offline with any method (`fusedmosaic run DATA --method ba
 
 from __future__ import annotations
 
-import os
 import queue
 import shutil
-import tempfile
 import threading
 from pathlib import Path
 
@@ -25,7 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from fusedmosaic.io._table import format_float, write_table
 from fusedmosaic.io.calibration import Camera, write_camera_yaml
-from fusedmosaic.io.dataset import _replace_dir, check_replaceable_dataset
+from fusedmosaic.io.dataset import _replace_dir, staging_folder
 from fusedmosaic.io.tracking import (
     RobotSamples,
     TrackingSamples,
@@ -47,14 +45,9 @@ class DatasetRecorder:
     def __init__(self, root: str | Path, camera: Camera, hand_eye=None, *,
                  overwrite: bool = False, max_queued: int = 64, robot: bool = False) -> None:
         self.root = Path(root)
-        if self.root.exists() and (not self.root.is_dir() or any(self.root.iterdir())):
-            if not overwrite:
-                raise ValueError(f"{self.root}: exists and is not empty (choose a new folder for "
-                                 f"the recording, or allow overwriting an earlier recording)")
-            check_replaceable_dataset(self.root)
+        self._tmp = staging_folder(self.root, overwrite, "choose a new folder for the "
+                                   "recording, or allow overwriting an earlier recording")
         self.camera, self.hand_eye, self.robot = camera, hand_eye, robot
-        self.root.parent.mkdir(parents=True, exist_ok=True)
-        self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.root.name}.tmp-", dir=self.root.parent))
         (self._tmp / "frames").mkdir()
         self.timestamps: list[float] = []
         self._samples: list[tuple[float, np.ndarray | None]] = []
@@ -115,9 +108,6 @@ class DatasetRecorder:
                     times, T[:, :3, 3], q, valid))
             if self.hand_eye is not None:
                 write_hand_eye(self._tmp / "hand_eye.txt", self.hand_eye)
-            umask = os.umask(0)
-            os.umask(umask)
-            os.chmod(self._tmp, 0o777 & ~umask)  # a folder's usual mode, not mkdtemp's 0700
             _replace_dir(self._tmp, self.root)
         except BaseException:
             self.abort()
