@@ -49,6 +49,15 @@ class MethodResult:
     blend: str = "linear"
 
 
+def ms_stats(values_ms) -> dict | None:
+    """{"median", "p95", "max"} of per-frame times in ms (report.json), None without any."""
+    values_ms = np.asarray(values_ms, dtype=np.float64)
+    if values_ms.size == 0:
+        return None
+    return {"median": float(np.median(values_ms)), "p95": float(np.percentile(values_ms, 95)),
+            "max": float(values_ms.max())}
+
+
 def available() -> list[str]:
     """Registered names, best first (the demo runs the first)."""
     return list(REGISTRY)

@@ -373,10 +373,7 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     estimates go to `out` as `run` writes them (report.json "live": drops, latency, why the
     session stopped). camera / hand_eye: a Camera / 4x4 or the path of camera.yaml /
     hand_eye.txt. Returns the terminal summary."""
-    from dataclasses import asdict
-
     from fusedmosaic.estimation.live import check_live_method, live_session, session_result
-    from fusedmosaic.estimation.sequential import SequentialOptions
     from fusedmosaic.io.calibration import Camera, read_camera_yaml
     from fusedmosaic.io.igtl import IgtlSource
     from fusedmosaic.io.recorder import DatasetRecorder
@@ -387,12 +384,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
         camera = read_camera_yaml(camera)
     if method == "lba-emt":
         camera.require_camera_matrix(method)
-        options = SequentialOptions() if options is None else options
     else:
-        from fusedmosaic.estimation.translation import RobotPriorOptions
-
         camera.require_pixel_size(method)
-        options = RobotPriorOptions() if options is None else options
         if hand_eye is not None:
             raise ValueError("live session: a hand-eye applies to lba-emt (a tracked camera), "
                              "not to kalman-robot")
@@ -501,12 +494,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                     f"{record}" if kept else "")
             raise ValueError(f"{exc}{refused()}{samples_heard(src)}{note}") from None
         raise
-    parameters = asdict(options)
-    if method == "kalman-robot":  # as the offline run records them (translation._run)
-        parameters = {"estimate": "fused", "pixel_size_um": camera.pixel_size_um,
-                      "robot_file": "robot.csv", **parameters}
-    result = session_result(session, timestamps, dropped, parameters=parameters,
-                            source_details=details, method=method)
+    result = session_result(session, timestamps, dropped, source_details=details,
+                            method=method)
     summary = run_dataset(record, method, out, result=result, allow_untracked=True,
                           progress=progress, blend=blend, canvas=canvas, video=video,
                           report=report)

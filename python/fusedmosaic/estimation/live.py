@@ -36,7 +36,7 @@ import numpy as np
 from tqdm import tqdm
 
 from fusedmosaic.io.tracking import camera_pose_from_sample
-from fusedmosaic.methods import MethodResult
+from fusedmosaic.methods import MethodResult, ms_stats
 
 __all__ = ["LIVE_METHODS", "replay_live", "check_live_method", "newest_sample_index",
            "extrapolated_robot"]
@@ -138,34 +138,54 @@ def replay_live(dataset, method: str, *, options=None, progress: bool = True,
     status = [None] * n
     for k, busy in dropped:
         status[k] = DROPPED.format(busy=int(dataset.frame_ids[busy]))
+    order = sorted(latency)
+    details = {"live": {
+        "frames_processed": len(latency), "frames_dropped": len(dropped),
+        "dropped": [int(dataset.frame_ids[k]) for k, _ in dropped],
+        **_timing_details([latency[k] for k in order], [processing[k] for k in order],
+                          stream.ages),
+        "frame_interval_ms": _interval_ms(arrival),
+        "max_sample_age_s": stream.max_age,
+        # processed frames whose newest sample was missing or older than max_sample_age_s
+        "frames_without_sample": [int(dataset.frame_ids[k]) for k in sorted(stream.no_sample)],
+        "processing_time": "measured" if processing_time is None else "given"}}
+    return _streamed_result(method, status, finals, getattr(stream.mosaicker, "plane", None),
+                            details, measured, {"live": True, **stream.parameters})
+
+
+def _streamed_result(method: str, status: list, finals: dict, plane, details: dict,
+                     processing_s: float, parameters: dict) -> MethodResult:
+    """The MethodResult of a streamed run over len(status) frames: the final homography, pose
+    and status of each frame in `finals` (index -> FrameResult), `status` for the others; for
+    lba-emt also details["plane_history"], per frame the plane of the step that made it
+    final."""
+    n = len(status)
     G = np.full((n, 3, 3), np.nan)
     poses = np.full((n, 6), np.nan) if method == "lba-emt" else None
     for k, r in finals.items():
         G[k], status[k] = r.homography, r.status
         if poses is not None:
             poses[k] = r.pose
-    lat = np.array([latency[k] for k in sorted(latency)]) * 1e3
-    proc = np.array([processing[k] for k in sorted(processing)]) * 1e3
-    details = {"live": {
-        "frames_processed": len(latency), "frames_dropped": len(dropped),
-        "dropped": [int(dataset.frame_ids[k]) for k, _ in dropped],
-        "latency_ms": _stats(lat), "processing_ms": _stats(proc),
-        "frame_interval_ms": float(np.median(np.diff(arrival)) * 1e3) if n > 1 else None,
-        "max_sample_age_s": stream.max_age,
-        # processed frames whose newest sample was missing or older than max_sample_age_s
-        "frames_without_sample": [int(dataset.frame_ids[k]) for k in sorted(stream.no_sample)],
-        # age of the newest sample at the frame times, ms
-        "sample_age_ms": ({"median": float(np.median(stream.ages) * 1e3),
-                           "max": float(np.max(stream.ages) * 1e3)} if stream.ages else None),
-        "processing_time": "measured" if processing_time is None else "given"}}
-    if method == "lba-emt":  # per frame: the plane of the step that made the frame final
+    if method == "lba-emt":
         details["plane_history"] = [None if k not in finals or finals[k].plane is None
                                     else np.asarray(finals[k].plane).tolist() for k in range(n)]
-    plane = getattr(stream.mosaicker, "plane", None)
-    parameters = {"live": True, **stream.parameters}
     return MethodResult(G, status, poses=poses, plane=None if plane is None else np.asarray(plane),
-                        timings={"processing": measured}, parameters=parameters,
+                        timings={"processing": processing_s}, parameters=parameters,
                         details=details, blend="linear" if method == "lba-emt" else "average")
+
+
+def _timing_details(latency_s: list, processing_s: list, ages_s: list) -> dict:
+    """report.json "live" timings, ms: latency (arrival -> result) and processing per processed
+    frame (median / p95 / max), and the age of the newest sample at the frame times."""
+    return {"latency_ms": ms_stats(np.array(latency_s) * 1e3),
+            "processing_ms": ms_stats(np.array(processing_s) * 1e3),
+            "sample_age_ms": ({"median": float(np.median(ages_s) * 1e3),
+                               "max": float(np.max(ages_s) * 1e3)} if ages_s else None)}
+
+
+def _interval_ms(times) -> float | None:
+    """Median frame interval, ms (None for one frame)."""
+    return float(np.median(np.diff(times)) * 1e3) if len(times) > 1 else None
 
 
 @dataclass
@@ -202,18 +222,37 @@ def _max_age(sample_times: np.ndarray, given: float | None) -> float:
     return 3.0 * float(np.median(spacing)) if spacing.size else 0.0
 
 
-def _streaming(dataset, method: str, options, max_age: float | None) -> _Stream:
+def streaming_mosaicker(method: str, camera, options, where: str,
+                        robot_file: str = "robot.csv") -> tuple[object, dict]:
+    """The streaming mosaicker of `method` (LIVE_METHODS; options None: its defaults) and the
+    parameters report.json records for it, as the offline run records them (translation._run
+    for kalman-robot). `where` names the caller in errors."""
     if method == "lba-emt":
         from fusedmosaic.estimation.sequential import SequentialMosaicker, SequentialOptions
 
-        dataset.require_tracking(method)
         options = SequentialOptions() if options is None else options
-        mosaicker = SequentialMosaicker(dataset.camera, options)
+        return SequentialMosaicker(camera, options), asdict(options)
+    from fusedmosaic.estimation.translation import RobotPriorMosaicker, RobotPriorOptions
+
+    options = RobotPriorOptions() if options is None else options
+    if options.flat_field:
+        raise ValueError(f"{where}: flat_field needs the fibre pattern of the whole recording "
+                         "(not known live); run without --flat-field")
+    mosaicker = RobotPriorMosaicker(camera, options)
+    return mosaicker, {"estimate": "fused", "pixel_size_um": mosaicker.pixel_size_um,
+                       "robot_file": robot_file, **asdict(options)}
+
+
+def _streaming(dataset, method: str, options, max_age: float | None) -> _Stream:
+    if method == "lba-emt":
+        dataset.require_tracking(method)
+        mosaicker, parameters = streaming_mosaicker(method, dataset.camera, options,
+                                                    "live replay")
         tracking = dataset.tracking
         ok = np.ones(len(tracking.timestamps), bool) if tracking.valid is None else tracking.valid
         sample_times = tracking.timestamps[ok]
         translations, quaternions = tracking.translations[ok], tracking.quaternions[ok]
-        stream = _Stream(mosaicker, None, _max_age(sample_times, max_age), asdict(options))
+        stream = _Stream(mosaicker, None, _max_age(sample_times, max_age), parameters)
 
         def feed(k: int, image) -> list:
             t = float(dataset.timestamps[k])
@@ -229,19 +268,11 @@ def _streaming(dataset, method: str, options, max_age: float | None) -> _Stream:
 
         stream.feed = feed
         return stream
-    from fusedmosaic.estimation.translation import RobotPriorMosaicker, RobotPriorOptions
-
     dataset.require_robot(method)
     dataset.require_pixel_size(method)
-    options = RobotPriorOptions() if options is None else options
-    if options.flat_field:
-        raise ValueError("live replay: flat_field needs the fibre pattern of the whole recording "
-                         "(not known live); run without --flat-field")
-    mosaicker = RobotPriorMosaicker(dataset.camera, options)
+    mosaicker, parameters = streaming_mosaicker(method, dataset.camera, options, "live replay",
+                                                dataset.robot_file)
     robot = dataset.robot
-    # as the offline run records them (translation._run)
-    parameters = {"estimate": "fused", "pixel_size_um": mosaicker.pixel_size_um,
-                  "robot_file": dataset.robot_file, **asdict(options)}
     stream = _Stream(mosaicker, None, _max_age(robot.timestamps, max_age), parameters)
 
     def feed(k: int, image) -> list:
@@ -266,8 +297,8 @@ DROPPED_LIVE = "unplaced: dropped (live: arrived while frame {busy} was being pr
 class LiveSession:
     """What `live_session` measured: per recorded frame (recording ids 0, 1, ...) the final
     result (`finals`), the frames processed in order, their latency (arrival -> result, s) and
-    processing time (s), the frames without a usable tracker sample, and why the session
-    stopped."""
+    processing time (s), the frames without a usable tracker sample, why the session stopped,
+    the final plane (lba-emt) and the mosaicker's parameters."""
 
     finals: dict = field(default_factory=dict)
     processed: list = field(default_factory=list)
@@ -277,6 +308,7 @@ class LiveSession:
     ages: list = field(default_factory=list)
     stopped_by: str = ""
     plane: object = None
+    parameters: dict = field(default_factory=dict)  # the mosaicker's, for report.json
 
 
 def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, options=None,
@@ -295,9 +327,9 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
     from fusedmosaic.io.igtl import StreamTimeout
 
     check_live_method(method)
-    session = LiveSession()
-    mosaicker, sample_at = _live_mosaicker(method, source, camera, hand_eye, options,
-                                           max_sample_age_s)
+    mosaicker, parameters = streaming_mosaicker(method, camera, options, "live session")
+    session = LiveSession(parameters=parameters)
+    sample_at = _sample_at(method, source, hand_eye, max_sample_age_s)
     start = time.monotonic()
 
     def take(results) -> None:
@@ -356,33 +388,21 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
     return session
 
 
-def _live_mosaicker(method: str, source, camera, hand_eye, options, max_age: float | None):
-    """The streaming mosaicker of `method` and sample_at(t) -> (its tracker pose or robot
-    position in µm at t, or None; the sample's age)."""
+def _sample_at(method: str, source, hand_eye, max_age: float | None) -> Callable:
+    """t -> (the tracker pose (lba-emt) or robot position in µm (kalman-robot) at t from the
+    live source, or None; the sample's age)."""
     if method == "lba-emt":
-        from fusedmosaic.estimation.sequential import SequentialMosaicker, SequentialOptions
-
-        mosaicker = SequentialMosaicker(camera, SequentialOptions() if options is None
-                                        else options)
-        return mosaicker, lambda t: source.pose_at(t, hand_eye, max_age_s=max_age)
-    from fusedmosaic.estimation.translation import RobotPriorMosaicker, RobotPriorOptions
-
-    options = RobotPriorOptions() if options is None else options
-    if options.flat_field:
-        raise ValueError("live session: flat_field needs the fibre pattern of the whole "
-                         "recording (not known live); run without --flat-field")
-    mosaicker = RobotPriorMosaicker(camera, options)
+        return lambda t: source.pose_at(t, hand_eye, max_age_s=max_age)
 
     def robot_at(t: float):
         position, age = source.position_at(t, max_age_s=max_age)
         return (None if position is None else position[:2] * 1e3), age  # mm -> µm
 
-    return mosaicker, robot_at
+    return robot_at
 
 
 def session_result(session: LiveSession, timestamps, dropped: list[int], *,
-                   parameters: dict, source_details: dict,
-                   method: str = "lba-emt") -> MethodResult:
+                   source_details: dict, method: str = "lba-emt") -> MethodResult:
     """The MethodResult of a live session over the recorded frames (their timestamps): final
     homographies and poses of the processed frames; the others "unplaced" with why (dropped
     while busy, or received after the session ended)."""
@@ -396,38 +416,15 @@ def session_result(session: LiveSession, timestamps, dropped: list[int], *,
     for k in dropped:
         if k < n:
             status[k] = DROPPED_LIVE.format(busy=busy_at.get(k, "?"))
-    G = np.full((n, 3, 3), np.nan)
-    poses = np.full((n, 6), np.nan) if method == "lba-emt" else None
-    for k, r in session.finals.items():
-        G[k], status[k] = r.homography, r.status
-        if poses is not None:
-            poses[k] = r.pose
-    lat = np.array([session.latency[k] for k in session.processed]) * 1e3
-    proc = np.array([session.processing[k] for k in session.processed]) * 1e3
     details = {"live": {
         "source": source_details, "stopped_by": session.stopped_by,
         "frames_recorded": n, "frames_processed": len(session.processed),
-        "frame_interval_ms": float(np.median(np.diff(timestamps)) * 1e3) if n > 1 else None,
+        "frame_interval_ms": _interval_ms(timestamps),
         "frames_dropped": len(dropped), "dropped": [int(k) for k in dropped],
-        "latency_ms": _stats(lat), "processing_ms": _stats(proc),
+        **_timing_details([session.latency[k] for k in session.processed],
+                          [session.processing[k] for k in session.processed], session.ages),
         "frames_without_sample": [int(k) for k in session.no_sample],
-        "sample_age_ms": ({"median": float(np.median(session.ages) * 1e3),
-                           "max": float(np.max(session.ages) * 1e3)} if session.ages else None),
     }}
-    if method == "lba-emt":
-        details["plane_history"] = [None if k not in session.finals
-                                    or session.finals[k].plane is None
-                                    else np.asarray(session.finals[k].plane).tolist()
-                                    for k in range(n)]
-    plane = None if session.plane is None else np.asarray(session.plane)
-    return MethodResult(G, status, poses=poses, plane=plane,
-                        timings={"processing": float(sum(session.processing.values()))},
-                        parameters={"live": "openigtlink", **parameters}, details=details,
-                        blend="linear" if method == "lba-emt" else "average")
-
-
-def _stats(values_ms: np.ndarray) -> dict | None:
-    if values_ms.size == 0:
-        return None
-    return {"median": float(np.median(values_ms)), "p95": float(np.percentile(values_ms, 95)),
-            "max": float(values_ms.max())}
+    return _streamed_result(method, status, session.finals, session.plane, details,
+                            float(sum(session.processing.values())),
+                            {"live": "openigtlink", **session.parameters})

@@ -96,7 +96,7 @@ from fusedmosaic.io.tracking import (  # noqa: F401  (MAX_FRAME_GAP_S, MAX_TIMES
     MAX_TIMESTAMP_S,
     check_stream_timestamp,
 )
-from fusedmosaic.methods import MethodResult
+from fusedmosaic.methods import MethodResult, ms_stats
 from fusedmosaic.registration.ncc import (
     aligned_overlap_ssim,
     fixed_pattern_gain,
@@ -821,11 +821,7 @@ def _run(
             "X_r": np.stack(column("position_robot")),
             "X_f": np.stack(column("position_fused")),
         },
-        "per_frame_ms": {
-            "median": 1e3 * float(np.median(per_frame)),
-            "p95": 1e3 * float(np.percentile(per_frame, 95)),
-            "max": 1e3 * float(per_frame.max()),
-        },
+        "per_frame_ms": ms_stats(per_frame * 1e3),
     }
     parameters = {
         "estimate": estimate,
