@@ -334,3 +334,13 @@ def test_live_kalman_robot_needs_pixel_size(syn, tmp_path, capsys):
                  str(syn.root / "camera.yaml"), "--transform", "RobotToBase", "--record",
                  str(tmp_path / "rec"), "--out", str(tmp_path / "out"), "--preset", "phb"]) == 2
     assert "apply to lba-emt, not kalman-robot" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("flag, value", [("--duration", "0"), ("--max-frames", "-3"),
+                                         ("--frame-timeout", "nan")])
+def test_live_limits_are_checked_before_connecting(syn, tmp_path, capsys, flag, value):
+    assert main(["live", "127.0.0.1:1", "--camera", str(syn.root / "camera.yaml"),
+                 "--transform", "SensorToTracker", "--record", str(tmp_path / "rec"),
+                 "--out", str(tmp_path / "out"), flag, value]) == 2
+    assert f"{flag} must be a number > 0, got {value}" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())

@@ -185,7 +185,7 @@ def _cmd_import(args: argparse.Namespace) -> int:
 
 def _cmd_live(args: argparse.Namespace) -> int:
     from fusedmosaic.estimation.sequential import SequentialOptions
-    from fusedmosaic.runner import check_compositing_options, run_igtl
+    from fusedmosaic.runner import check_compositing_options, check_live_limits, run_igtl
 
     overrides = _loop_pairs(args)
     if args.motion_sigma_from:
@@ -202,10 +202,9 @@ def _cmd_live(args: argparse.Namespace) -> int:
                          "to lba-emt, not kalman-robot")
     else:
         options = None
-    for flag, value in (("--max-frames", args.max_frames), ("--duration", args.duration),
-                        ("--frame-timeout", args.frame_timeout)):
-        if value is not None and not (np.isfinite(value) and value > 0):
-            raise ValueError(f"{flag} must be > 0, got {value}")
+    check_live_limits(args.max_frames, args.duration, args.frame_timeout,
+                      names={"max_frames": "--max-frames", "duration_s": "--duration",
+                             "frame_timeout_s": "--frame-timeout"})
     blend, canvas = _blend_options(args), _canvas_options(args)
     check_compositing_options(blend, canvas, names=COMPOSITING_FLAGS)
     _say(args, f"live: connecting to {args.address} (Ctrl-C ends the session and writes the "

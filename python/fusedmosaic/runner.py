@@ -355,6 +355,18 @@ def _summary(method: str, G: np.ndarray, out: Path, report_json: dict, outputs: 
     return "\n".join(lines)
 
 
+def check_live_limits(max_frames, duration_s, frame_timeout_s,
+                      names: dict[str, str] | None = None) -> None:
+    """ValueError unless each limit of a live session is None or a number > 0; `names` maps
+    the parameters to what the message calls them (the CLI's flags)."""
+    names = names or {}
+    for name, value in (("max_frames", max_frames), ("duration_s", duration_s),
+                        ("frame_timeout_s", frame_timeout_s)):
+        if value is not None and not (np.isfinite(value) and value > 0):
+            what = names.get(name, f"live session: {name}")
+            raise ValueError(f"{what} must be a number > 0, got {value}")
+
+
 def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
              transform_device: str, image_device: str | None = None, hand_eye=None,
              rgb: bool = True, options=None, max_frames: int | None = None,
@@ -391,13 +403,9 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                              "not to kalman-robot")
     if hand_eye is not None:
         hand_eye = hand_eye_matrix(hand_eye)
-    for name, value in (("max_frames", max_frames), ("duration_s", duration_s),
-                        ("frame_timeout_s", frame_timeout_s)):
-        if value is not None and not (np.isfinite(value) and value > 0):
-            raise ValueError(f"live session: {name} must be a number > 0, got {value}")
+    check_live_limits(max_frames, duration_s, frame_timeout_s)
     out, record = Path(out), Path(record)
-    check_out_outside_dataset(out, record)
-    if is_under(out, record, or_equal=True):
+    if is_under(out, record, or_equal=True):  # the recording does not exist yet
         raise ValueError(f"{out}: the output folder must not be the recording folder or inside "
                          f"it ({record})")
     if is_under(record, out, or_equal=True):
