@@ -156,7 +156,7 @@ def machine_info() -> dict:
         "numpy": np.__version__,
         "scipy": scipy.__version__,
         "opencv": cv2.__version__,
-        "load_average": [round(x, 2) for x in os.getloadavg()],
+        "load_average": load_average(),
     }
 
 
@@ -227,6 +227,19 @@ def finish_run(result: dict, out: Path, t_start: float, tmp=None) -> dict:
     if tmp is not None:
         tmp.cleanup()
     return result
+
+
+def load_average() -> list[float]:
+    """The 1/5/15-minute load averages, rounded: recorded at a run's start and end."""
+    return [round(x, 2) for x in os.getloadavg()]
+
+
+def run_note(res: dict, script: str, what: str = "") -> str:
+    """The markdown line saying how a bench result was produced: the command, `what`, one run,
+    its runtime and the load average at its start and end (res from a script that records
+    load_average_start / load_average_end)."""
+    return (f"`python bench/{script}`{what}, one run, {res['runtime_s']:.0f} s; load average "
+            f"{res['load_average_start']} -> {res['load_average_end']} (2 cores).")
 
 
 def fmt(x, digits: int = 2) -> str:

@@ -21,12 +21,11 @@ Writes the JSON and a markdown table beside it (detect_scale.md).
 from __future__ import annotations
 
 import argparse
-import os
 import time
 from pathlib import Path
 
 import numpy as np
-from _common import fmt, machine_info, md_table, write_json
+from _common import fmt, load_average, machine_info, md_table, run_note, write_json
 from bench_sequential import make_scene, stream, throughput
 
 from fusedmosaic.estimation.sequential import SequentialOptions
@@ -50,7 +49,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("bench/results/detect_scale.json"))
     args = ap.parse_args()
     t_bench = time.perf_counter()
-    load_start = [round(x, 2) for x in os.getloadavg()]
+    load_start = load_average()
     rows = []
     for size in SIZES:
         scene, camera, poses, valid = make_scene(args.frames, size)
@@ -70,8 +69,7 @@ def main() -> None:
         pair_rows.append({"configuration": label, "preset": preset, "loop_pairs": loops,
                           **row})
     res = {"machine": machine_info(), "frames": args.frames, "detector": "orb",
-           "load_average_start": load_start, "load_average_end": [round(x, 2) for x in
-                                                                  os.getloadavg()],
+           "load_average_start": load_start, "load_average_end": load_average(),
            "runtime_s": time.perf_counter() - t_bench, "rows": rows, "pair_rows": pair_rows}
     write_json(args.out, res)
     args.out.with_suffix(".md").write_text(markdown(res))
@@ -104,10 +102,9 @@ def measure(scene, camera, poses, valid, frames, size, side, options) -> dict:
 
 def markdown(res: dict) -> str:
     lines = ["# ORB end to end at larger frames: full-resolution detection vs a shrunk copy", "",
-             f"`python bench/bench_detect_scale.py`, {res['frames']} SYN frames per "
-             f"configuration, one run, {res['runtime_s']:.0f} s; load average "
-             f"{res['load_average_start']} -> {res['load_average_end']} (2 cores). Frames/s "
-             "from add_frame wall time after the start-up; stage medians per frame; e_M against "
+             run_note(res, "bench_detect_scale.py",
+                      f", {res['frames']} SYN frames per configuration") + " Frames/s from "
+             "add_frame wall time after the start-up; stage medians per frame; e_M against "
              "the simulator's true homographies, in full-resolution pixels and in pixels of the "
              "detection image.", ""]
     rows = [[f"{r['width']}x{r['height']}", r["max_image_side"] or "full",

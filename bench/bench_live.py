@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import time
@@ -29,7 +28,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
-from _common import fmt, machine_info, md_table, work_folder, write_json
+from _common import fmt, load_average, machine_info, md_table, run_note, work_folder, write_json
 from bench_sequential import FRAMES_PER_LAP
 
 from fusedmosaic.estimation.live import replay_live
@@ -55,7 +54,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("bench/results/live.json"))
     args = ap.parse_args()
     t_bench = time.perf_counter()
-    load_start = [round(x, 2) for x in os.getloadavg()]
+    load_start = load_average()
     rows = []
     work, tmp = work_folder(args.work)
     try:
@@ -101,7 +100,7 @@ def main() -> None:
             tmp.cleanup()
     res = {"machine": machine_info(), "frames": args.frames,
            "load_average_start": load_start,
-           "load_average_end": [round(x, 2) for x in os.getloadavg()],
+           "load_average_end": load_average(),
            "runtime_s": time.perf_counter() - t_bench, "rows": rows}
     write_json(args.out, res)
     args.out.with_suffix(".md").write_text(markdown(res))
@@ -164,12 +163,11 @@ def row(label, method, ds, live, error_live, error_offline, unit) -> dict:
 
 def markdown(res: dict) -> str:
     lines = ["# Live replay on this machine", "",
-             f"`python bench/bench_live.py`, one run, {res['runtime_s']:.0f} s; load average "
-             f"{res['load_average_start']} -> {res['load_average_end']} (2 cores). Frames at "
-             "their timestamps, newest tracker/robot sample, one-slot capture queue; latency "
-             "= wait + processing of the processed frames; error of the placed frames (e_M px "
-             "for lba-emt, mean position error µm for kalman-robot) live and offline (every "
-             "frame, interpolated tracker poses).", ""]
+             run_note(res, "bench_live.py") + " Frames at their timestamps, newest "
+             "tracker/robot sample, one-slot capture queue; latency = wait + processing of the "
+             "processed frames; error of the placed frames (e_M px for lba-emt, mean position "
+             "error µm for kalman-robot) live and offline (every frame, interpolated tracker "
+             "poses).", ""]
     rows = [[r["configuration"], r["method"], fmt(r["frame_interval_ms"], 0),
              f"{r['frames_dropped']}/{r['frames']}", fmt(r["processing_ms"]["median"], 1),
              fmt(r["latency_ms"]["median"], 1), fmt(r["latency_ms"]["p95"], 1),

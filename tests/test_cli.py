@@ -111,9 +111,14 @@ def test_run_feature_options(datasets, tmp_path, capsys):
              "--detect-max-side must be >= 32 (pixels), an integer; got 16"),
             (["--method", "pairwise", "--detect-max-side", "16"],
              "--detect-max-side must be >= 32")):
-        assert main(["run", str(feto), "--out", str(tmp_path / "bad"), *extra]) == 2
-        assert message in capsys.readouterr().err
-        assert not (tmp_path / "bad").exists()
+        _run_refused(feto, tmp_path, capsys, extra, message)
+
+
+def _run_refused(dataset, tmp_path, capsys, extra: list[str], message: str) -> None:
+    """`fusedmosaic run DATASET --out bad EXTRA...` exits 2 with `message`, writing nothing."""
+    assert main(["run", str(dataset), "--out", str(tmp_path / "bad"), *extra]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
 
 
 def test_simulate_warns_when_consecutive_frames_barely_overlap(tmp_path, capsys):
@@ -143,9 +148,7 @@ def test_run_lba_emt_presets(datasets, tmp_path, capsys):
                             "--preset / --loop-pairs apply to lba-emt, not ba-emt"),
                            (["--method", "lba-emt", "--loop-pairs", "-1"],
                             "--loop-pairs must be >= 0, got -1")):
-        assert main(["run", str(feto), "--out", str(tmp_path / "bad"), *extra]) == 2
-        assert message in capsys.readouterr().err
-        assert not (tmp_path / "bad").exists()
+        _run_refused(feto, tmp_path, capsys, extra, message)
 
 
 def test_flags_are_named_in_errors(datasets, tmp_path, capsys):
