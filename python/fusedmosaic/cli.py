@@ -1,4 +1,4 @@
-"""`fusedmosaic simulate|import|run|live|evaluate|demo` — the command-line entry point."""
+"""`fusedmosaic simulate|calibrate|import|run|live|evaluate|demo` — the command-line entry point."""
 
 from __future__ import annotations
 
@@ -57,7 +57,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     try:
         out = _simulate(args)
     except ValueError as exc:  # "FetoscopyOptions.n_frames: ..." -> "--n-frames: ..."
-        raise ValueError(re.sub(r"\b(?:FetoscopyOptions|PcleOptions)\.(\w+)",
+        raise ValueError(re.sub(r"\b(?:FetoscopyOptions|PcleOptions|CheckerboardOptions)\.(\w+)",
                                 lambda m: "--" + m.group(1).replace("_", "-"), str(exc))) from None
     size = sum(p.stat().st_size for p in Path(out).rglob("*") if p.is_file())
     _say(args, f"wrote {args.kind} dataset to {out} ({size / 1e6:.1f} MB) "
@@ -95,9 +95,13 @@ def _simulate(args: argparse.Namespace) -> Path:
         if options.black_frames == []:  # bare --black-frames: the paper's list (Sec. 4.2.3)
             options.black_frames = list(simulation.PAPER_BLACK_FRAMES)
         out = simulation.simulate_fetoscopy(args.out, options, overwrite=args.overwrite)
-    else:
+    elif args.kind == "pcle":
         out = simulation.simulate_pcle(args.out, _dataclass_from_args(simulation.PcleOptions, args),
                                        overwrite=args.overwrite)
+    else:
+        out = simulation.simulate_checkerboard(
+            args.out, _dataclass_from_args(simulation.CheckerboardOptions, args),
+            overwrite=args.overwrite)
     return Path(out)
 
 
@@ -180,6 +184,58 @@ def _cmd_import(args: argparse.Namespace) -> int:
     except ValueError as exc:  # the library's keyword -> the flag
         raise ValueError(str(exc).replace("pass overwrite=True", "pass --overwrite")) from None
     _say(args, f"imported {summary}")
+    return 0
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from fusedmosaic.estimation.calibration import (
+        CalibrationOptions,
+        calibrate_recording,
+        write_calibration,
+    )
+    from fusedmosaic.io.dataset import check_fps
+    from fusedmosaic.io.output import check_output_dir, is_under
+
+    check_fps(args.fps, "--fps")
+    match = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", args.board)
+    if match is None:
+        raise ValueError(f"--board: expected inner corners as COLUMNSxROWS (e.g. 9x6), got "
+                         f"{args.board!r}")
+    options = CalibrationOptions(
+        board_cols=int(match.group(1)), board_rows=int(match.group(2)),
+        square_mm=args.square_mm, distortion=args.distortion, every=args.every,
+        max_views=args.max_views, rot_sigma_deg=args.tracker_rot_sigma,
+        trans_sigma_mm=args.tracker_trans_sigma)
+    try:
+        options.validate()
+    except ValueError as exc:  # the option's name -> the flag
+        flags = {"board_cols": "--board", "board_rows": "--board", "square_mm": "--square-mm",
+                 "distortion": "--distortion", "every": "--every", "max_views": "--max-views",
+                 "rot_sigma_deg": "--tracker-rot-sigma", "trans_sigma_mm": "--tracker-trans-sigma"}
+        key, _, rest = str(exc).partition(":")
+        raise ValueError(f"{flags.get(key, key)}:{rest}") from None
+    check_output_dir(args.out)
+    if is_under(args.out, args.recording, or_equal=True):
+        raise ValueError(f"{args.out}: --out must not be the recording folder or inside it")
+    result = calibrate_recording(args.recording, options, fps=args.fps,
+                                 progress=not args.quiet)
+    written = write_calibration(args.out, result)
+    r = result.report
+    intr = r["intrinsics"]
+    K = result.camera.camera_matrix
+    _say(args, f"board found in {r['board_found']} of {r['frames_searched']} frames; "
+               f"intrinsics from {intr['views']} views: RMS reprojection {intr['rms_px']:.3f} px, "
+               f"fx {K[0, 0]:.2f} fy {K[1, 1]:.2f} cx {K[0, 2]:.2f} cy {K[1, 2]:.2f} px")
+    he = r["hand_eye"]
+    if "skipped" in he:
+        _say(args, f"hand-eye skipped: {he['skipped']}")
+    else:
+        _say(args, f"hand-eye from {he['views']} views: +- {he['rotation_std_deg']:.3f} deg, "
+                   f"+- {he['translation_std_mm']:.3f} mm (1 sigma); tracker noise seen "
+                   f"{he['tracker_sigma_deg']:.3f} deg, {he['tracker_sigma_mm']:.3f} mm per "
+                   f"axis; {len(he['views_beyond_3_sigma'])} views beyond 3 sigma")
+    _say(args, f"wrote {', '.join(written)} to {args.out} (copy camera.yaml and hand_eye.txt "
+               "into the datasets recorded with this scope)")
     return 0
 
 
@@ -488,9 +544,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     sim = sub.add_parser("simulate", help="write a simulated dataset (with ground truth)")
     sim_sub = sim.add_subparsers(dest="kind", required=True)
-    for kind, cls in (("fetoscopy", simulation.FetoscopyOptions),
-                      ("pcle", simulation.PcleOptions)):
-        p = sim_sub.add_parser(kind, help=f"{kind} dataset (see fusedmosaic.simulation)",
+    for kind, cls, what in (
+            ("fetoscopy", simulation.FetoscopyOptions, "fetoscopy dataset"),
+            ("pcle", simulation.PcleOptions, "pcle dataset"),
+            ("checkerboard", simulation.CheckerboardOptions,
+             "tracked checkerboard recording, for `fusedmosaic calibrate`")):
+        p = sim_sub.add_parser(kind, help=f"{what} (see fusedmosaic.simulation)",
                                parents=[quiet])
         p.add_argument("out", help="output dataset folder (must not exist or be empty)")
         p.add_argument("--overwrite", action="store_true",
@@ -542,6 +601,39 @@ def build_parser() -> argparse.ArgumentParser:
     imp.add_argument("--overwrite", action="store_true",
                      help="replace an earlier dataset in OUT")
     imp.set_defaults(func=_cmd_import)
+
+    cal = sub.add_parser(
+        "calibrate", parents=[quiet],
+        help="camera intrinsics and hand-eye transform from a tracked checkerboard recording",
+        description="Finds a checkerboard in the recording's frames (frames/ or video.*, "
+                    "frames.csv, tracking.csv as in a dataset; camera.yaml optional), computes "
+                    "the intrinsics and lens distortion (OpenCV calibrateCamera) and, with "
+                    "tracking.csv, the hand-eye transform sensor_from_camera (maximum likelihood "
+                    "under the tracker's noise), and writes camera.yaml, hand_eye.txt and "
+                    "calibration.json to --out.")
+    cal.add_argument("recording", help="recording folder (frames/ or video.*, frames.csv, "
+                                       "tracking.csv)")
+    cal.add_argument("--board", required=True,
+                     help="inner corners, COLUMNSxROWS (e.g. 9x6 for a board of 10x7 squares; "
+                          "columns + rows odd for the hand-eye)")
+    cal.add_argument("--square-mm", type=float, required=True, help="side of a square, mm")
+    cal.add_argument("--out", required=True, help="output folder")
+    cal.add_argument("--distortion", type=int, default=5, choices=(0, 4, 5, 8),
+                     help="distortion coefficients estimated: 0 none, 4 k1 k2 p1 p2, 5 + k3 "
+                          "(default), 8 rational model")
+    cal.add_argument("--every", type=int, default=1,
+                     help="search every n-th frame for the board (default 1)")
+    cal.add_argument("--max-views", type=int, default=60,
+                     help="at most this many views, spread over the recording, for the "
+                          "intrinsics (default 60; the hand-eye uses all)")
+    cal.add_argument("--tracker-rot-sigma", type=float, default=1.0,
+                     help="tracker rotation noise, deg: weights the first hand-eye fit; the "
+                          "second uses the noise seen (default 1)")
+    cal.add_argument("--tracker-trans-sigma", type=float, default=1.0,
+                     help="tracker translation noise, mm (default 1)")
+    cal.add_argument("--fps", type=float, default=25.0,
+                     help="frame rate when the recording has no frames.csv (default 25)")
+    cal.set_defaults(func=_cmd_calibrate)
 
     live = sub.add_parser(
         "live", parents=[quiet],

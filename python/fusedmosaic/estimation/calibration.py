@@ -1,0 +1,528 @@
+"""Camera intrinsics and the EM sensor's hand-eye transform from a tracked checkerboard recording.
+
+Paper 000 (Sec. 4.1) pre-calibrates the fetoscope (intrinsics and lens distortion) and computes
+the hand-eye transform "from a sequence of images of a checkerboard as well as synchronized
+sensor poses". This module does both from one recording in the dataset layout (frames/ or a
+video, frames.csv, tracking.csv; camera.yaml optional, its image size checked):
+
+1. The board's inner corners are found in every ``every``-th frame (OpenCV's
+   findChessboardCorners + cornerSubPix, findChessboardCornersSB when that fails) and put in one
+   order: board x along a row, y down the columns, z into the board, the square diagonally
+   outside corner (0, 0) dark. That needs a board whose columns + rows (inner corners) is odd;
+   otherwise it is symmetric under a half turn and only the intrinsics are computed.
+2. Intrinsics: cv2.calibrateCamera over at most ``max_views`` detections spread over the
+   recording, with 0 / 4 / 5 / 8 distortion coefficients; views whose RMS reprojection error is
+   over 3x the median (and over 1 px) are dropped once and the calibration repeated.
+3. Hand-eye: every detection gives cam_from_board C_k (solvePnP with the intrinsics) and the
+   tracker gives tracker_from_sensor A_k at the frame time (interpolated as the datasets are),
+   with A_k X C_k = B for the unknown X = sensor_from_camera and B = tracker_from_board. X starts
+   from the relative motions (A_j^-1 A_i) X = X (C_j C_i^-1) (rotation axes aligned, Park &
+   Martin's least squares; then the translations linearly), B from the mean of A_k X C_k; then
+   X and B are refined together by SciPy least_squares on the tracker residuals
+   A_k^-1 B C_k^-1 X^-1 (rotation in the sensor frame / rot_sigma_deg, translation in the tracker
+   frame / trans_sigma_mm, Huber beyond 3 sigma): the maximum-likelihood estimate when the
+   board poses from the images are much more precise than the tracker (tens of µm against the
+   EM tracker's tenths of mm). Standard errors come from the Jacobian at the solution.
+"""
+
+from __future__ import annotations
+
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from fusedmosaic.io.calibration import Camera
+
+DISTORTION_FLAGS = {
+    0: cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST,
+    4: cv2.CALIB_FIX_K3,
+    5: 0,
+    8: cv2.CALIB_RATIONAL_MODEL,
+}
+MIN_VIEWS = 4  # calibrateCamera's minimum for K + distortion is lower; 4 keeps it determined
+MIN_HAND_EYE_VIEWS = 3
+MIN_RELATIVE_ROTATION_DEG = 5.0  # pairs of views rotating less say little about X's rotation
+OUTLIER_VIEW_FACTOR = 3.0
+HUBER_SIGMAS = 3.0
+
+
+@dataclass
+class CalibrationOptions:
+    """board_cols x board_rows inner corners (OpenCV's pattern size), squares of square_mm.
+
+    distortion : number of OpenCV distortion coefficients estimated (0, 4: k1 k2 p1 p2, 5: + k3,
+        8: rational model).
+    every : detect the board in every n-th frame only.
+    max_views : at most this many detections (evenly spread) enter the intrinsics; all enter
+        the hand-eye.
+    rot_sigma_deg, trans_sigma_mm : the EM tracker's noise, weighting its rotation against its
+        translation in the hand-eye fit (paper 000's Sigma_EMT defaults: 1 deg, 1 mm).
+    threads : frames searched for the board in parallel.
+    """
+
+    board_cols: int = 9
+    board_rows: int = 6
+    square_mm: float = 2.0
+    distortion: int = 5
+    every: int = 1
+    max_views: int = 60
+    rot_sigma_deg: float = 1.0
+    trans_sigma_mm: float = 1.0
+    threads: int = 2
+
+    def validate(self) -> None:
+        for key in ("board_cols", "board_rows"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 2:
+                raise ValueError(f"{key}: expected an integer >= 2 (inner corners), got {value!r}")
+        if self.distortion not in DISTORTION_FLAGS:
+            raise ValueError(f"distortion: expected one of {sorted(DISTORTION_FLAGS)} "
+                             f"coefficients, got {self.distortion!r}")
+        for key in ("every", "max_views", "threads"):
+            if int(getattr(self, key)) != getattr(self, key) or getattr(self, key) < 1:
+                raise ValueError(f"{key}: expected an integer >= 1, got {getattr(self, key)!r}")
+        if self.max_views < MIN_VIEWS:
+            raise ValueError(f"max_views: must be >= {MIN_VIEWS}, got {self.max_views}")
+        for key in ("square_mm", "rot_sigma_deg", "trans_sigma_mm"):
+            value = getattr(self, key)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{key}: must be a number > 0, got {value!r}")
+
+    @property
+    def pattern(self) -> tuple[int, int]:
+        return (int(self.board_cols), int(self.board_rows))
+
+    @property
+    def oriented(self) -> bool:
+        """A board whose orientation the corners fix (columns + rows odd)."""
+        return (self.board_cols + self.board_rows) % 2 == 1
+
+    def board_points(self) -> np.ndarray:
+        """(rows * cols, 3) float32 inner corners in the board frame (mm), row by row."""
+        j, i = np.mgrid[0:self.board_rows, 0:self.board_cols]
+        return (np.stack([i.ravel(), j.ravel(), np.zeros(i.size)], 1)
+                * self.square_mm).astype(np.float32)
+
+
+@dataclass
+class HandEyeResult:
+    """sensor_from_camera and tracker_from_board (4, 4); per-view tracker residuals
+    (rotation deg, translation mm) and inlier flags; standard errors of the hand-eye rotation
+    (deg) and translation (mm), the largest over directions."""
+
+    sensor_from_camera: np.ndarray
+    tracker_from_board: np.ndarray
+    rotation_residual_deg: np.ndarray
+    translation_residual_mm: np.ndarray
+    inlier: np.ndarray
+    rotation_std_deg: float
+    translation_std_mm: float
+    tracker_sigma: tuple[float, float] = (0.0, 0.0)
+
+
+@dataclass
+class CalibrationResult:
+    """What calibrate_recording found: the camera (intrinsics + distortion) for camera.yaml,
+    the hand-eye (None without tracking or with a symmetric board) and a JSON-able report."""
+
+    camera: Camera
+    hand_eye: np.ndarray | None
+    report: dict = field(default_factory=dict)
+
+
+# ------------------------------------------------------------------------------------------------
+# Board detection
+# ------------------------------------------------------------------------------------------------
+
+
+def detect_board(image: np.ndarray, options: CalibrationOptions) -> np.ndarray | None:
+    """The board's inner corners (rows * cols, 2) float64 in the canonical order (module doc),
+    sub-pixel; None when the whole board is not found."""
+    gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    pattern = options.pattern
+    flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
+    found, corners = cv2.findChessboardCorners(gray, pattern, flags=flags)
+    if found:
+        c = corners.reshape(-1, 2)
+        spacing = np.median(np.linalg.norm(np.diff(c.reshape(pattern[1], pattern[0], 2),
+                                                   axis=1), axis=2))
+        half = int(np.clip(0.4 * spacing, 2, 11))
+        corners = cv2.cornerSubPix(gray, corners, (half, half), (-1, -1), (
+            cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-3))
+    else:
+        found, corners = cv2.findChessboardCornersSB(gray, pattern,
+                                                     flags=cv2.CALIB_CB_NORMALIZE_IMAGE)
+        if not found:
+            return None
+    return _canonical_order(gray, corners.reshape(-1, 2).astype(np.float64), pattern)
+
+
+def _canonical_order(gray: np.ndarray, c: np.ndarray, pattern: tuple[int, int]) -> np.ndarray:
+    """Reorder detected corners so that board x runs along a row and y down the columns as a
+    right-handed frame seen from the front (z into the board), and the square diagonally
+    outside corner (0, 0) is dark (decides between the two half-turn orders when cols + rows
+    is odd)."""
+    cols, rows = pattern
+    grid = c.reshape(rows, cols, 2)
+    a, b = grid[0, 1] - grid[0, 0], grid[1, 0] - grid[0, 0]
+    if a[0] * b[1] - a[1] * b[0] < 0:  # mirrored: image y points down, so det > 0 is right
+        grid = grid[:, ::-1]
+    outside = _mean_intensity(gray, _square_centre(grid, 0, 0, -1, -1))
+    beside = _mean_intensity(gray, _square_centre(grid, 0, 0, 1, -1))
+    if outside > beside:
+        grid = grid[::-1, ::-1]
+    return grid.reshape(-1, 2)
+
+
+def _square_centre(grid: np.ndarray, j: int, i: int, di: int, dj: int) -> np.ndarray:
+    """Image position of the centre of the square diagonally next to corner (j, i) towards
+    (di, dj), from the local corner spacing."""
+    step_i = grid[j, i + 1] - grid[j, i]
+    step_j = grid[j + 1, i] - grid[j, i]
+    return grid[j, i] + 0.5 * di * step_i + 0.5 * dj * step_j
+
+
+def _mean_intensity(gray: np.ndarray, p: np.ndarray, radius: int = 2) -> float:
+    x, y = (int(round(v)) for v in p)
+    h, w = gray.shape
+    patch = gray[max(y - radius, 0):min(y + radius + 1, h), max(x - radius, 0):min(x + radius + 1,
+                                                                                     w)]
+    return float(patch.mean()) if patch.size else 128.0
+
+
+# ------------------------------------------------------------------------------------------------
+# Intrinsics
+# ------------------------------------------------------------------------------------------------
+
+
+def calibrate_intrinsics(
+    image_points: list[np.ndarray], size: tuple[int, int], options: CalibrationOptions
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
+    """K (3, 3), distortion (options.distortion,), per-view RMS reprojection error (px) of the
+    views kept, and the indices (into image_points) of the views dropped as outliers."""
+    obj = options.board_points()
+    keep = list(range(len(image_points)))
+    dropped: list[int] = []
+    for attempt in range(2):
+        K, dist, rms = _calibrate(obj, [image_points[i] for i in keep], size, options)
+        if attempt == 1:
+            break
+        limit = max(OUTLIER_VIEW_FACTOR * float(np.median(rms)), 1.0)
+        bad = [i for i, r in zip(keep, rms, strict=True) if r > limit]
+        if not bad or len(keep) - len(bad) < MIN_VIEWS:
+            break
+        dropped = bad
+        keep = [i for i in keep if i not in bad]
+    return K, dist, rms, dropped
+
+
+def _calibrate(obj, points, size, options) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    flags = DISTORTION_FLAGS[options.distortion]
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    _, K, dist, rvecs, tvecs = cv2.calibrateCamera(
+        [obj] * len(points), [p.astype(np.float32).reshape(-1, 1, 2) for p in points], size,
+        None, None, flags=flags, criteria=criteria)
+    dist = dist.reshape(-1)[:max(options.distortion, 4)]
+    if options.distortion == 0:
+        dist = np.zeros(4)
+    rms = np.array([
+        np.sqrt(np.mean(np.sum((cv2.projectPoints(obj, r, t, K, dist)[0].reshape(-1, 2) - p)
+                               ** 2, axis=1)))
+        for r, t, p in zip(rvecs, tvecs, points, strict=True)])
+    return K, dist, rms
+
+
+def board_poses(image_points: list[np.ndarray], K: np.ndarray, dist: np.ndarray,
+                options: CalibrationOptions) -> tuple[np.ndarray, np.ndarray]:
+    """cam_from_board (N, 4, 4) of each detection (solvePnP, iterative) and its RMS
+    reprojection error (px)."""
+    obj = options.board_points()
+    poses = np.tile(np.eye(4), (len(image_points), 1, 1))
+    rms = np.zeros(len(image_points))
+    for k, p in enumerate(image_points):
+        ok, r, t = cv2.solvePnP(obj, p.reshape(-1, 1, 2), K, dist, flags=cv2.SOLVEPNP_ITERATIVE)
+        if not ok:  # pragma: no cover - a detected planar board always has a pose
+            raise ValueError("solvePnP failed on a detected board")
+        poses[k, :3, :3] = cv2.Rodrigues(r)[0]
+        poses[k, :3, 3] = t.reshape(3)
+        proj = cv2.projectPoints(obj, r, t, K, dist)[0].reshape(-1, 2)
+        rms[k] = np.sqrt(np.mean(np.sum((proj - p) ** 2, axis=1)))
+    return poses, rms
+
+
+# ------------------------------------------------------------------------------------------------
+# Hand-eye
+# ------------------------------------------------------------------------------------------------
+
+
+def calibrate_hand_eye(
+    tracker_from_sensor: np.ndarray,
+    cam_from_board: np.ndarray,
+    *,
+    rot_sigma_deg: float = 1.0,
+    trans_sigma_mm: float = 1.0,
+) -> HandEyeResult:
+    """X = sensor_from_camera and B = tracker_from_board from A_k X C_k = B over views k (module
+    doc). ValueError when the views do not determine X (fewer than 3, or rotations about fewer
+    than two distinct axes)."""
+    A = np.asarray(tracker_from_sensor, np.float64)
+    C = np.asarray(cam_from_board, np.float64)
+    if A.shape != C.shape or A.ndim != 3 or A.shape[1:] != (4, 4):
+        raise ValueError(f"hand-eye: expected two (N, 4, 4) stacks, got {A.shape} and {C.shape}")
+    n = A.shape[0]
+    if n < MIN_HAND_EYE_VIEWS:
+        raise ValueError(f"hand-eye: {n} views with a tracker sample; at least "
+                         f"{MIN_HAND_EYE_VIEWS} are needed (and more, rotated about different "
+                         "axes, for a precise result)")
+    X0 = _hand_eye_from_motions(A, C)
+    B0 = _mean_transform(A @ X0 @ C)
+    Ainv = np.linalg.inv(A)
+    Cinv = np.linalg.inv(C)
+
+    def unpack(p):
+        X, B = X0.copy(), B0.copy()
+        X[:3, :3] = X0[:3, :3] @ Rotation.from_rotvec(p[0:3]).as_matrix()
+        X[:3, 3] = X0[:3, 3] + p[3:6]
+        B[:3, :3] = B0[:3, :3] @ Rotation.from_rotvec(p[6:9]).as_matrix()
+        B[:3, 3] = B0[:3, 3] + p[9:12]
+        return X, B
+
+    def residuals(p, sigma=None):
+        X, B = unpack(p)
+        predicted = B @ Cinv @ np.linalg.inv(X)  # tracker_from_sensor seen through the board
+        rot = Rotation.from_matrix((Ainv @ predicted)[:, :3, :3]).as_rotvec()
+        r = np.hstack([rot, predicted[:, :3, 3] - A[:, :3, 3]])
+        return r if sigma is None else (r / sigma).ravel()
+
+    # The given noise weights the first fit; the noise its inliers show weights the second
+    # (rotation against translation matters, and users rarely know their tracker's).
+    sigma = np.array([np.deg2rad(rot_sigma_deg)] * 3 + [trans_sigma_mm] * 3)
+    p = np.zeros(12)
+    for attempt in range(2):
+        fit = least_squares(residuals, p, args=(sigma,), method="trf", loss="huber",
+                            f_scale=HUBER_SIGMAS, x_scale="jac")
+        p = fit.x
+        r = residuals(p)
+        inlier = np.abs(r / sigma).max(axis=1) <= HUBER_SIGMAS
+        if attempt == 1 or inlier.sum() < MIN_HAND_EYE_VIEWS:
+            break
+        seen = np.sqrt(np.mean(r[inlier] ** 2, axis=0))
+        sigma = np.repeat([max(seen[:3].mean(), 1e-9), max(seen[3:].mean(), 1e-12)], 3)
+    X, B = unpack(p)
+    JtJ = fit.jac.T @ fit.jac
+    eig = np.linalg.eigvalsh(JtJ)
+    if eig[0] <= 1e-12 * eig[-1]:
+        raise ValueError("hand-eye: the views do not determine it (rotate the scope about at "
+                         "least two different axes between views)")
+    dof = max(r.size - 12, 1)
+    cov = np.linalg.inv(JtJ) * (2.0 * fit.cost / dof)
+    return HandEyeResult(
+        sensor_from_camera=X,
+        tracker_from_board=B,
+        rotation_residual_deg=np.rad2deg(np.linalg.norm(r[:, :3], axis=1)),
+        translation_residual_mm=np.linalg.norm(r[:, 3:], axis=1),
+        inlier=inlier,
+        rotation_std_deg=float(np.rad2deg(np.sqrt(np.linalg.eigvalsh(cov[0:3, 0:3])[-1]))),
+        translation_std_mm=float(np.sqrt(np.linalg.eigvalsh(cov[3:6, 3:6])[-1])),
+        tracker_sigma=(float(np.rad2deg(sigma[0])), float(sigma[3])),
+    )
+
+
+def _hand_eye_from_motions(A: np.ndarray, C: np.ndarray, max_views: int = 60) -> np.ndarray:
+    """Closed-form X from pairs of views: (A_j^-1 A_i) X = X (C_j C_i^-1). Rotation: the
+    rotation vectors satisfy alpha = R_X beta (aligned by SciPy's align_vectors, the least
+    squares solution); translation: (R_A - I) t_X = R_X t_B - t_A, stacked (least squares)."""
+    idx = np.linspace(0, A.shape[0] - 1, min(A.shape[0], max_views)).round().astype(int)
+    idx = np.unique(idx)
+    i, j = np.triu_indices(idx.size, 1)
+    i, j = idx[i], idx[j]
+    MA = np.linalg.inv(A[j]) @ A[i]
+    MB = C[j] @ np.linalg.inv(C[i])
+    alpha = Rotation.from_matrix(MA[:, :3, :3]).as_rotvec()
+    beta = Rotation.from_matrix(MB[:, :3, :3]).as_rotvec()
+    use = np.linalg.norm(beta, axis=1) > np.deg2rad(MIN_RELATIVE_ROTATION_DEG)
+    axes = beta[use] / np.linalg.norm(beta[use], axis=1, keepdims=True) if use.any() else beta[:0]
+    spread = np.linalg.svd(axes, compute_uv=False) if len(axes) >= 2 else np.zeros(2)
+    if len(axes) < 2 or spread[1] < 0.1 * spread[0]:
+        raise ValueError(
+            "hand-eye: the views do not determine it: between views the scope must rotate by "
+            f"more than {MIN_RELATIVE_ROTATION_DEG:g} deg about at least two different axes "
+            f"({int(use.sum())} pairs of views rotate that much"
+            + (", all about nearly one axis)" if len(axes) >= 2 else ")"))
+    R_X, _ = Rotation.align_vectors(alpha[use], beta[use])
+    R = R_X.as_matrix()
+    lhs = (MA[use, :3, :3] - np.eye(3)).reshape(-1, 3)
+    rhs = (np.einsum("ij,njk->nik", R, MB[use, :3, 3:4])[..., 0] - MA[use, :3, 3]).reshape(-1)
+    t = np.linalg.lstsq(lhs, rhs, rcond=None)[0]
+    X = np.eye(4)
+    X[:3, :3], X[:3, 3] = R, t
+    return X
+
+
+def _tracker_from_sensor(sensor_from_tracker: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) inverses of (N, 6) [angle-axis, t] poses."""
+    R = Rotation.from_rotvec(sensor_from_tracker[:, :3]).inv()
+    T = np.tile(np.eye(4), (sensor_from_tracker.shape[0], 1, 1))
+    T[:, :3, :3] = R.as_matrix()
+    T[:, :3, 3] = -R.apply(sensor_from_tracker[:, 3:])
+    return T
+
+
+def _mean_transform(T: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_matrix(T[:, :3, :3]).mean().as_matrix()
+    out[:3, 3] = T[:, :3, 3].mean(0)
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# A recording
+# ------------------------------------------------------------------------------------------------
+
+
+def calibrate_recording(
+    root: str | Path,
+    options: CalibrationOptions | None = None,
+    *,
+    fps: float = 25.0,
+    progress: bool = False,
+) -> CalibrationResult:
+    """Calibrate from a recording folder (module doc). ValueError naming the folder or file for
+    a missing recording, a board found in too few frames, or views that cannot give the
+    hand-eye."""
+    from fusedmosaic.io.calibration import read_camera_yaml
+    from fusedmosaic.io.dataset import _read_frame_times
+    from fusedmosaic.io.tracking import interpolate_camera_poses, read_tracking_csv
+    from fusedmosaic.io.video import FrameSource
+
+    o = CalibrationOptions() if options is None else options
+    o.validate()
+    root = Path(root)
+    if not root.is_dir():
+        raise ValueError(f"{root}: recording folder not found")
+    t_start = time.perf_counter()
+    size = None
+    if (root / "camera.yaml").exists():
+        given = read_camera_yaml(root / "camera.yaml")
+        size = given.size
+    frames = FrameSource.open(root, expected_size=size)
+    frame_ids, timestamps = _read_frame_times(root, len(frames), fps)
+    first = frames[0]
+    size = (first.shape[1], first.shape[0])
+    tried = np.arange(0, len(frames), o.every)
+
+    def detect(k: int):
+        return detect_board(frames[int(k)], o)
+
+    with ThreadPoolExecutor(max_workers=o.threads) as pool:
+        results = pool.map(detect, tried)
+        if progress:
+            from tqdm import tqdm
+            results = tqdm(results, total=tried.size, desc="board search", unit="frame")
+        found = list(results)
+    views = np.array([k for k, c in zip(tried, found, strict=True) if c is not None], int)
+    points = [c for c in found if c is not None]
+    t_detect = time.perf_counter() - t_start
+    pattern = f"{o.board_cols}x{o.board_rows}"
+    if len(views) < MIN_VIEWS:
+        raise ValueError(
+            f"{root}: the {pattern} board (inner corners, columns x rows) was found in "
+            f"{len(views)} of {tried.size} frames searched; calibration needs at least "
+            f"{MIN_VIEWS} views (15-30 at varied angles are advised). Check the board size "
+            "(inner corners, not squares) and that the whole board is in view")
+
+    chosen = np.unique(np.linspace(0, len(views) - 1, min(len(views), o.max_views))
+                       .round().astype(int))
+    K, dist, rms, dropped = calibrate_intrinsics([points[i] for i in chosen], size, o)
+    dropped_frames = [int(frame_ids[views[chosen[i]]]) for i in dropped]
+    poses, pnp_rms = board_poses(points, K, dist, o)
+    camera = Camera(size[0], size[1], camera_matrix=K,
+                    distortion=None if o.distortion == 0 else dist)
+    report: dict = {
+        "recording": str(root.resolve()),
+        "board": {"inner_corners": [o.board_cols, o.board_rows], "square_mm": o.square_mm},
+        "image_size": list(size),
+        "frames": len(frames),
+        "frames_searched": int(tried.size),
+        "board_found": int(len(views)),
+        "intrinsics": {
+            "views": int(len(chosen) - len(dropped)),
+            "views_dropped_as_outliers": dropped_frames,
+            "rms_px": float(np.sqrt(np.mean(rms ** 2))),
+            "view_rms_px_max": float(rms.max()),
+            "camera_matrix": K.tolist(),
+            "distortion": [float(v) for v in dist],
+            "distortion_coefficients": o.distortion,
+        },
+        "timings_s": {"board_search": t_detect},
+    }
+
+    hand_eye = None
+    tracking_path = root / "tracking.csv"
+    if not tracking_path.exists():
+        report["hand_eye"] = {"skipped": f"no tracking.csv in {root}"}
+    elif not o.oriented:
+        report["hand_eye"] = {"skipped": (
+            f"the {pattern} board looks the same after a half turn (columns + rows even), so "
+            "its pose is ambiguous; use a board with an odd sum, e.g. 9x6")}
+    else:
+        t0 = time.perf_counter()
+        samples = read_tracking_csv(tracking_path)
+        # interpolate_camera_poses with no hand-eye gives sensor_from_tracker as [r, t].
+        sensor_pose, valid = interpolate_camera_poses(
+            samples, timestamps[views], None, allow_outside=True, source=str(tracking_path))
+        A = _tracker_from_sensor(sensor_pose[valid])
+        he = calibrate_hand_eye(A, poses[valid], rot_sigma_deg=o.rot_sigma_deg,
+                                trans_sigma_mm=o.trans_sigma_mm)
+        hand_eye = he.sensor_from_camera
+        # What the tracker alone places: board corners through the tracked camera pose.
+        predicted = np.linalg.inv(he.sensor_from_camera) @ np.linalg.inv(A) \
+            @ he.tracker_from_board
+        obj = o.board_points()
+        through_tracker = np.array([
+            np.mean(np.linalg.norm(cv2.projectPoints(
+                obj, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], K, dist)[0].reshape(-1, 2)
+                - points[k], axis=1))
+            for T, k in zip(predicted, np.flatnonzero(valid), strict=True)])
+        report["hand_eye"] = {
+            "views": int(valid.sum()),
+            "views_without_tracker_sample": [int(frame_ids[v]) for v in views[~valid]],
+            "views_beyond_3_sigma": [int(frame_ids[v]) for v in views[valid][~he.inlier]],
+            "sensor_from_camera": he.sensor_from_camera.tolist(),
+            "tracker_from_board": he.tracker_from_board.tolist(),
+            "rotation_std_deg": he.rotation_std_deg,
+            "tracker_sigma_deg": he.tracker_sigma[0],
+            "tracker_sigma_mm": he.tracker_sigma[1],
+            "translation_std_mm": he.translation_std_mm,
+            "tracker_residual_rotation_deg_rms": float(np.sqrt(np.mean(
+                he.rotation_residual_deg ** 2))),
+            "tracker_residual_translation_mm_rms": float(np.sqrt(np.mean(
+                he.translation_residual_mm ** 2))),
+            "board_through_tracker_px_median": float(np.median(through_tracker)),
+            "first_fit_noise": {"rot_sigma_deg": o.rot_sigma_deg,
+                                "trans_sigma_mm": o.trans_sigma_mm},
+        }
+        report["timings_s"]["hand_eye"] = time.perf_counter() - t0
+    report["timings_s"]["total"] = time.perf_counter() - t_start
+    return CalibrationResult(camera, hand_eye, report)
+
+
+def write_calibration(out: str | Path, result: CalibrationResult) -> list[str]:
+    """camera.yaml, hand_eye.txt (when found) and calibration.json into ``out``, atomically
+    (io.OutputWriter); returns the names written."""
+    from fusedmosaic.io.calibration import write_camera_yaml
+    from fusedmosaic.io.output import OutputWriter
+    from fusedmosaic.io.tracking import write_hand_eye
+
+    with OutputWriter(out, record="calibrate") as w:
+        write_camera_yaml(w.path("camera.yaml"), result.camera)
+        if result.hand_eye is not None:
+            write_hand_eye(w.path("hand_eye.txt"), result.hand_eye)
+        w.write_json("calibration.json", result.report)
+        return w.written()
