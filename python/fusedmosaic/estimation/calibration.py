@@ -148,18 +148,18 @@ def detect_board(image: np.ndarray, options: CalibrationOptions) -> np.ndarray |
     pattern = options.pattern
     flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
     found, corners = cv2.findChessboardCorners(gray, pattern, flags=flags)
-    if found:
-        c = corners.reshape(-1, 2)
-        spacing = np.median(np.linalg.norm(np.diff(c.reshape(pattern[1], pattern[0], 2),
-                                                   axis=1), axis=2))
-        half = int(np.clip(0.4 * spacing, 2, 11))
-        corners = cv2.cornerSubPix(gray, corners, (half, half), (-1, -1), (
-            cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-3))
-    else:
+    if not found:  # the sector-based detector finds boards the classic one misses (blur, noise)
         found, corners = cv2.findChessboardCornersSB(gray, pattern,
                                                      flags=cv2.CALIB_CB_NORMALIZE_IMAGE)
         if not found:
             return None
+    c = corners.reshape(-1, 2)
+    spacing = np.median(np.linalg.norm(np.diff(c.reshape(pattern[1], pattern[0], 2), axis=1),
+                                       axis=2))
+    half = int(np.clip(0.4 * spacing, 2, 11))
+    corners = cv2.cornerSubPix(gray, np.ascontiguousarray(corners, np.float32), (half, half),
+                               (-1, -1), (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50,
+                                          1e-3))
     return _canonical_order(gray, corners.reshape(-1, 2).astype(np.float64), pattern)
 
 

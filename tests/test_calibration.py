@@ -1,0 +1,232 @@
+"""Camera + hand-eye calibration from a tracked checkerboard recording (estimation/calibration.py,
+`fusedmosaic calibrate`) against the checkerboard simulator's ground truth."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from fusedmosaic.cli import main
+from fusedmosaic.estimation.calibration import (
+    CalibrationOptions,
+    _canonical_order,
+    calibrate_hand_eye,
+    calibrate_recording,
+    detect_board,
+)
+from fusedmosaic.io import read_camera_yaml, read_hand_eye
+from fusedmosaic.simulation import (
+    CheckerboardOptions,
+    generate_checkerboard,
+    simulate_checkerboard,
+    simulate_fetoscopy,
+)
+from fusedmosaic.simulation.fetoscopy import FetoscopyOptions
+
+# Small recording: 12 views x 4 frames at 320x320, the simulator's default lens (k1 -0.30) and
+# EM noise (0.9 deg, 0.25 mm per axis: an Aurora in the laboratory, paper 000 Sec. 4.1).
+SMALL = dict(n_views=12, frames_per_view=4, width=320, height=320)
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    root = tmp_path_factory.mktemp("cal") / "board"
+    simulate_checkerboard(root, CheckerboardOptions(**SMALL))
+    return root
+
+
+def _rotation_deg(R: np.ndarray) -> float:
+    return float(np.rad2deg(Rotation.from_matrix(R).magnitude()))
+
+
+def _model_difference_px(truth, est, width, height) -> float:
+    """Largest pixel distance between where the true and the estimated camera put the same rays,
+    over the central 80 % of the image (the region the board views cover)."""
+    u, v = np.meshgrid(np.linspace(0.1, 0.9, 17) * (width - 1),
+                       np.linspace(0.1, 0.9, 17) * (height - 1))
+    px = np.stack([u.ravel(), v.ravel()], 1).reshape(-1, 1, 2)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12)
+    rays = cv2.undistortPoints(px, truth.camera_matrix, truth.distortion, criteria=crit)
+    rays = np.hstack([rays.reshape(-1, 2), np.ones((rays.shape[0], 1))])
+    back, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), est.camera_matrix,
+                                est.distortion)
+    return float(np.linalg.norm(back.reshape(-1, 2) - px.reshape(-1, 2), axis=1).max())
+
+
+def test_recovers_intrinsics_and_hand_eye(recording):
+    result = calibrate_recording(recording)
+    truth = read_camera_yaml(recording / "truth_camera.yaml")
+    K, K0 = result.camera.camera_matrix, truth.camera_matrix
+    # Tolerances: focal 0.5 %, principal point 2 px, camera models within 0.25 px over the image
+    # (corners are found to ~0.04 px here); hand-eye 0.5 deg / 0.5 mm against the tracker's
+    # 0.9 deg / 0.25 mm per-sample noise (measured ~0.1-0.3 deg, ~0.05-0.16 mm over seeds).
+    assert abs(K[0, 0] / K0[0, 0] - 1) < 0.005 and abs(K[1, 1] / K0[1, 1] - 1) < 0.005
+    assert np.abs(K[:2, 2] - K0[:2, 2]).max() < 2.0
+    assert _model_difference_px(truth, result.camera, 320, 320) < 0.25
+    intr = result.report["intrinsics"]
+    assert intr["rms_px"] < 0.2 and intr["views_dropped_as_outliers"] == []
+    X0 = read_hand_eye(recording / "truth_hand_eye.txt")
+    X = result.hand_eye
+    assert _rotation_deg(X0[:3, :3].T @ X[:3, :3]) < 0.5
+    assert np.linalg.norm(X[:3, 3] - X0[:3, 3]) < 0.5
+    he = result.report["hand_eye"]
+    resting = json.loads((recording / "simulation.json").read_text())["resting_frames"]
+    assert he["views"] >= len(resting)  # every rest frame shows the whole board
+    assert 0 < he["rotation_std_deg"] < 0.5 and 0 < he["translation_std_mm"] < 0.5
+    # The noise the fit sees is the simulator's, less what interpolating two samples averages.
+    assert 0.4 < he["tracker_sigma_deg"] < 1.0 and 0.1 < he["tracker_sigma_mm"] < 0.3
+    B0 = read_hand_eye(recording / "truth_board.txt")
+    assert np.linalg.norm(np.asarray(he["tracker_from_board"])[:3, 3] - B0[:3, 3]) < 1.0
+
+
+def test_corner_order_is_the_board_frame():
+    """Detected corners come in the simulator's board order (x along a row, dark square outside
+    corner 0), also in the image turned by a half turn (the same physical corners, in order)."""
+    scene = generate_checkerboard(CheckerboardOptions(n_views=3, frames_per_view=2, width=320,
+                                                      height=320, seed=5))
+    options = CalibrationOptions()
+    points = scene.board_points()
+    for k, image in enumerate(scene.frames()):
+        if not scene.resting[k]:
+            continue
+        T = scene.cam_from_board[k]
+        truth, _ = cv2.projectPoints(points, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3],
+                                     scene.camera_matrix, scene.distortion)
+        found = detect_board(image, options)
+        assert np.linalg.norm(found - truth.reshape(-1, 2), axis=1).max() < 0.3
+        turned = detect_board(cv2.rotate(image, cv2.ROTATE_180), options)
+        back = np.array([319, 319]) - turned  # turned pixel -> original pixel
+        assert np.linalg.norm(back - found, axis=1).max() < 0.3
+        # Every order a detector may return (the sector-based detector starts elsewhere) is
+        # brought to the board's: mirrored along rows or columns, or turned by a half turn.
+        grid = truth.reshape(6, 9, 2)
+        ok, sb = cv2.findChessboardCornersSB(image, (9, 6))
+        assert ok
+        for order in (grid[:, ::-1], grid[::-1], grid[::-1, ::-1], sb.reshape(6, 9, 2)):
+            fixed = _canonical_order(image, order.reshape(-1, 2).astype(np.float64), (9, 6))
+            assert np.linalg.norm(fixed - truth.reshape(-1, 2), axis=1).max() < 1.0  # vs 20
+
+
+def _motions(n, rng, axes):
+    """n random tracker_from_sensor poses rotating about the given axes, an exact X and B, and
+    the cam_from_board poses they imply."""
+    X = np.eye(4)
+    X[:3, :3] = Rotation.from_rotvec([0.1, -0.2, 0.05]).as_matrix()
+    X[:3, 3] = [1.5, -2.4, 5.3]
+    B = np.eye(4)
+    B[:3, :3] = Rotation.from_rotvec([0.3, 0.1, -0.2]).as_matrix()
+    B[:3, 3] = [30, -20, 160]
+    A = np.tile(np.eye(4), (n, 1, 1))
+    A[:, :3, :3] = Rotation.from_rotvec(rng.uniform(-0.5, 0.5, (n, 1)) * axes[
+        rng.integers(0, len(axes), n)]).as_matrix()
+    A[:, :3, 3] = rng.uniform(-20, 20, (n, 3)) + [0, 0, 130]
+    C = np.linalg.inv(X) @ np.linalg.inv(A) @ B
+    return A, C, X, B
+
+
+def test_hand_eye_exact_and_robust():
+    rng = np.random.default_rng(1)
+    A, C, X, B = _motions(30, rng, np.eye(3))
+    he = calibrate_hand_eye(A, C)
+    assert np.abs(he.sensor_from_camera - X).max() < 1e-7
+    assert np.abs(he.tracker_from_board - B).max() < 1e-6
+    # Small tracker noise and one glitch of 25 mm: the glitch is flagged, the rest holds.
+    noisy = A.copy()
+    noisy[:, :3, 3] += rng.normal(0, 0.2, (30, 3))
+    noisy[7, :3, 3] += [25.0, 0, 0]
+    he = calibrate_hand_eye(noisy, C)
+    assert not he.inlier[7] and he.inlier.sum() >= 27
+    assert np.linalg.norm(he.sensor_from_camera[:3, 3] - X[:3, 3]) < 0.5
+
+
+@pytest.mark.parametrize("axes, why", [
+    (np.array([[0.0, 0.0, 1.0]]), "two different axes"),  # one rotation axis only
+    (np.zeros((1, 3)), "two different axes"),              # translations only
+])
+def test_hand_eye_degenerate_motions_refused(axes, why):
+    A, C, _, _ = _motions(20, np.random.default_rng(2), axes)
+    with pytest.raises(ValueError, match=why):
+        calibrate_hand_eye(A, C)
+
+
+def test_cli_calibrate_writes_camera_and_hand_eye(recording, tmp_path, capsys):
+    out = tmp_path / "calib"
+    assert main(["calibrate", str(recording), "--board", "9x6", "--square-mm", "2",
+                 "--out", str(out), "--quiet"]) == 0
+    camera = read_camera_yaml(out / "camera.yaml")
+    assert camera.size == (320, 320) and camera.distortion.size == 5
+    X = read_hand_eye(out / "hand_eye.txt")
+    X0 = read_hand_eye(recording / "truth_hand_eye.txt")
+    assert np.linalg.norm(X[:3, 3] - X0[:3, 3]) < 0.5
+    report = json.loads((out / "calibration.json").read_text())
+    assert report["board_found"] >= 12 and report["intrinsics"]["distortion_coefficients"] == 5
+    # 4 coefficients: k3 not estimated.
+    assert main(["calibrate", str(recording), "--board", "9x6", "--square-mm", "2", "--out",
+                 str(tmp_path / "c4"), "--distortion", "4", "--every", "2", "--quiet"]) == 0
+    assert read_camera_yaml(tmp_path / "c4" / "camera.yaml").distortion.size == 4
+
+
+def test_without_tracking_or_with_a_symmetric_board_only_intrinsics(recording, tmp_path):
+    untracked = tmp_path / "untracked"
+    shutil.copytree(recording, untracked)
+    (untracked / "tracking.csv").unlink()
+    result = calibrate_recording(untracked)
+    assert result.hand_eye is None and "no tracking.csv" in result.report["hand_eye"]["skipped"]
+    root = tmp_path / "square"
+    simulate_checkerboard(root, CheckerboardOptions(**{**SMALL, "n_views": 5},
+                                                    board_cols=8, board_rows=6))
+    result = calibrate_recording(root, CalibrationOptions(board_cols=8, board_rows=6))
+    assert result.hand_eye is None
+    assert "half turn" in result.report["hand_eye"]["skipped"]
+    out = tmp_path / "out"
+    assert main(["calibrate", str(root), "--board", "8x6", "--square-mm", "2", "--out", str(out),
+                 "--quiet"]) == 0
+    assert (out / "camera.yaml").exists() and not (out / "hand_eye.txt").exists()
+
+
+def _refused(argv: list[str], message: str, capsys) -> None:
+    """The CLI exits 2 with `message` (a regular expression) on stderr."""
+    assert main(argv) == 2
+    assert re.search(message, capsys.readouterr().err)
+
+
+def test_bad_input_named(recording, tmp_path, capsys):
+    with pytest.raises(ValueError, match="recording folder not found"):
+        calibrate_recording(tmp_path / "missing")
+    plain = tmp_path / "plain"  # a fetoscopy dataset: no board anywhere
+    simulate_fetoscopy(plain, FetoscopyOptions(n_frames=6, width=96, height=96))
+    out = tmp_path / "out"
+    board = ["--board", "9x6", "--square-mm", "2"]
+    _refused(["calibrate", str(plain), *board, "--out", str(out), "--quiet"],
+             r"plain: the 9x6 board .* was found in 0 of 6 frames", capsys)
+    assert not out.exists()  # nothing written on failure
+    for flags, message in (
+            (["--board", "9by6", "--square-mm", "2"], "--board: expected inner corners"),
+            (["--board", "9x1", "--square-mm", "2"], "--board: expected an integer >= 2"),
+            (["--board", "9x6", "--square-mm", "-1"], "--square-mm: must be a number > 0"),
+            ([*board, "--max-views", "2"], "--max-views: must be >= 4"),
+            ([*board, "--tracker-rot-sigma", "nan"], "--tracker-rot-sigma: must be a number > 0"),
+            ([*board, "--fps", "0"], "--fps")):
+        _refused(["calibrate", str(recording), "--out", str(out), *flags], message, capsys)
+    assert not out.exists()
+    _refused(["calibrate", str(recording), *board, "--out", str(recording / "calib")],
+             "must not be the recording folder or inside it", capsys)
+    resized = tmp_path / "resized"
+    shutil.copytree(recording, resized)
+    (resized / "camera.yaml").write_text("%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\n")
+    with pytest.raises(ValueError, match="camera.yaml"):
+        calibrate_recording(resized)
+
+
+def test_simulate_checkerboard_flags(tmp_path, capsys):
+    _refused(["simulate", "checkerboard", str(tmp_path / "a"), "--tilt-deg", "80"],
+             "--tilt-deg: must be below 70", capsys)
+    _refused(["simulate", "checkerboard", str(tmp_path / "b"), "--square-mm", "20"],
+             "no view shows the whole 9x6 board", capsys)
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
