@@ -230,8 +230,10 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     if "skipped" in he:
         _say(args, f"hand-eye skipped: {he['skipped']}")
     else:
-        _say(args, f"hand-eye from {he['views']} views: +- {he['rotation_std_deg']:.3f} deg, "
-                   f"+- {he['translation_std_mm']:.3f} mm (1 sigma); tracker noise seen "
+        std_deg = he["rotation_std_from_tracker_noise_deg"]
+        std_mm = he["translation_std_from_tracker_noise_mm"]
+        _say(args, f"hand-eye from {he['views']} views: +- {std_deg:.3f} deg, +- {std_mm:.3f} "
+                   f"mm (1 sigma of the tracker noise alone); tracker noise seen "
                    f"{he['tracker_sigma_deg']:.3f} deg, {he['tracker_sigma_mm']:.3f} mm per "
                    f"axis; {len(he['views_beyond_3_sigma'])} views beyond 3 sigma")
     _say(args, f"wrote {', '.join(written)} to {args.out} (copy camera.yaml and hand_eye.txt "

@@ -114,7 +114,9 @@ class CalibrationOptions:
 class HandEyeResult:
     """sensor_from_camera and tracker_from_board (4, 4); per-view tracker residuals
     (rotation deg, translation mm) and inlier flags; standard errors of the hand-eye rotation
-    (deg) and translation (mm), the largest over directions."""
+    (deg) and translation (mm), the largest over directions, from the tracker noise alone (views
+    taken as independent, the board poses as exact: errors of the intrinsics add to them; see
+    bench/bench_calibration.py for measured errors)."""
 
     sensor_from_camera: np.ndarray
     tracker_from_board: np.ndarray
@@ -124,6 +126,7 @@ class HandEyeResult:
     rotation_std_deg: float
     translation_std_mm: float
     tracker_sigma: tuple[float, float] = (0.0, 0.0)
+    closed_form: np.ndarray | None = None  # X from the relative motions, before refinement
 
 
 @dataclass
@@ -331,6 +334,7 @@ def calibrate_hand_eye(
         rotation_std_deg=float(np.rad2deg(np.sqrt(np.linalg.eigvalsh(cov[0:3, 0:3])[-1]))),
         translation_std_mm=float(np.sqrt(np.linalg.eigvalsh(cov[3:6, 3:6])[-1])),
         tracker_sigma=(float(np.rad2deg(sigma[0])), float(sigma[3])),
+        closed_form=X0,
     )
 
 
@@ -496,10 +500,11 @@ def calibrate_recording(
             "views_beyond_3_sigma": [int(frame_ids[v]) for v in views[valid][~he.inlier]],
             "sensor_from_camera": he.sensor_from_camera.tolist(),
             "tracker_from_board": he.tracker_from_board.tolist(),
-            "rotation_std_deg": he.rotation_std_deg,
+            "sensor_from_camera_closed_form": he.closed_form.tolist(),
+            "rotation_std_from_tracker_noise_deg": he.rotation_std_deg,
             "tracker_sigma_deg": he.tracker_sigma[0],
             "tracker_sigma_mm": he.tracker_sigma[1],
-            "translation_std_mm": he.translation_std_mm,
+            "translation_std_from_tracker_noise_mm": he.translation_std_mm,
             "tracker_residual_rotation_deg_rms": float(np.sqrt(np.mean(
                 he.rotation_residual_deg ** 2))),
             "tracker_residual_translation_mm_rms": float(np.sqrt(np.mean(
@@ -511,6 +516,23 @@ def calibrate_recording(
         report["timings_s"]["hand_eye"] = time.perf_counter() - t0
     report["timings_s"]["total"] = time.perf_counter() - t_start
     return CalibrationResult(camera, hand_eye, report)
+
+
+def camera_model_difference(a: Camera, b: Camera, region: float = 0.8) -> float:
+    """Largest distance (px) between where cameras a and b put the same rays, over a 17x17 grid
+    spanning the central ``region`` of a's image: how far apart two calibrations of one camera
+    are, whatever the split between focal length, principal point and distortion."""
+    lo, hi = (1 - region) / 2, (1 + region) / 2
+    u, v = np.meshgrid(np.linspace(lo, hi, 17) * (a.width - 1),
+                       np.linspace(lo, hi, 17) * (a.height - 1))
+    px = np.stack([u.ravel(), v.ravel()], 1).reshape(-1, 1, 2)
+    dist_a = np.zeros(4) if a.distortion is None else a.distortion
+    dist_b = np.zeros(4) if b.distortion is None else b.distortion
+    rays = cv2.undistortPoints(px, a.camera_matrix, dist_a, criteria=(
+        cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12)).reshape(-1, 2)
+    rays = np.hstack([rays, np.ones((rays.shape[0], 1))])
+    back, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), b.camera_matrix, dist_b)
+    return float(np.linalg.norm(back.reshape(-1, 2) - px.reshape(-1, 2), axis=1).max())
 
 
 def write_calibration(out: str | Path, result: CalibrationResult) -> list[str]:

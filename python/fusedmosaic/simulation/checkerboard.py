@@ -175,7 +175,7 @@ def _random_view(o: CheckerboardOptions, K, dist, rng, corners) -> np.ndarray:
     extent = corners.max(0) - corners.min(0)
     margin = 0.04 * min(o.width, o.height)
     for _ in range(500):
-        target = centre + rng.uniform(-0.15, 0.15, 3) * extent * np.array([1, 1, 0])
+        target = centre + rng.uniform(-0.5, 0.5, 3) * extent * np.array([1, 1, 0])
         phi = rng.uniform(0, 2 * np.pi)
         tilt = np.deg2rad(o.tilt_deg) * np.sqrt(rng.uniform())
         roll = np.deg2rad(rng.uniform(-o.roll_deg, o.roll_deg))
