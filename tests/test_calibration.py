@@ -75,6 +75,24 @@ def test_recovers_intrinsics_and_hand_eye(recording):
     assert np.linalg.norm(np.asarray(he["tracker_from_board"])[:3, 3] - B0[:3, 3]) < 1.0
 
 
+def test_tracker_time_offset_estimated_and_applied(tmp_path):
+    """Tracker stamps 30 ms late: found (within 2 ms) and undone; with the clocks taken as
+    agreeing, the hand-eye is off by degrees (measured 2.1 deg / 1.4 mm on this recording)."""
+    root = tmp_path / "late"
+    simulate_checkerboard(root, CheckerboardOptions(**SMALL, tracker_delay_s=0.03))
+    X0 = read_hand_eye(root / "truth_hand_eye.txt")
+    result = calibrate_recording(root)
+    offset = result.report["hand_eye"]["tracker_time_offset"]
+    assert abs(offset["estimate_s"] - 0.03) < 0.002 and offset["applied_s"] == offset["estimate_s"]
+    X = result.hand_eye
+    assert _rotation_deg(X0[:3, :3].T @ X[:3, :3]) < 0.5
+    assert np.linalg.norm(X[:3, 3] - X0[:3, 3]) < 0.5
+    X = calibrate_recording(root, CalibrationOptions(time_offset=0.0)).hand_eye
+    assert _rotation_deg(X0[:3, :3].T @ X[:3, :3]) > 1.0
+    X = calibrate_recording(root, CalibrationOptions(time_offset=0.03)).hand_eye
+    assert _rotation_deg(X0[:3, :3].T @ X[:3, :3]) < 0.5
+
+
 def test_corner_order_is_the_board_frame():
     """Detected corners come in the simulator's board order (x along a row, dark square outside
     corner 0), also in the image turned by a half turn (the same physical corners, in order)."""
@@ -202,7 +220,9 @@ def test_bad_input_named(recording, tmp_path, capsys):
             (["--board", "9x6", "--square-mm", "-1"], "--square-mm: must be a number > 0"),
             ([*board, "--max-views", "2"], "--max-views: must be >= 4"),
             ([*board, "--tracker-rot-sigma", "nan"], "--tracker-rot-sigma: must be a number > 0"),
-            ([*board, "--fps", "0"], "--fps")):
+            ([*board, "--fps", "0"], "--fps"),
+            ([*board, "--time-offset", "soon"], "--time-offset: expected 'auto' or seconds"),
+            ([*board, "--time-offset", "inf"], "--time-offset: expected 'auto' or seconds")):
         _refused(["calibrate", str(recording), "--out", str(out), *flags], message, capsys)
     assert not out.exists()
     _refused(["calibrate", str(recording), *board, "--out", str(recording / "calib")],

@@ -205,13 +205,14 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         board_cols=int(match.group(1)), board_rows=int(match.group(2)),
         square_mm=args.square_mm, distortion=args.distortion, every=args.every,
         max_views=args.max_views, rot_sigma_deg=args.tracker_rot_sigma,
-        trans_sigma_mm=args.tracker_trans_sigma)
+        trans_sigma_mm=args.tracker_trans_sigma, time_offset=_time_offset(args.time_offset))
     try:
         options.validate()
     except ValueError as exc:  # the option's name -> the flag
         flags = {"board_cols": "--board", "board_rows": "--board", "square_mm": "--square-mm",
                  "distortion": "--distortion", "every": "--every", "max_views": "--max-views",
-                 "rot_sigma_deg": "--tracker-rot-sigma", "trans_sigma_mm": "--tracker-trans-sigma"}
+                 "rot_sigma_deg": "--tracker-rot-sigma", "trans_sigma_mm": "--tracker-trans-sigma",
+                 "time_offset": "--time-offset"}
         key, _, rest = str(exc).partition(":")
         raise ValueError(f"{flags.get(key, key)}:{rest}") from None
     check_output_dir(args.out)
@@ -232,6 +233,14 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     else:
         std_deg = he["rotation_std_from_tracker_noise_deg"]
         std_mm = he["translation_std_from_tracker_noise_mm"]
+        offset = he["tracker_time_offset"]
+        if offset.get("estimated"):
+            shift = offset["estimate_s"] * 1e3
+            _say(args, f"tracker time offset {shift:+.1f} +- {offset['std_s'] * 1e3:.1f} ms "
+                       + ("(applied: the frame at t takes the tracker sample at t "
+                          f"{shift:+.1f} ms; shift tracking.csv timestamps by {-shift:+.1f} ms "
+                          "in the recordings of this set-up)" if offset["applied_s"]
+                          else f"(not applied: {offset.get('reason', 'not significant')})"))
         _say(args, f"hand-eye from {he['views']} views: +- {std_deg:.3f} deg, +- {std_mm:.3f} "
                    f"mm (1 sigma of the tracker noise alone); tracker noise seen "
                    f"{he['tracker_sigma_deg']:.3f} deg, {he['tracker_sigma_mm']:.3f} mm per "
@@ -239,6 +248,15 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     _say(args, f"wrote {', '.join(written)} to {args.out} (copy camera.yaml and hand_eye.txt "
                "into the datasets recorded with this scope)")
     return 0
+
+
+def _time_offset(text: str) -> float | str:
+    if text == "auto":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise ValueError(f"--time-offset: expected 'auto' or seconds, got {text!r}") from None
 
 
 def _cmd_live(args: argparse.Namespace) -> int:
@@ -633,6 +651,10 @@ def build_parser() -> argparse.ArgumentParser:
                           "second uses the noise seen (default 1)")
     cal.add_argument("--tracker-trans-sigma", type=float, default=1.0,
                      help="tracker translation noise, mm (default 1)")
+    cal.add_argument("--time-offset", default="auto",
+                     help="tracker clock against the frames', s: the frame at time t takes the "
+                          "tracker sample at t + OFFSET; 'auto' (default) estimates it from the "
+                          "frames filmed while the scope moves")
     cal.add_argument("--fps", type=float, default=25.0,
                      help="frame rate when the recording has no frames.csv (default 25)")
     cal.set_defaults(func=_cmd_calibrate)

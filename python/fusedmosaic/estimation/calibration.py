@@ -63,6 +63,9 @@ class CalibrationOptions:
         the hand-eye.
     rot_sigma_deg, trans_sigma_mm : the EM tracker's noise, weighting its rotation against its
         translation in the hand-eye fit (paper 000's Sigma_EMT defaults: 1 deg, 1 mm).
+    time_offset : "auto" (estimated: estimate_time_offset), or seconds: the tracker sample of
+        the frame at time t is the one at t + time_offset (0: the clocks agree).
+    max_time_offset_s : the largest offset "auto" considers.
     threads : frames searched for the board in parallel.
     """
 
@@ -74,6 +77,8 @@ class CalibrationOptions:
     max_views: int = 60
     rot_sigma_deg: float = 1.0
     trans_sigma_mm: float = 1.0
+    time_offset: float | str = "auto"
+    max_time_offset_s: float = 0.1
     threads: int = 2
 
     def validate(self) -> None:
@@ -89,7 +94,12 @@ class CalibrationOptions:
                 raise ValueError(f"{key}: expected an integer >= 1, got {getattr(self, key)!r}")
         if self.max_views < MIN_VIEWS:
             raise ValueError(f"max_views: must be >= {MIN_VIEWS}, got {self.max_views}")
-        for key in ("square_mm", "rot_sigma_deg", "trans_sigma_mm"):
+        if self.time_offset != "auto" and not (
+                isinstance(self.time_offset, (int, float)) and np.isfinite(self.time_offset)
+                and abs(self.time_offset) <= 10.0):
+            raise ValueError(f"time_offset: expected 'auto' or seconds within +-10, got "
+                             f"{self.time_offset!r}")
+        for key in ("square_mm", "rot_sigma_deg", "trans_sigma_mm", "max_time_offset_s"):
             value = getattr(self, key)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"{key}: must be a number > 0, got {value!r}")
@@ -127,6 +137,7 @@ class HandEyeResult:
     translation_std_mm: float
     tracker_sigma: tuple[float, float] = (0.0, 0.0)
     closed_form: np.ndarray | None = None  # X from the relative motions, before refinement
+    cost: float = 0.0  # 0.5 * sum of Huber(residual / sigma)^2 at the solution
 
 
 @dataclass
@@ -270,10 +281,12 @@ def calibrate_hand_eye(
     *,
     rot_sigma_deg: float = 1.0,
     trans_sigma_mm: float = 1.0,
+    reweight: bool = True,
 ) -> HandEyeResult:
     """X = sensor_from_camera and B = tracker_from_board from A_k X C_k = B over views k (module
-    doc). ValueError when the views do not determine X (fewer than 3, or rotations about fewer
-    than two distinct axes)."""
+    doc). With ``reweight`` the second fit weights by the noise the first one's inliers show,
+    otherwise both by the given noise. ValueError when the views do not determine X (fewer than
+    3, or rotations about fewer than two distinct axes)."""
     A = np.asarray(tracker_from_sensor, np.float64)
     C = np.asarray(cam_from_board, np.float64)
     if A.shape != C.shape or A.ndim != 3 or A.shape[1:] != (4, 4):
@@ -313,7 +326,7 @@ def calibrate_hand_eye(
         p = fit.x
         r = residuals(p)
         inlier = np.abs(r / sigma).max(axis=1) <= HUBER_SIGMAS
-        if attempt == 1 or inlier.sum() < MIN_HAND_EYE_VIEWS:
+        if attempt == 1 or not reweight or inlier.sum() < MIN_HAND_EYE_VIEWS:
             break
         seen = np.sqrt(np.mean(r[inlier] ** 2, axis=0))
         sigma = np.repeat([max(seen[:3].mean(), 1e-9), max(seen[3:].mean(), 1e-12)], 3)
@@ -335,7 +348,54 @@ def calibrate_hand_eye(
         translation_std_mm=float(np.sqrt(np.linalg.eigvalsh(cov[3:6, 3:6])[-1])),
         tracker_sigma=(float(np.rad2deg(sigma[0])), float(sigma[3])),
         closed_form=X0,
+        cost=float(fit.cost),
     )
+
+
+def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeResult,
+                         max_offset_s: float) -> dict:
+    """The offset d (s) such that the tracker sample interpolated at t + d belongs to the frame
+    at t: the d whose hand-eye fit leaves the smallest cost, over the views the tracker covers
+    at every d in [-max_offset_s, max_offset_s] and with the noise of the first fit held (so the
+    costs compare). A grid of 5 ms steps, then a bounded search around its best; the standard
+    error from the cost's curvature (cost = chi^2 / 2). Applied only when it is determined (the
+    scope moved while filmed: error < 10 ms, not at the bound) and differs from 0 by more than
+    two standard errors. `tracker_at(d)` -> (tracker_from_sensor of the views it covers, mask).
+    """
+    from scipy.optimize import minimize_scalar
+
+    _, low = tracker_at(-max_offset_s)
+    _, high = tracker_at(max_offset_s)
+    common = low & high
+    sigma = first.tracker_sigma
+
+    def cost(d: float) -> float:
+        A, ok = tracker_at(d)
+        keep = common[ok]
+        return calibrate_hand_eye(A[keep], cam_from_board[common], rot_sigma_deg=sigma[0],
+                                  trans_sigma_mm=sigma[1], reweight=False).cost
+
+    if common.sum() < MIN_HAND_EYE_VIEWS:
+        return {"estimated": False, "applied_s": 0.0,
+                "reason": f"fewer than {MIN_HAND_EYE_VIEWS} views tracked at every offset"}
+    grid = np.arange(-max_offset_s, max_offset_s + 1e-9, 0.005)
+    costs = np.array([cost(d) for d in grid])
+    i = int(np.argmin(costs))
+    lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+    best = minimize_scalar(cost, bounds=(lo, hi), method="bounded",
+                           options={"xatol": 1e-4}).x
+    h = 0.002
+    curvature = (cost(best + h) + cost(best - h) - 2 * cost(best)) / h ** 2
+    std = float(1 / np.sqrt(curvature)) if curvature > 0 else float("inf")
+    out = {"estimated": True, "estimate_s": float(best), "std_s": std,
+           "views": int(common.sum()), "applied_s": 0.0}
+    at_bound = abs(abs(best) - max_offset_s) < 0.005
+    if not np.isfinite(std) or std > 0.01 or at_bound:
+        out["reason"] = ("not determined: the scope must move while filmed" if not at_bound
+                         else f"at the search bound +-{max_offset_s:g} s")
+    elif abs(best) > 2 * std:
+        out["applied_s"] = float(best)
+    return out
 
 
 def _hand_eye_from_motions(A: np.ndarray, C: np.ndarray, max_views: int = 60) -> np.ndarray:
@@ -478,12 +538,25 @@ def calibrate_recording(
     else:
         t0 = time.perf_counter()
         samples = read_tracking_csv(tracking_path)
-        # interpolate_camera_poses with no hand-eye gives sensor_from_tracker as [r, t].
-        sensor_pose, valid = interpolate_camera_poses(
-            samples, timestamps[views], None, allow_outside=True, source=str(tracking_path))
-        A = _tracker_from_sensor(sensor_pose[valid])
+
+        def tracker_at(delta: float) -> tuple[np.ndarray, np.ndarray]:
+            # interpolate_camera_poses with no hand-eye gives sensor_from_tracker as [r, t].
+            pose, ok = interpolate_camera_poses(samples, timestamps[views] + delta, None,
+                                                allow_outside=True, source=str(tracking_path))
+            return _tracker_from_sensor(pose[ok]), ok
+
+        A, valid = tracker_at(0.0)
         he = calibrate_hand_eye(A, poses[valid], rot_sigma_deg=o.rot_sigma_deg,
                                 trans_sigma_mm=o.trans_sigma_mm)
+        offset = {"estimated": False, "applied_s": 0.0}
+        if o.time_offset == "auto":
+            offset = estimate_time_offset(tracker_at, poses, he, o.max_time_offset_s)
+        elif o.time_offset != 0:
+            offset = {"estimated": False, "applied_s": float(o.time_offset)}
+        if offset["applied_s"] != 0.0:
+            A, valid = tracker_at(offset["applied_s"])
+            he = calibrate_hand_eye(A, poses[valid], rot_sigma_deg=he.tracker_sigma[0],
+                                    trans_sigma_mm=he.tracker_sigma[1])
         hand_eye = he.sensor_from_camera
         # What the tracker alone places: board corners through the tracked camera pose.
         predicted = np.linalg.inv(he.sensor_from_camera) @ np.linalg.inv(A) \
@@ -496,6 +569,7 @@ def calibrate_recording(
             for T, k in zip(predicted, np.flatnonzero(valid), strict=True)])
         report["hand_eye"] = {
             "views": int(valid.sum()),
+            "tracker_time_offset": offset,
             "views_without_tracker_sample": [int(frame_ids[v]) for v in views[~valid]],
             "views_beyond_3_sigma": [int(frame_ids[v]) for v in views[valid][~he.inlier]],
             "sensor_from_camera": he.sensor_from_camera.tolist(),

@@ -15,7 +15,8 @@ Conventions:
 - the scope rests at each of ``n_views`` random views (tilt up to ``tilt_deg`` about a random
   axis, roll up to ``roll_deg``, distance about ``distance_mm``) and moves to the next one; the
   board is fully in view at every rest, not necessarily while moving.
-- tracking.csv holds tracker_from_sensor at the tracker's own rate; its noise is a rotation of
+- tracking.csv holds tracker_from_sensor at the tracker's own rate, stamped tracker_delay_s
+  late (the sample of the frame at time t says t + tracker_delay_s); its noise is a rotation of
   N(0, rot_sigma_deg) per axis applied in the sensor frame and a translation of
   N(0, trans_sigma_mm) per axis in the tracker frame.
 - frames are rendered through the distorted camera (OpenCV's model: k1, k2, p1, p2), each pixel
@@ -69,6 +70,8 @@ class CheckerboardOptions:
     tracker_rate_hz: float = _opt(40.0, "EM tracker rate")
     tracker_offset_s: float = _opt(0.0071, "tracker clock phase vs frames")
     tracker_margin_s: float = _opt(0.1, "tracker samples extend this far beyond the frames")
+    tracker_delay_s: float = _opt(
+        0.0, "tracker timestamps late by this much against the frames' (unsynchronised clocks)")
     rot_sigma_deg: float = _opt(
         0.9, "EM tracker rotation noise std (paper 000 Sec. 4.1: Aurora in the laboratory)")
     trans_sigma_mm: float = _opt(0.25, "EM tracker translation noise std (same source)")
@@ -247,6 +250,7 @@ def generate_checkerboard(options: CheckerboardOptions | None = None) -> Checker
         noise[:, :3] * np.deg2rad(o.rot_sigma_deg)).as_matrix()
     noisy[:, :3, 3] += noise[:, 3:] * o.trans_sigma_mm
     scene.tracker_from_sensor = noisy
+    scene.tracker_timestamps = scene.tracker_timestamps + o.tracker_delay_s
     return scene
 
 
