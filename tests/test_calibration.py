@@ -240,3 +240,29 @@ def test_simulate_checkerboard_flags(tmp_path, capsys):
     _refused(["simulate", "checkerboard", str(tmp_path / "b"), "--square-mm", "20"],
              "no view shows the whole 9x6 board", capsys)
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_plus_recording_imported_without_camera_then_calibrated(recording, tmp_path, capsys):
+    """A PLUS sequence of the board (the tracker sampled with each frame, as PLUS records) is
+    imported without --camera (camera.yaml: the image size only) and calibrated."""
+    from fusedmosaic.io import interpolate_camera_poses, read_dataset, read_tracking_csv
+    from fusedmosaic.io.plus import write_plus_sequence
+
+    ds = read_dataset(recording)
+    pose, ok = interpolate_camera_poses(read_tracking_csv(recording / "tracking.csv"),
+                                        ds.timestamps, None)
+    assert ok.all()
+    sensor_from_tracker = np.tile(np.eye(4), (len(pose), 1, 1))
+    sensor_from_tracker[:, :3, :3] = Rotation.from_rotvec(pose[:, :3]).as_matrix()
+    sensor_from_tracker[:, :3, 3] = pose[:, 3:]
+    seq = write_plus_sequence(tmp_path / "board.igs.mha", [ds.frames[k] for k in range(len(ds))],
+                              ds.timestamps,
+                              {"SensorToTracker": np.linalg.inv(sensor_from_tracker)})
+    data, out = tmp_path / "data", tmp_path / "scope"
+    assert main(["import", str(seq), str(data), "--quiet"]) == 0
+    assert read_camera_yaml(data / "camera.yaml").camera_matrix is None
+    assert main(["calibrate", str(data), "--board", "9x6", "--square-mm", "2", "--out", str(out),
+                 "--quiet"]) == 0
+    X, X0 = read_hand_eye(out / "hand_eye.txt"), read_hand_eye(recording / "truth_hand_eye.txt")
+    assert _rotation_deg(X0[:3, :3].T @ X[:3, :3]) < 0.5
+    assert np.linalg.norm(X[:3, 3] - X0[:3, 3]) < 0.5

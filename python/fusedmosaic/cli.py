@@ -617,7 +617,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_tracked_camera_flags(
         imp, transform="the sensor's transform field, tracker_from_sensor (default "
                        "SensorToTracker; stored inverted it is inverted back; 'auto' takes the "
-                       "single *ToTracker / *ToReference field)", default="SensorToTracker")
+                       "single *ToTracker / *ToReference field)", default="SensorToTracker",
+        camera_help="; without it camera.yaml holds the image size only: a checkerboard "
+                    "recording for `fusedmosaic calibrate`, which writes the camera.yaml")
     imp.add_argument("--overwrite", action="store_true",
                      help="replace an earlier dataset in OUT")
     imp.set_defaults(func=_cmd_import)
@@ -724,12 +726,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _add_tracked_camera_flags(parser: argparse.ArgumentParser, *, transform: str,
-                              default: str | None) -> None:
-    """--camera, --transform (required without a default) and --hand-eye: what a tracked
-    endoscope's recording or stream does not carry itself (import and live)."""
-    parser.add_argument("--camera", required=True, metavar="CAMERA.yaml",
+                              default: str | None, camera_help: str | None = None) -> None:
+    """--camera (required unless camera_help says what its absence means), --transform
+    (required without a default) and --hand-eye: what a tracked endoscope's recording or stream
+    does not carry itself (import and live)."""
+    parser.add_argument("--camera", required=camera_help is None, metavar="CAMERA.yaml",
                         help="camera.yaml of the endoscope (image size, camera matrix; the "
-                             "images' size must match)")
+                             "images' size must match)" + (camera_help or ""))
     parser.add_argument("--transform", required=default is None, default=default,
                         metavar="NAME", help=transform)
     parser.add_argument("--hand-eye", metavar="HAND_EYE.txt",

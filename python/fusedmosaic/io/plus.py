@@ -725,7 +725,7 @@ def import_plus_sequence(
     path: str | Path,
     root: str | Path,
     *,
-    camera: Camera | str | Path,
+    camera: Camera | str | Path | None,
     transform: str | None = "SensorToTracker",
     hand_eye=None,
     overwrite: bool = False,
@@ -737,9 +737,11 @@ def import_plus_sequence(
     frame at its timestamp, ``transform`` as tracker_from_sensor (``SensorToTracker``; stored as
     ``TrackerToSensor`` it is inverted; None picks the single *ToTracker / *ToReference field),
     valid=0 where its status is not OK; camera.yaml : ``camera`` (a Camera or a camera.yaml
-    path), whose image size must match; hand_eye.txt : ``hand_eye`` (4x4 sensor_from_camera or
-    a path) when given. Everything is checked before anything is written, and write_dataset
-    writes atomically: a failure leaves no folder (or the previous one, with overwrite).
+    path), whose image size must match; None writes the image size only (a recording to
+    calibrate the camera from, `fusedmosaic calibrate`); hand_eye.txt : ``hand_eye`` (4x4
+    sensor_from_camera or a path) when given. Everything is checked before anything is
+    written, and write_dataset writes atomically: a failure leaves no folder (or the previous
+    one, with overwrite).
     """
     sequence = read_plus_sequence(path)
     if overwrite:  # replacing root must not delete this import's own inputs
@@ -750,7 +752,9 @@ def import_plus_sequence(
             if Path(root).resolve() in item.resolve().parents:
                 raise ValueError(f"{root}: holds {item}, an input of this import, which "
                                  "overwriting would delete; choose another folder")
-    if isinstance(camera, (str, os.PathLike)):
+    if camera is None:
+        camera = Camera(sequence.width, sequence.height, source=str(sequence.path))
+    elif isinstance(camera, (str, os.PathLike)):
         camera = read_camera_yaml(camera)
     elif not isinstance(camera, Camera):
         raise ValueError(f"camera must be a fusedmosaic.io.Camera or a camera.yaml path, got "
