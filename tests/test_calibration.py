@@ -79,17 +79,18 @@ def test_tracker_time_offset_estimated_and_applied(tmp_path):
     """Tracker stamps 30 ms late: found (within 2 ms) and undone; with the clocks taken as
     agreeing, the hand-eye is off by degrees (measured 2.1 deg / 1.4 mm on this recording)."""
     root = tmp_path / "late"
-    simulate_checkerboard(root, CheckerboardOptions(**SMALL, tracker_delay_s=0.03))
+    simulate_checkerboard(root, CheckerboardOptions(**SMALL, tracker_delay_s=0.03,
+                                                    square_mm=1.8))
     X0 = read_hand_eye(root / "truth_hand_eye.txt")
-    result = calibrate_recording(root)
+    result = calibrate_recording(root, CalibrationOptions(square_mm=1.8))
     offset = result.report["hand_eye"]["tracker_time_offset"]
     assert abs(offset["estimate_s"] - 0.03) < 0.002 and offset["applied_s"] == offset["estimate_s"]
     X = result.hand_eye
     assert _rotation_deg(X0[:3, :3].T @ X[:3, :3]) < 0.5
     assert np.linalg.norm(X[:3, 3] - X0[:3, 3]) < 0.5
-    X = calibrate_recording(root, CalibrationOptions(time_offset=0.0)).hand_eye
+    X = calibrate_recording(root, CalibrationOptions(time_offset=0.0, square_mm=1.8)).hand_eye
     assert _rotation_deg(X0[:3, :3].T @ X[:3, :3]) > 1.0
-    X = calibrate_recording(root, CalibrationOptions(time_offset=0.03)).hand_eye
+    X = calibrate_recording(root, CalibrationOptions(time_offset=0.03, square_mm=1.8)).hand_eye
     assert _rotation_deg(X0[:3, :3].T @ X[:3, :3]) < 0.5
 
 
@@ -266,3 +267,51 @@ def test_plus_recording_imported_without_camera_then_calibrated(recording, tmp_p
     X, X0 = read_hand_eye(out / "hand_eye.txt"), read_hand_eye(recording / "truth_hand_eye.txt")
     assert _rotation_deg(X0[:3, :3].T @ X[:3, :3]) < 0.5
     assert np.linalg.norm(X[:3, 3] - X0[:3, 3]) < 0.5
+
+
+def test_wrong_tracker_input_fails_the_hand_eye_but_keeps_the_intrinsics(recording, tmp_path,
+                                                                         capsys):
+    """Quaternions written w, x, y, z, or the inverse transform: the tracker cannot agree with
+    the board; exit 2 naming tracking.csv, camera.yaml (with the recording's field-of-view mask
+    carried over) and calibration.json written, no hand_eye.txt."""
+    from fusedmosaic.io import TrackingSamples, read_tracking_csv, write_tracking_csv
+
+    samples = read_tracking_csv(recording / "tracking.csv")
+    R = Rotation.from_quat(samples.quaternions)
+    inverse = R.inv()
+    for name, translations, quaternions in (
+            ("wxyz", samples.translations, np.roll(samples.quaternions, 1, axis=1)),
+            ("inverse", -inverse.apply(samples.translations), inverse.as_quat())):
+        bad = tmp_path / name
+        shutil.copytree(recording, bad)
+        write_tracking_csv(bad / "tracking.csv", TrackingSamples(
+            samples.timestamps, translations, quaternions, samples.valid))
+        (bad / "camera.yaml").write_text(
+            "%YAML:1.0\n---\nimage_width: 320\nimage_height: 320\nfov_mask_radius: 150.\n")
+        out = tmp_path / f"out_{name}"
+        _refused(["calibrate", str(bad), "--board", "9x6", "--square-mm", "2", "--out",
+                  str(out), "--quiet"],
+                 r"hand-eye failed: .*tracking.csv: the tracker and the board disagree: .*"
+                 r"quaternions x, y, z, w", capsys)
+        assert read_camera_yaml(out / "camera.yaml").fov_mask_radius == 150.0
+        report = json.loads((out / "calibration.json").read_text())
+        assert "disagree" in report["hand_eye"]["failed"]
+        assert not (out / "hand_eye.txt").exists()
+
+
+def test_views_from_one_pose_refused(tmp_path):
+    root = tmp_path / "still"
+    simulate_checkerboard(root, CheckerboardOptions(**{**SMALL, "n_views": 1,
+                                                       "frames_per_view": 6}))
+    with pytest.raises(ValueError, match="do not determine the focal length"):
+        calibrate_recording(root)
+
+
+def test_frames_of_another_size_named_without_camera_yaml(recording, tmp_path):
+    root = tmp_path / "mixed"
+    shutil.copytree(recording, root)
+    (root / "camera.yaml").unlink()
+    frame = root / "frames" / "000005.png"
+    cv2.imwrite(str(frame), cv2.resize(cv2.imread(str(frame)), (300, 320)))
+    with pytest.raises(ValueError, match=r"000005.png.*300x320.*its first frame"):
+        calibrate_recording(root)

@@ -230,9 +230,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     he = r["hand_eye"]
     if "skipped" in he:
         _say(args, f"hand-eye skipped: {he['skipped']}")
-    else:
-        std_deg = he["rotation_std_from_tracker_noise_deg"]
-        std_mm = he["translation_std_from_tracker_noise_mm"]
+    elif "failed" not in he:
         offset = he["tracker_time_offset"]
         if offset.get("estimated"):
             shift = offset["estimate_s"] * 1e3
@@ -241,12 +239,19 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
                           f"{shift:+.1f} ms; shift tracking.csv timestamps by {-shift:+.1f} ms "
                           "in the recordings of this set-up)" if offset["applied_s"]
                           else f"(not applied: {offset.get('reason', 'not significant')})"))
+        std_deg = he["rotation_std_from_tracker_noise_deg"]
+        std_mm = he["translation_std_from_tracker_noise_mm"]
         _say(args, f"hand-eye from {he['views']} views: +- {std_deg:.3f} deg, +- {std_mm:.3f} "
-                   f"mm (1 sigma of the tracker noise alone); tracker noise seen "
-                   f"{he['tracker_sigma_deg']:.3f} deg, {he['tracker_sigma_mm']:.3f} mm per "
-                   f"axis; {len(he['views_beyond_3_sigma'])} views beyond 3 sigma")
-    _say(args, f"wrote {', '.join(written)} to {args.out} (copy camera.yaml and hand_eye.txt "
-               "into the datasets recorded with this scope)")
+                   f"mm (1 sigma per axis from the tracker noise alone; the intrinsics' errors "
+                   f"add to it); tracker noise seen {he['tracker_sigma_deg']:.3f} deg, "
+                   f"{he['tracker_sigma_mm']:.3f} mm per axis; "
+                   f"{len(he['views_beyond_3_sigma'])} views beyond 3 sigma")
+    files = "camera.yaml and hand_eye.txt" if result.hand_eye is not None else "camera.yaml"
+    _say(args, f"wrote {', '.join(written)} to {args.out} (copy {files} into the datasets "
+               "recorded with this scope)")
+    if result.hand_eye_error is not None:
+        raise ValueError(f"hand-eye failed: {result.hand_eye_error} (the intrinsics are written: "
+                         f"{args.out}/camera.yaml)")
     return 0
 
 

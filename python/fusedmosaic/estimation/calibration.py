@@ -49,6 +49,10 @@ MIN_VIEWS = 4  # calibrateCamera's minimum for K + distortion is lower; 4 keeps 
 MIN_HAND_EYE_VIEWS = 3
 MIN_RELATIVE_ROTATION_DEG = 5.0  # pairs of views rotating less say little about X's rotation
 OUTLIER_VIEW_FACTOR = 3.0
+MAX_FOCAL_RELATIVE_STD = 0.02  # above it the views are too alike to calibrate from
+# Tracker noise beyond which the fit is not a tracker's noise but a wrong input (an EM tracker:
+# ~1 deg / 1 mm at worst, paper 000's Sigma_EMT).
+MAX_TRACKER_SIGMA = (5.0, 5.0)
 HUBER_SIGMAS = 3.0
 
 
@@ -143,11 +147,13 @@ class HandEyeResult:
 @dataclass
 class CalibrationResult:
     """What calibrate_recording found: the camera (intrinsics + distortion) for camera.yaml,
-    the hand-eye (None without tracking or with a symmetric board) and a JSON-able report."""
+    the hand-eye (None without tracking, with a symmetric board, or when it failed:
+    hand_eye_error says why) and a JSON-able report."""
 
     camera: Camera
     hand_eye: np.ndarray | None
     report: dict = field(default_factory=dict)
+    hand_eye_error: str | None = None  # why the hand-eye failed (the intrinsics stand)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -177,29 +183,34 @@ def detect_board(image: np.ndarray, options: CalibrationOptions) -> np.ndarray |
     return _canonical_order(gray, corners.reshape(-1, 2).astype(np.float64), pattern)
 
 
-def _canonical_order(gray: np.ndarray, c: np.ndarray, pattern: tuple[int, int]) -> np.ndarray:
+def _canonical_order(gray: np.ndarray, c: np.ndarray,
+                     pattern: tuple[int, int]) -> np.ndarray | None:
     """Reorder detected corners so that board x runs along a row and y down the columns as a
-    right-handed frame seen from the front (z into the board), and the square diagonally
-    outside corner (0, 0) is dark (decides between the two half-turn orders when cols + rows
-    is odd)."""
+    right-handed frame seen from the front (z into the board), and the interior squares whose
+    corner indices i + j are even are the dark ones (so the square diagonally outside corner
+    (0, 0) is dark too): this decides between the two half-turn orders when cols + rows is odd.
+    The colours are read at the centres of all interior squares (not the outer ones, which a
+    circular field of view may hide); None when they do not tell dark from light."""
     cols, rows = pattern
     grid = c.reshape(rows, cols, 2)
     a, b = grid[0, 1] - grid[0, 0], grid[1, 0] - grid[0, 0]
     if a[0] * b[1] - a[1] * b[0] < 0:  # mirrored: image y points down, so det > 0 is right
         grid = grid[:, ::-1]
-    outside = _mean_intensity(gray, _square_centre(grid, 0, 0, -1, -1))
-    beside = _mean_intensity(gray, _square_centre(grid, 0, 0, 1, -1))
-    if outside > beside:
+    centres = 0.25 * (grid[:-1, :-1] + grid[:-1, 1:] + grid[1:, :-1] + grid[1:, 1:])
+    spacing = float(np.median(np.linalg.norm(np.diff(grid, axis=1), axis=2)))
+    radius = max(int(0.15 * spacing), 1)
+    values = np.array([[_mean_intensity(gray, p, radius) for p in row] for row in centres])
+    jj, ii = np.mgrid[0:rows - 1, 0:cols - 1]
+    even, odd = values[(ii + jj) % 2 == 0], values[(ii + jj) % 2 == 1]
+    # Each class must be one colour, apart from the other: its spread well under the gap.
+    gap = abs(float(np.median(even)) - float(np.median(odd)))
+    spread = max(np.percentile(np.abs(even - np.median(even)), 90),
+                 np.percentile(np.abs(odd - np.median(odd)), 90)) if odd.size else 0.0
+    if odd.size == 0 or gap < 10.0 or spread > 0.5 * gap:
+        return None
+    if np.median(even) > np.median(odd):
         grid = grid[::-1, ::-1]
     return grid.reshape(-1, 2)
-
-
-def _square_centre(grid: np.ndarray, j: int, i: int, di: int, dj: int) -> np.ndarray:
-    """Image position of the centre of the square diagonally next to corner (j, i) towards
-    (di, dj), from the local corner spacing."""
-    step_i = grid[j, i + 1] - grid[j, i]
-    step_j = grid[j + 1, i] - grid[j, i]
-    return grid[j, i] + 0.5 * di * step_i + 0.5 * dj * step_j
 
 
 def _mean_intensity(gray: np.ndarray, p: np.ndarray, radius: int = 2) -> float:
@@ -217,14 +228,15 @@ def _mean_intensity(gray: np.ndarray, p: np.ndarray, radius: int = 2) -> float:
 
 def calibrate_intrinsics(
     image_points: list[np.ndarray], size: tuple[int, int], options: CalibrationOptions
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int], np.ndarray]:
     """K (3, 3), distortion (options.distortion,), per-view RMS reprojection error (px) of the
-    views kept, and the indices (into image_points) of the views dropped as outliers."""
+    views kept, the indices (into image_points) of the views dropped as outliers, and the
+    standard errors of fx, fy, cx, cy (px; OpenCV's, from the Jacobian)."""
     obj = options.board_points()
     keep = list(range(len(image_points)))
     dropped: list[int] = []
     for attempt in range(2):
-        K, dist, rms = _calibrate(obj, [image_points[i] for i in keep], size, options)
+        K, dist, rms, std = _calibrate(obj, [image_points[i] for i in keep], size, options)
         if attempt == 1:
             break
         limit = max(OUTLIER_VIEW_FACTOR * float(np.median(rms)), 1.0)
@@ -233,13 +245,13 @@ def calibrate_intrinsics(
             break
         dropped = bad
         keep = [i for i in keep if i not in bad]
-    return K, dist, rms, dropped
+    return K, dist, rms, dropped, std
 
 
-def _calibrate(obj, points, size, options) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _calibrate(obj, points, size, options):
     flags = DISTORTION_FLAGS[options.distortion]
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-    _, K, dist, rvecs, tvecs = cv2.calibrateCamera(
+    _, K, dist, rvecs, tvecs, std, *_ = cv2.calibrateCameraExtended(
         [obj] * len(points), [p.astype(np.float32).reshape(-1, 1, 2) for p in points], size,
         None, None, flags=flags, criteria=criteria)
     dist = dist.reshape(-1)[:max(options.distortion, 4)]
@@ -249,12 +261,12 @@ def _calibrate(obj, points, size, options) -> tuple[np.ndarray, np.ndarray, np.n
         np.sqrt(np.mean(np.sum((cv2.projectPoints(obj, r, t, K, dist)[0].reshape(-1, 2) - p)
                                ** 2, axis=1)))
         for r, t, p in zip(rvecs, tvecs, points, strict=True)])
-    return K, dist, rms
+    return K, dist, rms, std.reshape(-1)[:4]
 
 
 def board_poses(image_points: list[np.ndarray], K: np.ndarray, dist: np.ndarray,
                 options: CalibrationOptions) -> tuple[np.ndarray, np.ndarray]:
-    """cam_from_board (N, 4, 4) of each detection (solvePnP, iterative) and its RMS
+    """cam_from_board (N, 4, 4) of each detection (solvePnP, iterative) and its largest corner
     reprojection error (px)."""
     obj = options.board_points()
     poses = np.tile(np.eye(4), (len(image_points), 1, 1))
@@ -266,7 +278,7 @@ def board_poses(image_points: list[np.ndarray], K: np.ndarray, dist: np.ndarray,
         poses[k, :3, :3] = cv2.Rodrigues(r)[0]
         poses[k, :3, 3] = t.reshape(3)
         proj = cv2.projectPoints(obj, r, t, K, dist)[0].reshape(-1, 2)
-        rms[k] = np.sqrt(np.mean(np.sum((proj - p) ** 2, axis=1)))
+        rms[k] = np.linalg.norm(proj - p, axis=1).max()
     return poses, rms
 
 
@@ -462,7 +474,6 @@ def calibrate_recording(
     hand-eye."""
     from fusedmosaic.io.calibration import read_camera_yaml
     from fusedmosaic.io.dataset import _read_frame_times
-    from fusedmosaic.io.tracking import interpolate_camera_poses, read_tracking_csv
     from fusedmosaic.io.video import FrameSource
 
     o = CalibrationOptions() if options is None else options
@@ -471,14 +482,13 @@ def calibrate_recording(
     if not root.is_dir():
         raise ValueError(f"{root}: recording folder not found")
     t_start = time.perf_counter()
-    size = None
-    if (root / "camera.yaml").exists():
-        given = read_camera_yaml(root / "camera.yaml")
-        size = given.size
-    frames = FrameSource.open(root, expected_size=size)
-    frame_ids, timestamps = _read_frame_times(root, len(frames), fps)
+    given = read_camera_yaml(root / "camera.yaml") if (root / "camera.yaml").exists() else None
+    frames = FrameSource.open(root, expected_size=None if given is None else given.size)
     first = frames[0]
     size = (first.shape[1], first.shape[0])
+    if given is None:  # every frame the size of the first
+        frames = FrameSource.open(root, expected_size=size, size_source=f"its first frame {size}")
+    frame_ids, timestamps = _read_frame_times(root, len(frames), fps)
     tried = np.arange(0, len(frames), o.every)
 
     def detect(k: int):
@@ -503,11 +513,35 @@ def calibrate_recording(
 
     chosen = np.unique(np.linspace(0, len(views) - 1, min(len(views), o.max_views))
                        .round().astype(int))
-    K, dist, rms, dropped = calibrate_intrinsics([points[i] for i in chosen], size, o)
-    dropped_frames = [int(frame_ids[views[chosen[i]]]) for i in dropped]
-    poses, pnp_rms = board_poses(points, K, dist, o)
+    # Views whose corners the camera cannot explain (corners found off the squares' corners,
+    # e.g. where a circular field of view cuts the board; outliers of the intrinsics) give
+    # neither intrinsics nor hand-eye: rejected, and the intrinsics computed again without them.
+    usable = np.ones(len(views), bool)
+    for _ in range(2):
+        use = chosen[usable[chosen]]
+        K, dist, rms, dropped, std = calibrate_intrinsics([points[i] for i in use], size, o)
+        poses, pnp_max = board_poses(points, K, dist, o)
+        limit = max(OUTLIER_VIEW_FACTOR * float(np.median(pnp_max)), 1.0)
+        rejected = (pnp_max > limit) & usable
+        rejected[use[dropped]] = True
+        if not rejected.any():
+            break
+        usable &= ~rejected
+        if usable[chosen].sum() < MIN_VIEWS:
+            break
+    chosen, dropped = use, [int(i) for i in dropped]
+    focal_std = float(max(std[0] / K[0, 0], std[1] / K[1, 1]))
+    if not np.isfinite(focal_std) or focal_std > MAX_FOCAL_RELATIVE_STD:
+        raise ValueError(
+            f"{root}: the {len(chosen)} views do not determine the focal length (standard error "
+            f"{100 * focal_std:.1f} %): film the board from more, different angles (tilted by "
+            "20-40 degrees in different directions, at different distances)")
+    usable &= pnp_max <= limit
+    usable[chosen[dropped]] = False
     camera = Camera(size[0], size[1], camera_matrix=K,
-                    distortion=None if o.distortion == 0 else dist)
+                    distortion=None if o.distortion == 0 else dist,
+                    pixel_size_um=None if given is None else given.pixel_size_um,
+                    fov_mask_radius=None if given is None else given.fov_mask_radius)
     report: dict = {
         "recording": str(root.resolve()),
         "board": {"inner_corners": [o.board_cols, o.board_rows], "square_mm": o.square_mm},
@@ -515,19 +549,25 @@ def calibrate_recording(
         "frames": len(frames),
         "frames_searched": int(tried.size),
         "board_found": int(len(views)),
+        "frames_with_board": [int(frame_ids[v]) for v in views],
+        "frames_rejected": {"corner_reprojection_px_over": limit, "frames": [
+            int(frame_ids[v]) for v in views[~usable]]},
         "intrinsics": {
             "views": int(len(chosen) - len(dropped)),
-            "views_dropped_as_outliers": dropped_frames,
+            "frames": [int(frame_ids[views[i]]) for k, i in enumerate(chosen)
+                       if k not in dropped],
+            "views_dropped_as_outliers": [int(frame_ids[views[chosen[i]]]) for i in dropped],
             "rms_px": float(np.sqrt(np.mean(rms ** 2))),
             "view_rms_px_max": float(rms.max()),
             "camera_matrix": K.tolist(),
+            "std_fx_fy_cx_cy_px": [float(v) for v in std],
             "distortion": [float(v) for v in dist],
             "distortion_coefficients": o.distortion,
         },
         "timings_s": {"board_search": t_detect},
     }
 
-    hand_eye = None
+    hand_eye, error = None, None
     tracking_path = root / "tracking.csv"
     if not tracking_path.exists():
         report["hand_eye"] = {"skipped": f"no tracking.csv in {root}"}
@@ -537,15 +577,43 @@ def calibrate_recording(
             "its pose is ambiguous; use a board with an odd sum, e.g. 9x6")}
     else:
         t0 = time.perf_counter()
-        samples = read_tracking_csv(tracking_path)
+        try:
+            hand_eye, report["hand_eye"] = _hand_eye_stage(
+                tracking_path, timestamps[views[usable]], frame_ids[views[usable]],
+                poses[usable], [p for p, u in zip(points, usable, strict=True) if u], K, dist, o)
+        except ValueError as exc:
+            error = str(exc)
+            report["hand_eye"] = {"failed": error}
+        report["timings_s"]["hand_eye"] = time.perf_counter() - t0
+    report["timings_s"]["total"] = time.perf_counter() - t_start
+    return CalibrationResult(camera, hand_eye, report, error)
 
-        def tracker_at(delta: float) -> tuple[np.ndarray, np.ndarray]:
-            # interpolate_camera_poses with no hand-eye gives sensor_from_tracker as [r, t].
-            pose, ok = interpolate_camera_poses(samples, timestamps[views] + delta, None,
-                                                allow_outside=True, source=str(tracking_path))
-            return _tracker_from_sensor(pose[ok]), ok
 
-        A, valid = tracker_at(0.0)
+def _hand_eye_stage(tracking_path: Path, times: np.ndarray, ids: np.ndarray, poses: np.ndarray,
+                    points: list[np.ndarray], K: np.ndarray, dist: np.ndarray,
+                    o: CalibrationOptions) -> tuple[np.ndarray, dict]:
+    """The hand-eye of calibrate_recording from the usable views (frame times, ids, board
+    poses, corners) and its report; ValueError naming tracking.csv when it fails or the result
+    is implausible."""
+    from fusedmosaic.io.tracking import _time, interpolate_camera_poses, read_tracking_csv
+
+    samples = read_tracking_csv(tracking_path)
+
+    def tracker_at(delta: float) -> tuple[np.ndarray, np.ndarray]:
+        # interpolate_camera_poses with no hand-eye gives sensor_from_tracker as [r, t].
+        pose, ok = interpolate_camera_poses(samples, times + delta, None, allow_outside=True,
+                                            source=str(tracking_path))
+        return _tracker_from_sensor(pose[ok]), ok
+
+    A, valid = tracker_at(0.0)
+    if valid.sum() < MIN_HAND_EYE_VIEWS:
+        ts = samples.timestamps[samples.valid]
+        span = f"[{_time(ts[0])}, {_time(ts[-1])}] s" if ts.size else "(no valid sample)"
+        raise ValueError(
+            f"{tracking_path}: {int(valid.sum())} of {len(times)} views have a tracker sample; "
+            f"the tracker spans {span}, the views [{_time(times[0])}, {_time(times[-1])}] s "
+            "(frame times come from frames.csv, or --fps without it; both clocks in seconds)")
+    try:
         he = calibrate_hand_eye(A, poses[valid], rot_sigma_deg=o.rot_sigma_deg,
                                 trans_sigma_mm=o.trans_sigma_mm)
         offset = {"estimated": False, "applied_s": 0.0}
@@ -557,39 +625,52 @@ def calibrate_recording(
             A, valid = tracker_at(offset["applied_s"])
             he = calibrate_hand_eye(A, poses[valid], rot_sigma_deg=he.tracker_sigma[0],
                                     trans_sigma_mm=he.tracker_sigma[1])
-        hand_eye = he.sensor_from_camera
-        # What the tracker alone places: board corners through the tracked camera pose.
-        predicted = np.linalg.inv(he.sensor_from_camera) @ np.linalg.inv(A) \
-            @ he.tracker_from_board
-        obj = o.board_points()
-        through_tracker = np.array([
-            np.mean(np.linalg.norm(cv2.projectPoints(
-                obj, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], K, dist)[0].reshape(-1, 2)
-                - points[k], axis=1))
-            for T, k in zip(predicted, np.flatnonzero(valid), strict=True)])
-        report["hand_eye"] = {
-            "views": int(valid.sum()),
-            "tracker_time_offset": offset,
-            "views_without_tracker_sample": [int(frame_ids[v]) for v in views[~valid]],
-            "views_beyond_3_sigma": [int(frame_ids[v]) for v in views[valid][~he.inlier]],
-            "sensor_from_camera": he.sensor_from_camera.tolist(),
-            "tracker_from_board": he.tracker_from_board.tolist(),
-            "sensor_from_camera_closed_form": he.closed_form.tolist(),
-            "rotation_std_from_tracker_noise_deg": he.rotation_std_deg,
-            "tracker_sigma_deg": he.tracker_sigma[0],
-            "tracker_sigma_mm": he.tracker_sigma[1],
-            "translation_std_from_tracker_noise_mm": he.translation_std_mm,
-            "tracker_residual_rotation_deg_rms": float(np.sqrt(np.mean(
-                he.rotation_residual_deg ** 2))),
-            "tracker_residual_translation_mm_rms": float(np.sqrt(np.mean(
-                he.translation_residual_mm ** 2))),
-            "board_through_tracker_px_median": float(np.median(through_tracker)),
-            "first_fit_noise": {"rot_sigma_deg": o.rot_sigma_deg,
-                                "trans_sigma_mm": o.trans_sigma_mm},
-        }
-        report["timings_s"]["hand_eye"] = time.perf_counter() - t0
-    report["timings_s"]["total"] = time.perf_counter() - t_start
-    return CalibrationResult(camera, hand_eye, report)
+    except ValueError as exc:
+        raise ValueError(f"{tracking_path}: {exc}") from None
+    n = int(valid.sum())
+    outliers = n - int(he.inlier.sum())
+    if (outliers > 0.5 * n or he.tracker_sigma[0] > MAX_TRACKER_SIGMA[0]
+            or he.tracker_sigma[1] > MAX_TRACKER_SIGMA[1]):
+        raise ValueError(
+            f"{tracking_path}: the tracker and the board disagree: {outliers} of {n} views "
+            f"beyond 3 sigma, noise seen {he.tracker_sigma[0]:.2f} deg / "
+            f"{he.tracker_sigma[1]:.2f} mm per axis (an EM tracker: tenths). Check that "
+            "tracking.csv holds tracker_from_sensor (not its inverse) with quaternions x, y, z, "
+            "w and translations in mm, the board's --square-mm, and the frame times (frames.csv "
+            "or --fps)")
+    # What the tracker alone places: board corners through the tracked camera pose.
+    predicted = np.linalg.inv(he.sensor_from_camera) @ np.linalg.inv(A) @ he.tracker_from_board
+    obj = o.board_points()
+    through_tracker = np.array([
+        np.mean(np.linalg.norm(cv2.projectPoints(
+            obj, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], K, dist)[0].reshape(-1, 2)
+            - points[k], axis=1))
+        for T, k in zip(predicted, np.flatnonzero(valid), strict=True)])
+    used = ids[valid]
+    return he.sensor_from_camera, {
+        "views": n,
+        "tracker_time_offset": offset,
+        "views_without_tracker_sample": [int(v) for v in ids[~valid]],
+        "views_beyond_3_sigma": [int(v) for v in used[~he.inlier]],
+        "sensor_from_camera": he.sensor_from_camera.tolist(),
+        "tracker_from_board": he.tracker_from_board.tolist(),
+        "sensor_from_camera_closed_form": he.closed_form.tolist(),
+        "rotation_std_from_tracker_noise_deg": he.rotation_std_deg,
+        "translation_std_from_tracker_noise_mm": he.translation_std_mm,
+        "tracker_sigma_deg": he.tracker_sigma[0],
+        "tracker_sigma_mm": he.tracker_sigma[1],
+        "tracker_residual_rotation_deg_rms": float(np.sqrt(np.mean(
+            he.rotation_residual_deg ** 2))),
+        "tracker_residual_translation_mm_rms": float(np.sqrt(np.mean(
+            he.translation_residual_mm ** 2))),
+        "per_view": {"frame": used.tolist(),
+                     "rotation_residual_deg": he.rotation_residual_deg.round(4).tolist(),
+                     "translation_residual_mm": he.translation_residual_mm.round(4).tolist(),
+                     "board_through_tracker_px": through_tracker.round(3).tolist()},
+        "board_through_tracker_px_median": float(np.median(through_tracker)),
+        "first_fit_noise": {"rot_sigma_deg": o.rot_sigma_deg,
+                            "trans_sigma_mm": o.trans_sigma_mm},
+    }
 
 
 def camera_model_difference(a: Camera, b: Camera, region: float = 0.8) -> float:
