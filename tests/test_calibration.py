@@ -227,7 +227,7 @@ def test_bad_input_named(recording, tmp_path, capsys):
         _refused(["calibrate", str(recording), "--out", str(out), *flags], message, capsys)
     assert not out.exists()
     _refused(["calibrate", str(recording), *board, "--out", str(recording / "calib")],
-             "must not be the recording folder or inside it", capsys)
+             "the output folder is inside the dataset folder .*choose --out outside it", capsys)
     resized = tmp_path / "resized"
     shutil.copytree(recording, resized)
     (resized / "camera.yaml").write_text("%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\n")

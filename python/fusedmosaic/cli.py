@@ -194,7 +194,8 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         write_calibration,
     )
     from fusedmosaic.io.dataset import check_fps
-    from fusedmosaic.io.output import check_output_dir, is_under
+    from fusedmosaic.io.output import check_output_dir
+    from fusedmosaic.runner import check_out_outside_dataset
 
     check_fps(args.fps, "--fps")
     match = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", args.board)
@@ -206,18 +207,13 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         square_mm=args.square_mm, distortion=args.distortion, every=args.every,
         max_views=args.max_views, rot_sigma_deg=args.tracker_rot_sigma,
         trans_sigma_mm=args.tracker_trans_sigma, time_offset=_time_offset(args.time_offset))
-    try:
-        options.validate()
-    except ValueError as exc:  # the option's name -> the flag
-        flags = {"board_cols": "--board", "board_rows": "--board", "square_mm": "--square-mm",
-                 "distortion": "--distortion", "every": "--every", "max_views": "--max-views",
-                 "rot_sigma_deg": "--tracker-rot-sigma", "trans_sigma_mm": "--tracker-trans-sigma",
-                 "time_offset": "--time-offset"}
-        key, _, rest = str(exc).partition(":")
-        raise ValueError(f"{flags.get(key, key)}:{rest}") from None
+    options.validate(names={
+        "board_cols": "--board", "board_rows": "--board", "square_mm": "--square-mm",
+        "distortion": "--distortion", "every": "--every", "max_views": "--max-views",
+        "rot_sigma_deg": "--tracker-rot-sigma", "trans_sigma_mm": "--tracker-trans-sigma",
+        "time_offset": "--time-offset"})
     check_output_dir(args.out)
-    if is_under(args.out, args.recording, or_equal=True):
-        raise ValueError(f"{args.out}: --out must not be the recording folder or inside it")
+    check_out_outside_dataset(Path(args.out), Path(args.recording))
     result = calibrate_recording(args.recording, options, fps=args.fps,
                                  progress=not args.quiet)
     written = write_calibration(args.out, result)

@@ -10,9 +10,13 @@ video, frames.csv, tracking.csv; camera.yaml optional, its image size checked):
    order: board x along a row, y down the columns, z into the board, the square diagonally
    outside corner (0, 0) dark. That needs a board whose columns + rows (inner corners) is odd;
    otherwise it is symmetric under a half turn and only the intrinsics are computed.
-2. Intrinsics: cv2.calibrateCamera over at most ``max_views`` detections spread over the
-   recording, with 0 / 4 / 5 / 8 distortion coefficients; views whose RMS reprojection error is
-   over 3x the median (and over 1 px) are dropped once and the calibration repeated.
+2. Intrinsics: cv2.calibrateCameraExtended over at most ``max_views`` detections spread over
+   the recording, with 0 / 4 / 5 / 8 distortion coefficients; views whose RMS reprojection
+   error is over 3x the median (and over 1 px) are dropped once and the calibration repeated.
+   Then every detection's pose is solved with these intrinsics; views whose largest corner
+   error is over 3x the median (and over 1 px) are rejected (corners found off the squares'
+   corners, e.g. where a circular field of view cuts the board) and the intrinsics computed
+   again without them. A focal length with a standard error over 2 % is refused.
 3. Hand-eye: every detection gives cam_from_board C_k (solvePnP with the intrinsics) and the
    tracker gives tracker_from_sensor A_k at the frame time (interpolated as the datasets are),
    with A_k X C_k = B for the unknown X = sensor_from_camera and B = tracker_from_board. X starts
@@ -85,28 +89,35 @@ class CalibrationOptions:
     max_time_offset_s: float = 0.1
     threads: int = 2
 
-    def validate(self) -> None:
+    def validate(self, names: dict[str, str] | None = None) -> None:
+        """ValueError for a bad field; `names` maps fields to what the messages call them
+        (e.g. the CLI's flags)."""
+        def name(key: str) -> str:
+            return (names or {}).get(key, key)
+
         for key in ("board_cols", "board_rows"):
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 2:
-                raise ValueError(f"{key}: expected an integer >= 2 (inner corners), got {value!r}")
+                raise ValueError(f"{name(key)}: expected an integer >= 2 (inner corners), got "
+                                 f"{value!r}")
         if self.distortion not in DISTORTION_FLAGS:
-            raise ValueError(f"distortion: expected one of {sorted(DISTORTION_FLAGS)} "
+            raise ValueError(f"{name('distortion')}: expected one of {sorted(DISTORTION_FLAGS)} "
                              f"coefficients, got {self.distortion!r}")
         for key in ("every", "max_views", "threads"):
             if int(getattr(self, key)) != getattr(self, key) or getattr(self, key) < 1:
-                raise ValueError(f"{key}: expected an integer >= 1, got {getattr(self, key)!r}")
+                raise ValueError(f"{name(key)}: expected an integer >= 1, got "
+                                 f"{getattr(self, key)!r}")
         if self.max_views < MIN_VIEWS:
-            raise ValueError(f"max_views: must be >= {MIN_VIEWS}, got {self.max_views}")
+            raise ValueError(f"{name('max_views')}: must be >= {MIN_VIEWS}, got {self.max_views}")
         if self.time_offset != "auto" and not (
                 isinstance(self.time_offset, (int, float)) and np.isfinite(self.time_offset)
                 and abs(self.time_offset) <= 10.0):
-            raise ValueError(f"time_offset: expected 'auto' or seconds within +-10, got "
-                             f"{self.time_offset!r}")
+            raise ValueError(f"{name('time_offset')}: expected 'auto' or seconds within +-10, "
+                             f"got {self.time_offset!r}")
         for key in ("square_mm", "rot_sigma_deg", "trans_sigma_mm", "max_time_offset_s"):
             value = getattr(self, key)
             if not (np.isfinite(value) and value > 0):
-                raise ValueError(f"{key}: must be a number > 0, got {value!r}")
+                raise ValueError(f"{name(key)}: must be a number > 0, got {value!r}")
 
     @property
     def pattern(self) -> tuple[int, int]:
@@ -213,7 +224,7 @@ def _canonical_order(gray: np.ndarray, c: np.ndarray,
     return grid.reshape(-1, 2)
 
 
-def _mean_intensity(gray: np.ndarray, p: np.ndarray, radius: int = 2) -> float:
+def _mean_intensity(gray: np.ndarray, p: np.ndarray, radius: int) -> float:
     x, y = (int(round(v)) for v in p)
     h, w = gray.shape
     patch = gray[max(y - radius, 0):min(y + radius + 1, h), max(x - radius, 0):min(x + radius + 1,
@@ -251,17 +262,13 @@ def calibrate_intrinsics(
 def _calibrate(obj, points, size, options):
     flags = DISTORTION_FLAGS[options.distortion]
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-    _, K, dist, rvecs, tvecs, std, *_ = cv2.calibrateCameraExtended(
+    _, K, dist, _, _, std, _, rms = cv2.calibrateCameraExtended(
         [obj] * len(points), [p.astype(np.float32).reshape(-1, 1, 2) for p in points], size,
         None, None, flags=flags, criteria=criteria)
     dist = dist.reshape(-1)[:max(options.distortion, 4)]
     if options.distortion == 0:
         dist = np.zeros(4)
-    rms = np.array([
-        np.sqrt(np.mean(np.sum((cv2.projectPoints(obj, r, t, K, dist)[0].reshape(-1, 2) - p)
-                               ** 2, axis=1)))
-        for r, t, p in zip(rvecs, tvecs, points, strict=True)])
-    return K, dist, rms, std.reshape(-1)[:4]
+    return K, dist, rms.reshape(-1), std.reshape(-1)[:4]
 
 
 def board_poses(image_points: list[np.ndarray], K: np.ndarray, dist: np.ndarray,
@@ -270,7 +277,7 @@ def board_poses(image_points: list[np.ndarray], K: np.ndarray, dist: np.ndarray,
     reprojection error (px)."""
     obj = options.board_points()
     poses = np.tile(np.eye(4), (len(image_points), 1, 1))
-    rms = np.zeros(len(image_points))
+    worst = np.zeros(len(image_points))
     for k, p in enumerate(image_points):
         ok, r, t = cv2.solvePnP(obj, p.reshape(-1, 1, 2), K, dist, flags=cv2.SOLVEPNP_ITERATIVE)
         if not ok:  # pragma: no cover - a detected planar board always has a pose
@@ -278,8 +285,8 @@ def board_poses(image_points: list[np.ndarray], K: np.ndarray, dist: np.ndarray,
         poses[k, :3, :3] = cv2.Rodrigues(r)[0]
         poses[k, :3, 3] = t.reshape(3)
         proj = cv2.projectPoints(obj, r, t, K, dist)[0].reshape(-1, 2)
-        rms[k] = np.linalg.norm(proj - p, axis=1).max()
-    return poses, rms
+        worst[k] = np.linalg.norm(proj - p, axis=1).max()
+    return poses, worst
 
 
 # ------------------------------------------------------------------------------------------------
@@ -394,10 +401,10 @@ def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeR
     costs = np.array([cost(d) for d in grid])
     i = int(np.argmin(costs))
     lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
-    best = minimize_scalar(cost, bounds=(lo, hi), method="bounded",
-                           options={"xatol": 1e-4}).x
+    search = minimize_scalar(cost, bounds=(lo, hi), method="bounded", options={"xatol": 1e-4})
+    best = float(search.x)
     h = 0.002
-    curvature = (cost(best + h) + cost(best - h) - 2 * cost(best)) / h ** 2
+    curvature = (cost(best + h) + cost(best - h) - 2 * search.fun) / h ** 2
     std = float(1 / np.sqrt(curvature)) if curvature > 0 else float("inf")
     out = {"estimated": True, "estimate_s": float(best), "std_s": std,
            "views": int(common.sum()), "applied_s": 0.0}
@@ -487,7 +494,7 @@ def calibrate_recording(
     first = frames[0]
     size = (first.shape[1], first.shape[0])
     if given is None:  # every frame the size of the first
-        frames = FrameSource.open(root, expected_size=size, size_source=f"its first frame {size}")
+        frames.expected_size, frames.size_source = size, f"its first frame {size}"
     frame_ids, timestamps = _read_frame_times(root, len(frames), fps)
     tried = np.arange(0, len(frames), o.every)
 
