@@ -495,7 +495,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from fusedmosaic.evaluation import evaluate_output
     from fusedmosaic.io import read_dataset, read_homographies_csv
     from fusedmosaic.io.output import OutputWriter, check_output_dir
-    from fusedmosaic.runner import run_dataset
+    from fusedmosaic.runner import frames_to_compose, run_dataset
 
     root = check_output_dir(args.out, "demo folder")
     data = root / "dataset"
@@ -522,7 +522,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     dataset = read_dataset(data)
     _, G = read_homographies_csv(out / "homographies.csv")
     cam = dataset.camera
-    seams = render_mosaic(dataset.frames, G, cam.width, cam.height, mask=cam.fov_mask(),
+    frames, mask = frames_to_compose(dataset)  # lba-emt: undistorted pixels
+    seams = render_mosaic(frames, G, cam.width, cam.height, mask=mask,
                           blend=BlendOptions("linear", border_px=1.5)).image
     result = evaluate_output(out, data)
     with OutputWriter(out, record="demo", stale_after_run=True,

@@ -47,6 +47,10 @@ class MethodResult:
     details: dict = field(default_factory=dict)  # method-specific report entries
     # how run composes mosaic.png by default: "linear" (seed 000, Sec. 4.2), "average" (seed 004)
     blend: str = "linear"
+    # The homographies hold between undistorted pixels (camera.yaml's lens distortion removed
+    # from the keypoints), so the mosaic is composed from undistorted frames; False: raw pixels
+    # (the translation methods register raw frames by NCC). Same thing without distortion.
+    undistorted: bool = True
 
 
 def ms_stats(values_ms) -> dict | None:

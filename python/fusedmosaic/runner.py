@@ -189,6 +189,20 @@ def older_run_outputs(out: Path) -> list[str]:
     return ["plane.json", "poses.csv"]
 
 
+def frames_to_compose(dataset, undistorted: bool = True):
+    """(frames, field-of-view mask) the mosaic is composed from: with lens distortion in
+    camera.yaml and homographies between undistorted pixels (MethodResult.undistorted), the
+    frames undistorted on read and the mask of their valid pixels (see LensUndistortion);
+    otherwise the frames and the camera's field-of-view mask as they are."""
+    from fusedmosaic.io import UndistortedFrames
+
+    cam = dataset.camera
+    lens = cam.undistortion() if undistorted else None
+    if lens is None:
+        return dataset.frames, cam.fov_mask()
+    return UndistortedFrames(dataset.frames, lens), lens.mask
+
+
 def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=None, video=None,
                     out: Path, progress: bool, timings: dict[str, float]) -> dict:
     """mosaic.png (one piece, or tile by tile above CanvasOptions.in_memory_pixels), and the
@@ -209,7 +223,7 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
     )
 
     cam = dataset.camera
-    mask = cam.fov_mask()
+    frames, mask = frames_to_compose(dataset, result.undistorted)
     if blend is None:
         blend = BlendOptions(result.blend)
     elif isinstance(blend, str):
@@ -233,17 +247,17 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
         return {"mosaic": info, "plan": None, "video": None}
     gains = None
     if blend.gain_compensation:
-        gains = frame_gains(dataset.frames, G, cam.width, cam.height, mask=mask, use=plan.use,
+        gains = frame_gains(frames, G, cam.width, cam.height, mask=mask, use=plan.use,
                             progress=progress)
         timings["gain_compensation"] = time.perf_counter() - t0
         t0 = time.perf_counter()
     tiled = plan.pixels > canvas.in_memory_pixels
     if tiled:
-        _, covered = write_mosaic_png(w.path("mosaic.png"), dataset.frames, G, cam.width,
+        _, covered = write_mosaic_png(w.path("mosaic.png"), frames, G, cam.width,
                                       cam.height, mask=mask, blend=blend, canvas=canvas,
                                       gains=gains, plan=plan, progress=progress)
     else:
-        rendered = render_mosaic(dataset.frames, G, cam.width, cam.height, mask=mask,
+        rendered = render_mosaic(frames, G, cam.width, cam.height, mask=mask,
                                  blend=blend, max_pixels=canvas.max_pixels, gains=gains,
                                  plan=plan, progress=progress)
         w.write_image("mosaic.png", rendered.image)
@@ -255,6 +269,8 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
         "blend": blend.blend,
         "border_px": blend.border_px,
         "gain_compensation": blend.gain_compensation,
+        # frames undistorted first (camera.yaml's distortion_coefficients)
+        "lens_undistorted": frames is not dataset.frames,
         "width": plan.width,
         "height": plan.height,
         "origin_reference_px": [plan.x0, plan.y0],  # mosaic pixel (0, 0) in frame 0's pixels
@@ -274,7 +290,7 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
             path = w.path(str(target.resolve().relative_to(out.resolve())))
         else:
             path = w.external_path(target)
-        n = write_creation_video(path, dataset.frames, G, cam.width, cam.height,
+        n = write_creation_video(path, frames, G, cam.width, cam.height,
                                  (plan.x0, plan.y0, plan.x1, plan.y1), use=plan.use, mask=mask,
                                  blend=blend, fps=25.0, gains=gains, frame_ids=ids,
                                  progress=progress)

@@ -12,7 +12,6 @@ import time
 from collections import deque
 from dataclasses import asdict, dataclass, field, replace
 
-import cv2
 import numpy as np
 from tqdm import tqdm
 
@@ -62,12 +61,6 @@ class FrontEnd:
     timings: dict[str, float]
 
 
-def undistort_points(points: np.ndarray, K: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
-    if dist is None or not np.any(dist) or len(points) == 0:
-        return points
-    return cv2.undistortPoints(points.reshape(-1, 1, 2), K, dist, P=K).reshape(-1, 2)
-
-
 def register_frames(dataset, pairs_fn, options: BundleOptions, progress: bool,
                     features: dict | None = None) -> FrontEnd:
     """Features for every frame, then matches of the pairs returned by pairs_fn(features)."""
@@ -76,8 +69,9 @@ def register_frames(dataset, pairs_fn, options: BundleOptions, progress: bool,
     timings: dict[str, float] = {}
     if features is None:
         t0 = time.perf_counter()
+        # keypoints in undistorted pixels (camera.yaml's lens distortion removed)
         features = extract_features(dataset.frames, range(n), cam.fov_mask(), options.features,
-                                    progress, options.num_threads)
+                                    progress, options.num_threads, cam.undistortion())
         timings["features"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     pairs = pairs_fn(features)
@@ -225,7 +219,6 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
         result.plane = plane_from_aligned(result.plane, rotation)
         return result
     o = options or BundleOptions()
-    dist = dataset.camera.distortion
     n = len(dataset.frames)
     rng = np.random.default_rng(o.seed)
     plane = None
@@ -275,8 +268,7 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     for m in ok:
         if m.frame_l in in_problem and m.frame_m in in_problem:
             pl, pm = subsample_inliers(m, o.max_points_per_pair, rng)
-            ba.add_pair(m.frame_l, m.frame_m, undistort_points(pl, K, dist),
-                        undistort_points(pm, K, dist))
+            ba.add_pair(m.frame_l, m.frame_m, pl, pm)
     ba.set_plane(plane)
     summary = ba.solve()
     timings["optimisation"] = summary.solve_time_s

@@ -171,7 +171,8 @@ def _streamed_result(method: str, status: list, finals: dict, plane, details: di
                                     else np.asarray(finals[k].plane).tolist() for k in range(n)]
     return MethodResult(G, status, poses=poses, plane=None if plane is None else np.asarray(plane),
                         timings={"processing": processing_s}, parameters=parameters,
-                        details=details, blend="linear" if method == "lba-emt" else "average")
+                        details=details, blend="linear" if method == "lba-emt" else "average",
+                        undistorted=method == "lba-emt")
 
 
 def _timing_details(latency_s: list, processing_s: list, ages_s: list) -> dict:

@@ -46,7 +46,10 @@ def run_pairwise(dataset, *, progress: bool = True,
     n = len(dataset.frames)
     timings = {}
     t0 = time.perf_counter()
-    feats = extract_features(dataset.frames, range(n), cam.fov_mask(), o.features, progress)
+    # keypoints in undistorted pixels (camera.yaml's lens distortion removed), where the
+    # frame-to-frame mapping of a plane is a homography
+    feats = extract_features(dataset.frames, range(n), cam.fov_mask(), o.features, progress,
+                             undistortion=cam.undistortion())
     timings["features"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     pairs = [(k, k + 1) for k in range(n - 1)]  # target k, source k + 1

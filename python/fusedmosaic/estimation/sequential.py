@@ -67,7 +67,6 @@ from fusedmosaic import _core
 from fusedmosaic.estimation.bundle import (
     fill_missing_poses,
     subsample_inliers,
-    undistort_points,
 )
 from fusedmosaic.estimation.guard import exclusive_call
 from fusedmosaic.estimation.keyframes import KeyframeIndex
@@ -287,7 +286,6 @@ class SequentialMosaicker:
                              f"got {o.startup_wait_frames} < {o.bootstrap_frames}")
         self._camera = camera
         self.K = camera.require_camera_matrix("lba-emt")
-        self.distortion = camera.distortion
         self.size = (camera.width, camera.height)
         self._outline = self._frame_outline(camera)
         self._fov_radius = camera.fov_mask_radius
@@ -315,7 +313,8 @@ class SequentialMosaicker:
         self._broken: str | None = None  # why the mosaicker is unusable (failed restoration)
         # matching threads, made on first use; reset() keeps them
         self._pool = getattr(self, "_pool", None)
-        self.extractor = FeatureExtractor(o.features, camera.fov_mask())
+        # keypoints in undistorted pixels (camera.yaml's lens distortion removed)
+        self.extractor = FeatureExtractor(o.features, camera.fov_mask(), camera.undistortion())
         self.keyframes = KeyframeIndex(o.frames_per_cluster, max_blocks=o.max_keyframe_blocks,
                                        cell_size_px=0.5 * max(self.size),
                                        rng=np.random.default_rng(o.seed))
@@ -725,10 +724,8 @@ class SequentialMosaicker:
             c["correspondences"] += sum(m.n_inliers for m in registered)
 
     def _subsample(self, m):
-        """At most max_points_per_pair inliers of a pair, undistorted (pixels)."""
-        pl, pm = subsample_inliers(m, self.options.max_points_per_pair, self.rng)
-        return (undistort_points(pl, self.K, self.distortion),
-                undistort_points(pm, self.K, self.distortion))
+        """At most max_points_per_pair inliers of a pair (undistorted pixels, as extracted)."""
+        return subsample_inliers(m, self.options.max_points_per_pair, self.rng)
 
     def _match_loops(self, k: int, feats, tracker_pose) -> list:
         """Matches frame k against retained older frames its predicted footprint overlaps."""

@@ -836,6 +836,7 @@ def _run(
         parameters=parameters,
         details=details,
         blend="average",
+        undistorted=False,  # NCC on the raw frames
     )
 
 

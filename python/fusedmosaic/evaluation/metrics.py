@@ -133,6 +133,31 @@ def compare_position_errors(errors_a: np.ndarray, errors_b: np.ndarray) -> dict:
             "mean_a": float(errors_a[ok].mean()), "mean_b": float(errors_b[ok].mean())}
 
 
+def mosaic_difference(mosaic: np.ndarray, origin: tuple[int, int], truth: np.ndarray,
+                      truth_origin: tuple[int, int], truth_covered: np.ndarray) -> dict:
+    """Photometric difference of a mosaic from a truth mosaic (e.g. the simulator's pinhole
+    frames composed at the true homographies), both in reference pixels with their pixel (0, 0)
+    at `origin` / `truth_origin`: the mean absolute difference (grey levels, over channels) on
+    the pixels the truth covers and the mosaic shows (not black), and the fraction of the truth's
+    covered pixels that is."""
+    a, b = np.asarray(mosaic), np.asarray(truth)
+    if a.shape[2:] != b.shape[2:]:
+        raise ValueError(f"mosaic has {a.shape[2:] or 1} channels, the truth {b.shape[2:] or 1}")
+    (x0, y0), (tx0, ty0) = origin, truth_origin
+    ax0, ay0 = max(x0, tx0), max(y0, ty0)
+    ax1, ay1 = min(x0 + a.shape[1], tx0 + b.shape[1]), min(y0 + a.shape[0], ty0 + b.shape[0])
+    if ax1 <= ax0 or ay1 <= ay0:
+        return {"mean_abs_difference": float("nan"), "compared_fraction": 0.0}
+    a = a[ay0 - y0:ay1 - y0, ax0 - x0:ax1 - x0].astype(np.float64)
+    b = b[ay0 - ty0:ay1 - ty0, ax0 - tx0:ax1 - tx0].astype(np.float64)
+    shown = a.reshape(a.shape[0], a.shape[1], -1).sum(axis=2) > 0
+    both = np.asarray(truth_covered)[ay0 - ty0:ay1 - ty0, ax0 - tx0:ax1 - tx0] & shown
+    diff = np.abs(a - b)[both]
+    return {"mean_abs_difference": float(diff.mean()) if diff.size else float("nan"),
+            "compared_fraction": float(both.sum() / max(int(np.count_nonzero(truth_covered)),
+                                                          1))}
+
+
 def check_positions_n(positions_n, what: str = "positions") -> None:
     """The number of evenly spaced frames for the position statistics: an integer >= 1."""
     if (isinstance(positions_n, bool) or not isinstance(positions_n, (int, np.integer))

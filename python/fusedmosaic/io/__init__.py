@@ -1,6 +1,12 @@
 """Reading and writing the dataset and output contracts (see design.md)."""
 
-from fusedmosaic.io.calibration import Camera, read_camera_yaml, write_camera_yaml
+from fusedmosaic.io.calibration import (
+    Camera,
+    LensUndistortion,
+    UndistortedFrames,
+    read_camera_yaml,
+    write_camera_yaml,
+)
 from fusedmosaic.io.dataset import Dataset, read_dataset, write_dataset
 from fusedmosaic.io.homographies import (
     read_homographies_csv,
@@ -28,9 +34,11 @@ __all__ = [
     "Camera",
     "Dataset",
     "FrameSource",
+    "LensUndistortion",
     "OutputWriter",
     "RobotSamples",
     "TrackingSamples",
+    "UndistortedFrames",
     "camera_pose_from_sample",
     "interpolate_camera_poses",
     "interpolate_robot",

@@ -96,11 +96,22 @@ def _binary(mask: np.ndarray) -> np.ndarray:
 class FeatureExtractor:
     """Detects keypoints in frames of one camera; reusable and thread-safe per call."""
 
-    def __init__(self, options: FeatureOptions | None = None, mask: np.ndarray | None = None):
+    def __init__(self, options: FeatureOptions | None = None, mask: np.ndarray | None = None,
+                 undistortion=None):
+        """mask: the raw frames' field of view (uint8 or bool), None: found per frame from a
+        black border. undistortion: the camera's LensUndistortion (Camera.undistortion()):
+        keypoints are detected in the undistorted frame (within its valid pixels), so they are
+        in undistorted pixels, where the homographies of a planar scene hold; None: raw."""
         self.options = options or FeatureOptions()
         self.options.validate()
+        self.undistortion = undistortion
         # OpenCV takes any non-zero mask value as inside; 255 is what the shrink below expects
-        self._mask = None if mask is None else self._shrink(_binary(mask))
+        raw = None if mask is None else _binary(mask)
+        if undistortion is not None:
+            self._mask = None if raw is None else self._shrink(undistortion.valid(raw))
+            self._lens_mask = self._shrink(undistortion.valid())
+        else:
+            self._mask = None if raw is None else self._shrink(raw)
         self._small_masks: dict[tuple, np.ndarray] = {}  # fixed mask at detection sizes
 
     def _shrink(self, mask: np.ndarray) -> np.ndarray:
@@ -122,10 +133,19 @@ class FeatureExtractor:
             raise ValueError(f"frame {frame_id}: expected a uint8 (H, W) or (H, W, 3) image, "
                              f"got {image.dtype} {image.shape}")
         gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        lens = self.undistortion
+        if lens is not None and gray.shape != (lens.height, lens.width):
+            raise ValueError(f"frame {frame_id}: image is {gray.shape[1]}x{gray.shape[0]}, the "
+                             f"camera's is {lens.width}x{lens.height}")
         mask = self._mask
-        if mask is None:
+        if mask is None:  # the raw frame's black border, if it has one
             found = fov_mask_from_image(gray, self.options.border_threshold)
-            mask = None if found is None else self._shrink(found)
+            if lens is None:
+                mask = None if found is None else self._shrink(found)
+            else:
+                mask = self._lens_mask if found is None else self._shrink(lens.valid(found))
+        if lens is not None:
+            gray = lens.image(gray)  # detected here, the keypoints are in undistorted pixels
         if mask is not None and mask.shape != gray.shape:
             raise ValueError(f"frame {frame_id}: mask shape {mask.shape} differs from the image "
                              f"{gray.shape}")
@@ -168,13 +188,14 @@ class FeatureExtractor:
 
 def extract_features(frames, frame_indices, camera_mask: np.ndarray | None,
                      options: FeatureOptions | None = None, progress: bool = False,
-                     num_threads: int = 2) -> dict[int, Features]:
-    """Features of frames[k] for k in frame_indices, keyed by k; threads share the work."""
+                     num_threads: int = 2, undistortion=None) -> dict[int, Features]:
+    """Features of frames[k] for k in frame_indices, keyed by k; threads share the work.
+    undistortion: see FeatureExtractor."""
     from concurrent.futures import ThreadPoolExecutor
 
     from tqdm import tqdm
 
-    extractor = FeatureExtractor(options, camera_mask)
+    extractor = FeatureExtractor(options, camera_mask, undistortion)
     indices = list(frame_indices)
 
     def one(k):

@@ -85,6 +85,10 @@ class FetoscopyOptions:
         -1.0, "px circular FOV; -1 auto (syn none, handheld 0.48 min(W,H))"
     )
     image_noise_sigma: float = _opt(2.0, "std of per-frame Gaussian image noise, gray levels")
+    lens_distortion: list[float] | None = _opt(
+        None, "OpenCV k1 k2 p1 p2 [k3]: frames rendered through this lens, written to "
+        "camera.yaml (a fetoscope's barrel lens: -0.3 0.1 0 0); none: a pinhole"
+    )
     seed: int = _opt(0, "seed of every random draw (texture, path, noise)")
 
     def validate(self) -> None:
@@ -137,6 +141,13 @@ class FetoscopyOptions:
                 raise ValueError(
                     "FetoscopyOptions.tracker_gap: expected [first, last] frames, "
                     f"got {self.tracker_gap}"
+                )
+        if self.lens_distortion is not None:
+            d = np.asarray(self.lens_distortion, np.float64)
+            if d.ndim != 1 or d.size not in (4, 5) or not np.isfinite(d).all():
+                raise ValueError(
+                    "FetoscopyOptions.lens_distortion: expected 4 or 5 finite numbers "
+                    f"(k1 k2 p1 p2 [k3]), got {self.lens_distortion}"
                 )
         if self.fov_mask_radius < 0 and self.fov_mask_radius != -1:
             raise ValueError(
@@ -318,6 +329,14 @@ class FetoscopyScene:
     frame_from_texture: np.ndarray
     black_frames: list[int]
     fov_mask_radius: float | None
+    # With lens_distortion: the ideal (pinhole) pixel of every raw sub-pixel sample (see
+    # LENS_SUPERSAMPLE), (3 H, 3 W, 2).
+    ideal_pixels: np.ndarray | None = None
+
+    @property
+    def distortion(self) -> np.ndarray | None:
+        d = self.options.lens_distortion
+        return None if d is None else np.asarray(d, np.float64)
 
     @property
     def n_frames(self) -> int:
@@ -345,13 +364,21 @@ class FetoscopyScene:
         w, h = self.size
         if k in self.black_frames:
             return np.zeros((h, w, 3), np.uint8)
-        img = cv2.warpPerspective(
-            self.texture,
-            self.frame_from_texture[k],
-            (w, h),
-            flags=cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_REFLECT,
-        )
+        if self.ideal_pixels is None:
+            img = cv2.warpPerspective(
+                self.texture,
+                self.frame_from_texture[k],
+                (w, h),
+                flags=cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_REFLECT,
+            )
+        else:  # through the lens: raw sub-pixel -> ideal pixel -> texture, then averaged
+            A = np.linalg.inv(self.frame_from_texture[k])
+            q = self.ideal_pixels @ A[:, :2].T + A[:, 2]
+            uv = (q[..., :2] / q[..., 2:]).astype(np.float32)
+            img = cv2.remap(self.texture, uv[..., 0], uv[..., 1], cv2.INTER_LINEAR,
+                            borderMode=cv2.BORDER_REFLECT)
+            img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
         sigma = self.options.image_noise_sigma
         if noise and sigma > 0:
             rng = np.random.default_rng([self.options.seed, 1, k])
@@ -411,7 +438,13 @@ def generate_fetoscopy(options: FetoscopyOptions | None = None) -> FetoscopyScen
     corners = np.array(
         [[0, 0, 1], [o.width - 1, 0, 1], [0, o.height - 1, 1], [o.width - 1, o.height - 1, 1.0]]
     ).T
-    uv = np.linalg.solve(M1, np.broadcast_to(corners, (o.n_frames, 3, 4)))
+    ideal = None
+    if o.lens_distortion is not None:
+        ideal = _ideal_pixels(o, K)
+        # what a distorted frame shows: its border's ideal pixels (beyond the corners: barrel)
+        border = np.concatenate([ideal[0], ideal[-1], ideal[:, 0], ideal[:, -1]])
+        corners = np.hstack([border, np.ones((len(border), 1))]).T
+    uv = np.linalg.solve(M1, np.broadcast_to(corners, (o.n_frames, 3, corners.shape[1])))
     uv = (uv[:, :2] / uv[:, 2:3]).transpose(0, 2, 1).reshape(-1, 2)
     closest = o.distance_mm * (1.0 - (o.distance_variation if o.motion == "handheld" else 0.0))
     s = closest / f  # texture mm/px: never coarser than a frame pixel
@@ -476,7 +509,33 @@ def generate_fetoscopy(options: FetoscopyOptions | None = None) -> FetoscopyScen
         frame_from_texture=M,
         black_frames=sorted({int(k) for k in o.black_frames or []}),
         fov_mask_radius=fov,
+        ideal_pixels=ideal,
     )
+
+
+# Raw pixels are rendered as the mean of LENS_SUPERSAMPLE^2 samples: a barrel lens compresses
+# the periphery, where one sample per pixel would alias (a lens integrates over the pixel).
+LENS_SUPERSAMPLE = 3
+
+
+def _ideal_pixels(o: FetoscopyOptions, K: np.ndarray) -> np.ndarray:
+    """(S H, S W, 2) ideal pixel of every raw sub-pixel sample (S = LENS_SUPERSAMPLE) through
+    the lens (OpenCV's model, iterated to convergence); refuses a lens whose model folds over
+    within the frame."""
+    d = np.asarray(o.lens_distortion, np.float64)
+    S = LENS_SUPERSAMPLE
+    v, u = np.mgrid[0:o.height * S, 0:o.width * S].astype(np.float64)
+    raw = np.stack([(u + 0.5) / S - 0.5, (v + 0.5) / S - 0.5], -1).reshape(-1, 1, 2)
+    ideal = cv2.undistortPoints(raw, K, d, P=K, criteria=(
+        cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 60, 1e-12)).reshape(-1, 2)
+    rays = np.linalg.solve(K, np.hstack([ideal, np.ones((len(ideal), 1))]).T).T
+    back, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K, d)
+    if not np.all(np.abs(back.reshape(-1, 2) - raw.reshape(-1, 2)) < 1e-3):
+        raise ValueError(
+            f"FetoscopyOptions.lens_distortion: {d.tolist()} is not invertible over the "
+            f"{o.width}x{o.height} frame (the model folds over); use a milder lens"
+        )
+    return ideal.reshape(o.height * S, o.width * S, 2)
 
 
 # --------------------------------------------------------------------------------------------
@@ -510,16 +569,20 @@ def simulate_fetoscopy(
 ) -> Path:
     """Generate a fetoscopy dataset folder (dataset contract of design.md) at ``out``.
 
-    Writes frames/, frames.csv, camera.yaml (K, fov_mask_radius), tracking.csv, hand_eye.txt,
-    ground_truth.csv, and for evaluation truth_poses.csv (frame,rx,ry,rz,tx,ty,tz of the true
-    cam_from_world), truth_plane.json ({"plane", "normal", "distance_mm"}) and simulation.json
-    (the options used)."""
+    Writes frames/, frames.csv, camera.yaml (K, distortion, fov_mask_radius), tracking.csv,
+    hand_eye.txt, ground_truth.csv, and for evaluation truth_poses.csv (frame,rx,ry,rz,tx,ty,tz
+    of the true cam_from_world), truth_plane.json ({"plane", "normal", "distance_mm"}) and
+    simulation.json (the options used)."""
     from fusedmosaic.io import Camera, TrackingSamples, write_dataset
 
     scene = generate_fetoscopy(options)
     o = scene.options
     camera = Camera(
-        o.width, o.height, camera_matrix=scene.camera_matrix, fov_mask_radius=scene.fov_mask_radius
+        o.width,
+        o.height,
+        camera_matrix=scene.camera_matrix,
+        distortion=scene.distortion,
+        fov_mask_radius=scene.fov_mask_radius,
     )
     tracking = TrackingSamples(
         scene.tracker_timestamps,
