@@ -507,3 +507,23 @@ def test_dimsize_by_kinds(tmp_path):
     _edit(path, r"Kinds = [^\n]*", "Kinds = vector domain domain domain domain")
     with pytest.raises(ValueError, match="expected 2-D frames"):
         read_plus_sequence(path)
+
+
+def test_import_with_tracker_time_offset(tmp_path, capsys):
+    """--tracker-time-offset S writes tracking.csv on the video's clock (timestamps - S); a
+    bad value is refused naming the flag, before anything is written."""
+    from fusedmosaic.cli import main
+    from fusedmosaic.io import read_tracking_csv
+
+    seq = _small(tmp_path)
+    assert main(["import", str(seq), str(tmp_path / "a"), "--quiet"]) == 0
+    assert main(["import", str(seq), str(tmp_path / "b"), "--quiet",
+                 "--tracker-time-offset", "0.03"]) == 0
+    a = read_tracking_csv(tmp_path / "a" / "tracking.csv")
+    b = read_tracking_csv(tmp_path / "b" / "tracking.csv")
+    np.testing.assert_allclose(b.timestamps, a.timestamps - 0.03, atol=1e-12)
+    np.testing.assert_array_equal(b.translations, a.translations)
+    assert main(["import", str(seq), str(tmp_path / "c"), "--tracker-time-offset", "nan"]) == 2
+    assert "--tracker-time-offset: expected seconds within +-10, got nan" in \
+        capsys.readouterr().err
+    assert not (tmp_path / "c").exists()

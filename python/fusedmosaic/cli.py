@@ -112,6 +112,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
     check_fps(args.fps, "--fps")
     options = None
     overrides: dict = {}
+    if args.tracker_time_offset:
+        from fusedmosaic.io.tracking import check_time_offset
+        from fusedmosaic.runner import NEEDS_TRACKING
+
+        check_time_offset(args.tracker_time_offset, "--tracker-time-offset")
+        if args.method not in NEEDS_TRACKING:
+            raise ValueError(f"--tracker-time-offset applies to the methods that use "
+                             f"tracking.csv ({', '.join(sorted(NEEDS_TRACKING))}), not "
+                             f"{args.method}")
     if args.motion_sigma_from:
         if args.method not in ("ba-emt", "lba-emt"):
             raise ValueError(f"--motion-sigma-from applies to ba-emt and lba-emt, not "
@@ -160,7 +169,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
                           robot_file=args.robot_file, allow_untracked=args.allow_untracked,
                           progress=_progress(args), options=options, blend=blend,
                           canvas=canvas, video=args.video, report=not args.no_report,
-                          live=args.live)
+                          live=args.live, tracker_time_offset=args.tracker_time_offset)
     _say(args, summary)
     return 0
 
@@ -175,12 +184,15 @@ def _loop_pairs(args: argparse.Namespace) -> dict:
 
 def _cmd_import(args: argparse.Namespace) -> int:
     from fusedmosaic.io.plus import import_plus_sequence
+    from fusedmosaic.io.tracking import check_time_offset
+
+    check_time_offset(args.tracker_time_offset, "--tracker-time-offset")
 
     try:
         summary = import_plus_sequence(
             args.sequence, args.out, camera=args.camera, hand_eye=args.hand_eye,
             transform=None if args.transform == "auto" else args.transform,
-            overwrite=args.overwrite)
+            overwrite=args.overwrite, tracker_time_offset=args.tracker_time_offset)
     except ValueError as exc:  # the library's keyword -> the flag
         raise ValueError(str(exc).replace("pass overwrite=True", "pass --overwrite")) from None
     _say(args, f"imported {summary}")
@@ -591,6 +603,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="frame rate when the dataset has no frames.csv (default 25)")
     run.add_argument("--robot-file", default="robot.csv",
                      help="robot positions file inside the dataset (default robot.csv)")
+    run.add_argument("--tracker-time-offset", type=float, default=0.0, metavar="S",
+                     help="seconds the tracker's clock is ahead of the video's: the sample for "
+                          "the frame at time t is tracking.csv's at t + S (calibrate measures "
+                          "it: calibration.json tracker_time_offset; default 0)")
     run.add_argument("--pair-selection", choices=["all", "emt-guided", "window"],
                      help="ba / ba-emt / emt: which image pairs to match (default: all for ba and "
                           "ba-emt as in the paper, emt-guided for emt)")
@@ -624,6 +640,10 @@ def build_parser() -> argparse.ArgumentParser:
                     "recording for `fusedmosaic calibrate`, which writes the camera.yaml")
     imp.add_argument("--overwrite", action="store_true",
                      help="replace an earlier dataset in OUT")
+    imp.add_argument("--tracker-time-offset", type=float, default=0.0, metavar="S",
+                     help="seconds the tracker's clock is ahead of the video's (calibrate's "
+                          "calibration.json tracker_time_offset): tracking.csv is written on "
+                          "the video's clock, its timestamps shifted by -S (default 0)")
     imp.set_defaults(func=_cmd_import)
 
     cal = sub.add_parser(

@@ -29,7 +29,8 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
                 robot_file: str = "robot.csv", allow_untracked: bool = False,
                 progress: bool = True, blend=None, options=None, canvas=None,
                 video: str | Path | None = None, report: bool = True, live: bool = False,
-                result: methods.MethodResult | None = None) -> str:
+                result: methods.MethodResult | None = None,
+                tracker_time_offset: float = 0.0) -> str:
     """Runs `method` on a dataset folder and writes the output contract into `out`.
 
     blend: a blend name ("linear", "multiband", "average", "last") or a
@@ -44,6 +45,8 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
         estimation.live), for lba-emt and kalman-robot.
     result: the method's result, already computed on this dataset (a live session, whose
         recording the dataset is): only the outputs are written.
+    tracker_time_offset: s, the tracker's clock ahead of the video's (io.read_dataset):
+        calibrate's calibration.json "tracker_time_offset" / "applied_s".
     Returns a short summary for the terminal."""
     from fusedmosaic.evaluation.provenance import dataset_fingerprint
     from fusedmosaic.io import read_dataset
@@ -71,7 +74,8 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
     t0 = time.perf_counter()
     # live replay uses the raw samples (frames without a recent one are listed, not refused)
     dataset = read_dataset(dataset_root, fps=fps, robot_file=robot_file,
-                           allow_untracked=allow_untracked or live)
+                           allow_untracked=allow_untracked or live,
+                           tracker_time_offset=tracker_time_offset)
     if method in NEEDS_TRACKING and result is None:  # a live session may have had none
         dataset.require_tracking(method)
     if method in NEEDS_CAMERA_MATRIX:
@@ -109,6 +113,7 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
             "frames": len(G),
             "placed": int(placed.sum()),
             "parameters": result.parameters,
+            "tracker_time_offset_s": float(tracker_time_offset),
             "timings_s": timings,
             "frame_status": result.status,
             **result.details,

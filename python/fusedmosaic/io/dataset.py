@@ -22,11 +22,13 @@ from fusedmosaic.io.homographies import read_homographies_csv, write_homographie
 from fusedmosaic.io.tracking import (
     RobotSamples,
     TrackingSamples,
+    check_time_offset,
     interpolate_camera_poses,
     interpolate_robot,
     read_hand_eye,
     read_robot_csv,
     read_tracking_csv,
+    shift_tracking,
     write_hand_eye,
     write_robot_csv,
     write_tracking_csv,
@@ -90,6 +92,7 @@ def read_dataset(
     fps: float = 25.0,
     robot_file: str = "robot.csv",
     allow_untracked: bool = False,
+    tracker_time_offset: float = 0.0,
 ) -> Dataset:
     """Read and check a dataset folder. Images are not loaded (only the first, to check its size).
 
@@ -100,8 +103,13 @@ def read_dataset(
     robot_file : name of the robot positions file (e.g. robot_noisy.csv).
     allow_untracked : flag frames outside the tracker's / robot's time span as invalid instead of
         raising.
+    tracker_time_offset : s, the tracker's clock ahead of the video's: the sample for the frame
+        at time t is the one tracking.csv stamps t + tracker_time_offset (calibrate measures
+        it: calibration.json "tracker_time_offset"); Dataset.tracking is then on the video's
+        clock.
     """
     root = Path(root)
+    tracker_time_offset = check_time_offset(tracker_time_offset)
     if not root.is_dir():
         raise ValueError(f"{root}: dataset folder not found")
     camera = read_camera_yaml(root / "camera.yaml")
@@ -116,12 +124,16 @@ def read_dataset(
     tracking_path = root / "tracking.csv"
     if tracking_path.exists():
         dataset.tracking = read_tracking_csv(tracking_path)
+        source = str(tracking_path)
+        if tracker_time_offset:
+            dataset.tracking = shift_tracking(dataset.tracking, tracker_time_offset)
+            source += f" (timestamps shifted by {-tracker_time_offset:+g} s, the clock offset)"
         dataset.cam_from_world, dataset.pose_valid = interpolate_camera_poses(
             dataset.tracking,
             timestamps,
             hand_eye,
             allow_outside=allow_untracked,
-            source=str(tracking_path),
+            source=source,
         )
     robot_path = root / robot_file
     if robot_path.exists():

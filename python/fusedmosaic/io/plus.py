@@ -40,8 +40,10 @@ from fusedmosaic.io.tracking import (
     MAX_TIMESTAMP_S,
     MAX_TRANSLATION_MM,
     TrackingSamples,
+    check_time_offset,
     hand_eye_matrix,
     rigid_problems,
+    shift_tracking,
 )
 
 __all__ = [
@@ -729,6 +731,7 @@ def import_plus_sequence(
     transform: str | None = "SensorToTracker",
     hand_eye=None,
     overwrite: bool = False,
+    tracker_time_offset: float = 0.0,
 ) -> ImportSummary:
     """Write the dataset folder ``root`` (design.md contract) from a PLUS sequence metafile.
 
@@ -739,10 +742,14 @@ def import_plus_sequence(
     valid=0 where its status is not OK; camera.yaml : ``camera`` (a Camera or a camera.yaml
     path), whose image size must match; None writes the image size only (a recording to
     calibrate the camera from, `fusedmosaic calibrate`); hand_eye.txt : ``hand_eye`` (4x4
-    sensor_from_camera or a path) when given. Everything is checked before anything is
+    sensor_from_camera or a path) when given. tracker_time_offset : s, the tracker's clock
+    ahead of the video's (calibrate's calibration.json "tracker_time_offset"): tracking.csv's
+    timestamps are written shifted by -tracker_time_offset (io.shift_tracking), on the video's
+    clock. Everything is checked before anything is
     written, and write_dataset writes atomically: a failure leaves no folder (or the previous
     one, with overwrite).
     """
+    tracker_time_offset = check_time_offset(tracker_time_offset)
     sequence = read_plus_sequence(path)
     if overwrite:  # replacing root must not delete this import's own inputs
         data = sequence.header.get("ElementDataFile", "LOCAL")
@@ -779,8 +786,9 @@ def import_plus_sequence(
     quaternions = np.full((len(t), 4), np.nan)
     translations[ok] = selected.matrices[ok, :3, 3]
     quaternions[ok] = Rotation.from_matrix(selected.matrices[ok, :3, :3]).as_quat()
-    tracking = TrackingSamples(t, translations, quaternions, ok)
-    t_ok = t[ok]
+    tracking = shift_tracking(TrackingSamples(t, translations, quaternions, ok),
+                              tracker_time_offset)
+    t_ok = tracking.timestamps[ok]
     untracked = kept[(t[kept] < t_ok[0]) | (t[kept] > t_ok[-1])]
 
     def frames():

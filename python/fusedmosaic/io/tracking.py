@@ -188,6 +188,30 @@ def _check_values(
             )
 
 
+# The largest tracker-video clock offset taken (as calibrate's --time-offset): endoscope video
+# and EM tracker latencies are tens of milliseconds; seconds mean clocks that were never synced.
+MAX_TIME_OFFSET_S = 10.0
+
+
+def check_time_offset(offset, what: str = "tracker_time_offset") -> float:
+    """A tracker-video clock offset: a finite number of seconds within +-MAX_TIME_OFFSET_S."""
+    if (isinstance(offset, bool) or not isinstance(offset, numbers.Real)
+            or not abs(float(offset)) <= MAX_TIME_OFFSET_S):
+        raise ValueError(f"{what}: expected seconds within +-{MAX_TIME_OFFSET_S:g}, "
+                         f"got {offset!r}")
+    return float(offset)
+
+
+def shift_tracking(samples: TrackingSamples, offset_s: float) -> TrackingSamples:
+    """The samples on the video's clock when the tracker's clock is offset_s ahead: the
+    sample for the frame at time t is the one stamped t + offset_s (calibrate's
+    calibration.json "tracker_time_offset" / "applied_s"), so every timestamp moves by
+    -offset_s."""
+    offset_s = check_time_offset(offset_s)
+    return TrackingSamples(samples.timestamps - offset_s, samples.translations.copy(),
+                           samples.quaternions.copy(), samples.valid.copy())
+
+
 def write_tracking_csv(path: str | Path, samples: TrackingSamples) -> None:
     """Write all samples with a ``valid`` column; NaN fields are written empty."""
     values = np.concatenate([samples.translations, samples.quaternions], axis=1)
