@@ -234,6 +234,19 @@ def load_average() -> list[float]:
     return [round(x, 2) for x in os.getloadavg()]
 
 
+def write_results(out: Path, markdown, t_start: float, load_start: list[float],
+                  **fields) -> dict:
+    """The end of a bench script whose markdown cites run_note: `fields` with the machine, the
+    load averages at the start (load_start) and now, and the runtime since t_start, written to
+    `out` (JSON) and, through markdown(result), to its .md twin. Returns the result."""
+    res = {"machine": machine_info(), **fields, "load_average_start": load_start,
+           "load_average_end": load_average(), "runtime_s": time.perf_counter() - t_start}
+    write_json(out, res)
+    Path(out).with_suffix(".md").write_text(markdown(res))
+    print(f"wrote {out}")
+    return res
+
+
 def run_note(res: dict, script: str, what: str = "") -> str:
     """The markdown line saying how a bench result was produced: the command, `what`, one run,
     its runtime and the load average at its start and end (res from a script that records

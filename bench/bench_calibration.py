@@ -17,12 +17,11 @@ import numpy as np
 from _common import (
     fmt,
     load_average,
-    machine_info,
     md_table,
     ratio,
     run_note,
     work_folder,
-    write_json,
+    write_results,
 )
 from scipy.spatial.transform import Rotation
 
@@ -103,12 +102,8 @@ def main() -> None:
                   if isinstance(runs[0][k], float | int)}
         configs.append({"configuration": label, "options": changes, "runs": runs,
                         "median": median})
-    res = {"machine": machine_info(), "seeds": args.seeds, "load_average_start": load_start,
-           "load_average_end": load_average(), "runtime_s": time.perf_counter() - t_bench,
-           "configurations": configs}
-    write_json(args.out, res)
-    args.out.with_suffix(".md").write_text(markdown(res))
-    print(f"wrote {args.out}")
+    write_results(args.out, markdown, t_bench, load_start, seeds=args.seeds,
+                  configurations=configs)
     if tmp is not None:
         tmp.cleanup()
 

@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import fmt, load_average, machine_info, md_table, run_note, write_json
+from _common import fmt, load_average, md_table, run_note, write_results
 from bench_sequential import make_scene, stream, throughput
 
 from fusedmosaic.estimation.sequential import SequentialOptions
@@ -68,12 +68,8 @@ def main() -> None:
         row = measure(scene, camera, poses, valid, args.frames, PAIRS_SIZE, PAIRS_SIDE, options)
         pair_rows.append({"configuration": label, "preset": preset, "loop_pairs": loops,
                           **row})
-    res = {"machine": machine_info(), "frames": args.frames, "detector": "orb",
-           "load_average_start": load_start, "load_average_end": load_average(),
-           "runtime_s": time.perf_counter() - t_bench, "rows": rows, "pair_rows": pair_rows}
-    write_json(args.out, res)
-    args.out.with_suffix(".md").write_text(markdown(res))
-    print(f"wrote {args.out}")
+    write_results(args.out, markdown, t_bench, load_start, frames=args.frames, detector="orb",
+                  rows=rows, pair_rows=pair_rows)
 
 
 def measure(scene, camera, poses, valid, frames, size, side, options) -> dict:

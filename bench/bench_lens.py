@@ -18,7 +18,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from _common import fmt, load_average, machine_info, md_table, run_note, work_folder, write_json
+from _common import fmt, load_average, md_table, run_note, work_folder, write_results
 
 from fusedmosaic.compositing import render_mosaic
 from fusedmosaic.evaluation import evaluate_output, mosaic_difference
@@ -35,11 +35,8 @@ CASES = ("pinhole", "lens", "lens ignored")
 def pinhole_mosaic(options: FetoscopyOptions, G_true: np.ndarray):
     """The simulator's frames without lens or noise, composed at the true homographies."""
     scene = generate_fetoscopy(options)
-    w, h = scene.size
-    frames = [cv2.warpPerspective(scene.texture, scene.frame_from_texture[k], (w, h),
-                                  flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-              for k in range(scene.n_frames)]
-    return render_mosaic(frames, G_true, w, h)
+    frames = [scene.pinhole(k) for k in range(scene.n_frames)]
+    return render_mosaic(frames, G_true, *scene.size)
 
 
 def measure(data: Path, out: Path, truth) -> dict:
@@ -99,12 +96,8 @@ def main() -> None:
     median = {case: {m: {k: float(np.median([r[case][m][k] for r in runs]))
                          for k in runs[0][case][m] if runs[0][case][m][k] is not None}
                      for m in METHODS} for case in CASES}
-    res = {"machine": machine_info(), "seeds": args.seeds, "frames": args.frames, "lens": LENS,
-           "load_average_start": load_start, "load_average_end": load_average(),
-           "runtime_s": time.perf_counter() - t_bench, "runs": runs, "median": median}
-    write_json(args.out, res)
-    args.out.with_suffix(".md").write_text(markdown(res))
-    print(f"wrote {args.out}")
+    write_results(args.out, markdown, t_bench, load_start, seeds=args.seeds, frames=args.frames,
+                  lens=LENS, runs=runs, median=median)
     if tmp is not None:
         tmp.cleanup()
 

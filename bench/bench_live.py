@@ -28,7 +28,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
-from _common import fmt, load_average, machine_info, md_table, run_note, work_folder, write_json
+from _common import fmt, load_average, md_table, run_note, work_folder, write_results
 from bench_sequential import FRAMES_PER_LAP
 
 from fusedmosaic.estimation.live import replay_live
@@ -98,13 +98,7 @@ def main() -> None:
     finally:
         if tmp is not None:
             tmp.cleanup()
-    res = {"machine": machine_info(), "frames": args.frames,
-           "load_average_start": load_start,
-           "load_average_end": load_average(),
-           "runtime_s": time.perf_counter() - t_bench, "rows": rows}
-    write_json(args.out, res)
-    args.out.with_suffix(".md").write_text(markdown(res))
-    print(f"wrote {args.out}")
+    write_results(args.out, markdown, t_bench, load_start, frames=args.frames, rows=rows)
 
 
 # The sender: tests/_igtl_sender.py in another process (its own interpreter and GIL, as PLUS

@@ -24,13 +24,6 @@ from fusedmosaic.simulation.fetoscopy import generate_fetoscopy
 LENS = [-0.30, 0.10, 0.0008, -0.0005]
 
 
-def _pinhole_render(scene, k: int) -> np.ndarray:
-    """Frame k as a pinhole camera sees it (no lens, no noise)."""
-    w, h = scene.size
-    return cv2.warpPerspective(scene.texture, scene.frame_from_texture[k], (w, h),
-                               flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-
-
 def _camera(scene, fov=None) -> Camera:
     w, h = scene.size
     return Camera(w, h, camera_matrix=scene.camera_matrix, distortion=scene.distortion,
@@ -50,7 +43,7 @@ def test_undistorted_frame_is_the_pinhole_frame(scene):
     assert inside.mean() == 1.0  # barrel: every undistorted pixel has a source
     for k in (0, 3, 7):
         raw = scene.render(k, noise=False)
-        ideal = _pinhole_render(scene, k).astype(float)
+        ideal = scene.pinhole(k).astype(float)
         assert np.abs(lens.image(raw) - ideal)[inside].mean() < 1.5
         assert np.abs(raw - ideal)[inside].mean() > 4.0
 
@@ -93,7 +86,7 @@ def test_features_are_detected_in_undistorted_pixels(scene):
     pixels away (16 of 92 within 1 px, median 5 px)."""
     lens = _camera(scene).undistortion()
     raw = scene.render(3, noise=False)
-    pinhole = FeatureExtractor().extract(_pinhole_render(scene, 3), 3)
+    pinhole = FeatureExtractor().extract(scene.pinhole(3), 3)
     d = _matched_offsets(FeatureExtractor(undistortion=lens).extract(raw, 3), pinhole)
     assert len(d) > 50 and np.mean(d < 1.0) > 0.9
     assert np.median(d[d < 1.0]) < 0.1
@@ -132,7 +125,7 @@ def test_mosaic_is_composed_from_undistorted_frames(lens_run):
     mosaic = cv2.imread(str(out / "mosaic.png"), cv2.IMREAD_COLOR)
     ds = read_dataset(data)
     scene = generate_fetoscopy(FetoscopyOptions(n_frames=40, lens_distortion=LENS))
-    truth = render_mosaic([_pinhole_render(scene, k) for k in range(40)], ds.ground_truth,
+    truth = render_mosaic([scene.pinhole(k) for k in range(40)], ds.ground_truth,
                           *scene.size)
     origin = (truth.plan.x0, truth.plan.y0)
     d = mosaic_difference(mosaic, info["origin_reference_px"], truth.image, origin,

@@ -603,10 +603,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="frame rate when the dataset has no frames.csv (default 25)")
     run.add_argument("--robot-file", default="robot.csv",
                      help="robot positions file inside the dataset (default robot.csv)")
-    run.add_argument("--tracker-time-offset", type=float, default=0.0, metavar="S",
-                     help="seconds the tracker's clock is ahead of the video's: the sample for "
-                          "the frame at time t is tracking.csv's at t + S (calibrate measures "
-                          "it: calibration.json tracker_time_offset; default 0)")
+    _add_tracker_time_offset_flag(
+        run, "the sample for the frame at time t is tracking.csv's at t + S")
     run.add_argument("--pair-selection", choices=["all", "emt-guided", "window"],
                      help="ba / ba-emt / emt: which image pairs to match (default: all for ba and "
                           "ba-emt as in the paper, emt-guided for emt)")
@@ -640,10 +638,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "recording for `fusedmosaic calibrate`, which writes the camera.yaml")
     imp.add_argument("--overwrite", action="store_true",
                      help="replace an earlier dataset in OUT")
-    imp.add_argument("--tracker-time-offset", type=float, default=0.0, metavar="S",
-                     help="seconds the tracker's clock is ahead of the video's (calibrate's "
-                          "calibration.json tracker_time_offset): tracking.csv is written on "
-                          "the video's clock, its timestamps shifted by -S (default 0)")
+    _add_tracker_time_offset_flag(
+        imp, "tracking.csv is written on the video's clock, its timestamps shifted by -S")
     imp.set_defaults(func=_cmd_import)
 
     cal = sub.add_parser(
@@ -745,6 +741,14 @@ def build_parser() -> argparse.ArgumentParser:
                            "over a tilted plane with a circular field of view")
     demo.set_defaults(func=_cmd_demo)
     return parser
+
+
+def _add_tracker_time_offset_flag(parser: argparse.ArgumentParser, effect: str) -> None:
+    """--tracker-time-offset S (checked by io.tracking.check_time_offset in the command)."""
+    parser.add_argument("--tracker-time-offset", type=float, default=0.0, metavar="S",
+                        help="seconds the tracker's clock is ahead of the video's (calibrate "
+                             f"measures it: calibration.json tracker_time_offset): {effect} "
+                             "(default 0)")
 
 
 def _add_tracked_camera_flags(parser: argparse.ArgumentParser, *, transform: str,

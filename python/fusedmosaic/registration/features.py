@@ -107,11 +107,12 @@ class FeatureExtractor:
         self.undistortion = undistortion
         # OpenCV takes any non-zero mask value as inside; 255 is what the shrink below expects
         raw = None if mask is None else _binary(mask)
-        if undistortion is not None:
-            self._mask = None if raw is None else self._shrink(undistortion.valid(raw))
-            self._lens_mask = self._shrink(undistortion.valid())
-        else:
-            self._mask = None if raw is None else self._shrink(raw)
+        if raw is not None and undistortion is not None:
+            raw = undistortion.valid(raw)  # the field of view on the undistorted frame
+        self._mask = None if raw is None else self._shrink(raw)
+        # without a fixed mask, frames with no black border are masked by the lens alone
+        self._lens_mask = (self._shrink(undistortion.valid())
+                           if undistortion is not None and raw is None else None)
         self._small_masks: dict[tuple, np.ndarray] = {}  # fixed mask at detection sizes
 
     def _shrink(self, mask: np.ndarray) -> np.ndarray:

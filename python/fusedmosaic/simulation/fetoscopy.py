@@ -365,13 +365,7 @@ class FetoscopyScene:
         if k in self.black_frames:
             return np.zeros((h, w, 3), np.uint8)
         if self.ideal_pixels is None:
-            img = cv2.warpPerspective(
-                self.texture,
-                self.frame_from_texture[k],
-                (w, h),
-                flags=cv2.INTER_LINEAR,
-                borderMode=cv2.BORDER_REFLECT,
-            )
+            img = self.pinhole(k)
         else:  # through the lens: raw sub-pixel -> ideal pixel -> texture, then averaged
             A = np.linalg.inv(self.frame_from_texture[k])
             q = self.ideal_pixels @ A[:, :2].T + A[:, 2]
@@ -387,6 +381,18 @@ class FetoscopyScene:
         if mask is not None:
             img[~mask] = 0
         return img
+
+    def pinhole(self, k: int) -> np.ndarray:
+        """Frame k as a pinhole camera sees it: the texture warped by the true M_k, without
+        lens, noise, field-of-view mask or black frames (what render gives without a lens,
+        before its noise and mask; the truth a lens's undistortion is compared with)."""
+        return cv2.warpPerspective(
+            self.texture,
+            self.frame_from_texture[k],
+            self.size,
+            flags=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REFLECT,
+        )
 
     def frames(self, *, noise: bool = True) -> Iterator[np.ndarray]:
         """Render all frames lazily, in order."""
