@@ -34,9 +34,10 @@ def tracker_matrix(translation, quaternion) -> np.ndarray:
 
 
 def dataset_events(ds, *, n_frames: int | None = None, device: str = "SensorToTracker",
-                   invert: bool = False) -> list[tuple[float, bytes]]:
+                   invert: bool = False, clock_ahead_s: float = 0.0) -> list[tuple[float, bytes]]:
     """(time, message) for a dataset's frames and valid tracker samples (at the tracker's own
-    rate, up to the last frame), images before the transforms of the same time."""
+    rate, up to the last frame), images before the transforms of the same time; the
+    transforms are stamped clock_ahead_s later than sent (a tracker whose clock is ahead)."""
     times = np.asarray(ds.timestamps)[:n_frames]
     tr = ds.tracking
     events = [(float(t), 1, image_message(ds.frames[k], float(t))) for k, t in enumerate(times)]
@@ -44,21 +45,24 @@ def dataset_events(ds, *, n_frames: int | None = None, device: str = "SensorToTr
         if tr.valid[i] and t <= times[-1]:
             M = tracker_matrix(tr.translations[i], tr.quaternions[i])
             events.append((float(t), 2, transform_message(np.linalg.inv(M) if invert else M,
-                                                           float(t), device)))
+                                                           float(t) + clock_ahead_s, device)))
     events.sort(key=lambda e: (e[0], e[1]))
     return [(t, m) for t, _, m in events]
 
 
-def robot_events(ds, *, device: str = "RobotToBase") -> list[tuple[float, bytes]]:
+def robot_events(ds, *, device: str = "RobotToBase",
+                 clock_ahead_s: float = 0.0) -> list[tuple[float, bytes]]:
     """(time, message) for a pCLE dataset's frames and robot samples (the probe position as a
-    TRANSFORM's translation, mm, in the image axes), up to the last frame."""
+    TRANSFORM's translation, mm, in the image axes), up to the last frame; the transforms
+    stamped clock_ahead_s later than sent (a robot whose clock is ahead)."""
     times = np.asarray(ds.timestamps)
     events = [(float(t), 1, image_message(ds.frames[k], float(t))) for k, t in enumerate(times)]
     for t, xy in zip(ds.robot.timestamps, ds.robot.xy_um, strict=True):
         if t <= times[-1]:
             M = np.eye(4)
             M[:2, 3] = xy / 1e3
-            events.append((float(t), 2, transform_message(M, float(t), device)))
+            events.append((float(t), 2, transform_message(M, float(t) + clock_ahead_s,
+                                                           device)))
     events.sort(key=lambda e: (e[0], e[1]))
     return [(t, m) for t, _, m in events]
 

@@ -274,6 +274,7 @@ def _time_offset(text: str) -> float | str:
 
 def _cmd_live(args: argparse.Namespace) -> int:
     from fusedmosaic.estimation.sequential import SequentialOptions
+    from fusedmosaic.io.tracking import check_time_offset
     from fusedmosaic.runner import check_compositing_options, check_live_limits, run_igtl
 
     overrides = _loop_pairs(args)
@@ -294,6 +295,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
     check_live_limits(args.max_frames, args.duration, args.frame_timeout,
                       names={"max_frames": "--max-frames", "duration_s": "--duration",
                              "frame_timeout_s": "--frame-timeout"})
+    check_time_offset(args.tracker_time_offset, "--tracker-time-offset")
     blend, canvas = _blend_options(args), _canvas_options(args)
     check_compositing_options(blend, canvas, names=COMPOSITING_FLAGS)
     _say(args, f"live: connecting to {args.address} (Ctrl-C ends the session and writes the "
@@ -312,7 +314,8 @@ def _cmd_live(args: argparse.Namespace) -> int:
                            frame_timeout_s=args.frame_timeout,
                            overwrite_record=args.overwrite_record, progress=_progress(args),
                            blend=blend, canvas=canvas, video=args.video,
-                           report=not args.no_report, method=args.method)
+                           report=not args.no_report, method=args.method,
+                           tracker_time_offset=args.tracker_time_offset)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
@@ -714,6 +717,9 @@ def build_parser() -> argparse.ArgumentParser:
     live.add_argument("--frame-timeout", type=float, default=5.0, metavar="S",
                       help="a stream silent for S seconds ends the session (before the first "
                            "frame: an error; default 5)")
+    _add_tracker_time_offset_flag(
+        live, "the frame at time t takes the sample stamped t + S, and the recording's samples "
+              "are written on the video's clock, shifted by -S")
     _add_lba_flags(live)
     _add_feature_flags(live, "features")
     _add_compositing_flags(live)

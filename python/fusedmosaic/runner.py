@@ -394,7 +394,7 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
              duration_s: float | None = None, frame_timeout_s: float = 5.0,
              overwrite_record: bool = False, progress: bool = True, blend=None, canvas=None,
              video: str | Path | None = None, report: bool = True,
-             method: str = "lba-emt") -> str:
+             method: str = "lba-emt", tracker_time_offset: float = 0.0) -> str:
     """A live session on an OpenIGTLink source (io.igtl: e.g. PLUS Server streaming a tracked
     endoscope), lba-emt, or kalman-robot with a robot streaming the probe position (the
     transform's translation, mm, in the image axes; the camera needs pixel_size_um; recorded
@@ -405,14 +405,19 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     folder `record` (re-runnable offline with any method); then the outputs of the live
     estimates go to `out` as `run` writes them (report.json "live": drops, latency, why the
     session stopped). camera / hand_eye: a Camera / 4x4 or the path of camera.yaml /
-    hand_eye.txt. Returns the terminal summary."""
+    hand_eye.txt. tracker_time_offset: s, the tracker's (robot's) clock ahead of the video's
+    (calibrate's calibration.json "tracker_time_offset"): the frame at t takes the sample at
+    t + offset, and the samples are recorded on the video's clock (stamped - offset), as
+    `import` writes them, so that the recording re-runs without it. Returns the terminal
+    summary."""
     from fusedmosaic.estimation.live import check_live_method, live_session, session_result
     from fusedmosaic.io.calibration import Camera, read_camera_yaml
     from fusedmosaic.io.igtl import IgtlSource
     from fusedmosaic.io.recorder import DatasetRecorder
-    from fusedmosaic.io.tracking import check_stream_timestamp, hand_eye_matrix
+    from fusedmosaic.io.tracking import check_stream_timestamp, check_time_offset, hand_eye_matrix
 
     check_live_method(method)
+    offset = check_time_offset(tracker_time_offset)
     if not isinstance(camera, Camera):
         camera = read_camera_yaml(camera)
     if method == "lba-emt":
@@ -485,17 +490,20 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     try:
         with IgtlSource(address, transform_device=transform_device, image_device=image_device,
                         rgb=rgb, on_frame=on_frame, on_sample=lambda s: recorder.add_sample(
-                            s.timestamp, s.matrix if s.valid else None)) as src:
+                            s.timestamp - offset, s.matrix if s.valid else None)) as src:
             try:
                 session = live_session(src, camera, method=method, hand_eye=hand_eye,
                                        options=options,
                                        max_frames=max_frames, duration_s=duration_s,
-                                       frame_timeout_s=frame_timeout_s)
+                                       frame_timeout_s=frame_timeout_s,
+                                       tracker_time_offset=offset)
             finally:
                 accepting = False
             dropped = [k for k in src.dropped if k not in session.finals]
             details = {"address": f"{src.host}:{src.port}", "image_device": src.image_device,
                        "transform_device": transform_device,
+                       # the recording's samples are on the video's clock (stamped - offset)
+                       "tracker_time_offset_s": offset,
                        "frames_received": src.received,
                        "frames_refused": rejected,
                        "tracker_samples_valid": src.valid_samples,

@@ -35,7 +35,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from tqdm import tqdm
 
-from fusedmosaic.io.tracking import camera_pose_from_sample
+from fusedmosaic.io.tracking import camera_pose_from_sample, check_time_offset
 from fusedmosaic.methods import MethodResult, ms_stats
 
 __all__ = ["LIVE_METHODS", "replay_live", "check_live_method", "newest_sample_index",
@@ -315,7 +315,8 @@ class LiveSession:
 def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, options=None,
                  max_frames: int | None = None, duration_s: float | None = None,
                  frame_timeout_s: float = 5.0, max_sample_age_s: float | None = None,
-                 on_result: Callable | None = None) -> LiveSession:
+                 on_result: Callable | None = None,
+                 tracker_time_offset: float = 0.0) -> LiveSession:
     """Runs `method` (lba-emt: the tracker pose at each frame's time; kalman-robot: the robot
     position, the source's translation in mm taken as the probe position in the image axes)
     live on `source` (an io.igtl.IgtlSource, or anything with its next_frame / pose_at /
@@ -323,11 +324,13 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
     the stream ends, `max_frames` frames were received, `duration_s` passed, or Ctrl-C
     (KeyboardInterrupt ends the session normally; the mosaickers are transactional, an
     interrupted call leaves them as before). on_result(frame, result) is called after each
-    frame (a live preview). The caller records the frames (the source's on_frame) and writes
-    the outputs."""
+    frame (a live preview). tracker_time_offset: s, the tracker's (robot's) clock ahead of the
+    video's, as calibrate measures it: the frame at time t takes the sample at t + offset. The
+    caller records the frames (the source's on_frame) and writes the outputs."""
     from fusedmosaic.io.igtl import StreamTimeout
 
     check_live_method(method)
+    offset = check_time_offset(tracker_time_offset)
     mosaicker, parameters = streaming_mosaicker(method, camera, options, "live session")
     session = LiveSession(parameters=parameters)
     sample_at = _sample_at(method, source, hand_eye, max_sample_age_s)
@@ -357,7 +360,7 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
             if frame is None:
                 session.stopped_by = "the sender closed the stream"
                 break
-            sample, age = sample_at(frame.timestamp)
+            sample, age = sample_at(frame.timestamp + offset)
             if sample is None:
                 session.no_sample.append(frame.index)
             elif age is not None:
