@@ -20,6 +20,7 @@ from fusedmosaic.io import (
     read_hand_eye,
     read_robot_csv,
     read_tracking_csv,
+    write_camera_yaml,
     write_dataset,
 )
 from fusedmosaic.io.video import (
@@ -454,17 +455,53 @@ def test_ros_camera_info_yaml(tmp_path, header):
     assert read_camera_yaml(path).distortion is None
 
 
-@pytest.mark.parametrize(
-    ("model", "shown"), [("equidistant", "'equidistant'"), ("3", "not a string")]
-)
-def test_ros_distortion_model_other_than_pinhole_refused(tmp_path, model, shown):
+@pytest.mark.parametrize(("model", "shown"), [("fov", "'fov'"), ("3", "not a string")])
+def test_unknown_distortion_model_refused(tmp_path, model, shown):
     path = tmp_path / "camera.yaml"
     path.write_text(ROS_CAMERA_INFO.format(model=model, n=4, d="0.1, 0.01, 0.001, 0.0001"))
     with pytest.raises(
         ValueError,
-        match=rf"camera\.yaml: distortion_model: {shown} is not supported; expected plumb_bob or "
-        r"rational_polynomial",
+        match=rf"camera\.yaml: distortion_model: {shown} is not supported; expected one of "
+        r"plumb_bob, rational_polynomial, equidistant, fisheye",
     ):
+        read_camera_yaml(path)
+
+
+def test_fisheye_camera_yaml(tmp_path):
+    """ROS camera_info's equidistant model and OpenCV's calibration sample's fisheye_model: 1
+    are OpenCV's fisheye model (4 coefficients, all-zero ones kept: the equidistant lens is not
+    a pinhole); written back as distortion_model: equidistant."""
+    path = tmp_path / "camera.yaml"
+    path.write_text(ROS_CAMERA_INFO.format(model="equidistant", n=4, d="0.1, 0.01, 0.001, 0"))
+    camera = read_camera_yaml(path)
+    assert camera.lens_model == "fisheye"
+    assert camera.distortion.tolist() == [0.1, 0.01, 0.001, 0]
+    write_camera_yaml(tmp_path / "back.yaml", camera)
+    assert "distortion_model: equidistant" in (tmp_path / "back.yaml").read_text()
+    back = read_camera_yaml(tmp_path / "back.yaml")
+    assert back.lens_model == "fisheye" and back.distortion.tolist() == [0.1, 0.01, 0.001, 0]
+    path.write_text(ROS_CAMERA_INFO.format(model="equidistant", n=4, d="0, 0, 0, 0"))
+    assert read_camera_yaml(path).distortion.tolist() == [0, 0, 0, 0]
+    opencv = ROS_CAMERA_INFO.format(model="plumb_bob", n=4, d="0.1, 0.01, 0.001, 0")
+    opencv = opencv.replace("distortion_model: plumb_bob\n", "fisheye_model: 1\n")
+    path.write_text(opencv)
+    assert read_camera_yaml(path).lens_model == "fisheye"
+    path.write_text(opencv.replace("fisheye_model: 1", "fisheye_model: 0"))
+    assert read_camera_yaml(path).lens_model == "pinhole"
+
+
+@pytest.mark.parametrize(("model", "n", "d", "message"), [
+    ("equidistant", 5, "0.1, 0.01, 0.001, 0, 0",
+     r"distortion_coefficients: the fisheye \(equidistant\) model takes 4 finite values k1 k2 "
+     r"k3 k4, got 0.1 0.01 0.001 0 0"),
+    ("equidistant\nfisheye_model: 0", 4, "0.1, 0, 0, 0",
+     r"fisheye_model 0 contradicts distortion_model 'equidistant'"),
+    ("plumb_bob\nfisheye_model: 2", 4, "0.1, 0, 0, 0", r"fisheye_model: expected 0 or 1, got 2"),
+])
+def test_bad_fisheye_camera_yaml_named(tmp_path, model, n, d, message):
+    path = tmp_path / "camera.yaml"
+    path.write_text(ROS_CAMERA_INFO.format(model=model, n=n, d=d))
+    with pytest.raises(ValueError, match=r"camera\.yaml: " + message):
         read_camera_yaml(path)
 
 

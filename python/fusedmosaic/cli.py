@@ -216,12 +216,14 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
                          f"{args.board!r}")
     options = CalibrationOptions(
         board_cols=int(match.group(1)), board_rows=int(match.group(2)),
-        square_mm=args.square_mm, distortion=args.distortion, every=args.every,
+        square_mm=args.square_mm, distortion=args.distortion, lens_model=args.lens_model,
+        every=args.every,
         max_views=args.max_views, rot_sigma_deg=args.tracker_rot_sigma,
         trans_sigma_mm=args.tracker_trans_sigma, time_offset=_time_offset(args.time_offset))
     options.validate(names={
         "board_cols": "--board", "board_rows": "--board", "square_mm": "--square-mm",
-        "distortion": "--distortion", "every": "--every", "max_views": "--max-views",
+        "distortion": "--distortion", "lens_model": "--lens-model", "every": "--every",
+        "max_views": "--max-views",
         "rot_sigma_deg": "--tracker-rot-sigma", "trans_sigma_mm": "--tracker-trans-sigma",
         "time_offset": "--time-offset"})
     check_output_dir(args.out)
@@ -661,9 +663,12 @@ def build_parser() -> argparse.ArgumentParser:
                           "columns + rows odd for the hand-eye)")
     cal.add_argument("--square-mm", type=float, required=True, help="side of a square, mm")
     cal.add_argument("--out", required=True, help="output folder")
-    cal.add_argument("--distortion", type=int, default=5, choices=(0, 4, 5, 8),
+    cal.add_argument("--lens-model", choices=("pinhole", "fisheye"), default="pinhole",
+                     help="pinhole: OpenCV's standard model (default); fisheye: OpenCV's "
+                          "fisheye (equidistant) model, for wide-angle scopes")
+    cal.add_argument("--distortion", type=int, default=None, choices=(0, 4, 5, 8),
                      help="distortion coefficients estimated: 0 none, 4 k1 k2 p1 p2, 5 + k3 "
-                          "(default), 8 rational model")
+                          "(default), 8 rational model; fisheye: 4 k1..k4 (default) or 0")
     cal.add_argument("--every", type=int, default=1,
                      help="search every n-th frame for the board (default 1)")
     cal.add_argument("--max-views", type=int, default=60,

@@ -11,11 +11,14 @@ video, frames.csv, tracking.csv; camera.yaml optional, its image size checked):
    outside corner (0, 0) dark. That needs a board whose columns + rows (inner corners) is odd;
    otherwise it is symmetric under a half turn and only the intrinsics are computed.
 2. Intrinsics: cv2.calibrateCameraExtended over at most ``max_views`` detections spread over
-   the recording, with 0 / 4 / 5 / 8 distortion coefficients; views whose RMS reprojection
-   error is over 3x the median (and over 1 px) are dropped once and the calibration repeated.
-   Then every detection's pose is solved with these intrinsics; views whose largest corner
-   error is over 3x the median (and over 1 px) are rejected (corners found off the squares'
-   corners, e.g. where a circular field of view cuts the board) and the intrinsics computed
+   the recording, with 0 / 4 / 5 / 8 distortion coefficients (or, for a wide-angle scope,
+   cv2.fisheye.calibrate: OpenCV's fisheye model, 0 or 4 coefficients, its standard errors
+   from cv2.fisheye.projectPoints' Jacobian, the extrinsics eliminated); views whose RMS
+   reprojection error is over 3x the median (and over 1 px) are dropped once and the
+   calibration repeated. Then every detection's pose is solved with these intrinsics; views
+   whose largest corner error is over 3x the median (and over 1 px) are rejected (corners
+   found off the squares' corners, e.g. where a circular field of view cuts the board) and
+   the intrinsics computed
    again without them. A focal length with a standard error over 2 % is refused.
 3. Hand-eye: every detection gives cam_from_board C_k (solvePnP with the intrinsics) and the
    tracker gives tracker_from_sensor A_k at the frame time (interpolated as the datasets are),
@@ -41,13 +44,31 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from fusedmosaic.io.calibration import Camera
+from fusedmosaic.io.calibration import (
+    FISHEYE_COUNT,
+    LENS_MODELS,
+    Camera,
+    project_points,
+    undistort_points,
+)
 
 DISTORTION_FLAGS = {
     0: cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST,
     4: cv2.CALIB_FIX_K3,
     5: 0,
     8: cv2.CALIB_RATIONAL_MODEL,
+}
+
+
+def _fisheye_flag(name: str) -> int:
+    """cv2.fisheye.calibrate's flag: OpenCV 4 numbers them apart (cv2.fisheye.CALIB_*), OpenCV
+    5 shares cv2.CALIB_* with calibrateCamera."""
+    return int(getattr(cv2.fisheye, name, None) or getattr(cv2, name))
+
+
+FISHEYE_FLAGS = {  # the fisheye model: k1..k4, or none (the pure equidistant projection)
+    0: sum(_fisheye_flag(f"CALIB_FIX_K{i}") for i in range(1, 5)),
+    4: 0,
 }
 MIN_VIEWS = 4  # calibrateCamera's minimum for K + distortion is lower; 4 keeps it determined
 MIN_HAND_EYE_VIEWS = 3
@@ -64,8 +85,10 @@ HUBER_SIGMAS = 3.0
 class CalibrationOptions:
     """board_cols x board_rows inner corners (OpenCV's pattern size), squares of square_mm.
 
+    lens_model : "pinhole" (OpenCV's standard model) or "fisheye" (OpenCV's fisheye model, for
+        wide-angle lenses); see io.calibration.LENS_MODELS.
     distortion : number of OpenCV distortion coefficients estimated (0, 4: k1 k2 p1 p2, 5: + k3,
-        8: rational model).
+        8: rational model; fisheye: 0 or 4, k1..k4; None: 5, fisheye 4).
     every : detect the board in every n-th frame only.
     max_views : at most this many detections (evenly spread) enter the intrinsics; all enter
         the hand-eye.
@@ -80,7 +103,8 @@ class CalibrationOptions:
     board_cols: int = 9
     board_rows: int = 6
     square_mm: float = 2.0
-    distortion: int = 5
+    distortion: int | None = None
+    lens_model: str = "pinhole"
     every: int = 1
     max_views: int = 60
     rot_sigma_deg: float = 1.0
@@ -100,9 +124,13 @@ class CalibrationOptions:
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 2:
                 raise ValueError(f"{name(key)}: expected an integer >= 2 (inner corners), got "
                                  f"{value!r}")
-        if self.distortion not in DISTORTION_FLAGS:
-            raise ValueError(f"{name('distortion')}: expected one of {sorted(DISTORTION_FLAGS)} "
-                             f"coefficients, got {self.distortion!r}")
+        if self.lens_model not in LENS_MODELS:
+            raise ValueError(f"{name('lens_model')}: expected one of {', '.join(LENS_MODELS)}, "
+                             f"got {self.lens_model!r}")
+        allowed = FISHEYE_FLAGS if self.lens_model == "fisheye" else DISTORTION_FLAGS
+        if self.distortion is not None and self.distortion not in allowed:
+            raise ValueError(f"{name('distortion')}: the {self.lens_model} model takes one of "
+                             f"{sorted(allowed)} coefficients, got {self.distortion!r}")
         for key in ("every", "max_views", "threads"):
             if int(getattr(self, key)) != getattr(self, key) or getattr(self, key) < 1:
                 raise ValueError(f"{name(key)}: expected an integer >= 1, got "
@@ -118,6 +146,13 @@ class CalibrationOptions:
             value = getattr(self, key)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"{name(key)}: must be a number > 0, got {value!r}")
+
+    @property
+    def coefficients(self) -> int:
+        """Distortion coefficients estimated (the default: 5, fisheye 4)."""
+        if self.distortion is not None:
+            return int(self.distortion)
+        return FISHEYE_COUNT if self.lens_model == "fisheye" else 5
 
     @property
     def pattern(self) -> tuple[int, int]:
@@ -240,7 +275,7 @@ def _mean_intensity(gray: np.ndarray, p: np.ndarray, radius: int) -> float:
 def calibrate_intrinsics(
     image_points: list[np.ndarray], size: tuple[int, int], options: CalibrationOptions
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int], np.ndarray]:
-    """K (3, 3), distortion (options.distortion,), per-view RMS reprojection error (px) of the
+    """K (3, 3), distortion (options.coefficients,), per-view RMS reprojection error (px) of the
     views kept, the indices (into image_points) of the views dropped as outliers, and the
     standard errors of fx, fy, cx, cy (px; OpenCV's, from the Jacobian)."""
     obj = options.board_points()
@@ -260,31 +295,74 @@ def calibrate_intrinsics(
 
 
 def _calibrate(obj, points, size, options):
-    flags = DISTORTION_FLAGS[options.distortion]
+    if options.lens_model == "fisheye":
+        return _calibrate_fisheye(obj, points, size, options)
+    n = options.coefficients
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
     _, K, dist, _, _, std, _, rms = cv2.calibrateCameraExtended(
         [obj] * len(points), [p.astype(np.float32).reshape(-1, 1, 2) for p in points], size,
-        None, None, flags=flags, criteria=criteria)
-    dist = dist.reshape(-1)[:max(options.distortion, 4)]
-    if options.distortion == 0:
+        None, None, flags=DISTORTION_FLAGS[n], criteria=criteria)
+    dist = dist.reshape(-1)[:max(n, 4)]
+    if n == 0:
         dist = np.zeros(4)
     return K, dist, rms.reshape(-1), std.reshape(-1)[:4]
 
 
+def _calibrate_fisheye(obj, points, size, options):
+    """cv2.fisheye.calibrate (skew fixed at 0), with what calibrateCameraExtended gives and it
+    does not: per-view RMS errors, and the standard errors of fx, fy, cx, cy from the
+    Jacobian of cv2.fisheye.projectPoints (columns fx fy cx cy k1..k4 rvec tvec skew), each
+    view's extrinsics eliminated (Schur complement), scaled by the residual variance."""
+    n = options.coefficients
+    flags = (_fisheye_flag("CALIB_RECOMPUTE_EXTRINSIC") | _fisheye_flag("CALIB_FIX_SKEW")
+             | FISHEYE_FLAGS[n])
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    obj = np.asarray(obj, np.float64).reshape(1, -1, 3)
+    image = [np.asarray(p, np.float64).reshape(1, -1, 2) for p in points]
+    try:
+        _, K, D, rvecs, tvecs = cv2.fisheye.calibrate([obj] * len(image), image, size, None,
+                                                      None, flags=flags, criteria=criteria)
+    except cv2.error as exc:
+        raise ValueError(f"OpenCV's fisheye calibration failed on these views "
+                         f"({str(exc.err).strip()})") from None
+    free = 4 + n  # fx fy cx cy (+ k1..k4)
+    normal = np.zeros((free, free))
+    squares, rms = 0.0, []
+    for p, r, t in zip(image, rvecs, tvecs, strict=True):
+        proj, J = cv2.fisheye.projectPoints(obj, np.reshape(r, (1, 1, 3)),
+                                            np.reshape(t, (1, 1, 3)), K, D)
+        e = proj.reshape(-1) - p.reshape(-1)
+        A, B = J[:, :free], J[:, 8:14]
+        W = A.T @ B
+        normal += A.T @ A - W @ np.linalg.solve(B.T @ B, W.T)
+        squares += float(e @ e)
+        rms.append(np.sqrt(float(e @ e) / (e.size / 2)))
+    dof = max(sum(p.size for p in image) - free - 6 * len(image), 1)
+    std = np.sqrt(np.abs(np.diag(np.linalg.pinv(normal))) * squares / dof)[:4]
+    return K, D.reshape(-1), np.array(rms), std
+
+
 def board_poses(image_points: list[np.ndarray], K: np.ndarray, dist: np.ndarray,
                 options: CalibrationOptions) -> tuple[np.ndarray, np.ndarray]:
-    """cam_from_board (N, 4, 4) of each detection (solvePnP, iterative) and its largest corner
-    reprojection error (px)."""
+    """cam_from_board (N, 4, 4) of each detection (solvePnP, iterative; a fisheye lens's
+    corners undistorted to normalised coordinates first) and its largest corner reprojection
+    error (px)."""
     obj = options.board_points()
     poses = np.tile(np.eye(4), (len(image_points), 1, 1))
     worst = np.zeros(len(image_points))
+    model = options.lens_model
     for k, p in enumerate(image_points):
-        ok, r, t = cv2.solvePnP(obj, p.reshape(-1, 1, 2), K, dist, flags=cv2.SOLVEPNP_ITERATIVE)
+        if model == "fisheye":
+            ok, r, t = cv2.solvePnP(obj, undistort_points(p, K, dist, model).reshape(-1, 1, 2),
+                                    np.eye(3), None, flags=cv2.SOLVEPNP_ITERATIVE)
+        else:
+            ok, r, t = cv2.solvePnP(obj, p.reshape(-1, 1, 2), K, dist,
+                                    flags=cv2.SOLVEPNP_ITERATIVE)
         if not ok:  # pragma: no cover - a detected planar board always has a pose
             raise ValueError("solvePnP failed on a detected board")
         poses[k, :3, :3] = cv2.Rodrigues(r)[0]
         poses[k, :3, 3] = t.reshape(3)
-        proj = cv2.projectPoints(obj, r, t, K, dist)[0].reshape(-1, 2)
+        proj = project_points(obj, K, dist, model, r, t)
         worst[k] = np.linalg.norm(proj - p, axis=1).max()
     return poses, worst
 
@@ -546,7 +624,7 @@ def calibrate_recording(
     usable &= pnp_max <= limit
     usable[chosen[dropped]] = False
     camera = Camera(size[0], size[1], camera_matrix=K,
-                    distortion=None if o.distortion == 0 else dist,
+                    distortion=None if o.coefficients == 0 else dist, lens_model=o.lens_model,
                     pixel_size_um=None if given is None else given.pixel_size_um,
                     fov_mask_radius=None if given is None else given.fov_mask_radius)
     report: dict = {
@@ -568,8 +646,9 @@ def calibrate_recording(
             "view_rms_px_max": float(rms.max()),
             "camera_matrix": K.tolist(),
             "std_fx_fy_cx_cy_px": [float(v) for v in std],
+            "lens_model": o.lens_model,
             "distortion": [float(v) for v in dist],
-            "distortion_coefficients": o.distortion,
+            "distortion_coefficients": o.coefficients,
         },
         "timings_s": {"board_search": t_detect},
     }
@@ -649,9 +728,9 @@ def _hand_eye_stage(tracking_path: Path, times: np.ndarray, ids: np.ndarray, pos
     predicted = np.linalg.inv(he.sensor_from_camera) @ np.linalg.inv(A) @ he.tracker_from_board
     obj = o.board_points()
     through_tracker = np.array([
-        np.mean(np.linalg.norm(cv2.projectPoints(
-            obj, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], K, dist)[0].reshape(-1, 2)
-            - points[k], axis=1))
+        np.mean(np.linalg.norm(project_points(
+            obj, K, dist, o.lens_model, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3]) - points[k],
+            axis=1))
         for T, k in zip(predicted, np.flatnonzero(valid), strict=True)])
     used = ids[valid]
     return he.sensor_from_camera, {
@@ -689,12 +768,11 @@ def camera_model_difference(a: Camera, b: Camera, region: float = 0.8) -> float:
                        np.linspace(lo, hi, 17) * (a.height - 1))
     px = np.stack([u.ravel(), v.ravel()], 1).reshape(-1, 1, 2)
     dist_a = np.zeros(4) if a.distortion is None else a.distortion
-    dist_b = np.zeros(4) if b.distortion is None else b.distortion
-    rays = cv2.undistortPoints(px, a.camera_matrix, dist_a, criteria=(
-        cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12)).reshape(-1, 2)
+    rays = undistort_points(px, a.camera_matrix, dist_a, a.lens_model, criteria=(
+        cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12))
     rays = np.hstack([rays, np.ones((rays.shape[0], 1))])
-    back, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), b.camera_matrix, dist_b)
-    return float(np.linalg.norm(back.reshape(-1, 2) - px.reshape(-1, 2), axis=1).max())
+    back = project_points(rays, b.camera_matrix, b.distortion, b.lens_model)
+    return float(np.linalg.norm(back - px.reshape(-1, 2), axis=1).max())
 
 
 def write_calibration(out: str | Path, result: CalibrationResult) -> list[str]:

@@ -11,9 +11,17 @@ import cv2
 import numpy as np
 
 DISTORTION_COUNTS = (4, 5, 8, 12, 14)  # lengths cv2.undistortPoints accepts
-# ROS camera_info distortion models that are OpenCV's pinhole model (5 and 8 coefficients);
-# "equidistant" (fisheye) is a different projection and is refused.
-DISTORTION_MODELS = ("plumb_bob", "rational_polynomial")
+# Lens models: "pinhole", OpenCV's standard model (a perspective projection with radial and
+# tangential distortion, 4-14 coefficients: cv2.calibrateCamera / undistortPoints); "fisheye",
+# OpenCV's fisheye model (Kannala-Brandt: the equidistant projection r = f theta with theta
+# distorted by k1..k4, exactly 4 coefficients: cv2.fisheye), for wide-angle scopes whose field
+# of view the pinhole model's polynomial cannot follow.
+LENS_MODELS = ("pinhole", "fisheye")
+FISHEYE_COUNT = 4
+# camera.yaml's distortion_model (ROS camera_info's names; OpenCV's own calibration sample
+# writes a fisheye_model flag instead) -> lens model.
+DISTORTION_MODELS = {"plumb_bob": "pinhole", "rational_polynomial": "pinhole",
+                     "equidistant": "fisheye", "fisheye": "fisheye"}
 # K's fixed entries (last row 0 0 c, K[1, 0] = 0), relative to the scale of their row: text
 # rounding and float32 storage (K[2, 2] = 0.99999994) pass, a transposed K does not.
 K_LAYOUT_TOLERANCE = 1e-6
@@ -34,7 +42,10 @@ class Camera:
     distortion : (k,) OpenCV distortion coefficients (k = 4, 5, 8, 12 or 14), or None; an empty
         or all-zero vector (ROS ``D: []``) means no distortion and becomes None. OpenCV's
         undistortion ignores the skew K[0, 1] when distortion is given (negligible for
-        endoscopes, whose skew is 0).
+        endoscopes, whose skew is 0). With lens_model "fisheye": k1..k4 of OpenCV's fisheye
+        model (None: zeros, the pure equidistant lens, which is not a pinhole).
+    lens_model : "pinhole" (OpenCV's standard model) or "fisheye" (cv2.fisheye); see
+        LENS_MODELS.
     pixel_size_um : µm per pixel (pCLE robot methods convert robot µm to pixels with it).
     fov_mask_radius : px, radius of the circular field of view centred on the image centre.
     source : where the camera came from, used in error messages.
@@ -46,6 +57,7 @@ class Camera:
     distortion: np.ndarray | None = None
     pixel_size_um: float | None = None
     fov_mask_radius: float | None = None
+    lens_model: str = "pinhole"
     source: str = field(default="camera.yaml", compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -63,7 +75,19 @@ class Camera:
                 self.camera_matrix = self._checked_camera_matrix(self.camera_matrix)
             except ValueError:
                 pass
-        if self.distortion is not None:
+        if self.lens_model not in LENS_MODELS:
+            raise ValueError(f"{self.source}: lens model {self.lens_model!r}: expected one of "
+                             f"{', '.join(LENS_MODELS)}")
+        if self.lens_model == "fisheye":
+            d = (np.zeros(FISHEYE_COUNT) if self.distortion is None
+                 else np.asarray(self.distortion, dtype=np.float64).reshape(-1))
+            if d.size != FISHEYE_COUNT or not np.all(np.isfinite(d)):
+                raise ValueError(
+                    f"{self.source}: distortion_coefficients: the fisheye (equidistant) model "
+                    f"takes {FISHEYE_COUNT} finite values k1 k2 k3 k4, got "
+                    f"{_numbers(d) or 'none'}")
+            self.distortion = d
+        elif self.distortion is not None:
             d = np.asarray(self.distortion, dtype=np.float64).reshape(-1)
             if not np.all(np.isfinite(d)):
                 raise ValueError(f"{self.source}: distortion_coefficients: contains NaN or inf")
@@ -170,7 +194,7 @@ class Camera:
                              "undistorting the frames needs the intrinsics")
         K = self._checked_camera_matrix(self.camera_matrix)
         return LensUndistortion(K, self.distortion, self.width, self.height,
-                                self.fov_mask(), source=self.source)
+                                self.fov_mask(), source=self.source, lens_model=self.lens_model)
 
     def require_camera_matrix(self, method: str) -> np.ndarray:
         """Return K = [fx s cx; 0 fy cy; 0 0 1], or raise naming the file, the problem and the
@@ -200,6 +224,39 @@ class Camera:
 UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10)
 
 
+def undistort_points(points, camera_matrix, distortion, lens_model: str = "pinhole",
+                     P: np.ndarray | None = None, criteria=UNDISTORT_CRITERIA) -> np.ndarray:
+    """(N, 2) raw pixels through the lens model -> (N, 2) undistorted: pixels of the camera
+    matrix P (e.g. K itself), or normalised coordinates (x/z, y/z) when P is None."""
+    pts = np.asarray(points, np.float64).reshape(-1, 1, 2)
+    if len(pts) == 0:
+        return np.zeros((0, 2))
+    K, d = np.asarray(camera_matrix, np.float64), np.asarray(distortion, np.float64)
+    if lens_model == "fisheye":
+        out = cv2.fisheye.undistortPoints(pts, K, d.reshape(FISHEYE_COUNT, 1), R=np.eye(3),
+                                          P=np.eye(3) if P is None else P, criteria=criteria)
+    else:
+        out = cv2.undistortPoints(pts, K, d, P=P, criteria=criteria)
+    return out.reshape(-1, 2)
+
+
+def project_points(points, camera_matrix, distortion, lens_model: str = "pinhole",
+                   rvec=None, tvec=None) -> np.ndarray:
+    """(N, 3) points (in the camera frame, or in a frame rvec / tvec take to it) -> (N, 2)
+    pixels through the lens model (distortion None: a pinhole)."""
+    obj = np.asarray(points, np.float64).reshape(-1, 1, 3)
+    r = np.zeros(3) if rvec is None else np.asarray(rvec, np.float64).reshape(3)
+    t = np.zeros(3) if tvec is None else np.asarray(tvec, np.float64).reshape(3)
+    K = np.asarray(camera_matrix, np.float64)
+    d = np.zeros(4) if distortion is None else np.asarray(distortion, np.float64)
+    if lens_model == "fisheye":
+        out = cv2.fisheye.projectPoints(obj, r.reshape(1, 1, 3), t.reshape(1, 1, 3), K,
+                                        d.reshape(FISHEYE_COUNT, 1))[0]
+    else:
+        out = cv2.projectPoints(obj, r, t, K, d)[0]
+    return out.reshape(-1, 2)
+
+
 class LensUndistortion:
     """Removes a camera's lens distortion (OpenCV's model, camera.yaml's
     distortion_coefficients) from keypoints and frames.
@@ -223,14 +280,20 @@ class LensUndistortion:
 
     def __init__(self, camera_matrix: np.ndarray, distortion: np.ndarray, width: int,
                  height: int, fov_mask: np.ndarray | None = None, *,
-                 source: str = "camera.yaml") -> None:
+                 source: str = "camera.yaml", lens_model: str = "pinhole") -> None:
         self.camera_matrix = np.asarray(camera_matrix, np.float64)
         self.distortion = np.asarray(distortion, np.float64).reshape(-1)
         self.width, self.height = int(width), int(height)
+        self.lens_model = lens_model
         # For each undistorted pixel its source in the raw frame (fixed-point maps for remap).
-        self._map1, self._map2 = cv2.initUndistortRectifyMap(
-            self.camera_matrix, self.distortion, None, self.camera_matrix,
-            (self.width, self.height), cv2.CV_16SC2)
+        if lens_model == "fisheye":
+            self._map1, self._map2 = cv2.fisheye.initUndistortRectifyMap(
+                self.camera_matrix, self.distortion.reshape(FISHEYE_COUNT, 1), np.eye(3),
+                self.camera_matrix, (self.width, self.height), cv2.CV_16SC2)
+        else:
+            self._map1, self._map2 = cv2.initUndistortRectifyMap(
+                self.camera_matrix, self.distortion, None, self.camera_matrix,
+                (self.width, self.height), cv2.CV_16SC2)
         self.mask = self.valid(fov_mask)
         if not self.mask.any():
             raise ValueError(f"{source}: distortion_coefficients leave no pixel of the "
@@ -247,12 +310,8 @@ class LensUndistortion:
 
     def points(self, points: np.ndarray) -> np.ndarray:
         """(N, 2) raw pixel coordinates -> undistorted pixel coordinates (same K)."""
-        points = np.asarray(points, np.float64).reshape(-1, 2)
-        if len(points) == 0:
-            return points.copy()
-        return cv2.undistortPoints(points.reshape(-1, 1, 2), self.camera_matrix,
-                                   self.distortion, P=self.camera_matrix,
-                                   criteria=UNDISTORT_CRITERIA).reshape(-1, 2)
+        return undistort_points(points, self.camera_matrix, self.distortion, self.lens_model,
+                                P=self.camera_matrix)
 
     def image(self, image: np.ndarray) -> np.ndarray:
         """The raw frame resampled on the undistorted pixel grid (bilinear; black outside)."""
@@ -283,7 +342,9 @@ def read_camera_yaml(path: str | Path) -> Camera:
     """Read ``camera.yaml`` (keys: image_width, image_height, [camera_matrix,
     distortion_coefficients, pixel_size_um, fov_mask_radius]). Matrices may be
     ``!!opencv-matrix``, a plain list (9 numbers: row-major 3x3) or ROS camera_info's
-    ``{rows, cols, data}``; a ROS ``distortion_model`` must be plumb_bob or rational_polynomial.
+    ``{rows, cols, data}``. The lens model: ``distortion_model`` (ROS camera_info: plumb_bob or
+    rational_polynomial, OpenCV's standard model; equidistant or fisheye, OpenCV's fisheye
+    model) or OpenCV's calibration sample's ``fisheye_model: 1``; default the standard model.
     Every problem, including an OpenCV parse error, is a ValueError naming the file (and the
     key)."""
     path = Path(path)
@@ -368,16 +429,26 @@ def _read_camera(fs: cv2.FileStorage, path: Path) -> Camera:
             )
         return np.array(values, dtype=np.float64).reshape(r, c)
 
-    model = fs.getNode("distortion_model")  # ROS camera_info; OpenCV files have none
+    lens_model = "pinhole"
+    model = fs.getNode("distortion_model")  # ROS camera_info; OpenCV's files have none
     if not (model.empty() or model.isNone()):
         name = model.string().strip() if model.isString() else None
         if name not in DISTORTION_MODELS:
             shown = repr(name) if name is not None else "not a string"
             raise ValueError(
-                f"{path}: distortion_model: {shown} is not supported; expected "
-                f"{' or '.join(DISTORTION_MODELS)} (OpenCV's pinhole model; fisheye/equidistant "
-                "lenses are not)"
+                f"{path}: distortion_model: {shown} is not supported; expected one of "
+                f"{', '.join(DISTORTION_MODELS)} (OpenCV's standard model: plumb_bob, "
+                "rational_polynomial; its fisheye model: equidistant)"
             )
+        lens_model = DISTORTION_MODELS[name]
+    flag = number("fisheye_model")  # OpenCV's calibration sample: 1 for its fisheye model
+    if flag is not None:
+        if flag not in (0, 1):
+            raise ValueError(f"{path}: fisheye_model: expected 0 or 1, got {flag:g}")
+        if not model.empty() and not model.isNone() and (flag == 1) != (lens_model == "fisheye"):
+            raise ValueError(f"{path}: fisheye_model {flag:g} contradicts distortion_model "
+                             f"{model.string()!r}")
+        lens_model = "fisheye" if flag == 1 else lens_model
 
     return Camera(
         width=number("image_width", required=True),
@@ -386,6 +457,7 @@ def _read_camera(fs: cv2.FileStorage, path: Path) -> Camera:
         distortion=matrix("distortion_coefficients"),
         pixel_size_um=number("pixel_size_um"),
         fov_mask_radius=number("fov_mask_radius"),
+        lens_model=lens_model,
         source=str(path),
     )
 
@@ -398,6 +470,8 @@ def write_camera_yaml(path: str | Path, camera: Camera) -> None:
         fs.write("image_height", int(camera.height))
         if camera.camera_matrix is not None:
             fs.write("camera_matrix", np.asarray(camera.camera_matrix, dtype=np.float64))
+        if camera.lens_model == "fisheye":  # ROS camera_info's name of OpenCV's fisheye
+            fs.write("distortion_model", "equidistant")
         if camera.distortion is not None:
             fs.write(
                 "distortion_coefficients",

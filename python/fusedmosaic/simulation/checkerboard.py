@@ -19,8 +19,9 @@ Conventions:
   late (the sample of the frame at time t says t + tracker_delay_s); its noise is a rotation of
   N(0, rot_sigma_deg) per axis applied in the sensor frame and a translation of
   N(0, trans_sigma_mm) per axis in the tracker frame.
-- frames are rendered through the distorted camera (OpenCV's model: k1, k2, p1, p2), each pixel
-  averaged over 3x3 samples, plus Gaussian noise.
+- frames are rendered through the distorted camera (OpenCV's model: k1, k2, p1, p2; or its
+  fisheye model: ``fisheye`` k1..k4), each pixel averaged over 3x3 samples, plus Gaussian
+  noise.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from fusedmosaic.io.calibration import project_points, undistort_points
 from fusedmosaic.simulation._options import check_signs
 from fusedmosaic.simulation._options import option as _opt
 from fusedmosaic.simulation.fetoscopy import _tracker_times, default_hand_eye, pose_matrix
@@ -62,6 +64,9 @@ class CheckerboardOptions:
     k2: float = _opt(0.10, "radial distortion k2")
     p1: float = _opt(0.0008, "tangential distortion p1")
     p2: float = _opt(-0.0005, "tangential distortion p2")
+    fisheye: list[float] | None = _opt(
+        None, "k1 k2 k3 k4 of OpenCV's fisheye (equidistant) model: render through that lens "
+        "instead (k1..p2 unused)")
     distance_mm: float = _opt(30.0, "mean camera-board distance at the views, mm")
     distance_variation: float = _opt(0.2, "relative spread of that distance")
     tilt_deg: float = _opt(35.0, "largest view tilt from the board normal, deg")
@@ -96,16 +101,24 @@ class CheckerboardOptions:
                              f"got {self.distance_variation}")
         if self.tilt_deg >= 70:
             raise ValueError(f"{name}.tilt_deg: must be below 70 deg, got {self.tilt_deg}")
+        if self.fisheye is not None and (np.asarray(self.fisheye).shape != (4,)
+                                         or not np.isfinite(self.fisheye).all()):
+            raise ValueError(f"{name}.fisheye: expected 4 finite numbers k1 k2 k3 k4, got "
+                             f"{self.fisheye}")
+
+    @property
+    def lens_model(self) -> str:
+        return "pinhole" if self.fisheye is None else "fisheye"
 
 
 @dataclass(eq=False)
 class CheckerboardScene:
     """A simulated calibration recording.
 
-    camera_matrix (3, 3), distortion (4,) k1 k2 p1 p2: the true intrinsics; hand_eye (4, 4)
-    sensor_from_camera; tracker_from_board (4, 4); timestamps (N,) frame times; cam_from_board
-    (N, 4, 4) true camera poses; resting (N,) frames at a view (the board fully visible);
-    tracker_timestamps (M,), tracker_from_sensor (M, 4, 4) noisy samples.
+    camera_matrix (3, 3), distortion (4,) k1 k2 p1 p2 (fisheye: k1..k4): the true
+    intrinsics; hand_eye (4, 4) sensor_from_camera; tracker_from_board (4, 4); timestamps (N,)
+    frame times; cam_from_board (N, 4, 4) true camera poses; resting (N,) frames at a view (the
+    board fully visible); tracker_timestamps (M,), tracker_from_sensor (M, 4, 4) noisy samples.
     """
 
     options: CheckerboardOptions
@@ -132,9 +145,7 @@ class CheckerboardScene:
         s = SUPERSAMPLE
         v, u = np.mgrid[0:o.height * s, 0:o.width * s].astype(np.float64)
         pixels = np.stack([(u + 0.5) / s - 0.5, (v + 0.5) / s - 0.5], -1).reshape(-1, 1, 2)
-        rays = cv2.undistortPoints(
-            pixels, self.camera_matrix, self.distortion,
-            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10)).reshape(-1, 2)
+        rays = undistort_points(pixels, self.camera_matrix, self.distortion, o.lens_model)
         rays = np.hstack([rays, np.ones((rays.shape[0], 1))])
         rng = np.random.default_rng([o.seed, 4])
         for T in self.cam_from_board:
@@ -188,8 +199,7 @@ def _random_view(o: CheckerboardOptions, K, dist, rng, corners) -> np.ndarray:
         position = target - d * board_from_cam.apply([0.0, 0.0, 1.0])
         R = board_from_cam.inv()
         t = -R.apply(position)
-        uv, _ = cv2.projectPoints(corners, R.as_rotvec(), t, K, dist)
-        uv = uv.reshape(-1, 2)
+        uv = project_points(corners, K, dist, o.lens_model, R.as_rotvec(), t)
         if (uv.min() >= margin and uv[:, 0].max() <= o.width - 1 - margin
                 and uv[:, 1].max() <= o.height - 1 - margin):
             T = np.eye(4)
@@ -229,7 +239,7 @@ def generate_checkerboard(options: CheckerboardOptions | None = None) -> Checker
     c = np.array([(o.width - 1) / 2.0, (o.height - 1) / 2.0]) + o.principal_offset_px * np.array(
         [0.8, -0.6])
     K = np.array([[f, 0.0, c[0]], [0.0, f * 1.0, c[1]], [0.0, 0.0, 1.0]])
-    dist = np.array([o.k1, o.k2, o.p1, o.p2], np.float64)
+    dist = np.array([o.k1, o.k2, o.p1, o.p2] if o.fisheye is None else o.fisheye, np.float64)
     scene = CheckerboardScene(o, K, dist, default_hand_eye(o.hand_eye_rot_deg,
                                                            o.hand_eye_offset_mm),
                               TRACKER_FROM_BOARD.copy(), np.empty(0), np.empty((0, 4, 4)),
@@ -274,7 +284,7 @@ def simulate_checkerboard(
         truth = Path(staging)
         write_camera_yaml(truth / "truth_camera.yaml",
                           Camera(o.width, o.height, camera_matrix=scene.camera_matrix,
-                                 distortion=scene.distortion))
+                                 distortion=scene.distortion, lens_model=o.lens_model))
         write_hand_eye(truth / "truth_hand_eye.txt", scene.hand_eye)
         write_hand_eye(truth / "truth_board.txt", scene.tracker_from_board)
         extra: dict[str, bytes | str] = {p.name: p.read_bytes() for p in truth.iterdir()}

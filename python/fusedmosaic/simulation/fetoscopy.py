@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from fusedmosaic.io.calibration import LENS_MODELS, project_points, undistort_points
 from fusedmosaic.simulation._options import check_signs
 from fusedmosaic.simulation._options import option as _opt
 from fusedmosaic.simulation.textures import placenta_texture
@@ -86,9 +87,13 @@ class FetoscopyOptions:
     )
     image_noise_sigma: float = _opt(2.0, "std of per-frame Gaussian image noise, gray levels")
     lens_distortion: list[float] | None = _opt(
-        None, "OpenCV k1 k2 p1 p2 [k3]: frames rendered through this lens, written to "
-        "camera.yaml (a fetoscope's barrel lens: -0.3 0.1 0 0); none: a pinhole"
+        None, "OpenCV k1 k2 p1 p2 [k3] (--lens-model fisheye: k1 k2 k3 k4): frames rendered "
+        "through this lens, written to camera.yaml (a fetoscope's barrel lens: -0.3 0.1 0 0); "
+        "none: a pinhole"
     )
+    lens_model: str = _opt(
+        "pinhole", "lens model of --lens-distortion: 'pinhole' (OpenCV's standard model) or "
+        "'fisheye' (OpenCV's fisheye / equidistant model)", choices=LENS_MODELS)
     seed: int = _opt(0, "seed of every random draw (texture, path, noise)")
 
     def validate(self) -> None:
@@ -142,13 +147,22 @@ class FetoscopyOptions:
                     "FetoscopyOptions.tracker_gap: expected [first, last] frames, "
                     f"got {self.tracker_gap}"
                 )
+        if self.lens_model not in LENS_MODELS:
+            raise ValueError(f"FetoscopyOptions.lens_model: expected one of {LENS_MODELS}, "
+                             f"got {self.lens_model!r}")
         if self.lens_distortion is not None:
             d = np.asarray(self.lens_distortion, np.float64)
-            if d.ndim != 1 or d.size not in (4, 5) or not np.isfinite(d).all():
+            sizes, names = (((4,), "k1 k2 k3 k4") if self.lens_model == "fisheye"
+                            else ((4, 5), "k1 k2 p1 p2 [k3]"))
+            if d.ndim != 1 or d.size not in sizes or not np.isfinite(d).all():
                 raise ValueError(
-                    "FetoscopyOptions.lens_distortion: expected 4 or 5 finite numbers "
-                    f"(k1 k2 p1 p2 [k3]), got {self.lens_distortion}"
+                    f"FetoscopyOptions.lens_distortion: expected {' or '.join(map(str, sizes))} "
+                    f"finite numbers ({names}) for the {self.lens_model} model, got "
+                    f"{self.lens_distortion}"
                 )
+        elif self.lens_model == "fisheye":
+            raise ValueError("FetoscopyOptions.lens_model: 'fisheye' needs lens_distortion "
+                             "k1 k2 k3 k4 (0 0 0 0: the pure equidistant lens)")
         if self.fov_mask_radius < 0 and self.fov_mask_radius != -1:
             raise ValueError(
                 f"FetoscopyOptions.fov_mask_radius: expected -1 (auto), 0 (none) or "
@@ -526,17 +540,17 @@ LENS_SUPERSAMPLE = 3
 
 def _ideal_pixels(o: FetoscopyOptions, K: np.ndarray) -> np.ndarray:
     """(S H, S W, 2) ideal pixel of every raw sub-pixel sample (S = LENS_SUPERSAMPLE) through
-    the lens (OpenCV's model, iterated to convergence); refuses a lens whose model folds over
-    within the frame."""
+    the lens (OpenCV's standard or fisheye model, iterated to convergence); refuses a lens
+    whose model folds over within the frame."""
     d = np.asarray(o.lens_distortion, np.float64)
     S = LENS_SUPERSAMPLE
     v, u = np.mgrid[0:o.height * S, 0:o.width * S].astype(np.float64)
-    raw = np.stack([(u + 0.5) / S - 0.5, (v + 0.5) / S - 0.5], -1).reshape(-1, 1, 2)
-    ideal = cv2.undistortPoints(raw, K, d, P=K, criteria=(
-        cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 60, 1e-12)).reshape(-1, 2)
+    raw = np.stack([(u + 0.5) / S - 0.5, (v + 0.5) / S - 0.5], -1).reshape(-1, 2)
+    ideal = undistort_points(raw, K, d, o.lens_model, P=K, criteria=(
+        cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 60, 1e-12))
     rays = np.linalg.solve(K, np.hstack([ideal, np.ones((len(ideal), 1))]).T).T
-    back, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K, d)
-    if not np.all(np.abs(back.reshape(-1, 2) - raw.reshape(-1, 2)) < 1e-3):
+    back = project_points(rays, K, d, o.lens_model)
+    if not np.all(np.abs(back - raw) < 1e-3):
         raise ValueError(
             f"FetoscopyOptions.lens_distortion: {d.tolist()} is not invertible over the "
             f"{o.width}x{o.height} frame (the model folds over); use a milder lens"
@@ -589,6 +603,7 @@ def simulate_fetoscopy(
         camera_matrix=scene.camera_matrix,
         distortion=scene.distortion,
         fov_mask_radius=scene.fov_mask_radius,
+        lens_model=o.lens_model,
     )
     tracking = TrackingSamples(
         scene.tracker_timestamps,
