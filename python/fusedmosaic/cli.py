@@ -234,8 +234,10 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     r = result.report
     intr = r["intrinsics"]
     K = result.camera.camera_matrix
+    model = " (fisheye model)" if intr["lens_model"] == "fisheye" else ""
     _say(args, f"board found in {r['board_found']} of {r['frames_searched']} frames; "
-               f"intrinsics from {intr['views']} views: RMS reprojection {intr['rms_px']:.3f} px, "
+               f"intrinsics{model} from {intr['views']} views: RMS reprojection "
+               f"{intr['rms_px']:.3f} px, "
                f"fx {K[0, 0]:.2f} fy {K[1, 1]:.2f} cx {K[0, 2]:.2f} cy {K[1, 2]:.2f} px")
     he = r["hand_eye"]
     if "skipped" in he:

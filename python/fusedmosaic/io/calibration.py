@@ -258,8 +258,9 @@ def project_points(points, camera_matrix, distortion, lens_model: str = "pinhole
 
 
 class LensUndistortion:
-    """Removes a camera's lens distortion (OpenCV's model, camera.yaml's
-    distortion_coefficients) from keypoints and frames.
+    """Removes a camera's lens distortion (camera.yaml's distortion_coefficients, through
+    OpenCV's standard model or, with lens_model "fisheye", its fisheye model) from keypoints
+    and frames.
 
     The pose methods' homographies H = K (R - t pi^T) K^-1 hold between undistorted pixels, so
     features are detected in undistorted frames (`image`, within `mask`, their valid pixels)
