@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 from _common import fmt, load_average, md_table, run_note, work_folder, write_results
-from bench_lens import METHODS, measure, pinhole_mosaic
+from bench_lens import METHODS, case_medians, measure, pinhole_mosaic
 
 from fusedmosaic.estimation.calibration import (
     CalibrationOptions,
@@ -121,9 +121,7 @@ def main() -> None:
     median = {
         "calibration": {m: {k: float(np.median([r["calibration"][m][k] for r in runs]))
                             for k in runs[0]["calibration"][m]} for m in MODELS},
-        **{case: {m: {k: float(np.median([r[case][m][k] for r in runs]))
-                      for k in runs[0][case][m] if runs[0][case][m][k] is not None}
-                  for m in METHODS} for case in CASES}}
+        **case_medians(runs, CASES)}
     write_results(args.out, markdown, t_bench, load_start, seeds=args.seeds, frames=args.frames,
                   lens=LENS, focal_px=FOCAL_FACTOR * SIZE, runs=runs, median=median)
     if tmp is not None:

@@ -67,6 +67,14 @@ def measure(data: Path, out: Path, truth) -> dict:
     return row
 
 
+def case_medians(runs: list[dict], cases) -> dict:
+    """{case: {method: {figure: median over the runs}}} of measure()'s rows (figures that are
+    None in the first run are left out)."""
+    return {case: {m: {k: float(np.median([r[case][m][k] for r in runs]))
+                       for k in runs[0][case][m] if runs[0][case][m][k] is not None}
+                   for m in METHODS} for case in cases}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, default=3)
@@ -93,9 +101,7 @@ def main() -> None:
             truth = pinhole_mosaic(options, read_dataset(data).ground_truth)
             run[case] = measure(data, work / f"out_{seed}_{case.replace(' ', '_')}", truth)
         runs.append(run)
-    median = {case: {m: {k: float(np.median([r[case][m][k] for r in runs]))
-                         for k in runs[0][case][m] if runs[0][case][m][k] is not None}
-                     for m in METHODS} for case in CASES}
+    median = case_medians(runs, CASES)
     write_results(args.out, markdown, t_bench, load_start, seeds=args.seeds, frames=args.frames,
                   lens=LENS, runs=runs, median=median)
     if tmp is not None:

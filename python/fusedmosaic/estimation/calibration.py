@@ -767,8 +767,7 @@ def camera_model_difference(a: Camera, b: Camera, region: float = 0.8) -> float:
     u, v = np.meshgrid(np.linspace(lo, hi, 17) * (a.width - 1),
                        np.linspace(lo, hi, 17) * (a.height - 1))
     px = np.stack([u.ravel(), v.ravel()], 1).reshape(-1, 1, 2)
-    dist_a = np.zeros(4) if a.distortion is None else a.distortion
-    rays = undistort_points(px, a.camera_matrix, dist_a, a.lens_model, criteria=(
+    rays = undistort_points(px, a.camera_matrix, a.distortion, a.lens_model, criteria=(
         cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12))
     rays = np.hstack([rays, np.ones((rays.shape[0], 1))])
     back = project_points(rays, b.camera_matrix, b.distortion, b.lens_model)

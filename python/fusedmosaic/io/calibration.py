@@ -227,11 +227,13 @@ UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10
 def undistort_points(points, camera_matrix, distortion, lens_model: str = "pinhole",
                      P: np.ndarray | None = None, criteria=UNDISTORT_CRITERIA) -> np.ndarray:
     """(N, 2) raw pixels through the lens model -> (N, 2) undistorted: pixels of the camera
-    matrix P (e.g. K itself), or normalised coordinates (x/z, y/z) when P is None."""
+    matrix P (e.g. K itself), or normalised coordinates (x/z, y/z) when P is None (distortion
+    None: a pinhole, as project_points)."""
     pts = np.asarray(points, np.float64).reshape(-1, 1, 2)
     if len(pts) == 0:
         return np.zeros((0, 2))
-    K, d = np.asarray(camera_matrix, np.float64), np.asarray(distortion, np.float64)
+    K = np.asarray(camera_matrix, np.float64)
+    d = np.zeros(4) if distortion is None else np.asarray(distortion, np.float64)
     if lens_model == "fisheye":
         out = cv2.fisheye.undistortPoints(pts, K, d.reshape(FISHEYE_COUNT, 1), R=np.eye(3),
                                           P=np.eye(3) if P is None else P, criteria=criteria)
