@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import platform
 import tempfile
 import time
 from contextlib import contextmanager
@@ -17,6 +16,8 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
+
+from fusedmosaic.evaluation.benchmark import machine_info  # noqa: F401 (re-exported)
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
@@ -126,38 +127,6 @@ def ensure_dataset(work: Path, seq: Sequence) -> Path:
 
 
 # -- machine, statistics, output -------------------------------------------------------------
-
-
-def machine_info() -> dict:
-    import cv2
-    import scipy
-
-    cpu = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    ram_gb = None
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemTotal"):
-                ram_gb = round(int(line.split()[1]) / 1024**2, 1)
-    except OSError:
-        pass
-    return {
-        "cpu": cpu,
-        "cores": os.cpu_count(),
-        "ram_gb": ram_gb,
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "scipy": scipy.__version__,
-        "opencv": cv2.__version__,
-        "load_average": load_average(),
-    }
 
 
 def dist(values, scale: float = 1.0) -> dict:

@@ -45,12 +45,11 @@ import numpy as np
 
 from fusedmosaic import _core
 from fusedmosaic.estimation.sequential import SequentialMosaicker, SequentialOptions
+from fusedmosaic.evaluation.benchmark import SYN_FRAMES_PER_LAP, syn_stream
 from fusedmosaic.evaluation.metrics import drift_ratio, frame_errors
-from fusedmosaic.io import Camera, TrackingSamples, interpolate_camera_poses
 from fusedmosaic.registration.features import FeatureOptions
-from fusedmosaic.simulation.fetoscopy import FetoscopyOptions, generate_fetoscopy
 
-FRAMES_PER_LAP = 37  # paper 000 Sec. 4.2.4: the long SYN sequence keeps the 152-frame motion
+FRAMES_PER_LAP = SYN_FRAMES_PER_LAP  # paper 000 Sec. 4.2.4: the long sequence keeps SYN's motion
 STEP_MEDIAN_MS, STEP_P95_MS = 5.0, 15.0  # design.md / issue 4, per window step
 MIN_ORB_FPS = 25.0
 MAX_DRIFT_RATIO = 1.3
@@ -142,14 +141,9 @@ def stats_ms(x) -> dict:
 
 
 def make_scene(n_frames: int, size: tuple[int, int] = (400, 400)):
-    scene = generate_fetoscopy(FetoscopyOptions(n_frames=n_frames, laps=n_frames / FRAMES_PER_LAP,
-                                                width=size[0], height=size[1]))
-    camera = Camera(*scene.size, camera_matrix=scene.camera_matrix,
-                    fov_mask_radius=scene.fov_mask_radius)
-    samples = TrackingSamples(scene.tracker_timestamps, scene.tracker_translations,
-                              scene.tracker_quaternions, scene.tracker_valid)
-    poses, valid = interpolate_camera_poses(samples, scene.timestamps, scene.hand_eye)
-    return scene, camera, poses, valid
+    """SYN circle (laps = n_frames / FRAMES_PER_LAP), camera, tracker poses at the frame times
+    and their validity: the same stream `fusedmosaic bench` measures."""
+    return syn_stream(n_frames, size)
 
 
 def stream(scene, camera, poses, valid, n_frames: int, options: SequentialOptions, *,

@@ -1,4 +1,5 @@
-"""`fusedmosaic simulate|calibrate|import|run|live|evaluate|demo` — the command-line entry point."""
+"""`fusedmosaic simulate|calibrate|import|run|live|evaluate|demo|bench`: the command-line
+entry point."""
 
 from __future__ import annotations
 
@@ -562,6 +563,35 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from fusedmosaic.evaluation.benchmark import BenchOptions, format_benchmark, run_benchmark
+    from fusedmosaic.io.output import OutputWriter, check_output_dir
+
+    options = BenchOptions(frames=args.frames, detector=args.detector,
+                           pcle_frames=args.pcle_frames, offline=args.offline, seed=args.seed)
+    try:
+        options.check()
+    except ValueError as exc:  # "frames: ..." -> "--frames: ..."
+        raise ValueError(re.sub(r"^(\w+)", lambda m: "--" + m.group(1).replace("_", "-"),
+                                str(exc))) from None
+    json_path = Path(args.json) if args.json else None
+    if json_path is not None:  # checked before minutes of measuring
+        if json_path.is_dir():
+            raise ValueError(f"--json {json_path}: is a folder; give a file name, e.g. "
+                             f"{json_path / 'bench.json'}")
+        try:
+            check_output_dir(json_path.parent, "folder of the bench JSON", create_parent=False)
+        except ValueError as exc:
+            raise ValueError(f"--json {json_path}: {exc}") from None
+    result = run_benchmark(options, say=lambda text: _say(args, text))
+    _say(args, format_benchmark(result))
+    if json_path is not None:
+        with OutputWriter(json_path.parent) as w:
+            w.write_text(json_path.name, _json_text(result))
+        _say(args, f"wrote {json_path}")
+    return 1 if args.strict and not result["all_ok"] else 0
+
+
 def _progress(args: argparse.Namespace) -> bool:
     """Progress bars only for a person watching a terminal."""
     return not getattr(args, "quiet", False) and sys.stderr.isatty()
@@ -753,6 +783,28 @@ def build_parser() -> argparse.ArgumentParser:
                       help="syn: the paper's circular SYN sequence; handheld: a free-hand sweep "
                            "over a tilted plane with a circular field of view")
     demo.set_defaults(func=_cmd_demo)
+
+    bench = sub.add_parser(
+        "bench", parents=[quiet],
+        help="measure this machine against the live budgets (simulated data, ~30 s)",
+        description="Measures design.md's budgets on this machine with simulated data: the "
+                    "lba-emt window step (median <= 5 ms, p95 <= 15 ms) and frames/s (>= 25) at "
+                    "400x400, kalman-robot frames/s at 512x448 (>= 100), and with --offline "
+                    "the ba-emt optimisation over 150 frames (<= 1 s); accuracy against the "
+                    "simulator's truth beside them.")
+    bench.add_argument("--frames", type=int, default=300,
+                       help="SYN frames streamed through lba-emt (>= 60; default 300)")
+    bench.add_argument("--detector", choices=("orb", "sift"), default="orb",
+                       help="lba-emt's feature detector (default orb, the live choice)")
+    bench.add_argument("--pcle-frames", type=int, default=200,
+                       help="pCLE frames streamed through kalman-robot (>= 10; default 200)")
+    bench.add_argument("--offline", action="store_true",
+                       help="also time ba-emt over 150 frames (about a minute more)")
+    bench.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
+    bench.add_argument("--json", help="also write the measurements to this JSON file")
+    bench.add_argument("--strict", action="store_true",
+                       help="exit with status 1 when a budget is missed")
+    bench.set_defaults(func=_cmd_bench)
     return parser
 
 
