@@ -23,6 +23,7 @@ from fusedmosaic.io import (
     write_camera_yaml,
     write_dataset,
 )
+from fusedmosaic.io.tracking import write_tracking_csv
 from fusedmosaic.io.video import (
     VIDEO_READ_AHEAD,
     VIDEO_RECENT_FRAMES,
@@ -577,3 +578,20 @@ def test_tracking_samples_zero_quaternion():
     with pytest.raises(ValueError, match=r"quaternions: sample 1 is valid but .* has norm 0"):
         TrackingSamples([0.0, 1.0], np.zeros((2, 3)), q)
     TrackingSamples([0.0, 1.0], np.zeros((2, 3)), q, valid=[True, False])  # missing sample
+
+
+def test_tracking_samples_refuse_what_tracking_csv_refuses(tmp_path):
+    """A non-unit quaternion (here w, x, y, z read as x, y, z, w and scaled) is refused by the
+    Python API as by read_tracking_csv; within the tolerance it is renormalised, and what is
+    written reads back."""
+    q = np.array([[0.0, 0.0, 0.0, 1.0], [2.0, 0.0, 0.0, 0.0]])
+    with pytest.raises(ValueError, match=r"quaternions: sample 1 is valid but .* has norm 2, "
+                                         r"not 1 \(tolerance 0\.001\)"):
+        TrackingSamples([0.0, 1.0], np.zeros((2, 3)), q)
+    q[1] = [0.0, 0.0, 0.0, 1.0005]
+    samples = TrackingSamples([0.0, 1.0], np.zeros((2, 3)), q)
+    np.testing.assert_allclose(np.linalg.norm(samples.quaternions, axis=1), 1.0, atol=1e-15)
+    assert q[1, 3] == 1.0005  # the caller's array is not changed
+    write_tracking_csv(tmp_path / "tracking.csv", samples)
+    np.testing.assert_allclose(read_tracking_csv(tmp_path / "tracking.csv").quaternions,
+                               samples.quaternions, atol=1e-9)

@@ -72,7 +72,8 @@ class TrackingSamples:
     """EM tracker samples of tracker_from_sensor at the tracker's own rate.
 
     timestamps : (M,) float64, s.  translations : (M, 3) float64, mm.
-    quaternions : (M, 4) float64 unit, (x, y, z, w).  valid : (M,) bool, False = missing sample.
+    quaternions : (M, 4) float64 unit, (x, y, z, w): a valid sample's norm must be within
+    QUATERNION_NORM_TOLERANCE of 1 (then renormalised).  valid : (M,) bool, False = missing sample.
     """
 
     timestamps: np.ndarray
@@ -92,13 +93,20 @@ class TrackingSamples:
                     f"TrackingSamples.{name}: expected shape {shape}, "
                     f"got {getattr(self, name).shape}"
                 )
+        # As read_tracking_csv: a valid sample's quaternion is a unit one to within
+        # QUATERNION_NORM_TOLERANCE (rounding), and is renormalised; a norm further from 1 is
+        # a wrong field order or a corrupt sample, which tracking.csv would refuse when read.
         norms = np.linalg.norm(self.quaternions, axis=1)
-        bad = np.flatnonzero(self.valid & ~((norms > 0) & np.isfinite(norms)))
+        bad = np.flatnonzero(self.valid & ~(np.abs(norms - 1.0) <= QUATERNION_NORM_TOLERANCE))
         if bad.size:
             raise ValueError(
                 f"TrackingSamples.quaternions: sample {bad[0]} is valid but its quaternion "
-                f"{self.quaternions[bad[0]].tolist()} has norm {norms[bad[0]]:g}"
+                f"{self.quaternions[bad[0]].tolist()} has norm {norms[bad[0]]:g}, not 1 "
+                f"(tolerance {QUATERNION_NORM_TOLERANCE:g})"
             )
+        if self.valid.any():
+            self.quaternions = self.quaternions.copy()
+            self.quaternions[self.valid] /= norms[self.valid, None]
         bad = np.flatnonzero(self.valid & ~np.all(np.isfinite(self.translations), axis=1))
         if bad.size:
             raise ValueError(
