@@ -400,3 +400,97 @@ def test_live_tracker_time_offset_is_checked_before_connecting(syn, tmp_path, ca
                  "--out", str(tmp_path / "out"), "--tracker-time-offset", "11"]) == 2
     assert "--tracker-time-offset: expected seconds within +-10" in capsys.readouterr().err
     assert not list(tmp_path.iterdir())
+
+
+def _free_port() -> int:
+    with socket.create_server(("127.0.0.1", 0)) as s:
+        return s.getsockname()[1]
+
+
+def test_live_view_preview_and_mosaic_server(syn, tmp_path):
+    """The growing mosaic as a PNG and as OpenIGTLink IMAGE 'Mosaic' to a connected client
+    (here our own IgtlSource, as 3D Slicer would connect): the last one sent is the preview,
+    which is the linear blend of the session's final homographies (render_mosaic)."""
+    import threading
+    import time
+
+    import cv2
+
+    from fusedmosaic.compositing import BlendOptions, render_mosaic
+
+    port = _free_port()
+    received = []
+
+    def viewer() -> None:
+        for _ in range(200):  # until the session's server listens
+            try:
+                client = IgtlSource(f"127.0.0.1:{port}", transform_device="NoneToNone",
+                                    image_device="Mosaic",
+                                    on_frame=lambda f: received.append(f.image) or True)
+                break
+            except ValueError:
+                time.sleep(0.05)
+        with client:
+            while client.next_frame(10) is not None:
+                pass
+
+    thread = threading.Thread(target=viewer, daemon=True)
+    thread.start()
+    sender = Sender(dataset_events(syn), speed=0.5)
+    preview = tmp_path / "preview.png"
+    assert _live(syn, tmp_path, sender, "--preview", str(preview), "--serve-mosaic", str(port),
+                 "--view-interval", "0.5") == 0
+    sender.join()
+    thread.join(30)
+    live = json.loads((tmp_path / "out" / "report.json").read_text())["live"]
+    view = live["view"]
+    assert view["frames_drawn"] == live["frames_processed"] and view["problems"] == {}
+    assert view["server"]["clients"] == 1 and view["server"]["device"] == "Mosaic"
+    assert len(received) == view["server"]["messages_sent"] == view["published"] >= 2
+    shown = cv2.imread(str(preview))
+    np.testing.assert_array_equal(received[-1], shown)  # the final view, both ways
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".preview")]  # no temp left
+    ids, G = read_homographies_csv(tmp_path / "out" / "homographies.csv")
+    rec = read_dataset(tmp_path / "rec", allow_untracked=True)
+    ok = np.flatnonzero(np.isfinite(G).all(axis=(1, 2)))
+    offline = render_mosaic([rec.frames[k] for k in ok], G[ok], 300, 300,
+                            mask=rec.camera.fov_mask(), blend=BlendOptions("linear")).image
+    # the same blend up to where each canvas starts (a whole pixel): measured 0.0 grey levels
+    best = np.inf
+    for dy in range(3):
+        for dx in range(3):
+            a = shown[dy:, dx:].astype(float)
+            h, w = min(a.shape[0], offline.shape[0]), min(a.shape[1], offline.shape[1])
+            a, b = a[:h, :w], offline[:h, :w].astype(float)
+            both = (a.sum(axis=2) > 0) & (b.sum(axis=2) > 0)
+            if both.mean() > 0.5:
+                best = min(best, float(np.abs(a - b)[both].mean()))
+    assert best < 0.5
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--preview", "view.jpg"], "view.jpg: the preview is a PNG file (name it .png)"),
+    (["--preview", "rec/view.png"], "the preview must not be inside the recording"),
+    (["--serve-mosaic", "host:x"], "OpenIGTLink server address 'host:x': expected PORT or "
+                                   "HOST:PORT"),
+    (["--serve-mosaic", "0", "--view-interval", "-1"], "--view-interval): must be >= 0 s"),
+])
+def test_live_view_flags_are_checked_before_connecting(syn, tmp_path, capsys, monkeypatch,
+                                                       extra, message):
+    monkeypatch.chdir(tmp_path)
+    assert main(["live", "127.0.0.1:1", "--camera", str(syn.root / "camera.yaml"),
+                 "--transform", "SensorToTracker", "--record", "rec", "--out", "out",
+                 *extra]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "cannot connect" not in err
+    assert not list(tmp_path.iterdir())
+
+
+def test_mosaic_server_port_in_use_is_named(syn, tmp_path, capsys):
+    with socket.create_server(("127.0.0.1", 0)) as busy:
+        port = busy.getsockname()[1]
+        assert main(["live", "127.0.0.1:1", "--camera", str(syn.root / "camera.yaml"),
+                     "--transform", "SensorToTracker", "--record", str(tmp_path / "rec"),
+                     "--out", str(tmp_path / "out"), "--serve-mosaic", str(port)]) == 2
+    assert (f"OpenIGTLink server 127.0.0.1:{port}: cannot listen" in capsys.readouterr().err)
+    assert not list(tmp_path.iterdir())

@@ -320,7 +320,9 @@ def _cmd_live(args: argparse.Namespace) -> int:
                            overwrite_record=args.overwrite_record, progress=_progress(args),
                            blend=blend, canvas=canvas, video=args.video,
                            report=not args.no_report, method=args.method,
-                           tracker_time_offset=args.tracker_time_offset)
+                           tracker_time_offset=args.tracker_time_offset,
+                           preview=args.preview, serve_mosaic=args.serve_mosaic,
+                           view_interval_s=args.view_interval)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
@@ -757,6 +759,18 @@ def build_parser() -> argparse.ArgumentParser:
     _add_tracker_time_offset_flag(
         live, "the frame at time t takes the sample stamped t + S, and the recording's samples "
               "are written on the video's clock, shifted by -S")
+    view = live.add_argument_group(
+        "the mosaic as it grows (for the room; from each frame's final placement, linear "
+        "blending)")
+    view.add_argument("--preview", metavar="FILE.png",
+                      help="rewrite this PNG with the mosaic so far (replaced atomically: an "
+                           "image viewer that reloads it never shows half an image)")
+    view.add_argument("--serve-mosaic", metavar="[HOST:]PORT",
+                      help="send the mosaic as OpenIGTLink IMAGE 'Mosaic' to every client "
+                           "connecting here (e.g. 3D Slicer's OpenIGTLinkIF as a client; PORT "
+                           "alone listens on 127.0.0.1, 0.0.0.0:PORT on every interface)")
+    view.add_argument("--view-interval", type=float, default=1.0, metavar="S",
+                      help="seconds between updates of --preview / --serve-mosaic (default 1)")
     _add_lba_flags(live)
     _add_feature_flags(live, "features")
     _add_compositing_flags(live)

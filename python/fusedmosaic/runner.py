@@ -388,13 +388,46 @@ def check_live_limits(max_frames, duration_s, frame_timeout_s,
             raise ValueError(f"{what} must be a number > 0, got {value}")
 
 
+def _live_view(camera, method: str, record: Path, preview, serve_mosaic,
+               interval_s: float):
+    """(LiveMosaicView, IgtlImageServer or None) for run_igtl, checked before connecting."""
+    from fusedmosaic.compositing.live_view import LiveMosaicView
+    from fusedmosaic.io.igtl import IgtlImageServer
+    from fusedmosaic.io.output import check_output_dir
+
+    if not (np.isfinite(interval_s) and interval_s >= 0):
+        raise ValueError(f"view interval (--view-interval): must be >= 0 s, got {interval_s}")
+    if preview is not None:
+        preview = Path(preview)
+        if preview.suffix.lower() != ".png":
+            raise ValueError(f"{preview}: the preview is a PNG file (name it .png)")
+        if preview.is_dir():
+            raise ValueError(f"{preview}: is a folder; the preview is a PNG file")
+        if is_under(preview, record):
+            raise ValueError(f"{preview}: the preview must not be inside the recording {record}")
+        check_output_dir(preview.parent, "preview's folder")
+    lens = camera.undistortion() if method == "lba-emt" else None
+    mask = lens.mask if lens is not None else camera.fov_mask()
+    server = None if serve_mosaic is None else IgtlImageServer(serve_mosaic)
+    try:
+        view = LiveMosaicView(camera.width, camera.height, mask=mask, lens=lens,
+                              preview=preview, server=server, interval_s=interval_s)
+    except BaseException:
+        if server is not None:
+            server.close()
+        raise
+    return view, server
+
+
 def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
              transform_device: str, image_device: str | None = None, hand_eye=None,
              rgb: bool = True, options=None, max_frames: int | None = None,
              duration_s: float | None = None, frame_timeout_s: float = 5.0,
              overwrite_record: bool = False, progress: bool = True, blend=None, canvas=None,
              video: str | Path | None = None, report: bool = True,
-             method: str = "lba-emt", tracker_time_offset: float = 0.0) -> str:
+             method: str = "lba-emt", tracker_time_offset: float = 0.0,
+             preview: str | Path | None = None, serve_mosaic: str | None = None,
+             view_interval_s: float = 1.0) -> str:
     """A live session on an OpenIGTLink source (io.igtl: e.g. PLUS Server streaming a tracked
     endoscope), lba-emt, or kalman-robot with a robot streaming the probe position (the
     transform's translation, mm, in the image axes; the camera needs pixel_size_um; recorded
@@ -408,8 +441,11 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     hand_eye.txt. tracker_time_offset: s, the tracker's (robot's) clock ahead of the video's
     (calibrate's calibration.json "tracker_time_offset"): the frame at t takes the sample at
     t + offset, and the samples are recorded on the video's clock (stamped - offset), as
-    `import` writes them, so that the recording re-runs without it. Returns the terminal
-    summary."""
+    `import` writes them, so that the recording re-runs without it. preview (a .png path) /
+    serve_mosaic ([HOST:]PORT): the mosaic as it grows, from each frame's final placement
+    (compositing.live_view), replaced atomically in that file and / or sent as OpenIGTLink IMAGE
+    "Mosaic" to every client of a server listening there (e.g. 3D Slicer), at most every
+    view_interval_s; report.json "live" "view". Returns the terminal summary."""
     from fusedmosaic.estimation.live import check_live_method, live_session, session_result
     from fusedmosaic.io.calibration import Camera, read_camera_yaml
     from fusedmosaic.io.igtl import IgtlSource
@@ -444,6 +480,11 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     from fusedmosaic.io.output import check_output_dir
 
     check_output_dir(out, "output folder")
+    view, server = None, None
+
+    def on_final(index, image, r) -> None:
+        if view is not None and image is not None and np.isfinite(r.homography).all():
+            view.add(image, r.homography)
 
     recorder = DatasetRecorder(record, camera, hand_eye, overwrite=overwrite_record,
                                robot=method == "kalman-robot")
@@ -488,6 +529,9 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
 
     src = None
     try:
+        if preview is not None or serve_mosaic is not None:  # before connecting
+            view, server = _live_view(camera, method, record, preview, serve_mosaic,
+                                      view_interval_s)
         with IgtlSource(address, transform_device=transform_device, image_device=image_device,
                         rgb=rgb, on_frame=on_frame, on_sample=lambda s: recorder.add_sample(
                             s.timestamp - offset, s.matrix if s.valid else None)) as src:
@@ -496,9 +540,14 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                                        options=options,
                                        max_frames=max_frames, duration_s=duration_s,
                                        frame_timeout_s=frame_timeout_s,
-                                       tracker_time_offset=offset)
+                                       tracker_time_offset=offset,
+                                       on_final=on_final if view is not None else None)
             finally:
                 accepting = False
+                if view is not None:  # the last frames drawn and published, then no more
+                    view.close()
+                if server is not None:
+                    server.close()
             dropped = [k for k in src.dropped if k not in session.finals]
             details = {"address": f"{src.host}:{src.port}", "image_device": src.image_device,
                        "transform_device": transform_device,
@@ -515,6 +564,10 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
         with _interrupts_deferred():
             recorder.finish()
     except BaseException as exc:
+        if view is not None:
+            view.close()
+        if server is not None:
+            server.close()
         # the recording is the session's safety net: kept whenever it holds a frame
         kept = False
         if recorder.timestamps:
@@ -533,6 +586,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
         raise
     result = session_result(session, timestamps, dropped, source_details=details,
                             method=method)
+    if view is not None:
+        result.details["live"]["view"] = view.summary()
     summary = run_dataset(record, method, out, result=result, allow_untracked=True,
                           progress=progress, blend=blend, canvas=canvas, video=video,
                           report=report)

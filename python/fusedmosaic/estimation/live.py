@@ -316,7 +316,8 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
                  max_frames: int | None = None, duration_s: float | None = None,
                  frame_timeout_s: float = 5.0, max_sample_age_s: float | None = None,
                  on_result: Callable | None = None,
-                 tracker_time_offset: float = 0.0) -> LiveSession:
+                 tracker_time_offset: float = 0.0,
+                 on_final: Callable | None = None) -> LiveSession:
     """Runs `method` (lba-emt: the tracker pose at each frame's time; kalman-robot: the robot
     position, the source's translation in mm taken as the probe position in the image axes)
     live on `source` (an io.igtl.IgtlSource, or anything with its next_frame / pose_at /
@@ -324,9 +325,11 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
     the stream ends, `max_frames` frames were received, `duration_s` passed, or Ctrl-C
     (KeyboardInterrupt ends the session normally; the mosaickers are transactional, an
     interrupted call leaves them as before). on_result(frame, result) is called after each
-    frame (a live preview). tracker_time_offset: s, the tracker's (robot's) clock ahead of the
-    video's, as calibrate measures it: the frame at time t takes the sample at t + offset. The
-    caller records the frames (the source's on_frame) and writes the outputs."""
+    frame (provisional for lba-emt); on_final(index, image, result) once a frame's result is
+    final (the image is kept until then: a live mosaic view). tracker_time_offset: s, the
+    tracker's (robot's) clock ahead of the video's, as calibrate measures it: the frame at time
+    t takes the sample at t + offset. The caller records the frames (the source's on_frame)
+    and writes the outputs."""
     from fusedmosaic.io.igtl import StreamTimeout
 
     check_live_method(method)
@@ -336,9 +339,14 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
     sample_at = _sample_at(method, source, hand_eye, max_sample_age_s)
     start = time.monotonic()
 
+    images: dict = {}  # frame index -> image, until its result is final (on_final only)
+
     def take(results) -> None:
         for r in results:  # the mosaicker numbers the frames it was given 0, 1, ...
-            session.finals[session.processed[r.frame_id]] = r
+            index = session.processed[r.frame_id]
+            session.finals[index] = r
+            if on_final is not None:
+                on_final(index, images.pop(index, None), r)
 
     try:
         while True:
@@ -366,11 +374,14 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
             elif age is not None:
                 session.ages.append(age)
             session.processed.append(frame.index)  # before the call: flush() numbers it
+            if on_final is not None:
+                images[frame.index] = frame.image
             t0 = time.perf_counter()
             try:
                 result = mosaicker.add_frame(frame.image, frame.timestamp, sample)
             except BaseException:  # the mosaicker is as before the call
                 session.processed.pop()
+                images.pop(frame.index, None)
                 raise
             done = time.perf_counter()
             session.latency[frame.index] = done - frame.arrival

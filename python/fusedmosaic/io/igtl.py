@@ -26,6 +26,7 @@ times must come from one clock, as PLUS Server's do.
 from __future__ import annotations
 
 import re
+import select
 import socket
 import threading
 import time
@@ -403,3 +404,123 @@ def _quaternion(matrix: np.ndarray) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
     return Rotation.from_matrix(matrix[:3, :3]).as_quat()
+
+
+def parse_listen_address(address: str) -> tuple[str, int]:
+    """'PORT' (this machine only: 127.0.0.1) or 'HOST:PORT' (e.g. 0.0.0.0:18945 for every
+    interface) -> (host, port); port 0 takes a free one (IgtlImageServer.port); ValueError."""
+    host, sep, port = str(address).rpartition(":")
+    host = host if sep else "127.0.0.1"
+    try:
+        number = int(port)
+    except ValueError:
+        number = -1
+    if not 0 <= number < 65536 or not host:
+        raise ValueError(f"OpenIGTLink server address {address!r}: expected PORT or HOST:PORT "
+                         f"with a port in 0..65535 (0: a free one)")
+    return host, number
+
+
+class IgtlImageServer:
+    """Serves images over OpenIGTLink: a listening socket on ``address`` ([HOST:]PORT) that
+    every client connecting (e.g. 3D Slicer's OpenIGTLinkIF in client mode) receives each
+    :meth:`send` from, as IMAGE messages of ``device_name`` packed by pyigtl (RGB, one slice,
+    1 px spacing). A client that fails or stalls (``send_timeout_s``) is dropped; what clients
+    send is read and ignored. A context manager (closes the sockets)."""
+
+    def __init__(self, address: str, *, device_name: str = "Mosaic",
+                 send_timeout_s: float = 2.0) -> None:
+        import pyigtl  # noqa: F401  (fail early, naming the package, if it is missing)
+
+        self.host, self.port = parse_listen_address(address)
+        self.where = f"OpenIGTLink server {self.host}:{self.port}"
+        self.device_name = device_name
+        self.send_timeout_s = send_timeout_s
+        try:
+            self._listener = socket.create_server((self.host, self.port))
+        except OSError as exc:
+            raise ValueError(f"{self.where}: cannot listen ({exc.strerror or exc}); is the port "
+                             "in use?") from None
+        self.port = self._listener.getsockname()[1]
+        self._listener.settimeout(0.2)
+        self._clients: list[socket.socket] = []
+        self._lock = threading.Lock()
+        self._stop = False
+        self.clients_served = 0  # clients that connected
+        self.messages_sent = 0  # messages sent to a client in full
+        self._thread = threading.Thread(target=self._accept, name="igtl-image-server",
+                                        daemon=True)
+        self._thread.start()
+
+    def _accept(self) -> None:
+        while not self._stop:
+            try:
+                client, _ = self._listener.accept()
+            except TimeoutError:
+                client = None
+            except OSError:
+                return  # closed
+            with self._lock:
+                if client is not None:
+                    client.settimeout(self.send_timeout_s)
+                    self._clients.append(client)
+                    self.clients_served += 1
+                for c in list(self._clients):  # read and ignore what clients send
+                    try:
+                        while select.select([c], [], [], 0)[0]:
+                            if not c.recv(65536):  # the client closed
+                                self._drop(c)
+                                break
+                    except OSError:
+                        self._drop(c)
+
+    def _drop(self, client: socket.socket) -> None:
+        self._clients.remove(client)
+        try:
+            client.close()
+        except OSError:
+            pass
+
+    @property
+    def num_clients(self) -> int:
+        with self._lock:
+            return len(self._clients)
+
+    def send(self, image: np.ndarray, timestamp: float | None = None) -> int:
+        """Sends a uint8 BGR (H, W, 3) or gray (H, W) image to every connected client; returns
+        how many got it."""
+        import pyigtl
+
+        image = np.asarray(image)
+        if image.ndim == 3:
+            image = image[:, :, ::-1]  # BGR -> RGB, as PLUS and Slicer expect colour
+        message = pyigtl.ImageMessage(np.ascontiguousarray(image)[None],
+                                      timestamp=time.time() if timestamp is None else timestamp,
+                                      device_name=self.device_name).pack()
+        sent = 0
+        with self._lock:
+            for c in list(self._clients):
+                try:
+                    c.sendall(message)
+                    sent += 1
+                except OSError:  # closed, reset or stalled: its stream is broken
+                    self._drop(c)
+        self.messages_sent += sent
+        return sent
+
+    def close(self) -> None:
+        self._stop = True
+        try:
+            self._listener.close()
+        except OSError:
+            pass
+        self._thread.join(timeout=2.0)
+        with self._lock:
+            for c in list(self._clients):
+                self._drop(c)
+
+    def __enter__(self) -> IgtlImageServer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
