@@ -399,13 +399,12 @@ def _live_view(camera, method: str, record: Path, preview, serve_mosaic,
         raise ValueError(f"view interval (--view-interval): must be >= 0 s, got {interval_s}")
     if preview is not None:
         preview = Path(preview)
-        if preview.suffix.lower() != ".png":
-            raise ValueError(f"{preview}: the preview is a PNG file (name it .png)")
         if preview.is_dir():
             raise ValueError(f"{preview}: is a folder; the preview is a PNG file")
         if is_under(preview, record):
             raise ValueError(f"{preview}: the preview must not be inside the recording {record}")
         check_output_dir(preview.parent, "preview's folder")
+    LiveMosaicView.check_preview(preview)
     lens = camera.undistortion() if method == "lba-emt" else None
     mask = lens.mask if lens is not None else camera.fov_mask()
     server = None if serve_mosaic is None else IgtlImageServer(serve_mosaic)

@@ -30,6 +30,7 @@ from fusedmosaic.compositing.canvas import CanvasTooLargeError
 from fusedmosaic.compositing.incremental import IncrementalCanvas
 
 _STOP = object()
+MAX_QUEUED = 100  # frames waiting for the worker (memory bound: ~50 MB at 400x400 colour)
 
 
 class LiveMosaicView:
@@ -45,8 +46,7 @@ class LiveMosaicView:
                  scale: float = 1.0, max_pixels: int = 50_000_000) -> None:
         if not (np.isfinite(interval_s) and interval_s >= 0):
             raise ValueError(f"interval_s must be >= 0, got {interval_s}")
-        if preview is not None and Path(preview).suffix.lower() != ".png":
-            raise ValueError(f"{preview}: the preview is a PNG file (name it .png)")
+        self.check_preview(preview)
         self.canvas = IncrementalCanvas(width, height, mask=mask, blend="linear", scale=scale,
                                         max_pixels=max_pixels)
         self.lens = lens
@@ -62,8 +62,18 @@ class LiveMosaicView:
         self._thread = threading.Thread(target=self._work, name="live-mosaic-view", daemon=True)
         self._thread.start()
 
+    @staticmethod
+    def check_preview(preview: str | Path | None) -> None:
+        if preview is not None and Path(preview).suffix.lower() != ".png":
+            raise ValueError(f"{preview}: the preview is a PNG file (name it .png)")
+
     def add(self, image: np.ndarray, homography: np.ndarray) -> None:
-        """A frame and its final frame -> reference homography (the call returns at once)."""
+        """A frame and its final frame -> reference homography (the call returns at once). A
+        worker more than ``MAX_QUEUED`` frames behind leaves the frame out of the view (counted
+        in ``problems``) rather than holding ever more images."""
+        if self._queue.qsize() >= MAX_QUEUED:
+            self._problem(f"frame left out of the view: {MAX_QUEUED} frames were waiting")
+            return
         self._queue.put((image, np.asarray(homography, np.float64)))
 
     def close(self, timeout_s: float = 30.0) -> None:
