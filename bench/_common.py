@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import tempfile
 import time
 from contextlib import contextmanager
@@ -17,7 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from fusedmosaic.evaluation.benchmark import machine_info  # noqa: F401 (re-exported)
+from fusedmosaic.evaluation.benchmark import (  # noqa: F401 (re-exported)
+    load_average,
+    machine_info,
+)
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
@@ -190,17 +192,12 @@ def work_folder(work: Path | None):
 def finish_run(result: dict, out: Path, t_start: float, tmp=None) -> dict:
     """Common end of a bench script: runtime, end load, JSON out, temp work dir removed."""
     result["runtime_s"] = time.perf_counter() - t_start
-    result["machine"]["load_average_end"] = machine_info()["load_average"]
+    result["machine"]["load_average_end"] = load_average()
     write_json(out, result)
     print(f"wrote {out} ({result['runtime_s']:.0f} s)")
     if tmp is not None:
         tmp.cleanup()
     return result
-
-
-def load_average() -> list[float]:
-    """The 1/5/15-minute load averages, rounded: recorded at a run's start and end."""
-    return [round(x, 2) for x in os.getloadavg()]
 
 
 def write_results(out: Path, markdown, t_start: float, load_start: list[float],

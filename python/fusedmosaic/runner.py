@@ -481,8 +481,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     check_output_dir(out, "output folder")
     view, server = None, None
 
-    def on_final(index, image, r) -> None:
-        if view is not None and image is not None and np.isfinite(r.homography).all():
+    def on_final(index, image, r) -> None:  # given to the session only with a view
+        if image is not None and np.isfinite(r.homography).all():
             view.add(image, r.homography)
 
     recorder = DatasetRecorder(record, camera, hand_eye, overwrite=overwrite_record,

@@ -31,6 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from fusedmosaic.methods import ms_stats
+
 # design.md "Performance budgets"
 BUDGETS = {
     "window_step_median_ms": ("<=", 5.0),
@@ -92,10 +94,6 @@ def machine_info() -> dict:
                 ram_gb = round(int(line.split()[1]) / 1024**2, 1)
     except OSError:
         pass
-    try:
-        load = [round(x, 2) for x in os.getloadavg()]
-    except OSError:
-        load = None
     return {
         "cpu": cpu,
         "cores": os.cpu_count(),
@@ -105,8 +103,16 @@ def machine_info() -> dict:
         "numpy": np.__version__,
         "scipy": scipy.__version__,
         "opencv": cv2.__version__,
-        "load_average": load,
+        "load_average": load_average(),
     }
+
+
+def load_average() -> list[float] | None:
+    """The 1/5/15-minute load averages, rounded (None where the system has none)."""
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        return None
 
 
 def syn_stream(n_frames: int, size: tuple[int, int] = SYN_SIZE, seed: int = 0):
@@ -126,10 +132,10 @@ def syn_stream(n_frames: int, size: tuple[int, int] = SYN_SIZE, seed: int = 0):
     return scene, camera, poses, valid
 
 
-def _ms(x) -> dict:
-    x = np.asarray(x, float) * 1e3
-    return {"median": float(np.median(x)), "p95": float(np.percentile(x, 95)),
-            "max": float(np.max(x)), "n": int(x.size)}
+def _ms(seconds) -> dict:
+    """report.json's per-frame time statistics (ms) and how many values they cover."""
+    seconds = np.asarray(seconds, float)
+    return {**ms_stats(seconds * 1e3), "n": int(seconds.size)}
 
 
 def measure_sequential(frames: int, detector: str = "orb", seed: int = 0) -> dict:
@@ -283,7 +289,7 @@ def run_benchmark(options: BenchOptions | None = None, *, say=None) -> dict:
     result["checks"] = checks
     result["all_ok"] = all(c["ok"] for c in checks)
     result["peak_rss_mb"] = _peak_rss_mb()
-    result["load_average_end"] = machine_info()["load_average"]
+    result["load_average_end"] = load_average()
     result["runtime_s"] = time.perf_counter() - t_start
     return result
 

@@ -139,7 +139,8 @@ class RobotSamples:
 
 def read_tracking_csv(path: str | Path) -> TrackingSamples:
     """Read ``timestamp,tx,ty,tz,qx,qy,qz,qw[,valid]``; rows with valid=0 may have empty
-    fields. Quaternions of valid rows are checked (|q| within 1e-3 of 1) and renormalised."""
+    fields. Quaternions of valid rows are checked (|q| within 1e-3 of 1; the error names the
+    row) and renormalised (by TrackingSamples)."""
     table, rows = read_table(path, TRACKING_COLUMNS, ["valid"], integer=["valid"])
     timestamps = table["timestamp"]
     check_increasing(path, rows, timestamps, "timestamp")
@@ -169,8 +170,7 @@ def read_tracking_csv(path: str | Path) -> TrackingSamples:
             f"{path}: row {rows[off[0]]}: quaternion norm {norms[off[0]]:.6g} is "
             f"not 1 (tolerance {QUATERNION_NORM_TOLERANCE:g})"
         )
-    quaternions[valid] /= norms[valid, None]
-    return TrackingSamples(timestamps, values[:, :3], quaternions, valid)
+    return TrackingSamples(timestamps, values[:, :3], quaternions, valid)  # renormalised there
 
 
 def _check_values(
