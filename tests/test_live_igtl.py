@@ -14,6 +14,7 @@ from _igtl_sender import (
     Sender,
     dataset_events,
     image_message,
+    position_message,
     tracker_matrix,
     transform_message,
 )
@@ -111,6 +112,44 @@ def test_pose_at_interpolates_between_samples_or_holds_the_newest(syn):
         # older than 3 sample periods: no sample
         assert source.pose_at(T0 + late + 1.0, syn.hand_eye, wait_s=0.0)[0] is None
         assert source.pose_at(T0 + tr.timestamps[i[0]] - 0.01, wait_s=0.0) == (None, None)
+
+
+def test_position_messages_are_poses_like_transforms(syn):
+    """A POSITION (x, y, z and the quaternion ox, oy, oz, w: 28 bytes, or 24 with w implied;
+    header version 2 with metadata too) is a sample as a TRANSFORM of the same pose is;
+    unusable ones are counted invalid, with the reason, not fatal."""
+    tr = syn.tracking
+    i = np.flatnonzero(tr.valid)[:4]
+    M = [tracker_matrix(tr.translations[j], tr.quaternions[j]) for j in i]
+    t = [float(tr.timestamps[j]) for j in i]
+    events = [(t[0], position_message(M[0], t[0])),
+              (t[1], position_message(M[1], t[1], size=24)),
+              (t[2], position_message(M[2], t[2], metadata={"TransformStatus": "OK"})),
+              (t[3], position_message(M[3], t[3], size=24, metadata={"Note": "x"}))]
+    bad = [position_message(M[3], t[3] + 0.001, size=12),  # no orientation: not a pose
+           position_message(M[3], t[3] + 0.002, size=16),
+           position_message(M[3], t[3] + 0.003, metadata={"TransformStatus": "MISSING"}),
+           position_message(M[3] * [1, 1, 1, np.nan], t[3] + 0.004)]  # x, y, z NaN
+    raw = bytearray(position_message(M[3], t[3] + 0.005))
+    raw[-4:] = np.array([3.0], ">f4").tobytes()  # w = 3: not a unit quaternion
+    bad.append(bytes(raw))
+    sender = Sender(events + [(t[3], m) for m in bad], speed=100.0, delay=0.0)
+    with IgtlSource(f":{sender.port}", transform_device="SensorToTracker") as source:
+        sender.join()
+        while source.next_frame(2.0) is not None:
+            pass
+        assert source.valid_samples == 4
+        for j in range(4):
+            pose, _ = source.pose_at(T0 + t[j], syn.hand_eye, wait_s=0.0)
+            expected, _ = interpolate_camera_poses(tr, [t[j]], syn.hand_eye)
+            np.testing.assert_allclose(pose, expected[0], atol=1e-5)
+        invalid = source.invalid_samples
+    assert invalid.pop("POSITION without an orientation (a 6-DoF pose is needed)") == 1
+    assert invalid.pop("POSITION content of 16 bytes (expected 12, 24 or 28)") == 1
+    assert invalid.pop("status MISSING") == 1
+    assert invalid.pop("not finite") == 1
+    (why, n), = invalid.items()
+    assert why.startswith("quaternion of norm 3") and why.endswith("(expected 1)") and n == 1
 
 
 def _inverse(tr, j):
@@ -283,11 +322,12 @@ def _sensor_in_tracker(syn, t: float) -> np.ndarray:
     return M
 
 
-def test_live_kalman_robot_session(tmp_path):
-    """pCLE live: frames and the robot's probe positions (a TRANSFORM's translation, mm) over
-    OpenIGTLink to kalman-robot; recorded as robot.csv in µm; the positions against the
-    simulator's truth as accurate as the offline run (same filter, the robot extrapolated to
-    the frame time instead of interpolated)."""
+@pytest.mark.parametrize("position", [False, True], ids=["transform", "position"])
+def test_live_kalman_robot_session(tmp_path, position):
+    """pCLE live: frames and the robot's probe positions (a TRANSFORM's translation, mm, or a
+    POSITION without orientation) over OpenIGTLink to kalman-robot; recorded as robot.csv in
+    µm; the positions against the simulator's truth as accurate as the offline run (same
+    filter, the robot extrapolated to the frame time instead of interpolated)."""
     from _igtl_sender import robot_events
 
     from fusedmosaic.estimation.translation import run_kalman_robot
@@ -297,7 +337,7 @@ def test_live_kalman_robot_session(tmp_path):
     ds = read_dataset(simulate_pcle(tmp_path / "pcle", PcleOptions(
         width=192, height=160, n_frames=40, speed_um_per_frame=12.0, radius_um=150.0,
         contact_loss=False, stick_slip=False)))
-    sender = Sender(robot_events(ds), speed=2.0)
+    sender = Sender(robot_events(ds, position=position), speed=2.0)
     assert main(["--quiet", "live", f"127.0.0.1:{sender.port}", "--method", "kalman-robot",
                  "--camera", str(ds.root / "camera.yaml"), "--transform", "RobotToBase",
                  "--record", str(tmp_path / "rec"), "--out", str(tmp_path / "out"),

@@ -735,12 +735,14 @@ def build_parser() -> argparse.ArgumentParser:
     live.add_argument("address", help="HOST:PORT of the OpenIGTLink sender (port default 18944)")
     live.add_argument("--method", choices=["lba-emt", "kalman-robot"], default="lba-emt",
                       help="lba-emt (EM-tracked endoscope, default) or kalman-robot (pCLE: "
-                           "--transform is then the robot's device, its translation the probe "
-                           "position in mm in the image axes; camera.yaml needs pixel_size_um)")
+                           "--transform is then the robot's device, its translation (or a "
+                           "POSITION's) the probe position in mm in the image axes; camera.yaml "
+                           "needs pixel_size_um)")
     _add_tracked_camera_flags(
-        live, transform="TRANSFORM device of the sensor on the endoscope, tracker_from_sensor in "
-                        "mm, e.g. SensorToTracker (name it so: a sender that streams "
-                        "TrackerToSensor instead is inverted)", default=None)
+        live, transform="TRANSFORM (or POSITION: position + quaternion) device of the sensor on "
+                        "the endoscope, tracker_from_sensor in mm, e.g. SensorToTracker (name "
+                        "it so: a sender that streams TrackerToSensor instead is inverted)",
+        default=None)
     live.add_argument("--image-device", metavar="DEVICE",
                       help="IMAGE device of the video (default: the first one heard)")
     live.add_argument("--bgr", action="store_true",

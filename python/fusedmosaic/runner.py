@@ -523,8 +523,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
         if src is None or src.valid_samples:
             return ""
         heard = ", ".join(sorted(src.ignored_devices)) or "none"
-        return (f"; no valid TRANSFORM sample of {transform_device} arrived (other devices "
-                f"heard: {heard}; see --transform)")
+        return (f"; no valid TRANSFORM or POSITION sample of {transform_device} arrived (other "
+                f"devices heard: {heard}; see --transform)")
 
     src = None
     try:
@@ -532,7 +532,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
             view, server = _live_view(camera, method, record, preview, serve_mosaic,
                                       view_interval_s)
         with IgtlSource(address, transform_device=transform_device, image_device=image_device,
-                        rgb=rgb, on_frame=on_frame, on_sample=lambda s: recorder.add_sample(
+                        rgb=rgb, orientation_required=method != "kalman-robot",
+                        on_frame=on_frame, on_sample=lambda s: recorder.add_sample(
                             s.timestamp - offset, s.matrix if s.valid else None)) as src:
             try:
                 session = live_session(src, camera, method=method, hand_eye=hand_eye,

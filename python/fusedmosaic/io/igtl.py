@@ -2,8 +2,9 @@
 OpenIGTLink sender), as an operating-theatre setup streams them.
 
 `IgtlSource` connects to HOST:PORT and receives, on a background thread, IMAGE messages of one
-device (the video) and TRANSFORM messages of one device (the tracked sensor, e.g. PLUS's
-``SensorToTracker``: tracker_from_sensor in mm, as ``tracking.csv``). Messages are decoded with
+device (the video) and TRANSFORM or POSITION messages of one device (the tracked sensor, e.g.
+PLUS's ``SensorToTracker``: tracker_from_sensor in mm, as ``tracking.csv``; or a robot's probe
+position). Messages are decoded with
 pyigtl (the OpenIGTLink reference implementation for Python); the socket loop is ours so that a
 refused connection, a closed stream or a malformed message is a clear error, not a silent
 reconnect.
@@ -12,7 +13,9 @@ reconnect.
   that arrived while the caller was busy are counted as dropped (`dropped`), the live view never
   falls behind. Every frame received goes first to ``on_frame`` (the recorder), which may refuse
   it (returns False: not offered to the loop either).
-- Tracker: every TRANSFORM sample of the device goes to ``on_sample`` and into a bounded history;
+- Tracker: every TRANSFORM or POSITION sample of the device goes to ``on_sample`` and into a
+  bounded history (a POSITION is a position and an orientation quaternion: see
+  `position_message_matrix`);
   `pose_at(t)` gives the camera pose at a frame time from it (see there). A sample whose matrix
   is not finite, not a rotation (orthonormal within 1e-3, det +1), beyond
   ``MAX_TRANSLATION_MM``, or flagged by the sender (metadata ``TransformStatus`` not ``OK``, as
@@ -25,9 +28,11 @@ times must come from one clock, as PLUS Server's do.
 
 from __future__ import annotations
 
+import functools
 import re
 import select
 import socket
+import struct
 import threading
 import time
 from collections import deque
@@ -45,7 +50,7 @@ from fusedmosaic.io.tracking import (
 )
 
 __all__ = ["IgtlSource", "LiveFrame", "StreamTimeout", "TrackerSample", "inverse_device_name",
-           "parse_address"]
+           "parse_address", "position_message_matrix"]
 
 DEFAULT_PORT = 18944  # the OpenIGTLink port (PLUS Server's default)
 # A message body above this is a corrupt header (an 8K RGB frame is 100 MB), not a frame to buffer.
@@ -99,7 +104,8 @@ class LiveFrame:
 
 @dataclass
 class TrackerSample:
-    """A TRANSFORM sample: tracker_from_sensor (4, 4) in mm, timestamp (s), valid, and why not."""
+    """A TRANSFORM or POSITION sample: tracker_from_sensor (4, 4) in mm, timestamp (s), valid,
+    and why not."""
 
     timestamp: float
     matrix: np.ndarray
@@ -113,10 +119,13 @@ class IgtlSource:
     image_device: IMAGE device name (None: the first image device heard; others are ignored and
     listed in `ignored_devices`). transform_device: TRANSFORM device of the tracked sensor (its
     inverse name is accepted, see the module docstring). rgb: colour images are sent RGB
-    (PLUS) and are converted to BGR. connect_timeout_s: for the TCP connection."""
+    (PLUS) and are converted to BGR. connect_timeout_s: for the TCP connection.
+    orientation_required: a POSITION of 12 bytes (a position alone) is an invalid sample (a
+    tracker's pose needs its orientation; a robot's probe position does not: False)."""
 
     def __init__(self, address: str, *, transform_device: str, image_device: str | None = None,
                  rgb: bool = True, connect_timeout_s: float = 5.0,
+                 orientation_required: bool = True,
                  on_frame: Callable[[LiveFrame], None] | None = None,
                  on_sample: Callable[[TrackerSample], None] | None = None) -> None:
         import pyigtl  # noqa: F401  (fail early, naming the package, if it is missing)
@@ -127,6 +136,7 @@ class IgtlSource:
         self._inverse_device = inverse_device_name(transform_device, self.where)
         self.image_device = image_device
         self.rgb = rgb
+        self.orientation_required = orientation_required
         self.on_frame, self.on_sample = on_frame, on_sample
         self.received = 0  # frames received from the image device
         self.valid_samples = 0
@@ -290,7 +300,7 @@ class IgtlSource:
                 kind, device = fields["message_type"], fields["device_name"]
                 if kind == "IMAGE":
                     self._on_image(fields, body, device)
-                elif kind == "TRANSFORM":
+                elif kind in ("TRANSFORM", "POSITION"):
                     self._on_transform(fields, body, device)
         except BaseException as exc:  # reported to the consumer, which raises it
             with self._cond:
@@ -345,14 +355,21 @@ class IgtlSource:
     def _on_transform(self, fields: dict, body: bytes, device: str) -> None:
         from pyigtl import TransformMessage
 
+        kind = fields["message_type"]
         if device not in (self.transform_device, self._inverse_device):
-            self.ignored_devices.add(f"TRANSFORM {device}")
+            self.ignored_devices.add(f"{kind} {device}")
             return
-        message = TransformMessage()
+        message = TransformMessage() if kind == "TRANSFORM" else _position_message_type()()
         message.unpack(fields, body)
-        matrix = np.asarray(message.matrix, dtype=np.float64)
+        if kind == "TRANSFORM":
+            matrix, problem = np.asarray(message.matrix, dtype=np.float64), None
+        else:
+            matrix, problem = position_message_matrix(message.content)
+            if problem is None and len(message.content) == 12 and self.orientation_required:
+                problem = "POSITION without an orientation (a 6-DoF pose is needed)"
         status = str(message.metadata.get("TransformStatus", "OK"))
-        problem = _rigid_problem(matrix) if status.upper() == "OK" else f"status {status}"
+        if problem is None:
+            problem = _rigid_problem(matrix) if status.upper() == "OK" else f"status {status}"
         if problem is None and device == self._inverse_device:
             matrix = np.linalg.inv(matrix)
         sample = TrackerSample(float(fields["timestamp"]), matrix, problem is None, problem)
@@ -370,6 +387,50 @@ class IgtlSource:
             self._cond.notify_all()
         if self.on_sample is not None and sample.problem != _BACKWARDS:
             self.on_sample(sample)  # invalid ones too: the recording keeps the dropout
+
+
+# OpenIGTLink POSITION content: x, y, z (mm), then the orientation quaternion ox, oy, oz, w,
+# big-endian float32; 12 bytes (position only), 24 (w implied by the unit norm) or 28.
+_POSITION_SIZES = (12, 24, 28)
+
+
+def position_message_matrix(content: bytes) -> tuple[np.ndarray, str | None]:
+    """The 4x4 pose of a POSITION message's content (identity rotation when it carries no
+    quaternion) and, for an unusable one, why (the sample is then kept as invalid): a size
+    other than 12, 24 or 28 bytes, values not finite, a quaternion not of unit norm (within
+    1e-3; float32 on the wire). pyigtl's PositionMessage reads another, multi-point layout."""
+    n = len(content)
+    if n not in _POSITION_SIZES:
+        return np.eye(4), f"POSITION content of {n} bytes (expected 12, 24 or 28)"
+    values = np.array(struct.unpack(f">{n // 4}f", content), dtype=np.float64)
+    if not np.all(np.isfinite(values)):
+        return np.eye(4), "not finite"
+    matrix = np.eye(4)
+    matrix[:3, 3] = values[:3]
+    if n == 12:
+        return matrix, None
+    q = values[3:]
+    if n == 24:
+        q = np.append(q, np.sqrt(max(0.0, 1.0 - float(q @ q))))
+    if abs(float(np.linalg.norm(q)) - 1.0) > 1e-3:
+        return np.eye(4), f"quaternion of norm {np.linalg.norm(q):.4g} (expected 1)"
+    from scipy.spatial.transform import Rotation
+
+    matrix[:3, :3] = Rotation.from_quat(q / np.linalg.norm(q)).as_matrix()
+    return matrix, None
+
+
+@functools.cache
+def _position_message_type() -> type:
+    """A pyigtl message keeping a POSITION's raw content (pyigtl parses the header, the
+    extended header and the metadata; position_message_matrix the content)."""
+    from pyigtl import MessageBase
+
+    class _PositionContent(MessageBase):
+        def _unpack_content(self, content: bytes) -> None:
+            self.content = bytes(content)
+
+    return _PositionContent
 
 
 def _frame_image(image: np.ndarray, rgb: bool) -> np.ndarray:
