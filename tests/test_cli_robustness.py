@@ -600,10 +600,17 @@ def test_out_inside_the_dataset_is_refused(data, computed, capsys, inside):
 
 def test_degenerate_rows_and_self_comparison_raise_no_numpy_warning(data, emt_out, tmp_path,
                                                                     capsys):
+    """An all-zero row is refused (singular); h22 = 0 sends the frame's corner (0, 0) to
+    infinity: placed, with e_j inf, so e_M is inf (not left out)."""
     out = tmp_path / "out"
     out.mkdir()
     ids, G = read_homographies_csv(emt_out / "homographies.csv")
     G[1] = 0.0  # all zero
+    write_homographies_csv(out / "homographies.csv", ids, G)
+    assert main(["--quiet", "evaluate", str(out), "--truth", str(data / "feto"),
+                 "--no-report"]) == 2
+    assert "row 3 (frame 1): singular homography" in capsys.readouterr().err
+    ids, G = read_homographies_csv(emt_out / "homographies.csv")
     G[2, 2, 2] = 0.0  # h22 = 0
     write_homographies_csv(out / "homographies.csv", ids, G)
     pcle_out = tmp_path / "p"
@@ -612,7 +619,8 @@ def test_degenerate_rows_and_self_comparison_raise_no_numpy_warning(data, emt_ou
     assert main(["--quiet", "evaluate", str(out), "--truth", str(data / "feto"),
                  "--no-report"]) == 0
     result = json.loads((out / "evaluation.json").read_text())["results"][0]
-    assert result["placed"] == 6 and result["e_j_px"][1] is None
+    assert result["placed"] == 8 and result["e_j_px"][2] == np.inf
+    assert result["e_M_px"] == np.inf
     assert main(["--quiet", "evaluate", str(pcle_out), "--truth", str(data / "pcle"),
                  "--compare", str(pcle_out), "--no-report"]) == 0
     test = json.loads((pcle_out / "evaluation.json").read_text())["wilcoxon"][0]
@@ -632,3 +640,31 @@ def test_a_warning_is_shown_as_one_line(data, tmp_path, monkeypatch, capsys):
         assert run(data / "feto", tmp_path / "o") == 0
     err = capsys.readouterr().err
     assert err == "fusedmosaic: warning: divide by zero encountered in log\n"
+
+
+def test_evaluate_refuses_a_singular_homography_and_counts_placed_frames(data, emt_out,
+                                                                         tmp_path, capsys):
+    """A singular homography in the output is refused, naming the row and frame; a frame the
+    truth does not place is still counted as placed (listed apart), not as unplaced."""
+    ids, G = read_homographies_csv(emt_out / "homographies.csv")
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    G_bad = G.copy()
+    G_bad[2] = [[1.0, 1.0, 0], [0, 0, 0], [0, 0, 1.0]]
+    write_homographies_csv(bad / "homographies.csv", ids, G_bad)
+    assert main(["--quiet", "evaluate", str(bad), "--truth", str(data / "feto"),
+                 "--no-report"]) == 2
+    assert (f"{bad / 'homographies.csv'}: row 4 (frame 2): singular homography"
+            in capsys.readouterr().err)
+    assert not (bad / "evaluation.json").exists()
+    truth = tmp_path / "truth"
+    shutil.copytree(data / "feto", truth)
+    t_ids, T = read_homographies_csv(truth / "ground_truth.csv")
+    T[5] = np.nan
+    write_homographies_csv(truth / "ground_truth.csv", t_ids, T)
+    good = tmp_path / "good"
+    shutil.copytree(emt_out, good)
+    assert main(["--quiet", "evaluate", str(good), "--truth", str(truth), "--no-report"]) == 0
+    result = json.loads((good / "evaluation.json").read_text())["results"][0]
+    assert result["placed"] == np.isfinite(G).all(axis=(1, 2)).sum()
+    assert result["placed_without_truth"] == [5] and result["e_j_px"][5] is None

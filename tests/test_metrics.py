@@ -108,3 +108,13 @@ def test_wilcoxon_detects_a_consistent_improvement():
 def test_bad_input(call, message):
     with pytest.raises(ValueError, match=message):
         call()
+
+
+def test_a_frame_placed_unusably_counts_against_e_M(truth):
+    """Both homographies given, but the estimate sends a grid point (the column x = 0) to
+    infinity: e_j is inf, not NaN (a method's unusable placement is not left out of e_M)."""
+    est = truth.copy()
+    est[3] = [[1.0, 0, 1.0], [0, 1.0, 0], [0.01, 0, 0]]  # regular, but w = 0.01 x
+    e = frame_errors(est, truth, 400, 400)
+    assert e[3] == np.inf and np.isfinite(np.delete(e, 3)).all()
+    assert mosaic_error(e) == np.inf

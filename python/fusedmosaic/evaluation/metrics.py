@@ -44,7 +44,9 @@ def _check_stack(H: np.ndarray, name: str) -> np.ndarray:
 
 
 def frame_errors(G_est: np.ndarray, G_true: np.ndarray, width: int, height: int) -> np.ndarray:
-    """e_j (Eq. 28) per frame, NaN where either homography is missing (unplaced)."""
+    """e_j (Eq. 28) per frame, NaN where either homography is missing (unplaced, or no truth);
+    inf where both exist but the estimate sends grid points to infinity or overflows (a frame
+    placed unusably counts against e_M instead of being left out)."""
     G_est = _check_stack(G_est, "G_est")
     G_true = _check_stack(G_true, "G_true")
     if G_est.shape != G_true.shape:
@@ -55,14 +57,16 @@ def frame_errors(G_est: np.ndarray, G_true: np.ndarray, width: int, height: int)
     errors = np.full(len(G_est), np.nan)
     ok = np.isfinite(G_est).all(axis=(1, 2)) & np.isfinite(G_true).all(axis=(1, 2))
     if ok.any():
-        diff = _apply(G_est[ok], pts) - _apply(G_true[ok], pts)
-        errors[ok] = np.linalg.norm(diff, axis=2).mean(axis=1)
+        with np.errstate(over="ignore", invalid="ignore"):
+            diff = _apply(G_est[ok], pts) - _apply(G_true[ok], pts)
+            e = np.linalg.norm(diff, axis=2).mean(axis=1)
+        errors[ok] = np.where(np.isfinite(e), e, np.inf)
     return errors
 
 
 def mosaic_error(errors: np.ndarray) -> float:
-    """e_M (Eq. 29): mean of e_j over placed frames (NaN if none placed)."""
-    placed = np.isfinite(errors)
+    """e_M (Eq. 29): mean of e_j over placed frames (NaN if none placed; inf if one is)."""
+    placed = ~np.isnan(errors)
     return float(errors[placed].mean()) if placed.any() else float("nan")
 
 
@@ -71,7 +75,7 @@ def drift_ratio(errors: np.ndarray) -> float:
     n = len(errors)
     q = max(n // 4, 1)
     first, last = errors[:q], errors[n - q :]
-    first, last = first[np.isfinite(first)], last[np.isfinite(last)]
+    first, last = first[~np.isnan(first)], last[~np.isnan(last)]
     if len(first) == 0 or len(last) == 0 or first.mean() == 0:
         return float("nan")
     return float(last.mean() / first.mean())
@@ -202,7 +206,8 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
     G_est = G_est[np.argsort(ids)]
     w, h = dataset.camera.width, dataset.camera.height
     errors = frame_errors(G_est, dataset.ground_truth, w, h)
-    placed = np.isfinite(errors)
+    placed = np.isfinite(G_est).all(axis=(1, 2))
+    scored = ~np.isnan(errors)
     result: dict = {
         "output": str(out_dir),
         "truth": str(truth_root),
@@ -210,10 +215,13 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
         "placed": int(placed.sum()),
         "unplaced": int((~placed).sum()),
         "e_M_px": mosaic_error(errors),
-        "max_e_j_px": float(np.nanmax(errors)) if placed.any() else float("nan"),
+        "max_e_j_px": float(np.nanmax(errors)) if scored.any() else float("nan"),
         "drift_ratio": drift_ratio(errors),
-        "e_j_px": [None if not np.isfinite(e) else float(e) for e in errors],
+        "e_j_px": [None if np.isnan(e) else float(e) for e in errors],
     }
+    without_truth = placed & ~scored
+    if without_truth.any():  # placed, but ground_truth.csv has no homography for them
+        result["placed_without_truth"] = [int(k) for k in dataset.frame_ids[without_truth]]
     if report is not None:
         warning = dataset_mismatch(report, dataset, report_path)
         if warning:

@@ -12,7 +12,8 @@ HOMOGRAPHY_COLUMNS = [f"h{r}{c}" for r in range(3) for c in range(3)]
 POSE_COLUMNS = ["rx", "ry", "rz", "tx", "ty", "tz"]
 
 
-def _read_rows(path: str | Path, columns: list[str]) -> tuple[np.ndarray, np.ndarray]:
+def _read_rows(path: str | Path, columns: list[str], check=None) -> tuple[np.ndarray, np.ndarray]:
+    """check(values) -> (index, problem) of the first unusable row, or None."""
     table, rows = read_table(path, ["frame", *columns], integer=["frame"])
     frame_ids = table["frame"]
     values = np.stack([table[c] for c in columns], axis=1)
@@ -32,7 +33,28 @@ def _read_rows(path: str | Path, columns: list[str]) -> tuple[np.ndarray, np.nda
     if first.size != frame_ids.size:
         i = np.setdiff1d(np.arange(frame_ids.size), first)[0]
         raise ValueError(f"{path}: row {rows[i]}: duplicate frame {frame_ids[i]}")
+    bad = check(values) if check is not None else None
+    if bad is not None:
+        i, problem = bad
+        raise ValueError(f"{path}: row {rows[i]} (frame {frame_ids[i]}): {problem}")
     return frame_ids, values
+
+
+def _singular_homography(values: np.ndarray) -> tuple[int, str] | None:
+    """The first row whose 3x3 is singular (relative to its largest entry: it maps the image
+    onto a line or a point, no placement), or None."""
+    H = values.reshape(-1, 3, 3)
+    placed = np.flatnonzero(np.isfinite(H).all(axis=(1, 2)))
+    if placed.size == 0:
+        return None
+    scale = np.abs(H[placed]).max(axis=(1, 2))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        det = np.linalg.det(H[placed] / np.where(scale > 0, scale, 1.0)[:, None, None])
+    singular = np.flatnonzero(~(np.abs(det) > 1e-12))
+    if singular.size == 0:
+        return None
+    return int(placed[singular[0]]), ("singular homography (it maps the frame onto a line or "
+                                      "a point); leave the fields empty for an unplaced frame")
 
 
 def _write_rows(path: str | Path, columns: list[str], frame_ids, values: np.ndarray) -> None:
@@ -48,8 +70,8 @@ def _write_rows(path: str | Path, columns: list[str], frame_ids, values: np.ndar
 
 def read_homographies_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """Read ``frame,h00,…,h22``. Returns frame ids (N,) int64 and H (N, 3, 3) float64; a row
-    with empty fields (an unplaced frame) gives an all-NaN matrix."""
-    frame_ids, values = _read_rows(path, HOMOGRAPHY_COLUMNS)
+    with empty fields (an unplaced frame) gives an all-NaN matrix; a singular one is refused."""
+    frame_ids, values = _read_rows(path, HOMOGRAPHY_COLUMNS, _singular_homography)
     return frame_ids, values.reshape(-1, 3, 3)
 
 
