@@ -595,3 +595,29 @@ def test_tracking_samples_refuse_what_tracking_csv_refuses(tmp_path):
     write_tracking_csv(tmp_path / "tracking.csv", samples)
     np.testing.assert_allclose(read_tracking_csv(tmp_path / "tracking.csv").quaternions,
                                samples.quaternions, atol=1e-9)
+
+
+def test_samples_in_milliseconds_against_frames_in_seconds_are_refused():
+    """A tracker (or robot) stamped in ms against frames in s: every frame would fall between
+    two samples 25 s apart and be interpolated from them; refused, naming the rates."""
+    from fusedmosaic.io.tracking import (
+        RobotSamples,
+        TrackingSamples,
+        interpolate_camera_poses,
+        interpolate_robot,
+    )
+
+    frames = np.arange(60) / 25.0
+    t_s = np.arange(0.0, 2.5, 0.025)  # 40 Hz over the frames' span
+    q = np.tile([0.0, 0.0, 0.0, 1.0], (t_s.size, 1))
+    tracker_s = TrackingSamples(t_s, np.zeros((t_s.size, 3)), q)
+    assert interpolate_camera_poses(tracker_s, frames)[1].all()
+    with pytest.raises(ValueError, match=r"tracking\.csv: tracker samples every 25 s \(median\) "
+                                         r"while frames come every 0\.04 s: are the tracker's "
+                                         r"timestamps in another unit \(ms\?\)"):
+        interpolate_camera_poses(TrackingSamples(t_s * 1000, tracker_s.translations, q), frames)
+    robot = RobotSamples(t_s * 1000, np.zeros((t_s.size, 2)))
+    with pytest.raises(ValueError, match=r"robot\.csv: robot samples every 25 s"):
+        interpolate_robot(robot, frames)
+    # a single frame time (a live pose lookup) or sample is not judged
+    assert interpolate_robot(robot, frames[:1])[1].all()

@@ -333,6 +333,26 @@ def _time(t: float) -> str:
     return f"{t:.3f}" if abs(t) >= 1e6 else f"{t:.6g}"
 
 
+# Samples this many times sparser than the frames (median spacings) are taken for a unit
+# mistake (a tracker at 40 Hz stamped in ms against frames in s is 1000x), not a real rate: an
+# EM tracker runs at 20-100 Hz, a robot faster, the video at 10-60 frames/s.
+MAX_SAMPLE_TO_FRAME_SPACING = 50.0
+
+
+def _check_rates(frame_times: np.ndarray, ts: np.ndarray, source: str, what: str) -> None:
+    """Refuses samples far sparser than the frames: timestamps in other units than the
+    frames' (all frames would fall between two samples and be interpolated from them)."""
+    if frame_times.size < 3 or ts.size < 2 or not np.all(np.isfinite(frame_times)):
+        return  # (non-finite frame times: refused by _outside_span)
+    frame_step = float(np.median(np.diff(np.sort(frame_times))))
+    sample_step = float(np.median(np.diff(ts)))
+    if frame_step > 0 and sample_step > MAX_SAMPLE_TO_FRAME_SPACING * frame_step:
+        raise ValueError(
+            f"{source}: {what} samples every {_time(sample_step)} s (median) while frames come "
+            f"every {_time(frame_step)} s: are the {what}'s timestamps in another unit (ms?) "
+            "than the frames'? Both must be in seconds, on one clock")
+
+
 def _outside_span(
     frame_times: np.ndarray, t0: float, t1: float, source: str, what: str, allow_outside: bool
 ) -> np.ndarray:
@@ -381,6 +401,7 @@ def interpolate_camera_poses(
         raise ValueError(f"{source}: {ts.size} valid samples; interpolation needs at least 2")
     if np.any(np.diff(ts) <= 0):
         raise ValueError(f"{source}: timestamps must be strictly increasing")
+    _check_rates(frame_times, ts, source, "tracker")
     outside = _outside_span(frame_times, ts[0], ts[-1], source, "tracker", allow_outside)
 
     if max_gap is None:
@@ -447,6 +468,7 @@ def interpolate_robot(
         raise ValueError(f"{source}: no samples")
     if np.any(np.diff(ts) <= 0):
         raise ValueError(f"{source}: timestamps must be strictly increasing")
+    _check_rates(frame_times, ts, source, "robot")
     outside = _outside_span(frame_times, ts[0], ts[-1], source, "robot", allow_outside)
     xy = np.stack([np.interp(frame_times, ts, samples.xy_um[:, j]) for j in range(2)], axis=1)
     xy[outside] = np.nan
