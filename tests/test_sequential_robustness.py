@@ -126,8 +126,20 @@ def test_refused_calls_leave_the_state_unchanged(scene, baseline):
             m.add_frame(*args)
         assert (m._next_id, m._last_timestamp, len(m._pending),
                 m.window.pending_ids()) == before
+        assert m.finalized() == []
     scene.feed(m, range(AT, N), results)
     assert_same(scene.finish(m, results), baseline[0])
+
+
+def test_a_refused_call_hands_out_no_final_frames_again(scene):
+    """finalized() is what the last call made final: after a call that raised, none (a live
+    loop collecting it after every call, refused ones too, gets each frame once)."""
+    m = scene.mosaicker()
+    scene.feed(m, range(AT - 2), {})
+    assert m.finalized()  # the window step of frame AT - 3's call
+    with pytest.raises(ValueError, match="image size 200x100 differs"):
+        m.add_frame(scene.frames[AT - 2][:100], scene.timestamps[AT - 2], None)
+    assert m.finalized() == []
 
 
 def test_timestamp_gap_bound_is_an_option(scene):
@@ -290,6 +302,7 @@ def test_failure_inside_a_call_is_rolled_back(scene, baseline, where, monkeypatc
         with pytest.raises(type(exception)):
             scene.feed(m, range(start, N), results)
         assert not state["armed"]  # the failure did fire, within this call
+    assert m.finalized() == []  # a failed call made nothing final
     failed_at = m._next_id  # the refused frame, sent again
     scene.feed(m, range(failed_at, N), results)
     assert_same(scene.finish(m, results), baseline[0])

@@ -390,6 +390,7 @@ class SequentialMosaicker:
         A frame it keeps never raises: while the start-up cannot initialise the plane yet (no
         registered pair with tracker poses), it is returned with an "unplaced: ..." status."""
         with self._exclusive("add_frame"):
+            self._finalized = []  # a refused or failed call makes no frame final
             k = self._next_id
             image = self._check_image(k, image)
             timestamp = self._check_timestamp(k, timestamp)
@@ -397,7 +398,8 @@ class SequentialMosaicker:
             return self._transaction(self._add_frame, k, image, timestamp, tracker_pose)
 
     def finalized(self) -> list[FrameResult]:
-        """Frames made final by the last add_frame / flush call (in order)."""
+        """Frames made final by the last add_frame / flush call (in order; none after a call
+        that raised)."""
         return list(self._finalized)
 
     def flush(self) -> list[FrameResult]:
@@ -405,6 +407,7 @@ class SequentialMosaicker:
         Raises ValueError (state unchanged) if the start-up frames still have no registered
         pair with tracker poses to initialise the plane."""
         with self._exclusive("flush"):
+            self._finalized = []
             return self._transaction(self._flush)
 
     def reset(self) -> None:
