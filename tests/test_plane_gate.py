@@ -131,6 +131,21 @@ def test_a_step_that_cannot_observe_pi_keeps_the_previous_plane():
     np.testing.assert_array_equal(w.plane(), start)
 
 
+def test_hold_plane_keeps_pi_in_step_and_redo():
+    """step / redo(hold_plane=True): pi keeps its value although the pairs would move it (the
+    sequential method holds it in steps whose frames have no anchor)."""
+    start = PLANE * 1.2
+    w, poses = window(limit=NEVER, plane=start)
+    s = w.step([0, 1], hold_plane=True)
+    assert s.plane_held
+    np.testing.assert_array_equal(w.plane(), start)
+    np.testing.assert_allclose(w.pose(4), poses[4], atol=1e-9)
+    assert w.redo([4], [0, 1], hold_plane=True).plane_held
+    np.testing.assert_array_equal(w.plane(), start)
+    assert not w.redo([4], [0, 1]).plane_held  # and free again without it
+    np.testing.assert_allclose(w.plane(), PLANE, rtol=1e-6, atol=1e-8)
+
+
 def test_no_visual_cost_holds_pi_and_reports_no_std():
     w = _core.SlidingWindow(K, _core.SlidingWindowOptions(window_size=3, num_new=1))
     w.set_plane(PLANE)

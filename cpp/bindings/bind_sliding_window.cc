@@ -139,10 +139,10 @@ void BindSlidingWindow(py::module_& m) {
           },
           "plane"_a)
       .def("step", &SlidingWindow::Step, "keyframe_ids"_a = std::vector<int>{},
-           py::call_guard<py::gil_scoped_release>(),
-           "Estimates the pending frames and the plane (GIL released).")
+           "hold_plane"_a = false, py::call_guard<py::gil_scoped_release>(),
+           "Estimates the pending frames and the plane (GIL released); hold_plane: pi kept.")
       .def("redo", &SlidingWindow::Redo, "frame_ids"_a, "keyframe_ids"_a = std::vector<int>{},
-           py::call_guard<py::gil_scoped_release>(),
+           "hold_plane"_a = false, py::call_guard<py::gil_scoped_release>(),
            "Re-estimates the given last frames (e.g. after gating a tracker sample).")
       .def("forget", &SlidingWindow::Forget, "frame_ids"_a,
            "Drops fixed frames outside the window and their pairs.")

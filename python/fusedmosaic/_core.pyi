@@ -370,10 +370,12 @@ class SlidingWindow:
     def set_plane(self, plane: _ArrayLike) -> None:
         """plane : (3,) pi = n / d."""
 
-    def step(self, keyframe_ids: list[int] = ...) -> WindowStepSummary:
-        """Estimates the pending frames and the plane (GIL released), then fixes them."""
+    def step(self, keyframe_ids: list[int] = ..., hold_plane: bool = False) -> WindowStepSummary:
+        """Estimates the pending frames and the plane (GIL released), then fixes them;
+        hold_plane: pi keeps its value (plane_held in the summary)."""
 
-    def redo(self, frame_ids: list[int], keyframe_ids: list[int] = ...) -> WindowStepSummary:
+    def redo(self, frame_ids: list[int], keyframe_ids: list[int] = ...,
+             hold_plane: bool = False) -> WindowStepSummary:
         """Re-estimates the given last frames (after set_emt_sigma_scale)."""
 
     def forget(self, frame_ids: list[int]) -> None:

@@ -298,17 +298,17 @@ void SlidingWindow::InitialisePending(const std::vector<int>& ids) {
   }
 }
 
-WindowStepSummary SlidingWindow::Step(const std::vector<int>& keyframe_ids) {
+WindowStepSummary SlidingWindow::Step(const std::vector<int>& keyframe_ids, bool hold_plane) {
   std::lock_guard<std::mutex> lock(mutex_);
   std::vector<int> pending;
   for (const auto& [id, f] : frames_)
     if (!f.fixed) pending.push_back(id);
   if (pending.empty()) throw std::invalid_argument("step: no pending frame (call add_frame)");
-  return Solve(pending, keyframe_ids);
+  return Solve(pending, keyframe_ids, hold_plane);
 }
 
 WindowStepSummary SlidingWindow::Redo(const std::vector<int>& frame_ids,
-                                      const std::vector<int>& keyframe_ids) {
+                                      const std::vector<int>& keyframe_ids, bool hold_plane) {
   std::lock_guard<std::mutex> lock(mutex_);
   if (frame_ids.empty()) throw std::invalid_argument("redo: frame_ids is empty");
   for (int id : frame_ids) {
@@ -316,18 +316,18 @@ WindowStepSummary SlidingWindow::Redo(const std::vector<int>& frame_ids,
     if (f.emt_measurement) Eigen::Map<Pose>(f.pose.data()) = *f.emt_measurement;
     f.fixed = false;
   }
-  return Solve(frame_ids, keyframe_ids);
+  return Solve(frame_ids, keyframe_ids, hold_plane);
 }
 
 WindowStepSummary SlidingWindow::Solve(std::vector<int> free_ids,
-                                       const std::vector<int>& keyframe_ids) {
+                                       const std::vector<int>& keyframe_ids, bool hold_plane) {
   const auto t_start = std::chrono::steady_clock::now();
   std::sort(free_ids.begin(), free_ids.end());
   if (!plane_set_) throw std::invalid_argument("step: set_plane must be called first");
   const BundleAdjusterOptions& c = options_.costs;
   InitialisePending(free_ids);
 
-  WindowStepSummary out = SolveStep(free_ids, keyframe_ids);
+  WindowStepSummary out = SolveStep(free_ids, keyframe_ids, hold_plane);
 
   for (int id : free_ids) {
     Frame& f = frames_.at(id);
@@ -344,7 +344,8 @@ WindowStepSummary SlidingWindow::Solve(std::vector<int> free_ids,
 }
 
 WindowStepSummary SlidingWindow::SolveStep(const std::vector<int>& free_ids,
-                                           const std::vector<int>& keyframe_ids) {
+                                           const std::vector<int>& keyframe_ids,
+                                           bool hold_plane) {
   const BundleAdjusterOptions& c = options_.costs;
   const double plane_norm_before = Eigen::Map<const Eigen::Vector3d>(plane_.data()).norm();
   WindowStepSummary out;
@@ -465,7 +466,8 @@ WindowStepSummary SlidingWindow::SolveStep(const std::vector<int>& free_ids,
       problem.SetParameterBlockConstant(frames_.at(id).pose.data());
     }
   }
-  const bool plane_free = problem.HasParameterBlock(plane_.data()) && !visual_blocks.empty();
+  const bool plane_free =
+      problem.HasParameterBlock(plane_.data()) && !visual_blocks.empty() && !hold_plane;
   if (problem.HasParameterBlock(plane_.data()) && !plane_free) {
     problem.SetParameterBlockConstant(plane_.data());
   }

@@ -132,9 +132,12 @@ class SlidingWindow {
   void SetPlane(const Eigen::Vector3d& plane);
 
   // Estimates all pending cameras (1 <= count) and the plane; keyframe_ids must be fixed cameras.
-  WindowStepSummary Step(const std::vector<int>& keyframe_ids);
+  // hold_plane: pi kept at its value (the caller knows the step cannot inform it, e.g. cameras
+  // with neither a tracker sample nor a visual link to an anchored camera).
+  WindowStepSummary Step(const std::vector<int>& keyframe_ids, bool hold_plane = false);
   // Re-runs the last step's problem after SetEmtSigmaScale (gating) and refixes its cameras.
-  WindowStepSummary Redo(const std::vector<int>& frame_ids, const std::vector<int>& keyframe_ids);
+  WindowStepSummary Redo(const std::vector<int>& frame_ids, const std::vector<int>& keyframe_ids,
+                         bool hold_plane = false);
 
   // Drops fixed cameras outside the current window, with their pairs.
   void Forget(const std::vector<int>& frame_ids);
@@ -168,9 +171,10 @@ class SlidingWindow {
   const Frame& FindFrame(int frame_id, const char* what) const;
   std::vector<int> WindowIdsLocked(int num_new) const;
   void InitialisePending(const std::vector<int>& ids);
-  WindowStepSummary Solve(std::vector<int> free_ids, const std::vector<int>& keyframe_ids);
+  WindowStepSummary Solve(std::vector<int> free_ids, const std::vector<int>& keyframe_ids,
+                          bool hold_plane);
   WindowStepSummary SolveStep(const std::vector<int>& free_ids,
-                              const std::vector<int>& keyframe_ids);
+                              const std::vector<int>& keyframe_ids, bool hold_plane);
 
   mutable std::mutex mutex_;
   Eigen::Matrix3d camera_matrix_;

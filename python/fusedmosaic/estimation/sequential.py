@@ -86,6 +86,10 @@ from fusedmosaic.registration.pairs import MatchOptions, match_pair
 
 # Paper presets (Sec. 4.2): (W, chi_e, K, frames per cluster).
 PRESETS = {"syn": (5, 3, 3, 5), "phb": (3, 1, 3, 3), "ex": (12, 6, 3, 12)}
+# Sigma_p scale of the constant-velocity term linking a tracked frame to frames placed without
+# any anchor (see SequentialMosaicker._unanchored): the term is in effect released, the
+# dead-reckoned motion before the tracker came back is no evidence for the frame.
+RELEASED_MOTION_SIGMA_SCALE = 1e3
 
 
 @dataclass
@@ -341,6 +345,11 @@ class SequentialMosaicker:
         # the start-up pairs registered so far.
         self._startup_G: dict[int, np.ndarray] = {}
         self._startup_plane: np.ndarray | None = None
+        # Frames finalised without an anchor: no tracker sample used and no registered pair
+        # leading to an anchored camera (e.g. black frames in a tracker dropout, and the visual
+        # chain after them). Kept while the window or the keyframe reservoir may hold them;
+        # they never become keyframes or loop frames, and a tracked frame is not tied to them.
+        self._unanchored: set[int] = set()
         self._next_id = 0
         self._last_timestamp = -np.inf
         self._trusted: tuple | None = None  # last tracker sample kept: (time, centre, R)
@@ -494,7 +503,7 @@ class SequentialMosaicker:
               "num_steps", "_finalized", "_boot_feats", "_boot_matches", "_loop_feats",
               "_loop_centroids", "_poses", "pair_counts", "_mirror_frames", "_mirror_pairs",
               "_mirror_plane", "_implausible_run", "_world_rotation", "_times",
-              "_intervals")
+              "_intervals", "_unanchored")
 
     def _save(self) -> dict:
         """What a call may change, copied (shallowly: the values it replaces, never mutates)."""
@@ -667,12 +676,28 @@ class SequentialMosaicker:
             loop_matches = self._match_loops(k, feats, tracker_pose)
             loops = [m for m in loop_matches if m.ok]
             self._count_pairs(loop_matches, loops, "loop_")
+            # After a loss (frames placed with no anchor, see _unanchored), a frame with an
+            # anchor of its own (its tracker sample, or a registered pair to an anchored frame)
+            # is not tied to the lost frames by pairs or the constant-velocity term: they would
+            # pull it off. A frame without one keeps chaining through them.
+            timing = self._timing(k)
+            lost = self._lost_ids()
+            anchored = tracker_pose is not None or any(m.frame_m not in lost for m in ok + loops)
+            if anchored and lost:
+                ok = [m for m in ok if m.frame_m not in lost]
+                if lost & {k - 1, k - 2}:
+                    timing = (timing[0], RELEASED_MOTION_SIGMA_SCALE)
             pairs = [(m.frame_l, m.frame_m, *self._subsample(m)) for m in ok + loops]
             timings["matching"] += time.perf_counter() - t0
-            self._win_add_frame(k, None, tracker_pose, timing=self._timing(k))
+            self._win_add_frame(k, None, tracker_pose, timing=timing)
             for pair in pairs:
                 self._win_add_pair(*pair)
             self._pending[-1]["visual"] = bool(ok or loops)
+            self._pending[-1]["links"] = {m.frame_m for m in ok + loops}
+            self._pending[-1]["anchored"] = anchored
+            for p in self._pending[:-1]:
+                if any(m.frame_m == p["id"] for m in ok):
+                    p["links"] = p.get("links", set()) | {k}
             if sum(p["held"] == 0 for p in self._pending) >= self.options.num_new:
                 self._step()
         for r in self._finalized:
@@ -857,23 +882,55 @@ class SequentialMosaicker:
         t0 = time.perf_counter()
         ids = [p["id"] for p in self._pending]
         exclude = set(ids) | set(self.window.window_ids())
-        keyframe_ids = self.keyframes.select(self.options.num_clusters, exclude)
+        keyframe_ids = self.keyframes.select(self.options.num_clusters,
+                                             exclude | self._unanchored)
         t_kf = time.perf_counter() - t0
+        # Anchors: fixed cameras placed with one, the frames' own tracker samples, and
+        # registered pairs (visually_anchored: linked to an anchored fixed camera through
+        # pairs alone). A step with none cannot inform pi: it is held.
+        fixed = ((set(self.window.window_ids()) | set(keyframe_ids) | set(self._loop_feats))
+                 - set(ids))
+        visual = self._linked(fixed - self._unanchored, set())
+        tracked = {p["id"] for p in self._pending if p["tracker"] is not None}
+        hold = not (visual or tracked)
         if any(p["held"] for p in self._pending):  # frames held back by the last step
-            summary = self._win_solved(ids, self.window.redo, ids, keyframe_ids)
+            summary = self._win_solved(ids, self.window.redo, ids, keyframe_ids, hold)
         else:
-            summary = self._win_solved(ids, self.window.step, keyframe_ids)
+            summary = self._win_solved(ids, self.window.step, keyframe_ids, hold)
+        # a tracker sample is gated only against visual evidence that is itself anchored
         gated = [p["id"] for p, d2 in zip(self._pending, summary.emt_mahalanobis2, strict=True)
-                 if np.isfinite(d2) and d2 > self.options.gate_chi2 and p["visual"]]
+                 if np.isfinite(d2) and d2 > self.options.gate_chi2 and p["id"] in visual]
         if gated:
             for k in gated:
                 self._win_set_scale(k, self.options.gate_sigma_scale)
-            summary = self._win_solved(ids, self.window.redo, ids, keyframe_ids)
+            summary = self._win_solved(ids, self.window.redo, ids, keyframe_ids, hold)
+        anchored = self._linked(fixed - self._unanchored, tracked - set(gated))
         self.step_summaries.append(summary)
         self.num_steps += 1
         self._plane = np.asarray(self.window.plane())
         self._finalize(ids, [self.window.pose(k) for k in ids], gated,
-                       summary.step_time_s / len(ids), t_kf / len(ids), final_step)
+                       summary.step_time_s / len(ids), t_kf / len(ids), final_step, anchored)
+
+    def _linked(self, anchors: set[int], seeds: set[int]) -> set[int]:
+        """Pending frames anchored: the seeds, and those linked by registered pairs to an
+        anchor or to an anchored pending frame."""
+        found = set(seeds)
+        grew = True
+        while grew:
+            grew = False
+            for p in self._pending:
+                if p["id"] not in found and p.get("links", set()) & (anchors | found):
+                    found.add(p["id"])
+                    grew = True
+        return found
+
+    def _lost_ids(self) -> set[int]:
+        """Frames placed, or being placed, without an anchor: finalised unanchored ones and
+        pending ones that had neither a tracker sample nor a pair to a frame not lost."""
+        if not self._unanchored and all(p.get("anchored", True) for p in self._pending):
+            return set()
+        return self._unanchored | {p["id"] for p in self._pending
+                                   if not p.get("anchored", True)}
 
     def _held_tail(self, final_step: bool) -> int:
         """Index into the pending frames from which they stay free for the next step: the first
@@ -888,7 +945,7 @@ class SequentialMosaicker:
         return n
 
     def _finalize(self, ids, poses, gated, solve_per_frame, keyframe_per_frame,
-                  final_step: bool = False) -> None:
+                  final_step: bool = False, anchored: set[int] | None = None) -> None:
         forget: list[int] = []
         cut = self._held_tail(final_step)
         held = self._pending[cut:]
@@ -901,7 +958,9 @@ class SequentialMosaicker:
             G = self._to_reference(pose)
             centroid = self._centroid(G)
             forget += self.keyframes.add(k, centroid)
-            if k % self.options.frames_per_cluster == self.options.frames_per_cluster // 2:
+            if anchored is not None and k not in anchored:
+                self._unanchored = self._unanchored | {k}
+            elif k % self.options.frames_per_cluster == self.options.frames_per_cluster // 2:
                 feats = p.pop("features", None)
                 if feats is not None and len(feats):
                     self._loop_feats[k] = feats
@@ -916,6 +975,7 @@ class SequentialMosaicker:
         for old in sorted(self._poses)[:-2]:
             del self._poses[old]  # keep only what the motion prediction needs
         if forget:
+            self._unanchored = self._unanchored - set(forget)
             self._win_forget(forget)
             for i in forget:
                 self._loop_feats.pop(i, None)
