@@ -30,6 +30,8 @@ from the last frame that had a robot sample, so a gap costs accuracy but never b
 A registration whose forward and backward directions disagree even after the wide-range retry
 (``NccResult.consistent`` False, e.g. a low-contrast frame where one direction locks on noise)
 counts as failed for the fused estimate (``distrust_inconsistent``): the robot places the frame.
+Without a robot sample at that frame it is the only information left, and is used as the image
+chain uses it (a robot dropout must not leave the fused estimate worse than X_m).
 
 Robot noise (``sigma_r0`` of Eq. 9). The paper gives no value for ``sigma_r0`` and ``sigma_i0``
 ("initial values", with ``sigma_r0(i)`` indexed by time in Eq. 9). The ratio decides everything:
@@ -628,6 +630,9 @@ class RobotPriorMosaicker:
                 timings["ncc"] = t1 - t0
                 dx, score = reg.dx, reg.score
                 inconsistent = self.options.distrust_inconsistent and not reg.consistent
+                if inconsistent:
+                    why_no_image = (f"NCC registration against frame {self._anchor.index}: "
+                                    "forward and backward directions disagree")
                 if np.isfinite(dx).all():
                     conf["c_match"] = aligned_overlap_ssim(
                         self._anchor.image, gray, dx, downsample=self.options.ssim_downsample
@@ -665,11 +670,12 @@ class RobotPriorMosaicker:
             t0 = time.perf_counter()
             kf = self._kf
             previous = kf.position
-            if self._anchor is not None and not inconsistent:
-                dx_img_f = self._anchor.x_f + dx - previous  # likelihood mean - X_f(i-1), Eq. 5
             if self._robot_anchor is not None and np.isfinite(robot).all():
                 r_um, r_xf = self._robot_anchor
                 dx_rob_f = r_xf + (robot - r_um) / self.pixel_size_um - previous  # Eq. 4
+            if self._anchor is not None and not (inconsistent and np.isfinite(dx_rob_f).all()):
+                # an inconsistent registration only when no robot sample can place the frame
+                dx_img_f = self._anchor.x_f + dx - previous  # likelihood mean - X_f(i-1), Eq. 5
             image_ok = bool(np.isfinite(dx_img_f).all())
             robot_ok = bool(np.isfinite(dx_rob_f).all())
             if not image_ok and not robot_ok:
