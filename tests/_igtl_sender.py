@@ -98,10 +98,12 @@ def robot_events(ds, *, device: str = "RobotToBase", clock_ahead_s: float = 0.0,
 
 class Sender:
     """Serves `events` [(time s, bytes)] to the first client, in real time (scaled by `speed`),
-    starting `delay` s after it connects; then closes. `port` is the listening port."""
+    starting `delay` s after it connects; then closes (reset: abruptly, the client's next read
+    fails with 'connection reset', as when a sender crashes). `port` is the listening port."""
 
-    def __init__(self, events, *, speed: float = 1.0, delay: float = 0.3) -> None:
-        self.events, self.speed, self.delay = events, speed, delay
+    def __init__(self, events, *, speed: float = 1.0, delay: float = 0.3,
+                 reset: bool = False) -> None:
+        self.events, self.speed, self.delay, self.reset = events, speed, delay, reset
         self.server = socket.create_server(("127.0.0.1", 0))
         self.port = self.server.getsockname()[1]
         self.error: BaseException | None = None
@@ -123,6 +125,9 @@ class Sender:
                         time.sleep(wait)
                     conn.sendall(message)
                 time.sleep(0.1)
+                if self.reset:  # RST instead of FIN
+                    conn.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER,
+                                    struct.pack("ii", 1, 0))
         except BaseException as exc:  # noqa: BLE001 (reported by join)
             self.error = exc
         finally:

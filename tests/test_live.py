@@ -4,6 +4,9 @@ newest tracker / robot sample, frames dropped while the mosaicker is busy."""
 from __future__ import annotations
 
 import json
+import re
+import time
+import warnings
 from dataclasses import replace
 
 import numpy as np
@@ -280,3 +283,82 @@ def test_live_and_evaluate_with_a_tracker_that_starts_late(late, tmp_path, capsy
     assert main(["evaluate", str(offline), "--truth", str(late), "--compare", str(out)]) == 0
     table = (offline / "evaluation.md").read_text()
     assert "lba-emt (live)" in table
+
+
+class _Source:
+    """A live source for live_session without a socket: the frames of `ds` handed over one
+    per next_frame, `interval_s` apart; a tracker (robot) device that sends `valid` samples
+    (position_at / pose_at give none) while `heard` devices are ignored."""
+
+    def __init__(self, ds, *, interval_s: float = 0.0, valid: int = 0, heard=()) -> None:
+        self.ds, self.interval_s = ds, interval_s
+        self.transform_device = "RobotToBase"
+        self.valid_samples, self.invalid_samples = valid, {}
+        self.ignored_devices = set(heard)
+        self.received = 0
+
+    def next_frame(self, timeout_s: float):
+        from fusedmosaic.io.igtl import LiveFrame
+
+        if self.received == len(self.ds):
+            return None
+        time.sleep(self.interval_s)
+        k = self.received
+        self.received += 1
+        return LiveFrame(self.ds.frames[k], float(self.ds.timestamps[k]), time.perf_counter(), k)
+
+    def position_at(self, t, *, max_age_s=None):
+        return None, None
+
+
+def _session(ds, source, **kwargs):
+    from fusedmosaic.estimation.live import live_session
+
+    return live_session(source, ds.camera, method="kalman-robot", **kwargs)
+
+
+def test_a_session_without_valid_samples_warns_once_while_it_runs(pcle, monkeypatch):
+    """Frames for NO_SAMPLE_WARNING_S and no valid sample of the device while others are heard
+    (a misnamed --transform): one warning during the session, naming them (it was said only
+    in the final error, or for kalman-robot not at all)."""
+    from fusedmosaic.estimation import live
+
+    ds = read_dataset(pcle)
+    monkeypatch.setattr(live, "NO_SAMPLE_WARNING_S", 0.1)
+    source = _Source(ds, interval_s=0.02, heard=["TRANSFORM ProbeToBase", "IMAGE Other"])
+    with pytest.warns(UserWarning) as said:
+        session = _session(ds, source)
+    assert len(session.processed) == len(ds)
+    assert len(said) == 1 and re.fullmatch(
+        r"live session: no valid robot sample \(TRANSFORM or POSITION\) of RobotToBase in the "
+        r"[0-9.]+ s since the first frame \(other devices heard: IMAGE Other, TRANSFORM "
+        r"ProbeToBase\): the frames get no robot sample; check --transform", str(said[0].message))
+
+
+def test_a_short_session_without_valid_samples_warns_at_its_end(pcle):
+    from fusedmosaic.estimation import live
+
+    ds = read_dataset(pcle)
+    assert live.NO_SAMPLE_WARNING_S > 1.0  # longer than this session
+    with pytest.warns(UserWarning, match=r"^live session: no valid robot sample \(TRANSFORM or "
+                      r"POSITION\) of RobotToBase in the whole session \(no other device heard "
+                      r"either\): the frames get no robot sample; check --transform$"):
+        _session(ds, _Source(ds))
+    invalid = _Source(ds)
+    invalid.invalid_samples = {"status MISSING": 3}
+    with pytest.warns(UserWarning, match=r"\(its samples are all invalid: 3 x status MISSING\)"):
+        _session(ds, invalid)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # valid samples: no warning
+        _session(ds, _Source(ds, valid=5))
+
+
+def test_max_frames_ends_the_session_at_that_frame(pcle):
+    """The session stops once the frame numbered max_frames - 1 is processed (run_igtl records
+    no frame after it), and says so."""
+    ds = read_dataset(pcle)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (no samples)
+        session = _session(ds, _Source(ds), max_frames=5)
+    assert session.processed == [0, 1, 2, 3, 4]
+    assert session.stopped_by == "5 frames recorded (--max-frames)"

@@ -5,8 +5,17 @@ with lba-emt, records it as a dataset and writes the outputs."""
 from __future__ import annotations
 
 import json
+import os
+import re
+import signal
 import socket
+import subprocess
+import sys
+import time
+import warnings
+from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from _igtl_sender import (
@@ -24,7 +33,14 @@ from fusedmosaic.cli import main
 from fusedmosaic.estimation.sequential import run_lba_emt
 from fusedmosaic.evaluation import frame_errors, mosaic_error
 from fusedmosaic.io import read_dataset, read_homographies_csv
-from fusedmosaic.io.igtl import IgtlSource, inverse_device_name, parse_address
+from fusedmosaic.io.igtl import (
+    IgtlImageServer,
+    IgtlSource,
+    inverse_device_name,
+    parse_address,
+    parse_listen_address,
+)
+from fusedmosaic.io.recorder import DatasetRecorder, recover_unfinished_recordings
 from fusedmosaic.io.tracking import interpolate_camera_poses
 from fusedmosaic.simulation import FetoscopyOptions, simulate_fetoscopy
 
@@ -234,6 +250,68 @@ def test_bad_addresses(address, message):
 def test_parse_address_defaults():
     assert parse_address("scanner") == ("scanner", 18944)
     assert parse_address(":1234") == ("127.0.0.1", 1234)
+
+
+def test_ipv6_addresses_in_brackets():
+    """[IPV6]:PORT as URLs write it; an IPv6 address without brackets is refused, not split at
+    its last ':' (which read '::1' as host ':' port 1)."""
+    assert parse_address("[::1]:1234") == ("::1", 1234)
+    assert parse_address("[fe80::1%eth0]") == ("fe80::1%eth0", 18944)
+    assert parse_listen_address("[::1]:0") == ("::1", 0)
+    assert parse_listen_address("[::]:18945") == ("::", 18945)
+    for address in ("::1", "::1:18944", "fe80::1"):
+        with pytest.raises(ValueError, match=re.escape(
+                f"OpenIGTLink address {address!r}: an IPv6 address goes in brackets: "
+                "[ADDRESS]:PORT, e.g. [::1]:18944")):
+            parse_address(address)
+    with pytest.raises(ValueError, match=r"'\[::1': expected \[IPV6\]:PORT"):
+        parse_address("[::1")
+    with pytest.raises(ValueError, match=r"'\[::1\]': expected PORT, HOST:PORT or \[IPV6\]:PORT"):
+        parse_listen_address("[::1]")  # a server needs its port
+
+
+def _ipv6_loopback() -> bool:
+    try:
+        with socket.create_server(("::1", 0), family=socket.AF_INET6):
+            return True
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not _ipv6_loopback(), reason="no IPv6 loopback on this machine")
+def test_mosaic_server_and_source_over_ipv6():
+    image = np.arange(24 * 32 * 3, dtype=np.uint8).reshape(24, 32, 3)
+    with IgtlImageServer("[::1]:0") as server:
+        assert server.address == f"[::1]:{server.port}" and server.port > 0
+        with IgtlSource(server.address, transform_device="NoneToNone",
+                        image_device="Mosaic") as client:
+            for _ in range(200):  # until the server has accepted the client
+                if server.num_clients:
+                    break
+                time.sleep(0.01)
+            assert server.send(image) == 1
+            frame = client.next_frame(5.0)
+    np.testing.assert_array_equal(frame.image, image)
+
+
+def test_a_frame_received_before_a_connection_reset_is_handed_over(syn):
+    """The sender resets the connection after 3 frames (the newest waiting, the others
+    replaced): next_frame hands over the waiting frame before reporting the failure (it was
+    discarded, and its status said 'received after the session ended')."""
+    events = [(0.01 * k, image_message(syn.frames[k], 0.01 * k)) for k in range(3)]
+    sender = Sender(events, delay=0.0, reset=True)
+    with IgtlSource(f":{sender.port}", transform_device="SensorToTracker") as source:
+        sender.join()
+        for _ in range(500):  # until the receiver has seen the reset
+            if source._error is not None:
+                break
+            time.sleep(0.01)
+        assert isinstance(source._error, ConnectionResetError)
+        frame = source.next_frame(1.0)
+        assert frame is not None and frame.index == 2 and source.dropped == [0, 1]
+        np.testing.assert_array_equal(frame.image, syn.frames[2])
+        with pytest.raises(ValueError, match="Connection reset by peer"):
+            source.next_frame(1.0)
 
 
 def test_existing_recording_folder_is_refused_before_connecting(syn, tmp_path, capsys):
@@ -452,9 +530,6 @@ def test_live_view_preview_and_mosaic_server(syn, tmp_path):
     (here our own IgtlSource, as 3D Slicer would connect): the last one sent is the preview,
     which is the linear blend of the session's final homographies (render_mosaic)."""
     import threading
-    import time
-
-    import cv2
 
     from fusedmosaic.compositing import BlendOptions, render_mosaic
 
@@ -511,8 +586,10 @@ def test_live_view_preview_and_mosaic_server(syn, tmp_path):
 @pytest.mark.parametrize("extra, message", [
     (["--preview", "view.jpg"], "view.jpg: the preview is a PNG file (name it .png)"),
     (["--preview", "rec/view.png"], "the preview must not be inside the recording"),
-    (["--serve-mosaic", "host:x"], "OpenIGTLink server address 'host:x': expected PORT or "
-                                   "HOST:PORT"),
+    (["--serve-mosaic", "host:x"], "OpenIGTLink server address 'host:x': expected PORT, "
+                                   "HOST:PORT or [IPV6]:PORT"),
+    (["--serve-mosaic", "::1:18945"], "OpenIGTLink server address '::1:18945': an IPv6 address "
+                                      "goes in brackets: [ADDRESS]:PORT"),
     (["--serve-mosaic", "0", "--view-interval", "-1"], "--view-interval): must be >= 0 s"),
 ])
 def test_live_view_flags_are_checked_before_connecting(syn, tmp_path, capsys, monkeypatch,
@@ -534,3 +611,202 @@ def test_mosaic_server_port_in_use_is_named(syn, tmp_path, capsys):
                      "--out", str(tmp_path / "out"), "--serve-mosaic", str(port)]) == 2
     assert (f"OpenIGTLink server 127.0.0.1:{port}: cannot listen" in capsys.readouterr().err)
     assert not list(tmp_path.iterdir())
+
+
+def _image_sent_twice(events):
+    """Each IMAGE message of `events` followed by a copy (same timestamp), as a sender whose
+    capture repeats frames."""
+    out = []
+    for t, message in events:
+        out.append((t, message))
+        if message[2:14].rstrip(b"\0") == b"IMAGE":
+            out.append((t, message))
+    return out
+
+
+def test_max_frames_records_that_many_and_refusals_count_per_reason(syn, tmp_path, capsys):
+    """--max-frames 25: 25 frames recorded (none after: counted), the session stops once the
+    last is processed, and says so truly (it recorded 54 of 50 while saying '50 frames
+    received'). Every image sent twice: the repeats are refused under one reason, whatever
+    their number (one key per frame before, the frame's number in it), with the first one."""
+    sender = Sender(_image_sent_twice(dataset_events(syn, n_frames=40)), speed=0.5)
+    assert _live(syn, tmp_path, sender, "--max-frames", "25") == 0
+    sender.join()
+    live = json.loads((tmp_path / "out" / "report.json").read_text())["live"]
+    assert live["stopped_by"] == "25 frames recorded (--max-frames)"
+    assert live["frames_recorded"] == 25 == len(read_dataset(tmp_path / "rec",
+                                                              allow_untracked=True))
+    assert live["frames_processed"] + live["frames_dropped"] == 25  # the last one processed
+    source = live["source"]
+    why = "timestamp does not increase (a repeated or earlier timestamp)"
+    # the repeats of frames 0..23; frame 24's arrives after the limit
+    assert source["frames_refused"] == {why: 24}
+    assert source["frames_refused_first"] == {why: 1}  # the second message received
+    assert source["frames_after_max_frames"] >= 1
+
+
+def test_preview_folder_is_created_and_the_free_port_taken_is_told(syn, tmp_path, capsys):
+    """--preview in a folder that does not exist yet: created, as --out is (the PNG was never
+    written, only report.json said so); --serve-mosaic 0: the port taken is told when the
+    server starts (it was only in report.json)."""
+    preview = tmp_path / "views" / "today" / "view.png"
+    sender = Sender(dataset_events(syn, n_frames=20))
+    with warnings.catch_warnings():
+        warnings.simplefilter("default")  # as outside pytest: the CLI prints it
+        code = _live(syn, tmp_path, sender, "--preview", str(preview), "--serve-mosaic", "0")
+    sender.join()
+    assert code == 0
+    view = json.loads((tmp_path / "out" / "report.json").read_text())["live"]["view"]
+    address = view["server"]["address"]
+    assert re.fullmatch(r"127\.0\.0\.1:\d+", address) and not address.endswith(":0")
+    assert (f"fusedmosaic: warning: live: the mosaic is served on {address} (OpenIGTLink IMAGE "
+            "'Mosaic'; --serve-mosaic 0 took this free port)") in capsys.readouterr().err
+    assert view["problems"] == {} and view["published"] >= 1
+    assert cv2.imread(str(preview)).shape[2] == 3
+
+
+@pytest.mark.parametrize("fails", ["listen", "connect"])
+def test_a_failed_start_leaves_no_folder_behind(syn, tmp_path, capsys, fails):
+    """The folders made on the way to --record, --out and --preview are removed again when the
+    session cannot start (a busy --serve-mosaic port, no sender): runs/busy/ was left empty."""
+    with socket.create_server(("127.0.0.1", 0)) as busy:
+        port = busy.getsockname()[1]
+        serve = ["--serve-mosaic", str(port)] if fails == "listen" else []
+        assert main(["live", "127.0.0.1:1", "--camera", str(syn.root / "camera.yaml"),
+                     "--transform", "SensorToTracker", "--record",
+                     str(tmp_path / "runs" / "busy" / "rec"), "--out",
+                     str(tmp_path / "runs" / "busy" / "out"), "--preview",
+                     str(tmp_path / "runs" / "views" / "v.png"), *serve]) == 2
+    err = capsys.readouterr().err
+    assert ("cannot listen" if fails == "listen" else "cannot connect") in err
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("stop", ["SIGTERM", "SIGHUP", "SIGINT"])
+def test_a_stop_signal_while_the_recording_is_finished_keeps_it(syn, tmp_path, monkeypatch,
+                                                                  stop):
+    """SIGTERM / SIGHUP (a launcher stopping the service, a closed terminal: the CLI turns them
+    into Ctrl-C) or Ctrl-C arriving while the recording is moved into place is handled once it
+    is there (exit 130): it deleted the recording."""
+    from fusedmosaic.io import recorder
+
+    move = recorder._replace_dir
+
+    def stopped_meanwhile(src, dst):
+        os.kill(os.getpid(), getattr(signal, stop))
+        time.sleep(0.05)  # delivered here, in the middle
+        move(src, dst)
+
+    monkeypatch.setattr(recorder, "_replace_dir", stopped_meanwhile)
+    sender = Sender(dataset_events(syn, n_frames=15))
+    assert _live(syn, tmp_path, sender) == 130
+    sender.join()
+    assert len(read_dataset(tmp_path / "rec", allow_untracked=True)) == 15
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec"]
+
+
+_KILLED = """
+import sys, time
+import numpy as np
+from fusedmosaic.io.calibration import Camera
+from fusedmosaic.io.recorder import DatasetRecorder
+camera = Camera(64, 48, camera_matrix=np.array([[60.0, 0, 32], [0, 60, 24], [0, 0, 1]]))
+recorder = DatasetRecorder(sys.argv[1], camera, np.eye(4))
+rng = np.random.default_rng(0)
+for k in range(5):
+    pose = np.eye(4)
+    pose[:3, 3] = [k, 0, 50]
+    recorder.add_sample(10 + 0.04 * k, pose)
+    recorder.add_frame(rng.integers(0, 255, (48, 64), np.uint8), 10 + 0.04 * k)
+recorder.add_sample(10.19, None)
+while recorder.frames_written < 5:
+    time.sleep(0.01)
+print(recorder.staging, flush=True)
+time.sleep(60)
+"""
+
+
+def test_a_killed_session_leaves_a_dataset_that_the_next_one_recovers(tmp_path):
+    """A session killed outright (SIGKILL: no clean-up runs) left frames/*.png alone in a
+    hidden folder, never cleaned. The staging folder is a dataset as it grows; the next
+    recorder in that folder recovers it as NAME.recovered-START (the last, incomplete row and
+    frame dropped) and says where."""
+    child = subprocess.Popen([sys.executable, "-c", _KILLED, str(tmp_path / "rec")],
+                             stdout=subprocess.PIPE, text=True)
+    try:
+        staging = Path(child.stdout.readline().strip())
+        grown = read_dataset(staging, allow_untracked=True)  # while it runs: a dataset
+        assert len(grown) == 5 and grown.tracking.valid.tolist() == [True] * 5 + [False]
+        assert recover_unfinished_recordings(tmp_path) == []  # its session is alive: untouched
+    finally:
+        child.kill()
+        child.wait()
+        child.stdout.close()
+    assert child.returncode == -signal.SIGKILL
+    # as if killed while frame 5 was written and renamed, its row and a sample half written
+    (staging / "frames" / ".000005.part.png").write_bytes(b"\x89PNG")
+    (staging / "frames" / "000005.png").write_bytes(b"\x89PNG")
+    with (staging / "frames.csv").open("a") as f:
+        f.write("5,10.2")
+    with (staging / "tracking.csv").open("a") as f:
+        f.write("10.23,1.0,")
+    # an earlier version's leftover of the same recording (frames only) and an empty one
+    (tmp_path / ".rec.tmp-older" / "frames").mkdir(parents=True)
+    empty = tmp_path / ".other.tmp-x"
+    empty.mkdir()
+    (empty / ".fusedmosaic-recording.json").write_text('{"name": "other"}')
+    (empty / "frames.csv").write_text("frame,timestamp\n")
+    camera = grown.camera
+    with pytest.warns(UserWarning) as said:
+        DatasetRecorder(tmp_path / "rec", camera).abort()
+    notes = sorted((str(w.message) for w in said), key=lambda note: (
+        note.startswith("/"), "without a frame" in note))
+    recovered = sorted(tmp_path.glob("rec.recovered-*"))
+    assert len(notes) == 3 and len(recovered) == 1
+    assert re.fullmatch(
+        rf"a live session recording into {re.escape(str(tmp_path / 'rec'))} \(process "
+        rf"{child.pid}, started [-0-9: ]+\) ended without finishing \(killed or crashed\); "
+        rf"its 5 frame\(s\) are recovered as the dataset {re.escape(str(recovered[0]))} "
+        rf"\(re-run it offline: fusedmosaic run .* --method ba-emt --out OUT "
+        rf"--allow-untracked\)", notes[0])
+    assert notes[1].startswith(f"a live session recording into {tmp_path / 'other'} ended "
+                               f"without finishing and without a frame; removed its {empty}")
+    assert notes[2].startswith(f"{tmp_path / '.rec.tmp-older'}: frames of an earlier recording "
+                               f"into {tmp_path / 'rec'} that never finished")
+    ds = read_dataset(recovered[0], allow_untracked=True)
+    assert len(ds) == 5 and ds.tracking.timestamps.tolist() == [10, 10.04, 10.08, 10.12,
+                                                                 10.16, 10.19]
+    np.testing.assert_array_equal(ds.tracking.translations[:5, 0], np.arange(5.0))
+    np.testing.assert_array_equal(ds.hand_eye, np.eye(4))
+    assert sorted(p.name for p in recovered[0].iterdir()) == [
+        "camera.yaml", "frames", "frames.csv", "hand_eye.txt", "tracking.csv"]
+    assert sorted(p.name for p in (recovered[0] / "frames").iterdir()) == [
+        f"{k:06d}.png" for k in range(5)]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".rec.tmp-older",
+                                                          recovered[0].name]
+
+
+def test_a_recording_that_cannot_be_written_further_keeps_its_frames(tmp_path, monkeypatch):
+    """A frame that cannot be written (a full disk): the recording stops growing there and the
+    frames written before are kept as a dataset, the error saying so (finish deleted them)."""
+    from fusedmosaic.io import recorder as module
+    from fusedmosaic.io.calibration import Camera
+
+    write = module.cv2.imwrite
+    monkeypatch.setattr(module.cv2, "imwrite", lambda path, *a: "000003" not in str(path)
+                        and write(path, *a))
+    camera = Camera(64, 48, camera_matrix=np.array([[60.0, 0, 32], [0, 60, 24], [0, 0, 1]]))
+    recorder = DatasetRecorder(tmp_path / "rec", camera)
+    for k in range(6):
+        recorder.add_sample(0.04 * k, np.eye(4))
+        try:
+            recorder.add_frame(np.full((48, 64), 10 * k, np.uint8), 0.04 * k)
+        except OSError:  # once the writer failed, the next frame is refused at once
+            break
+    with pytest.raises(ValueError, match=r"rec: stopped after 3 frame\(s\) \(.*000003\.part\.png: "
+                                         r"cv2\.imwrite failed\); those are kept there"):
+        recorder.finish()
+    ds = read_dataset(tmp_path / "rec", allow_untracked=True)
+    assert len(ds) == 3 and ds.frames[2][0, 0] == 20
+    assert recorder.finish() == tmp_path / "rec"  # done: again returns the folder
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 import time
 import warnings
 from pathlib import Path
@@ -13,7 +14,6 @@ from fusedmosaic import methods
 from fusedmosaic.io.dataset import check_fps
 from fusedmosaic.io.output import (
     OutputWriter,
-    _interrupts_deferred,
     is_under,
     read_json_object,
 )
@@ -389,8 +389,10 @@ def check_live_limits(max_frames, duration_s, frame_timeout_s,
 
 
 def _live_view(camera, method: str, record: Path, preview, serve_mosaic,
-               interval_s: float):
-    """(LiveMosaicView, IgtlImageServer or None) for run_igtl, checked before connecting."""
+               interval_s: float, say):
+    """(LiveMosaicView, IgtlImageServer or None) for run_igtl, checked before connecting; the
+    preview's folder is created (as an output folder is); say(text) is told a free port taken
+    (--serve-mosaic 0)."""
     from fusedmosaic.compositing.live_view import LiveMosaicView
     from fusedmosaic.io.igtl import IgtlImageServer
     from fusedmosaic.io.output import check_output_dir
@@ -403,8 +405,14 @@ def _live_view(camera, method: str, record: Path, preview, serve_mosaic,
             raise ValueError(f"{preview}: is a folder; the preview is a PNG file")
         if is_under(preview, record):
             raise ValueError(f"{preview}: the preview must not be inside the recording {record}")
-        check_output_dir(preview.parent, "preview's folder")
     LiveMosaicView.check_preview(preview)
+    if preview is not None:
+        check_output_dir(preview.parent, "preview's folder")
+        try:
+            preview.parent.mkdir(exist_ok=True)
+        except OSError as exc:
+            raise ValueError(f"{preview}: cannot create the preview's folder "
+                             f"({exc.strerror or exc})") from None
     lens = camera.undistortion() if method == "lba-emt" else None
     mask = lens.mask if lens is not None else camera.fov_mask()
     server = None if serve_mosaic is None else IgtlImageServer(serve_mosaic)
@@ -415,7 +423,44 @@ def _live_view(camera, method: str, record: Path, preview, serve_mosaic,
         if server is not None:
             server.close()
         raise
+    if server is not None and server.requested_port == 0:
+        say(f"live: the mosaic is served on {server.address} (OpenIGTLink IMAGE "
+            f"'{server.device_name}'; --serve-mosaic 0 took this free port)")
     return view, server
+
+
+def _missing_folders(*paths: Path) -> list[Path]:
+    """The folders on the way to `paths` (themselves included) that do not exist yet, deepest
+    first: what a failed start removes again (run_igtl leaves nothing behind)."""
+    missing: dict[Path, None] = {}
+    for path in paths:
+        for folder in (path, *path.parents):
+            if folder.exists() or folder.is_symlink():
+                break
+            missing[folder] = None
+    return sorted(missing, key=lambda f: len(f.parts), reverse=True)
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    for folder in folders:  # deepest first; a folder that holds anything stays
+        try:
+            folder.rmdir()
+        except OSError:
+            pass
+
+
+def _refusal_reason(message: str) -> str:
+    """A refused frame's problem without what changes from frame to frame (its number, its
+    timestamps), so that report.json counts frames per reason (bounded however long the
+    session)."""
+    reason = re.sub(r"^frame \d+: ", "", message)
+    if reason.startswith("timestamp "):
+        reason = re.sub(r"^timestamp \S+ ", "timestamp ", reason)
+        reason = re.sub(r" \(previous frame's [^)]*\)", " (a repeated or earlier timestamp)",
+                        reason)
+        reason = re.sub(r"is \S+ s after the previous frame's \([^)]*\), more than ([^;]*)",
+                        r"more than \1 after the previous frame's", reason)
+    return reason
 
 
 def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
@@ -426,33 +471,39 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
              video: str | Path | None = None, report: bool = True,
              method: str = "lba-emt", tracker_time_offset: float = 0.0,
              preview: str | Path | None = None, serve_mosaic: str | None = None,
-             view_interval_s: float = 1.0) -> str:
+             view_interval_s: float = 1.0, say=None) -> str:
     """A live session on an OpenIGTLink source (io.igtl: e.g. PLUS Server streaming a tracked
     endoscope), lba-emt, or kalman-robot with a robot streaming the probe position (the
     transform's translation, mm, in the image axes; the camera needs pixel_size_um; recorded
     into robot.csv): frames and tracker poses are received as they come, each frame is
     mosaicked as soon as the previous one is done (frames arriving meanwhile are dropped but
-    recorded), until the sender closes the stream, max_frames frames were received, duration_s
-    passed or Ctrl-C. Every received frame and tracker sample is recorded into the dataset
-    folder `record` (re-runnable offline with any method); then the outputs of the live
-    estimates go to `out` as `run` writes them (report.json "live": drops, latency, why the
-    session stopped). camera / hand_eye: a Camera / 4x4 or the path of camera.yaml /
-    hand_eye.txt. tracker_time_offset: s, the tracker's (robot's) clock ahead of the video's
-    (calibrate's calibration.json "tracker_time_offset"): the frame at t takes the sample at
-    t + offset, and the samples are recorded on the video's clock (stamped - offset), as
-    `import` writes them, so that the recording re-runs without it. preview (a .png path) /
-    serve_mosaic ([HOST:]PORT): the mosaic as it grows, from each frame's final placement
+    recorded), until the sender closes the stream, max_frames frames were recorded (no more are),
+    duration_s passed or Ctrl-C. Every received frame and tracker sample is recorded into the
+    dataset folder `record` (re-runnable offline with any method; it grows as a readable dataset
+    in a staging folder, and a session killed outright is recovered by the next one in that
+    folder: io.recorder); then the outputs of the live estimates go to `out` as `run` writes
+    them (report.json "live": drops, latency, why the session stopped). camera / hand_eye: a
+    Camera / 4x4 or the path of camera.yaml / hand_eye.txt. tracker_time_offset: s, the
+    tracker's (robot's) clock ahead of the video's (calibrate's calibration.json
+    "tracker_time_offset"): the frame at t takes the sample at t + offset, and the samples are
+    recorded on the video's clock (stamped - offset), as `import` writes them, so that the
+    recording re-runs without it. preview (a .png path; its folder is created) / serve_mosaic
+    ([HOST:]PORT, [IPV6]:PORT): the mosaic as it grows, from each frame's final placement
     (compositing.live_view), replaced atomically in that file and / or sent as OpenIGTLink IMAGE
     "Mosaic" to every client of a server listening there (e.g. 3D Slicer), at most every
-    view_interval_s; report.json "live" "view". Returns the terminal summary."""
+    view_interval_s; report.json "live" "view". say(text): tells the user what they need during
+    the session (the port --serve-mosaic 0 took); None: as a warning. A start that fails
+    leaves no folder behind. Returns the terminal summary."""
     from fusedmosaic.estimation.live import check_live_method, live_session, session_result
     from fusedmosaic.io.calibration import Camera, read_camera_yaml
-    from fusedmosaic.io.igtl import IgtlSource
+    from fusedmosaic.io.igtl import IgtlSource, format_address
     from fusedmosaic.io.recorder import DatasetRecorder
     from fusedmosaic.io.tracking import check_stream_timestamp, check_time_offset, hand_eye_matrix
 
     check_live_method(method)
     offset = check_time_offset(tracker_time_offset)
+    if say is None:
+        say = lambda text: warnings.warn(text, stacklevel=3)  # noqa: E731
     if not isinstance(camera, Camera):
         camera = read_camera_yaml(camera)
     if method == "lba-emt":
@@ -478,23 +529,26 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     check_compositing_options(blend, canvas)
     from fusedmosaic.io.output import check_output_dir
 
-    check_output_dir(out, "output folder")
-    view, server = None, None
+    created = _missing_folders(out, record, *(() if preview is None else (Path(preview),)))
+    view, server, recorder, src = None, None, None, None
 
     def on_final(index, image, r) -> None:  # given to the session only with a view
         if image is not None and np.isfinite(r.homography).all():
             view.add(image, r.homography)
 
-    recorder = DatasetRecorder(record, camera, hand_eye, overwrite=overwrite_record,
-                               robot=method == "kalman-robot")
-    rejected: dict[str, int] = {}
+    rejected: dict[str, int] = {}  # why -> frames refused
+    first_refused: dict[str, int] = {}  # why -> the first such frame (the source's count)
+    after_limit = 0  # frames received once max_frames were recorded (not recorded)
     accepting, first, last_time = True, None, -np.inf
 
     def on_frame(frame) -> bool:  # receiver thread: what is recorded and offered to the loop
-        nonlocal first, last_time
+        nonlocal first, last_time, after_limit
         image = frame.image
         problem = None
         if not accepting:
+            return False
+        if max_frames is not None and len(recorder.timestamps) >= max_frames:
+            after_limit += 1
             return False
         if image.dtype != np.uint8 or image.shape[:2] != (camera.height, camera.width) or (
                 image.ndim == 3 and image.shape[2] != 3):
@@ -508,16 +562,18 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
             try:
                 last_time = check_stream_timestamp(frame.index, frame.timestamp, last_time)
             except ValueError as exc:
-                problem = str(exc)
+                problem = _refusal_reason(str(exc))
         if problem is not None:
             rejected[problem] = rejected.get(problem, 0) + 1
+            first_refused.setdefault(problem, frame.index)
             return False
         first = image.ndim
         frame.index = recorder.add_frame(image, frame.timestamp)
         return True
 
     def refused() -> str:
-        return "".join(f"; frames refused: {n} x {why}" for why, n in rejected.items())
+        return "".join(f"; frames refused: {n} x {why} (first: received frame "
+                       f"{first_refused[why]})" for why, n in rejected.items())
 
     def samples_heard(src) -> str:
         if src is None or src.valid_samples:
@@ -526,11 +582,13 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
         return (f"; no valid TRANSFORM or POSITION sample of {transform_device} arrived (other "
                 f"devices heard: {heard}; see --transform)")
 
-    src = None
     try:
+        check_output_dir(out, "output folder")
         if preview is not None or serve_mosaic is not None:  # before connecting
             view, server = _live_view(camera, method, record, preview, serve_mosaic,
-                                      view_interval_s)
+                                      view_interval_s, say)
+        recorder = DatasetRecorder(record, camera, hand_eye, overwrite=overwrite_record,
+                                   robot=method == "kalman-robot")
         with IgtlSource(address, transform_device=transform_device, image_device=image_device,
                         rgb=rgb, orientation_required=method != "kalman-robot",
                         on_frame=on_frame, on_sample=lambda s: recorder.add_sample(
@@ -549,39 +607,43 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                 if server is not None:
                     server.close()
             dropped = [k for k in src.dropped if k not in session.finals]
-            details = {"address": f"{src.host}:{src.port}", "image_device": src.image_device,
+            details = {"address": format_address(src.host, src.port),
+                       "image_device": src.image_device,
                        "transform_device": transform_device,
                        # the recording's samples are on the video's clock (stamped - offset)
                        "tracker_time_offset_s": offset,
                        "frames_received": src.received,
-                       "frames_refused": rejected,
+                       "frames_refused": dict(rejected),
+                       "frames_refused_first": dict(first_refused),
                        "tracker_samples_valid": src.valid_samples,
                        "tracker_samples_invalid": dict(src.invalid_samples),
                        "ignored_devices": sorted(src.ignored_devices)}
+            if max_frames is not None:
+                details["frames_after_max_frames"] = after_limit
         if not session.processed:
             raise ValueError(f"live session: no frame was processed ({session.stopped_by})")
         timestamps = list(recorder.timestamps)
-        with _interrupts_deferred():
-            recorder.finish()
+        recorder.finish()  # SIGINT / SIGTERM / SIGHUP wait until the recording is in place
     except BaseException as exc:
+        # the recording is the session's safety net: kept whenever it holds a frame (first:
+        # closing the view may take a while)
+        note = ""
+        if recorder is not None and recorder.timestamps:
+            said = recorder.finished  # exc is finish's own error, which says where
+            try:
+                recorder.finish()  # (again: returns at once when done)
+                note = "" if said else (f"; the {recorder.frames_written} frame(s) received "
+                                        f"are recorded in {record}")
+            except ValueError as kept:  # kept all the same: the message says where
+                note = f"; {kept}"
+        elif recorder is not None:
+            recorder.abort()
         if view is not None:
             view.close()
         if server is not None:
             server.close()
-        # the recording is the session's safety net: kept whenever it holds a frame
-        kept = False
-        if recorder.timestamps:
-            try:
-                with _interrupts_deferred():
-                    recorder.finish()
-                kept = True
-            except BaseException:
-                recorder.abort()
-        else:
-            recorder.abort()
+        _remove_empty(created)
         if isinstance(exc, (ValueError, OSError)):
-            note = (f"; the {len(recorder.timestamps)} frame(s) received are recorded in "
-                    f"{record}" if kept else "")
             raise ValueError(f"{exc}{refused()}{samples_heard(src)}{note}") from None
         raise
     result = session_result(session, timestamps, dropped, source_details=details,

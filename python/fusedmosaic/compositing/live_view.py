@@ -135,7 +135,7 @@ class LiveMosaicView:
                "preview": None if self.preview is None else str(self.preview),
                "problems": dict(self.problems)}
         if self.server is not None:
-            out["server"] = {"address": f"{self.server.host}:{self.server.port}",
+            out["server"] = {"address": self.server.address,
                              "device": self.server.device_name,
                              "clients": self.server.clients_served,
                              "messages_sent": self.server.messages_sent}

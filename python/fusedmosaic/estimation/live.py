@@ -290,7 +290,9 @@ def _streaming(dataset, method: str, options, max_age: float | None) -> _Stream:
 
 
 # ---------------------------------------------------------------------------- a live source
-SESSION_ENDED = "unplaced: received after the session ended (recorded, not processed)"
+SESSION_ENDED = "unplaced: not processed (the session ended before its turn; recorded)"
+# A session hearing frames but no valid sample of its tracker (robot) device this long says so.
+NO_SAMPLE_WARNING_S = 3.0
 DROPPED_LIVE = "unplaced: dropped (live: arrived while frame {busy} was being processed)"
 
 
@@ -322,9 +324,13 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
     position, the source's translation in mm taken as the probe position in the image axes)
     live on `source` (an io.igtl.IgtlSource, or anything with its next_frame / pose_at /
     position_at / received): takes the newest frame as soon as the previous one is done, until
-    the stream ends, `max_frames` frames were received, `duration_s` passed, or Ctrl-C
-    (KeyboardInterrupt ends the session normally; the mosaickers are transactional, an
-    interrupted call leaves them as before). on_result(frame, result) is called after each
+    the stream ends, the frame numbered max_frames - 1 (the source's numbering: the recording's
+    frame ids when on_frame renumbers them, as run_igtl does, which records no more) is
+    processed, `duration_s` passed, or Ctrl-C (KeyboardInterrupt ends the session normally;
+    the mosaickers are transactional, an interrupted call leaves them as before). When frames
+    keep coming for NO_SAMPLE_WARNING_S without a valid sample of the source's tracker (robot)
+    device, a warning says so once (naming the devices heard instead: a misnamed --transform);
+    at the end too, for a session that had none. on_result(frame, result) is called after each
     frame (provisional for lba-emt); on_final(index, image, result) once a frame's result is
     final (the image is kept until then: a live mosaic view). tracker_time_offset: s, the
     tracker's (robot's) clock ahead of the video's, as calibrate measures it: the frame at time
@@ -338,6 +344,8 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
     session = LiveSession(parameters=parameters)
     sample_at = _sample_at(method, source, hand_eye, max_sample_age_s)
     start = time.monotonic()
+    first_frame = None  # time.monotonic() when the first frame was taken
+    warned = False
 
     images: dict = {}  # frame index -> image, until its result is final (on_final only)
 
@@ -389,18 +397,49 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
             take(mosaicker.finalized() if method == "lba-emt" else [result])
             if on_result is not None:
                 on_result(frame, result)
-            if max_frames is not None and source.received >= max_frames:
-                session.stopped_by = f"{max_frames} frames received (--max-frames)"
+            first_frame = time.monotonic() if first_frame is None else first_frame
+            if not warned and time.monotonic() - first_frame >= NO_SAMPLE_WARNING_S:
+                warned = _warn_without_samples(source, method, time.monotonic() - first_frame)
+            if max_frames is not None and frame.index + 1 >= max_frames:
+                session.stopped_by = f"{max_frames} frames recorded (--max-frames)"
                 break
     except KeyboardInterrupt:
-        session.stopped_by = "interrupted (Ctrl-C)"
+        session.stopped_by = "interrupted (Ctrl-C or a stop signal)"
+    if session.processed and not warned:  # a short session: said at its end
+        _warn_without_samples(source, method, None)
     if session.processed and method == "lba-emt":
-        from fusedmosaic.io.output import _interrupts_deferred
+        from fusedmosaic.io.recorder import stop_signals_deferred
 
-        with _interrupts_deferred():  # a second Ctrl-C waits for the last window step
+        with stop_signals_deferred():  # a second Ctrl-C / SIGTERM waits for the last step
             take(mosaicker.flush())
     session.plane = getattr(mosaicker, "plane", None)
     return session
+
+
+def _warn_without_samples(source, method: str, elapsed_s: float | None) -> bool:
+    """Warns (once: returns True) when `source` has had no valid sample of its tracker (robot)
+    device, naming what it heard instead; elapsed_s: since the first frame (None: the
+    session's end)."""
+    if getattr(source, "valid_samples", 1):
+        return False
+    import warnings
+
+    device = getattr(source, "transform_device", "the tracker")
+    invalid = getattr(source, "invalid_samples", {})
+    heard = sorted(getattr(source, "ignored_devices", ()))
+    if invalid:
+        instead = ("its samples are all invalid: "
+                   + ", ".join(f"{n} x {why}" for why, n in invalid.items()))
+    else:
+        instead = ("other devices heard: " + ", ".join(heard) if heard else
+                   "no other device heard either")
+    kind = "tracker" if method == "lba-emt" else "robot"
+    when = ("in the whole session" if elapsed_s is None else
+            f"in the {elapsed_s:.2g} s since the first frame")
+    warnings.warn(f"live session: no valid {kind} sample (TRANSFORM or POSITION) of {device} "
+                  f"{when} ({instead}): the frames get no {kind} sample; check --transform",
+                  stacklevel=3)
+    return True
 
 
 def _sample_at(method: str, source, hand_eye, max_age: float | None) -> Callable:
@@ -420,7 +459,7 @@ def session_result(session: LiveSession, timestamps, dropped: list[int], *,
                    source_details: dict, method: str = "lba-emt") -> MethodResult:
     """The MethodResult of a live session over the recorded frames (their timestamps): final
     homographies and poses of the processed frames; the others "unplaced" with why (dropped
-    while busy, or received after the session ended)."""
+    while busy, or the session ended before their turn)."""
     n = len(timestamps)
     status = [SESSION_ENDED] * n
     busy_at = {}

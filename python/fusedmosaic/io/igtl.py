@@ -28,6 +28,7 @@ times must come from one clock, as PLUS Server's do.
 
 from __future__ import annotations
 
+import errno
 import functools
 import re
 import select
@@ -49,8 +50,9 @@ from fusedmosaic.io.tracking import (
     rigid_problems,
 )
 
-__all__ = ["IgtlSource", "LiveFrame", "StreamTimeout", "TrackerSample", "inverse_device_name",
-           "parse_address", "position_message_matrix"]
+__all__ = ["IgtlImageServer", "IgtlSource", "LiveFrame", "StreamTimeout", "TrackerSample",
+           "format_address", "inverse_device_name", "parse_address", "parse_listen_address",
+           "position_message_matrix"]
 
 DEFAULT_PORT = 18944  # the OpenIGTLink port (PLUS Server's default)
 # A message body above this is a corrupt header (an 8K RGB frame is 100 MB), not a frame to buffer.
@@ -59,20 +61,44 @@ _BACKWARDS = "timestamp not after the previous sample"
 _HISTORY = 128  # tracker samples kept for pose_at (3 s at 40 Hz)
 
 
-def parse_address(address: str) -> tuple[str, int]:
-    """'HOST:PORT', 'HOST' (port 18944) or ':PORT' (localhost) -> (host, port); ValueError."""
-    host, sep, port = str(address).rpartition(":")
-    if not sep:
-        host, port = port, str(DEFAULT_PORT)
-    host = host or "127.0.0.1"
+def _split_address(address: str, what: str) -> tuple[str, str | None]:
+    """'HOST:PORT', '[IPV6]:PORT', 'HOST' or '[IPV6]' -> (host, port text or None); an IPv6
+    address without brackets is refused (its last ':' would be taken for the port's)."""
+    text = str(address)
+    if text.startswith("["):
+        host, bracket, rest = text[1:].partition("]")
+        if not bracket or not host or (rest and not rest.startswith(":")):
+            raise ValueError(f"{what} {address!r}: expected [IPV6]:PORT, e.g. [::1]:18944")
+        return host, rest[1:] if rest else None
+    if text.count(":") > 1:
+        raise ValueError(f"{what} {address!r}: an IPv6 address goes in brackets: "
+                         f"[ADDRESS]:PORT, e.g. [::1]:{DEFAULT_PORT}")
+    host, sep, port = text.rpartition(":")
+    return (host, port) if sep else (text, None)
+
+
+def format_address(host: str, port: int) -> str:
+    """'HOST:PORT', an IPv6 host in brackets ('[::1]:18944'), as parse_address reads it."""
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+
+def _port(text: str | None, low: int) -> int:
     try:
-        number = int(port)
-    except ValueError:
-        number = -1
-    if not 0 < number < 65536:
-        raise ValueError(f"OpenIGTLink address {address!r}: expected HOST:PORT with a port in "
-                         f"1..65535")
-    return host, number
+        number = int(text)
+    except (TypeError, ValueError):
+        return -1
+    return number if low <= number < 65536 else -1
+
+
+def parse_address(address: str) -> tuple[str, int]:
+    """'HOST:PORT', 'HOST' (port 18944), ':PORT' (localhost), '[IPV6]:PORT' or '[IPV6]' ->
+    (host, port); ValueError."""
+    what = "OpenIGTLink address"
+    host, port = _split_address(address, what)
+    number = DEFAULT_PORT if port is None else _port(port, 1)
+    if number < 0:
+        raise ValueError(f"{what} {address!r}: expected HOST:PORT with a port in 1..65535")
+    return host or "127.0.0.1", number
 
 
 class StreamTimeout(ValueError):
@@ -131,7 +157,7 @@ class IgtlSource:
         import pyigtl  # noqa: F401  (fail early, naming the package, if it is missing)
 
         self.host, self.port = parse_address(address)
-        self.where = f"OpenIGTLink {self.host}:{self.port}"
+        self.where = f"OpenIGTLink {format_address(self.host, self.port)}"
         self.transform_device = transform_device
         self._inverse_device = inverse_device_name(transform_device, self.where)
         self.image_device = image_device
@@ -166,7 +192,9 @@ class IgtlSource:
     def next_frame(self, timeout_s: float) -> LiveFrame | None:
         """The newest frame not yet taken, waiting up to timeout_s; None when the stream has
         ended (the sender closed the connection) with no frame left. ValueError when nothing
-        arrives in time, or when the receiver failed (malformed message, callback error)."""
+        arrives in time, or when the receiver failed (malformed message, a reset connection,
+        callback error) with no frame left: a frame received before the failure is handed over
+        first."""
         deadline = time.monotonic() + timeout_s
         with self._cond:
             while self._slot is None and not self._closed and self._error is None:
@@ -177,7 +205,7 @@ class IgtlSource:
                     raise StreamTimeout(f"{self.where}: no frame from {what} in "
                                         f"{timeout_s:g} s")
                 self._cond.wait(left)
-            if self._error is not None:
+            if self._slot is None and self._error is not None:
                 raise ValueError(f"{self.where}: {self._error}") from self._error
             frame, self._slot = self._slot, None
             return frame
@@ -468,17 +496,19 @@ def _quaternion(matrix: np.ndarray) -> np.ndarray:
 
 
 def parse_listen_address(address: str) -> tuple[str, int]:
-    """'PORT' (this machine only: 127.0.0.1) or 'HOST:PORT' (e.g. 0.0.0.0:18945 for every
-    interface) -> (host, port); port 0 takes a free one (IgtlImageServer.port); ValueError."""
-    host, sep, port = str(address).rpartition(":")
-    host = host if sep else "127.0.0.1"
-    try:
-        number = int(port)
-    except ValueError:
-        number = -1
-    if not 0 <= number < 65536 or not host:
-        raise ValueError(f"OpenIGTLink server address {address!r}: expected PORT or HOST:PORT "
-                         f"with a port in 0..65535 (0: a free one)")
+    """'PORT' (this machine only: 127.0.0.1), 'HOST:PORT' (e.g. 0.0.0.0:18945 for every
+    interface) or '[IPV6]:PORT' ([::1]:18945, [::]:18945) -> (host, port); port 0 takes a free
+    one (IgtlImageServer.port); ValueError."""
+    what = "OpenIGTLink server address"
+    text = str(address)
+    if ":" in text or text.startswith("["):
+        host, port = _split_address(text, what)
+    else:
+        host, port = "127.0.0.1", text
+    number = _port(port, 0)
+    if number < 0 or not host:
+        raise ValueError(f"{what} {address!r}: expected PORT, HOST:PORT or [IPV6]:PORT with a "
+                         f"port in 0..65535 (0: a free one)")
     return host, number
 
 
@@ -494,15 +524,20 @@ class IgtlImageServer:
         import pyigtl  # noqa: F401  (fail early, naming the package, if it is missing)
 
         self.host, self.port = parse_listen_address(address)
-        self.where = f"OpenIGTLink server {self.host}:{self.port}"
+        self.requested_port = self.port
+        self.where = f"OpenIGTLink server {format_address(self.host, self.port)}"
         self.device_name = device_name
         self.send_timeout_s = send_timeout_s
+        family = socket.AF_INET6 if ":" in self.host else socket.AF_INET
         try:
-            self._listener = socket.create_server((self.host, self.port))
+            self._listener = socket.create_server((self.host, self.port), family=family)
         except OSError as exc:
-            raise ValueError(f"{self.where}: cannot listen ({exc.strerror or exc}); is the port "
-                             "in use?") from None
+            hint = "is the port in use?" if exc.errno == errno.EADDRINUSE else (
+                "is HOST an address of this machine?")
+            raise ValueError(f"{self.where}: cannot listen ({exc.strerror or exc}); "
+                             f"{hint}") from None
         self.port = self._listener.getsockname()[1]
+        self.address = format_address(self.host, self.port)
         self._listener.settimeout(0.2)
         self._clients: list[socket.socket] = []
         self._lock = threading.Lock()

@@ -1,38 +1,61 @@
 """Recording a live session as a dataset folder (the dataset contract), while it runs.
 
-Frames are written as PNG (fast, level 1) by a background thread (a live loop does not wait for
-the disk) into a temporary folder next to the destination. The queue holds at most
-``max_queued`` frames: when the disk cannot keep up, `add_frame` waits (the recording never
-skips a frame, and memory stays bounded; the live view then drops more frames). `finish` adds
-frames.csv, tracking.csv (every tracker sample, at the tracker's own rate, samples the sender
-flagged or that are not rigid as valid=0), camera.yaml and hand_eye.txt and renames the folder into
-place, so the recording is complete or absent, never partial; `abort` removes it. The recording
-can then be mosaicked offline with any method (`fusedmosaic run DATA --method ba-emt`).
+The recording is built in a hidden staging folder next to the destination (``.NAME.tmp-*``)
+that is a readable dataset at every moment, so that a session killed outright (SIGKILL, a power
+cut of the process, a crash) loses at most the frame being written:
+
+- camera.yaml and hand_eye.txt are written when the recording starts;
+- frames are written as PNG (fast, level 1) by a background thread (a live loop does not wait
+  for the disk), each under a hidden name renamed once complete, and only then is its row
+  appended to frames.csv;
+- every tracker sample is appended to tracking.csv as it arrives (at the tracker's own rate;
+  samples the sender flagged or that are not rigid as valid=0), or for a robot its valid
+  positions to robot.csv (µm);
+- each row is one unbuffered write (nothing waits in a buffer of this process; no fsync, so a
+  crash of the machine itself may lose the last seconds the OS had not yet written).
+
+The queue holds at most ``max_queued`` frames: when the disk cannot keep up, `add_frame` waits
+(the recording never skips a frame, and memory stays bounded; the live view then drops more
+frames). `finish` renames the folder into place atomically; SIGINT / SIGTERM / SIGHUP arriving
+meanwhile are handled after it, and a failure keeps the frames written (a recording that holds a
+frame is never deleted); `abort` discards it. A lock file in the staging folder
+(``.fusedmosaic-recording.json``, locked while its process lives) tells a later recorder in the
+same folder that a session ended without finishing: `recover_unfinished_recordings` renames such
+a folder into a dataset ``NAME.recovered-START`` beside it and says so. The recording can then
+be mosaicked offline with any method (``fusedmosaic run DATA --method ba-emt``).
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
+import json
+import math
+import os
 import queue
 import shutil
+import signal
+import socket
 import threading
+import time
+import warnings
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from fusedmosaic.io._table import format_float, write_table
+from fusedmosaic.io._table import format_float
 from fusedmosaic.io.calibration import Camera, write_camera_yaml
 from fusedmosaic.io.dataset import _replace_dir, staging_folder
-from fusedmosaic.io.tracking import (
-    RobotSamples,
-    TrackingSamples,
-    write_hand_eye,
-    write_robot_csv,
-    write_tracking_csv,
-)
+from fusedmosaic.io.tracking import ROBOT_COLUMNS, TRACKING_COLUMNS, write_hand_eye
 
-__all__ = ["DatasetRecorder"]
+__all__ = ["DatasetRecorder", "recover_unfinished_recordings", "stop_signals_deferred"]
+
+# In a recording's staging folder while its session runs; locked (flock) by that process, so a
+# folder whose lock can be taken belongs to a session that ended without finishing.
+MARKER = ".fusedmosaic-recording.json"
+STOP_SIGNALS = ("SIGINT", "SIGTERM", "SIGHUP")  # what ends a live session (the CLI's)
 
 
 class DatasetRecorder:
@@ -40,21 +63,43 @@ class DatasetRecorder:
     `root` (must not exist or be empty, unless overwrite replaces an earlier dataset there).
     Thread-safe: the OpenIGTLink receiver calls it from its thread. robot: the samples are a
     robot's probe positions (their translation, mm, in the image axes) and go to robot.csv in µm
-    (valid ones only: robot.csv has no validity column) instead of tracking.csv."""
+    (valid ones only: robot.csv has no validity column) instead of tracking.csv. Recordings of
+    earlier sessions in the same parent folder that ended without finishing are recovered first
+    (`recover_unfinished_recordings`, a warning each; `recovered` lists them)."""
 
     def __init__(self, root: str | Path, camera: Camera, hand_eye=None, *,
                  overwrite: bool = False, max_queued: int = 64, robot: bool = False) -> None:
         self.root = Path(root)
+        self.recovered = recover_unfinished_recordings(self.root.parent, self.root.name)
+        for note in self.recovered:
+            warnings.warn(note, stacklevel=2)
         self._tmp = staging_folder(self.root, overwrite, "choose a new folder for the "
                                    "recording, or allow overwriting an earlier recording")
         self.camera, self.hand_eye, self.robot = camera, hand_eye, robot
-        (self._tmp / "frames").mkdir()
-        self.timestamps: list[float] = []
-        self._samples: list[tuple[float, np.ndarray | None]] = []
+        self.timestamps: list[float] = []  # every frame queued (recording ids 0, 1, ...)
+        self.frames_written = 0  # frames on disk with their frames.csv row
+        self._valid_span: list[float] = []  # first and last valid sample time
+        self.samples_skipped = 0
+        self._last_sample = -np.inf
         self._lock = threading.Lock()
         self._queue: queue.Queue = queue.Queue(maxsize=max_queued)
         self._error: BaseException | None = None
         self._discard = False
+        self._finished = False
+        self._samples_fd: int | None = None
+        self._frames_fd: int | None = None
+        self._marker_fd: int | None = None
+        try:
+            self._marker_fd = _write_marker(self._tmp / MARKER, self.root, robot)
+            write_camera_yaml(self._tmp / "camera.yaml", camera)
+            if hand_eye is not None:
+                write_hand_eye(self._tmp / "hand_eye.txt", hand_eye)
+            (self._tmp / "frames").mkdir()
+            self._frames_fd = _open_table(self._tmp / "frames.csv", ["frame", "timestamp"])
+        except BaseException:
+            self._close_files()
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            raise
         self._writer = threading.Thread(target=self._write_loop, name="recorder", daemon=True)
         self._writer.start()
 
@@ -65,61 +110,108 @@ class DatasetRecorder:
                 raise self._error
             k = len(self.timestamps)
             self.timestamps.append(float(timestamp))
-        self._queue.put((k, image))
+        self._queue.put((k, image, float(timestamp)))
         return k
 
     def add_sample(self, timestamp: float, tracker_from_sensor: np.ndarray | None) -> None:
-        """A tracker sample (4x4 tracker_from_sensor, mm), or None: a missing one (valid=0)."""
+        """A tracker sample (4x4 tracker_from_sensor, mm), or None: a missing one (valid=0),
+        appended to tracking.csv (robot: a valid one's translation to robot.csv, µm). A sample
+        not after the previous one is not recorded (counted in `samples_skipped`; the OpenIGTLink
+        receiver does not pass them on)."""
+        t = float(timestamp)
+        M = None if tracker_from_sensor is None else np.asarray(tracker_from_sensor, float)
+        if self.robot:
+            if M is None:
+                return
+            row = [format_float(t), *(format_float(v) for v in M[:2, 3] * 1e3)]
+        elif M is None:
+            row = [format_float(t), *[""] * 7, "0"]
+        else:
+            q = _unit_quaternion(M[:3, :3])  # 3 µs (scipy's Rotation: ~100 µs per call)
+            row = [format_float(t), *(format_float(v) for v in (*M[:3, 3], *q)), "1"]
         with self._lock:
-            self._samples.append((float(timestamp), None if tracker_from_sensor is None
-                                  else np.asarray(tracker_from_sensor, float)))
+            if self._error is not None or self._finished or self._discard:
+                return
+            if not t > self._last_sample:  # tracking.csv is in time order
+                self.samples_skipped += 1
+                return
+            try:
+                if self._samples_fd is None:
+                    name, columns = (("robot.csv", ROBOT_COLUMNS) if self.robot else
+                                     ("tracking.csv", [*TRACKING_COLUMNS, "valid"]))
+                    self._samples_fd = _open_table(self._tmp / name, columns)
+                os.write(self._samples_fd, (",".join(row) + "\n").encode())
+            except OSError as exc:  # e.g. a full disk: the recording stops growing here
+                self._error = exc
+                return
+            self._last_sample = t
+            if M is not None:
+                self._valid_span = [self._valid_span[0] if self._valid_span else t, t]
 
     def valid_sample_span(self) -> tuple[float, float] | None:
         """(first, last) time of the valid tracker samples recorded; None without any."""
         with self._lock:
-            times = [t for t, m in self._samples if m is not None]
-        return (times[0], times[-1]) if times else None
+            return tuple(self._valid_span) if self._valid_span else None
+
+    @property
+    def finished(self) -> bool:
+        """Whether the recording is in place (`finish` done)."""
+        return self._finished
+
+    @property
+    def staging(self) -> Path:
+        """The folder the recording grows in (a readable dataset) until `finish`."""
+        return self._tmp
 
     def finish(self) -> Path:
-        """Waits for the frames to be written, writes the tables and renames the recording
-        into place; returns its folder. On failure the temporary folder is removed."""
-        try:
+        """Waits for the frames to be written and renames the recording into place; returns its
+        folder. SIGINT / SIGTERM / SIGHUP arriving meanwhile are handled once it is done. When a
+        frame or sample could not be written (e.g. a full disk), the frames written before are
+        kept all the same and ValueError says so; when even the rename fails, the recording stays
+        in the staging folder, named in the error. Calling it again returns the folder."""
+        with stop_signals_deferred():
+            if self._finished:
+                return self.root
             self._queue.put(None)
             self._writer.join()
-            if self._error is not None:
-                raise self._error
-            write_camera_yaml(self._tmp / "camera.yaml", self.camera)
-            write_table(self._tmp / "frames.csv", ["frame", "timestamp"],
-                        ([str(k), format_float(t)] for k, t in enumerate(self.timestamps)))
-            if self.robot:
-                kept = [(t, m[:2, 3] * 1e3) for t, m in self._samples if m is not None]
-                if kept:
-                    write_robot_csv(self._tmp / "robot.csv", RobotSamples(
-                        [t for t, _ in kept], np.array([xy for _, xy in kept])))
-            elif self._samples:
-                times = np.array([t for t, _ in self._samples])
-                valid = np.array([m is not None for _, m in self._samples])
-                T = np.stack([np.full((4, 4), np.nan) if m is None else m
-                              for _, m in self._samples])
-                q = np.full((len(times), 4), np.nan)
-                if valid.any():
-                    q[valid] = Rotation.from_matrix(T[valid, :3, :3]).as_quat()
-                write_tracking_csv(self._tmp / "tracking.csv", TrackingSamples(
-                    times, T[:, :3, 3], q, valid))
-            if self.hand_eye is not None:
-                write_hand_eye(self._tmp / "hand_eye.txt", self.hand_eye)
-            _replace_dir(self._tmp, self.root)
-        except BaseException:
-            self.abort()
-            raise
+            self._close_files(keep_marker=True)
+            error = self._error
+            if self.frames_written == 0 and error is not None:
+                self.abort()
+                raise ValueError(f"recording {self.root}: no frame could be written: "
+                                 f"{_describe(error)}") from None
+            try:
+                _replace_dir(self._tmp, self.root)
+            except OSError as exc:
+                raise ValueError(f"recording {self.root}: could not be moved into place "
+                                 f"({_describe(exc)}); the {self.frames_written} frame(s) "
+                                 f"recorded are in {self._tmp} (a dataset: rename it)") from None
+            self._finished = True
+            (self.root / MARKER).unlink(missing_ok=True)
+            self._close_files()
+        if error is not None:
+            raise ValueError(f"recording {self.root}: stopped after {self.frames_written} "
+                             f"frame(s) ({_describe(error)}); those are kept there") from None
         return self.root
 
     def abort(self) -> None:
         """Discards the recording (the frames still queued are not written)."""
+        if self._finished:
+            return
         self._discard = True
         self._queue.put(None)
         self._writer.join()
+        self._close_files()
         shutil.rmtree(self._tmp, ignore_errors=True)
+
+    def _close_files(self, keep_marker: bool = False) -> None:
+        with self._lock:
+            names = ["_frames_fd", "_samples_fd"] + ([] if keep_marker else ["_marker_fd"])
+            for name in names:
+                fd = getattr(self, name)
+                if fd is not None:
+                    setattr(self, name, None)
+                    os.close(fd)  # closing the marker releases its lock
 
     def _write_loop(self) -> None:
         while True:
@@ -128,11 +220,215 @@ class DatasetRecorder:
                 return
             if self._error is not None or self._discard:
                 continue
-            k, image = item
-            path = self._tmp / "frames" / f"{k:06d}.png"
+            k, image, t = item
+            name = f"{k:06d}.png"
+            part = self._tmp / "frames" / f".{k:06d}.part.png"  # hidden: not a frame yet
             try:  # fast PNG (level 1): the disk keeps up with the video
-                if not cv2.imwrite(str(path), image, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
-                    raise ValueError(f"{path}: cv2.imwrite failed")
+                if not cv2.imwrite(str(part), image, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+                    raise OSError(f"{part}: cv2.imwrite failed")
+                os.replace(part, part.with_name(name))
+                with self._lock:
+                    os.write(self._frames_fd, f"{k},{format_float(t)}\n".encode())
+                    self.frames_written += 1
             except BaseException as exc:
                 with self._lock:
                     self._error = exc
+
+
+def _unit_quaternion(R: np.ndarray) -> tuple[float, ...]:
+    """(x, y, z, w) of a rotation matrix (Shepperd's method, on the largest diagonal term)."""
+    (a, b, c), (d, e, f), (g, h, i) = R.tolist()
+    trace = a + e + i
+    if trace > 0:
+        s = 2.0 * math.sqrt(1.0 + trace)
+        q = ((h - f) / s, (c - g) / s, (d - b) / s, 0.25 * s)
+    elif a >= e and a >= i:
+        s = 2.0 * math.sqrt(1.0 + a - e - i)
+        q = (0.25 * s, (b + d) / s, (c + g) / s, (h - f) / s)
+    elif e >= i:
+        s = 2.0 * math.sqrt(1.0 + e - a - i)
+        q = ((b + d) / s, 0.25 * s, (f + h) / s, (c - g) / s)
+    else:
+        s = 2.0 * math.sqrt(1.0 + i - a - e)
+        q = ((c + g) / s, (f + h) / s, 0.25 * s, (d - b) / s)
+    norm = math.sqrt(sum(x * x for x in q))
+    return tuple(x / norm for x in q)
+
+
+def _describe(exc: BaseException) -> str:
+    return (exc.strerror or str(exc)) if isinstance(exc, OSError) else str(exc)
+
+
+def _open_table(path: Path, header: list[str]) -> int:
+    """A new CSV file with its header, open for appending rows (one unbuffered write each)."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_APPEND, 0o666)
+    try:
+        os.write(fd, (",".join(header) + "\n").encode())
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
+def _write_marker(path: Path, root: Path, robot: bool) -> int:
+    """Writes the staging folder's marker and keeps it open, locked: returns its descriptor."""
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o666)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        info = {"written_by": "fusedmosaic", "recording": str(Path(os.path.abspath(root))),
+                "name": root.name, "robot": robot, "pid": os.getpid(),
+                "host": socket.gethostname(), "started": time.time()}
+        os.write(fd, (json.dumps(info) + "\n").encode())
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
+@contextlib.contextmanager
+def stop_signals_deferred() -> Iterator[None]:
+    """SIGINT, SIGTERM and SIGHUP arriving during the block are handled after it, as they
+    would have been (the CLI turns the last two into KeyboardInterrupt; by default they end the
+    process): a recording is never cut in half. Signals ignored stay ignored. Only the main
+    thread can set handlers; elsewhere a no-op."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received: list[int] = []
+    previous = {}
+    for name in STOP_SIGNALS:
+        sig = getattr(signal, name, None)
+        if sig is None or signal.getsignal(sig) in (signal.SIG_IGN, None):
+            continue
+        previous[sig] = signal.signal(sig, lambda signum, frame: received.append(signum))
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    for sig in dict.fromkeys(received):  # each signal once, in the order they came
+        handler = previous[sig]
+        if callable(handler):
+            handler(sig, None)
+        elif sig == signal.SIGINT:
+            raise KeyboardInterrupt
+        else:
+            signal.raise_signal(sig)  # the default action, now that the recording is safe
+
+
+def recover_unfinished_recordings(folder: str | Path, name: str | None = None) -> list[str]:
+    """Recordings in `folder` whose session ended without finishing (its process was killed or
+    crashed: the staging folder's marker is no longer locked) become datasets: the last,
+    incomplete row or frame is dropped and the folder is renamed NAME.recovered-START (START:
+    when the session started; -2, -3, ... when taken). A leftover without a frame is removed.
+    Returns a message per folder, for the user: what was found and where it is now. A staging
+    folder of this recording's name without the marker (an older version's, frames without
+    timestamps, the recording `name` given) is named, not touched."""
+    folder = Path(folder)
+    notes: list[str] = []
+    try:
+        entries = sorted(folder.iterdir())
+    except OSError:
+        return notes
+    for entry in entries:
+        if not (entry.name.startswith(".") and ".tmp-" in entry.name and entry.is_dir()
+                and not entry.is_symlink()):
+            continue
+        if not (entry / MARKER).is_file():
+            if name is not None and entry.name.startswith(f".{name}.tmp-") and (
+                    entry / "frames").is_dir() and not (entry / "frames.csv").exists():
+                notes.append(f"{entry}: frames of an earlier recording into {folder / name} "
+                             "that never finished (an older version's, without timestamps: "
+                             "not a dataset); delete it unless a fusedmosaic process still "
+                             "writes there")
+            continue
+        try:
+            note = _recover(entry)
+        except (OSError, ValueError) as exc:
+            note = (f"{entry}: a live session's recording that ended without finishing; it "
+                    f"could not be recovered ({_describe(exc)}): its frames/ and .csv files "
+                    f"are there")
+        if note:
+            notes.append(note)
+    return notes
+
+
+def _recover(staging: Path) -> str | None:
+    """Recovers one staging folder (see recover_unfinished_recordings); None when its session
+    is still running."""
+    fd = os.open(staging / MARKER, os.O_RDONLY)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return None  # its session is running
+        try:
+            info = json.loads(os.read(fd, 1 << 16) or b"{}")
+        except ValueError:
+            info = {}
+        if not isinstance(info, dict):
+            info = {}
+        host = info.get("host")
+        if isinstance(host, str) and host != socket.gethostname():
+            return (f"{staging}: a live session recording made on {host} (not this machine: "
+                    f"it may still be running there) that looks unfinished; not touched. When "
+                    f"that session is over, rename this folder to use it as a dataset")
+        frames = _repair(staging)
+        name = str(info.get("name") or staging.name.lstrip(".").split(".tmp-")[0])
+        what = (f"a live session recording into {staging.parent / name}"
+                + (f" (process {info['pid']}, started {_local_time(info['started'])})"
+                   if isinstance(info.get("pid"), int)
+                   and isinstance(info.get("started"), (int, float)) else ""))
+        if frames == 0:
+            shutil.rmtree(staging)
+            return f"{what} ended without finishing and without a frame; removed its {staging}"
+        start = info.get("started")
+        stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(
+            start if isinstance(start, (int, float)) else staging.stat().st_mtime))
+        target = staging.parent / f"{name}.recovered-{stamp}"
+        n = 2
+        while target.exists() or target.is_symlink():
+            target = staging.parent / f"{name}.recovered-{stamp}-{n}"
+            n += 1
+        os.replace(staging, target)
+        (target / MARKER).unlink(missing_ok=True)
+    finally:
+        os.close(fd)
+    method = "kalman-robot" if info.get("robot") else "ba-emt"
+    return (f"{what} ended without finishing (killed or crashed); its {frames} frame(s) are "
+            f"recovered as the dataset {target} (re-run it offline: fusedmosaic run {target} "
+            f"--method {method} --out OUT --allow-untracked)")
+
+
+def _local_time(t: float) -> str:
+    return time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(t))
+
+
+def _repair(staging: Path) -> int:
+    """Makes a killed session's staging folder a consistent dataset: the .csv files end at their
+    last complete row, the frames are those with a frames.csv row (a frame being written is
+    dropped). Returns the number of frames."""
+    for name in ("frames.csv", "tracking.csv", "robot.csv"):
+        path = staging / name
+        if path.is_file():
+            data = path.read_bytes()
+            if data and not data.endswith(b"\n"):
+                with path.open("r+b") as f:
+                    f.truncate(data.rfind(b"\n") + 1)
+    rows = 0
+    table = staging / "frames.csv"
+    if table.is_file():
+        rows = max(0, len(table.read_bytes().splitlines()) - 1)
+    images = staging / "frames"
+    present = 0
+    if images.is_dir():
+        for path in images.iterdir():
+            stem = path.name.removesuffix(".png")
+            if path.name.startswith(".") or not stem.isdigit() or int(stem) >= rows:
+                path.unlink()  # a frame being written, or written but without its row
+        while (images / f"{present:06d}.png").is_file():
+            present += 1
+    if present < rows:  # (rows are appended after their frame: not expected)
+        lines = table.read_bytes().splitlines(keepends=True)
+        table.write_bytes(b"".join(lines[:present + 1]))
+    return min(rows, present)
