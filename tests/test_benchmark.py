@@ -78,3 +78,32 @@ def test_bad_json_destination_is_refused_before_measuring(monkeypatch, tmp_path,
     assert main(["bench", "--json", str(blocker / "b.json")]) == 2
     assert f"{blocker}: exists and is not a folder" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+def test_json_replaces_only_a_bench_result(tmp_path):
+    """`bench --json FILE` replaced any file of that name (a user's notes included): only a
+    bench result fusedmosaic wrote (recorded in the folder's output manifest, or an older
+    version's, recognised by its content) is replaced now."""
+    result = {"checks": [{"name": "pcle_frames_per_s", "ok": True}], "machine": {"cores": 2},
+              "all_ok": True}
+    mine = tmp_path / "notes.json"
+    mine.write_text('{"my": "notes"}')
+    with pytest.raises(ValueError, match=r"notes\.json: exists and is not a bench result "
+                                         r"fusedmosaic wrote; choose another file name"):
+        benchmark.check_json_destination(mine)
+    with pytest.raises(ValueError, match=r"notes\.json: exists and is not a bench result"):
+        benchmark.write_json(mine, result)
+    assert json.loads(mine.read_text()) == {"my": "notes"}
+    out = benchmark.write_json(tmp_path / "bench.json", result)  # new: written and recorded
+    assert json.loads(out.read_text()) == result
+    result["all_ok"] = False
+    benchmark.write_json(out, result)  # recorded: replaced
+    assert json.loads(out.read_text())["all_ok"] is False
+    older = tmp_path / "old_bench.json"  # a result written before the record existed
+    older.write_text(json.dumps(result))
+    assert benchmark.check_json_destination(older) == older
+    with pytest.raises(ValueError, match=r": is a folder; give a file name"):
+        benchmark.check_json_destination(tmp_path)
+    with pytest.raises(ValueError, match=r"b\.json: .*notes\.json: exists and is not a folder"):
+        benchmark.check_json_destination(mine / "b.json")
+

@@ -21,6 +21,7 @@ sequences, memory growth, solver comparison) and write the figures quoted in the
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import resource
@@ -52,7 +53,8 @@ class BenchOptions:
     """What ``fusedmosaic bench`` measures. frames: SYN frames streamed (the steady part starts
     ``STEADY_AFTER_STARTUP`` frames after the start-up adjustment's 40, so at least 60);
     detector: "orb" (the live choice) or "sift"; pcle_frames: pCLE frames (>= 10); offline:
-    also time BA+EMT over 150 frames (about a minute more); seed: the simulations' seed."""
+    also time BA+EMT over 150 frames (~10 s more: features and matching of the 150
+    frames, then the optimisation); seed: the simulations' seed."""
 
     frames: int = 300
     detector: str = "orb"
@@ -301,6 +303,54 @@ _LABELS = {
     "pcle_frames_per_s": "kalman-robot end to end (frames/s)",
     "ba_emt_optimisation_s": "ba-emt optimisation, 150 frames (s)",
 }
+
+
+def json_record(path: str | Path) -> str:
+    """The output-manifest key under which `write_json` records ``path`` in its folder."""
+    return f"bench:{Path(path).name}"
+
+
+def check_json_destination(path: str | Path) -> Path:
+    """Where ``fusedmosaic bench --json PATH`` writes, checked before measuring: a file name in
+    a folder that exists and can be written, and not a file fusedmosaic did not write there: an
+    existing file is replaced only when the folder's output manifest (io.output) records it as
+    a bench result, or it is one from a version before that record (a JSON object with
+    "checks" and "machine"). ValueError starting with the path otherwise."""
+    from fusedmosaic.io.output import check_output_dir, read_json_object, read_manifest
+
+    path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{path}: is a folder; give a file name, e.g. {path / 'bench.json'}")
+    try:
+        check_output_dir(path.parent, "folder of the bench JSON", create_parent=False)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+    if not (path.exists() or path.is_symlink()):
+        return path
+    entry = (read_manifest(path.parent) or {}).get(json_record(path))
+    if entry is not None and path.name in entry["files"]:
+        return path
+    try:
+        older = read_json_object(path)
+    except (OSError, ValueError):
+        older = {}
+    if not (isinstance(older.get("checks"), list) and isinstance(older.get("machine"), dict)):
+        raise ValueError(f"{path}: exists and is not a bench result fusedmosaic wrote; choose "
+                         "another file name, or move that file")
+    return path
+
+
+def write_json(path: str | Path, result: dict) -> Path:
+    """Writes run_benchmark's result to ``path`` atomically, recorded in the folder's output
+    manifest so that a later write replaces it and nothing else (check_json_destination: call
+    it before measuring too)."""
+    from fusedmosaic.io.output import OutputWriter
+
+    path = check_json_destination(path)
+
+    with OutputWriter(path.parent, record=json_record(path)) as w:
+        w.write_text(path.name, json.dumps(result, indent=2, allow_nan=True) + "\n")
+    return path
 
 
 def format_benchmark(result: dict) -> str:
