@@ -2,7 +2,9 @@
 black frames, hand-held motion, pCLE contact events measured on the images, determinism, and the
 written datasets read back through fusedmosaic.io."""
 
+import dataclasses
 import json
+import re
 
 import cv2
 import numpy as np
@@ -10,19 +12,24 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from fusedmosaic import _core
+from fusedmosaic.cli import main
 from fusedmosaic.io import TrackingSamples, interpolate_camera_poses, read_dataset
 from fusedmosaic.simulation import (
     PAPER_BLACK_FRAMES,
+    CheckerboardOptions,
     FetoscopyOptions,
     PcleOptions,
     cell_texture,
     fibre_bundle_pattern,
+    generate_checkerboard,
     generate_fetoscopy,
     generate_pcle,
     placenta_texture,
+    simulate_checkerboard,
     simulate_fetoscopy,
     simulate_pcle,
 )
+from fusedmosaic.simulation._lens import on_inner_branch
 
 # Small scenes: 24 frames, laps scaled so consecutive frames keep the default ~40 px step.
 SYN = FetoscopyOptions(n_frames=24, laps=24 / 150 * 4, seed=3)
@@ -242,6 +249,100 @@ def test_bad_fetoscopy_options_raise(options, match):
 def test_bad_pcle_options_raise(options, match):
     with pytest.raises(ValueError, match=match):
         generate_pcle(options)
+
+
+# Every float option of every simulator, NaN and +-inf: refused by name before any work.
+_GENERATORS = {FetoscopyOptions: generate_fetoscopy, PcleOptions: generate_pcle,
+               CheckerboardOptions: generate_checkerboard}
+_FLOAT_OPTIONS = [(cls, f.name) for cls in _GENERATORS for f in dataclasses.fields(cls)
+                  if isinstance(f.default, float)]
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), -float("inf")])
+@pytest.mark.parametrize("cls, name", _FLOAT_OPTIONS,
+                         ids=[f"{c.__name__}.{n}" for c, n in _FLOAT_OPTIONS])
+def test_non_finite_float_options_are_refused_by_name(cls, name, value):
+    with pytest.raises(ValueError, match=rf"^{cls.__name__}\.{name}: must be a finite number, "
+                                         rf"got {value}$"):
+        _GENERATORS[cls](cls(**{name: value}))
+
+
+def test_float_options_cover_the_audited_ones():
+    names = {f"{c.__name__}.{n}" for c, n in _FLOAT_OPTIONS}
+    assert {"CheckerboardOptions.tracker_delay_s", "CheckerboardOptions.tracker_offset_s",
+            "CheckerboardOptions.hand_eye_rot_deg", "CheckerboardOptions.hand_eye_offset_mm",
+            "CheckerboardOptions.k1", "FetoscopyOptions.hand_eye_rot_deg",
+            "FetoscopyOptions.hand_eye_offset_mm", "PcleOptions.robot_offset_s"} <= names
+    assert len(_FLOAT_OPTIONS) > 60
+
+
+@pytest.mark.parametrize(
+    "kind, flags, message",
+    [
+        ("checkerboard", ["--tracker-delay-s", "nan"], "--tracker-delay-s: must be a finite num"),
+        ("checkerboard", ["--tracker-offset-s", "nan"], "--tracker-offset-s: must be a finite "),
+        ("checkerboard", ["--hand-eye-rot-deg", "nan"], "--hand-eye-rot-deg: must be a finite "),
+        ("checkerboard", ["--k1", "nan"], "--k1: must be a finite number, got nan"),
+        ("checkerboard", ["--k1", "-5"],
+         r"--k1, --k2, --p1, --p2: \[-5\.0, 0\.1, 0\.0008, -0\.0005\] is not invertible over "
+         r"the 480x480 frame \(the model folds over\)"),
+        ("checkerboard", ["--fisheye", "-3", "0", "0", "0"],
+         r"--fisheye: \[-3\.0, 0\.0, 0\.0, 0\.0\] is not invertible over the 480x480 frame"),
+        ("checkerboard", ["--tracker-delay-s", "11"], r"--tracker-delay-s: must be within \+-10 s"),
+        ("checkerboard", ["--hand-eye-rot-deg", "1e300"], r"--hand-eye-rot-deg: must be within"),
+        ("checkerboard", ["--tracker-rate-hz", "1e300"],
+         r"--tracker-rate-hz: 1e\+300 Hz over the 0\.92 s of the frames .* samples; at "
+         r"most 1e\+07"),
+        ("checkerboard", ["--fps", "1e-300"], r"--fps: 24 frames at 1e-300 fps span"),
+        ("fetoscopy", ["--hand-eye-offset-mm", "nan"], "--hand-eye-offset-mm: must be a finite"),
+        ("fetoscopy", ["--hand-eye-offset-mm", "2000"], r"--hand-eye-offset-mm: must be within"),
+        ("fetoscopy", ["--tracker-offset-s", "1e6"], r"--tracker-offset-s: must be within"),
+        ("pcle", ["--robot-rate-hz", "1e-300"], r"--robot-rate-hz: 1e-300 Hz .* beyond the "),
+    ],
+)
+def test_simulate_refuses_bad_options_naming_the_flag_and_writes_nothing(
+        kind, flags, message, tmp_path, capsys):
+    out = tmp_path / "sim"
+    size = {"checkerboard": ["--n-views", "3"], "fetoscopy": ["--n-frames", "3"],
+            "pcle": ["--n-frames", "3"]}[kind]
+    assert main(["simulate", kind, str(out), *size, *flags, "--quiet"]) == 2
+    assert re.search(message, capsys.readouterr().err)
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_checkerboard_lens_gets_the_fetoscopy_invertibility_check(tmp_path):
+    """The same lens is refused by both simulators with the same reason, through the API."""
+    lens = [-3.0, 0.0, 0.0, 0.0]
+    with pytest.raises(ValueError, match=r"^FetoscopyOptions\.lens_distortion: \[-3\.0, 0\.0, "
+                                         r"0\.0, 0\.0\] is not invertible over the 400x400 frame"):
+        generate_fetoscopy(FetoscopyOptions(n_frames=3, lens_distortion=lens))
+    with pytest.raises(ValueError, match=r"^CheckerboardOptions\.k1, CheckerboardOptions\.k2, "
+                                         r"CheckerboardOptions\.p1, CheckerboardOptions\.p2: "
+                                         r"\[-3\.0, 0\.0, 0\.0, 0\.0\] is not invertible over "
+                                         r"the 400x400 frame"):
+        simulate_checkerboard(tmp_path / "cb", CheckerboardOptions(
+            width=400, height=400, k1=-3.0, k2=0.0, p1=0.0, p2=0.0, n_views=3))
+    assert not (tmp_path / "cb").exists()
+
+
+def test_points_beyond_the_lens_fold_are_not_on_the_inner_branch():
+    """k1 -0.5: r_d = r (1 - 0.5 r^2) peaks at r = 0.816; a point at r = 1.25 projects to
+    r_d = 0.273, inside the frame, but the frame shows the ray at r = 0.29 there."""
+    K = np.array([[480.0, 0, 150], [0, 480.0, 150], [0, 0, 1]])
+    d = np.array([-0.5, 0.0, 0.0, 0.0])
+    points = np.array([[0.3, 0.0, 1.0], [1.25, 0.0, 1.0]])
+    uv = cv2.projectPoints(points, np.zeros(3), np.zeros(3), K, d)[0].reshape(-1, 2)
+    assert 0 <= uv[1, 0] < 300  # both in a 300 x 300 frame
+    assert on_inner_branch(uv[:1], points[:1], K, d, "pinhole")
+    assert not on_inner_branch(uv[1:], points[1:], K, d, "pinhole")
+    assert not on_inner_branch(uv, points, K, d, "pinhole")
+
+
+def test_fetoscopy_frame_lists_must_be_whole_numbers():
+    for name, value in (("tracker_gap", [1, float("nan")]), ("black_frames", [2.5])):
+        with pytest.raises(ValueError, match=rf"^FetoscopyOptions\.{name}: expected frame "
+                                             r"indices \(whole numbers\)"):
+            generate_fetoscopy(FetoscopyOptions(n_frames=5, **{name: value}))
 
 
 # -- determinism -----------------------------------------------------------------------------

@@ -36,10 +36,17 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from fusedmosaic.io.calibration import project_points, undistort_points
-from fusedmosaic.simulation._options import check_signs
+from fusedmosaic.io.calibration import project_points
+from fusedmosaic.simulation._lens import ideal_pixel_grid, on_inner_branch
+from fusedmosaic.simulation._options import (
+    check_hand_eye,
+    check_signs,
+    check_time_offsets,
+    frame_times,
+    sample_times,
+)
 from fusedmosaic.simulation._options import option as _opt
-from fusedmosaic.simulation.fetoscopy import _tracker_times, default_hand_eye, pose_matrix
+from fusedmosaic.simulation.fetoscopy import default_hand_eye, pose_matrix
 
 SUPERSAMPLE = 3  # samples per pixel side when rendering (anti-aliased board edges)
 TEXTURE_PX_PER_SQUARE = 96  # board texture resolution
@@ -86,7 +93,9 @@ class CheckerboardOptions:
     seed: int = _opt(0, "seed of every random draw (views, noise)")
 
     def validate(self) -> None:
-        """Raise ValueError naming the first bad option."""
+        """Raise ValueError naming the first bad option (every number finite, signs and
+        ranges; the lens's invertibility over the frame is checked by generate_checkerboard,
+        which builds the camera matrix)."""
         name = type(self).__name__
         for key, low in (("board_cols", 2), ("board_rows", 2), ("n_views", 1),
                          ("frames_per_view", 2), ("width", 64), ("height", 64)):
@@ -96,6 +105,8 @@ class CheckerboardOptions:
                                     "tracker_rate_hz"),
                     non_negative=("rot_sigma_deg", "trans_sigma_mm", "image_noise_sigma",
                                   "tracker_margin_s", "tilt_deg", "roll_deg"))
+        check_time_offsets(self, "tracker_offset_s", "tracker_delay_s")
+        check_hand_eye(self)
         if not 0 <= self.distance_variation < 0.9:
             raise ValueError(f"{name}.distance_variation: must be in [0, 0.9), "
                              f"got {self.distance_variation}")
@@ -110,6 +121,12 @@ class CheckerboardOptions:
     def lens_model(self) -> str:
         return "pinhole" if self.fisheye is None else "fisheye"
 
+    @property
+    def lens_options(self) -> str:
+        """The options that set the lens coefficients, as error messages name them."""
+        names = ("fisheye",) if self.fisheye is not None else ("k1", "k2", "p1", "p2")
+        return ", ".join(f"{type(self).__name__}.{n}" for n in names)
+
 
 @dataclass(eq=False)
 class CheckerboardScene:
@@ -118,7 +135,9 @@ class CheckerboardScene:
     camera_matrix (3, 3), distortion (4,) k1 k2 p1 p2 (fisheye: k1..k4): the true
     intrinsics; hand_eye (4, 4) sensor_from_camera; tracker_from_board (4, 4); timestamps (N,)
     frame times; cam_from_board (N, 4, 4) true camera poses; resting (N,) frames at a view (the
-    board fully visible); tracker_timestamps (M,), tracker_from_sensor (M, 4, 4) noisy samples.
+    board fully visible); tracker_timestamps (M,), tracker_from_sensor (M, 4, 4) noisy samples;
+    ideal_pixels (3 H, 3 W, 2): the ideal (pinhole) pixel of every raw sub-pixel sample the
+    frames are rendered from (SUPERSAMPLE per side).
     """
 
     options: CheckerboardOptions
@@ -131,6 +150,7 @@ class CheckerboardScene:
     resting: np.ndarray
     tracker_timestamps: np.ndarray
     tracker_from_sensor: np.ndarray
+    ideal_pixels: np.ndarray | None = None
 
     def board_points(self) -> np.ndarray:
         """(rows * cols, 3) inner corners in the board frame, row by row (mm)."""
@@ -143,10 +163,11 @@ class CheckerboardScene:
         o = self.options
         texture, mm_per_px, origin_mm = _board_texture(o)
         s = SUPERSAMPLE
-        v, u = np.mgrid[0:o.height * s, 0:o.width * s].astype(np.float64)
-        pixels = np.stack([(u + 0.5) / s - 0.5, (v + 0.5) / s - 0.5], -1).reshape(-1, 1, 2)
-        rays = undistort_points(pixels, self.camera_matrix, self.distortion, o.lens_model)
-        rays = np.hstack([rays, np.ones((rays.shape[0], 1))])
+        if self.ideal_pixels is None:
+            self.ideal_pixels = _ideal_pixels(o, self.camera_matrix, self.distortion)
+        ideal = self.ideal_pixels.reshape(-1, 2)
+        rays = np.linalg.solve(self.camera_matrix,
+                               np.hstack([ideal, np.ones((len(ideal), 1))]).T).T
         rng = np.random.default_rng([o.seed, 4])
         for T in self.cam_from_board:
             # Ray (x, y, 1) meets the board at (bx, by, 1) ~ [r1 r2 t]^-1 (x, y, 1).
@@ -182,9 +203,17 @@ def _board_texture(o: CheckerboardOptions) -> tuple[np.ndarray, float, np.ndarra
     return texture, mm_per_px, origin_mm
 
 
+def _ideal_pixels(o: CheckerboardOptions, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """The ideal pixel behind every raw sub-pixel sample; ValueError naming the lens options
+    when the lens model folds over within the frame (the check simulate fetoscopy makes)."""
+    return ideal_pixel_grid(K, dist, o.lens_model, o.width, o.height, SUPERSAMPLE,
+                            o.lens_options)
+
+
 def _random_view(o: CheckerboardOptions, K, dist, rng, corners) -> np.ndarray:
     """cam_from_board of a random view that sees every inner corner (with a margin of 4 % of
-    the image), ValueError if none is found."""
+    the image; a corner beyond the lens model's fold that projects into the image is not
+    seen there), ValueError if none is found."""
     centre = corners.mean(0)
     extent = corners.max(0) - corners.min(0)
     margin = 0.04 * min(o.width, o.height)
@@ -201,7 +230,8 @@ def _random_view(o: CheckerboardOptions, K, dist, rng, corners) -> np.ndarray:
         t = -R.apply(position)
         uv = project_points(corners, K, dist, o.lens_model, R.as_rotvec(), t)
         if (uv.min() >= margin and uv[:, 0].max() <= o.width - 1 - margin
-                and uv[:, 1].max() <= o.height - 1 - margin):
+                and uv[:, 1].max() <= o.height - 1 - margin
+                and on_inner_branch(uv, R.apply(corners) + t, K, dist, o.lens_model)):
             T = np.eye(4)
             T[:3, :3], T[:3, 3] = R.as_matrix(), t
             return T
@@ -244,14 +274,15 @@ def generate_checkerboard(options: CheckerboardOptions | None = None) -> Checker
                                                            o.hand_eye_offset_mm),
                               TRACKER_FROM_BOARD.copy(), np.empty(0), np.empty((0, 4, 4)),
                               np.empty(0, bool), np.empty(0), np.empty((0, 4, 4)))
+    scene.ideal_pixels = _ideal_pixels(o, K, dist)  # before anything else: the lens is usable
     corners = scene.board_points()
     views = np.stack([_random_view(o, K, dist, rng, corners) for _ in range(o.n_views)])
     period = o.frames_per_view / o.fps
-    scene.timestamps = np.arange(o.n_views * o.frames_per_view) / o.fps
+    scene.timestamps = frame_times(o, o.n_views * o.frames_per_view)
     scene.cam_from_board, scene.resting = _path(views, period, scene.timestamps)
 
     # tracker_from_sensor = tracker_from_board @ board_from_cam @ cam_from_sensor, then noise.
-    scene.tracker_timestamps = _tracker_times(o, float(scene.timestamps[-1]))
+    scene.tracker_timestamps = sample_times(o, "tracker", float(scene.timestamps[-1]))
     cam_from_board, _ = _path(views, period, scene.tracker_timestamps)
     truth = TRACKER_FROM_BOARD @ np.linalg.inv(cam_from_board) @ np.linalg.inv(scene.hand_eye)
     noise = np.random.default_rng([o.seed, 3]).normal(size=(truth.shape[0], 6))

@@ -34,8 +34,16 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from fusedmosaic.io.calibration import LENS_MODELS, project_points, undistort_points
-from fusedmosaic.simulation._options import check_signs
+from fusedmosaic.io.calibration import LENS_MODELS
+from fusedmosaic.simulation._lens import ideal_pixel_grid
+from fusedmosaic.simulation._options import (
+    check_frame_list,
+    check_hand_eye,
+    check_signs,
+    check_time_offsets,
+    frame_times,
+    sample_times,
+)
 from fusedmosaic.simulation._options import option as _opt
 from fusedmosaic.simulation.textures import placenta_texture
 
@@ -126,6 +134,8 @@ class FetoscopyOptions:
                 "step_px",
             ),
         )
+        check_time_offsets(self, "tracker_offset_s")
+        check_hand_eye(self)
         if not 0 <= self.distance_variation < 0.9:
             raise ValueError(
                 f"FetoscopyOptions.distance_variation: must be in [0, 0.9), "
@@ -136,13 +146,15 @@ class FetoscopyOptions:
                 f"FetoscopyOptions.tilt_deg: must be below 60 deg, got {self.tilt_deg}"
             )
         if self.black_frames is not None:
-            bad = [k for k in self.black_frames if not 0 <= int(k) < self.n_frames]
+            bad = [k for k in check_frame_list(self, "black_frames")
+                   if not 0 <= k < self.n_frames]
             if bad:
                 raise ValueError(
                     f"FetoscopyOptions.black_frames: frame {bad[0]} outside 0..{self.n_frames - 1}"
                 )
         if self.tracker_gap is not None:
-            if len(self.tracker_gap) != 2 or self.tracker_gap[0] > self.tracker_gap[1]:
+            gap = check_frame_list(self, "tracker_gap")
+            if len(gap) != 2 or gap[0] > gap[1]:
                 raise ValueError(
                     "FetoscopyOptions.tracker_gap: expected [first, last] frames, "
                     f"got {self.tracker_gap}"
@@ -414,15 +426,6 @@ class FetoscopyScene:
             yield self.render(k, noise=noise)
 
 
-def _tracker_times(o: FetoscopyOptions, t_last: float) -> np.ndarray:
-    """Tracker sample times on its own clock: period 1/rate, phase tracker_offset_s, covering
-    [-margin, t_last + margin]."""
-    period = 1.0 / o.tracker_rate_hz
-    j0 = np.floor((-o.tracker_margin_s - o.tracker_offset_s) / period)
-    j1 = np.ceil((t_last + o.tracker_margin_s - o.tracker_offset_s) / period)
-    return o.tracker_offset_s + np.arange(j0, j1 + 1) * period
-
-
 def generate_fetoscopy(options: FetoscopyOptions | None = None) -> FetoscopyScene:
     """Build a fetoscopy scene (poses, plane, K, timestamps, tracker samples, ground truth and a
     lazy frame renderer) without touching the disk."""
@@ -446,7 +449,7 @@ def generate_fetoscopy(options: FetoscopyOptions | None = None) -> FetoscopyScen
     plane = -e3 / float(e3 @ P0) + 0.0  # n·X + d = 0 with n = e3, d = -e3·P0; π = n/d
 
     traj = _Trajectory(o, R_p, P0, rng)
-    timestamps = np.arange(o.n_frames) / o.fps
+    timestamps = frame_times(o, o.n_frames)
     poses = traj.poses(timestamps) + 0.0  # (+ 0.0 turns -0.0 into 0.0 in the files)
     G = frame_to_reference_truth(poses, plane, K)
 
@@ -486,7 +489,7 @@ def generate_fetoscopy(options: FetoscopyOptions | None = None) -> FetoscopyScen
 
     # EM tracker: truth at its own times, noise on [r, t] of cam_from_world, then
     # tracker_from_sensor = world_from_cam @ cam_from_sensor.
-    t_tr = _tracker_times(o, float(timestamps[-1]))
+    t_tr = sample_times(o, "tracker", float(timestamps[-1]))
     truth_tr = traj.poses(t_tr)
     sigma = o.noise_multiplier * np.array(
         [np.deg2rad(o.rot_sigma_deg)] * 3 + [o.trans_sigma_mm] * 3
@@ -540,22 +543,9 @@ LENS_SUPERSAMPLE = 3
 
 def _ideal_pixels(o: FetoscopyOptions, K: np.ndarray) -> np.ndarray:
     """(S H, S W, 2) ideal pixel of every raw sub-pixel sample (S = LENS_SUPERSAMPLE) through
-    the lens (OpenCV's standard or fisheye model, iterated to convergence); refuses a lens
-    whose model folds over within the frame."""
-    d = np.asarray(o.lens_distortion, np.float64)
-    S = LENS_SUPERSAMPLE
-    v, u = np.mgrid[0:o.height * S, 0:o.width * S].astype(np.float64)
-    raw = np.stack([(u + 0.5) / S - 0.5, (v + 0.5) / S - 0.5], -1).reshape(-1, 2)
-    ideal = undistort_points(raw, K, d, o.lens_model, P=K, criteria=(
-        cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 60, 1e-12))
-    rays = np.linalg.solve(K, np.hstack([ideal, np.ones((len(ideal), 1))]).T).T
-    back = project_points(rays, K, d, o.lens_model)
-    if not np.all(np.abs(back - raw) < 1e-3):
-        raise ValueError(
-            f"FetoscopyOptions.lens_distortion: {d.tolist()} is not invertible over the "
-            f"{o.width}x{o.height} frame (the model folds over); use a milder lens"
-        )
-    return ideal.reshape(o.height * S, o.width * S, 2)
+    the lens; refuses a lens whose model folds over within the frame (_lens.ideal_pixel_grid)."""
+    return ideal_pixel_grid(K, np.asarray(o.lens_distortion, np.float64), o.lens_model,
+                            o.width, o.height, LENS_SUPERSAMPLE, "FetoscopyOptions.lens_distortion")
 
 
 # --------------------------------------------------------------------------------------------

@@ -36,7 +36,12 @@ import cv2
 import numpy as np
 from scipy.special import erf
 
-from fusedmosaic.simulation._options import check_signs
+from fusedmosaic.simulation._options import (
+    check_signs,
+    check_time_offsets,
+    frame_times,
+    sample_times,
+)
 from fusedmosaic.simulation._options import option as _opt
 from fusedmosaic.simulation.textures import cell_texture, fibre_bundle_pattern
 
@@ -122,6 +127,7 @@ class PcleOptions:
                 "spiral_inner_um",
             ),
         )
+        check_time_offsets(self, "robot_offset_s")
         if self.trajectory == "spiral" and not self.spiral_inner_um < self.radius_um:
             raise ValueError(
                 f"PcleOptions.spiral_inner_um: must be below radius_um "
@@ -316,13 +322,6 @@ class PcleScene:
             yield self.render(k)
 
 
-def _sample_times(rate: float, offset: float, margin: float, t_last: float) -> np.ndarray:
-    period = 1.0 / rate
-    j0 = np.floor((-margin - offset) / period)
-    j1 = np.ceil((t_last + margin - offset) / period)
-    return offset + np.arange(j0, j1 + 1) * period
-
-
 def generate_pcle(options: PcleOptions | None = None) -> PcleScene:
     """Build a pCLE scene (robot path, contact events, true positions, robot samples and a lazy
     frame renderer) without touching the disk."""
@@ -331,11 +330,11 @@ def generate_pcle(options: PcleOptions | None = None) -> PcleScene:
     follow = _PathFollower(robot_path(o))
     speed = o.speed_um_per_frame * o.fps  # µm/s
     n = o.n_frames or int(np.floor(follow.length / o.speed_um_per_frame)) + 1
-    timestamps = np.arange(n) / o.fps
+    timestamps = frame_times(o, n)
     t_last = float(timestamps[-1])
 
     # Robot samples and a fine grid for the contact dynamics, both covering the margins.
-    t_robot = _sample_times(o.robot_rate_hz, o.robot_offset_s, o.robot_margin_s, t_last)
+    t_robot = sample_times(o, "robot", t_last)
     dt = 1e-3
     t_fine = np.arange(min(t_robot[0], 0.0) - dt, max(t_robot[-1], t_last) + 2 * dt, dt)
     xy_fine = follow(speed * t_fine)
