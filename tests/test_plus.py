@@ -409,6 +409,88 @@ def test_bad_transforms_camera_and_hand_eye(tmp_path):
     _refused(tmp_path, _small(tmp_path, image_ok=[False] * FN), "no frame has ImageStatus OK")
 
 
+def test_auto_transform_message_reads_right_for_the_cli_and_python(tmp_path, capsys):
+    """The 'name it' hint gives the flag and the keyword, with a field of the file as example."""
+    from fusedmosaic.cli import main
+
+    two = {"SensorToTracker": np.tile(np.eye(4), (FN, 1, 1)),
+           "StylusToTracker": np.tile(np.eye(4), (FN, 1, 1))}
+    path = _small(tmp_path, transforms=two)
+    _refused(tmp_path, path, r"name the transform to import, e\.g\. --transform SensorToTracker "
+             r"\(transform='SensorToTracker' in Python; a transform stored the other way round "
+             r"is inverted\)$", transform=None)
+    assert main(["import", str(path), str(tmp_path / "cli"), "--transform", "auto"]) == 2
+    assert "e.g. --transform SensorToTracker (transform=" in capsys.readouterr().err
+    assert not (tmp_path / "cli").exists()
+
+
+def test_video_without_transform_fields_is_imported_without_tracking(tmp_path, capsys):
+    """A recording without a tracker (no transform field at all) becomes a dataset without
+    tracking.csv, said in the summary, whatever transform names; calibrate-style reading works.
+    With transforms present, a name that is not among them is still refused."""
+    from fusedmosaic.cli import main
+
+    path = _small(tmp_path, transforms={})
+    assert read_plus_sequence(path).transforms == {}
+    for transform in ("SensorToTracker", None, "ProbeToTracker"):
+        out = tmp_path / f"ds_{transform}"
+        summary = import_plus_sequence(path, out, camera=None, transform=transform)
+        assert summary.transform is None and not summary.inverted
+        assert summary.frames == FN and summary.invalid_samples == []
+        assert sorted(p.name for p in out.iterdir()) == ["camera.yaml", "frames", "frames.csv"]
+        assert "no tracking.csv: the sequence has no transform field" in str(summary)
+        ds = read_dataset(out)
+        assert ds.tracking is None and len(ds) == FN
+        np.testing.assert_array_equal(ds.timestamps, np.arange(FN) / 25.0)
+    _refused(tmp_path, path, r"transform name must be a non-empty string, got ''", transform="")
+    assert main(["import", str(path), str(tmp_path / "cli")]) == 0
+    assert "; no tracking.csv: the sequence has no transform field" in capsys.readouterr().out
+    assert not (tmp_path / "cli" / "tracking.csv").exists()
+    _refused(tmp_path, _small(tmp_path), "no ProbeToTrackerTransform field",
+             transform="ProbeToTracker")
+
+
+@pytest.mark.parametrize("suffix", [".mha", ".mhd"])
+def test_non_ascii_names_round_trip(tmp_path, suffix):
+    """The header is UTF-8: a name with accents or spaces is written and read back."""
+    folder = tmp_path / "données ü"
+    folder.mkdir()
+    images = (np.arange(FN * FH * FW) % 10).astype(np.uint8).reshape(FN, FH, FW)
+    path = write_plus_sequence(folder / f"rec ü{suffix}", images, np.arange(FN) / 25.0,
+                               {"SensorToTracker": np.tile(np.eye(4), (FN, 1, 1))})
+    if suffix == ".mhd":
+        assert "ElementDataFile = rec ü.raw\n".encode() in path.read_bytes()
+        assert (folder / "rec ü.raw").is_file()
+    np.testing.assert_array_equal(read_plus_sequence(path).images, images)
+    summary = import_plus_sequence(path, tmp_path / "ds", camera=None)
+    assert summary.frames == FN and (tmp_path / "ds" / "tracking.csv").is_file()
+
+
+@pytest.mark.parametrize("encoding", ["utf-8", "latin-1"], ids=["utf8", "windows"])
+def test_data_file_name_in_utf8_or_the_windows_code_page(tmp_path, encoding):
+    """ElementDataFile naming 'données ü.raw' in UTF-8 (PLUS on Linux, this writer) or in the
+    ANSI code page (PLUS on Windows: not valid UTF-8, read as latin-1) finds the data file."""
+    path = _small(tmp_path, ".mhd")
+    images = read_plus_sequence(path).images.copy()
+    (tmp_path / "rec.raw").rename(tmp_path / "données ü.raw")
+    data = path.read_bytes().replace(b"ElementDataFile = rec.raw",
+                                     "ElementDataFile = données ü.raw".encode(encoding))
+    assert data.count("données ü.raw".encode(encoding)) == 1
+    (tmp_path / "named.mhd").write_bytes(data)
+    seq = read_plus_sequence(tmp_path / "named.mhd")
+    assert seq.header["ElementDataFile"] == "données ü.raw"
+    np.testing.assert_array_equal(seq.images, images)
+
+
+def test_mhd_names_the_header_cannot_hold_are_refused(tmp_path):
+    images = np.zeros((FN, FH, FW), np.uint8)
+    for name, match in ((" rec.mhd", "leading or trailing spaces"),
+                        ("rec\udcff.mhd", "not valid Unicode text")):
+        with pytest.raises(ValueError, match=match):
+            write_plus_sequence(tmp_path / name, images, np.arange(FN) / 25.0)
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_existing_folder_is_kept(tmp_path):
     out = tmp_path / "out"
     out.mkdir()

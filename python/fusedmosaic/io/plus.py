@@ -18,6 +18,9 @@ fields are ``Seq_Frame<index>_<Name> = <value>``:
 order: first letter ``U`` = the columns are mirrored (flip left-right), second letter ``N`` = the
 rows are (flip up-down). PLUS recordings are frame-synchronous: the importer writes one tracker
 sample per frame, at the frame's timestamp.
+
+The header is written in UTF-8 and read as UTF-8, a line that is not valid UTF-8 as latin-1
+(PLUS on Windows writes the data file's name in the ANSI code page).
 """
 
 from __future__ import annotations
@@ -142,11 +145,13 @@ class PlusSequence:
             ]
             if len(candidates) != 1:
                 problem = "several" if candidates else "no"
+                example = (candidates or list(self.transforms) or ["ProbeToTrackerTransform"])[0]
+                example = example.removesuffix("Transform")
                 raise ValueError(
                     f"{self.path}: {problem} *ToTrackerTransform / *ToReferenceTransform fields "
-                    f"({available} present); name the transform to import (e.g. "
-                    "transform='ProbeToTracker'; a transform stored the other way round is "
-                    "inverted)"
+                    f"({available} present); name the transform to import, e.g. --transform "
+                    f"{example} (transform='{example}' in Python; a transform stored the other "
+                    "way round is inverted)"
                 )
             name = candidates[0]
         if not isinstance(name, str) or not name:
@@ -235,7 +240,7 @@ def _read_header(path: Path) -> tuple[dict[str, tuple[str, int]], dict[int, dict
             line_number += 1
             if line_number == 1 and raw.startswith(b"\xef\xbb\xbf"):  # a UTF-8 BOM
                 raw = raw[3:]
-            text = raw.decode("latin-1").strip()
+            text = _header_text(raw).strip()
             if not text:
                 continue
             key, eq, value = text.partition("=")
@@ -264,6 +269,16 @@ def _read_header(path: Path) -> tuple[dict[str, tuple[str, int]], dict[int, dict
             header[key] = (value, line_number)
             if key == "ElementDataFile":
                 return header, frames, f.tell()
+
+
+def _header_text(raw: bytes) -> str:
+    """A header line's text: UTF-8 (what this writer and PLUS on Linux / macOS write), else
+    latin-1 (PLUS on Windows writes file names in the ANSI code page; every byte is valid
+    latin-1, so the line still parses and a data file name in the western code page is found)."""
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError:
+        return raw.decode("latin-1")
 
 
 def _integers(path: Path, key: str, value: str) -> list[int]:
@@ -632,6 +647,15 @@ def write_plus_sequence(
             yield np.ascontiguousarray(image).tobytes()
 
     data_name = path.name[: -len(path.suffix)] + (".zraw" if compress else ".raw")
+    if suffix == ".mhd":  # the header names the data file on a line of its own, in UTF-8
+        try:
+            data_name.encode("utf-8")
+        except UnicodeEncodeError:
+            raise ValueError(f"{path}: the file name is not valid Unicode text (undecodable "
+                             "bytes); the header cannot name its data file") from None
+        if data_name != data_name.strip() or any(c in data_name for c in "\r\n\x00"):
+            raise ValueError(f"{path}: a .mhd name with leading or trailing spaces or a line "
+                             "break cannot be named in the header; rename it")
     temps: list[Path] = []
     try:
         data_tmp = _temp(path, temps)
@@ -645,7 +669,7 @@ def write_plus_sequence(
             lines[7] = f"CompressedDataSize = {data_tmp.stat().st_size}"
         lines = [line for line in lines if line is not None]
         lines.append(f"ElementDataFile = {'LOCAL' if suffix == '.mha' else data_name}")
-        header = ("\n".join(lines) + "\n").encode("ascii")
+        header = ("\n".join(lines) + "\n").encode("utf-8")
         if suffix == ".mha":
             header_tmp = _temp(path, temps)
             with header_tmp.open("wb") as out, data_tmp.open("rb") as data:
@@ -687,7 +711,8 @@ class ImportSummary:
     """What :func:`import_plus_sequence` wrote.
 
     root : the dataset folder. source : the sequence file. transform : the field imported as
-    tracker_from_sensor (``inverted``: it was stored the other way round). frames : images
+    tracker_from_sensor (``inverted``: it was stored the other way round); None when the
+    sequence has no transform field at all (the video alone: no tracking.csv). frames : images
     written; their frame ids are their indices in the sequence. skipped_frames : sequence indices
     whose ImageStatus is not OK (left out). invalid_samples : sequence indices whose transform
     status is not OK (tracking.csv rows with valid=0). untracked_frames : written frames outside
@@ -696,7 +721,7 @@ class ImportSummary:
 
     root: Path
     source: Path
-    transform: str
+    transform: str | None
     inverted: bool
     frames: int
     skipped_frames: list[int]
@@ -709,8 +734,12 @@ class ImportSummary:
 
     def __str__(self) -> str:
         parts = [f"{self.root}: {self.frames} frames {self.width}x{self.height} "
-                 f"{'RGB->BGR' if self.channels == 3 else 'grey'} from {self.source}",
-                 f"tracking.csv from {self.transform}{' (inverted)' if self.inverted else ''}"]
+                 f"{'RGB->BGR' if self.channels == 3 else 'grey'} from {self.source}"]
+        if self.transform is None:
+            parts.append(UNTRACKED_NOTE)
+        else:
+            parts.append(f"tracking.csv from {self.transform}"
+                         f"{' (inverted)' if self.inverted else ''}")
         if self.orientation != "MF":
             parts.append(f"orientation {self.orientation} converted to MF")
         if self.skipped_frames:
@@ -721,6 +750,11 @@ class ImportSummary:
         if self.untracked_frames:
             parts.append(f"frames outside the tracked span: {_frames_text(self.untracked_frames)}")
         return "; ".join(parts)
+
+
+UNTRACKED_NOTE = ("no tracking.csv: the sequence has no transform field, so the dataset is the "
+                  "video alone (enough for `calibrate`'s intrinsics and the image-only methods; "
+                  "the tracked methods refuse it)")
 
 
 def import_plus_sequence(
@@ -739,7 +773,10 @@ def import_plus_sequence(
     frames.csv : their sequence indices and timestamps; tracking.csv : one row per sequence
     frame at its timestamp, ``transform`` as tracker_from_sensor (``SensorToTracker``; stored as
     ``TrackerToSensor`` it is inverted; None picks the single *ToTracker / *ToReference field),
-    valid=0 where its status is not OK; camera.yaml : ``camera`` (a Camera or a camera.yaml
+    valid=0 where its status is not OK; a sequence without any transform field (a video
+    recorded without a tracker) is imported without tracking.csv, whatever ``transform`` says
+    (the summary says so; a sequence with transforms but not the one named is refused);
+    camera.yaml : ``camera`` (a Camera or a camera.yaml
     path), whose image size must match; None writes the image size only (a recording to
     calibrate the camera from, `fusedmosaic calibrate`); hand_eye.txt : ``hand_eye`` (4x4
     sensor_from_camera or a path) when given. tracker_time_offset : s, the tracker's clock
@@ -771,25 +808,31 @@ def import_plus_sequence(
             f"{sequence.path}: images are {sequence.width}x{sequence.height} but "
             f"{camera.source} says {camera.width}x{camera.height}"
         )
-    selected = sequence.transform(transform)
-    ok = selected.ok
-    if ok.sum() < 2:
-        raise ValueError(f"{sequence.path}: {selected.source}: {int(ok.sum())} frame(s) with "
-                         "status OK; tracking needs at least 2 samples")
+    if transform is not None and (not isinstance(transform, str) or not transform):
+        raise ValueError(f"{sequence.path}: transform name must be a non-empty string, got "
+                         f"{transform!r}")
+    selected = sequence.transform(transform) if sequence.transforms else None
+    if selected is not None and selected.ok.sum() < 2:
+        raise ValueError(f"{sequence.path}: {selected.source}: {int(selected.ok.sum())} "
+                         "frame(s) with status OK; tracking needs at least 2 samples")
     sensor_from_camera = None if hand_eye is None else hand_eye_matrix(hand_eye)
     kept = np.flatnonzero(sequence.image_ok)
     if kept.size == 0:
         raise ValueError(f"{sequence.path}: no frame has ImageStatus OK; nothing to import")
 
     t = sequence.timestamps
-    translations = np.full((len(t), 3), np.nan)
-    quaternions = np.full((len(t), 4), np.nan)
-    translations[ok] = selected.matrices[ok, :3, 3]
-    quaternions[ok] = Rotation.from_matrix(selected.matrices[ok, :3, :3]).as_quat()
-    tracking = shift_tracking(TrackingSamples(t, translations, quaternions, ok),
-                              tracker_time_offset)
-    t_ok = tracking.timestamps[ok]
-    untracked = kept[(t[kept] < t_ok[0]) | (t[kept] > t_ok[-1])]
+    tracking, invalid, untracked = None, np.empty(0, int), np.empty(0, int)
+    if selected is not None:
+        ok = selected.ok
+        translations = np.full((len(t), 3), np.nan)
+        quaternions = np.full((len(t), 4), np.nan)
+        translations[ok] = selected.matrices[ok, :3, 3]
+        quaternions[ok] = Rotation.from_matrix(selected.matrices[ok, :3, :3]).as_quat()
+        tracking = shift_tracking(TrackingSamples(t, translations, quaternions, ok),
+                                  tracker_time_offset)
+        t_ok = tracking.timestamps[ok]
+        untracked = kept[(t[kept] < t_ok[0]) | (t[kept] > t_ok[-1])]
+        invalid = np.flatnonzero(~ok)
 
     def frames():
         for i in kept:
@@ -812,11 +855,11 @@ def import_plus_sequence(
     return ImportSummary(
         root=Path(written),
         source=sequence.path,
-        transform=selected.source,
-        inverted=selected.inverted,
+        transform=None if selected is None else selected.source,
+        inverted=selected is not None and selected.inverted,
         frames=int(kept.size),
         skipped_frames=np.flatnonzero(~sequence.image_ok).tolist(),
-        invalid_samples=np.flatnonzero(~ok).tolist(),
+        invalid_samples=invalid.tolist(),
         untracked_frames=untracked.tolist(),
         width=sequence.width,
         height=sequence.height,
