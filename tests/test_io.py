@@ -307,6 +307,68 @@ def test_camera_yaml_bad_values(tmp_path):
         read_camera_yaml(path)
 
 
+_BOM = b"\xef\xbb\xbf"
+
+
+@pytest.mark.parametrize("name, text", [
+    ("camera.yaml", "image_width: 32\nimage_height: 24\ncamera_matrix: [40, 0, 15.5, 0, 40, "
+                    "11.5, 0, 0, 1]\ndistortion_coefficients: [-0.3, 0.1, 0, 0]\n"),
+    ("camera.yaml", "%YAML:1.0\n---\nimage_width: 32\nimage_height: 24\ncamera_matrix: "
+                    "!!opencv-matrix\n  rows: 3\n  cols: 3\n  dt: d\n  data: [40, 0, 15.5, 0, 40, "
+                    "11.5, 0, 0, 1]\ndistortion_coefficients: [-0.3, 0.1, 0, 0]\n"),
+    ("camera.json", '{"image_width": 32, "image_height": 24, "camera_matrix": [40, 0, 15.5, 0, '
+                    '40, 11.5, 0, 0, 1], "distortion_coefficients": [-0.3, 0.1, 0, 0]}'),
+], ids=["ros-style", "opencv", "json"])
+def test_camera_yaml_with_a_utf8_bom_reads_as_without(tmp_path, name, text):
+    """Windows editors start UTF-8 files with a byte order mark, which OpenCV cannot parse."""
+    plain, marked = tmp_path / name, tmp_path / f"bom_{name}"
+    plain.write_text(text)
+    marked.write_bytes(_BOM + text.encode())
+    a, b = read_camera_yaml(plain), read_camera_yaml(marked)
+    assert b.size == a.size == (32, 24) and b.source == str(marked)
+    np.testing.assert_array_equal(b.camera_matrix, a.camera_matrix)
+    np.testing.assert_array_equal(b.distortion, [-0.3, 0.1, 0, 0])
+
+
+def test_camera_yaml_encoding_problems_named(tmp_path):
+    path = tmp_path / "camera.yaml"
+    path.write_bytes(_BOM + b"image_width: [32\n")
+    with pytest.raises(ValueError, match=r"camera\.yaml: cannot parse as OpenCV FileStorage YAML"):
+        read_camera_yaml(path)
+    path.write_bytes(_BOM + b"\n  \n")
+    with pytest.raises(ValueError, match=r"camera\.yaml: empty file"):
+        read_camera_yaml(path)
+    path.write_bytes(_BOM + "image_width: 32\n# caméra\n".encode("latin-1"))
+    with pytest.raises(ValueError, match=r"camera\.yaml: starts with a UTF-8 byte order mark but "
+                                         r"is not UTF-8 \(byte offset 24\)"):
+        read_camera_yaml(path)
+    path.write_text("image_width: 32\nimage_height: 24\n", encoding="utf-16")
+    with pytest.raises(ValueError, match=r"camera\.yaml: UTF-16 text .* save it as UTF-8"):
+        read_camera_yaml(path)
+
+
+def test_equidistant_model_with_an_empty_distortion_list_is_refused_saying_why(tmp_path):
+    """ROS's D: [] means 'no distortion' for the pinhole; the equidistant model has no such
+    case (its zero coefficients are still not a pinhole), so the empty list is ambiguous."""
+    path = tmp_path / "camera.yaml"
+    path.write_text("image_width: 32\nimage_height: 24\ncamera_matrix: [40, 0, 15.5, 0, 40, "
+                    "11.5, 0, 0, 1]\ndistortion_model: equidistant\ndistortion_coefficients: []\n")
+    why = (r"distortion_coefficients: empty, but the fisheye \(equidistant\) model takes 4 "
+           r"values k1 k2 k3 k4\. An empty list does not mean 'no distortion' here: with k1\.\.k4 "
+           r"= 0 the equidistant projection \(r = f theta\) still bends straight lines, unlike a "
+           r"pinhole \(r = f tan theta\)\. Write \[0, 0, 0, 0\] for a pure equidistant lens, or "
+           r"distortion_model plumb_bob for a pinhole without distortion")
+    with pytest.raises(ValueError, match=r"camera\.yaml: " + why):
+        read_camera_yaml(path)
+    with pytest.raises(ValueError, match=why):
+        Camera(32, 24, distortion=[], lens_model="fisheye")
+    # what the message offers instead
+    path.write_text(path.read_text().replace("[]", "[0, 0, 0, 0]"))
+    assert read_camera_yaml(path).distortion.tolist() == [0, 0, 0, 0]
+    path.write_text(path.read_text().replace("equidistant", "plumb_bob"))
+    assert read_camera_yaml(path).distortion is None
+
+
 def test_camera_without_matrix_for_pose_method(tmp_path):
     root = _write(tmp_path, camera=Camera(W, H))
     ds = read_dataset(root)

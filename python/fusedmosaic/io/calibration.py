@@ -43,7 +43,8 @@ class Camera:
         or all-zero vector (ROS ``D: []``) means no distortion and becomes None. OpenCV's
         undistortion ignores the skew K[0, 1] when distortion is given (negligible for
         endoscopes, whose skew is 0). With lens_model "fisheye": k1..k4 of OpenCV's fisheye
-        model (None: zeros, the pure equidistant lens, which is not a pinhole).
+        model (None: zeros, the pure equidistant lens, which is not a pinhole; an empty vector
+        is refused: "no distortion" does not exist for that model).
     lens_model : "pinhole" (OpenCV's standard model) or "fisheye" (cv2.fisheye); see
         LENS_MODELS.
     pixel_size_um : µm per pixel (pCLE robot methods convert robot µm to pixels with it).
@@ -81,6 +82,14 @@ class Camera:
         if self.lens_model == "fisheye":
             d = (np.zeros(FISHEYE_COUNT) if self.distortion is None
                  else np.asarray(self.distortion, dtype=np.float64).reshape(-1))
+            if d.size == 0:  # ROS's D: [] ("no distortion") has no fisheye meaning
+                raise ValueError(
+                    f"{self.source}: distortion_coefficients: empty, but the fisheye "
+                    f"(equidistant) model takes {FISHEYE_COUNT} values k1 k2 k3 k4. An empty "
+                    "list does not mean 'no distortion' here: with k1..k4 = 0 the equidistant "
+                    "projection (r = f theta) still bends straight lines, unlike a pinhole "
+                    "(r = f tan theta). Write [0, 0, 0, 0] for a pure equidistant lens, or "
+                    "distortion_model plumb_bob for a pinhole without distortion")
             if d.size != FISHEYE_COUNT or not np.all(np.isfinite(d)):
                 raise ValueError(
                     f"{self.source}: distortion_coefficients: the fisheye (equidistant) model "
@@ -348,15 +357,30 @@ def read_camera_yaml(path: str | Path) -> Camera:
     ``{rows, cols, data}``. The lens model: ``distortion_model`` (ROS camera_info: plumb_bob or
     rational_polynomial, OpenCV's standard model; equidistant or fisheye, OpenCV's fisheye
     model) or OpenCV's calibration sample's ``fisheye_model: 1``; default the standard model.
-    Every problem, including an OpenCV parse error, is a ValueError naming the file (and the
-    key)."""
+    A UTF-8 byte order mark (Windows editors write one) is skipped. Every problem, including
+    an OpenCV parse error, is a ValueError naming the file (and the key)."""
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"{path}: file not found")
-    if not path.read_bytes().strip():
+    data = path.read_bytes()
+    if data.startswith((b"\xff\xfe", b"\xfe\xff")):
+        raise ValueError(f"{path}: UTF-16 text (a byte order mark FF FE / FE FF); save it as "
+                         "UTF-8 (OpenCV FileStorage reads UTF-8 or ASCII)")
+    bom = data.startswith(b"\xef\xbb\xbf")  # a UTF-8 BOM (Windows editors): OpenCV can't
+    if bom:
+        try:
+            text = data[3:].decode("utf-8")
+        except UnicodeDecodeError as e:
+            raise ValueError(f"{path}: starts with a UTF-8 byte order mark but is not UTF-8 "
+                             f"(byte offset {e.start + 3})") from None
+    if not data[3 if bom else 0:].strip():
         raise ValueError(f"{path}: empty file, expected OpenCV FileStorage YAML with {_KEYS}")
     try:
-        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        if bom:  # parsed from memory without it, as YAML (what the file name would choose)
+            fs = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY
+                                 | _format_flag(path))
+        else:
+            fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
         opened = fs.isOpened() and fs.root().isMap()
     except (cv2.error, SystemError) as e:  # SystemError wraps a cv2.error from the constructor
         reason = _reason(e)
@@ -369,6 +393,16 @@ def read_camera_yaml(path: str | Path) -> Camera:
         raise ValueError(f"{path}: cannot read ({_reason(e)})") from None
     finally:
         fs.release()
+
+
+def _format_flag(path: Path) -> int:
+    """The FileStorage format its file name selects (OpenCV picks it by extension)."""
+    suffix = path.suffix.lower()
+    if suffix == ".json":
+        return cv2.FILE_STORAGE_FORMAT_JSON
+    if suffix == ".xml":
+        return cv2.FILE_STORAGE_FORMAT_XML
+    return cv2.FILE_STORAGE_FORMAT_YAML
 
 
 def _numbers(values) -> str:
