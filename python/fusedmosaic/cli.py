@@ -220,13 +220,14 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         square_mm=args.square_mm, distortion=args.distortion, lens_model=args.lens_model,
         every=args.every,
         max_views=args.max_views, rot_sigma_deg=args.tracker_rot_sigma,
-        trans_sigma_mm=args.tracker_trans_sigma, time_offset=_time_offset(args.time_offset))
+        trans_sigma_mm=args.tracker_trans_sigma, time_offset=_time_offset(args.time_offset),
+        max_time_offset_s=args.max_time_offset)
     options.validate(names={
         "board_cols": "--board", "board_rows": "--board", "square_mm": "--square-mm",
         "distortion": "--distortion", "lens_model": "--lens-model", "every": "--every",
         "max_views": "--max-views",
         "rot_sigma_deg": "--tracker-rot-sigma", "trans_sigma_mm": "--tracker-trans-sigma",
-        "time_offset": "--time-offset"})
+        "time_offset": "--time-offset", "max_time_offset_s": "--max-time-offset"})
     check_output_dir(args.out)
     check_out_outside_dataset(Path(args.out), Path(args.recording))
     result = calibrate_recording(args.recording, options, fps=args.fps,
@@ -236,29 +237,15 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     intr = r["intrinsics"]
     K = result.camera.camera_matrix
     model = " (fisheye model)" if intr["lens_model"] == "fisheye" else ""
-    _say(args, f"board found in {r['board_found']} of {r['frames_searched']} frames; "
-               f"intrinsics{model} from {intr['views']} views: RMS reprojection "
-               f"{intr['rms_px']:.3f} px, "
+    _say(args, f"board found in {r['board_found']} of {r['frames_searched']} frames "
+               f"({r['distinct_views']} distinct views); intrinsics{model} from {intr['views']} "
+               f"views: RMS reprojection {intr['rms_px']:.3f} px, "
                f"fx {K[0, 0]:.2f} fy {K[1, 1]:.2f} cx {K[0, 2]:.2f} cy {K[1, 2]:.2f} px")
     he = r["hand_eye"]
     if "skipped" in he:
         _say(args, f"hand-eye skipped: {he['skipped']}")
     elif "failed" not in he:
-        offset = he["tracker_time_offset"]
-        if offset.get("estimated"):
-            shift = offset["estimate_s"] * 1e3
-            _say(args, f"tracker time offset {shift:+.1f} +- {offset['std_s'] * 1e3:.1f} ms "
-                       + ("(applied: the frame at t takes the tracker sample at t "
-                          f"{shift:+.1f} ms; shift tracking.csv timestamps by {-shift:+.1f} ms "
-                          "in the recordings of this set-up)" if offset["applied_s"]
-                          else f"(not applied: {offset.get('reason', 'not significant')})"))
-        std_deg = he["rotation_std_from_tracker_noise_deg"]
-        std_mm = he["translation_std_from_tracker_noise_mm"]
-        _say(args, f"hand-eye from {he['views']} views: +- {std_deg:.3f} deg, +- {std_mm:.3f} "
-                   f"mm (1 sigma per axis from the tracker noise alone; the intrinsics' errors "
-                   f"add to it); tracker noise seen {he['tracker_sigma_deg']:.3f} deg, "
-                   f"{he['tracker_sigma_mm']:.3f} mm per axis; "
-                   f"{len(he['views_beyond_3_sigma'])} views beyond 3 sigma")
+        _say_hand_eye(args, he)
     files = "camera.yaml and hand_eye.txt" if result.hand_eye is not None else "camera.yaml"
     _say(args, f"wrote {', '.join(written)} to {args.out} (copy {files} into the datasets "
                "recorded with this scope)")
@@ -266,6 +253,38 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         raise ValueError(f"hand-eye failed: {result.hand_eye_error} (the intrinsics are written: "
                          f"{args.out}/camera.yaml)")
     return 0
+
+
+def _say_hand_eye(args: argparse.Namespace, he: dict) -> None:
+    """calibrate's summary of a hand-eye (calibration.json's "hand_eye")."""
+    offset = he["tracker_time_offset"]
+    if offset.get("estimated"):
+        shift = offset["estimate_s"] * 1e3
+        _say(args, f"tracker time offset {shift:+.1f} +- {offset['std_s'] * 1e3:.1f} ms "
+                   + (f"(applied: the frame at t takes the tracker sample at t {shift:+.1f} ms; "
+                      f"give recordings of this set-up run/import --tracker-time-offset "
+                      f"{offset['applied_s']:.4f})" if offset["applied_s"]
+                      else f"(not applied: {offset.get('reason', 'not significant')})"))
+    if "still_views" in he:
+        source = (f"{he['still_views']} still views ({he['tracker_samples']} tracker samples "
+                  "taken while the board pose held)")
+        noise = "the tracker's own"
+    else:
+        source = f"{he['views']} frames (the tracker interpolated at the frame times)"
+        noise = "after interpolation between samples, below a sample's"
+    boot = he["standard_errors"]["bootstrap"]
+    scale = he["board_scale"]
+    _say(args, f"hand-eye from {source}: expected error {he['rotation_error_rms_deg']:.3f} deg, "
+               f"{he['translation_error_rms_mm']:.3f} mm RMS (bootstrap over {boot['clusters']} "
+               "groups of views; the intrinsics' errors add to it); tracker noise seen "
+               f"{he['tracker_sigma_deg']:.3f} deg, {he['tracker_sigma_mm']:.3f} mm per axis "
+               f"({noise}); {len(he['views_beyond_3_sigma'])} views beyond 3 sigma")
+    _say(args, f"board against tracker scale {scale['ratio']:.4f} +- {scale['std']:.4f} (1: the "
+               "square size and the tracker's mm agree)"
+               + (f"; applied: by the tracker the squares measure "
+                  f"{scale['square_mm_implied']:.3f} mm" if scale["applied"] else ""))
+    if "warning" in he:
+        _say(args, f"warning: {he['warning']}")
 
 
 def _time_offset(text: str) -> float | str:
@@ -717,6 +736,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="tracker clock against the frames', s: the frame at time t takes the "
                           "tracker sample at t + OFFSET; 'auto' (default) estimates it from the "
                           "frames filmed while the scope moves")
+    cal.add_argument("--max-time-offset", type=float, default=0.5, metavar="S",
+                     help="largest clock offset, s, that --time-offset auto considers (default "
+                          "0.5; an estimate at this bound is refused)")
     cal.add_argument("--fps", type=float, default=25.0,
                      help="frame rate when the recording has no frames.csv (default 25)")
     cal.set_defaults(func=_cmd_calibrate)

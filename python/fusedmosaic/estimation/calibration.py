@@ -3,33 +3,50 @@
 Paper 000 (Sec. 4.1) pre-calibrates the fetoscope (intrinsics and lens distortion) and computes
 the hand-eye transform "from a sequence of images of a checkerboard as well as synchronized
 sensor poses". This module does both from one recording in the dataset layout (frames/ or a
-video, frames.csv, tracking.csv; camera.yaml optional, its image size checked):
+video, frames.csv, tracking.csv; camera.yaml optional, its image size checked; everything
+readable is read and checked before the board search):
 
 1. The board's inner corners are found in every ``every``-th frame (OpenCV's
    findChessboardCorners + cornerSubPix, findChessboardCornersSB when that fails) and put in one
    order: board x along a row, y down the columns, z into the board, the square diagonally
    outside corner (0, 0) dark. That needs a board whose columns + rows (inner corners) is odd;
    otherwise it is symmetric under a half turn and only the intrinsics are computed.
-2. Intrinsics: cv2.calibrateCameraExtended over at most ``max_views`` detections spread over
-   the recording, with 0 / 4 / 5 / 8 distortion coefficients (or, for a wide-angle scope,
-   cv2.fisheye.calibrate: OpenCV's fisheye model, 0 or 4 coefficients, its standard errors
-   from cv2.fisheye.projectPoints' Jacobian, the extrinsics eliminated); views whose RMS
-   reprojection error is over 3x the median (and over 1 px) are dropped once and the
-   calibration repeated. Then every detection's pose is solved with these intrinsics; views
-   whose largest corner error is over 3x the median (and over 1 px) are rejected (corners
-   found off the squares' corners, e.g. where a circular field of view cuts the board) and
-   the intrinsics computed
-   again without them. A focal length with a standard error over 2 % is refused.
-3. Hand-eye: every detection gives cam_from_board C_k (solvePnP with the intrinsics) and the
-   tracker gives tracker_from_sensor A_k at the frame time (interpolated as the datasets are),
-   with A_k X C_k = B for the unknown X = sensor_from_camera and B = tracker_from_board. X starts
-   from the relative motions (A_j^-1 A_i) X = X (C_j C_i^-1) (rotation axes aligned, Park &
-   Martin's least squares; then the translations linearly), B from the mean of A_k X C_k; then
-   X and B are refined together by SciPy least_squares on the tracker residuals
-   A_k^-1 B C_k^-1 X^-1 (rotation in the sensor frame / rot_sigma_deg, translation in the tracker
-   frame / trans_sigma_mm, Huber beyond 3 sigma): the maximum-likelihood estimate when the
-   board poses from the images are much more precise than the tracker (tens of µm against the
-   EM tracker's tenths of mm). Standard errors come from the Jacobian at the solution.
+2. Views: frames whose corners lie within 1 % of the image diagonal (RMS) of an earlier
+   frame's show the same board pose (a still scope, a pause at a view, a return to it) and
+   count as one view; fewer than MIN_VIEWS distinct views are refused.
+3. Intrinsics: cv2.calibrateCameraExtended over one frame of each distinct view (at most
+   ``max_views``, evenly spread over the recording), with 0 / 4 / 5 / 8 distortion
+   coefficients (or, for a wide-angle scope, cv2.fisheye.calibrate: OpenCV's fisheye model, 0
+   or 4 coefficients, its standard errors from cv2.fisheye.projectPoints' Jacobian, the
+   extrinsics eliminated); views whose RMS reprojection error is over 3x the median (and over
+   1 px) are dropped once and the calibration repeated. Then every detection's pose is solved
+   with these intrinsics; views whose largest corner error is over 3x the median (and over 1
+   px) are rejected (corners found off the squares' corners, e.g. where a circular field of
+   view cuts the board) and the intrinsics computed again without them. A focal length with a
+   standard error over 2 % is refused.
+4. Hand-eye: every detection gives cam_from_board C_k (solvePnP with the intrinsics) and the
+   tracker gives tracker_from_sensor A_k, with A_k X C_k = B for the unknown X =
+   sensor_from_camera and B = tracker_from_board. X starts from the relative motions
+   (A_j^-1 A_i) X = X (C_j C_i^-1) (rotation axes aligned, Park & Martin's least squares; then
+   the translations linearly), B from the mean of A_k X C_k; then X and B are refined together
+   by SciPy least_squares on the tracker residuals A_k^-1 B C_k^-1 X^-1 (rotation in the
+   sensor frame / rot_sigma_deg, translation in the tracker frame / trans_sigma_mm, Huber
+   beyond 3 sigma): the maximum-likelihood estimate when the board poses from the images are
+   much more precise than the tracker (tens of µm against the EM tracker's tenths of mm).
+   - The clock offset (estimate_time_offset) from all frames, the tracker interpolated at the
+     frame times (the frames filmed while moving carry it).
+   - The final fit uses the views held still (runs of frames whose corners move < 1 px), each
+     paired with every raw tracker sample taken while it was filmed: no sample interpolated
+     across a motion (a 10 Hz tracker's interpolation erred by 1-3 mm), each counted once, the
+     noise seen the tracker's own. With fewer than MIN_STILL_VIEWS still views, all frames with
+     the tracker interpolated (flagged in the report).
+   - The board's translations carry a free scale (tracker mm per board mm): a wrong
+     --square-mm or a tracker not in mm shows as a scale off 1 and is refused (beyond 3 % and
+     5 standard errors); a smaller significant one is kept in the fit.
+   - Standard errors: a bootstrap over the distinct views (or 0.25 s blocks of frames),
+     linearised (one Gauss-Newton step per replicate), beside the Jacobian's from the tracker
+     noise; the larger RMS error magnitude is reported. Measured against the simulator: true /
+     reported 0.9-1.5 over seeds (the Jacobian over interpolated frames said 4-10x too little).
 """
 
 from __future__ import annotations
@@ -79,6 +96,23 @@ MAX_FOCAL_RELATIVE_STD = 0.02  # above it the views are too alike to calibrate f
 # ~1 deg / 1 mm at worst, paper 000's Sigma_EMT).
 MAX_TRACKER_SIGMA = (5.0, 5.0)
 HUBER_SIGMAS = 3.0
+# Frames whose corners lie within 1 % of the image diagonal (RMS) of an earlier frame's show
+# the same view (a still scope, a pause): one view, not several independent ones.
+REPEATED_VIEW_FRACTION = 0.01
+# Consecutive frames whose corners move less than this (RMS, px) are a still view: the tracker
+# samples taken meanwhile all measure its pose (at 30 mm and f = 480 px, 1 px is ~0.06 mm).
+STILL_PX = 1.0
+MIN_STILL_VIEWS = 6  # fewer distinct still views: the hand-eye from all frames, interpolated
+# Independent groups of measurements (distinct still views, or blocks of frames) the hand-eye
+# needs: fewer determine it poorly and leave its error unknown (the bootstrap needs them).
+MIN_HAND_EYE_GROUPS = 6
+BOOTSTRAP_REPLICATES = 400
+BOOTSTRAP_BLOCK_S = 0.25  # without still views, the bootstrap resamples blocks of frames
+# The board's scale against the tracker's (tracker mm per board mm) refused when off by more
+# than this and by more than SCALE_SIGMAS standard errors: a wrong --square-mm, a board
+# printed scaled, or a tracker not in mm.
+MAX_SCALE_DEVIATION = 0.03
+SCALE_SIGMAS = 5.0
 
 
 @dataclass
@@ -96,7 +130,9 @@ class CalibrationOptions:
         translation in the hand-eye fit (paper 000's Sigma_EMT defaults: 1 deg, 1 mm).
     time_offset : "auto" (estimated: estimate_time_offset), or seconds: the tracker sample of
         the frame at time t is the one at t + time_offset (0: the clocks agree).
-    max_time_offset_s : the largest offset "auto" considers.
+    max_time_offset_s : the largest offset "auto" considers (an estimate at it is refused:
+        the clocks may differ by more). Video capture lags by up to a few hundred ms; the search
+        costs the same at any bound, but views within it of the tracker's ends do not take part.
     threads : frames searched for the board in parallel.
     """
 
@@ -110,7 +146,7 @@ class CalibrationOptions:
     rot_sigma_deg: float = 1.0
     trans_sigma_mm: float = 1.0
     time_offset: float | str = "auto"
-    max_time_offset_s: float = 0.1
+    max_time_offset_s: float = 0.5
     threads: int = 2
 
     def validate(self, names: dict[str, str] | None = None) -> None:
@@ -174,9 +210,9 @@ class CalibrationOptions:
 class HandEyeResult:
     """sensor_from_camera and tracker_from_board (4, 4); per-view tracker residuals
     (rotation deg, translation mm) and inlier flags; standard errors of the hand-eye rotation
-    (deg) and translation (mm), the largest over directions, from the tracker noise alone (views
-    taken as independent, the board poses as exact: errors of the intrinsics add to them; see
-    bench/bench_calibration.py for measured errors)."""
+    (deg) and translation (mm), the largest over directions, and the RMS error magnitudes, from
+    the tracker noise alone (views taken as independent, the board poses as exact: errors of
+    the intrinsics add to them; bootstrap_hand_eye resamples groups of views instead)."""
 
     sensor_from_camera: np.ndarray
     tracker_from_board: np.ndarray
@@ -188,6 +224,13 @@ class HandEyeResult:
     tracker_sigma: tuple[float, float] = (0.0, 0.0)
     closed_form: np.ndarray | None = None  # X from the relative motions, before refinement
     cost: float = 0.0  # 0.5 * sum of Huber(residual / sigma)^2 at the solution
+    scale: float = 1.0  # board translations' scale (fit_scale), tracker mm per board mm
+    scale_std: float = 0.0  # its standard error from the tracker noise (0: not fitted)
+    rotation_rms_deg: float = 0.0  # sqrt(trace(covariance)): the RMS error magnitude
+    translation_rms_mm: float = 0.0
+    # (Jacobian (6N, P) of the residuals / sigma, those residuals (6N,), Huber weights (6N,))
+    # at the solution: what bootstrap_hand_eye resamples.
+    linearisation: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
 @dataclass
@@ -379,11 +422,18 @@ def calibrate_hand_eye(
     rot_sigma_deg: float = 1.0,
     trans_sigma_mm: float = 1.0,
     reweight: bool = True,
+    fit_scale: bool = False,
+    start: HandEyeResult | None = None,
+    linearise: bool = True,
 ) -> HandEyeResult:
     """X = sensor_from_camera and B = tracker_from_board from A_k X C_k = B over views k (module
     doc). With ``reweight`` the second fit weights by the noise the first one's inliers show,
-    otherwise both by the given noise. ValueError when the views do not determine X (fewer than
-    3, or rotations about fewer than two distinct axes)."""
+    otherwise both by the given noise. With ``fit_scale`` the board's translations are scaled
+    by a free factor (HandEyeResult.scale: tracker mm per board mm, 1 when the square size and
+    the tracker's unit are right). ``start``: begin from that solution instead of the closed
+    form. ``linearise``: keep what bootstrap_hand_eye needs (False: only the fit, e.g. to
+    compare costs). ValueError when the views do not determine X (fewer than 3, or rotations
+    about fewer than two distinct axes)."""
     A = np.asarray(tracker_from_sensor, np.float64)
     C = np.asarray(cam_from_board, np.float64)
     if A.shape != C.shape or A.ndim != 3 or A.shape[1:] != (4, 4):
@@ -393,10 +443,16 @@ def calibrate_hand_eye(
         raise ValueError(f"hand-eye: {n} views with a tracker sample; at least "
                          f"{MIN_HAND_EYE_VIEWS} are needed (and more, rotated about different "
                          "axes, for a precise result)")
-    X0 = _hand_eye_from_motions(A, C)
-    B0 = _mean_transform(A @ X0 @ C)
+    if start is None:
+        X0, scale0 = _hand_eye_from_motions(A, C, fit_scale=fit_scale)
+        closed_form = X0
+        B0 = _mean_transform(A @ X0 @ _scaled(C, scale0))
+    else:
+        X0, B0, closed_form = start.sensor_from_camera, start.tracker_from_board, start.closed_form
+        scale0 = start.scale if fit_scale else 1.0
     Ainv = np.linalg.inv(A)
     Cinv = np.linalg.inv(C)
+    n_par = 13 if fit_scale else 12
 
     def unpack(p):
         X, B = X0.copy(), B0.copy()
@@ -404,11 +460,12 @@ def calibrate_hand_eye(
         X[:3, 3] = X0[:3, 3] + p[3:6]
         B[:3, :3] = B0[:3, :3] @ Rotation.from_rotvec(p[6:9]).as_matrix()
         B[:3, 3] = B0[:3, 3] + p[9:12]
-        return X, B
+        return X, B, scale0 * (1.0 + p[12]) if fit_scale else 1.0
 
     def residuals(p, sigma=None):
-        X, B = unpack(p)
-        predicted = B @ Cinv @ np.linalg.inv(X)  # tracker_from_sensor seen through the board
+        X, B, scale = unpack(p)
+        board_from_cam = Cinv if scale == 1.0 else _scaled(Cinv, scale)
+        predicted = B @ board_from_cam @ np.linalg.inv(X)  # tracker_from_sensor via the board
         rot = Rotation.from_matrix((Ainv @ predicted)[:, :3, :3]).as_rotvec()
         r = np.hstack([rot, predicted[:, :3, 3] - A[:, :3, 3]])
         return r if sigma is None else (r / sigma).ravel()
@@ -416,7 +473,7 @@ def calibrate_hand_eye(
     # The given noise weights the first fit; the noise its inliers show weights the second
     # (rotation against translation matters, and users rarely know their tracker's).
     sigma = np.array([np.deg2rad(rot_sigma_deg)] * 3 + [trans_sigma_mm] * 3)
-    p = np.zeros(12)
+    p = np.zeros(n_par)
     for attempt in range(2):
         fit = least_squares(residuals, p, args=(sigma,), method="trf", loss="huber",
                             f_scale=HUBER_SIGMAS, x_scale="jac")
@@ -427,14 +484,26 @@ def calibrate_hand_eye(
             break
         seen = np.sqrt(np.mean(r[inlier] ** 2, axis=0))
         sigma = np.repeat([max(seen[:3].mean(), 1e-9), max(seen[3:].mean(), 1e-12)], 3)
-    X, B = unpack(p)
+    X, B, scale = unpack(p)
     JtJ = fit.jac.T @ fit.jac
     eig = np.linalg.eigvalsh(JtJ)
     if eig[0] <= 1e-12 * eig[-1]:
         raise ValueError("hand-eye: the views do not determine it (rotate the scope about at "
                          "least two different axes between views)")
-    dof = max(r.size - 12, 1)
+    dof = max(r.size - n_par, 1)
     cov = np.linalg.inv(JtJ) * (2.0 * fit.cost / dof)
+    # The linearisation the bootstrap resamples: the Jacobian of the weighted residuals at the
+    # solution (forward differences) and each residual's Huber weight there.
+    linearisation = None
+    if linearise:
+        scaled_r = (r / sigma).ravel()
+        J = np.empty((scaled_r.size, n_par))
+        for i in range(n_par):
+            step = np.zeros(n_par)
+            step[i] = 1e-7
+            J[:, i] = (residuals(p + step, sigma) - scaled_r) / 1e-7
+        huber = np.minimum(1.0, HUBER_SIGMAS / np.maximum(np.abs(scaled_r), 1e-300))
+        linearisation = (J, scaled_r, huber)
     return HandEyeResult(
         sensor_from_camera=X,
         tracker_from_board=B,
@@ -443,10 +512,65 @@ def calibrate_hand_eye(
         inlier=inlier,
         rotation_std_deg=float(np.rad2deg(np.sqrt(np.linalg.eigvalsh(cov[0:3, 0:3])[-1]))),
         translation_std_mm=float(np.sqrt(np.linalg.eigvalsh(cov[3:6, 3:6])[-1])),
+        rotation_rms_deg=float(np.rad2deg(np.sqrt(np.trace(cov[0:3, 0:3])))),
+        translation_rms_mm=float(np.sqrt(np.trace(cov[3:6, 3:6]))),
         tracker_sigma=(float(np.rad2deg(sigma[0])), float(sigma[3])),
-        closed_form=X0,
+        closed_form=closed_form,
         cost=float(fit.cost),
+        scale=float(scale),
+        scale_std=float(scale0 * np.sqrt(cov[12, 12])) if fit_scale else 0.0,
+        linearisation=linearisation,
     )
+
+
+def bootstrap_hand_eye(he: HandEyeResult, clusters: np.ndarray, *, replicates: int = 400,
+                       seed: int = 0) -> dict:
+    """Standard errors of a calibrate_hand_eye result from a bootstrap over clusters of views
+    (``clusters``: (N,) label of each view; views of one label are resampled together: the
+    frames or tracker samples of one board pose, whose errors are not independent). Each
+    replicate draws the clusters with replacement and takes one Gauss-Newton step (Huber
+    weights of the solution) from the solution on the drawn views: the refit, linearised, as
+    the errors are small against the fit's curvature. Returns the per-axis standard errors (the
+    largest over directions) and the RMS error magnitude (sqrt of the covariance's trace) of
+    the rotation (deg) and the translation (mm), and of the scale when it was fitted; seeded
+    (numpy Generator)."""
+    J, r, huber = he.linearisation
+    labels, index = np.unique(np.asarray(clusters), return_inverse=True)
+    n_views = r.size // 6
+    if index.size != n_views:
+        raise ValueError(f"bootstrap: {index.size} cluster labels for {n_views} views")
+    g = labels.size
+    n_par = J.shape[1]
+    per_residual = np.repeat(index, 6)
+    Jw = J * huber[:, None]
+    H = np.zeros((g, n_par, n_par))
+    grad = np.zeros((g, n_par))
+    np.add.at(H, per_residual, Jw[:, :, None] * J[:, None, :])
+    np.add.at(grad, per_residual, Jw * r[:, None])
+    rng = np.random.default_rng(seed)
+    counts = rng.multinomial(g, np.full(g, 1.0 / g), size=replicates).astype(np.float64)
+    Hb = np.einsum("bg,gij->bij", counts, H)
+    gb = counts @ grad
+    # A draw of views that barely determines the fit (e.g. all rotating about one axis) has no
+    # refit (calibrate_hand_eye refuses it): left out, and counted.
+    floor = 1e-2 * np.linalg.eigvalsh(H.sum(axis=0))[0]
+    keep = np.linalg.eigvalsh(Hb)[:, 0] > floor
+    steps = -np.linalg.solve(Hb[keep], gb[keep][..., None])[..., 0]
+    cov = np.cov(steps, rowvar=False) * g / max(g - 1, 1)
+
+    def stds(block: slice, unit: float) -> tuple[float, float]:
+        c = cov[block, block] * unit ** 2
+        return float(np.sqrt(np.linalg.eigvalsh(c)[-1])), float(np.sqrt(np.trace(c)))
+
+    rot_axis, rot_rms = stds(slice(0, 3), np.rad2deg(1.0))
+    trans_axis, trans_rms = stds(slice(3, 6), 1.0)
+    out = {"clusters": int(g), "replicates": int(keep.sum()),
+           "replicates_left_out": int(replicates - keep.sum()),
+           "rotation_std_deg": rot_axis, "rotation_rms_deg": rot_rms,
+           "translation_std_mm": trans_axis, "translation_rms_mm": trans_rms}
+    if n_par == 13:
+        out["scale_std"] = float(np.sqrt(cov[12, 12]) * he.scale)
+    return out
 
 
 def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeResult,
@@ -454,51 +578,85 @@ def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeR
     """The offset d (s) such that the tracker sample interpolated at t + d belongs to the frame
     at t: the d whose hand-eye fit leaves the smallest cost, over the views the tracker covers
     at every d in [-max_offset_s, max_offset_s] and with the noise of the first fit held (so the
-    costs compare). A grid of 5 ms steps, then a bounded search around its best; the standard
-    error from the cost's curvature (cost = chi^2 / 2). Applied only when it is determined (the
-    scope moved while filmed: error < 10 ms, not at the bound) and differs from 0 by more than
-    two standard errors. `tracker_at(d)` -> (tracker_from_sensor of the views it covers, mask).
-    """
+    costs compare; the board's scale free as in ``first``). The range is scanned in 5 ms steps
+    with ``first``'s hand-eye held (no fit: cheap over any range), the fit's cost is then
+    compared in 5 ms steps around the scan's best (widened while the best lies at its edge)
+    and minimised by a bounded search; the standard error from the cost's curvature
+    (cost = chi^2 / 2). Applied only when it is determined (the scope moved while filmed: error
+    < 10 ms) and differs from 0 by more than two standard errors; an estimate at the bound is
+    flagged ("at_bound": the clocks may differ by more). `tracker_at(d)` -> (tracker_from_sensor
+    of the views it covers, mask)."""
     from scipy.optimize import minimize_scalar
 
-    _, low = tracker_at(-max_offset_s)
-    _, high = tracker_at(max_offset_s)
+    h = 0.002  # curvature step; the views must be covered there too
+    _, low = tracker_at(-max_offset_s - 2 * h)
+    _, high = tracker_at(max_offset_s + 2 * h)
     common = low & high
     sigma = first.tracker_sigma
+    fit_scale = first.scale_std > 0
+    C = cam_from_board[common]
+
+    def tracked(d: float) -> np.ndarray:
+        A, ok = tracker_at(d)
+        return A[common[ok]]
 
     def cost(d: float) -> float:
-        A, ok = tracker_at(d)
-        keep = common[ok]
-        return calibrate_hand_eye(A[keep], cam_from_board[common], rot_sigma_deg=sigma[0],
-                                  trans_sigma_mm=sigma[1], reweight=False).cost
+        return calibrate_hand_eye(tracked(d), C, rot_sigma_deg=sigma[0], trans_sigma_mm=sigma[1],
+                                  reweight=False, fit_scale=fit_scale, start=first,
+                                  linearise=False).cost
 
     if common.sum() < MIN_HAND_EYE_VIEWS:
-        return {"estimated": False, "applied_s": 0.0,
+        return {"estimated": False, "applied_s": 0.0, "at_bound": False,
                 "reason": f"fewer than {MIN_HAND_EYE_VIEWS} views tracked at every offset"}
-    grid = np.arange(-max_offset_s, max_offset_s + 1e-9, 0.005)
-    costs = np.array([cost(d) for d in grid])
-    i = int(np.argmin(costs))
+    fine = 0.005
+    grid = np.linspace(-max_offset_s, max_offset_s, int(round(2 * max_offset_s / fine)) + 1)
+    held = [_held_cost(tracked(d), C, first) for d in grid]
+    i = int(np.argmin(held))
+    costs: dict[int, float] = {}
+    lo, hi = max(i - 3, 0), min(i + 3, grid.size - 1)
+    while True:
+        for k in range(lo, hi + 1):
+            if k not in costs:
+                costs[k] = cost(grid[k])
+        i = min(costs, key=costs.get)
+        if (i > lo or lo == 0) and (i < hi or hi == grid.size - 1):
+            break
+        lo, hi = max(min(lo, i - 2), 0), min(max(hi, i + 2), grid.size - 1)
     lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
     search = minimize_scalar(cost, bounds=(lo, hi), method="bounded", options={"xatol": 1e-4})
     best = float(search.x)
-    h = 0.002
     curvature = (cost(best + h) + cost(best - h) - 2 * search.fun) / h ** 2
     std = float(1 / np.sqrt(curvature)) if curvature > 0 else float("inf")
+    at_bound = abs(abs(best) - max_offset_s) < fine
     out = {"estimated": True, "estimate_s": float(best), "std_s": std,
-           "views": int(common.sum()), "applied_s": 0.0}
-    at_bound = abs(abs(best) - max_offset_s) < 0.005
-    if not np.isfinite(std) or std > 0.01 or at_bound:
-        out["reason"] = ("not determined: the scope must move while filmed" if not at_bound
-                         else f"at the search bound +-{max_offset_s:g} s")
+           "views": int(common.sum()), "applied_s": 0.0, "at_bound": bool(at_bound),
+           "search_bound_s": float(max_offset_s)}
+    if not np.isfinite(std) or std > 0.01:
+        out["reason"] = "not determined: the scope must move while filmed"
+    elif at_bound:
+        out["reason"] = f"at the search bound +-{max_offset_s:g} s"
     elif abs(best) > 2 * std:
         out["applied_s"] = float(best)
     return out
 
 
-def _hand_eye_from_motions(A: np.ndarray, C: np.ndarray, max_views: int = 60) -> np.ndarray:
+def _held_cost(A: np.ndarray, C: np.ndarray, he: HandEyeResult) -> float:
+    """calibrate_hand_eye's cost (0.5 * sum of Huber(residual / sigma)^2) of the views (A, C)
+    under the hand-eye ``he`` as it is (no fit)."""
+    sigma = np.repeat(np.deg2rad(he.tracker_sigma[0]), 3).tolist() + [he.tracker_sigma[1]] * 3
+    predicted = he.tracker_from_board @ _scaled(np.linalg.inv(C), he.scale) @ np.linalg.inv(
+        he.sensor_from_camera)
+    rot = Rotation.from_matrix((np.linalg.inv(A) @ predicted)[:, :3, :3]).as_rotvec()
+    z = (np.hstack([rot, predicted[:, :3, 3] - A[:, :3, 3]]) / sigma / HUBER_SIGMAS) ** 2
+    return float(0.5 * HUBER_SIGMAS ** 2 * np.sum(np.where(z <= 1, z, 2 * np.sqrt(z) - 1)))
+
+
+def _hand_eye_from_motions(A: np.ndarray, C: np.ndarray, max_views: int = 60,
+                           fit_scale: bool = False) -> tuple[np.ndarray, float]:
     """Closed-form X from pairs of views: (A_j^-1 A_i) X = X (C_j C_i^-1). Rotation: the
     rotation vectors satisfy alpha = R_X beta (aligned by SciPy's align_vectors, the least
-    squares solution); translation: (R_A - I) t_X = R_X t_B - t_A, stacked (least squares)."""
+    squares solution); translation: (R_A - I) t_X = R_X s t_B - t_A, stacked (least squares),
+    with the board's scale s = 1 or, with fit_scale, solved for with t_X. Returns (X, s)."""
     idx = np.linspace(0, A.shape[0] - 1, min(A.shape[0], max_views)).round().astype(int)
     idx = np.unique(idx)
     i, j = np.triu_indices(idx.size, 1)
@@ -519,11 +677,26 @@ def _hand_eye_from_motions(A: np.ndarray, C: np.ndarray, max_views: int = 60) ->
     R_X, _ = Rotation.align_vectors(alpha[use], beta[use])
     R = R_X.as_matrix()
     lhs = (MA[use, :3, :3] - np.eye(3)).reshape(-1, 3)
-    rhs = (np.einsum("ij,njk->nik", R, MB[use, :3, 3:4])[..., 0] - MA[use, :3, 3]).reshape(-1)
-    t = np.linalg.lstsq(lhs, rhs, rcond=None)[0]
+    board = np.einsum("ij,njk->nik", R, MB[use, :3, 3:4])[..., 0].reshape(-1)
+    tracker = MA[use, :3, 3].reshape(-1)
+    scale = 1.0
+    if fit_scale:
+        t_s = np.linalg.lstsq(np.hstack([lhs, -board[:, None]]), -tracker, rcond=None)[0]
+        t, scale = t_s[:3], float(t_s[3])
+        if not np.isfinite(scale) or scale <= 0:  # not determined (or a mirrored input): none
+            t, scale = np.linalg.lstsq(lhs, board - tracker, rcond=None)[0], 1.0
+    else:
+        t = np.linalg.lstsq(lhs, board - tracker, rcond=None)[0]
     X = np.eye(4)
     X[:3, :3], X[:3, 3] = R, t
-    return X
+    return X, scale
+
+
+def _scaled(T: np.ndarray, scale: float) -> np.ndarray:
+    """Rigid transforms (N, 4, 4) with their translations times ``scale``."""
+    out = T.copy()
+    out[..., :3, 3] *= scale
+    return out
 
 
 def _tracker_from_sensor(sensor_from_tracker: np.ndarray) -> np.ndarray:
@@ -535,6 +708,14 @@ def _tracker_from_sensor(sensor_from_tracker: np.ndarray) -> np.ndarray:
     return T
 
 
+def _tracker_samples(samples, index: np.ndarray) -> np.ndarray:
+    """tracker_from_sensor (len(index), 4, 4) of raw samples (indices into samples)."""
+    T = np.tile(np.eye(4), (index.size, 1, 1))
+    T[:, :3, :3] = Rotation.from_quat(samples.quaternions[index]).as_matrix()
+    T[:, :3, 3] = samples.translations[index]
+    return T
+
+
 def _mean_transform(T: np.ndarray) -> np.ndarray:
     out = np.eye(4)
     out[:3, :3] = Rotation.from_matrix(T[:, :3, :3]).mean().as_matrix()
@@ -543,8 +724,69 @@ def _mean_transform(T: np.ndarray) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------------------------
+# Views
+# ------------------------------------------------------------------------------------------------
+
+
+def _corner_distance(points: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """RMS distance (px) between the corners of each of ``points`` (K, M, 2) and ``reference``
+    (M, 2)."""
+    return np.sqrt(np.mean(np.sum((points - reference) ** 2, axis=-1), axis=-1))
+
+
+def repeated_views(points: list[np.ndarray], min_px: float) -> np.ndarray:
+    """For each detection (in recording order), the index of the first earlier distinct view
+    whose corners lie within ``min_px`` (RMS) of its own, else its own index: detections of one
+    label show one board pose (a still scope, a pause, a return to a view), and count as one
+    view."""
+    label = np.arange(len(points))
+    if not points:
+        return label
+    corners = np.stack(points)
+    chosen = [0]
+    for k in range(1, len(points)):
+        d = _corner_distance(corners[chosen], corners[k])
+        j = int(np.argmin(d))
+        if d[j] < min_px:
+            label[k] = chosen[j]
+        else:
+            chosen.append(k)
+    return label
+
+
+def still_groups(points: list[np.ndarray], frames: np.ndarray, step: int = 1,
+                 max_px: float = None) -> list[np.ndarray]:
+    """Runs (index arrays, two detections or more) of detections of consecutive searched frames
+    (``frames`` index the recording, searched every ``step``) whose corners stay within
+    ``max_px`` (RMS; STILL_PX) of the run's first: the scope held still over the run."""
+    max_px = STILL_PX if max_px is None else max_px
+    runs: list[list[int]] = []
+    for k in range(len(points)):
+        if (runs and frames[k] - frames[runs[-1][-1]] <= step
+                and _corner_distance(points[k][None], points[runs[-1][0]])[0] < max_px):
+            runs[-1].append(k)
+        else:
+            runs.append([k])
+    return [np.array(r) for r in runs if len(r) >= 2]
+
+
+# ------------------------------------------------------------------------------------------------
 # A recording
 # ------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class BoardDetections:
+    """The board's corners found in a recording: points[k] (rows * cols, 2) px in the canonical
+    order, found in frame frames[k] (index into the recording, searched every ``step`` frames)
+    of id ids[k] at time times[k] (s); frames of ``size`` (width, height)."""
+
+    points: list[np.ndarray]
+    frames: np.ndarray
+    ids: np.ndarray
+    times: np.ndarray
+    size: tuple[int, int]
+    step: int = 1
 
 
 def calibrate_recording(
@@ -554,9 +796,11 @@ def calibrate_recording(
     fps: float = 25.0,
     progress: bool = False,
 ) -> CalibrationResult:
-    """Calibrate from a recording folder (module doc). ValueError naming the folder or file for
-    a missing recording, a board found in too few frames, or views that cannot give the
-    hand-eye."""
+    """Calibrate from a recording folder (module doc). Everything readable is read and checked
+    first (camera.yaml, frame times, tracking.csv and its time span), before the board search.
+    ValueError naming the folder or file for a missing or malformed input, a board found in too
+    few frames or too few distinct views; a hand-eye that fails is reported in the result
+    (hand_eye_error), the intrinsics kept."""
     from fusedmosaic.io.calibration import read_camera_yaml
     from fusedmosaic.io.dataset import _read_frame_times
     from fusedmosaic.io.video import FrameSource
@@ -574,6 +818,7 @@ def calibrate_recording(
     if given is None:  # every frame the size of the first
         frames.expected_size, frames.size_source = size, f"its first frame {size}"
     frame_ids, timestamps = _read_frame_times(root, len(frames), fps)
+    tracking, skipped = _read_tracking(root, timestamps, o)
     tried = np.arange(0, len(frames), o.every)
 
     def detect(k: int):
@@ -586,22 +831,94 @@ def calibrate_recording(
             results = tqdm(results, total=tried.size, desc="board search", unit="frame")
         found = list(results)
     views = np.array([k for k, c in zip(tried, found, strict=True) if c is not None], int)
-    points = [c for c in found if c is not None]
+    detections = BoardDetections([c for c in found if c is not None], views, frame_ids[views],
+                                 timestamps[views], size, o.every)
     t_detect = time.perf_counter() - t_start
-    pattern = f"{o.board_cols}x{o.board_rows}"
-    if len(views) < MIN_VIEWS:
+    result = calibrate_detections(detections, o, tracking=tracking,
+                                  tracking_source=str(root / "tracking.csv"),
+                                  hand_eye_skipped=skipped, given=given, source=str(root),
+                                  searched=int(tried.size))
+    result.report = {"recording": str(root.resolve()), **result.report,
+                     "frames": len(frames), "frames_searched": int(tried.size)}
+    timings = result.report.setdefault("timings_s", {})
+    timings["board_search"] = t_detect
+    timings["total"] = time.perf_counter() - t_start
+    return result
+
+
+def _read_tracking(root: Path, timestamps: np.ndarray, o: CalibrationOptions):
+    """(tracking samples or None, why the hand-eye is skipped or None), read and checked before
+    any work: ValueError naming tracking.csv when it is malformed or covers too few frames."""
+    from fusedmosaic.io.tracking import _time, interpolate_camera_poses, read_tracking_csv
+
+    path = root / "tracking.csv"
+    if not path.exists():
+        return None, f"no tracking.csv in {root}"
+    if not o.oriented:
+        return None, (f"the {o.board_cols}x{o.board_rows} board looks the same after a half "
+                      "turn (columns + rows even), so its pose is ambiguous; use a board with "
+                      "an odd sum, e.g. 9x6")
+    samples = read_tracking_csv(path)
+    shift = 0.0 if o.time_offset == "auto" else float(o.time_offset)
+    _, covered = interpolate_camera_poses(samples, timestamps + shift, None, allow_outside=True,
+                                          source=str(path))
+    if covered.sum() < MIN_HAND_EYE_VIEWS:
+        ts = samples.timestamps[samples.valid]
         raise ValueError(
-            f"{root}: the {pattern} board (inner corners, columns x rows) was found in "
-            f"{len(views)} of {tried.size} frames searched; calibration needs at least "
+            f"{path}: {int(covered.sum())} of {timestamps.size} frames have a tracker sample; "
+            f"the tracker spans [{_time(ts[0])}, {_time(ts[-1])}] s, the frames "
+            f"[{_time(timestamps[0] + shift)}, {_time(timestamps[-1] + shift)}] s (frame times "
+            "come from frames.csv, or --fps without it; both clocks in seconds"
+            + (f", the frames' shifted by the time offset {shift:g} s)" if shift else ")"))
+    return samples, None
+
+
+def calibrate_detections(
+    detections: BoardDetections,
+    options: CalibrationOptions | None = None,
+    *,
+    tracking=None,
+    tracking_source: str = "tracking.csv",
+    hand_eye_skipped: str | None = None,
+    given: Camera | None = None,
+    source: str = "the recording",
+    searched: int | None = None,
+) -> CalibrationResult:
+    """Intrinsics and hand-eye from board detections (calibrate_recording's stages after the
+    board search): ``tracking`` the TrackingSamples (None: the hand-eye skipped, for the reason
+    ``hand_eye_skipped``), ``given`` the recording's camera.yaml (its field-of-view mask and
+    pixel size carried over), ``source`` and ``tracking_source`` name them in messages."""
+    o = CalibrationOptions() if options is None else options
+    o.validate()
+    t0 = time.perf_counter()
+    points, size = detections.points, detections.size
+    pattern = f"{o.board_cols}x{o.board_rows}"
+    searched = len(points) if searched is None else searched
+    if len(points) < MIN_VIEWS:
+        raise ValueError(
+            f"{source}: the {pattern} board (inner corners, columns x rows) was found in "
+            f"{len(points)} of {searched} frames searched; calibration needs at least "
             f"{MIN_VIEWS} views (15-30 at varied angles are advised). Check the board size "
             "(inner corners, not squares) and that the whole board is in view")
-
-    chosen = np.unique(np.linspace(0, len(views) - 1, min(len(views), o.max_views))
-                       .round().astype(int))
+    # Frames of one board pose (a still scope, a pause at each view) are one view: the
+    # intrinsics take one frame of each distinct pose, the hand-eye's errors are resampled by
+    # pose.
+    repeat_px = max(REPEATED_VIEW_FRACTION * float(np.hypot(*size)), 1.0)
+    label = repeated_views(points, repeat_px)
+    distinct = np.flatnonzero(label == np.arange(len(points)))
+    if distinct.size < MIN_VIEWS:
+        raise ValueError(
+            f"{source}: the {pattern} board was found in {len(points)} frames, but they show "
+            f"{distinct.size} distinct view(s) (frames whose corners lie within "
+            f"{repeat_px:.1f} px RMS of an earlier frame's repeat its view: a still scope or a "
+            f"pause); calibration needs at least {MIN_VIEWS} distinct views (15-30 at varied "
+            "angles are advised): film the board from more, different angles")
+    chosen = distinct[np.unique(np.linspace(0, distinct.size - 1, min(distinct.size, o.max_views))
+                                .round().astype(int))]
     # Views whose corners the camera cannot explain (corners found off the squares' corners,
     # e.g. where a circular field of view cuts the board; outliers of the intrinsics) give
     # neither intrinsics nor hand-eye: rejected, and the intrinsics computed again without them.
-    usable = np.ones(len(views), bool)
+    usable = np.ones(len(points), bool)
     for _ in range(2):
         use = chosen[usable[chosen]]
         K, dist, rms, dropped, std = calibrate_intrinsics([points[i] for i in use], size, o)
@@ -618,30 +935,29 @@ def calibrate_recording(
     focal_std = float(max(std[0] / K[0, 0], std[1] / K[1, 1]))
     if not np.isfinite(focal_std) or focal_std > MAX_FOCAL_RELATIVE_STD:
         raise ValueError(
-            f"{root}: the {len(chosen)} views do not determine the focal length (standard error "
-            f"{100 * focal_std:.1f} %): film the board from more, different angles (tilted by "
-            "20-40 degrees in different directions, at different distances)")
+            f"{source}: the {len(chosen)} distinct views do not determine the focal length "
+            f"(standard error {100 * focal_std:.1f} %): film the board from more, different "
+            "angles (tilted by 20-40 degrees in different directions, at different distances)")
     usable &= pnp_max <= limit
     usable[chosen[dropped]] = False
     camera = Camera(size[0], size[1], camera_matrix=K,
                     distortion=None if o.coefficients == 0 else dist, lens_model=o.lens_model,
                     pixel_size_um=None if given is None else given.pixel_size_um,
                     fov_mask_radius=None if given is None else given.fov_mask_radius)
+    ids = detections.ids
     report: dict = {
-        "recording": str(root.resolve()),
         "board": {"inner_corners": [o.board_cols, o.board_rows], "square_mm": o.square_mm},
         "image_size": list(size),
-        "frames": len(frames),
-        "frames_searched": int(tried.size),
-        "board_found": int(len(views)),
-        "frames_with_board": [int(frame_ids[v]) for v in views],
-        "frames_rejected": {"corner_reprojection_px_over": limit, "frames": [
-            int(frame_ids[v]) for v in views[~usable]]},
+        "board_found": len(points),
+        "distinct_views": int(distinct.size),
+        "repeated_view_px": repeat_px,
+        "frames_with_board": [int(v) for v in ids],
+        "frames_rejected": {"corner_reprojection_px_over": limit,
+                            "frames": [int(v) for v in ids[~usable]]},
         "intrinsics": {
             "views": int(len(chosen) - len(dropped)),
-            "frames": [int(frame_ids[views[i]]) for k, i in enumerate(chosen)
-                       if k not in dropped],
-            "views_dropped_as_outliers": [int(frame_ids[views[chosen[i]]]) for i in dropped],
+            "frames": [int(ids[i]) for k, i in enumerate(chosen) if k not in dropped],
+            "views_dropped_as_outliers": [int(ids[chosen[i]]) for i in dropped],
             "rms_px": float(np.sqrt(np.mean(rms ** 2))),
             "view_rms_px_max": float(rms.max()),
             "camera_matrix": K.tolist(),
@@ -650,109 +966,262 @@ def calibrate_recording(
             "distortion": [float(v) for v in dist],
             "distortion_coefficients": o.coefficients,
         },
-        "timings_s": {"board_search": t_detect},
+        "timings_s": {"intrinsics": time.perf_counter() - t0},
     }
 
     hand_eye, error = None, None
-    tracking_path = root / "tracking.csv"
-    if not tracking_path.exists():
-        report["hand_eye"] = {"skipped": f"no tracking.csv in {root}"}
-    elif not o.oriented:
-        report["hand_eye"] = {"skipped": (
-            f"the {pattern} board looks the same after a half turn (columns + rows even), so "
-            "its pose is ambiguous; use a board with an odd sum, e.g. 9x6")}
+    if tracking is None:
+        report["hand_eye"] = {"skipped": hand_eye_skipped or "no tracker samples"}
     else:
         t0 = time.perf_counter()
+        keep = np.flatnonzero(usable)
+        views = _Views(detections.times[keep], ids[keep], detections.frames[keep],
+                       poses[keep], [points[i] for i in keep], label[keep], detections.step)
         try:
-            hand_eye, report["hand_eye"] = _hand_eye_stage(
-                tracking_path, timestamps[views[usable]], frame_ids[views[usable]],
-                poses[usable], [p for p, u in zip(points, usable, strict=True) if u], K, dist, o)
+            hand_eye, report["hand_eye"] = _hand_eye_stage(tracking, tracking_source, views, K,
+                                                           dist, o)
         except ValueError as exc:
             error = str(exc)
             report["hand_eye"] = {"failed": error}
         report["timings_s"]["hand_eye"] = time.perf_counter() - t0
-    report["timings_s"]["total"] = time.perf_counter() - t_start
     return CalibrationResult(camera, hand_eye, report, error)
 
 
-def _hand_eye_stage(tracking_path: Path, times: np.ndarray, ids: np.ndarray, poses: np.ndarray,
-                    points: list[np.ndarray], K: np.ndarray, dist: np.ndarray,
-                    o: CalibrationOptions) -> tuple[np.ndarray, dict]:
-    """The hand-eye of calibrate_recording from the usable views (frame times, ids, board
-    poses, corners) and its report; ValueError naming tracking.csv when it fails or the result
-    is implausible."""
-    from fusedmosaic.io.tracking import _time, interpolate_camera_poses, read_tracking_csv
+@dataclass
+class _Views:
+    """The usable detections the hand-eye works on (calibrate_detections)."""
 
-    samples = read_tracking_csv(tracking_path)
+    times: np.ndarray
+    ids: np.ndarray
+    frames: np.ndarray
+    poses: np.ndarray  # cam_from_board (N, 4, 4)
+    points: list[np.ndarray]
+    label: np.ndarray  # repeated_views label: one per distinct board pose
+    step: int
+
+
+def _still_view_samples(samples, views: _Views, offset: float, K, dist, o):
+    """The hand-eye's measurements from the views where the scope was held still: each still
+    group's board pose (from its frames' mean corners) paired with every raw tracker sample
+    taken while it was filmed (stamped within its first and last frame's times + offset), so
+    that no sample is interpolated across a motion and each enters once. Returns
+    (tracker_from_sensor (S, 4, 4), cam_from_board (S, 4, 4), cluster label (S,), sample
+    index (S,), frame id of each group's first frame (S,), groups with a sample)."""
+    groups = still_groups(views.points, views.frames, views.step)
+    valid = np.flatnonzero(samples.valid)
+    ts = samples.timestamps[valid]
+    mean_corners = [np.mean([views.points[k] for k in g], axis=0) for g in groups]
+    poses, _ = board_poses(mean_corners, K, dist, o) if groups else (np.empty((0, 4, 4)), None)
+    A, C, cluster, index, first = [], [], [], [], []
+    used = 0
+    for g, pose in zip(groups, poses, strict=True):
+        inside = valid[(ts >= views.times[g[0]] + offset) & (ts <= views.times[g[-1]] + offset)]
+        if inside.size == 0:
+            continue
+        used += 1
+        A.append(_tracker_samples(samples, inside))
+        C.append(np.repeat(pose[None], inside.size, axis=0))
+        cluster.append(np.full(inside.size, views.label[g[0]]))
+        index.append(inside)
+        first.append(np.full(inside.size, views.ids[g[0]]))
+    if not A:
+        return None
+    return (np.concatenate(A), np.concatenate(C), np.concatenate(cluster),
+            np.concatenate(index), np.concatenate(first), used)
+
+
+def _check_hand_eye_groups(source: str, still_views: int, blocks: np.ndarray) -> None:
+    """ValueError unless the hand-eye has MIN_HAND_EYE_GROUPS independent groups of
+    measurements: distinct still views, or BOOTSTRAP_BLOCK_S blocks of tracked frames."""
+    n_blocks = len(np.unique(blocks))
+    if max(still_views, n_blocks) < MIN_HAND_EYE_GROUPS:
+        raise ValueError(
+            f"{source}: the hand-eye needs at least {MIN_HAND_EYE_GROUPS} distinct views held "
+            f"still (or {MIN_HAND_EYE_GROUPS * BOOTSTRAP_BLOCK_S:g} s of tracked frames filmed "
+            f"while moving); this recording has {still_views} still view(s) and "
+            f"{n_blocks * BOOTSTRAP_BLOCK_S:g} s: film the board from more angles, pausing at "
+            "each")
+
+
+def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np.ndarray,
+                    o: CalibrationOptions) -> tuple[np.ndarray, dict]:
+    """The hand-eye of calibrate_detections from the usable views and its report; ValueError
+    naming tracking.csv (``source``) when it fails or the result is implausible: the tracker
+    and the board disagree, the board's scale against the tracker's is not 1 (--square-mm, the
+    tracker's unit), or the clock offset lies at the search bound."""
+    from fusedmosaic.io.tracking import _time, interpolate_camera_poses
+
+    times, poses = views.times, views.poses
 
     def tracker_at(delta: float) -> tuple[np.ndarray, np.ndarray]:
         # interpolate_camera_poses with no hand-eye gives sensor_from_tracker as [r, t].
         pose, ok = interpolate_camera_poses(samples, times + delta, None, allow_outside=True,
-                                            source=str(tracking_path))
+                                            source=source)
         return _tracker_from_sensor(pose[ok]), ok
 
-    A, valid = tracker_at(0.0)
+    shift = 0.0 if o.time_offset == "auto" else float(o.time_offset)
+    A, valid = tracker_at(shift)
     if valid.sum() < MIN_HAND_EYE_VIEWS:
         ts = samples.timestamps[samples.valid]
-        span = f"[{_time(ts[0])}, {_time(ts[-1])}] s" if ts.size else "(no valid sample)"
         raise ValueError(
-            f"{tracking_path}: {int(valid.sum())} of {len(times)} views have a tracker sample; "
-            f"the tracker spans {span}, the views [{_time(times[0])}, {_time(times[-1])}] s "
-            "(frame times come from frames.csv, or --fps without it; both clocks in seconds)")
+            f"{source}: {int(valid.sum())} of {len(times)} views have a tracker sample; "
+            f"the tracker spans [{_time(ts[0])}, {_time(ts[-1])}] s, the views "
+            f"[{_time(times[0] + shift)}, {_time(times[-1] + shift)}] s (frame times come from "
+            "frames.csv, or --fps without it; both clocks in seconds)")
+    blocks = np.floor((times[valid] - times[valid][0]) / BOOTSTRAP_BLOCK_S)
+    still_views = len({int(views.label[g[0]])
+                       for g in still_groups(views.points, views.frames, views.step)})
+    _check_hand_eye_groups(source, still_views, blocks)
+    bound_hint = ""
     try:
-        he = calibrate_hand_eye(A, poses[valid], rot_sigma_deg=o.rot_sigma_deg,
-                                trans_sigma_mm=o.trans_sigma_mm)
-        offset = {"estimated": False, "applied_s": 0.0}
+        # All frames, the tracker interpolated at their times: the clock offset (it needs the
+        # frames filmed while moving) and the start of the fits below.
+        first = calibrate_hand_eye(A, poses[valid], rot_sigma_deg=o.rot_sigma_deg,
+                                   trans_sigma_mm=o.trans_sigma_mm, fit_scale=True)
+        offset = {"estimated": False, "applied_s": shift}
         if o.time_offset == "auto":
-            offset = estimate_time_offset(tracker_at, poses, he, o.max_time_offset_s)
-        elif o.time_offset != 0:
-            offset = {"estimated": False, "applied_s": float(o.time_offset)}
-        if offset["applied_s"] != 0.0:
+            offset = estimate_time_offset(tracker_at, poses, first, o.max_time_offset_s)
+            if offset["at_bound"]:
+                bound_hint = (
+                    f"; the clock offset estimate ({1e3 * offset['estimate_s']:+.0f} ms) lies at "
+                    f"the search bound +-{o.max_time_offset_s:g} s: the clocks may differ by "
+                    "more (raise --max-time-offset, or give --time-offset S)")
+                if offset["std_s"] <= 0.01:
+                    bound_hint = ""
+                    raise ValueError(
+                        f"the tracker's clock offset against the frames' is not within the "
+                        f"search bound: the estimate ({1e3 * offset['estimate_s']:+.0f} +- "
+                        f"{1e3 * offset['std_s']:.1f} ms) lies at +-{o.max_time_offset_s:g} s "
+                        "and the fit still improves beyond it; raise --max-time-offset (e.g. "
+                        f"{2 * o.max_time_offset_s:g}) or give the offset with --time-offset S")
+        if offset["applied_s"] != shift:
             A, valid = tracker_at(offset["applied_s"])
-            he = calibrate_hand_eye(A, poses[valid], rot_sigma_deg=he.tracker_sigma[0],
-                                    trans_sigma_mm=he.tracker_sigma[1])
+            first = calibrate_hand_eye(A, poses[valid], rot_sigma_deg=first.tracker_sigma[0],
+                                       trans_sigma_mm=first.tracker_sigma[1], fit_scale=True,
+                                       start=first)
+        still = _still_view_samples(samples, views, offset["applied_s"], K, dist, o)
+        mode = "still"
+        if still is None or len(np.unique(still[2])) < MIN_STILL_VIEWS:
+            mode = "interpolated"
+        else:
+            try:
+                free = calibrate_hand_eye(still[0], still[1], rot_sigma_deg=o.rot_sigma_deg,
+                                          trans_sigma_mm=o.trans_sigma_mm, fit_scale=True)
+            except ValueError:  # the still views alone do not determine it: all frames
+                mode = "interpolated"
+        if mode == "still":
+            A_fit, C_fit, clusters = still[0], still[1], still[2]
+        else:
+            free, A_fit, C_fit = first, A, poses[valid]
+            clusters = np.floor((times[valid] - times[valid][0]) / BOOTSTRAP_BLOCK_S)
     except ValueError as exc:
-        raise ValueError(f"{tracking_path}: {exc}") from None
-    n = int(valid.sum())
-    outliers = n - int(he.inlier.sum())
-    if (outliers > 0.5 * n or he.tracker_sigma[0] > MAX_TRACKER_SIGMA[0]
-            or he.tracker_sigma[1] > MAX_TRACKER_SIGMA[1]):
+        raise ValueError(f"{source}: {exc}{bound_hint}") from None
+    if mode == "interpolated":
+        _check_hand_eye_groups(source, 0 if still is None else len(np.unique(still[2])),
+                               clusters)
+    n = len(A_fit)
+    outliers = n - int(free.inlier.sum())
+    if (outliers > 0.5 * n or free.tracker_sigma[0] > MAX_TRACKER_SIGMA[0]
+            or free.tracker_sigma[1] > MAX_TRACKER_SIGMA[1]):
         raise ValueError(
-            f"{tracking_path}: the tracker and the board disagree: {outliers} of {n} views "
-            f"beyond 3 sigma, noise seen {he.tracker_sigma[0]:.2f} deg / "
-            f"{he.tracker_sigma[1]:.2f} mm per axis (an EM tracker: tenths). Check that "
-            "tracking.csv holds tracker_from_sensor (not its inverse) with quaternions x, y, z, "
-            "w and translations in mm, the board's --square-mm, and the frame times (frames.csv "
-            "or --fps)")
-    # What the tracker alone places: board corners through the tracked camera pose.
+            f"{source}: the tracker and the board disagree: {outliers} of {n} "
+            f"{'tracker samples' if mode == 'still' else 'views'} beyond 3 sigma, noise seen "
+            f"{free.tracker_sigma[0]:.2f} deg / {free.tracker_sigma[1]:.2f} mm per axis (an EM "
+            "tracker: tenths). Check that tracking.csv holds tracker_from_sensor (not its "
+            "inverse) with quaternions x, y, z, w and translations in mm, the board's "
+            f"--square-mm, and the frame times (frames.csv or --fps){bound_hint}")
+    scale_boot = bootstrap_hand_eye(free, clusters, replicates=BOOTSTRAP_REPLICATES)
+    scale_std = max(free.scale_std, scale_boot["scale_std"])
+    significant = abs(free.scale - 1) > SCALE_SIGMAS * scale_std
+    scale = {"ratio": free.scale, "std": scale_std, "square_mm_implied": o.square_mm * free.scale,
+             "applied": bool(significant)}
+    if significant and abs(free.scale - 1) > MAX_SCALE_DEVIATION:
+        unit = (" (x 0.001: metres?)" if 0.0005 < free.scale < 0.002 else
+                " (x 0.1: cm?)" if 0.05 < free.scale < 0.2 else "")
+        raise ValueError(
+            f"{source}: the tracker's motions are {free.scale:.4g} +- {scale_std:.2g} x those "
+            f"the board gives{unit}, where 1 is expected: by the tracker the board's squares "
+            f"measure {o.square_mm * free.scale:.3g} mm, not {o.square_mm:g} mm. Check the "
+            "square size (--square-mm, a printed board's scaling) and that tracking.csv's "
+            f"translations are in mm{bound_hint}")
+    # A scale that differs from 1 by a little, but significantly (a board printed scaled by
+    # 1-3 %, a tracker's own scale error), is kept: the hand-eye is then in the tracker's mm,
+    # which is what the tracked poses are composed with.
+    try:
+        he = calibrate_hand_eye(A_fit, C_fit, rot_sigma_deg=free.tracker_sigma[0],
+                                trans_sigma_mm=free.tracker_sigma[1], start=free,
+                                fit_scale=significant)
+    except ValueError as exc:
+        raise ValueError(f"{source}: {exc}") from None
+    boot = bootstrap_hand_eye(he, clusters, replicates=BOOTSTRAP_REPLICATES)
+    # What the tracker alone places: board corners through the tracked camera pose (the board
+    # in the tracker's mm when a scale was applied).
     predicted = np.linalg.inv(he.sensor_from_camera) @ np.linalg.inv(A) @ he.tracker_from_board
-    obj = o.board_points()
+    obj = o.board_points() * he.scale
     through_tracker = np.array([
         np.mean(np.linalg.norm(project_points(
-            obj, K, dist, o.lens_model, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3]) - points[k],
+            obj, K, dist, o.lens_model, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3]) - views.points[k],
             axis=1))
         for T, k in zip(predicted, np.flatnonzero(valid), strict=True)])
-    used = ids[valid]
+    used = views.ids[valid]
+    if mode == "still":
+        beyond = sorted({int(v) for v in still[4][~he.inlier]})
+        measurements = {"mode": "still views: raw tracker samples while the board pose held",
+                        "still_views": int(still[5]), "tracker_samples": n,
+                        "distinct_views": int(len(np.unique(clusters)))}
+        noise_from = "raw tracker samples of the still views (the tracker's own noise)"
+    else:
+        beyond = [int(v) for v in used[~he.inlier]]
+        measurements = {"mode": "all frames: the tracker interpolated at the frame times",
+                        "distinct_views": int(len(np.unique(views.label[valid]))),
+                        "warning": (
+                            f"fewer than {MIN_STILL_VIEWS} views held still: the hand-eye comes "
+                            "from frames filmed while moving, where the tracker interpolated "
+                            "between samples errs systematically (more at low tracker rates) "
+                            "and the error may exceed the estimate; pause at each view")}
+        noise_from = ("the tracker interpolated at the frame times: between two samples the "
+                      "noise averages, so this is below a sample's noise")
+    per_view = {"frame": used.tolist(),
+                "board_through_tracker_px": through_tracker.round(3).tolist()}
+    if mode == "interpolated":
+        per_view["rotation_residual_deg"] = he.rotation_residual_deg.round(4).tolist()
+        per_view["translation_residual_mm"] = he.translation_residual_mm.round(4).tolist()
+    rotation_rms = max(boot["rotation_rms_deg"], he.rotation_rms_deg)
+    translation_rms = max(boot["translation_rms_mm"], he.translation_rms_mm)
     return he.sensor_from_camera, {
-        "views": n,
+        "views": int(valid.sum()),
+        **measurements,
         "tracker_time_offset": offset,
-        "views_without_tracker_sample": [int(v) for v in ids[~valid]],
-        "views_beyond_3_sigma": [int(v) for v in used[~he.inlier]],
+        "views_without_tracker_sample": [int(v) for v in views.ids[~valid]],
+        "views_beyond_3_sigma": beyond,
         "sensor_from_camera": he.sensor_from_camera.tolist(),
         "tracker_from_board": he.tracker_from_board.tolist(),
-        "sensor_from_camera_closed_form": he.closed_form.tolist(),
-        "rotation_std_from_tracker_noise_deg": he.rotation_std_deg,
-        "translation_std_from_tracker_noise_mm": he.translation_std_mm,
+        "sensor_from_camera_closed_form": first.closed_form.tolist(),
+        "rotation_error_rms_deg": rotation_rms,
+        "translation_error_rms_mm": translation_rms,
+        "standard_errors": {
+            "what": ("1 sigma: per axis (the largest over directions) and the RMS error "
+                     "magnitude (sqrt of the covariance's trace); the larger of the bootstrap "
+                     "and the tracker-noise figure is reported as rotation_error_rms_deg / "
+                     "translation_error_rms_mm"),
+            "bootstrap": {**boot, "over": (
+                "distinct board poses (still views)" if mode == "still" else
+                f"blocks of {BOOTSTRAP_BLOCK_S:g} s of frames"), "seed": 0},
+            "from_tracker_noise": {
+                "rotation_std_deg": he.rotation_std_deg,
+                "rotation_rms_deg": he.rotation_rms_deg,
+                "translation_std_mm": he.translation_std_mm,
+                "translation_rms_mm": he.translation_rms_mm},
+        },
+        "board_scale": scale,
         "tracker_sigma_deg": he.tracker_sigma[0],
         "tracker_sigma_mm": he.tracker_sigma[1],
+        "tracker_sigma_from": noise_from,
         "tracker_residual_rotation_deg_rms": float(np.sqrt(np.mean(
             he.rotation_residual_deg ** 2))),
         "tracker_residual_translation_mm_rms": float(np.sqrt(np.mean(
             he.translation_residual_mm ** 2))),
-        "per_view": {"frame": used.tolist(),
-                     "rotation_residual_deg": he.rotation_residual_deg.round(4).tolist(),
-                     "translation_residual_mm": he.translation_residual_mm.round(4).tolist(),
-                     "board_through_tracker_px": through_tracker.round(3).tolist()},
+        "per_view": per_view,
         "board_through_tracker_px_median": float(np.median(through_tracker)),
         "first_fit_noise": {"rot_sigma_deg": o.rot_sigma_deg,
                             "trans_sigma_mm": o.trans_sigma_mm},
