@@ -490,6 +490,32 @@ def test_malformed_tracking_refused_before_any_work(recording, tmp_path, capsys,
     assert not out.exists()
 
 
+def test_output_folder_holding_a_users_files(recording, tmp_path, capsys, monkeypatch):
+    """calibrate replaces only the files it recorded (OUT's .fusedmosaic-outputs.json, as run
+    does): a user's own camera.yaml or hand_eye.txt in OUT is refused by name before any work
+    and left as it was; its own earlier outputs are replaced."""
+    out = tmp_path / "scope"
+    out.mkdir()
+    (out / "hand_eye.txt").write_text("my scope's hand-eye\n")
+    (out / "notes.txt").write_text("mine\n")
+    argv = ["calibrate", str(recording), "--board", "9x6", "--square-mm", "2", "--out", str(out),
+            "--quiet"]
+    with monkeypatch.context() as m:
+        m.setattr(calibration, "detect_board", lambda *a, **k: pytest.fail("searched"))
+        _refused(argv, r"scope/hand_eye.txt: exists and no fusedmosaic calibrate wrote it \(it "
+                       r"is not listed in .*\.fusedmosaic-outputs.json\); calibrate replaces "
+                       r"only its own outputs", capsys)
+    assert (out / "hand_eye.txt").read_text() == "my scope's hand-eye\n"
+    assert sorted(p.name for p in out.iterdir()) == ["hand_eye.txt", "notes.txt"]
+    (out / "hand_eye.txt").unlink()
+    assert main(argv) == 0
+    first = (out / "hand_eye.txt").read_text()
+    assert main([*argv, "--distortion", "4"]) == 0  # its own outputs: replaced
+    assert read_camera_yaml(out / "camera.yaml").distortion.size == 4
+    assert (out / "hand_eye.txt").read_text() != first
+    assert (out / "notes.txt").read_text() == "mine\n"
+
+
 def _projected_detections(scene, noise_px: float, rng) -> BoardDetections:
     """The board corners of every frame that shows the whole board, projected through the true
     camera with Gaussian noise (the board search's ~0.05 px), without rendering."""

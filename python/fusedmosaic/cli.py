@@ -204,6 +204,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     from fusedmosaic.estimation.calibration import (
         CalibrationOptions,
         calibrate_recording,
+        check_calibration_output,
         write_calibration,
     )
     from fusedmosaic.io.dataset import check_fps
@@ -230,6 +231,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         "time_offset": "--time-offset", "max_time_offset_s": "--max-time-offset"})
     check_output_dir(args.out)
     check_out_outside_dataset(Path(args.out), Path(args.recording))
+    check_calibration_output(args.out)  # a user's own camera.yaml there: refused before work
     result = calibrate_recording(args.recording, options, fps=args.fps,
                                  progress=not args.quiet)
     written = write_calibration(args.out, result)

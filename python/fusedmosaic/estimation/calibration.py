@@ -1243,14 +1243,41 @@ def camera_model_difference(a: Camera, b: Camera, region: float = 0.8) -> float:
     return float(np.linalg.norm(back - px.reshape(-1, 2), axis=1).max())
 
 
+OUTPUT_FILES = ("camera.yaml", "hand_eye.txt", "calibration.json")
+OUTPUT_RECORD = "calibrate"  # the output set's key in the folder's manifest (io.output)
+
+
+def check_calibration_output(out: str | Path) -> None:
+    """ValueError naming the file when ``out`` holds a camera.yaml, hand_eye.txt or
+    calibration.json that no fusedmosaic calibrate wrote (not recorded in the folder's
+    manifest, io.output.MANIFEST): a user's own files are never replaced (the output contract
+    of ``run``). Call it before the work; write_calibration checks again."""
+    from fusedmosaic.io.output import MANIFEST, read_manifest
+
+    out = Path(out)
+    if not out.is_dir():
+        return
+    recorded = set((read_manifest(out) or {}).get(OUTPUT_RECORD, {}).get("files", []))
+    for name in OUTPUT_FILES:
+        path = out / name
+        if (path.exists() or path.is_symlink()) and name not in recorded:
+            raise ValueError(
+                f"{path}: exists and no fusedmosaic calibrate wrote it (it is not listed in "
+                f"{out / MANIFEST}); calibrate replaces only its own outputs: choose another "
+                "output folder (--out), or move the file away")
+
+
 def write_calibration(out: str | Path, result: CalibrationResult) -> list[str]:
     """camera.yaml, hand_eye.txt (when found) and calibration.json into ``out``, atomically
-    (io.OutputWriter); returns the names written."""
+    (io.OutputWriter), recorded in the folder's manifest; a previous calibration's files there
+    are replaced (its hand_eye.txt removed when none is found now), anyone else's refused
+    (check_calibration_output). Returns the names written."""
     from fusedmosaic.io.calibration import write_camera_yaml
     from fusedmosaic.io.output import OutputWriter
     from fusedmosaic.io.tracking import write_hand_eye
 
-    with OutputWriter(out, record="calibrate") as w:
+    check_calibration_output(out)
+    with OutputWriter(out, record=OUTPUT_RECORD, expects=OUTPUT_FILES) as w:
         write_camera_yaml(w.path("camera.yaml"), result.camera)
         if result.hand_eye is not None:
             write_hand_eye(w.path("hand_eye.txt"), result.hand_eye)
