@@ -78,6 +78,11 @@ def test_bad_json_destination_is_refused_before_measuring(monkeypatch, tmp_path,
     assert main(["bench", "--json", str(blocker / "b.json")]) == 2
     assert f"{blocker}: exists and is not a folder" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+    notes = tmp_path / "notes.json"  # a user's file of that name is not replaced
+    notes.write_text('{"my": "notes"}')
+    assert main(["bench", "--json", str(notes)]) == 2
+    assert f"--json {notes}: exists and is not a bench result" in capsys.readouterr().err
+    assert json.loads(notes.read_text()) == {"my": "notes"}
 
 
 def test_json_replaces_only_a_bench_result(tmp_path):

@@ -343,7 +343,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
                            report=not args.no_report, method=args.method,
                            tracker_time_offset=args.tracker_time_offset,
                            preview=args.preview, serve_mosaic=args.serve_mosaic,
-                           view_interval_s=args.view_interval)
+                           view_interval_s=args.view_interval, say=lambda text: _say(args, text))
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
@@ -587,8 +587,13 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from fusedmosaic.evaluation.benchmark import BenchOptions, format_benchmark, run_benchmark
-    from fusedmosaic.io.output import OutputWriter, check_output_dir
+    from fusedmosaic.evaluation.benchmark import (
+        BenchOptions,
+        check_json_destination,
+        format_benchmark,
+        run_benchmark,
+        write_json,
+    )
 
     options = BenchOptions(frames=args.frames, detector=args.detector,
                            pcle_frames=args.pcle_frames, offline=args.offline, seed=args.seed)
@@ -598,19 +603,15 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         raise ValueError(re.sub(r"^(\w+)", lambda m: "--" + m.group(1).replace("_", "-"),
                                 str(exc))) from None
     json_path = Path(args.json) if args.json else None
-    if json_path is not None:  # checked before minutes of measuring
-        if json_path.is_dir():
-            raise ValueError(f"--json {json_path}: is a folder; give a file name, e.g. "
-                             f"{json_path / 'bench.json'}")
+    if json_path is not None:  # checked before the measuring; a user's file is not replaced
         try:
-            check_output_dir(json_path.parent, "folder of the bench JSON", create_parent=False)
+            check_json_destination(json_path)
         except ValueError as exc:
-            raise ValueError(f"--json {json_path}: {exc}") from None
+            raise ValueError(f"--json {exc}") from None
     result = run_benchmark(options, say=lambda text: _say(args, text))
     _say(args, format_benchmark(result))
     if json_path is not None:
-        with OutputWriter(json_path.parent) as w:
-            w.write_text(json_path.name, _json_text(result))
+        write_json(json_path, result)
         _say(args, f"wrote {json_path}")
     return 1 if args.strict and not result["all_ok"] else 0
 
@@ -839,7 +840,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--pcle-frames", type=int, default=200,
                        help="pCLE frames streamed through kalman-robot (>= 10; default 200)")
     bench.add_argument("--offline", action="store_true",
-                       help="also time ba-emt over 150 frames (about a minute more)")
+                       help="also time ba-emt over 150 frames (~10 s more)")
     bench.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
     bench.add_argument("--json", help="also write the measurements to this JSON file")
     bench.add_argument("--strict", action="store_true",
