@@ -12,7 +12,6 @@ import socket
 import subprocess
 import sys
 import time
-import warnings
 from pathlib import Path
 
 import cv2
@@ -651,16 +650,18 @@ def test_preview_folder_is_created_and_the_free_port_taken_is_told(syn, tmp_path
     server starts (it was only in report.json)."""
     preview = tmp_path / "views" / "today" / "view.png"
     sender = Sender(dataset_events(syn, n_frames=20))
-    with warnings.catch_warnings():
-        warnings.simplefilter("default")  # as outside pytest: the CLI prints it
-        code = _live(syn, tmp_path, sender, "--preview", str(preview), "--serve-mosaic", "0")
+    code = main(["live", f"127.0.0.1:{sender.port}", "--camera",  # not --quiet: it is told
+                 str(syn.root / "camera.yaml"), "--hand-eye", str(syn.root / "hand_eye.txt"),
+                 "--transform", "SensorToTracker", "--record", str(tmp_path / "rec"), "--out",
+                 str(tmp_path / "out"), "--no-report", "--preview", str(preview),
+                 "--serve-mosaic", "0"])
     sender.join()
     assert code == 0
     view = json.loads((tmp_path / "out" / "report.json").read_text())["live"]["view"]
     address = view["server"]["address"]
     assert re.fullmatch(r"127\.0\.0\.1:\d+", address) and not address.endswith(":0")
-    assert (f"fusedmosaic: warning: live: the mosaic is served on {address} (OpenIGTLink IMAGE "
-            "'Mosaic'; --serve-mosaic 0 took this free port)") in capsys.readouterr().err
+    assert (f"live: the mosaic is served on {address} (OpenIGTLink IMAGE "
+            "'Mosaic'; --serve-mosaic 0 took this free port)") in capsys.readouterr().out
     assert view["problems"] == {} and view["published"] >= 1
     assert cv2.imread(str(preview)).shape[2] == 3
 
