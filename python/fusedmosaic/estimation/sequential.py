@@ -881,15 +881,14 @@ class SequentialMosaicker:
     def _step(self, final_step: bool = False) -> None:
         t0 = time.perf_counter()
         ids = [p["id"] for p in self._pending]
-        exclude = set(ids) | set(self.window.window_ids())
+        window_ids = set(self.window.window_ids())
         keyframe_ids = self.keyframes.select(self.options.num_clusters,
-                                             exclude | self._unanchored)
+                                             set(ids) | window_ids | self._unanchored)
         t_kf = time.perf_counter() - t0
         # Anchors: fixed cameras placed with one, the frames' own tracker samples, and
-        # registered pairs (visually_anchored: linked to an anchored fixed camera through
-        # pairs alone). A step with none cannot inform pi: it is held.
-        fixed = ((set(self.window.window_ids()) | set(keyframe_ids) | set(self._loop_feats))
-                 - set(ids))
+        # registered pairs (visual: linked to an anchored fixed camera through pairs alone).
+        # A step with none cannot inform pi: it is held.
+        fixed = (window_ids | set(keyframe_ids) | set(self._loop_feats)) - set(ids)
         visual = self._linked(fixed - self._unanchored, set())
         tracked = {p["id"] for p in self._pending if p["tracker"] is not None}
         hold = not (visual or tracked)
@@ -927,8 +926,6 @@ class SequentialMosaicker:
     def _lost_ids(self) -> set[int]:
         """Frames placed, or being placed, without an anchor: finalised unanchored ones and
         pending ones that had neither a tracker sample nor a pair to a frame not lost."""
-        if not self._unanchored and all(p.get("anchored", True) for p in self._pending):
-            return set()
         return self._unanchored | {p["id"] for p in self._pending
                                    if not p.get("anchored", True)}
 
