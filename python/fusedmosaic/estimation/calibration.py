@@ -849,7 +849,7 @@ def calibrate_recording(
 def _read_tracking(root: Path, timestamps: np.ndarray, o: CalibrationOptions):
     """(tracking samples or None, why the hand-eye is skipped or None), read and checked before
     any work: ValueError naming tracking.csv when it is malformed or covers too few frames."""
-    from fusedmosaic.io.tracking import _time, interpolate_camera_poses, read_tracking_csv
+    from fusedmosaic.io.tracking import interpolate_camera_poses, read_tracking_csv
 
     path = root / "tracking.csv"
     if not path.exists():
@@ -862,15 +862,26 @@ def _read_tracking(root: Path, timestamps: np.ndarray, o: CalibrationOptions):
     shift = 0.0 if o.time_offset == "auto" else float(o.time_offset)
     _, covered = interpolate_camera_poses(samples, timestamps + shift, None, allow_outside=True,
                                           source=str(path))
-    if covered.sum() < MIN_HAND_EYE_VIEWS:
-        ts = samples.timestamps[samples.valid]
-        raise ValueError(
-            f"{path}: {int(covered.sum())} of {timestamps.size} frames have a tracker sample; "
-            f"the tracker spans [{_time(ts[0])}, {_time(ts[-1])}] s, the frames "
-            f"[{_time(timestamps[0] + shift)}, {_time(timestamps[-1] + shift)}] s (frame times "
-            "come from frames.csv, or --fps without it; both clocks in seconds"
-            + (f", the frames' shifted by the time offset {shift:g} s)" if shift else ")"))
+    _check_tracker_covers(samples, covered, timestamps + shift, str(path), "frames",
+                          shift_note=(f", the frames' shifted by the time offset {shift:g} s"
+                                      if shift else ""))
     return samples, None
+
+
+def _check_tracker_covers(samples, covered: np.ndarray, times: np.ndarray, source: str,
+                          what: str, shift_note: str = "") -> None:
+    """ValueError naming ``source`` when fewer than MIN_HAND_EYE_VIEWS of the ``what`` (frames
+    or views, at their tracker-clock ``times``) have a tracker sample, with both time spans."""
+    from fusedmosaic.io.tracking import _time
+
+    if covered.sum() >= MIN_HAND_EYE_VIEWS:
+        return
+    ts = samples.timestamps[samples.valid]
+    raise ValueError(
+        f"{source}: {int(covered.sum())} of {len(times)} {what} have a tracker sample; "
+        f"the tracker spans [{_time(ts[0])}, {_time(ts[-1])}] s, the {what} "
+        f"[{_time(times[0])}, {_time(times[-1])}] s (frame times come from frames.csv, or "
+        f"--fps without it; both clocks in seconds{shift_note})")
 
 
 def calibrate_detections(
@@ -1049,7 +1060,7 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
     naming tracking.csv (``source``) when it fails or the result is implausible: the tracker
     and the board disagree, the board's scale against the tracker's is not 1 (--square-mm, the
     tracker's unit), or the clock offset lies at the search bound."""
-    from fusedmosaic.io.tracking import _time, interpolate_camera_poses
+    from fusedmosaic.io.tracking import interpolate_camera_poses
 
     times, poses = views.times, views.poses
 
@@ -1061,13 +1072,7 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
 
     shift = 0.0 if o.time_offset == "auto" else float(o.time_offset)
     A, valid = tracker_at(shift)
-    if valid.sum() < MIN_HAND_EYE_VIEWS:
-        ts = samples.timestamps[samples.valid]
-        raise ValueError(
-            f"{source}: {int(valid.sum())} of {len(times)} views have a tracker sample; "
-            f"the tracker spans [{_time(ts[0])}, {_time(ts[-1])}] s, the views "
-            f"[{_time(times[0] + shift)}, {_time(times[-1] + shift)}] s (frame times come from "
-            "frames.csv, or --fps without it; both clocks in seconds)")
+    _check_tracker_covers(samples, valid, times + shift, source, "views")
     blocks = np.floor((times[valid] - times[valid][0]) / BOOTSTRAP_BLOCK_S)
     still_views = len({int(views.label[g[0]])
                        for g in still_groups(views.points, views.frames, views.step)})
