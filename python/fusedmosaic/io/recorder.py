@@ -30,7 +30,6 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import json
-import math
 import os
 import queue
 import shutil
@@ -44,6 +43,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from fusedmosaic.io._table import format_float
 from fusedmosaic.io.calibration import Camera, write_camera_yaml
@@ -127,7 +127,7 @@ class DatasetRecorder:
         elif M is None:
             row = [format_float(t), *[""] * 7, "0"]
         else:
-            q = _unit_quaternion(M[:3, :3])  # 3 µs (scipy's Rotation: ~100 µs per call)
+            q = Rotation.from_matrix(M[:3, :3]).as_quat()  # ~50 µs: 2 ms/s at 40 Hz
             row = [format_float(t), *(format_float(v) for v in (*M[:3, 3], *q)), "1"]
         with self._lock:
             if self._error is not None or self._finished or self._discard:
@@ -233,26 +233,6 @@ class DatasetRecorder:
             except BaseException as exc:
                 with self._lock:
                     self._error = exc
-
-
-def _unit_quaternion(R: np.ndarray) -> tuple[float, ...]:
-    """(x, y, z, w) of a rotation matrix (Shepperd's method, on the largest diagonal term)."""
-    (a, b, c), (d, e, f), (g, h, i) = R.tolist()
-    trace = a + e + i
-    if trace > 0:
-        s = 2.0 * math.sqrt(1.0 + trace)
-        q = ((h - f) / s, (c - g) / s, (d - b) / s, 0.25 * s)
-    elif a >= e and a >= i:
-        s = 2.0 * math.sqrt(1.0 + a - e - i)
-        q = (0.25 * s, (b + d) / s, (c + g) / s, (h - f) / s)
-    elif e >= i:
-        s = 2.0 * math.sqrt(1.0 + e - a - i)
-        q = ((b + d) / s, 0.25 * s, (f + h) / s, (c - g) / s)
-    else:
-        s = 2.0 * math.sqrt(1.0 + i - a - e)
-        q = ((c + g) / s, (f + h) / s, 0.25 * s, (d - b) / s)
-    norm = math.sqrt(sum(x * x for x in q))
-    return tuple(x / norm for x in q)
 
 
 def _describe(exc: BaseException) -> str:
