@@ -359,6 +359,15 @@ def test_evaluate_json_destination(data, emt_out, tmp_path, monkeypatch, capsys)
                      str(SYSFS / "fusedmosaic" / "e.json")]) == 2
         err = capsys.readouterr().err
         assert err.startswith("fusedmosaic: error: --json /sys/fusedmosaic/e.json: ")
+    # a file of that name that no evaluation wrote is the user's: refused, left as it was
+    (tmp_path / "folder" / "mine.json").write_text('{"my": "numbers"}')
+    assert main(["evaluate", str(emt_out), "--truth", truth, "--json",
+                 "folder/mine.json"]) == 2
+    assert capsys.readouterr().err == (
+        "fusedmosaic: error: --json folder/mine.json: exists and is not an evaluation "
+        "fusedmosaic wrote; choose another --json name, or move that file\n")
+    assert (tmp_path / "folder" / "mine.json").read_text() == '{"my": "numbers"}'
+    (tmp_path / "folder" / "mine.json").unlink()
     assert main(["evaluate", "typo/out", "--truth", truth]) == 2  # creates no folder
     assert "homographies.csv: file not found" in capsys.readouterr().err
     assert sorted(os.listdir(tmp_path)) == ["folder", "new"]  # no stray .e.json.tmp

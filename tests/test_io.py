@@ -330,6 +330,23 @@ def test_camera_yaml_with_a_utf8_bom_reads_as_without(tmp_path, name, text):
     np.testing.assert_array_equal(b.distortion, [-0.3, 0.1, 0, 0])
 
 
+@pytest.mark.parametrize("name, text", [
+    ("camera.yaml", "%YAML:1.0\n---\nimage_width: 32\nimage_height: 24\ncamera_matrix: [40, 0, "
+                    "15.5, 0, 40, 11.5, 0, 0, 1]\ncamera_matrix: [80, 0, 15.5, 0, 80, 11.5, 0, 0, "
+                    "1]\n"),
+    ("camera.json", '{"image_width": 32, "image_height": 24, "camera_matrix": [40, 0, 15.5, 0, '
+                    '40, 11.5, 0, 0, 1], "camera_matrix": [80, 0, 15.5, 0, 80, 11.5, 0, 0, 1]}'),
+], ids=["yaml", "json"])
+def test_camera_yaml_with_a_key_twice_is_refused(tmp_path, name, text):
+    """OpenCV reads the first of two equal keys and drops the second without a word: an edited
+    file with the old focal length left above the new one would calibrate nothing."""
+    path = tmp_path / name
+    path.write_text(text)
+    with pytest.raises(ValueError, match=rf"{name}: key 'camera_matrix' appears 2 times; keep "
+                                         r"one \(OpenCV would read only the first\)"):
+        read_camera_yaml(path)
+
+
 def test_camera_yaml_encoding_problems_named(tmp_path):
     path = tmp_path / "camera.yaml"
     path.write_bytes(_BOM + b"image_width: [32\n")

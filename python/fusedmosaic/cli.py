@@ -484,10 +484,10 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _check_report_destination(json_path: Path, plots: str, *, report: bool) -> list[str]:
-    """NAME.md and NAME_plots/ beside --json NAME.json are replaced only when a fusedmosaic
+    """NAME.json, and NAME.md and NAME_plots/ beside it, are replaced only when a fusedmosaic
     evaluation wrote them: recorded in the folder's manifest, or (older versions) NAME.json is
-    an evaluation (a "results" list). Otherwise they are the user's: with a report to write,
-    that is an error; without, they are left alone.
+    an evaluation (a "results" list). Otherwise they are the user's: NAME.json is an error; the
+    report's files are an error when there is a report to write, and left alone without.
 
     Returns the older version's names for OutputWriter(replaces=...)."""
     from fusedmosaic.io.output import read_json_object, read_manifest
@@ -503,6 +503,9 @@ def _check_report_destination(json_path: Path, plots: str, *, report: bool) -> l
             previous = {}
         if isinstance(previous.get("results"), list):
             older = [md_path.name, plots + "/"]
+        elif json_path.exists() or json_path.is_symlink():
+            raise ValueError(f"--json {json_path}: exists and is not an evaluation fusedmosaic "
+                             "wrote; choose another --json name, or move that file")
     if not report:
         return older
     if md_path.exists() and md_path.name not in recorded and md_path.name not in older:

@@ -357,8 +357,9 @@ def read_camera_yaml(path: str | Path) -> Camera:
     ``{rows, cols, data}``. The lens model: ``distortion_model`` (ROS camera_info: plumb_bob or
     rational_polynomial, OpenCV's standard model; equidistant or fisheye, OpenCV's fisheye
     model) or OpenCV's calibration sample's ``fisheye_model: 1``; default the standard model.
-    A UTF-8 byte order mark (Windows editors write one) is skipped. Every problem, including
-    an OpenCV parse error, is a ValueError naming the file (and the key)."""
+    A UTF-8 byte order mark (Windows editors write one) is skipped; a key given twice is refused.
+    Every problem, including an OpenCV parse error, is a ValueError naming the file (and the
+    key)."""
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"{path}: file not found")
@@ -418,6 +419,12 @@ def _reason(error: Exception) -> str:
 
 
 def _read_camera(fs: cv2.FileStorage, path: Path) -> Camera:
+    keys = list(fs.root().keys())
+    repeated = sorted({k for k in keys if keys.count(k) > 1})
+    if repeated:  # OpenCV would silently keep the first value of each
+        raise ValueError(f"{path}: key {repeated[0]!r} appears {keys.count(repeated[0])} times; "
+                         "keep one (OpenCV would read only the first)")
+
     def number(key: str, required: bool = False) -> float | None:
         node = fs.getNode(key)
         if node.empty() or node.isNone():
