@@ -84,6 +84,35 @@ def test_unusable_out_fails_before_the_computation(data, tmp_path, computed, cap
     assert listing(tmp_path) == ["afile"] and (tmp_path / "afile").read_text() == "x"
 
 
+def test_demo_simulates_again_when_asked_for_another_sequence(tmp_path, capsys):
+    """A demo folder keeps its simulated sequence for the next demo only when --frames and
+    --motion ask for the same one; a dataset folder the demo did not write is refused."""
+    out = tmp_path / "demo"
+
+    def frames_in_dataset() -> int:
+        return len((out / "dataset" / "frames.csv").read_text().splitlines()) - 1
+
+    assert main(["demo", "--out", str(out), "--frames", "12"]) == 0
+    assert "[demo] simulated a syn fetoscopy sequence (12 frames" in capsys.readouterr().out
+    assert main(["demo", "--out", str(out), "--frames", "12"]) == 0
+    said = capsys.readouterr().out
+    assert f"[demo] reusing the simulated sequence in {out / 'dataset'}" in said
+    assert "12/12 frames placed" in said
+    assert main(["demo", "--out", str(out), "--frames", "14"]) == 0
+    said = capsys.readouterr().out
+    assert (f"[demo] {out / 'dataset'} holds a syn sequence of 12 frames; simulating the one "
+            "asked for") in said
+    assert "14/14 frames placed" in said and frames_in_dataset() == 14
+    other = tmp_path / "other"
+    (other / "dataset").mkdir(parents=True)
+    (other / "dataset" / "notes.txt").write_text("mine")
+    assert main(["demo", "--out", str(other), "--frames", "12"]) == 2
+    assert (f"{other / 'dataset'}: exists and is not a sequence a fusedmosaic demo simulated "
+            "(no simulation.json or camera.yaml); choose another --out, or move it"
+            ) in capsys.readouterr().err
+    assert listing(other) == ["dataset", "dataset/notes.txt"]
+
+
 def test_simulate_and_demo_check_their_folder_first(tmp_path, capsys):
     (tmp_path / "afile").write_text("x")
     assert main(["simulate", "pcle", str(tmp_path / "afile"), "--n-frames", "3"]) == 2

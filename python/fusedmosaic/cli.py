@@ -483,6 +483,23 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _demo_dataset_options(data: Path) -> dict:
+    """The simulator options of the dataset an earlier demo left in ``data`` (its
+    simulation.json), so that a demo with other --frames / --motion simulates again instead of
+    reusing it. Anything else in that folder is the user's: ValueError naming it."""
+    from fusedmosaic.io.output import read_json_object
+
+    try:
+        info = read_json_object(data / "simulation.json")
+    except (OSError, ValueError):
+        info = {}
+    if (info.get("simulator") != "fetoscopy" or not isinstance(info.get("options"), dict)
+            or not (data / "camera.yaml").is_file()):
+        raise ValueError(f"{data}: exists and is not a sequence a fusedmosaic demo simulated "
+                         "(no simulation.json or camera.yaml); choose another --out, or move it")
+    return info["options"]
+
+
 def _check_report_destination(json_path: Path, plots: str, *, report: bool) -> list[str]:
     """NAME.json, and NAME.md and NAME_plots/ beside it, are replaced only when a fusedmosaic
     evaluation wrote them: recorded in the folder's manifest, or (older versions) NAME.json is
@@ -543,18 +560,25 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from fusedmosaic.io.output import OutputWriter, check_output_dir
     from fusedmosaic.runner import frames_to_compose, run_dataset
 
+    if args.frames < 1:
+        raise ValueError(f"--frames must be >= 1, got {args.frames}")
     root = check_output_dir(args.out, "demo folder")
     data = root / "dataset"
     t0 = time.perf_counter()
-    if not (data / "camera.yaml").is_file():
-        if args.frames < 1:
-            raise ValueError(f"--frames must be >= 1, got {args.frames}")
+    earlier = None
+    if data.is_symlink() or data.exists() and not (data.is_dir() and not any(data.iterdir())):
+        earlier = _demo_dataset_options(data)
+    asked = {"n_frames": args.frames, "motion": args.motion}
+    if earlier is not None and all(earlier.get(k) == v for k, v in asked.items()):
+        _say(args, f"[demo] reusing the simulated sequence in {data}")
+    else:
+        if earlier is not None:
+            _say(args, f"[demo] {data} holds a {earlier.get('motion')} sequence of "
+                       f"{earlier.get('n_frames')} frames; simulating the one asked for")
         simulation.simulate_fetoscopy(data, simulation.FetoscopyOptions(
-            n_frames=args.frames, motion=args.motion))
+            n_frames=args.frames, motion=args.motion), overwrite=earlier is not None)
         _say(args, f"[demo] simulated a {args.motion} fetoscopy sequence ({args.frames} frames, "
                    f"EM tracker at 40 Hz, ground truth): {data}")
-    else:
-        _say(args, f"[demo] reusing the simulated sequence in {data}")
     names = methods.available()
     if not names:
         raise SystemExit("no mosaicking method is registered yet")
