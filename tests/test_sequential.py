@@ -307,6 +307,11 @@ def test_recovery_after_black_frames_in_a_tracker_dropout(work):
     assert np.isfinite(e).all()  # every frame placed
     assert e[:60].max() < 1.0  # before the loss (tracker gap 55-59: the images chain)
     assert e[81:].max() < 1.0  # tolerance 1 px: measured 0.1-0.3 (tracker back at 81)
+    # the frames with no anchor are told apart: the black ones and those chained only to them
+    # (measured 60-75), every frame off by more than 1 px among them, none after the return
+    lost = {k for k, s in enumerate(res.status) if s == "dead-reckoned"}
+    assert set(range(60, 72)) <= lost <= set(range(60, 81))
+    assert set(np.flatnonzero(e > 1.0)) <= lost
     plane = np.array(res.details["plane_history"])
     depth = 1.0 / np.linalg.norm(plane, axis=-1)
     assert np.all(np.abs(depth - 30.0) < 0.5)  # mm; the true plane is 30 mm away

@@ -34,7 +34,8 @@ class MethodResult:
     """What a method hands to the output writer.
 
     homographies: (N, 3, 3) frame -> reference, all-NaN rows for frames that could not be placed.
-    status: per frame, "placed", "prior-only" (placed from priors without visual evidence), or
+    status: per frame, "placed", "prior-only" (placed from priors without visual evidence),
+        "dead-reckoned" (lba-emt: placed with no anchor at all, see FrameResult) or
         "unplaced: <reason>".
     """
 

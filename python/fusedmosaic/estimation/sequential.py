@@ -228,7 +228,10 @@ class FrameResult:
     frame -> reference (frame 0's pixel grid), NaN when unplaced. pose: (6,) cam_from_world
     [angle-axis rad, t mm] in the tracker's world (NaN when unknown). status: "placed" (final,
     with visual evidence), "prior-only" (final, from the tracker and motion priors alone: no
-    registered pair), "provisional" (not final yet) or "unplaced: <why>". final: whether the
+    registered pair), "dead-reckoned" (final, with no anchor at all: neither a tracker sample
+    nor a registered pair to a frame that had one, e.g. black frames inside a tracker dropout;
+    extrapolated by the constant-velocity prior, its error grows with the gap), "provisional"
+    (not final yet) or "unplaced: <why>". final: whether the
     estimate will not change. tracker_gated: its tracker sample was down-weighted by the
     window step (gate_chi2) or dropped as a glitch; tracker_dropped: dropped (never used).
     timings: seconds per stage (features, matching, window_solve, keyframe_selection). plane:
@@ -239,7 +242,7 @@ class FrameResult:
     timestamp: float
     homography: np.ndarray  # (3, 3) frame -> reference (NaN when unplaced)
     pose: np.ndarray  # (6,) cam_from_world
-    status: str  # "placed" | "prior-only" | "provisional" | "unplaced: ..." (not final)
+    status: str  # "placed" | "prior-only" | "dead-reckoned" | "provisional" | "unplaced: ..."
     final: bool
     # its tracker sample was down-weighted by the window step (gate_chi2) or dropped as a
     # glitch (tracker_max_speed_mm_s ...) before reaching the window; tracker_dropped tells which
@@ -955,7 +958,8 @@ class SequentialMosaicker:
             G = self._to_reference(pose)
             centroid = self._centroid(G)
             forget += self.keyframes.add(k, centroid)
-            if anchored is not None and k not in anchored:
+            dead_reckoned = anchored is not None and k not in anchored
+            if dead_reckoned:
                 self._unanchored = self._unanchored | {k}
             elif k % self.options.frames_per_cluster == self.options.frames_per_cluster // 2:
                 feats = p.pop("features", None)
@@ -964,7 +968,8 @@ class SequentialMosaicker:
                     self._loop_centroids[k] = centroid
             p["timings"]["window_solve"] = solve_per_frame
             p["timings"]["keyframe_selection"] = keyframe_per_frame
-            status = "placed" if p["visual"] else "prior-only"
+            status = ("dead-reckoned" if dead_reckoned else
+                      "placed" if p["visual"] else "prior-only")
             self._finalized.append(FrameResult(
                 k, p["timestamp"], G, poses_from_aligned(pose, self._world_rotation), status,
                 True, k in gated or p["dropped"], p["timings"], self.plane,
