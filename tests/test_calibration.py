@@ -319,8 +319,11 @@ def test_plus_recording_imported_without_camera_then_calibrated(recording, tmp_p
     assert main(["calibrate", str(data), "--board", "9x6", "--square-mm", "2", "--out", str(out),
                  "--quiet"]) == 0
     X, X0 = read_hand_eye(out / "hand_eye.txt"), read_hand_eye(recording / "truth_hand_eye.txt")
-    assert _rotation_deg(X0[:3, :3].T @ X[:3, :3]) < 0.5
-    assert np.linalg.norm(X[:3, 3] - X0[:3, 3]) < 0.5
+    # Tolerance 1 deg / 1 mm: on this 12-view recording, seeds 0-4 of the simulator measured
+    # 0.20-0.56 deg and 0.48 mm RMS (the tracker resampled at 25 Hz, 2 frames per still view);
+    # calibrate itself reports 0.6 deg / 0.29 mm expected error here.
+    assert _rotation_deg(X0[:3, :3].T @ X[:3, :3]) < 1.0
+    assert np.linalg.norm(X[:3, 3] - X0[:3, 3]) < 1.0
 
 
 def test_wrong_tracker_input_fails_the_hand_eye_but_keeps_the_intrinsics(recording, tmp_path,
@@ -565,3 +568,28 @@ def test_reported_hand_eye_errors_match_the_truth(changes):
     ratio = np.sqrt(np.mean(errors ** 2, axis=0)) / reported.mean(axis=0)
     assert np.all((ratio > 0.5) & (ratio < 2.0)), ratio
     assert np.all(np.abs(np.array(noise) - 1) < 0.12), noise
+
+
+def test_hand_eye_from_moving_frames_interpolates_a_sparse_tracker_by_splines(monkeypatch):
+    """With too few still views calibrate uses every frame, the tracker interpolated to the
+    frame times: a 10 Hz tracker's chord between two samples cuts the scope's curved motion by
+    millimetres, which cubic splines follow. Forced here (MIN_STILL_VIEWS beyond reach) on the
+    slow, precise tracker (10 Hz, 0.1 deg / 0.03 mm), clock offset estimated. Measured over
+    seeds 0-2: translation error 0.16-0.25 mm (linear interpolation: 1.22-1.40 mm), rotation
+    0.08-0.12 deg. Stated: < 0.5 mm and < 0.3 deg each."""
+    from fusedmosaic.estimation import calibration
+
+    monkeypatch.setattr(calibration, "MIN_STILL_VIEWS", 10**6)
+    for seed in range(3):
+        o = CheckerboardOptions(seed=seed, width=320, height=320, tracker_rate_hz=10.0,
+                                rot_sigma_deg=0.1, trans_sigma_mm=0.03)
+        scene = generate_checkerboard(o)
+        T = scene.tracker_from_sensor
+        tracking = TrackingSamples(scene.tracker_timestamps, T[:, :3, 3].copy(),
+                                   Rotation.from_matrix(T[:, :3, :3]).as_quat())
+        result = calibrate_detections(
+            _projected_detections(scene, 0.05, np.random.default_rng(seed)),
+            CalibrationOptions(time_offset="auto"), tracking=tracking)
+        assert result.report["hand_eye"]["mode"].startswith("all frames")
+        rot_deg, trans_mm = _hand_eye_errors(result.hand_eye, scene.hand_eye)
+        assert trans_mm < 0.5 and rot_deg < 0.3, (seed, rot_deg, trans_mm)

@@ -312,6 +312,16 @@ def test_recovery_after_black_frames_in_a_tracker_dropout(work):
     lost = {k for k, s in enumerate(res.status) if s == "dead-reckoned"}
     assert set(range(60, 72)) <= lost <= set(range(60, 81))
     assert set(np.flatnonzero(e > 1.0)) <= lost
+    # and left out of the mosaic (kept in homographies.csv, flagged)
+    out = work / "dropout_black_lba-emt"
+    run_dataset(ds.root, "lba-emt", out, allow_untracked=True, progress=False, report=False,
+                result=res)
+    report = json.loads((out / "report.json").read_text())
+    assert report["frame_status"] == res.status
+    mosaic = report["mosaic"]
+    assert mosaic["frames_shown"] == 110 - len(lost)
+    assert mosaic["skipped_frames"] == {
+        str(k): "dead-reckoned (no anchor): not composed" for k in sorted(lost)}
     plane = np.array(res.details["plane_history"])
     depth = 1.0 / np.linalg.norm(plane, axis=-1)
     assert np.all(np.abs(depth - 30.0) < 0.5)  # mm; the true plane is 30 mm away

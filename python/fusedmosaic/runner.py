@@ -229,6 +229,12 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
 
     cam = dataset.camera
     frames, mask = frames_to_compose(dataset, result.undistorted)
+    # Frames lba-emt placed with no anchor at all (black frames inside a tracker dropout, and
+    # the frames chained only to them) can lie hundreds of px off: not pasted into the mosaic
+    # or the video (homographies.csv still has them, flagged in frame_status).
+    dead = np.array([s == "dead-reckoned" for s in result.status], dtype=bool)
+    if dead.any():
+        G = np.where(dead[:, None, None], np.nan, G)
     if blend is None:
         blend = BlendOptions(result.blend)
     elif isinstance(blend, str):
@@ -282,7 +288,9 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
         "tiled": tiled,
         "covered_fraction": covered,
         "frames_shown": int(plan.use.sum()),
-        "skipped_frames": {str(int(ids[k])): why for k, why in sorted(plan.skipped.items())},
+        "skipped_frames": {str(int(ids[k])): why for k, why in sorted(
+            {**plan.skipped, **{int(k): "dead-reckoned (no anchor): not composed"
+                                for k in np.flatnonzero(dead)}}.items())},
     }
     if gains is not None:
         info["gains"] = gains.tolist()
@@ -533,7 +541,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     view, server, recorder, src = None, None, None, None
 
     def on_final(index, image, r) -> None:  # given to the session only with a view
-        if image is not None and np.isfinite(r.homography).all():
+        if (image is not None and np.isfinite(r.homography).all()
+                and r.status != "dead-reckoned"):  # as compose_outputs: not drawn
             view.add(image, r.homography)
 
     rejected: dict[str, int] = {}  # why -> frames refused

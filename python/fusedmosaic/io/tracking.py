@@ -14,7 +14,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
+from scipy.interpolate import CubicSpline
+from scipy.spatial.transform import Rotation, RotationSpline, Slerp
 
 from fusedmosaic.io._table import check_increasing, format_float, read_table, write_table
 
@@ -380,18 +381,25 @@ def interpolate_camera_poses(
     max_gap: float | None = None,
     allow_outside: bool = False,
     source: str = "tracking.csv",
+    method: str = "linear",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Camera poses at frame times from tracker samples (paper 000, Sec. 3: tracker poses are
     interpolated to the frames, then composed with the hand-eye transform).
 
-    tracker_from_sensor is SLERPed (rotation) and linearly interpolated (translation) between the
-    valid samples around each frame time; world_from_cam = tracker_from_sensor @
-    sensor_from_camera; returns cam_from_world (N, 6) = [angle-axis, t] and valid (N,) bool.
+    tracker_from_sensor is interpolated between the valid samples around each frame time:
+    ``method="linear"`` SLERPs the rotation and interpolates the translation linearly;
+    ``"cubic"`` passes SciPy's RotationSpline and a not-a-knot CubicSpline through the samples
+    of each stretch without a gap (for a sparse tracker, e.g. 10 Hz, on a curved motion, where
+    the chord between two samples cuts the curve by millimetres). world_from_cam =
+    tracker_from_sensor @ sensor_from_camera; returns cam_from_world (N, 6) = [angle-axis, t]
+    and valid (N,) bool.
 
     Frames outside the valid samples' time span raise ValueError, or with ``allow_outside`` are
     flagged invalid. Frames inside a gap between valid samples longer than ``max_gap`` (default
     3x the median valid-sample spacing) are flagged invalid. Invalid frames get NaN poses.
     """
+    if method not in ("linear", "cubic"):
+        raise ValueError(f"interpolation method must be 'linear' or 'cubic', got {method!r}")
     frame_times = np.asarray(frame_times, dtype=np.float64).reshape(-1)
     X = np.eye(4) if sensor_from_camera is None else np.asarray(sensor_from_camera, np.float64)
     if X.shape != (4, 4):
@@ -416,12 +424,41 @@ def interpolate_camera_poses(
     if valid.any():
         t = frame_times[valid]
         rotations = Rotation.from_quat(samples.quaternions[samples.valid])
-        R_ts = Slerp(ts, rotations)(t)
-        t_ts = np.stack(
-            [np.interp(t, ts, samples.translations[samples.valid][:, j]) for j in range(3)], axis=1
-        )
+        translations = samples.translations[samples.valid]
+        if method == "cubic":
+            R_ts, t_ts = _cubic(ts, rotations, translations, t, max_gap)
+        else:
+            R_ts = Slerp(ts, rotations)(t)
+            t_ts = np.stack([np.interp(t, ts, translations[:, j]) for j in range(3)], axis=1)
         cam_from_world[valid] = _cam_from_world(R_ts, t_ts, X)
     return cam_from_world, valid
+
+
+def _cubic(ts: np.ndarray, rotations: Rotation, translations: np.ndarray, t: np.ndarray,
+           max_gap: float) -> tuple[Rotation, np.ndarray]:
+    """tracker_from_sensor at times t (inside the samples' span, not inside a gap) from splines
+    through the samples of each stretch whose spacing stays <= max_gap: a gap (a dropout)
+    starts a new spline, so samples across it do not bend the curve on either side."""
+    breaks = np.flatnonzero(np.diff(ts) > max_gap) + 1
+    last = np.searchsorted(ts, t, side="right") - 1  # the latest sample at or before t
+    stretch = np.searchsorted(breaks, last, side="right")
+    quats = np.empty((t.size, 4))
+    out = np.empty((t.size, 3))
+    bounds = np.concatenate([[0], breaks, [ts.size]])
+    for s in np.unique(stretch):
+        a, b = bounds[s], bounds[s + 1]
+        m = stretch == s
+        if b - a < 2:  # a lone sample: only a frame exactly on it is valid
+            quats[m] = rotations[a].as_quat()
+            out[m] = translations[a]
+            continue
+        tt = np.clip(t[m], ts[a], ts[b - 1])
+        quats[m] = RotationSpline(ts[a:b], rotations[a:b])(tt).as_quat()
+        if b - a < 3:
+            out[m] = np.stack([np.interp(tt, ts[a:b], translations[a:b, j]) for j in range(3)], 1)
+        else:
+            out[m] = CubicSpline(ts[a:b], translations[a:b], axis=0)(tt)
+    return Rotation.from_quat(quats), out
 
 
 def _cam_from_world(R_ts: Rotation, t_ts: np.ndarray, X: np.ndarray) -> np.ndarray:
