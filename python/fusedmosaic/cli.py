@@ -566,7 +566,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     data = root / "dataset"
     t0 = time.perf_counter()
     earlier = None
-    if data.is_symlink() or data.exists() and not (data.is_dir() and not any(data.iterdir())):
+    if data.is_symlink() or (data.exists() and not (data.is_dir() and not any(data.iterdir()))):
         earlier = _demo_dataset_options(data)
     asked = {"n_frames": args.frames, "motion": args.motion}
     if earlier is not None and all(earlier.get(k) == v for k, v in asked.items()):

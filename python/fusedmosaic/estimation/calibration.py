@@ -41,7 +41,7 @@ readable is read and checked before the board search):
      across a motion (a 10 Hz tracker's interpolation erred by 1-3 mm), each counted once, the
      noise seen the tracker's own. With fewer than MIN_STILL_VIEWS still views, all frames with
      the tracker interpolated (flagged in the report) by cubic splines: on the simulator's
-     motions at 10 Hz (0.1 deg / 0.03 mm noise) the hand-eye translation errs 0.16-0.20 mm
+     motions at 10 Hz (0.1 deg / 0.03 mm noise) the hand-eye translation errs 0.16-0.28 mm
      with them against 1.2-1.5 mm linear; at 40 Hz with 0.9 deg / 0.25 mm, 0.07-0.08 against
      0.11-0.18 mm. (Mosaicking keeps linear interpolation: with the EM tracker's noise, the
      spline through noisy samples placed emt's frames 6-25 % worse on SYN.)
