@@ -535,6 +535,17 @@ def _projected_detections(scene, noise_px: float, rng) -> BoardDetections:
     return BoardDetections(points, frames, frames, scene.timestamps[frames], (o.width, o.height))
 
 
+def _calibrated_from_projected_corners(o: CheckerboardOptions, options: CalibrationOptions):
+    """(scene, calibrate_detections' result) for the simulator's recording o: its board corners
+    projected with 0.05 px noise (seeded by o.seed) and its tracker samples."""
+    scene = generate_checkerboard(o)
+    T = scene.tracker_from_sensor
+    tracking = TrackingSamples(scene.tracker_timestamps, T[:, :3, 3].copy(),
+                               Rotation.from_matrix(T[:, :3, :3]).as_quat())
+    detections = _projected_detections(scene, 0.05, np.random.default_rng(o.seed))
+    return scene, calibrate_detections(detections, options, tracking=tracking)
+
+
 @pytest.mark.parametrize("changes", [
     {},  # the simulator's EM tracker: 40 Hz, 0.9 deg / 0.25 mm
     {"tracker_rate_hz": 10.0, "rot_sigma_deg": 0.1, "trans_sigma_mm": 0.03},  # slow and precise
@@ -551,13 +562,7 @@ def test_reported_hand_eye_errors_match_the_truth(changes):
     errors, reported, noise = [], [], []
     for seed in range(3):
         o = CheckerboardOptions(seed=seed, width=320, height=320, **changes)
-        scene = generate_checkerboard(o)
-        T = scene.tracker_from_sensor
-        tracking = TrackingSamples(scene.tracker_timestamps, T[:, :3, 3].copy(),
-                                   Rotation.from_matrix(T[:, :3, :3]).as_quat())
-        result = calibrate_detections(
-            _projected_detections(scene, 0.05, np.random.default_rng(seed)),
-            CalibrationOptions(time_offset=0.0), tracking=tracking)
+        scene, result = _calibrated_from_projected_corners(o, CalibrationOptions(time_offset=0.0))
         he = result.report["hand_eye"]
         errors.append(_hand_eye_errors(result.hand_eye, scene.hand_eye))
         reported.append((he["rotation_error_rms_deg"], he["translation_error_rms_mm"]))
@@ -583,13 +588,8 @@ def test_hand_eye_from_moving_frames_interpolates_a_sparse_tracker_by_splines(mo
     for seed in range(3):
         o = CheckerboardOptions(seed=seed, width=320, height=320, tracker_rate_hz=10.0,
                                 rot_sigma_deg=0.1, trans_sigma_mm=0.03)
-        scene = generate_checkerboard(o)
-        T = scene.tracker_from_sensor
-        tracking = TrackingSamples(scene.tracker_timestamps, T[:, :3, 3].copy(),
-                                   Rotation.from_matrix(T[:, :3, :3]).as_quat())
-        result = calibrate_detections(
-            _projected_detections(scene, 0.05, np.random.default_rng(seed)),
-            CalibrationOptions(time_offset="auto"), tracking=tracking)
+        scene, result = _calibrated_from_projected_corners(o, CalibrationOptions(
+            time_offset="auto"))
         assert result.report["hand_eye"]["mode"].startswith("all frames")
         rot_deg, trans_mm = _hand_eye_errors(result.hand_eye, scene.hand_eye)
         assert trans_mm < 0.5 and rot_deg < 0.3, (seed, rot_deg, trans_mm)

@@ -454,10 +454,8 @@ def _cubic(ts: np.ndarray, rotations: Rotation, translations: np.ndarray, t: np.
             continue
         tt = np.clip(t[m], ts[a], ts[b - 1])
         quats[m] = RotationSpline(ts[a:b], rotations[a:b])(tt).as_quat()
-        if b - a < 3:
-            out[m] = np.stack([np.interp(tt, ts[a:b], translations[a:b, j]) for j in range(3)], 1)
-        else:
-            out[m] = CubicSpline(ts[a:b], translations[a:b], axis=0)(tt)
+        # not-a-knot: through two samples a straight line, through three a parabola
+        out[m] = CubicSpline(ts[a:b], translations[a:b], axis=0)(tt)
     return Rotation.from_quat(quats), out
 
 
