@@ -275,6 +275,8 @@ def test_bad_input_named(recording, tmp_path, capsys):
             ([*board, "--max-views", "2"], "--max-views: must be >= 4"),
             ([*board, "--tracker-rot-sigma", "nan"], "--tracker-rot-sigma: must be a number > 0"),
             ([*board, "--fps", "0"], "--fps"),
+            ([*board, "--fps", "30"], r"frames\.csv: gives the frame times; the frame rate "
+                                      r"given \(30 fps\) applies only to a dataset without"),
             ([*board, "--time-offset", "soon"], "--time-offset: expected 'auto' or seconds"),
             ([*board, "--time-offset", "inf"], "--time-offset: expected 'auto' or seconds"),
             ([*board, "--max-time-offset", "0"], "--max-time-offset: must be a number > 0")):

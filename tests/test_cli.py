@@ -1,7 +1,9 @@
 """End to end through the command line: simulate -> evaluate (issue: Foundation, Done-when)."""
 
 import json
+import shutil
 
+import cv2
 import numpy as np
 import pytest
 
@@ -197,3 +199,33 @@ def test_run_dataset_checks_compositing_options_before_estimating(datasets, tmp_
         with pytest.raises(ValueError, match=message):
             run_dataset(datasets / "feto", "pairwise", tmp_path / "o", progress=False, **kwargs)
     assert not (tmp_path / "o").exists()
+
+
+def test_run_on_a_video_without_frames_csv_takes_its_frame_rate(tmp_path, capsys):
+    """A 30 fps video without frames.csv: its frames are timed at frame / 30 (the container's
+    rate), not the contract's 25 fps default, which would misplace every tracker sample."""
+    data = tmp_path / "video30"
+    assert main(["--quiet", "simulate", "fetoscopy", str(data), "--n-frames", "40",
+                 "--fps", "30"]) == 0
+    frames = sorted((data / "frames").glob("*.png"))
+    first = cv2.imread(str(frames[0]))
+    writer = cv2.VideoWriter(str(data / "video.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 30.0,
+                             (first.shape[1], first.shape[0]))
+    for path in frames:
+        writer.write(cv2.imread(str(path)))
+    writer.release()
+    shutil.rmtree(data / "frames")
+    (data / "frames.csv").unlink()
+    capsys.readouterr()
+    assert main(["run", str(data), "--method", "ba-emt", "--out", str(tmp_path / "o"),
+                 "--no-report"]) == 0
+    assert "times   frame / 30 fps (the frame rate of video.avi; no frames.csv)" in (
+        capsys.readouterr().out)
+    report = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert report["frame_times"] == "frame / 30 fps (the frame rate of video.avi; no frames.csv)"
+    assert report["placed"] == 40
+    assert report["metrics"]["e_M_px"] < 0.2  # against the simulator's truth (PNGs: 0.06 px)
+    # At 25 fps the 40 frames would span 1.56 s, past the tracker's 1.41 s: refused, saying so.
+    assert main(["run", str(data), "--method", "ba-emt", "--out", str(tmp_path / "o25"),
+                 "--fps", "25"]) == 2
+    assert "tracking.csv: 4 frames outside the tracker's time span" in capsys.readouterr().err

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import cv2
@@ -209,6 +210,41 @@ def test_video_frame_source(tmp_path):
     np.testing.assert_allclose(means, 40.0 * np.arange(5), atol=3.0)
     assert abs(frames[3].mean() - 120) < 3 and abs(frames[1].mean() - 40) < 3  # seeks
     frames.close()
+
+
+def _video_dataset(tmp_path: Path, fps: float, n: int = 6) -> Path:
+    """A dataset of a video file written at `fps` (its container's rate), no frames.csv."""
+    root = _write(tmp_path, 1, name="vid", timestamps=None)
+    shutil.rmtree(root / "frames")
+    writer = cv2.VideoWriter(str(root / "video.avi"), cv2.VideoWriter_fourcc(*"MJPG"), fps, (W, H))
+    assert writer.isOpened()
+    for i in range(n):
+        writer.write(np.full((H, W, 3), 30 * i, np.uint8))
+    writer.release()
+    return root
+
+
+def test_frame_times_without_frames_csv_from_the_video_frame_rate(tmp_path):
+    root = _video_dataset(tmp_path, 29.97)
+    ds = read_dataset(root)  # a 29.97 fps video: not frame / 25
+    np.testing.assert_allclose(ds.timestamps, np.arange(6) / 29.97, rtol=1e-6)
+    assert ds.frame_times == "frame / 29.97 fps (the frame rate of video.avi; no frames.csv)"
+    given = read_dataset(root, fps=30.0)  # the user's rate wins; the report says it differs
+    np.testing.assert_allclose(given.timestamps, np.arange(6) / 30.0)
+    assert given.frame_times == ("frame / 30 fps (given; video.avi says 29.97 fps; "
+                                 "no frames.csv)")
+    # PNG frames give no rate: the contract's 25 fps
+    png = read_dataset(_write(tmp_path, 3, name="png", timestamps=None))
+    np.testing.assert_allclose(png.timestamps, np.arange(3) / 25.0)
+    assert png.frame_times == "frame / 25 fps (the default: PNG frames; no frames.csv)"
+    assert read_dataset(_write(tmp_path, 3, name="csv")).frame_times == "frames.csv"
+
+
+def test_a_frame_rate_given_with_frames_csv_is_refused(tmp_path):
+    root = _write(tmp_path, 3)
+    with pytest.raises(ValueError, match=r"frames\.csv: gives the frame times; the frame rate "
+                                         r"given \(30 fps\) applies only to a dataset without"):
+        read_dataset(root, fps=30.0)
 
 
 # ----------------------------------------------------------------------- interpolation

@@ -110,7 +110,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from fusedmosaic.io.dataset import check_fps
     from fusedmosaic.runner import check_compositing_options, run_dataset
 
-    check_fps(args.fps, "--fps")
+    if args.fps is not None:
+        check_fps(args.fps, "--fps")
     options = None
     overrides: dict = {}
     if args.tracker_time_offset:
@@ -211,7 +212,8 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     from fusedmosaic.io.output import check_output_dir
     from fusedmosaic.runner import check_out_outside_dataset
 
-    check_fps(args.fps, "--fps")
+    if args.fps is not None:
+        check_fps(args.fps, "--fps")
     match = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", args.board)
     if match is None:
         raise ValueError(f"--board: expected inner corners as COLUMNSxROWS (e.g. 9x6), got "
@@ -243,6 +245,8 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
                f"({r['distinct_views']} distinct views); intrinsics{model} from {intr['views']} "
                f"views: RMS reprojection {intr['rms_px']:.3f} px, "
                f"fx {K[0, 0]:.2f} fy {K[1, 1]:.2f} cx {K[0, 2]:.2f} cy {K[1, 2]:.2f} px")
+    if r["frame_times"] != "frames.csv" and result.hand_eye is not None:
+        _say(args, f"frame times: {r['frame_times']}")
     he = r["hand_eye"]
     if "skipped" in he:
         _say(args, f"hand-eye skipped: {he['skipped']}")
@@ -687,8 +691,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--method", required=True,
                      help="one of: " + (", ".join(methods.available()) or "(none yet)"))
     run.add_argument("--out", required=True, help="output folder")
-    run.add_argument("--fps", type=float, default=25.0,
-                     help="frame rate when the dataset has no frames.csv (default 25)")
+    run.add_argument("--fps", type=float, default=None,
+                     help="frame rate giving the frame times when the dataset has no frames.csv "
+                          "(default: the video's own frame rate, else 25)")
     run.add_argument("--robot-file", default="robot.csv",
                      help="robot positions file inside the dataset (default robot.csv)")
     _add_tracker_time_offset_flag(
@@ -769,8 +774,9 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--max-time-offset", type=float, default=0.5, metavar="S",
                      help="largest clock offset, s, that --time-offset auto considers (default "
                           "0.5; an estimate at this bound is refused)")
-    cal.add_argument("--fps", type=float, default=25.0,
-                     help="frame rate when the recording has no frames.csv (default 25)")
+    cal.add_argument("--fps", type=float, default=None,
+                     help="frame rate giving the frame times when the recording has no "
+                          "frames.csv (default: the video's own frame rate, else 25)")
     cal.set_defaults(func=_cmd_calibrate)
 
     live = sub.add_parser(

@@ -25,7 +25,8 @@ NEEDS_ROBOT = {"robot", "kalman-robot"}
 NEEDS_PIXEL_SIZE = {"ncc", "robot", "kalman-robot"}
 
 
-def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: float = 25.0,
+def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
+                fps: float | None = None,
                 robot_file: str = "robot.csv", allow_untracked: bool = False,
                 progress: bool = True, blend=None, options=None, canvas=None,
                 video: str | Path | None = None, report: bool = True, live: bool = False,
@@ -45,6 +46,8 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
         estimation.live), for lba-emt and kalman-robot.
     result: the method's result, already computed on this dataset (a live session, whose
         recording the dataset is): only the outputs are written.
+    fps: the frame rate giving the frame times of a dataset without frames.csv (None: the
+        video's own, else 25; io.read_dataset).
     tracker_time_offset: s, the tracker's clock ahead of the video's (io.read_dataset):
         calibrate's calibration.json "tracker_time_offset" / "applied_s".
     Returns a short summary for the terminal."""
@@ -63,7 +66,8 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
     if result is not None:
         computed = result
         run_method = lambda dataset, **_: computed  # noqa: E731
-    check_fps(fps)
+    if fps is not None:
+        check_fps(fps)
     out = Path(out)
     check_out_outside_dataset(out, Path(dataset_root))
     if video is not None:
@@ -113,6 +117,7 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *, fps: 
             "frames": len(G),
             "placed": int(placed.sum()),
             "parameters": result.parameters,
+            "frame_times": dataset.frame_times,
             "tracker_time_offset_s": float(tracker_time_offset),
             "timings_s": timings,
             "frame_status": result.status,
@@ -369,6 +374,8 @@ def _summary(method: str, G: np.ndarray, out: Path, report_json: dict, outputs: 
         lines = [msg, f"  mosaic  {out / 'mosaic.png'}  ({detail})"]
     if report:
         lines.append(f"  report  {out / 'report.md'}  (plots in {out / 'plots'})")
+    if report_json["frame_times"] != "frames.csv":  # where the tracker / robot times meet
+        lines.append(f"  times   {report_json['frame_times']}")
     if "live" in report_json:
         live = report_json["live"]
         interval = live.get("frame_interval_ms")

@@ -798,7 +798,7 @@ def calibrate_recording(
     root: str | Path,
     options: CalibrationOptions | None = None,
     *,
-    fps: float = 25.0,
+    fps: float | None = None,
     progress: bool = False,
 ) -> CalibrationResult:
     """Calibrate from a recording folder (module doc). Everything readable is read and checked
@@ -807,7 +807,7 @@ def calibrate_recording(
     few frames or too few distinct views; a hand-eye that fails is reported in the result
     (hand_eye_error), the intrinsics kept."""
     from fusedmosaic.io.calibration import read_camera_yaml
-    from fusedmosaic.io.dataset import _read_frame_times
+    from fusedmosaic.io.dataset import read_frame_times
     from fusedmosaic.io.video import FrameSource
 
     o = CalibrationOptions() if options is None else options
@@ -822,7 +822,7 @@ def calibrate_recording(
     size = (first.shape[1], first.shape[0])
     if given is None:  # every frame the size of the first
         frames.expected_size, frames.size_source = size, f"its first frame {size}"
-    frame_ids, timestamps = _read_frame_times(root, len(frames), fps)
+    frame_ids, timestamps, frame_times = read_frame_times(root, frames, fps)
     tracking, skipped = _read_tracking(root, timestamps, o)
     tried = np.arange(0, len(frames), o.every)
 
@@ -844,7 +844,8 @@ def calibrate_recording(
                                   hand_eye_skipped=skipped, given=given, source=str(root),
                                   searched=int(tried.size))
     result.report = {"recording": str(root.resolve()), **result.report,
-                     "frames": len(frames), "frames_searched": int(tried.size)}
+                     "frames": len(frames), "frame_times": frame_times,
+                     "frames_searched": int(tried.size)}
     timings = result.report.setdefault("timings_s", {})
     timings["board_search"] = t_detect
     timings["total"] = time.perf_counter() - t_start
@@ -886,7 +887,8 @@ def _check_tracker_covers(samples, covered: np.ndarray, times: np.ndarray, sourc
         f"{source}: {int(covered.sum())} of {len(times)} {what} have a tracker sample; "
         f"the tracker spans [{_time(ts[0])}, {_time(ts[-1])}] s, the {what} "
         f"[{_time(times[0])}, {_time(times[-1])}] s (frame times come from frames.csv, or "
-        f"--fps without it; both clocks in seconds{shift_note})")
+        f"frame / fps without it (--fps, else the video's frame rate, else 25); both clocks "
+        f"in seconds{shift_note})")
 
 
 def calibrate_detections(
@@ -1139,7 +1141,7 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
             f"{free.tracker_sigma[0]:.2f} deg / {free.tracker_sigma[1]:.2f} mm per axis (an EM "
             "tracker: tenths). Check that tracking.csv holds tracker_from_sensor (not its "
             "inverse) with quaternions x, y, z, w and translations in mm, the board's "
-            f"--square-mm, and the frame times (frames.csv or --fps){bound_hint}")
+            f"--square-mm, and the frame times (frames.csv, or --fps without it){bound_hint}")
     scale_boot = bootstrap_hand_eye(free, clusters, replicates=BOOTSTRAP_REPLICATES)
     scale_std = max(free.scale_std, scale_boot["scale_std"])
     significant = abs(free.scale - 1) > SCALE_SIGMAS * scale_std

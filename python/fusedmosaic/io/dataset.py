@@ -45,6 +45,8 @@ class Dataset:
         and their validity (N,); None without tracking.csv. Invalid frames have NaN poses.
     robot_xy_um, robot_valid : robot positions at the frame times (N, 2) µm and validity (N,).
     ground_truth : (N, 3, 3) frame -> reference homographies, NaN for unplaced frames.
+    frame_times : where ``timestamps`` come from, for reports: "frames.csv", or without it
+        "frame / R fps" and whose rate R is (given, the video's, the default).
     """
 
     root: Path
@@ -61,6 +63,7 @@ class Dataset:
     robot_valid: np.ndarray | None = None
     ground_truth: np.ndarray | None = None
     robot_file: str = "robot.csv"
+    frame_times: str = "frames.csv"
 
     def __len__(self) -> int:
         return self.frame_ids.size
@@ -89,7 +92,7 @@ class Dataset:
 def read_dataset(
     root: str | Path,
     *,
-    fps: float = 25.0,
+    fps: float | None = None,
     robot_file: str = "robot.csv",
     allow_untracked: bool = False,
     tracker_time_offset: float = 0.0,
@@ -99,7 +102,9 @@ def read_dataset(
     Row i of frames.csv (``frame,timestamp``, both strictly increasing) describes the i-th image
     in name order; without frames.csv, frame ids are 0..N-1.
 
-    fps : frame rate used for timestamps when frames.csv is absent (timestamp = frame / fps).
+    fps : frame rate giving the timestamps when frames.csv is absent (timestamp = frame / fps);
+        None: the video's own frame rate (FrameSource.frame_rate), else DEFAULT_FPS. A dataset
+        with frames.csv takes its times from it: an fps given as well is refused (ValueError).
     robot_file : name of the robot positions file (e.g. robot_noisy.csv).
     allow_untracked : flag frames outside the tracker's / robot's time span as invalid instead of
         raising.
@@ -116,10 +121,11 @@ def read_dataset(
     frames = FrameSource.open(root, expected_size=camera.size, size_source=camera.source)
     frames[0]  # size check of the first image; the rest are checked as they are read
 
-    frame_ids, timestamps = _read_frame_times(root, len(frames), fps)
+    frame_ids, timestamps, frame_times = read_frame_times(root, frames, fps)
     hand_eye_path = root / "hand_eye.txt"
     hand_eye = read_hand_eye(hand_eye_path) if hand_eye_path.exists() else np.eye(4)
-    dataset = Dataset(root, camera, frames, frame_ids, timestamps, hand_eye, robot_file=robot_file)
+    dataset = Dataset(root, camera, frames, frame_ids, timestamps, hand_eye, robot_file=robot_file,
+                      frame_times=frame_times)
 
     tracking_path = root / "tracking.csv"
     if tracking_path.exists():
@@ -147,6 +153,9 @@ def read_dataset(
     return dataset
 
 
+DEFAULT_FPS = 25.0  # frame rate of a dataset without frames.csv whose frames give none (PNGs)
+
+
 def check_fps(fps, what: str = "fps") -> float:
     """The frame rate that gives timestamps without frames.csv: a finite number > 0 (inf would
     give every frame timestamp 0). ``what`` names it in the message (e.g. "--fps")."""
@@ -159,18 +168,37 @@ def check_fps(fps, what: str = "fps") -> float:
     return float(fps)
 
 
-def _read_frame_times(root: Path, n_images: int, fps: float) -> tuple[np.ndarray, np.ndarray]:
+def read_frame_times(root: Path, frames: FrameSource,
+                     fps: float | None = None) -> tuple[np.ndarray, np.ndarray, str]:
+    """(frame ids, timestamps s, where they come from) of the images ``frames`` of the dataset
+    or recording folder ``root``: from frames.csv (``frame,timestamp``, both strictly
+    increasing, one row per image), else ids 0..N-1 at timestamp = id / rate, the rate being
+    ``fps`` if given, else the video's (frames.frame_rate), else DEFAULT_FPS. ValueError naming
+    frames.csv when it is malformed, or when ``fps`` is given as well (it would be ignored)."""
     path = root / "frames.csv"
-    if not path.exists():
-        check_fps(fps)
-        frame_ids = np.arange(n_images, dtype=np.int64)
-        return frame_ids, frame_ids / float(fps)
-    table, rows = read_table(path, ["frame", "timestamp"], integer=["frame"])
-    if rows.size != n_images:
-        raise ValueError(f"{path}: {rows.size} rows but the dataset has {n_images} images")
-    check_increasing(path, rows, table["frame"], "frame")
-    check_increasing(path, rows, table["timestamp"], "timestamp")
-    return table["frame"], table["timestamp"]
+    if path.exists():
+        if fps is not None:
+            raise ValueError(f"{path}: gives the frame times; the frame rate given ({fps:g} fps) "
+                             "applies only to a dataset without frames.csv")
+        table, rows = read_table(path, ["frame", "timestamp"], integer=["frame"])
+        if rows.size != len(frames):
+            raise ValueError(f"{path}: {rows.size} rows but the dataset has {len(frames)} images")
+        check_increasing(path, rows, table["frame"], "frame")
+        check_increasing(path, rows, table["timestamp"], "timestamp")
+        return table["frame"], table["timestamp"], "frames.csv"
+    video = None if frames.video is None else frames.video.name
+    if fps is not None:
+        rate = check_fps(fps)
+        source = "given"
+        if frames.frame_rate is not None and abs(rate / frames.frame_rate - 1.0) > 1e-3:
+            source += f"; {video} says {frames.frame_rate:.6g} fps"
+    elif frames.frame_rate is not None:
+        rate, source = frames.frame_rate, f"the frame rate of {video}"
+    else:
+        rate = DEFAULT_FPS
+        source = "the default: " + ("no frame rate in " + video if video else "PNG frames")
+    frame_ids = np.arange(len(frames), dtype=np.int64)
+    return frame_ids, frame_ids / rate, f"frame / {rate:.6g} fps ({source}; no frames.csv)"
 
 
 def _align_ground_truth(path: Path, frame_ids: np.ndarray) -> np.ndarray:

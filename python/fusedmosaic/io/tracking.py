@@ -368,7 +368,7 @@ def _outside_span(
             f"[{_time(t0)}, {_time(t1)}] s; first offending frame index {i} at "
             f"t={_time(frame_times[i])} s"
             " (fusedmosaic run: --allow-untracked flags such frames instead; without frames.csv "
-            "the frame times come from --fps)"
+            "the frame times are frame / fps: --fps, else the video's frame rate, else 25)"
         )
     return outside
 

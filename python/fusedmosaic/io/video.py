@@ -14,6 +14,7 @@ import numpy as np
 _DIGITS = re.compile(r"(\d+)")
 VIDEO_READ_AHEAD = 8  # a request up to this many frames ahead decodes forward instead of seeking
 VIDEO_RECENT_FRAMES = 4  # frames decoded on the way, kept for threads asking slightly out of order
+MAX_VIDEO_FRAME_RATE = 1000.0  # a container reporting more (or <= 0, NaN) gives no frame rate
 
 
 def natural_key(name: str) -> tuple:
@@ -65,6 +66,11 @@ class FrameSource(Sequence):
     """Sequence of frames read from disk on demand; no image is kept in memory (a video source
     keeps at most ``VIDEO_RECENT_FRAMES`` decoded frames it skipped over).
 
+    ``frame_rate``: the frame rate a video's container reports (frames/s; None for PNG frames, or
+    a video reporting none in (0, MAX_VIDEO_FRAME_RATE]); read_dataset takes the frame times
+    from it when the dataset has no frames.csv. It is the nominal rate: a variable-frame-rate
+    video needs frames.csv.
+
     Items are uint8 (H, W) or (H, W, 3) BGR as stored (an alpha channel is dropped; a video is
     always decoded to BGR). With ``expected_size=(w, h)`` every image is checked against it, and
     every image must have the channel count of the first one read (all grey or all BGR).
@@ -91,10 +97,14 @@ class FrameSource(Sequence):
         self._recent: OrderedDict[int, np.ndarray] = OrderedDict()  # skipped decoded frames
         self._lock = threading.Lock()  # guards the capture, _next and _recent
         self._channels: tuple[int, str] | None = None  # channel count of the first image, its name
+        self.frame_rate: float | None = None
         if self.paths is not None:
             self._length = len(self.paths)
         else:
             capture = self._open_capture()
+            rate = float(capture.get(cv2.CAP_PROP_FPS))
+            if np.isfinite(rate) and 0.0 < rate <= MAX_VIDEO_FRAME_RATE:
+                self.frame_rate = rate
             self._length = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
             if self._length <= 0:  # container without a frame count: count by decoding
                 self._length = 0
