@@ -23,6 +23,7 @@ from fusedmosaic.evaluation.report import (
     write_report,
 )
 from fusedmosaic.io import read_homographies_csv, write_homographies_csv
+from fusedmosaic.runner import playback_rate
 from fusedmosaic.simulation import FetoscopyOptions, simulate_fetoscopy
 
 SIM = FetoscopyOptions(motion="handheld", n_frames=24, width=200, height=200, seed=4)
@@ -128,6 +129,9 @@ def test_run_writes_mosaic_video_and_report(emt_run, dataset, capsys):
     image = cv2.imread(str(out / "mosaic.png"))
     assert image.shape[:2] == (mosaic["height"], mosaic["width"])
     assert mosaic["video"]["frames"] == SIM.n_frames
+    capture = cv2.VideoCapture(str(out / "creation.mp4"))  # plays at the recording's rate
+    assert capture.get(cv2.CAP_PROP_FPS) == pytest.approx(SIM.fps) == mosaic["video"]["fps"]
+    capture.release()
     for stage in ("features", "compose_mosaic", "video", "report"):
         assert stage in report["timings_s"]
     md = out / "report.md"
@@ -201,3 +205,10 @@ def test_demo_says_where_to_look(tmp_path, capsys):
     assert names == {"report.md", "mosaic.png", "mosaic_seams.png", "creation.mp4"}
     assert all(Path(p).is_file() and Path(p).stat().st_size > 1000 for p in pointed)
     assert re.search(r"50/50 frames placed, e_M = \d+\.\d+ px", said)
+
+
+def test_creation_video_plays_at_the_recordings_frame_rate():
+    times = np.arange(20) / 10.0  # a 10 frames/s pCLE recording, one frame dropped
+    assert playback_rate(np.delete(times, 7)) == pytest.approx(10.0)
+    assert playback_rate(np.arange(5) / 1000.0) == 60.0  # bounded for players
+    assert playback_rate(np.array([3.0])) == 25.0

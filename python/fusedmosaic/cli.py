@@ -955,7 +955,8 @@ def _add_compositing_flags(parser: argparse.ArgumentParser) -> None:
     comp.add_argument("--gain-compensation", action="store_true",
                       help="equalise the brightness of overlapping frames (one gain per frame)")
     comp.add_argument("--video", metavar="OUT.mp4",
-                      help="also write a video of the mosaic's sequential creation")
+                      help="also write a video of the mosaic's sequential creation (at the "
+                           "recording's frame rate)")
     comp.add_argument("--no-report", action="store_true",
                       help="skip report.md and its plots")
     comp.add_argument("--max-canvas-pixels", type=int, default=None,

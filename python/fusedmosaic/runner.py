@@ -156,6 +156,15 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
     return _summary(method, G, out, report_json, outputs, report)
 
 
+def playback_rate(timestamps: np.ndarray) -> float:
+    """Frames/s of the creation video: the recording's own (its median frame interval), so it
+    plays in real time, within [1, 60]; 25 for a single frame."""
+    steps = np.diff(np.asarray(timestamps, float))
+    if steps.size == 0 or not np.median(steps) > 0:
+        return 25.0
+    return float(np.clip(1.0 / np.median(steps), 1.0, 60.0))
+
+
 def check_compositing_options(blend, canvas, names: dict[str, str] | None = None) -> None:
     """Raises ValueError for blend / canvas options compose_outputs cannot use; `names` maps
     option fields to what the messages call them (the CLI's flags)."""
@@ -310,11 +319,13 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
             path = w.external_path(target)
         n = write_creation_video(path, frames, G, cam.width, cam.height,
                                  (plan.x0, plan.y0, plan.x1, plan.y1), use=plan.use, mask=mask,
-                                 blend=blend, fps=25.0, gains=gains, frame_ids=ids,
+                                 blend=blend, fps=playback_rate(dataset.timestamps),
+                                 gains=gains, frame_ids=ids,
                                  progress=progress)
         timings["video"] = time.perf_counter() - t0
         outputs["video"] = str(target)
-        info["video"] = {"file": str(target), "frames": n}
+        info["video"] = {"file": str(target), "frames": n,
+                         "fps": playback_rate(dataset.timestamps)}
     return outputs
 
 
