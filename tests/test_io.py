@@ -189,6 +189,26 @@ def test_dataset_round_trip(tmp_path):
     assert (root / "notes" / "readme.txt").read_text() == "synthetic"
 
 
+def test_dataset_keeps_given_frame_ids(tmp_path):
+    """A recording's own frame numbers (gaps where frames were left out) survive the round trip
+    in frames.csv and ground_truth.csv."""
+    ids = np.array([3, 4, 7, 12])
+    truth = np.tile(np.eye(3), (4, 1, 1))
+    truth[:, 0, 2] = [0.0, 1.5, 4.0, 9.0]  # shifts, G[2, 2] = 1
+    root = _write(tmp_path, 4, frame_ids=ids, ground_truth=truth)
+    ds = read_dataset(root)
+    np.testing.assert_array_equal(ds.frame_ids, ids)
+    np.testing.assert_allclose(ds.ground_truth, truth)
+    for bad, message in (([3, 3, 7, 12], "strictly increasing integers"),
+                         ([0.0, 1.0, 2.0, 3.0], "strictly increasing integers"),
+                         ([1, 2, 3], "3 frame ids for 4 frames")):
+        with pytest.raises(ValueError, match=message):
+            _write(tmp_path, 4, name="bad", frame_ids=np.array(bad))
+        assert not (tmp_path / "bad").exists()
+    with pytest.raises(ValueError, match="frame_ids need timestamps"):
+        _write(tmp_path, 4, name="bad", frame_ids=ids, timestamps=None)
+
+
 def test_dataset_without_frames_csv_uses_fps(tmp_path):
     ds = read_dataset(_write(tmp_path, 4, timestamps=None), fps=10.0)
     np.testing.assert_array_equal(ds.timestamps, [0.0, 0.1, 0.2, 0.3])

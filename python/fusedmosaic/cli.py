@@ -44,17 +44,23 @@ def _dataclass_from_args(cls: type, args: argparse.Namespace):
     return cls(**{f.name: getattr(args, f.name) for f in dataclasses.fields(cls)})
 
 
-def _cmd_simulate(args: argparse.Namespace) -> int:
+def _check_dataset_target(out: str, overwrite: bool) -> None:
+    """The dataset folder simulate / import write: absent or empty, or with --overwrite an
+    earlier dataset; checked before any work, with the messages naming the flag."""
     from fusedmosaic.io.dataset import check_replaceable_dataset
     from fusedmosaic.io.output import check_output_dir
 
-    t0 = time.perf_counter()
-    target = check_output_dir(args.out, "dataset folder")
+    target = check_output_dir(out, "dataset folder")
     if target.is_dir() and any(target.iterdir()):
-        if not args.overwrite:
+        if not overwrite:
             raise ValueError(f"{target}: exists and is not empty (choose another folder, or pass "
                              "--overwrite to replace the dataset in it)")
         check_replaceable_dataset(target)  # not the cwd, a parent of it, or a non-dataset
+
+
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    t0 = time.perf_counter()
+    _check_dataset_target(args.out, args.overwrite)
     try:
         out = _simulate(args)
     except ValueError as exc:  # "FetoscopyOptions.n_frames: ..." -> "--n-frames: ..."
@@ -189,14 +195,11 @@ def _cmd_import(args: argparse.Namespace) -> int:
     from fusedmosaic.io.tracking import check_time_offset
 
     check_time_offset(args.tracker_time_offset, "--tracker-time-offset")
-
-    try:
-        summary = import_plus_sequence(
-            args.sequence, args.out, camera=args.camera, hand_eye=args.hand_eye,
-            transform=None if args.transform == "auto" else args.transform,
-            overwrite=args.overwrite, tracker_time_offset=args.tracker_time_offset)
-    except ValueError as exc:  # the library's keyword -> the flag
-        raise ValueError(str(exc).replace("pass overwrite=True", "pass --overwrite")) from None
+    _check_dataset_target(args.out, args.overwrite)
+    summary = import_plus_sequence(
+        args.sequence, args.out, camera=args.camera, hand_eye=args.hand_eye,
+        transform=None if args.transform == "auto" else args.transform,
+        overwrite=args.overwrite, tracker_time_offset=args.tracker_time_offset)
     _say(args, f"imported {summary}")
     return 0
 

@@ -224,6 +224,7 @@ def write_dataset(
     camera: Camera,
     frames: Iterable[np.ndarray],
     timestamps,
+    frame_ids=None,
     tracking: TrackingSamples | None = None,
     hand_eye=None,
     robot: RobotSamples | None = None,
@@ -235,16 +236,28 @@ def write_dataset(
     """Write a dataset folder atomically: it is built in a temporary folder next to ``root`` and
     renamed into place, so a failure leaves no ``root`` (or the previous one, with overwrite).
 
-    frames are streamed to ``frames/000000.png``…; timestamps (N,) go to frames.csv with frame
-    ids 0..N-1 (None: no frames.csv). ground_truth (N, 3, 3) is written with frame ids 0..N-1.
+    frames are streamed to ``frames/000000.png``…; timestamps (N,) go to frames.csv (None: no
+    frames.csv) with ``frame_ids`` (N,) strictly increasing integers (None: 0..N-1; e.g. a
+    recording's own numbers, with gaps where frames were left out); ground_truth (N, 3, 3) is
+    written with the same ids.
     robot goes to robot.csv; robot_files maps further file names to samples. extra_files are
     written last, verbatim (they may replace a generated file, e.g. to build a bad dataset).
     """
     root = Path(root)
+    if frame_ids is not None:
+        ids = np.asarray(frame_ids)
+        if timestamps is None:
+            raise ValueError(f"{root}: frame_ids need timestamps (frames.csv holds both)")
+        if (ids.ndim != 1 or not np.issubdtype(ids.dtype, np.integer)
+                or (ids.size > 1 and np.any(np.diff(ids) <= 0))):
+            raise ValueError(f"{root}: frame_ids must be strictly increasing integers (N,)")
     tmp = staging_folder(root, overwrite)
     try:
         write_camera_yaml(tmp / "camera.yaml", camera)
         n = write_frames(tmp / "frames", frames)
+        ids = np.arange(n) if frame_ids is None else np.asarray(frame_ids, np.int64)
+        if ids.size != n:
+            raise ValueError(f"{root}: {ids.size} frame ids for {n} frames")
         if timestamps is not None:
             timestamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
             if timestamps.size != n:
@@ -252,7 +265,7 @@ def write_dataset(
             write_table(
                 tmp / "frames.csv",
                 ["frame", "timestamp"],
-                ([str(i), format_float(t)] for i, t in enumerate(timestamps)),
+                ([str(i), format_float(t)] for i, t in zip(ids, timestamps, strict=True)),
             )
         if tracking is not None:
             write_tracking_csv(tmp / "tracking.csv", tracking)
@@ -269,7 +282,7 @@ def write_dataset(
                 raise ValueError(
                     f"{root}: ground truth has {ground_truth.shape[0]} homographies for {n} frames"
                 )
-            write_homographies_csv(tmp / "ground_truth.csv", np.arange(n), ground_truth)
+            write_homographies_csv(tmp / "ground_truth.csv", ids, ground_truth)
         for name, content in (extra_files or {}).items():
             path = tmp / name
             path.parent.mkdir(parents=True, exist_ok=True)

@@ -36,7 +36,6 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from fusedmosaic.io._table import format_float
 from fusedmosaic.io.calibration import Camera, read_camera_yaml
 from fusedmosaic.io.dataset import created_mode, write_dataset
 from fusedmosaic.io.tracking import (
@@ -840,16 +839,15 @@ def import_plus_sequence(
             yield np.ascontiguousarray(image[..., ::-1] if sequence.channels == 3 else image)
 
     # frames.csv keeps the sequence indices as frame ids (frames left out leave a gap), so the
-    # ids match annotations of the recording; write_dataset would number the images 0..M-1.
-    frames_csv = "frame,timestamp\n" + "".join(f"{i},{format_float(t[i])}\n" for i in kept)
+    # ids match annotations of the recording.
     written = write_dataset(
         root,
         camera=camera,
         frames=frames(),
-        timestamps=None,
+        timestamps=t[kept],
+        frame_ids=kept,
         tracking=tracking,
         hand_eye=sensor_from_camera,
-        extra_files={"frames.csv": frames_csv},
         overwrite=overwrite,
     )
     return ImportSummary(
