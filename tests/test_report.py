@@ -212,3 +212,25 @@ def test_creation_video_plays_at_the_recordings_frame_rate():
     assert playback_rate(np.delete(times, 7)) == pytest.approx(10.0)
     assert playback_rate(np.arange(5) / 1000.0) == 60.0  # bounded for players
     assert playback_rate(np.array([3.0])) == 25.0
+
+
+def test_video_never_replaces_a_file_no_run_wrote(dataset, tmp_path, capsys):
+    """--video onto the dataset's own files or a user's clip is refused before any work; a
+    later run into the same OUT replaces the video its earlier run wrote."""
+    dataset_video = dataset / "frames" / "clip.mp4"
+    clip = tmp_path / "clip.mp4"
+    clip.write_bytes(b"the user's own clip")
+    run = ["run", str(dataset), "--method", "emt", "--no-report", "--out"]
+    assert main([*run, str(tmp_path / "a"), "--video", str(dataset_video)]) == 2
+    assert "the video would be written inside the dataset folder" in capsys.readouterr().err
+    assert main([*run, str(tmp_path / "a"), "--video", str(clip)]) == 2
+    assert (f"{clip}: exists and no earlier run into {tmp_path / 'a'} wrote it"
+            in capsys.readouterr().err)
+    assert clip.read_bytes() == b"the user's own clip" and not (tmp_path / "a").exists()
+    mine = tmp_path / "videos" / "creation.mp4"
+    mine.parent.mkdir()
+    for _ in range(2):  # written, then replaced by the next run into the same OUT
+        assert main([*run, str(tmp_path / "b"), "--video", str(mine), "--quiet"]) == 0
+        assert cv2.VideoCapture(str(mine)).get(cv2.CAP_PROP_FRAME_COUNT) == SIM.n_frames
+    assert main([*run, str(tmp_path / "c"), "--video", str(mine)]) == 2  # another OUT's video
+    assert "exists and no earlier run into" in capsys.readouterr().err

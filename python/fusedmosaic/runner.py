@@ -16,6 +16,7 @@ from fusedmosaic.io.output import (
     OutputWriter,
     is_under,
     read_json_object,
+    read_manifest,
 )
 
 # What each method needs from the dataset beyond frames and camera.yaml.
@@ -74,6 +75,7 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
         from fusedmosaic.compositing.video import check_video_suffix
 
         check_video_suffix(video)
+        check_video_destination(Path(video), out, Path(dataset_root))
     check_compositing_options(blend, canvas)  # before minutes of estimation, not after
     t0 = time.perf_counter()
     # live replay uses the raw samples (frames without a recent one are listed, not refused)
@@ -188,6 +190,27 @@ def check_out_outside_dataset(out: Path, dataset_root: Path) -> None:
                  else f"is inside the dataset folder {dataset_root}")
         raise ValueError(f"{out}: the output folder {where}; writing there would corrupt the "
                          "dataset: choose --out outside it")
+
+
+def check_video_destination(video: Path, out: Path, dataset_root: Path) -> None:
+    """The creation video replaces a file only when a run into ``out`` wrote it (its report.json
+    names that path), never a file of the user's (a recording, another clip) nor anything in the
+    dataset folder: ValueError naming the path, before any work."""
+    if is_under(video, dataset_root, or_equal=True):
+        raise ValueError(f"{video}: the video would be written inside the dataset folder "
+                         f"{dataset_root}; choose a path outside it (e.g. in the output folder)")
+    if not (video.exists() or video.is_symlink()) or video.is_dir():
+        return  # absent; a folder there is refused by the writer
+    earlier = None
+    if older_run_outputs(out) or "run" in (read_manifest(out) or {}):
+        try:
+            earlier = read_json_object(out / "report.json")["mosaic"]["video"]
+            earlier = earlier.get("path") or earlier["file"]
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            earlier = None
+    if not (isinstance(earlier, str) and Path(earlier).resolve() == video.resolve()):
+        raise ValueError(f"{video}: exists and no earlier run into {out} wrote it; choose another "
+                         "video path, or move that file")
 
 
 def older_run_outputs(out: Path) -> list[str]:
@@ -324,7 +347,7 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
                                  progress=progress)
         timings["video"] = time.perf_counter() - t0
         outputs["video"] = str(target)
-        info["video"] = {"file": str(target), "frames": n,
+        info["video"] = {"file": str(target), "path": str(target.resolve()), "frames": n,
                          "fps": playback_rate(dataset.timestamps)}
     return outputs
 
@@ -552,6 +575,7 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
         from fusedmosaic.compositing.video import check_video_suffix
 
         check_video_suffix(video)
+        check_video_destination(Path(video), out, record)
     check_compositing_options(blend, canvas)
     from fusedmosaic.io.output import check_output_dir
 
