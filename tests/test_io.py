@@ -409,6 +409,24 @@ def test_camera_yaml_bad_values(tmp_path):
 _BOM = b"\xef\xbb\xbf"
 
 
+def test_csv_and_hand_eye_with_a_utf8_bom_read_as_without(tmp_path):
+    """Spreadsheets' "CSV UTF-8" starts the file with a byte order mark: it is not part of the
+    header (it was: header '\ufefftimestamp,...' refused); text in another encoding is named."""
+    tracking = "timestamp,tx,ty,tz,qx,qy,qz,qw\r\n0,1,2,3,0,0,0,1\r\n0.1,1,2,4,0,0,0,1\r\n"
+    (tmp_path / "plain.csv").write_text(tracking)
+    (tmp_path / "bom.csv").write_bytes(_BOM + tracking.encode())
+    a, b = read_tracking_csv(tmp_path / "plain.csv"), read_tracking_csv(tmp_path / "bom.csv")
+    np.testing.assert_array_equal(b.timestamps, a.timestamps)
+    np.testing.assert_array_equal(b.translations, a.translations)
+    (tmp_path / "robot.csv").write_bytes(_BOM + b"timestamp,x,y\n0,1,2\n1,2,3\n")
+    np.testing.assert_array_equal(read_robot_csv(tmp_path / "robot.csv").xy_um, [[1, 2], [2, 3]])
+    (tmp_path / "hand_eye.txt").write_bytes(_BOM + b"1 0 0 0\n0 1 0 0\n0 0 1 5\n0 0 0 1\n")
+    assert read_hand_eye(tmp_path / "hand_eye.txt")[2, 3] == 5.0
+    (tmp_path / "latin1.csv").write_bytes("timestamp,tx # caméra\n".encode("latin-1"))
+    with pytest.raises(ValueError, match=r"latin1\.csv: not UTF-8 text; expected a CSV file"):
+        read_tracking_csv(tmp_path / "latin1.csv")
+
+
 @pytest.mark.parametrize("name, text", [
     ("camera.yaml", "image_width: 32\nimage_height: 24\ncamera_matrix: [40, 0, 15.5, 0, 40, "
                     "11.5, 0, 0, 1]\ndistortion_coefficients: [-0.3, 0.1, 0, 0]\n"),

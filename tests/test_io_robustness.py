@@ -4,6 +4,7 @@ key or row/column and the problem; video frame sources are safe to read from sev
 from __future__ import annotations
 
 import json
+import struct
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -621,3 +622,52 @@ def test_samples_in_milliseconds_against_frames_in_seconds_are_refused():
         interpolate_robot(robot, frames)
     # a single frame time (a live pose lookup) or sample is not judged
     assert interpolate_robot(robot, frames[:1])[1].all()
+
+
+def test_upper_case_png_frames_are_frames_and_two_sources_are_refused(tmp_path):
+    """frames/*.PNG (a Windows export) were "no frames", mixed with .png silently dropped;
+    a frames/ folder beside a video.* silently hid the video."""
+    images = [np.full((H, W), 10 * k, np.uint8) for k in range(4)]
+    root = write_dataset(tmp_path / "ds", camera=Camera(W, H), frames=iter(images),
+                         timestamps=None)
+    for k in (1, 3):
+        (root / "frames" / f"{k:06d}.png").rename(root / "frames" / f"{k:06d}.PNG")
+    ds = read_dataset(root)
+    assert [int(image[0, 0]) for image in ds.frames] == [0, 10, 20, 30]
+    _write_video(root / "video.avi", 4)
+    with pytest.raises(ValueError, match=r"ds: both frames/ and video\.avi; a dataset holds its "
+                                         r"frames one way"):
+        read_dataset(root)
+
+
+def _patch_avi_frame_count(path: Path, n: int) -> None:
+    """Rewrite the AVI header's frame counts (avih.dwTotalFrames, strh.dwLength) to n."""
+    data = bytearray(path.read_bytes())
+    struct.pack_into("<I", data, data.find(b"avih") + 8 + 16, n)
+    struct.pack_into("<I", data, data.find(b"strh") + 8 + 32, n)
+    path.write_bytes(bytes(data))
+
+
+def test_video_header_counting_too_few_frames_is_not_trusted(tmp_path):
+    """A header saying 7 of 12 frames (a recorder that crashed before updating it) silently cut
+    the last 5; frames decoding past the count are counted by decoding. A header counting too
+    many is named when frames.csv disagrees (not frames.csv blamed alone)."""
+    root = tmp_path / "ds"
+    root.mkdir()
+    expected = _write_video(root / "video.avi", 12)
+    _patch_avi_frame_count(root / "video.avi", 7)
+    assert cv2.VideoCapture(str(root / "video.avi")).get(cv2.CAP_PROP_FRAME_COUNT) == 7
+    frames = FrameSource.open(root)
+    assert len(frames) == 12
+    # OpenCV's seeks stop at the header's last frame (6): frames past it are decoded forward
+    for k in (11, 3, 9, 0, 8, 10, 7, 6):
+        np.testing.assert_array_equal(frames[k], expected[k])
+    for image, truth in zip(frames, expected, strict=True):
+        np.testing.assert_array_equal(image, truth)
+    _patch_avi_frame_count(root / "video.avi", 15)
+    write_camera_yaml(root / "camera.yaml", Camera(W, H))
+    (root / "frames.csv").write_text("frame,timestamp\n" + "".join(
+        f"{k},{k / 25}\n" for k in range(12)))
+    with pytest.raises(ValueError, match=r"frames\.csv: 12 rows but the dataset has 15 frames "
+                                         r"in video\.avi \(as its header counts them\)"):
+        read_dataset(root)

@@ -29,8 +29,11 @@ def read_table(
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"{path}: file not found")
-    with path.open(newline="") as f:
-        lines = list(csv.reader(f))
+    try:  # utf-8-sig: a byte order mark (spreadsheets' "CSV UTF-8") is not part of the header
+        with path.open(newline="", encoding="utf-8-sig") as f:
+            lines = list(csv.reader(f))
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not UTF-8 text; expected a CSV file") from None
     while lines and not any(field.strip() for field in lines[-1]):
         lines.pop()  # trailing blank lines
     if not lines:

@@ -182,7 +182,9 @@ def read_frame_times(root: Path, frames: FrameSource,
                              "applies only to a dataset without frames.csv")
         table, rows = read_table(path, ["frame", "timestamp"], integer=["frame"])
         if rows.size != len(frames):
-            raise ValueError(f"{path}: {rows.size} rows but the dataset has {len(frames)} images")
+            what = ("images" if frames.video is None
+                    else f"frames in {frames.video.name} (as its header counts them)")
+            raise ValueError(f"{path}: {rows.size} rows but the dataset has {len(frames)} {what}")
         check_increasing(path, rows, table["frame"], "frame")
         check_increasing(path, rows, table["timestamp"], "timestamp")
         return table["frame"], table["timestamp"], "frames.csv"

@@ -257,7 +257,7 @@ def read_hand_eye(path: str | Path) -> np.ndarray:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # "input contained no data": see below
-            T = np.loadtxt(path, dtype=np.float64, ndmin=2)
+            T = np.loadtxt(path, dtype=np.float64, ndmin=2, encoding="utf-8-sig")  # BOM skipped
     except ValueError as e:
         raise ValueError(f"{path}: cannot parse as a 4x4 matrix of numbers ({e})") from None
     if T.shape != (4, 4):

@@ -98,6 +98,7 @@ class FrameSource(Sequence):
         self._lock = threading.Lock()  # guards the capture, _next and _recent
         self._channels: tuple[int, str] | None = None  # channel count of the first image, its name
         self.frame_rate: float | None = None
+        self._seek_limit: int | None = None  # frames from here on are reached by decoding
         if self.paths is not None:
             self._length = len(self.paths)
         else:
@@ -106,7 +107,17 @@ class FrameSource(Sequence):
             if np.isfinite(rate) and 0.0 < rate <= MAX_VIDEO_FRAME_RATE:
                 self.frame_rate = rate
             self._length = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
-            if self._length <= 0:  # container without a frame count: count by decoding
+            # A header may count fewer frames than the file holds (a recorder that crashed
+            # before updating it): a frame decoding after the last counted one means count by
+            # decoding, as without a count. (A count beyond the file's frames shows when they are
+            # read: "cannot read image (video truncated or corrupt?)" naming the frame.)
+            if self._length > 0 and self._frames_beyond(capture, self._length):
+                # OpenCV's seeks stop at the header's last frame: frames past it are decoded
+                # forward from there (slower random access, the right images).
+                self._seek_limit = self._length
+                self.close()
+                capture, self._length = self._open_capture(), 0
+            if self._length <= 0:
                 self._length = 0
                 while capture.grab():
                     self._length += 1
@@ -124,15 +135,20 @@ class FrameSource(Sequence):
         expected_size: tuple[int, int] | None = None,
         size_source: str = "camera.yaml",
     ) -> FrameSource:
-        """Find ``frames/*.png`` or a single ``video.*`` under ``dataset_root``. Frames are in
-        natural name order (digit runs by value: ``frame_2.png`` before ``frame_10.png``); names
-        whose decimal numbers make that order ambiguous are refused (see sort_frame_names)."""
+        """Find ``frames/*.png`` (``.PNG`` too) or a single ``video.*`` under ``dataset_root``;
+        both at once are refused (which one is the recording?). Frames are in natural name order
+        (digit runs by value: ``frame_2.png`` before ``frame_10.png``); names whose decimal
+        numbers make that order ambiguous are refused (see sort_frame_names)."""
         root = Path(dataset_root)
         frames_dir = root / "frames"
         videos = sorted(p for p in root.glob("video.*") if p.is_file())
+        if frames_dir.is_dir() and videos:
+            raise ValueError(f"{root}: both frames/ and {videos[0].name}; a dataset holds its "
+                             "frames one way: move one of them out")
         if frames_dir.is_dir():
             # As the shell's frames/*.png: hidden files (e.g. macOS ._000005.png) are not frames.
-            found = [p.name for p in frames_dir.glob("*.png") if not p.name.startswith(".")]
+            found = [p.name for p in frames_dir.iterdir() if p.suffix.lower() == ".png"
+                     and not p.name.startswith(".") and p.is_file()]
             if not found:
                 raise ValueError(f"{frames_dir}: no frames (*.png)")
             paths = [frames_dir / name for name in sort_frame_names(found, frames_dir)]
@@ -189,6 +205,13 @@ class FrameSource(Sequence):
                 raise ValueError(f"{self.video}: cannot open video")
         return self._capture
 
+    def _frames_beyond(self, capture: cv2.VideoCapture, count: int) -> bool:
+        """Frames count-1 and count both decode (the capture's position is then unknown: the
+        next read seeks)."""
+        capture.set(cv2.CAP_PROP_POS_FRAMES, count - 1)
+        self._next = -1
+        return capture.grab() and capture.grab()
+
     def _read_video(self, i: int) -> tuple[np.ndarray | None, int]:
         """Frame i, or None and the index of the frame whose decoding failed."""
         with self._lock:  # one cv2.VideoCapture: concurrent seek/decode crashes FFmpeg
@@ -197,8 +220,10 @@ class FrameSource(Sequence):
                 return image, i
             capture = self._open_capture()
             if self._next < 0 or not 0 <= i - self._next <= VIDEO_READ_AHEAD:
-                capture.set(cv2.CAP_PROP_POS_FRAMES, i)
-                self._next = i
+                start = i if self._seek_limit is None else min(i, self._seek_limit - 1)
+                if not 0 <= start <= self._next <= i:  # else decoding on from here is shorter
+                    capture.set(cv2.CAP_PROP_POS_FRAMES, start)
+                    self._next = start
             while True:
                 ok, image = capture.read()
                 if not ok:
