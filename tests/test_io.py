@@ -580,6 +580,26 @@ def test_frames_csv_row_count(tmp_path):
         read_dataset(root)
 
 
+def test_a_tracker_on_another_clock_is_named_so(tmp_path):
+    """Tracker stamped in UNIX time, frames from 0: not "6 frames outside" and a hint to
+    --allow-untracked (which then failed on "no registered pair of frames with valid tracker
+    poses"), but the clocks named, in reading and in run --allow-untracked."""
+    from fusedmosaic.runner import run_dataset
+
+    samples = _tracking(np.linspace(0.0, 0.3, 9))
+    samples = TrackingSamples(samples.timestamps + 1.7e9, samples.translations, samples.quaternions)
+    root = _write(tmp_path, 6, tracking=samples)
+    message = (r"tracking\.csv: none of the 6 frames lies in the tracker's time span "
+               r"\[1700000000\.000, 1700000000\.300\] s \(the frames span \[0, 0\.2\] s\): the "
+               r"tracker's timestamps and the frames' must be on one clock")
+    with pytest.raises(ValueError, match=message):
+        read_dataset(root)
+    assert not read_dataset(root, allow_untracked=True).pose_valid.any()
+    with pytest.raises(ValueError, match=message):
+        run_dataset(root, "ba-emt", tmp_path / "out", allow_untracked=True, progress=False)
+    assert not (tmp_path / "out").exists()
+
+
 def test_frames_outside_tracker_span(tmp_path):
     root = _write(tmp_path, 6, tracking=_tracking(np.linspace(0.0, 0.1, 5)))  # frames to 0.2 s
     with pytest.raises(

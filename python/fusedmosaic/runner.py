@@ -84,6 +84,12 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
                            tracker_time_offset=tracker_time_offset)
     if method in NEEDS_TRACKING and result is None:  # a live session may have had none
         dataset.require_tracking(method)
+        if not dataset.pose_valid.any():  # --allow-untracked: every frame flagged
+            from fusedmosaic.io.tracking import no_overlap_message
+
+            ts = dataset.tracking.timestamps[dataset.tracking.valid]
+            raise ValueError(no_overlap_message(str(dataset.root / "tracking.csv"), "tracker",
+                                                dataset.timestamps, ts[0], ts[-1]))
     if method in NEEDS_CAMERA_MATRIX:
         dataset.camera.require_camera_matrix(method)
     if method in NEEDS_ROBOT and result is None:

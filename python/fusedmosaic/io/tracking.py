@@ -354,6 +354,16 @@ def _check_rates(frame_times: np.ndarray, ts: np.ndarray, source: str, what: str
             "than the frames'? Both must be in seconds, on one clock")
 
 
+def no_overlap_message(source: str, what: str, frame_times: np.ndarray, t0: float,
+                       t1: float) -> str:
+    """No frame time lies in the samples' span [t0, t1]: the two files' clocks differ."""
+    return (f"{source}: none of the {frame_times.size} frames lies in the {what}'s time span "
+            f"[{_time(t0)}, {_time(t1)}] s (the frames span [{_time(np.min(frame_times))}, "
+            f"{_time(np.max(frame_times))}] s): the {what}'s timestamps and the frames' must be "
+            "on one clock, in seconds (e.g. both UNIX time: write frames.csv with the frames' "
+            "own times)")
+
+
 def _outside_span(
     frame_times: np.ndarray, t0: float, t1: float, source: str, what: str, allow_outside: bool
 ) -> np.ndarray:
@@ -361,6 +371,8 @@ def _outside_span(
     if not np.all(np.isfinite(frame_times)):
         raise ValueError(f"{source}: frame times must be finite")
     outside = (frame_times < t0) | (frame_times > t1)
+    if outside.all() and not allow_outside:
+        raise ValueError(no_overlap_message(source, what, frame_times, t0, t1))
     if outside.any() and not allow_outside:
         i = int(np.flatnonzero(outside)[0])
         raise ValueError(
