@@ -600,6 +600,16 @@ def test_a_tracker_on_another_clock_is_named_so(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def test_times_in_messages_are_short_at_any_magnitude():
+    """UNIX times (s or ms) keep their milliseconds; absurd times (frames at k / 1e-300 s from
+    --fps 1e-300) are not printed as 300 digits."""
+    from fusedmosaic.io.tracking import _time
+
+    assert _time(1.7e9 + 0.123) == "1700000000.123"
+    assert _time(1.7e12 + 0.5) == "1700000000000.500"
+    assert _time(3e300) == "3e+300" and _time(0.04) == "0.04"
+
+
 def test_frames_outside_tracker_span(tmp_path):
     root = _write(tmp_path, 6, tracking=_tracking(np.linspace(0.0, 0.1, 5)))  # frames to 0.2 s
     with pytest.raises(
