@@ -346,15 +346,15 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
             path = w.path(str(target.resolve().relative_to(out.resolve())))
         else:
             path = w.external_path(target)
+        fps = playback_rate(dataset.timestamps)
         n = write_creation_video(path, frames, G, cam.width, cam.height,
                                  (plan.x0, plan.y0, plan.x1, plan.y1), use=plan.use, mask=mask,
-                                 blend=blend, fps=playback_rate(dataset.timestamps),
-                                 gains=gains, frame_ids=ids,
+                                 blend=blend, fps=fps, gains=gains, frame_ids=ids,
                                  progress=progress)
         timings["video"] = time.perf_counter() - t0
         outputs["video"] = str(target)
         info["video"] = {"file": str(target), "path": str(target.resolve()), "frames": n,
-                         "fps": playback_rate(dataset.timestamps)}
+                         "fps": fps}
     return outputs
 
 

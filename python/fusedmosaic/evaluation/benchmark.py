@@ -347,7 +347,6 @@ def write_json(path: str | Path, result: dict) -> Path:
     from fusedmosaic.io.output import OutputWriter
 
     path = check_json_destination(path)
-
     with OutputWriter(path.parent, record=json_record(path)) as w:
         w.write_text(path.name, json.dumps(result, indent=2, allow_nan=True) + "\n")
     return path
