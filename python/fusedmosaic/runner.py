@@ -78,10 +78,17 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
         check_video_destination(Path(video), out, Path(dataset_root))
     check_compositing_options(blend, canvas)  # before minutes of estimation, not after
     t0 = time.perf_counter()
-    # live replay uses the raw samples (frames without a recent one are listed, not refused)
+    # live replay uses the raw samples (frames without a recent one are listed, not refused);
+    # a method that does not use the tracker / robot is not refused for their files: an
+    # unusable one is left out with a warning (dataset.ignored says why)
     dataset = read_dataset(dataset_root, fps=fps, robot_file=robot_file,
                            allow_untracked=allow_untracked or live,
-                           tracker_time_offset=tracker_time_offset)
+                           tracker_time_offset=tracker_time_offset,
+                           strict_tracking=method in NEEDS_TRACKING,
+                           strict_robot=method in NEEDS_ROBOT)
+    for reason in dataset.ignored.values():
+        warnings.warn(f"{reason} -- left out: method {method!r} does not use it",
+                      stacklevel=2)
     if method in NEEDS_TRACKING and result is None:  # a live session may have had none
         dataset.require_tracking(method)
         if not dataset.pose_valid.any():  # --allow-untracked: every frame flagged

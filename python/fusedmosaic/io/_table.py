@@ -20,11 +20,14 @@ def read_table(
     optional: Sequence[str] = (),
     *,
     integer: Sequence[str] = (),
+    text: Sequence[str] = (),
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Read a headed CSV with exactly ``columns`` followed by any prefix of ``optional``.
 
     Empty fields become NaN (float columns); ``integer`` columns must be filled with integers and
-    come back as int64. Returns the columns by name and each data row's spreadsheet row number.
+    come back as int64; ``text`` columns come back as the fields' stripped text (str arrays), for
+    the caller to parse (e.g. with parse_numbers, skipping rows whose content does not count).
+    Returns the columns by name and each data row's spreadsheet row number.
     """
     path = Path(path)
     if not path.is_file():
@@ -55,13 +58,30 @@ def read_table(
                 f"({','.join(header)})"
             )
         for name, field in zip(header, fields, strict=True):
-            values[name].append(_parse(path, row_number, name, field.strip(), name in integer))
+            values[name].append(field.strip() if name in text else
+                                _parse(path, row_number, name, field.strip(), name in integer))
         rows.append(row_number)
     table = {
-        name: np.asarray(v, dtype=np.int64 if name in integer else np.float64).reshape(-1)
+        name: np.asarray(v, dtype=str if name in text else
+                         np.int64 if name in integer else np.float64).reshape(-1)
         for name, v in values.items()
     }
     return table, np.asarray(rows, dtype=np.int64)
+
+
+def parse_numbers(path: str | Path, rows: np.ndarray, column: str, fields: np.ndarray,
+                  skip: np.ndarray | None = None) -> np.ndarray:
+    """A ``text`` column of read_table as float64: empty fields NaN; text that is no number
+    raises naming the row and column, except in rows where ``skip`` is True (rows whose content
+    is ignored, e.g. flagged invalid), which become NaN."""
+    out = np.full(len(fields), np.nan)
+    for i, field in enumerate(fields):
+        try:
+            out[i] = _parse(Path(path), int(rows[i]), column, str(field), False)
+        except ValueError:
+            if skip is None or not skip[i]:
+                raise
+    return out
 
 
 def _parse(path: Path, row: int, column: str, field: str, integer: bool) -> float | int:

@@ -11,7 +11,7 @@ import os
 import shutil
 import tempfile
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -20,11 +20,16 @@ from fusedmosaic.io._table import check_increasing, format_float, read_table, wr
 from fusedmosaic.io.calibration import Camera, read_camera_yaml, write_camera_yaml
 from fusedmosaic.io.homographies import read_homographies_csv, write_homographies_csv
 from fusedmosaic.io.tracking import (
+    MAX_FRAME_GAP_S,
+    MAX_FRAME_SPACING_S,
+    MAX_TIMESTAMP_S,
     RobotSamples,
     TrackingSamples,
+    _time,
     check_time_offset,
     interpolate_camera_poses,
     interpolate_robot,
+    no_overlap_message,
     read_hand_eye,
     read_robot_csv,
     read_tracking_csv,
@@ -47,6 +52,9 @@ class Dataset:
     ground_truth : (N, 3, 3) frame -> reference homographies, NaN for unplaced frames.
     frame_times : where ``timestamps`` come from, for reports: "frames.csv", or without it
         "frame / R fps" and whose rate R is (given, the video's, the default).
+    ignored : {file name: why it was left out} for files present but not read, only for a
+        source the caller does not need (read_dataset's strict_tracking / strict_robot False):
+        e.g. {"tracking.csv": "<path>: row 1: header is ..."}.
     """
 
     root: Path
@@ -64,23 +72,24 @@ class Dataset:
     ground_truth: np.ndarray | None = None
     robot_file: str = "robot.csv"
     frame_times: str = "frames.csv"
+    ignored: dict[str, str] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return self.frame_ids.size
 
     def require_tracking(self, method: str) -> None:
         if self.tracking is None:
-            raise ValueError(
-                f"{self.root / 'tracking.csv'}: file not found; method {method!r} "
-                "needs EM tracker poses"
-            )
+            raise ValueError(self._missing("tracking.csv", method, "EM tracker poses"))
 
     def require_robot(self, method: str) -> None:
         if self.robot is None:
-            raise ValueError(
-                f"{self.root / self.robot_file}: file not found; method {method!r} "
-                "needs robot positions"
-            )
+            raise ValueError(self._missing(self.robot_file, method, "robot positions"))
+
+    def _missing(self, name: str, method: str, what: str) -> str:
+        needs = f"method {method!r} needs {what}"
+        if name in self.ignored:  # read leniently and left out: the reason
+            return f"{self.ignored[name]} ({needs})"
+        return f"{self.root / name}: file not found; {needs}"
 
     def require_pixel_size(self, method: str) -> float:
         return self.camera.require_pixel_size(method)
@@ -96,6 +105,8 @@ def read_dataset(
     robot_file: str = "robot.csv",
     allow_untracked: bool = False,
     tracker_time_offset: float = 0.0,
+    strict_tracking: bool = True,
+    strict_robot: bool = True,
 ) -> Dataset:
     """Read and check a dataset folder. Images are not loaded (only the first, to check its size).
 
@@ -112,6 +123,16 @@ def read_dataset(
         at time t is the one tracking.csv stamps t + tracker_time_offset (calibrate measures
         it: calibration.json "tracker_time_offset"); Dataset.tracking is then on the video's
         clock.
+    strict_tracking, strict_robot : the caller uses the EM tracker (tracking.csv with
+        hand_eye.txt) / the robot (robot_file): a present file that cannot be read, or whose
+        times do not fit the frames', raises ValueError (the default). False, for a method that
+        does not use it: such a file is left out (Dataset.tracking / .robot None) and the
+        reason recorded in Dataset.ignored; a usable one is still read (reports plot it), its
+        frames outside the samples' time span flagged invalid.
+
+    The frame times are checked (read_frame_times): within |t| <= MAX_TIMESTAMP_S, at most
+    MAX_FRAME_GAP_S apart, and MAX_FRAME_SPACING_S apart at most in the median (a video's
+    timestamps in milliseconds otherwise pass for seconds).
     """
     root = Path(root)
     tracker_time_offset = check_time_offset(tracker_time_offset)
@@ -121,36 +142,84 @@ def read_dataset(
     frames = FrameSource.open(root, expected_size=camera.size, size_source=camera.source)
     frames[0]  # size check of the first image; the rest are checked as they are read
 
-    frame_ids, timestamps, frame_times = read_frame_times(root, frames, fps)
-    hand_eye_path = root / "hand_eye.txt"
-    hand_eye = read_hand_eye(hand_eye_path) if hand_eye_path.exists() else np.eye(4)
-    dataset = Dataset(root, camera, frames, frame_ids, timestamps, hand_eye, robot_file=robot_file,
-                      frame_times=frame_times)
-
-    tracking_path = root / "tracking.csv"
-    if tracking_path.exists():
-        dataset.tracking = read_tracking_csv(tracking_path)
-        source = str(tracking_path)
-        if tracker_time_offset:
-            dataset.tracking = shift_tracking(dataset.tracking, tracker_time_offset)
-            source += f" (timestamps shifted by {-tracker_time_offset:+g} s, the clock offset)"
-        dataset.cam_from_world, dataset.pose_valid = interpolate_camera_poses(
-            dataset.tracking,
-            timestamps,
-            hand_eye,
-            allow_outside=allow_untracked,
-            source=source,
-        )
-    robot_path = root / robot_file
-    if robot_path.exists():
-        dataset.robot = read_robot_csv(robot_path)
-        dataset.robot_xy_um, dataset.robot_valid = interpolate_robot(
-            dataset.robot, timestamps, allow_outside=allow_untracked, source=str(robot_path)
-        )
+    frame_ids, timestamps, frame_times = read_frame_times(
+        root, frames, fps, max_spacing=MAX_FRAME_SPACING_S)
+    dataset = Dataset(root, camera, frames, frame_ids, timestamps, np.eye(4),
+                      robot_file=robot_file, frame_times=frame_times)
+    _read_tracking(dataset, allow_untracked, tracker_time_offset, lenient=not strict_tracking)
+    _read_robot(dataset, allow_untracked, lenient=not strict_robot)
     truth_path = root / "ground_truth.csv"
     if truth_path.exists():
         dataset.ground_truth = _align_ground_truth(truth_path, frame_ids)
     return dataset
+
+
+def _read_tracking(dataset: Dataset, allow_untracked: bool, tracker_time_offset: float, *,
+                   lenient: bool) -> None:
+    """hand_eye.txt and tracking.csv, if present, into ``dataset`` (camera poses at its frame
+    times); ValueError naming the file, or with ``lenient`` the file left out and the reason
+    in dataset.ignored (read_dataset's strict_tracking False)."""
+    root = dataset.root
+    hand_eye_path, tracking_path = root / "hand_eye.txt", root / "tracking.csv"
+    try:
+        hand_eye = read_hand_eye(hand_eye_path) if hand_eye_path.exists() else np.eye(4)
+    except ValueError as error:
+        if not lenient:
+            raise
+        dataset.ignored["hand_eye.txt"] = str(error)
+        if tracking_path.exists():
+            dataset.ignored["tracking.csv"] = (f"{tracking_path}: left out with hand_eye.txt "
+                                               "(the camera poses need both)")
+        return
+    dataset.hand_eye = hand_eye
+    if not tracking_path.exists():
+        return
+    try:
+        tracking = read_tracking_csv(tracking_path)
+        source = str(tracking_path)
+        if tracker_time_offset:
+            tracking = shift_tracking(tracking, tracker_time_offset)
+            source += f" (timestamps shifted by {-tracker_time_offset:+g} s, the clock offset)"
+        poses, valid = interpolate_camera_poses(tracking, dataset.timestamps, hand_eye,
+                                                allow_outside=allow_untracked or lenient,
+                                                source=source)
+        if lenient:
+            _check_overlap(dataset.timestamps, tracking.timestamps[tracking.valid], source,
+                           "tracker")
+    except ValueError as error:
+        if not lenient:
+            raise
+        dataset.ignored["tracking.csv"] = str(error)
+        return
+    dataset.tracking, dataset.cam_from_world, dataset.pose_valid = tracking, poses, valid
+
+
+def _read_robot(dataset: Dataset, allow_untracked: bool, *, lenient: bool) -> None:
+    """The robot file, if present, into ``dataset`` (positions at its frame times); ValueError
+    naming it, or with ``lenient`` the file left out and the reason in dataset.ignored."""
+    path = dataset.root / dataset.robot_file
+    if not path.exists():
+        return
+    try:
+        robot = read_robot_csv(path)
+        xy, valid = interpolate_robot(robot, dataset.timestamps,
+                                      allow_outside=allow_untracked or lenient, source=str(path))
+        if lenient:
+            _check_overlap(dataset.timestamps, robot.timestamps, str(path), "robot")
+    except ValueError as error:
+        if not lenient:
+            raise
+        dataset.ignored[dataset.robot_file] = str(error)
+        return
+    dataset.robot, dataset.robot_xy_um, dataset.robot_valid = robot, xy, valid
+
+
+def _check_overlap(frame_times: np.ndarray, sample_times: np.ndarray, source: str,
+                   what: str) -> None:
+    """ValueError when no frame lies in the samples' time span (the clocks differ)."""
+    t0, t1 = sample_times[0], sample_times[-1]
+    if np.all((frame_times < t0) | (frame_times > t1)):
+        raise ValueError(no_overlap_message(source, what, frame_times, t0, t1))
 
 
 DEFAULT_FPS = 25.0  # frame rate of a dataset without frames.csv whose frames give none (PNGs)
@@ -168,13 +237,18 @@ def check_fps(fps, what: str = "fps") -> float:
     return float(fps)
 
 
-def read_frame_times(root: Path, frames: FrameSource,
-                     fps: float | None = None) -> tuple[np.ndarray, np.ndarray, str]:
+def read_frame_times(root: Path, frames: FrameSource, fps: float | None = None, *,
+                     max_spacing: float | None = None) -> tuple[np.ndarray, np.ndarray, str]:
     """(frame ids, timestamps s, where they come from) of the images ``frames`` of the dataset
     or recording folder ``root``: from frames.csv (``frame,timestamp``, both strictly
     increasing, one row per image), else ids 0..N-1 at timestamp = id / rate, the rate being
     ``fps`` if given, else the video's (frames.frame_rate), else DEFAULT_FPS. ValueError naming
-    frames.csv when it is malformed, or when ``fps`` is given as well (it would be ignored)."""
+    frames.csv when it is malformed, or when ``fps`` is given as well (it would be ignored).
+
+    The times are seconds, checked as the streaming mosaickers check theirs
+    (io.tracking.check_stream_timestamp): |t| <= MAX_TIMESTAMP_S and consecutive frames at most
+    MAX_FRAME_GAP_S apart; with ``max_spacing`` (s; read_dataset: MAX_FRAME_SPACING_S) also at
+    most that far apart in the median, which a video's times in milliseconds exceed."""
     path = root / "frames.csv"
     if path.exists():
         if fps is not None:
@@ -187,6 +261,7 @@ def read_frame_times(root: Path, frames: FrameSource,
             raise ValueError(f"{path}: {rows.size} rows but the dataset has {len(frames)} {what}")
         check_increasing(path, rows, table["frame"], "frame")
         check_increasing(path, rows, table["timestamp"], "timestamp")
+        _check_frame_times(path, rows, table["timestamp"], max_spacing)
         return table["frame"], table["timestamp"], "frames.csv"
     video = None if frames.video is None else frames.video.name
     if fps is not None:
@@ -200,7 +275,46 @@ def read_frame_times(root: Path, frames: FrameSource,
         rate = DEFAULT_FPS
         source = "the default: " + ("no frame rate in " + video if video else "PNG frames")
     frame_ids = np.arange(len(frames), dtype=np.int64)
-    return frame_ids, frame_ids / rate, f"frame / {rate:.6g} fps ({source}; no frames.csv)"
+    described = f"frame / {rate:.6g} fps ({source}; no frames.csv)"
+    if len(frames) > 1:
+        step = 1.0 / rate
+        bound, name = min((MAX_FRAME_GAP_S, "MAX_FRAME_GAP_S"),
+                          (max_spacing or math.inf, "MAX_FRAME_SPACING_S"))
+        last = (len(frames) - 1) / rate
+        if step > bound or abs(last) > MAX_TIMESTAMP_S:
+            raise ValueError(
+                f"{root}: the frame times {described} put frames {_time(step)} s apart, up to "
+                f"t={_time(last)} s (bounds: {bound:g} s apart, {name}; |t| <= "
+                f"{MAX_TIMESTAMP_S:g} s): no endoscope or pCLE video is that slow; check the "
+                "frame rate")
+    return frame_ids, frame_ids / rate, described
+
+
+def _check_frame_times(path: Path, rows: np.ndarray, times: np.ndarray,
+                       max_spacing: float | None) -> None:
+    """frames.csv's timestamps (finite, increasing) within the bounds of read_frame_times;
+    ValueError naming the file, the row and the likely unit mistake."""
+    ms = "frames.csv's timestamps must be seconds: are these milliseconds"
+    beyond = np.flatnonzero(np.abs(times) > MAX_TIMESTAMP_S)
+    if beyond.size:
+        i = beyond[0]
+        raise ValueError(f"{path}: row {rows[i]}, column 'timestamp': {times[i].item()!r} is "
+                         f"beyond |t| <= {MAX_TIMESTAMP_S:g} s (the year 2286 as UNIX time): "
+                         f"{ms} (or µs, ns)?")
+    steps = np.diff(times)
+    far = np.flatnonzero(steps > MAX_FRAME_GAP_S)
+    if far.size:
+        i = far[0] + 1
+        raise ValueError(f"{path}: row {rows[i]}: timestamp {times[i].item()!r} is "
+                         f"{_time(steps[i - 1])} s after the previous row's, more than "
+                         f"MAX_FRAME_GAP_S ({MAX_FRAME_GAP_S:g} s, a day): {ms}?")
+    if max_spacing is not None and steps.size and np.median(steps) > max_spacing:
+        i = int(np.flatnonzero(steps > max_spacing)[0]) + 1
+        raise ValueError(
+            f"{path}: frames come every {_time(float(np.median(steps)))} s (median spacing; "
+            f"e.g. rows {rows[i - 1]} and {rows[i]} are {_time(steps[i - 1])} s apart), more "
+            f"than MAX_FRAME_SPACING_S ({max_spacing:g} s): an endoscope or pCLE video gives "
+            f"10-60 frames/s; {ms}?")
 
 
 def _align_ground_truth(path: Path, frame_ids: np.ndarray) -> np.ndarray:

@@ -17,7 +17,13 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, RotationSpline, Slerp
 
-from fusedmosaic.io._table import check_increasing, format_float, read_table, write_table
+from fusedmosaic.io._table import (
+    check_increasing,
+    format_float,
+    parse_numbers,
+    read_table,
+    write_table,
+)
 
 TRACKING_COLUMNS = ["timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw"]
 ROBOT_COLUMNS = ["timestamp", "x", "y"]
@@ -33,6 +39,12 @@ MAX_ROBOT_UM = 1e3 * MAX_TRANSLATION_MM
 MAX_TIMESTAMP_S = 1e10
 # s; frames of one sequence more than a day apart: a unit mix-up or a corrupt clock.
 MAX_FRAME_GAP_S = 86_400.0
+# s; the median frame spacing of a dataset (io.read_dataset): a video at 10-100 frames/s whose
+# timestamps are in milliseconds has frames 10-100 "s" apart, below MAX_FRAME_GAP_S (which a
+# single gap may reach: a paused recording), so the median is bounded too. Endoscope video runs
+# at 25-60 frames/s and pCLE at ~10 (0.02-0.1 s apart); 10 s still takes a recording thinned
+# to one frame in 100-250, whose consecutive frames would hardly overlap anyway.
+MAX_FRAME_SPACING_S = 10.0
 
 
 def check_stream_timestamp(index: int, timestamp, previous: float, *,
@@ -139,20 +151,24 @@ class RobotSamples:
 
 
 def read_tracking_csv(path: str | Path) -> TrackingSamples:
-    """Read ``timestamp,tx,ty,tz,qx,qy,qz,qw[,valid]``; rows with valid=0 may have empty
-    fields. Quaternions of valid rows are checked (|q| within 1e-3 of 1; the error names the
-    row) and renormalised (by TrackingSamples)."""
-    table, rows = read_table(path, TRACKING_COLUMNS, ["valid"], integer=["valid"])
+    """Read ``timestamp,tx,ty,tz,qx,qy,qz,qw[,valid]`` (s, mm, quaternion x, y, z, w).
+
+    ``valid`` (absent: every row valid) is 1 or 0, as any number (``1.0`` / ``0.0`` too), or
+    ``true`` / ``false`` in any case (spreadsheets and tracker exports write those); anything
+    else is refused. The pose fields of a row with valid=0 are not read: they may be empty or
+    hold any text (NDI writes ``MISSING``); its timestamp still counts in the strictly
+    increasing order. Timestamps must be within |t| <= MAX_TIMESTAMP_S. Quaternions of valid
+    rows are checked (|q| within 1e-3 of 1; the error names the row) and renormalised (by
+    TrackingSamples)."""
+    text = [*TRACKING_COLUMNS[1:], "valid"]
+    table, rows = read_table(path, TRACKING_COLUMNS, ["valid"], text=text)
     timestamps = table["timestamp"]
     check_increasing(path, rows, timestamps, "timestamp")
-    valid = table.get("valid", np.ones(timestamps.size, np.int64))
-    bad = np.flatnonzero((valid != 0) & (valid != 1))
-    if bad.size:
-        raise ValueError(
-            f"{path}: row {rows[bad[0]]}, column 'valid': expected 0 or 1, got {valid[bad[0]]}"
-        )
-    valid = valid.astype(bool)
-    values = np.stack([table[c] for c in TRACKING_COLUMNS[1:]], axis=1)
+    check_timestamp_bound(path, rows, timestamps, "tracker")
+    valid = (_valid_flags(path, rows, table["valid"]) if "valid" in table
+             else np.ones(timestamps.size, bool))
+    values = np.stack([parse_numbers(path, rows, c, table[c], skip=~valid)
+                       for c in TRACKING_COLUMNS[1:]], axis=1).reshape(-1, 7)
     _check_values(
         path,
         rows,
@@ -172,6 +188,42 @@ def read_tracking_csv(path: str | Path) -> TrackingSamples:
             f"not 1 (tolerance {QUATERNION_NORM_TOLERANCE:g})"
         )
     return TrackingSamples(timestamps, values[:, :3], quaternions, valid)  # renormalised there
+
+
+def _valid_flags(path, rows: np.ndarray, fields: np.ndarray) -> np.ndarray:
+    """tracking.csv's ``valid`` column as booleans: 1 / 0 as numbers (1, 1.0, ...) or true /
+    false in any case; ValueError naming the row of the first other value and listing what is
+    accepted."""
+    flags = np.empty(len(fields), bool)
+    for i, field in enumerate(fields):
+        word = str(field).lower()
+        if word in ("true", "false"):
+            flag = word == "true"
+        else:
+            try:
+                flag = {1.0: True, 0.0: False}.get(float(word))
+            except ValueError:
+                flag = None
+        if flag is None:
+            raise ValueError(
+                f"{path}: row {rows[i]}, column 'valid': expected 0 or 1 (also accepted: true / "
+                f"false in any case, 1.0 / 0.0), got {str(field)!r}"
+            )
+        flags[i] = flag
+    return flags
+
+
+def check_timestamp_bound(path, rows: np.ndarray, timestamps: np.ndarray, what: str) -> None:
+    """Refuses a timestamp beyond |t| <= MAX_TIMESTAMP_S (as the streaming mosaickers do,
+    check_stream_timestamp), naming the file and the row: such times are not seconds."""
+    beyond = np.flatnonzero(np.abs(timestamps) > MAX_TIMESTAMP_S)
+    if beyond.size:
+        i = beyond[0]
+        raise ValueError(
+            f"{path}: row {rows[i]}, column 'timestamp': {timestamps[i].item()!r} is beyond "
+            f"|t| <= {MAX_TIMESTAMP_S:g} s (the year 2286 as UNIX time): {what} timestamps "
+            "are in seconds; are these milliseconds (or µs, ns)?"
+        )
 
 
 def _check_values(
@@ -246,6 +298,35 @@ def rigid_problems(transforms, tolerance: float) -> tuple[np.ndarray, np.ndarray
     return ~finite, finite & ~rigid, finite & far
 
 
+def rigid_defects(T, tolerance: float) -> str:
+    """Which checks of rigid_problems a finite 4x4 ``T`` fails, in words: a reflection (det -1),
+    a scale (column norms not 1), a shear (columns not orthogonal), a last row other than
+    0 0 0 1; "" when it is rigid to ``tolerance``."""
+    T = np.asarray(T, dtype=np.float64).reshape(4, 4)
+    R = T[:3, :3]
+    gram = R.T @ R  # the identity for a rotation (rigid_problems compares it)
+    norms = np.sqrt(np.abs(np.diag(gram)))
+    found = []
+    det = np.linalg.det(R)
+    if det < 0:
+        found.append(f"the rotation block's determinant is {det:.6g}, not +1: a reflection (a "
+                     "left-handed frame, or an axis flipped?)")
+    off_diagonal = np.abs(gram - np.diag(np.diag(gram))).max()
+    if off_diagonal > tolerance:  # a shear changes the norms too: named as a shear only
+        with np.errstate(divide="ignore", invalid="ignore"):  # a zero column: no angle
+            cosine = np.nanmax(np.abs(gram / np.outer(norms, norms) - np.eye(3)))
+        found.append(f"the rotation block's columns are not orthogonal (|cos| up to "
+                     f"{cosine:.3g} between two: sheared)")
+    elif np.abs(np.diag(gram) - 1.0).max() > tolerance:
+        shown = ", ".join(f"{n:.6g}" for n in norms)
+        found.append(f"the rotation block's columns have norms {shown}, not 1 (scaled)")
+    if np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > tolerance:
+        found.append(f"the last row is {' '.join(f'{v:g}' for v in T[3])}, not 0 0 0 1")
+    if not found and not rigid_problems(T, tolerance)[1][0]:
+        return ""
+    return "; ".join(found or ["not orthonormal"]) + f" (tolerance {tolerance:g})"
+
+
 def read_hand_eye(path: str | Path) -> np.ndarray:
     """Read the 4x4 rigid sensor_from_camera transform (whitespace-separated text); checked and
     projected as `hand_eye_matrix` does."""
@@ -291,10 +372,7 @@ def _checked_hand_eye(T: np.ndarray, source: str) -> np.ndarray:
             f"{MAX_TRANSLATION_MM:g} mm bound (1 km), not physical"
         )
     if not_rigid[0]:
-        raise ValueError(
-            f"{source}: not a rigid transform (rotation block not orthonormal with "
-            f"det +1 to {ROTATION_TOLERANCE:g}, or last row not 0 0 0 1)"
-        )
+        raise ValueError(f"{source}: not a rigid transform: {rigid_defects(T, ROTATION_TOLERANCE)}")
     T = T.copy()
     u, _, vt = np.linalg.svd(T[:3, :3])
     T[:3, :3] = u @ vt
@@ -311,9 +389,10 @@ def write_hand_eye(path: str | Path, T) -> None:
 
 
 def read_robot_csv(path: str | Path) -> RobotSamples:
-    """Read ``timestamp,x,y`` (s, µm)."""
+    """Read ``timestamp,x,y`` (s, µm; every field filled, |timestamp| <= MAX_TIMESTAMP_S)."""
     table, rows = read_table(path, ROBOT_COLUMNS)
     check_increasing(path, rows, table["timestamp"], "timestamp")
+    check_timestamp_bound(path, rows, table["timestamp"], "robot")
     xy = np.stack([table["x"], table["y"]], axis=1)
     _check_values(
         path, rows, xy, ROBOT_COLUMNS[1:], None, unit="µm", bound=MAX_ROBOT_UM, n_bounded=2
