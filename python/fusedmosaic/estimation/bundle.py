@@ -16,6 +16,7 @@ import numpy as np
 from tqdm import tqdm
 
 from fusedmosaic import _core
+from fusedmosaic.estimation.consistency import check_emt_sigma, solver_warning, tracker_agreement
 from fusedmosaic.estimation.motion import motion_timing
 from fusedmosaic.estimation.plane import estimate_plane
 from fusedmosaic.estimation.world import (
@@ -46,6 +47,9 @@ class BundleOptions:
     # Constant-velocity prior std devs (rad x3, mm x3); None = the paper's appendix values
     # (estimation/motion.py estimates them from an independent recording, as Sec. 4.2 did).
     motion_sigma: tuple[float, ...] | None = None
+    # EMT prior std devs (rad x3, mm x3, Eq. 19): the tracker's noise; None = the paper's
+    # appendix values (1 deg, 1 mm). `calibrate` measures a tracker's (calibration.json).
+    emt_sigma: tuple[float, ...] | None = None
     loss: str = "none"  # "none" | "huber" | "cauchy" on the visual term
     loss_scale_px: float = 2.0
     linear_solver: str = "auto"
@@ -185,6 +189,8 @@ def _adjuster(K, options: BundleOptions, use_emt: bool):
         num_threads=options.num_threads, use_emt=use_emt, use_motion_prior=use_emt)
     if options.motion_sigma is not None:
         costs.motion_sigma = np.asarray(options.motion_sigma, np.float64)
+    if options.emt_sigma is not None:
+        costs.emt_sigma = np.asarray(options.emt_sigma, np.float64)
     return _core.BundleAdjuster(K, costs)
 
 
@@ -210,6 +216,8 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     adjustment runs in a world rotated so that the first tracked camera is not near a rotation
     of pi (estimation/world.py); poses and plane are returned in the tracker's world."""
     K = dataset.camera.require_camera_matrix("ba-emt" if use_emt else "ba")
+    if options is not None and options.emt_sigma is not None:  # before minutes of matching
+        check_emt_sigma(options.emt_sigma, "BundleOptions.emt_sigma")
     rotation = world_rotation(dataset.cam_from_world) if use_emt else None
     if rotation is not None:
         aligned = replace(dataset, cam_from_world=poses_to_aligned(dataset.cam_from_world,
@@ -281,6 +289,12 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     placed = np.isfinite(G).all(axis=(1, 2))
     details = _pair_details(front)
     details["solver"] = summary.as_dict()
+    details["warnings"] = [w for w in [solver_warning(summary, o.max_iterations)] if w]
+    if use_emt:
+        agreement = tracker_agreement(poses, dataset.cam_from_world, dataset.pose_valid, plane,
+                                      o.emt_sigma, source=str(dataset.root / "tracking.csv"))
+        details["warnings"] = agreement.pop("warnings") + details["warnings"]
+        details["tracker_agreement"] = agreement
     return MethodResult(G, _status(n, placed, ok, "not connected to frame 0 by registered pairs"),
                         poses=poses, plane=plane, timings=timings, parameters=asdict(o),
                         details=details)
@@ -312,5 +326,10 @@ def run_emt(dataset, *, progress: bool = True, options: BundleOptions | None = N
     G = predicted_homographies(dataset.cam_from_world, np.asarray(plane, float), K)
     placed = np.isfinite(G).all(axis=(1, 2))
     status = ["placed" if p else "unplaced: no tracker sample" for p in placed]
+    # the tracker's own poses: only the plane's distance can be implausible (a unit mix-up)
+    agreement = tracker_agreement(dataset.cam_from_world, dataset.cam_from_world,
+                                  dataset.pose_valid, plane, o.emt_sigma,
+                                  source=str(dataset.root / "tracking.csv"))
+    details["warnings"] = agreement.pop("warnings")
     return MethodResult(G, status, poses=dataset.cam_from_world.copy(), plane=plane,
                         timings=timings, parameters=asdict(o), details=details)

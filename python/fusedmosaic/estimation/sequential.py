@@ -68,6 +68,11 @@ from fusedmosaic.estimation.bundle import (
     fill_missing_poses,
     subsample_inliers,
 )
+from fusedmosaic.estimation.consistency import (
+    check_emt_sigma,
+    solver_warning,
+    tracker_agreement,
+)
 from fusedmosaic.estimation.guard import exclusive_call
 from fusedmosaic.estimation.keyframes import KeyframeIndex
 from fusedmosaic.estimation.motion import motion_timing, predict_constant_velocity
@@ -102,8 +107,8 @@ class SequentialOptions:
     presets with :meth:`preset` ("syn", "phb", "ex").
     Registration: ``features`` (detector "sift" or "orb"), ``matching`` (ratio test, RANSAC,
     threads), ``max_points_per_pair`` inliers kept per pair.
-    Costs: ``sigma_v_px`` (px), ``motion_sigma`` (rad x3, mm x3; None = the paper's appendix
-    values), ``loss``, ``linear_solver``, ``max_iterations``.
+    Costs: ``sigma_v_px`` (px), ``motion_sigma`` and ``emt_sigma`` (rad x3, mm x3; None = the
+    paper's appendix values), ``loss``, ``linear_solver``, ``max_iterations``.
     Start-up: the first ``bootstrap_frames`` frames are adjusted together (BA+EMT) before the
     window starts, matched by predicted overlap (``startup_min_overlap``, a fraction);
     ``startup_wait_frames`` bounds the wait for a tracker.
@@ -133,6 +138,9 @@ class SequentialOptions:
     # Constant-velocity prior std devs (rad x3, mm x3); None = the paper's appendix values.
     # estimation/motion.py estimates them from an independent recording, as Sec. 4.2 did.
     motion_sigma: tuple[float, ...] | None = None
+    # EMT prior std devs (rad x3, mm x3, Eq. 25): the tracker's noise; None = the paper's
+    # appendix values (1 deg, 1 mm). The gate (gate_chi2) measures samples against them.
+    emt_sigma: tuple[float, ...] | None = None
     loss: str = "none"
     linear_solver: str = "auto"
     max_iterations: int = 20
@@ -304,6 +312,9 @@ class SequentialMosaicker:
             max_iterations=o.max_iterations, function_tolerance=1e-6, num_threads=1)
         if o.motion_sigma is not None:
             costs.motion_sigma = np.asarray(o.motion_sigma, np.float64)
+        if o.emt_sigma is not None:
+            costs.emt_sigma = np.asarray(check_emt_sigma(o.emt_sigma,
+                                                         "SequentialOptions.emt_sigma"))
         self._costs = costs
         self._window_options = _core.SlidingWindowOptions(
             window_size=o.window_size, num_new=o.num_new, costs=costs)
@@ -364,6 +375,7 @@ class SequentialMosaicker:
         # FrameResult).
         self.step_summaries: deque = deque(maxlen=o.history_steps)
         self.num_steps = 0
+        self.bootstrap_summary: dict | None = None  # the start-up BA+EMT solve, once it ran
         # Pair registrations (window / start-up and spatial loop pairs): attempted, registered,
         # correspondences of the registered ones.
         self.pair_counts = {"attempted": 0, "registered": 0, "correspondences": 0,
@@ -506,7 +518,7 @@ class SequentialMosaicker:
               "num_steps", "_finalized", "_boot_feats", "_boot_matches", "_loop_feats",
               "_loop_centroids", "_poses", "pair_counts", "_mirror_frames", "_mirror_pairs",
               "_mirror_plane", "_implausible_run", "_world_rotation", "_times",
-              "_intervals", "_unanchored")
+              "_intervals", "_unanchored", "bootstrap_summary")
 
     def _save(self) -> dict:
         """What a call may change, copied (shallowly: the values it replaces, never mutates)."""
@@ -856,6 +868,7 @@ class SequentialMosaicker:
         ba_options = _core.BundleAdjusterOptions(sigma_v_px=o.sigma_v_px, loss=o.loss,
                                                  num_threads=1)
         ba_options.motion_sigma = self._costs.motion_sigma
+        ba_options.emt_sigma = self._costs.emt_sigma
         ba = _core.BundleAdjuster(self.K, ba_options)
         ids = [p["id"] for p in self._pending]
         filled = fill_missing_poses(table[ids])
@@ -866,7 +879,7 @@ class SequentialMosaicker:
         for m in self._boot_matches:
             ba.add_pair(m.frame_l, m.frame_m, *self._subsample(m))
         ba.set_plane(plane)
-        ba.solve()
+        self.bootstrap_summary = ba.solve().as_dict()
         self._plane = np.asarray(ba.plane())
         self._startup_G, self._startup_plane = {}, None
         self._win_set_plane(self._plane)
@@ -1040,6 +1053,20 @@ def _plane_gate_details(steps: list[tuple[float, bool]]) -> dict:
             "median_relative_std": float(np.median(kept)) if kept else None}
 
 
+def _solver_warnings(bootstrap, unconverged: list[str], steps: int,
+                     max_iterations: int) -> list[str]:
+    """Messages for a start-up adjustment and window steps that did not converge."""
+    limit = _core.BundleAdjusterOptions().max_iterations  # the start-up's (_bootstrap)
+    out = [solver_warning(bootstrap, limit, "the start-up adjustment")] if bootstrap else []
+    if unconverged:
+        kinds = ", ".join(sorted(set(unconverged)))
+        out.append(f"{len(unconverged)} of {steps} window steps did not converge (Ceres "
+                   f"{kinds}; max_iterations {max_iterations}): their frames' estimates are not "
+                   "at the cost's minimum (a tracker disagreeing with the images is a common "
+                   "cause)")
+    return [w for w in out if w]
+
+
 def run_lba_emt(dataset, *, progress: bool = True,
                 options: SequentialOptions | None = None) -> MethodResult:
     """LBAVis+EMT over a recorded dataset, frame by frame through SequentialMosaicker."""
@@ -1050,6 +1077,7 @@ def run_lba_emt(dataset, *, progress: bool = True,
     latency = np.zeros(n)
     step_times: list[float] = []  # every step's (the mosaicker keeps the last history_steps)
     plane_steps: list[tuple[float, bool]] = []  # every step's (plane_relative_std, plane_held)
+    unconverged: list[str] = []  # every step's solver message when it did not converge
 
     def take(finals: list[FrameResult]) -> None:
         """Results made final by the last call, and the time of its step (at most one)."""
@@ -1057,6 +1085,8 @@ def run_lba_emt(dataset, *, progress: bool = True,
             step_times.append(mosaicker.step_summaries[-1].step_time_s)
             summary = mosaicker.step_summaries[-1]
             plane_steps.append((summary.plane_relative_std, summary.plane_held))
+            if solver_warning(summary, o.max_iterations):
+                unconverged.append(summary.termination)
         results.update({r.frame_id: r for r in finals})
 
     t_start = time.perf_counter()
@@ -1099,6 +1129,14 @@ def run_lba_emt(dataset, *, progress: bool = True,
         # per frame: the plane of the step that made the frame final
         "plane_history": [results[k].plane.tolist() for k in range(n)],
     }
+    details["warnings"] = _solver_warnings(mosaicker.bootstrap_summary, unconverged,
+                                           len(step_times), o.max_iterations)
+    if dataset.cam_from_world is not None:
+        agreement = tracker_agreement(poses, dataset.cam_from_world, dataset.pose_valid,
+                                      mosaicker.plane, o.emt_sigma,
+                                      source=str(dataset.root / "tracking.csv"))
+        details["warnings"] = agreement.pop("warnings") + details["warnings"]
+        details["tracker_agreement"] = agreement
     status = [results[k].status for k in range(n)]
     return MethodResult(G, status, poses=poses, plane=mosaicker.plane, timings=timings,
                         parameters=asdict(o), details=details)

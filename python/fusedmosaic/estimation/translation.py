@@ -90,6 +90,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 from tqdm import tqdm
 
+from fusedmosaic.estimation.consistency import robot_agreement
 from fusedmosaic.estimation.guard import exclusive_call
 from fusedmosaic.estimation.kalman import KalmanOptions, RobotKalmanFilter, normalize
 from fusedmosaic.io.tracking import (  # noqa: F401  (MAX_FRAME_GAP_S, MAX_TIMESTAMP_S: API)
@@ -829,6 +830,14 @@ def _run(
         },
         "per_frame_ms": ms_stats(per_frame * 1e3),
     }
+    details["warnings"] = []
+    if estimate == "fused":  # robot and images both seen: do they move alike?
+        agreement = robot_agreement(
+            details["trajectories_px"]["X_m"], details["trajectories_px"]["X_r"],
+            details["confidences"]["c_img"], source=str(dataset.root / dataset.robot_file),
+            pixel_size_um=mosaicker.pixel_size_um)
+        details["warnings"] = agreement.pop("warnings")
+        details["robot_agreement"] = agreement
     parameters = {
         "estimate": estimate,
         "pixel_size_um": mosaicker.pixel_size_um,

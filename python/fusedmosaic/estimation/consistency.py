@@ -1,0 +1,161 @@
+"""Checks after a fusion: do the tracker and the images agree, is the geometry plausible, did the
+solver converge? They flag what the costs cannot: tracker data in another convention than the
+dataset contract's (quaternions w first, metres, an inverted hand-eye) still gives a usable
+mosaic, because the images dominate it, but wrong poses.csv and plane.json.
+
+The EMT prior (seed 000 Eq. 19) assumes the tracker's camera poses scatter around the true ones
+by ``emt_sigma`` per axis. After BAVis+EMT or LBAVis+EMT the estimate follows the images where
+they constrain it, so the per-axis difference estimate - tracker, divided by emt_sigma, has an
+RMS near 1 for a tracker as noisy as assumed, and grows with the disagreement. Measured on the
+simulator (median over frames of the larger of the rotation and translation ratios; SYN and
+hand-held sequences, ba-emt): 0.7-0.8 at the assumed noise, 1.3 / 1.9 / 2.6 / 3.9 at 2 / 3 / 4 / 6
+times it; quaternions stored w first 4.1-8.4, hand_eye.txt inverted 2.9. Translations in metres
+agree (everything shrinks by 1000) but put the plane ~0.1 mm from the cameras.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fusedmosaic import _core
+
+# Above this ratio of the tracker-estimate disagreement to the prior's noise, a warning: at
+# twice the assumed noise the prior weighs the tracker 4x too much (~1.3 measured there).
+MAX_NOISE_RATIO = 2.0
+# Camera-plane distances an endoscope images a surface at (fetoscopes: 10-50 mm); outside,
+# the tracker's unit is the likely cause.
+PLANE_DISTANCE_RANGE_MM = (1.0, 2000.0)
+CONVENTIONS = ("tracking.csv holds tracker_from_sensor (not its inverse) with quaternions x, y, "
+               "z, w and translations in mm, and hand_eye.txt holds sensor_from_camera (not its "
+               "inverse)")
+
+
+def default_emt_sigma() -> np.ndarray:
+    """The EMT prior's standard deviations (rad x3, mm x3) when none are given (the paper's)."""
+    return np.asarray(_core.BundleAdjusterOptions().emt_sigma, np.float64)
+
+
+def check_emt_sigma(sigma, what: str = "emt_sigma") -> tuple[float, ...]:
+    """Six finite standard deviations > 0 (rad x3, mm x3), as a tuple; ValueError otherwise."""
+    values = np.asarray(sigma, dtype=np.float64).ravel() if sigma is not None else None
+    if values is None or values.size != 6 or not (np.isfinite(values).all() and
+                                                  (values > 0).all()):
+        raise ValueError(f"{what} must be 6 finite standard deviations > 0 (rad x3, mm x3), "
+                         f"got {sigma!r}")
+    return tuple(float(v) for v in values)
+
+
+def tracker_agreement(poses: np.ndarray, tracker_poses: np.ndarray, tracker_valid: np.ndarray,
+                      plane, emt_sigma=None, *, source: str = "tracking.csv") -> dict:
+    """How far the estimated cam_from_world poses (N, 6) lie from the tracker's (N, 6; valid
+    (N,)), per axis, against the prior's noise ``emt_sigma`` (None: the default), and how far
+    the plane lies from the cameras. Returns the figures and "warnings" (messages naming
+    ``source``; empty when all is plausible)."""
+    sigma = default_emt_sigma() if emt_sigma is None else np.asarray(emt_sigma, np.float64)
+    poses = np.asarray(poses, np.float64)
+    tracker_poses = np.asarray(tracker_poses, np.float64)
+    ok = (np.isfinite(poses).all(axis=1) & np.isfinite(tracker_poses).all(axis=1)
+          & np.asarray(tracker_valid, bool))
+    out: dict = {"frames": int(ok.sum()), "warnings": []}
+    if not ok.any():
+        return out
+    diff = np.empty((int(ok.sum()), 6))
+    for i, (x, z) in enumerate(zip(poses[ok], tracker_poses[ok], strict=True)):
+        relative = (_core.rotation_from_angle_axis(x[:3])
+                    @ _core.rotation_from_angle_axis(z[:3]).T)
+        diff[i, :3] = _core.angle_axis_from_rotation(relative)
+        diff[i, 3:] = x[3:] - z[3:]
+    rms = lambda a: np.sqrt(np.mean(a**2, axis=1))  # noqa: E731  per frame, over 3 axes
+    rotation_deg = float(np.degrees(np.median(rms(diff[:, :3]))))
+    translation_mm = float(np.median(rms(diff[:, 3:])))
+    ratio = float(max(np.median(rms(diff[:, :3] / sigma[:3])),
+                      np.median(rms(diff[:, 3:] / sigma[3:]))))
+    out.update(rotation_rms_deg=rotation_deg, translation_rms_mm=translation_mm,
+               noise_ratio=ratio, emt_sigma=sigma.tolist())
+    if ratio > MAX_NOISE_RATIO:
+        out["warnings"].append(
+            f"{source}: the tracker disagrees with the images: the adjusted camera poses differ "
+            f"from the tracker's by {rotation_deg:.2f} deg / {translation_mm:.2f} mm per axis "
+            f"(median over {out['frames']} frames), {ratio:.1f} x the noise the EMT prior "
+            f"assumes ({np.degrees(sigma[:3].max()):.2g} deg / {sigma[3:].max():.2g} mm). If "
+            "the tracker is that noisy, give its noise (--tracker-rot-sigma / "
+            f"--tracker-trans-sigma; calibrate measures it); otherwise check that {CONVENTIONS}."
+            " The mosaic follows the images; poses.csv and plane.json are unreliable")
+    if plane is not None and np.isfinite(plane).all() and np.linalg.norm(plane) > 0:
+        distance = float(np.median([_core.camera_plane_distance(x, np.asarray(plane, float))
+                                    for x in poses[ok]]))
+        out["plane_distance_mm"] = distance
+        low, high = PLANE_DISTANCE_RANGE_MM
+        if not low <= abs(distance) <= high:
+            unit = " (metres?)" if abs(distance) < low else " (micrometres?)"
+            out["warnings"].append(
+                f"{source}: the plane lies {distance:.3g} mm from the cameras (median), outside "
+                f"the {low:g}-{high:g} mm an endoscope views a surface from: check that the "
+                f"tracker's translations are in mm{unit}; poses.csv and plane.json are out of "
+                "scale")
+    return out
+
+
+def solver_warning(summary, max_iterations: int, what: str = "the adjustment") -> str | None:
+    """A message when Ceres stopped without converging (iteration limit, or failure), else
+    None. ``summary`` is a SolveSummary (or its as_dict())."""
+    get = summary.get if isinstance(summary, dict) else lambda key: getattr(summary, key)
+    termination = get("termination")
+    if termination in ("CONVERGENCE", "USER_SUCCESS", "NO_RESIDUALS", None):
+        return None
+    if termination == "NO_CONVERGENCE":
+        return (f"{what} stopped at its iteration limit ({max_iterations}) before converging: "
+                "the estimates are not at the cost's minimum (a tracker disagreeing with the "
+                "images is a common cause; else raise max_iterations)")
+    return f"{what} failed: Ceres {termination}: {get('message')}"
+
+
+# pCLE (seed 004): the robot's steps against the image registrations', on the frames the image
+# side trusts (c_img > 0.5) that move >= 2 px. Measured on the simulator (circle, spiral, a
+# slow 5 um/frame path; robot noise included): median length ratio 0.99-1.15, median cosine
+# 0.97-1.0; robot positions in mm instead of um 0.001; x and y swapped cosine -0.57, y flipped
+# 0.19 (a 40-frame circle).
+ROBOT_RATIO_RANGE = (0.5, 2.0)
+MIN_ROBOT_COSINE = 0.7
+MIN_ROBOT_STEPS = 5  # fewer compared steps: no check
+
+
+def robot_agreement(image_px: np.ndarray, robot_px: np.ndarray, c_img, *,
+                    source: str = "robot.csv", pixel_size_um: float | None = None) -> dict:
+    """Do the robot's positions (N, 2 px, X_r) move like the image registrations' chain (N, 2,
+    X_m)? Per step, on steps whose image confidence c_img (N,) exceeds 0.5 and that move >= 2
+    px: the median ratio of the step lengths (robot / image) and the median cosine between the
+    steps. Returns the figures and "warnings" (naming ``source``)."""
+    d_image = np.diff(np.asarray(image_px, np.float64), axis=0)
+    d_robot = np.diff(np.asarray(robot_px, np.float64), axis=0)
+    c = np.asarray(c_img, np.float64)[1:]
+    length = np.linalg.norm(d_image, axis=1)
+    with np.errstate(invalid="ignore"):
+        ok = (np.isfinite(d_image).all(axis=1) & np.isfinite(d_robot).all(axis=1) & (c > 0.5)
+              & (length >= 2.0))
+    out: dict = {"steps": int(ok.sum()), "warnings": []}
+    if ok.sum() < MIN_ROBOT_STEPS:
+        return out
+    robot_length = np.linalg.norm(d_robot[ok], axis=1)
+    ratio = float(np.median(robot_length / length[ok]))
+    moving = robot_length > 0
+    cosine = float(np.median(np.sum(d_image[ok][moving] * d_robot[ok][moving], axis=1)
+                             / (length[ok][moving] * robot_length[moving]))) if moving.any() \
+        else float("nan")
+    out.update(length_ratio=ratio, median_cosine=cosine)
+    pixel = "" if pixel_size_um is None else f" ({pixel_size_um:g} µm/px)"
+    low, high = ROBOT_RATIO_RANGE
+    if not low <= ratio <= high:
+        unit = (" (x 0.001: mm instead of µm?)" if 0.0005 < ratio < 0.002 else
+                " (x 1000: nm?)" if 500 < ratio < 2000 else "")
+        out["warnings"].append(
+            f"{source}: the robot's steps are {ratio:.3g} x the image registrations' (median "
+            f"over {out['steps']} confident steps), where 1 is expected{unit}: check that the "
+            f"robot positions are in µm and camera.yaml's pixel_size_um{pixel}")
+    if cosine < MIN_ROBOT_COSINE:  # also False for NaN (a robot standing still: the ratio)
+        out["warnings"].append(
+            f"{source}: the robot moves in other directions than the images show (median "
+            f"cosine {cosine:.2f} between their steps over {out['steps']} confident steps, 1 "
+            "expected): check that the robot's x and y are in the image axes (x right, y down), "
+            "not swapped or flipped")
+    return out

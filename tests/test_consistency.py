@@ -1,0 +1,204 @@
+"""Checks after the fusion (estimation/consistency.py): tracker data in another convention than
+the dataset contract's (quaternions w first, metres, an inverted hand-eye) and solver
+non-convergence are reported, where they used to pass silently (audit 16, item 2).
+
+The thresholds are the module's (MAX_NOISE_RATIO 2, PLANE_DISTANCE_RANGE_MM 1-2000); the
+simulator's tracker noise equals the prior's by default (noise ratio ~0.8 measured)."""
+
+import csv
+import json
+import re
+import shutil
+
+import numpy as np
+import pytest
+
+from fusedmosaic.estimation.bundle import BundleOptions, run_ba_emt, run_emt
+from fusedmosaic.estimation.consistency import (
+    MAX_NOISE_RATIO,
+    check_emt_sigma,
+    default_emt_sigma,
+    solver_warning,
+    tracker_agreement,
+)
+from fusedmosaic.estimation.sequential import SequentialOptions, run_lba_emt
+from fusedmosaic.io import read_dataset
+from fusedmosaic.simulation import FetoscopyOptions, simulate_fetoscopy
+
+N = 30
+OPTIONS = dict(n_frames=N, laps=N / 37.5)  # the SYN circle's overlap at 30 frames
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory):
+    return tmp_path_factory.mktemp("consistency")
+
+
+@pytest.fixture(scope="module")
+def base(work):
+    return simulate_fetoscopy(work / "base", FetoscopyOptions(**OPTIONS))
+
+
+def rewrite_tracking(src, dst, change):
+    """A copy of dataset src whose tracking.csv rows pass through change(row dict)."""
+    shutil.copytree(src, dst)
+    path = dst / "tracking.csv"
+    with path.open(newline="") as f:
+        reader = csv.DictReader(f)
+        header, rows = reader.fieldnames, [change(dict(r)) for r in reader]
+    with path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, header)
+        writer.writeheader()
+        writer.writerows(rows)
+    return dst
+
+
+def w_first(row):  # NDI-style "Q0, Qx, Qy, Qz" pasted into the x, y, z, w columns
+    row["qx"], row["qy"], row["qz"], row["qw"] = row["qw"], row["qx"], row["qy"], row["qz"]
+    return row
+
+
+def metres(row):
+    for axis in ("tx", "ty", "tz"):
+        row[axis] = repr(float(row[axis]) / 1000.0)
+    return row
+
+
+def test_consistent_tracker_gives_no_warning(base):
+    r = run_ba_emt(read_dataset(base), progress=False)
+    agreement = r.details["tracker_agreement"]
+    assert r.details["warnings"] == []
+    assert agreement["frames"] == N
+    assert agreement["noise_ratio"] < 1.3  # the simulator's noise is the prior's (~0.8)
+    assert agreement["plane_distance_mm"] == pytest.approx(30.0, rel=0.1)  # truth 30 mm
+
+
+def test_quaternions_w_first_are_reported(base, work):
+    data = rewrite_tracking(base, work / "w_first", w_first)
+    r = run_ba_emt(read_dataset(data), progress=False)
+    assert r.details["tracker_agreement"]["noise_ratio"] > 2 * MAX_NOISE_RATIO
+    text = "\n".join(r.details["warnings"])
+    assert "tracking.csv: the tracker disagrees with the images" in text
+    assert "quaternions x, y, z, w" in text and "hand_eye.txt holds sensor_from_camera" in text
+
+
+def test_tracker_in_metres_is_reported(base, work):
+    data = rewrite_tracking(base, work / "metres", metres)
+    for r in (run_ba_emt(read_dataset(data), progress=False),
+              run_emt(read_dataset(data), progress=False)):
+        assert any("mm from the cameras" in w and "(metres?)" in w
+                   for w in r.details["warnings"]), r.details["warnings"]
+
+
+def test_inverted_hand_eye_is_reported(work):
+    opts = FetoscopyOptions(**OPTIONS, motion="handheld", hand_eye_rot_deg=60.0,
+                            hand_eye_offset_mm=20.0)
+    good = simulate_fetoscopy(work / "hand_eye", opts)
+    bad = work / "hand_eye_inverted"
+    shutil.copytree(good, bad)
+    np.savetxt(bad / "hand_eye.txt", np.linalg.inv(np.loadtxt(good / "hand_eye.txt")))
+    assert run_ba_emt(read_dataset(good), progress=False).details["warnings"] == []
+    r = run_ba_emt(read_dataset(bad), progress=False)
+    assert r.details["tracker_agreement"]["noise_ratio"] > MAX_NOISE_RATIO
+    assert any("disagrees with the images" in w for w in r.details["warnings"])
+
+
+def test_noisier_tracker_is_reported_until_its_noise_is_given(work):
+    data = simulate_fetoscopy(work / "noisy", FetoscopyOptions(**OPTIONS, noise_multiplier=4.0))
+    r = run_ba_emt(read_dataset(data), progress=False)
+    assert r.details["tracker_agreement"]["noise_ratio"] > MAX_NOISE_RATIO
+    assert any("If the tracker is that noisy, give its noise" in w
+               for w in r.details["warnings"])
+    sigma = tuple(4.0 * default_emt_sigma())
+    r = run_ba_emt(read_dataset(data), progress=False, options=BundleOptions(emt_sigma=sigma))
+    assert r.details["warnings"] == []
+    assert r.details["tracker_agreement"]["emt_sigma"] == pytest.approx(sigma)
+    assert r.details["tracker_agreement"]["noise_ratio"] < 1.3
+
+
+def test_lba_emt_reports_the_same(base, work):
+    data = work / "w_first"
+    if not data.exists():
+        rewrite_tracking(base, data, w_first)
+    options = SequentialOptions(bootstrap_frames=12)  # window steps after the start-up
+    good = run_lba_emt(read_dataset(base), progress=False, options=options)
+    assert good.details["warnings"] == []
+    assert good.details["tracker_agreement"]["noise_ratio"] < 1.3
+    bad = run_lba_emt(read_dataset(data), progress=False, options=options)
+    assert any("disagrees with the images" in w for w in bad.details["warnings"])
+
+
+def test_solver_stopping_early_is_reported(base):
+    r = run_ba_emt(read_dataset(base), progress=False, options=BundleOptions(max_iterations=1))
+    assert r.details["solver"]["termination"] == "NO_CONVERGENCE"
+    assert any("stopped at its iteration limit (1) before converging" in w
+               for w in r.details["warnings"])
+
+
+def test_solver_warning_and_sigma_checks():
+    assert solver_warning({"termination": "CONVERGENCE"}, 100) is None
+    failed = solver_warning({"termination": "FAILURE", "message": "bad Jacobian"}, 100)
+    assert failed == "the adjustment failed: Ceres FAILURE: bad Jacobian"
+    assert check_emt_sigma([0.01] * 3 + [0.5] * 3) == (0.01,) * 3 + (0.5,) * 3
+    for bad in ([0.01] * 5, [0.01] * 5 + [0.0], [np.nan] * 6, None):
+        with pytest.raises(ValueError, match="emt_sigma must be 6 finite standard deviations"):
+            check_emt_sigma(bad)
+
+
+def test_bad_emt_sigma_is_refused_before_any_work(base):
+    dataset = read_dataset(base)
+    with pytest.raises(ValueError, match=r"BundleOptions.emt_sigma must be 6 .* got \(1.0, 1.0\)"):
+        run_ba_emt(dataset, progress=False, options=BundleOptions(emt_sigma=(1.0, 1.0)))
+    with pytest.raises(ValueError, match="SequentialOptions.emt_sigma must be 6"):
+        run_lba_emt(dataset, progress=False, options=SequentialOptions(emt_sigma=[-1] * 6))
+
+
+def test_agreement_figures_follow_the_noise():
+    rng = np.random.default_rng(0)
+    sigma = default_emt_sigma()
+    truth = np.column_stack([rng.normal(0, 0.05, (200, 3)), rng.normal(0, 5, (200, 3))])
+    truth[:, 5] += 30.0
+    plane = np.array([0.0, 0.0, -1 / 30.0])
+    for scale in (1.0, 3.0):
+        tracker = truth + rng.normal(0, 1, truth.shape) * sigma * scale
+        a = tracker_agreement(truth, tracker, np.ones(200, bool), plane)
+        assert a["noise_ratio"] == pytest.approx(scale, rel=0.15)
+        assert (a["warnings"] != []) == (scale > MAX_NOISE_RATIO)
+    empty = tracker_agreement(truth, np.full_like(truth, np.nan), np.zeros(200, bool), plane)
+    assert empty == {"frames": 0, "warnings": []}
+    json.dumps(a)  # report.json material
+
+
+# -- pCLE: the robot against the image registrations ---------------------------------------
+
+
+@pytest.fixture(scope="module")
+def pcle(work):
+    from fusedmosaic.simulation import PcleOptions, simulate_pcle
+
+    return simulate_pcle(work / "pcle", PcleOptions(n_frames=40, width=256, height=224))
+
+
+def rewrite_robot(src, dst, change):
+    shutil.copytree(src, dst)
+    rows = np.loadtxt(src / "robot.csv", delimiter=",", skiprows=1)
+    rows[:, 1:] = change(rows[:, 1:])
+    np.savetxt(dst / "robot.csv", rows, delimiter=",", header="timestamp,x,y", comments="",
+               fmt="%.9g")
+    return dst
+
+
+def test_robot_in_other_units_or_axes_is_reported(pcle, work):
+    from fusedmosaic.estimation.translation import run_kalman_robot
+
+    good = run_kalman_robot(read_dataset(pcle), progress=False)
+    assert good.details["warnings"] == []
+    assert good.details["robot_agreement"]["length_ratio"] == pytest.approx(1.0, abs=0.2)
+    cases = {"mm": (lambda xy: xy / 1000.0, r"0.001 x the image registrations'.*mm instead of µm"),
+             "swapped": (lambda xy: xy[:, ::-1], "moves in other directions than the images"),
+             "flipped": (lambda xy: xy * [1, -1], "moves in other directions than the images")}
+    for name, (change, message) in cases.items():
+        data = rewrite_robot(pcle, work / f"robot_{name}", change)
+        r = run_kalman_robot(read_dataset(data), progress=False)
+        assert any(re.search(message, w) for w in r.details["warnings"]), (name, r.details)
+        assert all(w.startswith(str(data / "robot.csv")) for w in r.details["warnings"])
