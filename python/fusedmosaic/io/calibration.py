@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numbers
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -358,8 +359,10 @@ def read_camera_yaml(path: str | Path) -> Camera:
     rational_polynomial, OpenCV's standard model; equidistant or fisheye, OpenCV's fisheye
     model) or OpenCV's calibration sample's ``fisheye_model: 1``; default the standard model.
     A UTF-8 byte order mark (Windows editors write one) is skipped; a key given twice is refused.
+    Tabs: between a line's tokens they are read as spaces (YAML allows them there; OpenCV does
+    not); in indentation they are refused, naming the line (see _yaml_without_tabs).
     Every problem, including an OpenCV parse error, is a ValueError naming the file (and the
-    key)."""
+    key, or the line of a parse error)."""
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"{path}: file not found")
@@ -368,26 +371,35 @@ def read_camera_yaml(path: str | Path) -> Camera:
         raise ValueError(f"{path}: UTF-16 text (a byte order mark FF FE / FE FF); save it as "
                          "UTF-8 (OpenCV FileStorage reads UTF-8 or ASCII)")
     bom = data.startswith(b"\xef\xbb\xbf")  # a UTF-8 BOM (Windows editors): OpenCV can't
+    body = data[3 if bom else 0:]
+    text = None  # parsed from memory when set (else OpenCV reads the file)
     if bom:
         try:
-            text = data[3:].decode("utf-8")
+            text = body.decode("utf-8")
         except UnicodeDecodeError as e:
             raise ValueError(f"{path}: starts with a UTF-8 byte order mark but is not UTF-8 "
                              f"(byte offset {e.start + 3})") from None
-    if not data[3 if bom else 0:].strip():
+    if not body.strip():
         raise ValueError(f"{path}: empty file, expected OpenCV FileStorage YAML with {_KEYS}")
+    if b"\t" in body and _format_flag(body) == cv2.FILE_STORAGE_FORMAT_YAML:
+        if text is None:
+            try:
+                text = body.decode("utf-8")
+            except UnicodeDecodeError:  # e.g. Latin-1 comments: the keys and values are ASCII
+                text = body.decode("latin-1")
+        text = _yaml_without_tabs(text, path)
+    fmt = _FORMAT_NAMES[_format_flag(body)]
     try:
-        if bom:  # parsed from memory without it, as YAML (what the file name would choose)
+        if text is not None:  # parsed from memory
             fs = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY
-                                 | _format_flag(path))
+                                 | _format_flag(body))
         else:
             fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
         opened = fs.isOpened() and fs.root().isMap()
     except (cv2.error, SystemError) as e:  # SystemError wraps a cv2.error from the constructor
-        reason = _reason(e)
-        raise ValueError(f"{path}: cannot parse as OpenCV FileStorage YAML ({reason})") from None
+        raise ValueError(f"{path}: cannot parse as OpenCV FileStorage {fmt}{_where(e)}") from None
     if not opened:
-        raise ValueError(f"{path}: cannot parse as OpenCV FileStorage YAML with {_KEYS}")
+        raise ValueError(f"{path}: cannot parse as OpenCV FileStorage {fmt} with {_KEYS}")
     try:
         return _read_camera(fs, path)
     except (cv2.error, SystemError) as e:
@@ -396,14 +408,51 @@ def read_camera_yaml(path: str | Path) -> Camera:
         fs.release()
 
 
-def _format_flag(path: Path) -> int:
-    """The FileStorage format its file name selects (OpenCV picks it by extension)."""
-    suffix = path.suffix.lower()
-    if suffix == ".json":
+def _yaml_without_tabs(text: str, path: Path) -> str:
+    """YAML text with its tabs between tokens as spaces; ValueError naming the first line with a
+    tab in its indentation.
+
+    OpenCV's YAML reader refuses every tab outside a comment ("Tabs are prohibited in YAML!").
+    YAML itself allows tabs as separation inside a line (``image_width:<TAB>400``, ``[1,<TAB>2]``,
+    before a comment, trailing) but not in indentation, whose depth a tab would leave ambiguous.
+    So: a tab before a line's first character that is not a comment is refused; a tab after it
+    is a space. A line with a quote character before its tab keeps the tab (it may be inside a
+    quoted string: OpenCV's error then names the line); lines holding only blanks or a comment
+    lose their tabs."""
+    lines = text.split("\n")
+    indented = []
+    for n, line in enumerate(lines):
+        if "\t" not in line:
+            continue
+        content = line.lstrip(" \t")
+        indent = line[: len(line) - len(content)]
+        if "\t" in indent and content.strip() and not content.startswith("#"):
+            indented.append(n + 1)
+            continue
+        quote = min((i for i in (line.find("'"), line.find('"')) if i >= 0), default=len(line))
+        lines[n] = line[:quote].replace("\t", " ") + line[quote:]
+    if indented:
+        where = ("line " if len(indented) == 1 else "lines ") + ", ".join(
+            map(str, indented[:3])) + (", ..." if len(indented) > 3 else "")
+        raise ValueError(
+            f"{path}: {where}: a tab character in the indentation; YAML does not allow tabs "
+            "there (their width is ambiguous): indent with spaces")
+    return "\n".join(lines)
+
+
+def _format_flag(data: bytes) -> int:
+    """The FileStorage format of a file's content, as OpenCV reads it whatever the file's name:
+    ``<`` first XML, ``{`` first JSON, else YAML."""
+    first = data.lstrip()[:1]
+    if first == b"{":
         return cv2.FILE_STORAGE_FORMAT_JSON
-    if suffix == ".xml":
+    if first == b"<":
         return cv2.FILE_STORAGE_FORMAT_XML
     return cv2.FILE_STORAGE_FORMAT_YAML
+
+
+_FORMAT_NAMES = {cv2.FILE_STORAGE_FORMAT_YAML: "YAML", cv2.FILE_STORAGE_FORMAT_JSON: "JSON",
+                 cv2.FILE_STORAGE_FORMAT_XML: "XML"}
 
 
 def _numbers(values) -> str:
@@ -411,11 +460,35 @@ def _numbers(values) -> str:
     return " ".join(f"{v:.10g}" for v in values)
 
 
+def _cv_error(error: Exception) -> Exception:
+    """The cv2.error behind a SystemError (a cv2.error raised in a constructor), else error."""
+    context = error.__context__ if isinstance(error, SystemError) else None
+    return context if isinstance(context, cv2.error) else error
+
+
 def _reason(error: Exception) -> str:
     """OpenCV's own one-line reason, without its source location."""
-    context = error.__context__ if isinstance(error, SystemError) else None
-    error = context if isinstance(context, cv2.error) else error
+    error = _cv_error(error)
     return str(getattr(error, "err", None) or error).strip()
+
+
+# OpenCV's parse errors (cv::Error::StsParseError) carry "<file>(<line>): <message>" where other
+# errors carry the function name (and the parsing function's name where others the message).
+_PARSE_ERROR = re.compile(r"^.*\((\d+)\): (.+)$", re.DOTALL)
+_OPENCV_MESSAGES = {  # OpenCV's wording -> what to do about it
+    "Tabs are prohibited in YAML!": "a tab character, which OpenCV's YAML reader does not "
+                                    "accept here: replace it with spaces",
+}
+
+
+def _where(error: Exception) -> str:
+    """", line N: <problem>" for an OpenCV parse error, else " (<OpenCV's reason>)"."""
+    error = _cv_error(error)
+    match = _PARSE_ERROR.match(str(getattr(error, "func", "") or ""))
+    if getattr(error, "code", None) == cv2.Error.StsParseError and match:
+        message = match.group(2).strip()
+        return f", line {match.group(1)}: {_OPENCV_MESSAGES.get(message, message)}"
+    return f" ({_reason(error)})"
 
 
 def _read_camera(fs: cv2.FileStorage, path: Path) -> Camera:
