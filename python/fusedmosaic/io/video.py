@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 import threading
+import warnings
 from collections import OrderedDict
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
@@ -15,6 +16,12 @@ _DIGITS = re.compile(r"(\d+)")
 VIDEO_READ_AHEAD = 8  # a request up to this many frames ahead decodes forward instead of seeking
 VIDEO_RECENT_FRAMES = 4  # frames decoded on the way, kept for threads asking slightly out of order
 MAX_VIDEO_FRAME_RATE = 1000.0  # a container reporting more (or <= 0, NaN) gives no frame rate
+# 16-bit frames: the bit depth in use is read from this many frames evenly spaced over the
+# sequence (first and last included), so that one scale serves the whole dataset.
+DEPTH_SAMPLE_FRAMES = 8
+# FFmpeg's codes of 16-bit grey pixels (gray16le, gray16be; e.g. FFV1 video), as OpenCV reports
+# them in CAP_PROP_CODEC_PIXEL_FORMAT
+GREY16_PIXEL_FORMATS = (ord("Y") | ord("1") << 8 | 16 << 24, 16 | ord("1") << 16 | ord("Y") << 24)
 
 
 def natural_key(name: str) -> tuple:
@@ -72,8 +79,22 @@ class FrameSource(Sequence):
     video needs frames.csv.
 
     Items are uint8 (H, W) or (H, W, 3) BGR as stored (an alpha channel is dropped; a video is
-    always decoded to BGR). With ``expected_size=(w, h)`` every image is checked against it, and
-    every image must have the channel count of the first one read (all grey or all BGR).
+    decoded to BGR, a 16-bit grey one to grey). With ``expected_size=(w, h)`` every image is
+    checked against it, and every image must have the channel count and bit depth of the first
+    one read (all grey or all BGR; all 8-bit or all 16-bit).
+
+    16-bit frames (pCLE exports are 16-bit PNG; 16-bit grey video, e.g. FFV1) are converted to
+    8 bits with ONE scale for the whole dataset, so that the mosaic does not flicker and the
+    registrations' thresholds (NCC, feature detectors) see the same contrast in every frame:
+    the bit depth in use, b, is the smallest in 8..16 holding the largest value of
+    ``DEPTH_SAMPLE_FRAMES`` frames evenly spaced over the sequence (first and last included),
+    and a value v becomes round(v * 255 / (2^b - 1)). So a 12-bit sensor's data (0-4095) maps
+    4095 to 255, data scaled to the full 16 bits 65535 to 255; the scale is not stretched to
+    the frames' contrast (dim data stays dim, as it would in 8 bits). A frame with values above
+    2^b - 1 (possible only outside the sample) is clipped to 255, with a warning naming it (once
+    per source). ``bits_in_use`` holds b once a 16-bit frame was read (None before, and for
+    8-bit frames). Other pixel types (float, 32-bit, signed) are refused.
+
     Thread-safe: a video is decoded sequentially under a lock (seek + decode are one step), seeking
     only for jumps backwards or more than ``VIDEO_READ_AHEAD`` frames ahead.
     """
@@ -97,6 +118,10 @@ class FrameSource(Sequence):
         self._recent: OrderedDict[int, np.ndarray] = OrderedDict()  # skipped decoded frames
         self._lock = threading.Lock()  # guards the capture, _next and _recent
         self._channels: tuple[int, str] | None = None  # channel count of the first image, its name
+        self._dtype: tuple[np.dtype, str] | None = None  # pixel type of the first image, its name
+        self._depth_lock = threading.Lock()  # guards bits_in_use (taken without self._lock)
+        self.bits_in_use: int | None = None  # 16-bit frames: the bit depth in use (see above)
+        self._clipped = False  # a 16-bit frame exceeded 2^bits_in_use - 1 (warned once)
         self.frame_rate: float | None = None
         self._seek_limit: int | None = None  # frames from here on are reached by decoding
         if self.paths is not None:
@@ -170,14 +195,17 @@ class FrameSource(Sequence):
         i = int(index) + (self._length if index < 0 else 0)
         if not 0 <= i < self._length:
             raise IndexError(f"frame index {index} out of range for {self._length} frames")
+        return self._check(*self._raw(i))
+
+    def _raw(self, i: int) -> tuple[np.ndarray | None, str | Path]:
+        """Frame i as stored (None if it cannot be read) and its name for messages."""
         if self.paths is not None:
-            image, name = cv2.imread(str(self.paths[i]), cv2.IMREAD_UNCHANGED), self.paths[i]
-        else:
-            image, failed = self._read_video(i)
-            name = f"{self.video} frame {i}"
-            if image is None and failed != i:  # a frame decoded on the way to i failed
-                name = f"{self.video} frame {failed} (decoded on the way to frame {i})"
-        return self._check(image, name)
+            return cv2.imread(str(self.paths[i]), cv2.IMREAD_UNCHANGED), self.paths[i]
+        image, failed = self._read_video(i)
+        name = f"{self.video} frame {i}"
+        if image is None and failed != i:  # a frame decoded on the way to i failed
+            name = f"{self.video} frame {failed} (decoded on the way to frame {i})"
+        return image, name
 
     def __iter__(self) -> Iterator[np.ndarray]:
         for i in range(self._length):
@@ -203,6 +231,10 @@ class FrameSource(Sequence):
             if not self._capture.isOpened():
                 self._capture = None
                 raise ValueError(f"{self.video}: cannot open video")
+            if int(self._capture.get(cv2.CAP_PROP_CODEC_PIXEL_FORMAT)) in GREY16_PIXEL_FORMATS:
+                # OpenCV's BGR conversion keeps a 16-bit grey video's high byte only (12-bit
+                # data comes out as 0-15): its 16-bit frames take the PNGs' conversion instead
+                self._capture.set(cv2.CAP_PROP_CONVERT_RGB, 0)
         return self._capture
 
     def _frames_beyond(self, capture: cv2.VideoCapture, count: int) -> bool:
@@ -241,12 +273,23 @@ class FrameSource(Sequence):
             if self.video is not None:
                 raise ValueError(f"{name}: cannot read image (video truncated or corrupt?)")
             raise ValueError(f"{name}: cannot read image")
-        if image.dtype != np.uint8:
-            raise ValueError(f"{name}: expected an 8-bit image, got {image.dtype}")
+        if image.dtype not in (np.uint8, np.uint16):
+            raise ValueError(f"{name}: {image.dtype} pixels; frames must be 8-bit or 16-bit "
+                             "unsigned integers (e.g. PNG)")
+        if self._dtype is None:
+            with self._lock:
+                if self._dtype is None:
+                    self._dtype = (image.dtype, str(name))
+        if image.dtype != self._dtype[0]:
+            first, first_name = self._dtype
+            raise ValueError(f"{name}: {_bits(image.dtype)} but {first_name} is "
+                             f"{_bits(first)}; frames must be all 8-bit or all 16-bit")
         if image.ndim == 3 and image.shape[2] == 4:
             image = np.ascontiguousarray(image[:, :, :3])
         if image.ndim == 3 and image.shape[2] == 1:
             image = image[:, :, 0]
+        if image.dtype == np.uint16:
+            image = self._to_8_bits(image, name)
         if self.expected_size is not None:
             w, h = self.expected_size
             if image.shape[1] != w or image.shape[0] != h:
@@ -266,6 +309,40 @@ class FrameSource(Sequence):
                 "frames must be all grey or all colour"
             )
         return image
+
+    def _to_8_bits(self, image: np.ndarray, name) -> np.ndarray:
+        """A 16-bit frame on the dataset's 8-bit scale (see the class docstring)."""
+        if self.bits_in_use is None:
+            with self._depth_lock:
+                if self.bits_in_use is None:
+                    self.bits_in_use = self._depth_in_use()
+        full = (1 << self.bits_in_use) - 1
+        peak = int(image.max())
+        if peak > full and not self._clipped:
+            self._clipped = True
+            warnings.warn(
+                f"{name}: 16-bit values up to {peak}, above the {self.bits_in_use}-bit range "
+                f"(0-{full}) that {DEPTH_SAMPLE_FRAMES} frames spread over the sequence use: "
+                f"clipped to 255 when converted to 8 bits (one scale for all frames; further "
+                "frames above the range are clipped without a warning)", stacklevel=4)
+        return cv2.convertScaleAbs(image, alpha=255.0 / full)  # rounds, saturates at 255
+
+    def _depth_in_use(self) -> int:
+        """The bits holding the largest value of the sample frames (8..16), whichever frame is
+        read first. A sample frame that cannot be read, or is not 16-bit, is left out (it is
+        refused when read)."""
+        peak = 0
+        count = min(DEPTH_SAMPLE_FRAMES, self._length)
+        for k in np.unique(np.round(np.linspace(0, self._length - 1, count)).astype(int)):
+            image, _ = self._raw(int(k))
+            if image is not None and image.dtype == np.uint16:
+                colour = image.ndim == 3 and image.shape[2] == 4  # the alpha channel is dropped
+                peak = max(peak, int((image[:, :, :3] if colour else image).max()))
+        return max(8, peak.bit_length())
+
+
+def _bits(dtype) -> str:
+    return "8-bit" if dtype == np.uint8 else f"{np.dtype(dtype).itemsize * 8}-bit"
 
 
 def _describe(channels: int) -> str:
