@@ -407,20 +407,28 @@ def _canvas_options(args: argparse.Namespace):
     return canvas
 
 
+def _measure(value, digits: int) -> str:
+    """An evaluation measure as text; "n/a" for an undefined one (None, or NaN from older
+    evaluation files)."""
+    return "n/a" if value is None or np.isnan(value) else f"{value:.{digits}f}"
+
+
 def _format_table(results: list[dict]) -> str:
     header = f"{'output':<40} {'placed':>7} {'e_M px':>9} {'max e_j':>9} {'drift':>7}"
     lines = [header, "-" * len(header)]
     for r in results:
         lines.append(f"{Path(r['output']).name[:40]:<40} {r['placed']:>4}/{r['frames']:<2} "
-                     f"{r['e_M_px']:>9.3f} {r['max_e_j_px']:>9.3f} {r['drift_ratio']:>7.2f}")
-        if "position_all_um" in r:
-            s = r["position_all_um"]
-            lines.append(f"{'':<40} position error µm (all {s['n']}): mean {s['mean']:.1f} "
-                         f"max {s['max']:.1f} std {s['std']:.1f} median {s['median']:.1f}")
-        if "position_sampled_um" in r:
-            s = r["position_sampled_um"]
-            lines.append(f"{'':<40} position error µm ({s['n']} frames): mean {s['mean']:.1f} "
-                         f"max {s['max']:.1f} std {s['std']:.1f} median {s['median']:.1f}")
+                     f"{_measure(r['e_M_px'], 3):>9} {_measure(r['max_e_j_px'], 3):>9} "
+                     f"{_measure(r['drift_ratio'], 2):>7}")
+        if r.get("drift_ratio_note"):
+            lines.append(f"  drift n/a: {r['drift_ratio_note']}")
+        for key, which in (("position_all_um", "all "), ("position_sampled_um", "")):
+            if key in r:
+                s = r[key]
+                stats = " ".join(f"{k} {_measure(s[k], 1)}" for k in ("mean", "max", "std",
+                                                                      "median"))
+                frames = f"{which}{s['n']}" if which else f"{s['n']} frames"
+                lines.append(f"{'':<40} position error µm ({frames}): {stats}")
     return "\n".join(lines)
 
 
@@ -609,7 +617,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         w.write_text("evaluation.json", _json_text(result))
     _say(args, _format_table([result]))
     _say(args, f"[demo] {method}: {result['placed']}/{result['frames']} frames placed, "
-               f"e_M = {result['e_M_px']:.3f} px, drift ratio {result['drift_ratio']:.2f}; "
+               f"e_M = {_measure(result['e_M_px'], 3)} px, drift ratio "
+               f"{_measure(result['drift_ratio'], 2)}; "
                f"{time.perf_counter() - t0:.0f} s in all. Look at:")
     for name, what in (("report.md", "report: accuracy per frame, poses vs tracker vs truth, "
                                      "plane, timing (plots in plots/)"),

@@ -71,14 +71,49 @@ def mosaic_error(errors: np.ndarray) -> float:
 
 
 def drift_ratio(errors: np.ndarray) -> float:
-    """Mean e_j over the last quarter of frames / first quarter (placed frames only)."""
+    """Mean e_j over the last quarter of frames / first quarter (frames with an e_j only; a
+    quarter is max(n // 4, 1) frames). NaN when undefined (drift_note says why: a quarter
+    without a placed frame, or a first quarter whose mean e_j is 0 or inf); inf when the last
+    quarter holds a frame placed at infinity."""
+    return _drift(errors)[0]
+
+
+def drift_note(errors: np.ndarray, frame_ids=None) -> str | None:
+    """Why drift_ratio(errors) is undefined (None when it is a number), naming the quarters by
+    frame_ids (default: positions 0..n-1)."""
+    return _drift(errors, frame_ids)[1]
+
+
+def _drift(errors: np.ndarray, frame_ids=None) -> tuple[float, str | None]:
+    errors = np.asarray(errors, dtype=np.float64)
     n = len(errors)
+    if n == 0:
+        return float("nan"), "no frames"
+    ids = np.arange(n) if frame_ids is None else np.asarray(frame_ids)
     q = max(n // 4, 1)
-    first, last = errors[:q], errors[n - q :]
-    first, last = first[~np.isnan(first)], last[~np.isnan(last)]
-    if len(first) == 0 or len(last) == 0 or first.mean() == 0:
-        return float("nan")
-    return float(last.mean() / first.mean())
+
+    def span(part: np.ndarray) -> str:
+        return f"frame {part[0]}" if len(part) == 1 else f"frames {part[0]}-{part[-1]}"
+
+    first, last = errors[:q], errors[n - q:]
+    spans = (span(ids[:q]), span(ids[n - q:]))
+    empty = [where for where, part in zip(spans, (first, last), strict=True)
+             if np.isnan(part).all()]
+    if empty:  # (a placed frame without ground truth has no e_j either)
+        return float("nan"), (
+            f"needs placed frames in both the first and the last quarter of the sequence "
+            f"({spans[0]}; {spans[1]}): drift = mean e_j of the last / of the first; none "
+            f"placed in {' nor in '.join(empty)}")
+    first, last = float(np.nanmean(first)), float(np.nanmean(last))
+    if first == 0.0:
+        # under 8 frames a quarter is the first frame alone: the reference, exact by definition
+        why = " (with under 8 frames a quarter is one frame)" if q == 1 else ""
+        return float("nan"), (f"the first quarter ({span(ids[:q])}) has mean e_j 0{why}: no "
+                              "ratio to it")
+    if np.isinf(first):
+        return float("nan"), (f"the first quarter ({span(ids[:q])}) holds a frame placed at "
+                              "infinity (e_j inf): no ratio to it")
+    return last / first, None
 
 
 def positions_px(G: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -107,6 +142,11 @@ class PositionStats:
     max: float
     std: float
     median: float
+
+
+def _json_stats(s: PositionStats) -> dict:
+    """PositionStats as a dict, NaN (no placed frame) as None."""
+    return {k: None if isinstance(v, float) and np.isnan(v) else v for k, v in asdict(s).items()}
 
 
 def evenly_spaced(n_frames: int, n: int) -> np.ndarray:
@@ -174,6 +214,11 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
                     positions_n: int | None = None) -> dict:
     """Scores an output folder's homographies.csv against a dataset's ground_truth.csv.
 
+    The result is ready for JSON: a measure that is undefined is None (null), not NaN — e_M_px
+    and max_e_j_px with no scored frame, e_j_px of an unplaced frame, drift_ratio when a
+    quarter of the sequence has no placed frame (then "drift_ratio_note" says why). A frame
+    placed at infinity keeps e_j inf (it counts against e_M).
+
     positions_n: also the position statistics at that many evenly spaced frames (>= 1).
     When the output's report.json records another dataset than `truth_root`, the result's
     "dataset_warning" says so; frames of another size are refused (see evaluation.provenance)."""
@@ -208,17 +253,20 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
     errors = frame_errors(G_est, dataset.ground_truth, w, h)
     placed = np.isfinite(G_est).all(axis=(1, 2))
     scored = ~np.isnan(errors)
+    drift, why = _drift(errors, truth_ids)
     result: dict = {
         "output": str(out_dir),
         "truth": str(truth_root),
         "frames": int(len(errors)),
         "placed": int(placed.sum()),
         "unplaced": int((~placed).sum()),
-        "e_M_px": mosaic_error(errors),
-        "max_e_j_px": float(np.nanmax(errors)) if scored.any() else float("nan"),
-        "drift_ratio": drift_ratio(errors),
+        "e_M_px": mosaic_error(errors) if scored.any() else None,
+        "max_e_j_px": float(np.nanmax(errors)) if scored.any() else None,
+        "drift_ratio": None if np.isnan(drift) else drift,
         "e_j_px": [None if np.isnan(e) else float(e) for e in errors],
     }
+    if why is not None:
+        result["drift_ratio_note"] = why
     without_truth = placed & ~scored
     if without_truth.any():  # placed, but ground_truth.csv has no homography for them
         result["placed_without_truth"] = [int(k) for k in dataset.frame_ids[without_truth]]
@@ -234,8 +282,8 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
         err_um = position_errors_um(G_est, dataset.ground_truth, w, h,
                                     dataset.camera.pixel_size_um)
         result["position_errors_um"] = [None if not np.isfinite(e) else float(e) for e in err_um]
-        result["position_all_um"] = asdict(position_stats(err_um))
+        result["position_all_um"] = _json_stats(position_stats(err_um))
         if positions_n:
-            result["position_sampled_um"] = asdict(
+            result["position_sampled_um"] = _json_stats(
                 position_stats(err_um, evenly_spaced(len(err_um), positions_n)))
     return result
