@@ -86,8 +86,9 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
                            tracker_time_offset=tracker_time_offset,
                            strict_tracking=method in NEEDS_TRACKING,
                            strict_robot=method in NEEDS_ROBOT)
-    for reason in dataset.ignored.values():
-        warnings.warn(f"{reason} -- left out: method {method!r} does not use it",
+    if dataset.ignored:
+        warnings.warn(f"{'; '.join(dataset.ignored.values())} -- left out: method {method!r} "
+                      f"does not use {'it' if len(dataset.ignored) == 1 else 'them'}",
                       stacklevel=2)
     if method in NEEDS_TRACKING and result is None:  # a live session may have had none
         dataset.require_tracking(method)
