@@ -286,7 +286,7 @@ def read_frame_times(root: Path, frames: FrameSource, fps: float | None = None, 
                 f"{root}: the frame times {described} put frames {_time(step)} s apart, up to "
                 f"t={_time(last)} s (bounds: {bound:g} s apart, {name}; |t| <= "
                 f"{MAX_TIMESTAMP_S:g} s): no endoscope or pCLE video is that slow; check the "
-                "frame rate")
+                "frame rate (fusedmosaic run: --fps)")
     return frame_ids, frame_ids / rate, described
 
 
