@@ -45,7 +45,7 @@ from fusedmosaic.io.video import FrameSource, write_frames
 class Dataset:
     """A dataset read from disk; per-frame arrays are aligned with ``frame_ids``.
 
-    hand_eye : (4, 4) sensor_from_camera (identity when hand_eye.txt is absent).
+    hand_eye : (4, 4) sensor_from_camera (identity when hand_eye.txt is absent or left out).
     cam_from_world, pose_valid : EM-tracker camera poses interpolated at the frame times (N, 6)
         and their validity (N,); None without tracking.csv. Invalid frames have NaN poses.
     robot_xy_um, robot_valid : robot positions at the frame times (N, 2) µm and validity (N,).
