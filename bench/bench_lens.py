@@ -61,7 +61,7 @@ def measure(data: Path, out: Path, truth) -> dict:
         if method == "lba-emt":
             entry["frame_ms_median"] = (report.get("latency_ms") or {}).get("median")
         row[method] = entry
-        print(f"  {method}: e_M {entry['e_M_px']:.3f} px, drift {entry['drift_ratio']:.2f}, "
+        print(f"  {method}: e_M {entry['e_M_px']:.3f} px, drift {fmt(entry['drift_ratio'])}, "
               f"mosaic difference {entry.get('mosaic_difference', float('nan')):.2f}, "
               f"{elapsed:.1f} s", flush=True)
     return row

@@ -17,6 +17,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from _common import fmt
+
 from fusedmosaic.estimation.bundle import BundleOptions
 from fusedmosaic.evaluation import evaluate_output
 from fusedmosaic.runner import run_dataset
@@ -58,7 +60,7 @@ def main() -> None:
                 "iterations": rep.get("solver", {}).get("iterations"),
             })
             print(f"{name:<22} e_M {ev['e_M_px']:8.3f} px  "
-                  f"drift {ev['drift_ratio']:5.2f}  "
+                  f"drift {fmt(ev['drift_ratio']):>5}  "
                   f"pairs {rep.get('pairs', {}).get('attempted', '-'):>6}  matching "
                   f"{t.get('matching', 0):6.2f} s  "
                   f"optimisation {t.get('optimisation') or 0:6.3f} s")

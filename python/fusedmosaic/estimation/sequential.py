@@ -20,9 +20,10 @@ are forgotten by the C++ window too.
 Input contract of `add_frame` (checked before anything changes; a refused call raises and leaves
 the mosaicker as it was, so the frame can be corrected and sent again with the same timestamp):
 - image: numpy array, uint8, (H, W) gray, (H, W, 3) BGR or (H, W, 4) BGRA (alpha ignored), of
-  the camera's size. Other dtypes (uint16, float, bool) are refused, not rescaled, as the
-  dataset reader refuses non-8-bit images: the scaling of a 16-bit or float image is the
-  caller's to choose. None, lists and other shapes are refused (TypeError / ValueError).
+  the camera's size. Other dtypes (uint16, float, bool) are refused, not rescaled: the scaling
+  of a 16-bit or float image is the caller's to choose (the dataset reader converts 16-bit
+  frames with one scale for the whole dataset, io.video.FrameSource). None, lists and other
+  shapes are refused (TypeError / ValueError).
 - timestamp: a finite real number of seconds, increasing, |t| <= io.tracking.MAX_TIMESTAMP_S
   (1e10 s) and at most `SequentialOptions.max_timestamp_gap_s` (1 day) after the previous
   frame's: a larger value is taken for a unit mix-up (ms, µs or ns given as s) and refused,
@@ -460,8 +461,8 @@ class SequentialMosaicker:
                              "(H, W, 3) BGR or (H, W, 4) BGRA")
         if image.dtype != np.uint8:
             raise ValueError(f"frame {k}: image dtype {image.dtype} is not supported, expected "
-                             "uint8 (8-bit gray or BGR, as the dataset reader); scale and "
-                             "convert the image first")
+                             "uint8 (8-bit gray or BGR); scale and convert the image first, "
+                             "with one scale for the whole sequence")
         if image.shape[1::-1] != self.size:
             raise ValueError(f"frame {k}: image size {image.shape[1]}x{image.shape[0]} differs "
                              f"from the camera's {self.size[0]}x{self.size[1]}")
