@@ -152,6 +152,8 @@ def test_cli_prints_the_left_out_file_as_a_warning(data, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "fusedmosaic: warning: " in err and "tracking.csv: none of the 8 frames" in err
     assert "left out: method 'pairwise' does not use it" in err
+    report = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert "none of the 8 frames" in report["inputs_ignored"]["tracking.csv"]
 
 
 # --------------------------------------------------------------------------- item 8

@@ -235,6 +235,8 @@ def test_methods_on_16_bit_frames_match_8_bit(data, tmp_path, dataset, method):
     np.testing.assert_array_equal(ids8, ids16)
     assert np.isfinite(G16).all()
     np.testing.assert_allclose(G16, G8, rtol=0, atol=1e-9)
+    reports = [json.loads((o / "report.json").read_text()) for o in outs]
+    assert "frame_bits_in_use" not in reports[0] and reports[1]["frame_bits_in_use"] == 12
 
 
 # ------------------------------------------------------------------ drift ratio undefined

@@ -202,3 +202,50 @@ def test_robot_in_other_units_or_axes_is_reported(pcle, work):
         r = run_kalman_robot(read_dataset(data), progress=False)
         assert any(re.search(message, w) for w in r.details["warnings"]), (name, r.details)
         assert all(w.startswith(str(data / "robot.csv")) for w in r.details["warnings"])
+
+
+# -- run / CLI: the warnings reach the terminal, report.json and report.md ------------------
+
+
+def test_run_prints_and_records_the_warnings(base, work, capsys):
+    from fusedmosaic.cli import main
+
+    data = work / "w_first"
+    if not data.exists():
+        rewrite_tracking(base, data, w_first)
+    out = work / "out_w_first"
+    assert main(["run", str(data), "--method", "ba-emt", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "  warning " + str(data / "tracking.csv") + ": the tracker disagrees" in printed
+    report = json.loads((out / "report.json").read_text())
+    assert any("disagrees with the images" in w for w in report["warnings"])
+    assert report["tracker_agreement"]["noise_ratio"] > MAX_NOISE_RATIO
+    assert "**Warning:** " + str(data / "tracking.csv") in (out / "report.md").read_text()
+    # the same recording replayed live (lba-emt streamed): checked by the runner
+    live = work / "out_w_first_live"
+    assert main(["--quiet", "run", str(data), "--method", "lba-emt", "--live", "--out",
+                 str(live)]) == 0
+    report = json.loads((live / "report.json").read_text())
+    assert any("disagrees with the images" in w for w in report["warnings"])
+
+
+def test_tracker_noise_flags(work, capsys):
+    from fusedmosaic.cli import main
+
+    data = work / "noisy"
+    if not data.exists():
+        simulate_fetoscopy(data, FetoscopyOptions(**OPTIONS, noise_multiplier=4.0))
+    out = work / "out_noisy"
+    assert main(["run", str(data), "--method", "ba-emt", "--out", str(out), "--no-report",
+                 "--tracker-rot-sigma", "3.9", "--tracker-trans-sigma", "4"]) == 0
+    assert "warning" not in capsys.readouterr().out
+    report = json.loads((out / "report.json").read_text())
+    assert report["parameters"]["emt_sigma"] == pytest.approx([np.radians(3.9)] * 3 + [4.0] * 3)
+    assert report["warnings"] == [] and report["tracker_agreement"]["noise_ratio"] < 1.3
+    assert main(["run", str(data), "--method", "ba-emt", "--out", str(out),
+                 "--tracker-trans-sigma", "0"]) == 2
+    assert "--tracker-trans-sigma must be a standard deviation > 0, got 0.0" in \
+        capsys.readouterr().err
+    assert main(["run", str(data), "--method", "pairwise", "--out", str(out),
+                 "--tracker-rot-sigma", "2"]) == 2
+    assert "apply to ba-emt and lba-emt, not pairwise" in capsys.readouterr().err

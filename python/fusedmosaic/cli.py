@@ -136,6 +136,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         from fusedmosaic.estimation.motion import motion_sigma_from_recording
 
         overrides["motion_sigma"] = tuple(motion_sigma_from_recording(args.motion_sigma_from))
+    overrides.update(_emt_sigma(args))
     if args.flat_field:
         if args.method not in ("ncc", "kalman-robot"):
             raise ValueError(f"--flat-field applies to ncc and kalman-robot, not {args.method}")
@@ -180,6 +181,29 @@ def _cmd_run(args: argparse.Namespace) -> int:
                           live=args.live, tracker_time_offset=args.tracker_time_offset)
     _say(args, summary)
     return 0
+
+
+def _emt_sigma(args: argparse.Namespace) -> dict:
+    """{"emt_sigma": (rad x3, mm x3)} from --tracker-rot-sigma / --tracker-trans-sigma (the
+    other one the paper's), {} without them; only ba-emt and lba-emt weigh the tracker."""
+    if args.tracker_rot_sigma is None and args.tracker_trans_sigma is None:
+        return {}
+    if args.method not in ("ba-emt", "lba-emt"):
+        raise ValueError(f"--tracker-rot-sigma / --tracker-trans-sigma apply to ba-emt and "
+                         f"lba-emt, not {args.method}")
+    from fusedmosaic.estimation.consistency import default_emt_sigma
+
+    sigma = default_emt_sigma()
+    for flag, value, axes, scale in (("--tracker-rot-sigma", args.tracker_rot_sigma, slice(0, 3),
+                                      np.pi / 180.0),
+                                     ("--tracker-trans-sigma", args.tracker_trans_sigma,
+                                      slice(3, 6), 1.0)):
+        if value is None:
+            continue
+        if not (np.isfinite(value) and value > 0):
+            raise ValueError(f"{flag} must be a standard deviation > 0, got {value}")
+        sigma[axes] = value * scale
+    return {"emt_sigma": tuple(float(v) for v in sigma)}
 
 
 def _loop_pairs(args: argparse.Namespace) -> dict:
@@ -315,14 +339,15 @@ def _cmd_live(args: argparse.Namespace) -> int:
         from fusedmosaic.estimation.motion import motion_sigma_from_recording
 
         overrides["motion_sigma"] = tuple(motion_sigma_from_recording(args.motion_sigma_from))
+    overrides.update(_emt_sigma(args))
     features = _feature_options(args)
     if features is not None:
         overrides["features"] = features
     if args.method == "lba-emt":
         options = SequentialOptions.preset(args.preset or "syn", **overrides)
     elif overrides or args.preset is not None:
-        raise ValueError("--preset / --loop-pairs / --motion-sigma-from / feature flags apply "
-                         "to lba-emt, not kalman-robot")
+        raise ValueError("--preset / --loop-pairs / --motion-sigma-from / --tracker-*-sigma / "
+                         "feature flags apply to lba-emt, not kalman-robot")
     else:
         options = None
     check_live_limits(args.max_frames, args.duration, args.frame_timeout,
@@ -922,6 +947,13 @@ def _add_lba_flags(parser: argparse.ArgumentParser) -> None:
                      help="ba-emt / lba-emt: estimate the constant-velocity prior's Sigma_p from "
                           "an independent recording's truth_poses.csv (paper 000 Sec. 4.2) "
                           "instead of the paper's appendix values")
+    parser.add_argument("--tracker-rot-sigma", type=float, metavar="DEG",
+                        help="ba-emt / lba-emt: the tracker's rotation noise per axis, the EMT "
+                             "prior's (default: the paper's 0.017 rad, ~1 deg); calibrate "
+                             "measures it (calibration.json)")
+    parser.add_argument("--tracker-trans-sigma", type=float, metavar="MM",
+                        help="ba-emt / lba-emt: the tracker's translation noise per axis, mm "
+                             "(default: the paper's 1 mm)")
     parser.add_argument("--preset", choices=["syn", "phb", "ex"],
                      help="lba-emt: the paper's window presets (Sec. 4.2): syn W=5, chi_e=3, "
                           "K=3 x 5 (default); phb W=3, chi_e=1, K=3 x 3 (fewer pairs per frame: "

@@ -121,6 +121,7 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
     with OutputWriter(out, record="run", stale_after_run=True, new_run=True, expects=expects,
                       replaces=older_run_outputs(out)) as w:
         result = run_method(dataset, progress=progress, options=options)
+        add_streamed_checks(result, dataset, method, options)
         timings.update(result.timings)
         G = result.homographies
         placed = np.isfinite(G).all(axis=(1, 2))
@@ -139,6 +140,10 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
             "frame_status": result.status,
             **result.details,
         }
+        if dataset.ignored:  # files present but not usable, left out (the method does not use them)
+            report_json["inputs_ignored"] = dict(dataset.ignored)
+        if dataset.frames.bits_in_use is not None:  # 16-bit frames, converted with one scale
+            report_json["frame_bits_in_use"] = dataset.frames.bits_in_use
         if dataset.ground_truth is not None:
             from fusedmosaic.evaluation import drift_ratio, frame_errors, mosaic_error
 
@@ -399,9 +404,10 @@ def write_run_report(w, dataset, method: str, result, G: np.ndarray, outputs: di
             video = str(Path(video).resolve().relative_to(Path(w.out_dir).resolve()))
         except ValueError:
             video = str(Path(video).resolve())
+    notes = [f"**Warning:** {text}" for text in result.details.get("warnings", [])] + [note]
     write_report(directory, [run], truth_from_dataset(dataset),
                  title=f"fusedmosaic run: {method} ({methods.REGISTRY[method][1]})",
-                 mosaic=None if plan is None else "mosaic.png", video=video, notes=[note])
+                 mosaic=None if plan is None else "mosaic.png", video=video, notes=notes)
 
 
 def _summary(method: str, G: np.ndarray, out: Path, report_json: dict, outputs: dict,
@@ -436,7 +442,23 @@ def _summary(method: str, G: np.ndarray, out: Path, report_json: dict, outputs: 
                          f"{live['frames_processed']} processed; stopped: {live['stopped_by']}")
     if outputs["video"] is not None:
         lines.append(f"  video   {outputs['video']}")
+    lines += [f"  warning {text}" for text in report_json.get("warnings", [])]
     return "\n".join(lines)
+
+
+def add_streamed_checks(result: methods.MethodResult, dataset, method: str, options) -> None:
+    """The checks after the fusion (estimation.consistency) for a result that has not had
+    them: lba-emt streamed live or replayed (the offline method adds them itself)."""
+    if (method != "lba-emt" or "tracker_agreement" in result.details or result.poses is None
+            or dataset.cam_from_world is None):
+        return
+    from fusedmosaic.estimation.consistency import tracker_agreement
+
+    agreement = tracker_agreement(result.poses, dataset.cam_from_world, dataset.pose_valid,
+                                  result.plane, getattr(options, "emt_sigma", None),
+                                  source=str(dataset.root / "tracking.csv"))
+    result.details["warnings"] = agreement.pop("warnings") + result.details.get("warnings", [])
+    result.details["tracker_agreement"] = agreement
 
 
 def check_live_limits(max_frames, duration_s, frame_timeout_s,
