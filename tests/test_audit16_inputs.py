@@ -135,6 +135,9 @@ def test_ncc_runs_despite_a_malformed_robot_csv(data, tmp_path):
     with pytest.warns(UserWarning, match=problem + r".* left out: method 'ncc' does not use it"):
         run_dataset(root, "ncc", tmp_path / "ncc", progress=False, report=False)
     assert json.loads((tmp_path / "ncc" / "report.json").read_text())["placed"] == 8
+    from fusedmosaic.evaluation import evaluate_output
+
+    assert evaluate_output(tmp_path / "ncc", root)["placed"] == 8  # scored without the robot
     # the robot file given by name is the one read leniently
     ds = read_dataset(root, robot_file="robot.csv", strict_robot=False)
     assert ds.robot is None and problem.replace("\\", "") in ds.ignored["robot.csv"]

@@ -229,9 +229,11 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
     if positions_n is not None:
         check_positions_n(positions_n)
     out_dir, truth_root = Path(out_dir), Path(truth_root)
-    # scoring needs the truth and the frames, not the tracker's / robot's time span (a run with
-    # --allow-untracked or --live on a late tracker is scored like any other)
-    dataset = read_dataset(truth_root, allow_untracked=True)
+    # scoring needs the truth and the frames, not the tracker / robot (a run with
+    # --allow-untracked or --live on a late tracker, or an ncc run beside an unusable robot.csv,
+    # is scored like any other)
+    dataset = read_dataset(truth_root, allow_untracked=True, strict_tracking=False,
+                           strict_robot=False)
     if dataset.ground_truth is None:
         raise ValueError(f"{truth_root / 'ground_truth.csv'}: file not found; nothing to score")
     est_path = out_dir / "homographies.csv"
