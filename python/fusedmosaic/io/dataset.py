@@ -27,6 +27,7 @@ from fusedmosaic.io.tracking import (
     TrackingSamples,
     _time,
     check_time_offset,
+    check_timestamp_bound,
     interpolate_camera_poses,
     interpolate_robot,
     no_overlap_message,
@@ -294,13 +295,8 @@ def _check_frame_times(path: Path, rows: np.ndarray, times: np.ndarray,
                        max_spacing: float | None) -> None:
     """frames.csv's timestamps (finite, increasing) within the bounds of read_frame_times;
     ValueError naming the file, the row and the likely unit mistake."""
+    check_timestamp_bound(path, rows, times, "frame")
     ms = "frames.csv's timestamps must be seconds: are these milliseconds"
-    beyond = np.flatnonzero(np.abs(times) > MAX_TIMESTAMP_S)
-    if beyond.size:
-        i = beyond[0]
-        raise ValueError(f"{path}: row {rows[i]}, column 'timestamp': {times[i].item()!r} is "
-                         f"beyond |t| <= {MAX_TIMESTAMP_S:g} s (the year 2286 as UNIX time): "
-                         f"{ms} (or µs, ns)?")
     steps = np.diff(times)
     far = np.flatnonzero(steps > MAX_FRAME_GAP_S)
     if far.size:
