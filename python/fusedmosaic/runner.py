@@ -452,13 +452,10 @@ def add_streamed_checks(result: methods.MethodResult, dataset, method: str, opti
     if (method != "lba-emt" or "tracker_agreement" in result.details or result.poses is None
             or dataset.cam_from_world is None):
         return
-    from fusedmosaic.estimation.consistency import tracker_agreement
+    from fusedmosaic.estimation.consistency import add_tracker_agreement
 
-    agreement = tracker_agreement(result.poses, dataset.cam_from_world, dataset.pose_valid,
-                                  result.plane, getattr(options, "emt_sigma", None),
-                                  source=str(dataset.root / "tracking.csv"))
-    result.details["warnings"] = agreement.pop("warnings") + result.details.get("warnings", [])
-    result.details["tracker_agreement"] = agreement
+    add_tracker_agreement(result.details, result.poses, dataset, result.plane,
+                          getattr(options, "emt_sigma", None))
 
 
 def check_live_limits(max_frames, duration_s, frame_timeout_s,

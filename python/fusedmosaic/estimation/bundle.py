@@ -16,7 +16,12 @@ import numpy as np
 from tqdm import tqdm
 
 from fusedmosaic import _core
-from fusedmosaic.estimation.consistency import check_emt_sigma, solver_warning, tracker_agreement
+from fusedmosaic.estimation.consistency import (
+    add_tracker_agreement,
+    check_emt_sigma,
+    solver_warning,
+    tracker_agreement,
+)
 from fusedmosaic.estimation.motion import motion_timing
 from fusedmosaic.estimation.plane import estimate_plane
 from fusedmosaic.estimation.world import (
@@ -291,10 +296,7 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     details["solver"] = summary.as_dict()
     details["warnings"] = [w for w in [solver_warning(summary, o.max_iterations)] if w]
     if use_emt:
-        agreement = tracker_agreement(poses, dataset.cam_from_world, dataset.pose_valid, plane,
-                                      o.emt_sigma, source=str(dataset.root / "tracking.csv"))
-        details["warnings"] = agreement.pop("warnings") + details["warnings"]
-        details["tracker_agreement"] = agreement
+        add_tracker_agreement(details, poses, dataset, plane, o.emt_sigma)
     return MethodResult(G, _status(n, placed, ok, "not connected to frame 0 by registered pairs"),
                         poses=poses, plane=plane, timings=timings, parameters=asdict(o),
                         details=details)

@@ -96,6 +96,16 @@ def tracker_agreement(poses: np.ndarray, tracker_poses: np.ndarray, tracker_vali
     return out
 
 
+def add_tracker_agreement(details: dict, poses: np.ndarray, dataset, plane,
+                          emt_sigma=None) -> None:
+    """tracker_agreement of a pose method's result on ``dataset`` (its tracking.csv poses) into
+    its ``details``: "tracker_agreement", and the warnings first in "warnings"."""
+    agreement = tracker_agreement(poses, dataset.cam_from_world, dataset.pose_valid, plane,
+                                  emt_sigma, source=str(dataset.root / "tracking.csv"))
+    details["warnings"] = agreement.pop("warnings") + details.get("warnings", [])
+    details["tracker_agreement"] = agreement
+
+
 def solver_warning(summary, max_iterations: int, what: str = "the adjustment") -> str | None:
     """A message when Ceres stopped without converging (iteration limit, or failure), else
     None. ``summary`` is a SolveSummary (or its as_dict())."""

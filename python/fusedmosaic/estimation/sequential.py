@@ -70,9 +70,9 @@ from fusedmosaic.estimation.bundle import (
     subsample_inliers,
 )
 from fusedmosaic.estimation.consistency import (
+    add_tracker_agreement,
     check_emt_sigma,
     solver_warning,
-    tracker_agreement,
 )
 from fusedmosaic.estimation.guard import exclusive_call
 from fusedmosaic.estimation.keyframes import KeyframeIndex
@@ -1133,11 +1133,7 @@ def run_lba_emt(dataset, *, progress: bool = True,
     details["warnings"] = _solver_warnings(mosaicker.bootstrap_summary, unconverged,
                                            len(step_times), o.max_iterations)
     if dataset.cam_from_world is not None:
-        agreement = tracker_agreement(poses, dataset.cam_from_world, dataset.pose_valid,
-                                      mosaicker.plane, o.emt_sigma,
-                                      source=str(dataset.root / "tracking.csv"))
-        details["warnings"] = agreement.pop("warnings") + details["warnings"]
-        details["tracker_agreement"] = agreement
+        add_tracker_agreement(details, poses, dataset, mosaicker.plane, o.emt_sigma)
     status = [results[k].status for k in range(n)]
     return MethodResult(G, status, poses=poses, plane=mosaicker.plane, timings=timings,
                         parameters=asdict(o), details=details)
