@@ -204,6 +204,32 @@ def test_robot_in_other_units_or_axes_is_reported(pcle, work):
         assert all(w.startswith(str(data / "robot.csv")) for w in r.details["warnings"])
 
 
+def test_robot_check_of_a_streamed_run(pcle, work, capsys):
+    """kalman-robot replayed live (`run --live`, the runner's path for `live` too) gets the
+    robot check the offline method has, on the processed frames."""
+    from fusedmosaic.cli import main
+
+    data = work / "robot_mm"
+    if not data.exists():
+        rewrite_robot(pcle, data, lambda xy: xy / 1000.0)
+    for dataset, warned in ((pcle, False), (data, True)):
+        out = work / f"out_live_{dataset.name}"
+        assert main(["--quiet", "run", str(dataset), "--method", "kalman-robot", "--live",
+                     "--out", str(out), "--no-report"]) == 0
+        report = json.loads((out / "report.json").read_text())
+        assert report["robot_agreement"]["steps"] >= 5
+        err = capsys.readouterr().err
+        if warned:
+            assert report["robot_agreement"]["length_ratio"] == pytest.approx(0.001, rel=0.3)
+            assert re.search(r"0.001 x the image registrations'.*mm instead of µm",
+                             report["warnings"][0])
+            assert "fusedmosaic: warning: " + str(data / "robot.csv") in err
+        else:
+            assert report["robot_agreement"]["length_ratio"] == pytest.approx(1.0, abs=0.2)
+            assert report["warnings"] == [] and "warning" not in err
+        assert len(report["confidences"]["c_img"]) == report["frames"]
+
+
 # -- run / CLI: the warnings reach the terminal, report.json and report.md ------------------
 
 
@@ -227,6 +253,11 @@ def test_run_prints_and_records_the_warnings(base, work, capsys):
                  str(live)]) == 0
     report = json.loads((live / "report.json").read_text())
     assert any("disagrees with the images" in w for w in report["warnings"])
+    # --quiet prints nothing but errors and warnings: the checks' warnings reach stderr
+    printed = capsys.readouterr()
+    assert printed.out == ""
+    assert "fusedmosaic: warning: " + str(data / "tracking.csv") + ": the tracker disagrees" \
+        in printed.err
 
 
 def test_tracker_noise_flags(work, capsys):

@@ -179,7 +179,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
                           progress=_progress(args), options=options, blend=blend,
                           canvas=canvas, video=args.video, report=not args.no_report,
                           live=args.live, tracker_time_offset=args.tracker_time_offset)
-    _say(args, summary)
+    _say_summary(args, summary)
     return 0
 
 
@@ -379,7 +379,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    _say(args, summary)
+    _say_summary(args, summary)
     return 0
 
 
@@ -692,6 +692,19 @@ def _progress(args: argparse.Namespace) -> bool:
 def _say(args: argparse.Namespace, text: str) -> None:
     if not getattr(args, "quiet", False):
         print(text)
+
+
+def _say_summary(args: argparse.Namespace, summary: str) -> None:
+    """A run's summary; under --quiet its warnings (the checks after the fusion: a tracker or
+    robot in another convention) still reach stderr, as every other warning does."""
+    if not getattr(args, "quiet", False):
+        print(summary)
+        return
+    from fusedmosaic.runner import WARNING_LINE
+
+    for line in summary.splitlines():
+        if line.startswith(WARNING_LINE):
+            print(f"fusedmosaic: warning: {line[len(WARNING_LINE):]}", file=sys.stderr)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -410,6 +410,9 @@ def write_run_report(w, dataset, method: str, result, G: np.ndarray, outputs: di
                  mosaic=None if plan is None else "mosaic.png", video=video, notes=notes)
 
 
+WARNING_LINE = "  warning "  # the summary's lines of the checks after the fusion
+
+
 def _summary(method: str, G: np.ndarray, out: Path, report_json: dict, outputs: dict,
              report: bool) -> str:
     placed = int(np.isfinite(G).all(axis=(1, 2)).sum())
@@ -442,19 +445,36 @@ def _summary(method: str, G: np.ndarray, out: Path, report_json: dict, outputs: 
                          f"{live['frames_processed']} processed; stopped: {live['stopped_by']}")
     if outputs["video"] is not None:
         lines.append(f"  video   {outputs['video']}")
-    lines += [f"  warning {text}" for text in report_json.get("warnings", [])]
+    lines += [f"{WARNING_LINE}{text}" for text in report_json.get("warnings", [])]
     return "\n".join(lines)
 
 
 def add_streamed_checks(result: methods.MethodResult, dataset, method: str, options) -> None:
     """The checks after the fusion (estimation.consistency) for a result that has not had
-    them: lba-emt streamed live or replayed (the offline method adds them itself)."""
-    if (method != "lba-emt" or "tracker_agreement" in result.details or result.poses is None
+    them: lba-emt (tracker) and kalman-robot (robot) streamed live or replayed (the offline
+    methods add them themselves)."""
+    details = result.details
+    if method == "kalman-robot" and "robot_agreement" not in details \
+            and "trajectories_px" in details and dataset.robot is not None:
+        from fusedmosaic.estimation.consistency import robot_agreement
+
+        # the processed frames in order: a dropped frame's interval is in the next step
+        c_img = details["confidences"]["c_img"]
+        rows = [k for k, c in enumerate(c_img) if c is not None]
+        paths = details["trajectories_px"]
+        agreement = robot_agreement(
+            paths["X_m"][rows], paths["X_r"][rows], np.array([c_img[k] for k in rows], float),
+            source=str(dataset.root / dataset.robot_file),
+            pixel_size_um=result.parameters.get("pixel_size_um"))
+        details["warnings"] = agreement.pop("warnings") + details.get("warnings", [])
+        details["robot_agreement"] = agreement
+        return
+    if (method != "lba-emt" or "tracker_agreement" in details or result.poses is None
             or dataset.cam_from_world is None):
         return
     from fusedmosaic.estimation.consistency import add_tracker_agreement
 
-    add_tracker_agreement(result.details, result.poses, dataset, result.plane,
+    add_tracker_agreement(details, result.poses, dataset, result.plane,
                           getattr(options, "emt_sigma", None))
 
 
