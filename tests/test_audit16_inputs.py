@@ -317,6 +317,20 @@ def test_hand_eye_says_which_rigidity_check_fails(tmp_path, T, problem):
         hand_eye_matrix(T)
 
 
+@pytest.mark.parametrize("T, kind", [
+    (_spoiled(lambda T: T.__setitem__((slice(0, 3), slice(0, 3)), T[:3, :3] * 1.01)), "scaled"),
+    (_spoiled(lambda T: T.__setitem__((slice(0, 3), 2), -T[:3, 2])), "a reflection (det -1)"),
+    (_spoiled(lambda T: T.__setitem__((0, 1), T[0, 1] + 0.01)), "sheared"),
+    (_spoiled(lambda T: T.__setitem__((3, 2), 0.5)), "last row not 0 0 0 1"),
+])
+def test_a_live_sample_says_which_rigidity_check_fails(T, kind):
+    """OpenIGTLink counts its invalid samples by problem: the kind, without the figures."""
+    from fusedmosaic.io.igtl import _rigid_problem
+
+    assert _rigid_problem(T) == f"not rigid: {kind}"
+    assert _rigid_problem(_rotation()) is None
+
+
 def test_a_shear_is_not_also_called_a_scale():
     message = rigid_defects(_spoiled(lambda T: T.__setitem__((0, 1), T[0, 1] + 0.01)), 1e-4)
     assert "sheared" in message and "scaled" not in message

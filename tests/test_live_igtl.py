@@ -228,7 +228,7 @@ def test_invalid_tracker_samples_are_skipped_not_fatal(syn, tmp_path):
     sender.join()
     live = json.loads((tmp_path / "out" / "report.json").read_text())["live"]
     assert live["source"]["tracker_samples_invalid"] == {
-        "its 3x3 part is not a rotation": 1, "timestamp not after the previous sample": 1}
+        "not rigid: scaled": 1, "timestamp not after the previous sample": 1}
     rec = read_dataset(tmp_path / "rec", allow_untracked=True)
     # the non-rigid sample is recorded as a missing one (valid=0: the dropout stays visible
     # offline), the one going back in time is not recorded (tracking.csv is in time order)

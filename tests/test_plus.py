@@ -393,7 +393,8 @@ def test_bad_transforms_camera_and_hand_eye(tmp_path):
              r"no \*ToTrackerTransform .*\(ImageToProbeTransform present\)", transform=None)
 
     _refused(tmp_path, _small(tmp_path, transforms=_identity_with(1, _scaled())),
-             r"frame 1 \(Seq_Frame0001_SensorToTrackerTransform\): not a rigid transform")
+             r"frame 1 \(Seq_Frame0001_SensorToTrackerTransform\): not a rigid transform: the "
+             r"rotation block's columns have norms .*not 1 \(scaled\)")
     _refused(tmp_path, _small(tmp_path, transforms=_identity_with(2, _far())),
              r"frame 2 \(Seq_Frame0002_SensorToTrackerTransform\): translation beyond the 1e\+06 "
              "mm bound")

@@ -47,6 +47,7 @@ from fusedmosaic.io.tracking import (
     TrackingSamples,
     camera_pose_from_sample,
     interpolate_camera_poses,
+    rigid_defects,
     rigid_problems,
 )
 
@@ -483,7 +484,7 @@ def _rigid_problem(matrix: np.ndarray) -> str | None:
     if not_finite[0]:
         return "not a finite 4x4 matrix"
     if not_rigid[0]:
-        return "its 3x3 part is not a rotation"
+        return f"not rigid: {rigid_defects(matrix, 1e-3, brief=True)}"
     if far[0]:
         return f"translation beyond {MAX_TRANSLATION_MM:g} mm"
     return None

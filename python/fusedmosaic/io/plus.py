@@ -44,6 +44,7 @@ from fusedmosaic.io.tracking import (
     TrackingSamples,
     check_time_offset,
     hand_eye_matrix,
+    rigid_defects,
     rigid_problems,
     shift_tracking,
 )
@@ -196,19 +197,19 @@ def _inverse_names(field_name: str) -> set[str]:
 
 
 def _check_rigid(seq: PlusSequence, source: str, matrices: np.ndarray, ok: np.ndarray) -> None:
-    def fail(mask: np.ndarray, problem: str) -> None:
+    def fail(mask: np.ndarray, problem) -> None:
         bad = np.flatnonzero(mask)
         if bad.size:
             i = int(bad[0])
             more = f" ({bad.size} frames: {_frames_text(bad)})" if bad.size > 1 else ""
+            problem = problem(i) if callable(problem) else problem
             raise ValueError(f"{seq.path}: frame {i} ({seq._key(i, source)}): {problem}{more}")
 
     not_finite, not_rigid, far = rigid_problems(matrices, RIGID_TOLERANCE)
     fail(ok & not_finite, "status OK but the transform has NaN or inf values")
     fail(
         ok & not_rigid,
-        f"not a rigid transform (rotation block not orthonormal with det +1 to "
-        f"{RIGID_TOLERANCE:g}, or last row not 0 0 0 1)",
+        lambda i: f"not a rigid transform: {rigid_defects(matrices[i], RIGID_TOLERANCE)}",
     )
     fail(
         ok & far,

@@ -298,10 +298,11 @@ def rigid_problems(transforms, tolerance: float) -> tuple[np.ndarray, np.ndarray
     return ~finite, finite & ~rigid, finite & far
 
 
-def rigid_defects(T, tolerance: float) -> str:
+def rigid_defects(T, tolerance: float, brief: bool = False) -> str:
     """Which checks of rigid_problems a finite 4x4 ``T`` fails, in words: a reflection (det -1),
     a scale (column norms not 1), a shear (columns not orthogonal), a last row other than
-    0 0 0 1; "" when it is rigid to ``tolerance``."""
+    0 0 0 1; "" when it is rigid to ``tolerance``. ``brief``: the kinds alone, without the
+    figures (a live source counts its invalid samples by this text)."""
     T = np.asarray(T, dtype=np.float64).reshape(4, 4)
     R = T[:3, :3]
     gram = R.T @ R  # the identity for a rotation (rigid_problems compares it)
@@ -309,22 +310,27 @@ def rigid_defects(T, tolerance: float) -> str:
     found = []
     det = np.linalg.det(R)
     if det < 0:
-        found.append(f"the rotation block's determinant is {det:.6g}, not +1: a reflection (a "
+        found.append("a reflection (det -1)" if brief else
+                     f"the rotation block's determinant is {det:.6g}, not +1: a reflection (a "
                      "left-handed frame, or an axis flipped?)")
     off_diagonal = np.abs(gram - np.diag(np.diag(gram))).max()
     if off_diagonal > tolerance:  # a shear changes the norms too: named as a shear only
         with np.errstate(divide="ignore", invalid="ignore"):  # a zero column: no angle
             cosine = np.nanmax(np.abs(gram / np.outer(norms, norms) - np.eye(3)))
-        found.append(f"the rotation block's columns are not orthogonal (|cos| up to "
+        found.append("sheared" if brief else
+                     f"the rotation block's columns are not orthogonal (|cos| up to "
                      f"{cosine:.3g} between two: sheared)")
     elif np.abs(np.diag(gram) - 1.0).max() > tolerance:
         shown = ", ".join(f"{n:.6g}" for n in norms)
-        found.append(f"the rotation block's columns have norms {shown}, not 1 (scaled)")
+        found.append("scaled" if brief else
+                     f"the rotation block's columns have norms {shown}, not 1 (scaled)")
     if np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > tolerance:
-        found.append(f"the last row is {' '.join(f'{v:g}' for v in T[3])}, not 0 0 0 1")
+        found.append("last row not 0 0 0 1" if brief else
+                     f"the last row is {' '.join(f'{v:g}' for v in T[3])}, not 0 0 0 1")
     if not found and not rigid_problems(T, tolerance)[1][0]:
         return ""
-    return "; ".join(found or ["not orthonormal"]) + f" (tolerance {tolerance:g})"
+    return "; ".join(found or ["not orthonormal"]) + ("" if brief else
+                                                      f" (tolerance {tolerance:g})")
 
 
 def read_hand_eye(path: str | Path) -> np.ndarray:
