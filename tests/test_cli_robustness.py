@@ -639,7 +639,8 @@ def test_out_inside_the_dataset_is_refused(data, computed, capsys, inside):
 def test_degenerate_rows_and_self_comparison_raise_no_numpy_warning(data, emt_out, tmp_path,
                                                                     capsys):
     """An all-zero row is refused (singular); h22 = 0 sends the frame's corner (0, 0) to
-    infinity: placed, with e_j inf, so e_M is inf (not left out)."""
+    infinity: placed, with e_j inf, so e_M is inf (not left out); evaluation.json is strict
+    JSON: null there, the frame named in placed_at_infinity."""
     out = tmp_path / "out"
     out.mkdir()
     ids, G = read_homographies_csv(emt_out / "homographies.csv")
@@ -656,9 +657,11 @@ def test_degenerate_rows_and_self_comparison_raise_no_numpy_warning(data, emt_ou
     # warnings are errors under pytest: these would fail if numpy or scipy warned
     assert main(["--quiet", "evaluate", str(out), "--truth", str(data / "feto"),
                  "--no-report"]) == 0
-    result = json.loads((out / "evaluation.json").read_text())["results"][0]
-    assert result["placed"] == 8 and result["e_j_px"][2] == np.inf
-    assert result["e_M_px"] == np.inf
+    text = (out / "evaluation.json").read_text()
+    assert "Infinity" not in text and "NaN" not in text  # strict JSON: null, the frames named
+    result = json.loads(text)["results"][0]
+    assert result["placed"] == 8 and result["e_j_px"][2] is None
+    assert result["placed_at_infinity"] == [2] and result["e_M_px"] is None
     assert main(["--quiet", "evaluate", str(pcle_out), "--truth", str(data / "pcle"),
                  "--compare", str(pcle_out), "--no-report"]) == 0
     test = json.loads((pcle_out / "evaluation.json").read_text())["wilcoxon"][0]

@@ -458,7 +458,10 @@ def _format_table(results: list[dict]) -> str:
 
 
 def _json_text(obj) -> str:
-    return json.dumps(obj, indent=2, allow_nan=True)
+    """Strict JSON (what jq and JSON.parse read): NaN and inf become null (io.output)."""
+    from fusedmosaic.io.output import to_jsonable
+
+    return json.dumps(to_jsonable(obj), indent=2, allow_nan=False)
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:

@@ -21,7 +21,6 @@ sequences, memory growth, solver comparison) and write the figures quoted in the
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import resource
@@ -348,7 +347,7 @@ def write_json(path: str | Path, result: dict) -> Path:
 
     path = check_json_destination(path)
     with OutputWriter(path.parent, record=json_record(path)) as w:
-        w.write_text(path.name, json.dumps(result, indent=2, allow_nan=True) + "\n")
+        w.write_json(path.name, result)  # strict JSON: a NaN figure (none measured) is null
     return path
 
 

@@ -269,6 +269,10 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
     }
     if why is not None:
         result["drift_ratio_note"] = why
+    at_infinity = np.isinf(errors)
+    if at_infinity.any():  # e_j (and so e_M) inf: written as null in evaluation.json (strict
+        # JSON), so the frames are named here
+        result["placed_at_infinity"] = [int(k) for k in dataset.frame_ids[at_infinity]]
     without_truth = placed & ~scored
     if without_truth.any():  # placed, but ground_truth.csv has no homography for them
         result["placed_without_truth"] = [int(k) for k in dataset.frame_ids[without_truth]]
