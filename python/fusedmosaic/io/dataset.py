@@ -10,6 +10,7 @@ import math
 import os
 import shutil
 import tempfile
+import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -243,7 +244,9 @@ def read_frame_times(root: Path, frames: FrameSource, fps: float | None = None, 
     """(frame ids, timestamps s, where they come from) of the images ``frames`` of the dataset
     or recording folder ``root``: from frames.csv (``frame,timestamp``, both strictly
     increasing, one row per image), else ids 0..N-1 at timestamp = id / rate, the rate being
-    ``fps`` if given, else the video's (frames.frame_rate), else DEFAULT_FPS. ValueError naming
+    ``fps`` if given, else the video's (frames.frame_rate), else DEFAULT_FPS; a video whose
+    own stamps leave its nominal rate (variable frame rate; FrameSource.presentation_times) is
+    timed by its stamps unless ``fps`` is given. ValueError naming
     frames.csv when it is malformed, or when ``fps`` is given as well (it would be ignored).
 
     The times are seconds, checked as the streaming mosaickers check theirs
@@ -258,13 +261,16 @@ def read_frame_times(root: Path, frames: FrameSource, fps: float | None = None, 
         table, rows = read_table(path, ["frame", "timestamp"], integer=["frame"])
         if rows.size != len(frames):
             what = ("images" if frames.video is None
-                    else f"frames in {frames.video.name} (as its header counts them)")
+                    else f"frames in {frames.video.name} (as {frames.counted_by} counts them)")
             raise ValueError(f"{path}: {rows.size} rows but the dataset has {len(frames)} {what}")
         check_increasing(path, rows, table["frame"], "frame")
         check_increasing(path, rows, table["timestamp"], "timestamp")
         _check_frame_times(path, rows, table["timestamp"], max_spacing)
         return table["frame"], table["timestamp"], "frames.csv"
     video = None if frames.video is None else frames.video.name
+    variable = None if fps is not None else _variable_frame_times(frames, max_spacing)
+    if variable is not None:
+        return np.arange(len(frames), dtype=np.int64), *variable
     if fps is not None:
         rate = check_fps(fps)
         source = "given"
@@ -289,6 +295,48 @@ def read_frame_times(root: Path, frames: FrameSource, fps: float | None = None, 
                 f"{MAX_TIMESTAMP_S:g} s): no endoscope or pCLE video is that slow; check the "
                 "frame rate (fusedmosaic run: --fps)")
     return frame_ids, frame_ids / rate, described
+
+
+# A video whose stamps stay within this fraction of a frame interval of frame / rate is timed at
+# frame / rate (its nominal rate); beyond, by its stamps (a variable frame rate).
+VARIABLE_RATE_TOLERANCE = 0.25
+
+
+def _variable_frame_times(frames: FrameSource, max_spacing: float | None
+                          ) -> tuple[np.ndarray, str] | None:
+    """(times s, description) of a video whose container's stamps leave its nominal rate (a
+    variable frame rate, or a header's rate that is an estimate; or it gives none); None for
+    PNG frames and video whose stamps keep its rate. Stamps that cannot time the frames (not
+    increasing, or beyond read_frame_times's bounds) are named in a warning, and the nominal
+    rate serves."""
+    if frames.video is None:
+        return None
+    times = frames.presentation_times()
+    n, rate, name = len(frames), frames.frame_rate, frames.video.name
+    if times is None:
+        if n > 1:
+            warnings.warn(f"{frames.video}: its frame timestamps are not usable (not one "
+                          "increasing stamp per frame): the frames are timed at its frame "
+                          "rate; give frames.csv for their true times", stacklevel=3)
+        return None
+    if n < 2 or (rate is not None and np.abs(times - np.arange(n) / rate).max()
+                 <= VARIABLE_RATE_TOLERANCE / rate):
+        return None
+    steps = np.diff(times)
+    if (np.median(steps) > (max_spacing or math.inf) or steps.max() > MAX_FRAME_GAP_S
+            or times[-1] > MAX_TIMESTAMP_S):
+        warnings.warn(f"{frames.video}: its frame timestamps put frames {np.median(steps):.6g} "
+                      f"s apart (median), up to {steps.max():.6g} s: not used (the frames are "
+                      "timed at its frame rate); give frames.csv for their true times",
+                      stacklevel=3)
+        return None
+    if steps.max() - steps.min() <= VARIABLE_RATE_TOLERANCE * np.median(steps):
+        header = "none" if rate is None else f"{rate:.6g} fps"
+        spacing = f"every {np.median(steps) * 1e3:.4g} ms; its header's rate: {header}"
+    else:
+        spacing = (f"variable frame rate: {steps.min() * 1e3:.4g}-{steps.max() * 1e3:.4g} ms "
+                   "apart")
+    return times, f"the frame timestamps of {name} ({spacing}; no frames.csv)"
 
 
 def _check_frame_times(path: Path, rows: np.ndarray, times: np.ndarray,

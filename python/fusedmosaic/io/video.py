@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import re
 import threading
 import warnings
@@ -76,7 +77,9 @@ class FrameSource(Sequence):
     ``frame_rate``: the frame rate a video's container reports (frames/s; None for PNG frames, or
     a video reporting none in (0, MAX_VIDEO_FRAME_RATE]); read_dataset takes the frame times
     from it when the dataset has no frames.csv. It is the nominal rate: a variable-frame-rate
-    video needs frames.csv.
+    video is timed by its own stamps instead (``presentation_times``, one decoding pass).
+    A video's frame count is its header's, checked at its end (``counted_by`` says when the
+    frames had to be counted by decoding).
 
     Items are uint8 (H, W) or (H, W, 3) BGR as stored (an alpha channel is dropped; a video is
     decoded to BGR, a 16-bit grey one to grey). With ``expected_size=(w, h)`` every image is
@@ -124,6 +127,8 @@ class FrameSource(Sequence):
         self._clipped = False  # a 16-bit frame exceeded 2^bits_in_use - 1 (warned once)
         self.frame_rate: float | None = None
         self._seek_limit: int | None = None  # frames from here on are reached by decoding
+        self._times: np.ndarray | None = None  # presentation times (ms) from a decoding pass
+        self.counted_by = "its header"  # a video's frame count: its header's, or "decoding"
         if self.paths is not None:
             self._length = len(self.paths)
         else:
@@ -131,22 +136,30 @@ class FrameSource(Sequence):
             rate = float(capture.get(cv2.CAP_PROP_FPS))
             if np.isfinite(rate) and 0.0 < rate <= MAX_VIDEO_FRAME_RATE:
                 self.frame_rate = rate
-            self._length = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
-            # A header may count fewer frames than the file holds (a recorder that crashed
-            # before updating it): a frame decoding after the last counted one means count by
-            # decoding, as without a count. (A count beyond the file's frames shows when they are
-            # read: "cannot read image (video truncated or corrupt?)" naming the frame.)
-            if self._length > 0 and self._frames_beyond(capture, self._length):
-                # OpenCV's seeks stop at the header's last frame: frames past it are decoded
-                # forward from there (slower random access, the right images).
-                self._seek_limit = self._length
-                self.close()
-                capture, self._length = self._open_capture(), 0
+            self._length = header = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
+            # The header's count is checked at its end. Fewer frames than the file holds (a
+            # recorder that crashed before updating it): frames decoding after the last counted
+            # one. More (Matroska / WebM have no count: OpenCV estimates duration x nominal rate,
+            # wrong for a variable frame rate; or a file truncated): its last frame does not
+            # decode. Either way the frames are counted by decoding, as without a count.
+            if self._length > 0:
+                last, beyond = self._probe_end(capture, self._length)
+                if beyond:  # OpenCV's seeks stop at the header's last frame: frames past it
+                    # are decoded forward from there (slower random access, the right images)
+                    self._seek_limit = self._length
+                if beyond or not last:
+                    self.close()
+                    capture, self._length = self._open_capture(), 0
             if self._length <= 0:
-                self._length = 0
-                while capture.grab():
-                    self._length += 1
+                times = _decode_times(capture)
+                self._length, self._times = len(times), np.array(times, dtype=np.float64)
+                self.counted_by = "decoding"
                 self.close()
+                if 0 < self._length < header:
+                    warnings.warn(
+                        f"{self.video}: its header counts {header} frames but {self._length} "
+                        "decode (a count estimated from the duration, as Matroska's, or a "
+                        f"truncated file): the {self._length} are read", stacklevel=2)
         if self._length <= 0:
             raise ValueError(
                 f"{self.paths[0].parent if self.paths is not None else self.video}: no frames"
@@ -237,12 +250,33 @@ class FrameSource(Sequence):
                 self._capture.set(cv2.CAP_PROP_CONVERT_RGB, 0)
         return self._capture
 
-    def _frames_beyond(self, capture: cv2.VideoCapture, count: int) -> bool:
-        """Frames count-1 and count both decode (the capture's position is then unknown: the
-        next read seeks)."""
+    def _probe_end(self, capture: cv2.VideoCapture, count: int) -> tuple[bool, bool]:
+        """(frame count-1 decodes, frame count decodes too); the capture's position is then
+        unknown: the next read seeks."""
         capture.set(cv2.CAP_PROP_POS_FRAMES, count - 1)
         self._next = -1
-        return capture.grab() and capture.grab()
+        # a seek may land on another frame (beyond an undecodable one): then not trusted
+        last = capture.grab() and capture.get(cv2.CAP_PROP_POS_FRAMES) == count
+        return last, last and capture.grab()
+
+    def presentation_times(self) -> np.ndarray | None:
+        """A video's frame times as its container stamps them, s after the first frame, from
+        one decoding pass (cached; OpenCV's CAP_PROP_POS_MSEC of each decoded frame): what a
+        variable-frame-rate video holds instead of a rate. None for PNG frames, and when the
+        stamps are not usable (not finite, not strictly increasing, or not one per frame)."""
+        if self.video is None:
+            return None
+        if self._times is None:
+            capture = cv2.VideoCapture(str(self.video))  # its own: the reads' stays where it is
+            try:
+                times = _decode_times(capture, self._length + 1)
+            finally:
+                capture.release()
+            self._times = np.array(times, dtype=np.float64)
+        t = self._times
+        if t.size != self._length or not np.isfinite(t).all() or (np.diff(t) <= 0).any():
+            return None
+        return (t - t[0]) / 1e3
 
     def _read_video(self, i: int) -> tuple[np.ndarray | None, int]:
         """Frame i, or None and the index of the frame whose decoding failed."""
@@ -251,16 +285,31 @@ class FrameSource(Sequence):
             if image is not None:
                 return image, i
             capture = self._open_capture()
+            seeked = None  # the frame a seek went to, until its landing is checked
             if self._next < 0 or not 0 <= i - self._next <= VIDEO_READ_AHEAD:
                 start = i if self._seek_limit is None else min(i, self._seek_limit - 1)
                 if not 0 <= start <= self._next <= i:  # else decoding on from here is shorter
                     capture.set(cv2.CAP_PROP_POS_FRAMES, start)
-                    self._next = start
+                    self._next, seeked = start, start if start > 0 else None
             while True:
                 ok, image = capture.read()
-                if not ok:
+                if not ok and self._next >= i:
                     failed, self._next = self._next, -1  # position unknown after a failed decode
                     return None, failed
+                if seeked is not None and (
+                        not ok or capture.get(cv2.CAP_PROP_POS_FRAMES) != self._next + 1):
+                    # OpenCV's seek landed on another frame (it does beyond an undecodable one,
+                    # silently) or on an undecodable one: frames from there on are reached by
+                    # seeking to an earlier frame and decoding forward
+                    self._seek_limit = seeked
+                    start = min(i, seeked - 1)
+                    capture.set(cv2.CAP_PROP_POS_FRAMES, start)
+                    self._next, seeked = start, start if start > 0 else None
+                    continue
+                seeked = None
+                if not ok:  # an undecodable frame on the way: the next grab decodes the frame
+                    self._next += 1  # after it (as _decode_times counts them)
+                    continue
                 self._next += 1
                 if self._next > i:
                     return image, i
@@ -339,6 +388,26 @@ class FrameSource(Sequence):
                 colour = image.ndim == 3 and image.shape[2] == 4  # the alpha channel is dropped
                 peak = max(peak, int((image[:, :, :3] if colour else image).max()))
         return max(8, peak.bit_length())
+
+
+def _decode_times(capture: cv2.VideoCapture, limit: int | None = None) -> list[float]:
+    """Decodes the video from the capture's position to its end (at most ``limit`` frames):
+    each frame's CAP_PROP_POS_MSEC, NaN for an undecodable frame followed by decodable ones
+    (the count stays right: frames.csv's rows and the frame numbers after it), the end at two
+    failures in a row."""
+    times: list[float] = []
+    failed = False
+    while limit is None or len(times) < limit:
+        if capture.grab():
+            if failed:
+                times.append(math.nan)  # the undecodable frame before this one
+                failed = False
+            times.append(capture.get(cv2.CAP_PROP_POS_MSEC))
+        elif failed:
+            break
+        else:
+            failed = True
+    return times
 
 
 def _bits(dtype) -> str:
