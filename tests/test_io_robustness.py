@@ -144,6 +144,21 @@ def test_undecodable_frame_is_named_and_the_others_read_right(tmp_path):
     assert frames.presentation_times() is None  # no stamp for frame 6: timed at its rate
 
 
+def test_a_run_of_undecodable_frames_is_not_the_end(tmp_path):
+    root = tmp_path / "ds"
+    root.mkdir()
+    expected = _write_video(root / "video.avi", 12)
+    _corrupt_avi_frames(root / "video.avi", {5, 6, 7})
+    frames = FrameSource.open(root)
+    assert len(frames) == 12
+    for k in (11, 8, 0, 4, 9):
+        np.testing.assert_array_equal(frames[k], expected[k])
+    for k in (7, 5, 6):
+        with pytest.raises(ValueError, match=rf"video\.avi frame {k}: cannot read image"):
+            frames[k]
+    frames.close()
+
+
 def test_truncated_video_is_read_as_far_as_it_decodes(tmp_path):
     """A header counting frames the file no longer holds (cut short) used to fail when the
     first missing frame was read; the frames are counted by decoding, with a warning."""

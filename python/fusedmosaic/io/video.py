@@ -20,6 +20,9 @@ MAX_VIDEO_FRAME_RATE = 1000.0  # a container reporting more (or <= 0, NaN) gives
 # 16-bit frames: the bit depth in use is read from this many frames evenly spaced over the
 # sequence (first and last included), so that one scale serves the whole dataset.
 DEPTH_SAMPLE_FRAMES = 8
+# Counting a video's frames by decoding, this many undecodable frames in a row are taken as
+# damage inside the file (the frames after them still count); more, as its end.
+MAX_UNDECODABLE_RUN = 25
 # FFmpeg's codes of 16-bit grey pixels (gray16le, gray16be; e.g. FFV1 video), as OpenCV reports
 # them in CAP_PROP_CODEC_PIXEL_FORMAT
 GREY16_PIXEL_FORMATS = (ord("Y") | ord("1") << 8 | 16 << 24, 16 | ord("1") << 16 | ord("Y") << 24)
@@ -214,11 +217,7 @@ class FrameSource(Sequence):
         """Frame i as stored (None if it cannot be read) and its name for messages."""
         if self.paths is not None:
             return cv2.imread(str(self.paths[i]), cv2.IMREAD_UNCHANGED), self.paths[i]
-        image, failed = self._read_video(i)
-        name = f"{self.video} frame {i}"
-        if image is None and failed != i:  # a frame decoded on the way to i failed
-            name = f"{self.video} frame {failed} (decoded on the way to frame {i})"
-        return image, name
+        return self._read_video(i), f"{self.video} frame {i}"
 
     def __iter__(self) -> Iterator[np.ndarray]:
         for i in range(self._length):
@@ -278,12 +277,13 @@ class FrameSource(Sequence):
             return None
         return (t - t[0]) / 1e3
 
-    def _read_video(self, i: int) -> tuple[np.ndarray | None, int]:
-        """Frame i, or None and the index of the frame whose decoding failed."""
+    def _read_video(self, i: int) -> np.ndarray | None:
+        """Frame i, or None when it does not decode (undecodable frames before it are passed:
+        each failed grab is one frame)."""
         with self._lock:  # one cv2.VideoCapture: concurrent seek/decode crashes FFmpeg
             image = self._recent.pop(i, None)
             if image is not None:
-                return image, i
+                return image
             capture = self._open_capture()
             seeked = None  # the frame a seek went to, until its landing is checked
             if self._next < 0 or not 0 <= i - self._next <= VIDEO_READ_AHEAD:
@@ -293,26 +293,26 @@ class FrameSource(Sequence):
                     self._next, seeked = start, start if start > 0 else None
             while True:
                 ok, image = capture.read()
-                if not ok and self._next >= i:
-                    failed, self._next = self._next, -1  # position unknown after a failed decode
-                    return None, failed
                 if seeked is not None and (
                         not ok or capture.get(cv2.CAP_PROP_POS_FRAMES) != self._next + 1):
                     # OpenCV's seek landed on another frame (it does beyond an undecodable one,
-                    # silently) or on an undecodable one: frames from there on are reached by
-                    # seeking to an earlier frame and decoding forward
+                    # silently) or on an undecodable one (maybe not the one asked for): frames
+                    # from there on are reached by seeking to an earlier frame and decoding on
                     self._seek_limit = seeked
                     start = min(i, seeked - 1)
                     capture.set(cv2.CAP_PROP_POS_FRAMES, start)
                     self._next, seeked = start, start if start > 0 else None
                     continue
                 seeked = None
+                if not ok and self._next >= i:
+                    self._next = -1  # position unknown after a failed decode
+                    return None
                 if not ok:  # an undecodable frame on the way: the next grab decodes the frame
                     self._next += 1  # after it (as _decode_times counts them)
                     continue
                 self._next += 1
                 if self._next > i:
-                    return image, i
+                    return image
                 self._recent[self._next - 1] = image  # skipped: another thread may want it
                 if len(self._recent) > VIDEO_RECENT_FRAMES:
                     self._recent.popitem(last=False)
@@ -392,21 +392,20 @@ class FrameSource(Sequence):
 
 def _decode_times(capture: cv2.VideoCapture, limit: int | None = None) -> list[float]:
     """Decodes the video from the capture's position to its end (at most ``limit`` frames):
-    each frame's CAP_PROP_POS_MSEC, NaN for an undecodable frame followed by decodable ones
-    (the count stays right: frames.csv's rows and the frame numbers after it), the end at two
-    failures in a row."""
+    each frame's CAP_PROP_POS_MSEC, NaN for undecodable frames followed by decodable ones (each
+    failed grab passes one frame, so the count stays right: frames.csv's rows and the frame
+    numbers after them); the end at more than MAX_UNDECODABLE_RUN failures in a row."""
     times: list[float] = []
-    failed = False
+    run = 0  # failed grabs since the last decoded frame
     while limit is None or len(times) < limit:
         if capture.grab():
-            if failed:
-                times.append(math.nan)  # the undecodable frame before this one
-                failed = False
+            times += [math.nan] * run
+            run = 0
             times.append(capture.get(cv2.CAP_PROP_POS_MSEC))
-        elif failed:
-            break
         else:
-            failed = True
+            run += 1
+            if run > MAX_UNDECODABLE_RUN:
+                break
     return times
 
 
