@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import re
 import sys
 import time
@@ -457,13 +456,6 @@ def _format_table(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def _json_text(obj) -> str:
-    """Strict JSON (what jq and JSON.parse read): NaN and inf become null (io.output)."""
-    from fusedmosaic.io.output import to_jsonable
-
-    return json.dumps(to_jsonable(obj), indent=2, allow_nan=False)
-
-
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from fusedmosaic.evaluation import compare_position_errors, evaluate_output
     from fusedmosaic.evaluation.metrics import check_positions_n
@@ -513,7 +505,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     with OutputWriter(json_path.parent, record=f"evaluation:{json_path.name}",
                       stale_after_run=any(o.resolve() == here for o in outs), expects=expects,
                       replaces=older) as w:
-        w.write_text(json_path.name, _json_text(report))
+        w.write_json(json_path.name, report)  # strict JSON: NaN / inf as null
         if loaded is not None:
             from fusedmosaic.evaluation.report import write_report
 
@@ -642,7 +634,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     with OutputWriter(out, record="demo", stale_after_run=True,
                       expects=["mosaic_seams.png", "evaluation.json"]) as w:
         w.write_image("mosaic_seams.png", seams)
-        w.write_text("evaluation.json", _json_text(result))
+        w.write_json("evaluation.json", result)
     _say(args, _format_table([result]))
     _say(args, f"[demo] {method}: {result['placed']}/{result['frames']} frames placed, "
                f"e_M = {_measure(result['e_M_px'], 3)} px, drift ratio "

@@ -456,18 +456,10 @@ def add_streamed_checks(result: methods.MethodResult, dataset, method: str, opti
     details = result.details
     if method == "kalman-robot" and "robot_agreement" not in details \
             and "trajectories_px" in details and dataset.robot is not None:
-        from fusedmosaic.estimation.consistency import robot_agreement
+        from fusedmosaic.estimation.consistency import add_robot_agreement
 
-        # the processed frames in order: a dropped frame's interval is in the next step
-        c_img = details["confidences"]["c_img"]
-        rows = [k for k, c in enumerate(c_img) if c is not None]
-        paths = details["trajectories_px"]
-        agreement = robot_agreement(
-            paths["X_m"][rows], paths["X_r"][rows], np.array([c_img[k] for k in rows], float),
-            source=str(dataset.root / dataset.robot_file),
-            pixel_size_um=result.parameters.get("pixel_size_um"))
-        details["warnings"] = agreement.pop("warnings") + details.get("warnings", [])
-        details["robot_agreement"] = agreement
+        add_robot_agreement(details, str(dataset.root / dataset.robot_file),
+                            result.parameters.get("pixel_size_um"))
         return
     if (method != "lba-emt" or "tracker_agreement" in details or result.poses is None
             or dataset.cam_from_world is None):

@@ -106,6 +106,21 @@ def add_tracker_agreement(details: dict, poses: np.ndarray, dataset, plane,
     details["tracker_agreement"] = agreement
 
 
+def add_robot_agreement(details: dict, source: str, pixel_size_um: float | None) -> None:
+    """robot_agreement of a kalman-robot result from its ``details`` (trajectories_px X_m and
+    X_r, confidences c_img; frames whose c_img is None were not processed and are left out,
+    so a dropped frame's interval falls in the next step) into them: "robot_agreement", and
+    the warnings first in "warnings"."""
+    c_img = details["confidences"]["c_img"]
+    rows = [k for k, c in enumerate(c_img) if c is not None]
+    paths = details["trajectories_px"]
+    agreement = robot_agreement(paths["X_m"][rows], paths["X_r"][rows],
+                                np.array([c_img[k] for k in rows], float), source=source,
+                                pixel_size_um=pixel_size_um)
+    details["warnings"] = agreement.pop("warnings") + details.get("warnings", [])
+    details["robot_agreement"] = agreement
+
+
 def solver_warning(summary, max_iterations: int, what: str = "the adjustment") -> str | None:
     """A message when Ceres stopped without converging (iteration limit, or failure), else
     None. ``summary`` is a SolveSummary (or its as_dict())."""

@@ -171,16 +171,9 @@ def _streamed_result(method: str, status: list, finals: dict, plane, details: di
                                     else np.asarray(finals[k].plane).tolist() for k in range(n)]
     else:  # kalman-robot: what the offline run reports (translation._run), None / NaN where
         # a frame was not processed; runner.add_streamed_checks compares X_m and X_r
-        from fusedmosaic.estimation.translation import CONFIDENCES
+        from fusedmosaic.estimation.translation import frame_columns
 
-        details["confidences"] = {name: [None if k not in finals else float(getattr(
-            finals[k], name)) for k in range(n)] for name in CONFIDENCES}
-        details["trajectories_px"] = {
-            key: np.stack([getattr(finals[k], field) if k in finals else np.full(2, np.nan)
-                           for k in range(n)])
-            for key, field in (("X_m", "position_image"), ("X_r", "position_robot"),
-                               ("X_f", "position_fused"))}
-        details["robot_gated"] = sorted(k for k, r in finals.items() if r.robot_gated)
+        details.update(frame_columns([finals.get(k) for k in range(n)]))
     return MethodResult(G, status, poses=poses, plane=None if plane is None else np.asarray(plane),
                         timings={"processing": processing_s}, parameters=parameters,
                         details=details, blend="linear" if method == "lba-emt" else "average",

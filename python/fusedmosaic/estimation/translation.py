@@ -90,7 +90,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 from tqdm import tqdm
 
-from fusedmosaic.estimation.consistency import robot_agreement
+from fusedmosaic.estimation.consistency import add_robot_agreement
 from fusedmosaic.estimation.guard import exclusive_call
 from fusedmosaic.estimation.kalman import KalmanOptions, RobotKalmanFilter, normalize
 from fusedmosaic.io.tracking import (  # noqa: F401  (MAX_FRAME_GAP_S, MAX_TIMESTAMP_S: API)
@@ -778,6 +778,22 @@ class RobotPriorMosaicker:
 # -- batch methods (`fusedmosaic run --method ncc|robot|kalman-robot`) ---------------------------
 
 
+def frame_columns(results: list) -> dict:
+    """report.json's per-frame "confidences", "trajectories_px" (X_m, X_r, X_f) and
+    "robot_gated" (frame indices) of a run's FrameResults, one per frame, None for a frame not
+    processed (a live run's dropped frames: confidences None, positions NaN)."""
+    return {
+        "confidences": {name: [None if r is None else float(getattr(r, name)) for r in results]
+                        for name in CONFIDENCES},
+        "trajectories_px": {
+            key: np.stack([np.full(2, np.nan) if r is None else getattr(r, field)
+                           for r in results])
+            for key, field in (("X_m", "position_image"), ("X_r", "position_robot"),
+                               ("X_f", "position_fused"))},
+        "robot_gated": [k for k, r in enumerate(results) if r is not None and r.robot_gated],
+    }
+
+
 def _run(
     dataset, estimate: str, *, progress: bool, options: RobotPriorOptions | None
 ) -> MethodResult:
@@ -819,25 +835,15 @@ def _run(
 
     details = {
         "estimate": symbol,
-        "confidences": {name: column(name) for name in CONFIDENCES},
+        **frame_columns(results),
         "ncc_score": column("ncc_score"),
         "sigma_robot0_px": column("sigma_robot0"),
-        "robot_gated": [r.index for r in results if r.robot_gated],
-        "trajectories_px": {
-            "X_m": np.stack(column("position_image")),
-            "X_r": np.stack(column("position_robot")),
-            "X_f": np.stack(column("position_fused")),
-        },
         "per_frame_ms": ms_stats(per_frame * 1e3),
+        "warnings": [],
     }
-    details["warnings"] = []
     if estimate == "fused":  # robot and images both seen: do they move alike?
-        agreement = robot_agreement(
-            details["trajectories_px"]["X_m"], details["trajectories_px"]["X_r"],
-            details["confidences"]["c_img"], source=str(dataset.root / dataset.robot_file),
-            pixel_size_um=mosaicker.pixel_size_um)
-        details["warnings"] = agreement.pop("warnings")
-        details["robot_agreement"] = agreement
+        add_robot_agreement(details, str(dataset.root / dataset.robot_file),
+                            mosaicker.pixel_size_um)
     parameters = {
         "estimate": estimate,
         "pixel_size_um": mosaicker.pixel_size_um,

@@ -298,7 +298,8 @@ def read_frame_times(root: Path, frames: FrameSource, fps: float | None = None, 
 
 
 # A video whose stamps stay within this fraction of a frame interval of frame / rate is timed at
-# frame / rate (its nominal rate); beyond, by its stamps (a variable frame rate).
+# frame / rate (its nominal rate); beyond, by its stamps, described as constant ("every 40 ms")
+# when their intervals differ by at most this fraction of the median one, else as variable.
 VARIABLE_RATE_TOLERANCE = 0.25
 
 

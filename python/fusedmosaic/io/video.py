@@ -304,11 +304,12 @@ class FrameSource(Sequence):
                     self._next, seeked = start, start if start > 0 else None
                     continue
                 seeked = None
-                if not ok and self._next >= i:
-                    self._next = -1  # position unknown after a failed decode
-                    return None
-                if not ok:  # an undecodable frame on the way: the next grab decodes the frame
-                    self._next += 1  # after it (as _decode_times counts them)
+                if not ok:
+                    if self._next >= i:
+                        self._next = -1  # position unknown after a failed decode
+                        return None
+                    # an undecodable frame on the way: the next grab decodes the frame after it
+                    self._next += 1  # (as _decode_times counts them)
                     continue
                 self._next += 1
                 if self._next > i:
