@@ -402,6 +402,24 @@ def test_frames_of_another_size_named_without_camera_yaml(recording, tmp_path):
         calibrate_recording(root)
 
 
+def test_unreadable_frames_searched_as_frames_without_the_board(recording, tmp_path):
+    """Damaged frames (the first one too) do not stop the calibration: they count as frames
+    without the board, named in the report and a warning; the rest calibrate as before."""
+    root = tmp_path / "damaged"
+    shutil.copytree(recording, root)
+    damaged = [root / "frames" / f"{k:06d}.png" for k in (0, 7)]
+    for path in damaged:
+        path.write_bytes(b"")
+    with pytest.warns(UserWarning, match=r"^2 of the \d+ frames searched could not be read "
+                                         r"\(frames 0, 7; first: .*000000\.png: cannot read "
+                                         r"image\): searched as frames without the board"):
+        result = calibrate_recording(root)
+    assert result.report["unreadable_frames"] == {
+        str(k): f"{path}: cannot read image" for k, path in zip((0, 7), damaged, strict=True)}
+    truth = read_camera_yaml(recording / "truth_camera.yaml")
+    assert camera_model_difference(truth, result.camera) < 0.5  # as from the whole recording
+
+
 def test_fisheye_lens_calibrated_with_the_fisheye_model(tmp_path, capsys):
     """A wide-angle scope (focal 0.6 x width, diagonal field of view ~120 deg) through OpenCV's
     fisheye model, the board filmed at 18 mm so that it reaches the periphery. --lens-model

@@ -709,3 +709,37 @@ def test_evaluate_refuses_a_singular_homography_and_counts_placed_frames(data, e
     result = json.loads((good / "evaluation.json").read_text())["results"][0]
     assert result["placed"] == np.isfinite(G).all(axis=(1, 2)).sum()
     assert result["placed_without_truth"] == [5] and result["e_j_px"][5] is None
+
+
+# ------------------------------------------------------------------ unreadable frames
+
+
+@pytest.mark.parametrize("kind, method, status", [
+    ("feto", "ba-emt", "prior-only"), ("pcle", "kalman-robot", "prior-only"),
+    ("pcle", "robot", "prior-only"), ("pcle", "ncc", "unplaced: its image cannot be read")])
+def test_unreadable_frame_is_a_frame_without_visual_content(data, tmp_path, capsys, kind,
+                                                            method, status):
+    """A damaged frame does not stop the run: it is placed from the priors (the tracker, the
+    robot) or left unplaced saying why, named in report.json and in a warning, and left out of
+    the mosaic; --stop-on-unreadable makes it an error naming the file, leaving no output."""
+    root = tmp_path / kind
+    shutil.copytree(data / kind, root)
+    damaged = sorted((root / "frames").glob("*.png"))[4]
+    damaged.write_bytes(damaged.read_bytes()[:100])  # cut short
+    out = tmp_path / "out"
+    assert run(root, out, method) == 0
+    err = capsys.readouterr().err
+    assert (f"fusedmosaic: warning: 1 of 8 frames could not be read (frames 4; first: {damaged}:"
+            f" cannot read image): taken as frames without visual content, "
+            f"{int(status == 'prior-only')} placed from the priors, left out of the mosaic "
+            "(report.json unreadable_frames)") in err
+    report = json.loads((out / "report.json").read_text())
+    assert report["unreadable_frames"] == {"4": f"{damaged}: cannot read image"}
+    assert report["frame_status"][4] == status
+    assert report["mosaic"]["skipped_frames"]["4"] == "image unreadable: not composed"
+    assert report["mosaic"]["frames_shown"] == report["placed"] - (status == "prior-only")
+
+    strict = tmp_path / "strict"
+    assert run(root, strict, method, "--stop-on-unreadable") == 2  # bad input
+    assert capsys.readouterr().err == f"fusedmosaic: error: {damaged}: cannot read image\n"
+    assert not strict.exists()

@@ -159,6 +159,51 @@ def test_a_run_of_undecodable_frames_is_not_the_end(tmp_path):
     frames.close()
 
 
+def test_unreadable_frames_read_blank_when_asked(tmp_path):
+    """blank_unreadable: an undecodable video frame or a damaged PNG is an all-zero image of the
+    dataset's size and channels, recorded with the error it would have raised; the default
+    still raises; frames of another size still raise (not damage)."""
+    video = tmp_path / "video"
+    video.mkdir()
+    expected = _write_video(video / "video.avi", 12)
+    _corrupt_avi_frames(video / "video.avi", {6})
+    frames = FrameSource.open(video, expected_size=(W, H), blank_unreadable=True)
+    with ThreadPoolExecutor(2) as pool:
+        images = list(pool.map(frames.__getitem__, range(12)))
+    for k, image in enumerate(images):
+        if k == 6:
+            assert image.shape == (H, W, 3) and image.dtype == np.uint8 and not image.any()
+        else:
+            np.testing.assert_array_equal(image, expected[k])
+    assert list(frames.unreadable) == [6]
+    assert frames.unreadable[6].endswith(
+        "video.avi frame 6: cannot read image (video truncated or corrupt?)")
+    frames.close()
+
+    pngs = tmp_path / "pngs" / "frames"
+    pngs.mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    for k in range(4):  # grey frames
+        cv2.imwrite(str(pngs / f"{k:06d}.png"), rng.integers(1, 256, (H, W), dtype=np.uint8))
+    (pngs / "000000.png").write_bytes(b"not a png")  # the first: its shape comes from another
+    frames = FrameSource.open(pngs.parent, expected_size=(W, H), blank_unreadable=True)
+    assert frames[0].shape == (H, W) and not frames[0].any()
+    assert frames.unreadable == {0: f"{pngs / '000000.png'}: cannot read image"}
+    assert frames[1].any() and frames.unreadable.keys() == {0}
+    with pytest.raises(ValueError, match=r"000000\.png: cannot read image"):
+        FrameSource.open(pngs.parent)[0]
+    cv2.imwrite(str(pngs / "000002.png"), np.zeros((H, W - 4), np.uint8))
+    with pytest.raises(ValueError, match=r"000002\.png: image is 28x24 but camera\.yaml says"):
+        frames[2]
+
+    for k in range(4):
+        (pngs / f"{k:06d}.png").write_bytes(b"")
+    frames = FrameSource.open(pngs.parent, blank_unreadable=True)
+    with pytest.raises(ValueError, match=r"frames: none of its 4 frames can be read \(e\.g\. "
+                                         r".*000000\.png: cannot read image\)"):
+        frames[3]
+
+
 def test_truncated_video_is_read_as_far_as_it_decodes(tmp_path):
     """A header counting frames the file no longer holds (cut short) used to fail when the
     first missing frame was read; the frames are counted by decoding, with a warning."""

@@ -177,7 +177,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
                           robot_file=args.robot_file, allow_untracked=args.allow_untracked,
                           progress=_progress(args), options=options, blend=blend,
                           canvas=canvas, video=args.video, report=not args.no_report,
-                          live=args.live, tracker_time_offset=args.tracker_time_offset)
+                          live=args.live, tracker_time_offset=args.tracker_time_offset,
+                          stop_on_unreadable=args.stop_on_unreadable)
     _say_summary(args, summary)
     return 0
 
@@ -752,6 +753,11 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--allow-untracked", action="store_true",
                      help="flag frames outside the tracker's (or the robot's) time span "
                           "instead of failing (implied by --live)")
+    run.add_argument("--stop-on-unreadable", action="store_true",
+                     help="fail at a frame that cannot be read (a damaged PNG, an undecodable "
+                          "video frame); by default it is taken as a frame without visual "
+                          "content, flagged (report.json unreadable_frames, a warning) and left "
+                          "out of the mosaic")
     run.add_argument("--live", action="store_true",
                      help="lba-emt / kalman-robot: replay the recording as a live source on this "
                           "machine (frames at their timestamps with the newest tracker/robot "

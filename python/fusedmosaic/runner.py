@@ -24,6 +24,9 @@ NEEDS_TRACKING = {"ba-emt", "lba-emt", "emt"}
 NEEDS_CAMERA_MATRIX = {"ba", "ba-emt", "lba-emt", "emt"}
 NEEDS_ROBOT = {"robot", "kalman-robot"}
 NEEDS_PIXEL_SIZE = {"ncc", "robot", "kalman-robot"}
+# Methods whose estimation reads no image: the frames are read once before compositing, so
+# that unreadable ones are known (and left out) before the mosaic is drawn.
+READS_NO_IMAGE = {"robot"}
 
 
 def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
@@ -32,7 +35,7 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
                 progress: bool = True, blend=None, options=None, canvas=None,
                 video: str | Path | None = None, report: bool = True, live: bool = False,
                 result: methods.MethodResult | None = None,
-                tracker_time_offset: float = 0.0) -> str:
+                tracker_time_offset: float = 0.0, stop_on_unreadable: bool = False) -> str:
     """Runs `method` on a dataset folder and writes the output contract into `out`.
 
     blend: a blend name ("linear", "multiband", "average", "last") or a
@@ -51,6 +54,11 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
         video's own, else 25; io.read_dataset).
     tracker_time_offset: s, the tracker's clock ahead of the video's (io.read_dataset):
         calibrate's calibration.json "tracker_time_offset" / "applied_s".
+    stop_on_unreadable: a frame that cannot be read (a damaged PNG, an undecodable video
+        frame) stops the run with ValueError naming it. By default it is a frame without
+        visual content (read as all zero: the pose methods place it from the tracker and
+        motion priors, the translation methods from the robot, or leave it unplaced), flagged
+        in report.json "unreadable_frames" and a warning, and left out of the mosaic.
     Returns a short summary for the terminal."""
     from fusedmosaic.evaluation.provenance import dataset_fingerprint
     from fusedmosaic.io import read_dataset
@@ -85,7 +93,8 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
                            allow_untracked=allow_untracked or live,
                            tracker_time_offset=tracker_time_offset,
                            strict_tracking=method in NEEDS_TRACKING,
-                           strict_robot=method in NEEDS_ROBOT)
+                           strict_robot=method in NEEDS_ROBOT,
+                           blank_unreadable=not stop_on_unreadable)
     if dataset.ignored:
         warnings.warn(f"{'; '.join(dataset.ignored.values())} -- left out: method {method!r} "
                       f"does not use {'it' if len(dataset.ignored) == 1 else 'them'}",
@@ -122,6 +131,10 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
                       replaces=older_run_outputs(out)) as w:
         result = run_method(dataset, progress=progress, options=options)
         add_streamed_checks(result, dataset, method, options)
+        if method in READS_NO_IMAGE and not stop_on_unreadable:
+            for k in range(len(dataset.frames)):
+                dataset.frames[k]
+        unreadable = flag_unreadable_frames(result, dataset)
         timings.update(result.timings)
         G = result.homographies
         placed = np.isfinite(G).all(axis=(1, 2))
@@ -142,6 +155,8 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
         }
         if dataset.ignored:  # files present but not usable, left out (the method does not use them)
             report_json["inputs_ignored"] = dict(dataset.ignored)
+        if unreadable:
+            report_json["unreadable_frames"] = unreadable
         if dataset.frames.bits_in_use is not None:  # 16-bit frames, converted with one scale
             report_json["frame_bits_in_use"] = dataset.frames.bits_in_use
         if dataset.ground_truth is not None:
@@ -175,6 +190,32 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
         report_json["outputs"] = sorted({*w.written(), "report.json"})
         w.write_json("report.json", report_json)
     return _summary(method, G, out, report_json, outputs, report)
+
+
+UNREADABLE_STATUS = "unplaced: its image cannot be read"
+
+
+def flag_unreadable_frames(result: methods.MethodResult, dataset) -> dict[str, str]:
+    """Frames whose image could not be read (read as all zero, Dataset.frames.unreadable): a
+    warning in the result's details counting and naming them, the status of those the method
+    could not place says why (it would blame the featureless image), and {frame id: message}
+    for report.json (empty when every frame was read). compose_outputs leaves them out."""
+    found = dict(sorted(dataset.frames.unreadable.items()))
+    if not found:
+        return {}
+    ids = dataset.frame_ids
+    for k in found:
+        if result.status[k].startswith("unplaced"):
+            result.status[k] = UNREADABLE_STATUS
+    placed = sum(not result.status[k].startswith("unplaced") for k in found)
+    listed = ", ".join(str(int(ids[k])) for k in list(found)[:10])
+    more = f", ... ({len(found) - 10} more)" if len(found) > 10 else ""
+    result.details["warnings"] = [
+        f"{len(found)} of {len(ids)} frames could not be read (frames {listed}{more}; first: "
+        f"{next(iter(found.values()))}): taken as frames without visual content, {placed} "
+        "placed from the priors, left out of the mosaic (report.json unreadable_frames)",
+        *result.details.get("warnings", [])]
+    return {str(int(ids[k])): message for k, message in found.items()}
 
 
 def playback_rate(timestamps: np.ndarray) -> float:
@@ -289,8 +330,12 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
     # the frames chained only to them) can lie hundreds of px off: not pasted into the mosaic
     # or the video (homographies.csv still has them, flagged in frame_status).
     dead = np.array([s == "dead-reckoned" for s in result.status], dtype=bool)
-    if dead.any():
-        G = np.where(dead[:, None, None], np.nan, G)
+    # Frames whose image could not be read are placed (from the priors) but have nothing to
+    # show: their all-zero stand-in would paint a black hole into the mosaic.
+    unreadable = np.zeros(len(G), dtype=bool)
+    unreadable[list(dataset.frames.unreadable)] = True
+    if (dead | unreadable).any():
+        G = np.where((dead | unreadable)[:, None, None], np.nan, G)
     if blend is None:
         blend = BlendOptions(result.blend)
     elif isinstance(blend, str):
@@ -346,7 +391,9 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
         "frames_shown": int(plan.use.sum()),
         "skipped_frames": {str(int(ids[k])): why for k, why in sorted(
             {**plan.skipped, **{int(k): "dead-reckoned (no anchor): not composed"
-                                for k in np.flatnonzero(dead)}}.items())},
+                                for k in np.flatnonzero(dead)},
+             **{int(k): "image unreadable: not composed"
+                for k in np.flatnonzero(unreadable)}}.items())},
     }
     if gains is not None:
         info["gains"] = gains.tolist()

@@ -57,6 +57,7 @@ readable is read and checked before the board search):
 from __future__ import annotations
 
 import time
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -817,7 +818,9 @@ def calibrate_recording(
         raise ValueError(f"{root}: recording folder not found")
     t_start = time.perf_counter()
     given = read_camera_yaml(root / "camera.yaml") if (root / "camera.yaml").exists() else None
-    frames = FrameSource.open(root, expected_size=None if given is None else given.size)
+    # a damaged frame is one without the board (counted in the report), not the end of it
+    frames = FrameSource.open(root, expected_size=None if given is None else given.size,
+                              blank_unreadable=True)
     first = frames[0]
     size = (first.shape[1], first.shape[0])
     if given is None:  # every frame the size of the first
@@ -846,6 +849,16 @@ def calibrate_recording(
     result.report = {"recording": str(root.resolve()), **result.report,
                      "frames": len(frames), "frame_times": frame_times,
                      "frames_searched": int(tried.size)}
+    if frames.unreadable:
+        ids = [int(frame_ids[k]) for k in sorted(frames.unreadable)]
+        result.report["unreadable_frames"] = {
+            str(i): frames.unreadable[k] for i, k in zip(ids, sorted(frames.unreadable),
+                                                         strict=True)}
+        warnings.warn(f"{len(ids)} of the {tried.size} frames searched could not be read "
+                      f"(frames {', '.join(map(str, ids[:10]))}{', ...' if len(ids) > 10 else ''}"
+                      f"; first: {frames.unreadable[min(frames.unreadable)]}): searched as "
+                      "frames without the board (calibration.json unreadable_frames)",
+                      stacklevel=2)
     timings = result.report.setdefault("timings_s", {})
     timings["board_search"] = t_detect
     timings["total"] = time.perf_counter() - t_start

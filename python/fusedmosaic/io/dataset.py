@@ -109,6 +109,7 @@ def read_dataset(
     tracker_time_offset: float = 0.0,
     strict_tracking: bool = True,
     strict_robot: bool = True,
+    blank_unreadable: bool = False,
 ) -> Dataset:
     """Read and check a dataset folder. Images are not loaded (only the first, to check its size).
 
@@ -131,6 +132,9 @@ def read_dataset(
         does not use it: such a file is left out (Dataset.tracking / .robot None) and the
         reason recorded in Dataset.ignored; a usable one is still read (reports plot it), its
         frames outside the samples' time span flagged invalid.
+    blank_unreadable : a frame that cannot be read (damaged PNG, undecodable video frame) is
+        read as an all-zero image and recorded in Dataset.frames.unreadable instead of raising
+        ValueError when read (FrameSource).
 
     The frame times are checked (read_frame_times): within |t| <= MAX_TIMESTAMP_S, at most
     MAX_FRAME_GAP_S apart, and MAX_FRAME_SPACING_S apart at most in the median (a video's
@@ -141,7 +145,8 @@ def read_dataset(
     if not root.is_dir():
         raise ValueError(f"{root}: dataset folder not found")
     camera = read_camera_yaml(root / "camera.yaml")
-    frames = FrameSource.open(root, expected_size=camera.size, size_source=camera.source)
+    frames = FrameSource.open(root, expected_size=camera.size, size_source=camera.source,
+                              blank_unreadable=blank_unreadable)
     frames[0]  # size check of the first image; the rest are checked as they are read
 
     frame_ids, timestamps, frame_times = read_frame_times(

@@ -89,6 +89,13 @@ class FrameSource(Sequence):
     checked against it, and every image must have the channel count and bit depth of the first
     one read (all grey or all BGR; all 8-bit or all 16-bit).
 
+    A frame that cannot be read (a PNG that is damaged or gone, a video frame that does not
+    decode) raises ValueError naming it; with ``blank_unreadable`` it is read as an all-zero
+    image of the dataset's size and channels instead (no visual content: the methods place it
+    from their priors, as a black frame) and recorded in ``unreadable`` (index -> message), so
+    that a run can flag it and leave it out of the mosaic. Images of another size, channel
+    count or bit depth still raise: they are not damage but another recording's frames.
+
     16-bit frames (pCLE exports are 16-bit PNG; 16-bit grey video, e.g. FFV1) are converted to
     8 bits with ONE scale for the whole dataset, so that the mosaic does not flicker and the
     registrations' thresholds (NCC, feature detectors) see the same contrast in every frame:
@@ -112,6 +119,7 @@ class FrameSource(Sequence):
         video: Path | None = None,
         expected_size: tuple[int, int] | None = None,
         size_source: str = "camera.yaml",
+        blank_unreadable: bool = False,
     ) -> None:
         if (paths is None) == (video is None):
             raise ValueError("FrameSource: give exactly one of paths or video")
@@ -132,6 +140,9 @@ class FrameSource(Sequence):
         self._seek_limit: int | None = None  # frames from here on are reached by decoding
         self._times: np.ndarray | None = None  # presentation times (ms) from a decoding pass
         self.counted_by = "its header"  # a video's frame count: its header's, or "decoding"
+        self.blank_unreadable = blank_unreadable
+        self.unreadable: dict[int, str] = {}  # with blank_unreadable: index -> why (see above)
+        self._blank: np.ndarray | None = None  # the all-zero frame given for unreadable ones
         if self.paths is not None:
             self._length = len(self.paths)
         else:
@@ -175,6 +186,7 @@ class FrameSource(Sequence):
         *,
         expected_size: tuple[int, int] | None = None,
         size_source: str = "camera.yaml",
+        blank_unreadable: bool = False,
     ) -> FrameSource:
         """Find ``frames/*.png`` (``.PNG`` too) or a single ``video.*`` under ``dataset_root``;
         both at once are refused (which one is the recording?). Frames are in natural name order
@@ -193,14 +205,16 @@ class FrameSource(Sequence):
             if not found:
                 raise ValueError(f"{frames_dir}: no frames (*.png)")
             paths = [frames_dir / name for name in sort_frame_names(found, frames_dir)]
-            return cls(paths, expected_size=expected_size, size_source=size_source)
+            return cls(paths, expected_size=expected_size, size_source=size_source,
+                       blank_unreadable=blank_unreadable)
         if len(videos) > 1:
             raise ValueError(
                 f"{root}: several video files ({', '.join(p.name for p in videos)}), expected one"
             )
         if not videos:
             raise ValueError(f"{root}: no frames (neither frames/*.png nor a video.* file)")
-        return cls(video=videos[0], expected_size=expected_size, size_source=size_source)
+        return cls(video=videos[0], expected_size=expected_size, size_source=size_source,
+                   blank_unreadable=blank_unreadable)
 
     def __len__(self) -> int:
         return self._length
@@ -211,7 +225,11 @@ class FrameSource(Sequence):
         i = int(index) + (self._length if index < 0 else 0)
         if not 0 <= i < self._length:
             raise IndexError(f"frame index {index} out of range for {self._length} frames")
-        return self._check(*self._raw(i))
+        image, name = self._raw(i)
+        if image is None and self.blank_unreadable:
+            self.unreadable[i] = self._unreadable_message(name)  # (one store: thread-safe)
+            return self._blank_frame()
+        return self._check(image, name)
 
     def _raw(self, i: int) -> tuple[np.ndarray | None, str | Path]:
         """Frame i as stored (None if it cannot be read) and its name for messages."""
@@ -318,11 +336,29 @@ class FrameSource(Sequence):
                 if len(self._recent) > VIDEO_RECENT_FRAMES:
                     self._recent.popitem(last=False)
 
+    def _unreadable_message(self, name) -> str:
+        if self.video is not None:
+            return f"{name}: cannot read image (video truncated or corrupt?)"
+        return f"{name}: cannot read image"
+
+    def _blank_frame(self) -> np.ndarray:
+        """The all-zero frame standing for unreadable ones: the size and channels of the first
+        frame that reads (ValueError when none does)."""
+        if self._blank is None:
+            for j in range(self._length):
+                image, name = self._raw(j)
+                if image is not None:
+                    self._blank = np.zeros_like(self._check(image, name))
+                    break
+            else:
+                where = self.video if self.video is not None else self.paths[0].parent
+                raise ValueError(f"{where}: none of its {self._length} frames can be read "
+                                 f"(e.g. {self._unreadable_message(self._raw(0)[1])})")
+        return self._blank.copy()
+
     def _check(self, image: np.ndarray | None, name) -> np.ndarray:
         if image is None:
-            if self.video is not None:
-                raise ValueError(f"{name}: cannot read image (video truncated or corrupt?)")
-            raise ValueError(f"{name}: cannot read image")
+            raise ValueError(self._unreadable_message(name))
         if image.dtype not in (np.uint8, np.uint16):
             raise ValueError(f"{name}: {image.dtype} pixels; frames must be 8-bit or 16-bit "
                              "unsigned integers (e.g. PNG)")
