@@ -237,8 +237,18 @@ def test_a_run_never_deletes_the_users_files(data, tmp_path, capsys):
         assert {n: (out / n).read_text() for n in mine} == mine
     assert json.loads((out / MANIFEST).read_text())["sets"]["run"]["files"] == [
         "homographies.csv", "mosaic.png", "plane.json", "poses.csv", "report.json"]
-    # with a report, the run's own report.md replaces the user's (a name it writes), and its
-    # plots go beside the user's figure in plots/; a later --no-report run removes only those
+    # a run with a report would write report.md: the user's is refused, not replaced (audit
+    # 19); moved away, the run's report goes in and its plots beside the user's figure in
+    # plots/; a later --no-report run removes only those
+    capsys.readouterr()
+    assert main(["--quiet", "run", str(data / "feto"), "--method", "emt", "--out",
+                 str(out)]) == 2
+    assert capsys.readouterr().err == (
+        f"fusedmosaic: error: {out / 'report.md'}: exists and fusedmosaic did not write it (not "
+        f"listed in {out / MANIFEST}); it is not replaced: choose another output folder, or "
+        "move the file away\n")
+    assert {n: (out / n).read_text() for n in mine} == mine and no_temp(tmp_path)
+    (out / "report.md").unlink()
     assert main(["--quiet", "run", str(data / "feto"), "--method", "emt", "--out",
                  str(out)]) == 0
     ours = sorted(p.name for p in (out / "plots").iterdir() if p.name != "fig.png")
@@ -260,10 +270,17 @@ def test_a_foreign_report_json_deletes_nothing(data, tmp_path, capsys):
     for report in foreign:
         (out / "report.json").write_text(json.dumps(report))
         (out / MANIFEST).unlink(missing_ok=True)
-        assert run(data / "feto", out, "pairwise") == 0
+        ours = report.get("method") == "emt"  # an older fusedmosaic run's: replaced
+        capsys.readouterr()
+        assert run(data / "feto", out, "pairwise") == (0 if ours else 2)
+        if not ours:  # anyone else's report.json is refused, not replaced (audit 19)
+            err = capsys.readouterr().err  # (or the homographies.csv the emt run left)
+            assert err.startswith(f"fusedmosaic: error: {out}{os.sep}")
+            assert ": exists and fusedmosaic did not write it" in err
+            assert json.loads((out / "report.json").read_text()) == report
         assert (out / "mydata" / "a.csv").read_text() == "precious"
         assert (out / "summary.csv").read_text() == "precious"
-        assert (out / "plane.json").exists() == (report.get("method") != "emt")
+        assert (out / "plane.json").exists() == (not ours)
         (out / "plane.json").write_text("{}")
 
 

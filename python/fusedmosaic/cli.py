@@ -77,11 +77,13 @@ def _warn_low_overlap(root: Path) -> None:
     """Warns when consecutive simulated frames move by more than half their smaller side (few
     features can match): --laps is per sequence, so few --n-frames make big steps."""
     from fusedmosaic.evaluation.metrics import positions_px
-    from fusedmosaic.io import read_dataset
+    from fusedmosaic.io import read_camera_yaml, read_homographies_csv
 
-    ds = read_dataset(root)
-    w, h = ds.camera.width, ds.camera.height
-    c = positions_px(ds.ground_truth, w, h)  # frame centres in the reference grid
+    # (the ground truth and the image size only: a dataset simulated with a tracker gap at its
+    # start or end is read by run only with --allow-untracked)
+    camera = read_camera_yaml(root / "camera.yaml")
+    w, h = camera.width, camera.height
+    c = positions_px(read_homographies_csv(root / "ground_truth.csv")[1], w, h)
     if len(c) < 2:
         return
     step = float(np.median(np.linalg.norm(np.diff(c, axis=0), axis=1)))
@@ -460,7 +462,7 @@ def _format_table(results: list[dict]) -> str:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from fusedmosaic.evaluation import compare_position_errors, evaluate_output
     from fusedmosaic.evaluation.metrics import check_positions_n
-    from fusedmosaic.io.output import OutputWriter, check_output_dir
+    from fusedmosaic.io.output import OutputWriter, check_output_dir, is_under
 
     if args.positions is not None:
         check_positions_n(args.positions, "--positions")
@@ -474,6 +476,11 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if md_path == json_path:
         raise ValueError(f"--json {json_path}: the report goes to NAME.md beside NAME.json; "
                          "give a .json file name")
+    truth = Path(args.truth)
+    if truth.is_dir() and is_under(json_path.parent, truth, or_equal=True):
+        # (e.g. its video.json would be read as a second recording beside frames/)
+        raise ValueError(f"--json {json_path}: would be written inside the truth dataset "
+                         f"folder {truth}, which it would corrupt; choose a path outside it")
     try:
         check_output_dir(json_path.parent, "folder of the evaluation JSON",
                          create_parent=False)
@@ -491,13 +498,21 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         report["wilcoxon"] = []
         for r in results[1:]:
             other = np.array([np.nan if e is None else e for e in r["position_errors_um"]])
-            test = compare_position_errors(base, other)
-            report["wilcoxon"].append({"a": results[0]["output"], "b": r["output"], **test})
+            pair = {"a": results[0]["output"], "b": r["output"]}
+            both = int((np.isfinite(base) & np.isfinite(other)).sum())
+            if both < 2:  # this pair has no test; the others still do
+                pair.update(n=both, statistic=None, p_value=None, note=(
+                    f"n/a: {both} frame{'' if both == 1 else 's'} placed by both (the test "
+                    "needs at least 2)"))
+            else:
+                pair.update(compare_position_errors(base, other))
+            report["wilcoxon"].append(pair)
     loaded = None if args.no_report else _load_for_report(outs, args.truth)
     _say(args, _format_table(results))
     for w in report.get("wilcoxon", []):
         _say(args, f"Wilcoxon signed-rank {Path(w['a']).name} vs {Path(w['b']).name}: "
-                   f"p = {w['p_value']:.3g} (n = {w['n']})")
+                   + (w["note"] if w["p_value"] is None else
+                      f"p = {w['p_value']:.3g} (n = {w['n']})"))
     # json, .md and plots replace the previous evaluation of that name as one set, or not at
     # all; an evaluation of the output folder it is written into goes when that folder is run
     # again.

@@ -127,8 +127,12 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
         expects += ["report.md", "plots/"]
     if video is not None and is_under(video, out):
         expects.append(Path(video).resolve().relative_to(out.resolve()).as_posix())
+    older = older_run_outputs(out)
+    # a file of a run's name that no fusedmosaic run wrote is the user's: refused, not replaced
     with OutputWriter(out, record="run", stale_after_run=True, new_run=True, expects=expects,
-                      replaces=older_run_outputs(out)) as w:
+                      replaces=older, foreign="refuse",
+                      older=[*RUN_FILES, "plots/"] if older else []) as w:
+        w.check_ours(*(f for f in RUN_FILES if report or f != "report.md"))
         result = run_method(dataset, progress=progress, options=options)
         add_streamed_checks(result, dataset, method, options)
         if method in READS_NO_IMAGE and not stop_on_unreadable:
@@ -271,6 +275,11 @@ def check_video_destination(video: Path, out: Path, dataset_root: Path) -> None:
     if not (isinstance(earlier, str) and Path(earlier).resolve() == video.resolve()):
         raise ValueError(f"{video}: exists and no earlier run into {out} wrote it; choose another "
                          "video path, or move that file")
+
+
+# What a run may write in OUT besides plots/ and a creation video inside it.
+RUN_FILES = ("homographies.csv", "poses.csv", "plane.json", "mosaic.png", "report.json",
+             "report.md")
 
 
 def older_run_outputs(out: Path) -> list[str]:

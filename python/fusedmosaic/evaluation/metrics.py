@@ -73,7 +73,8 @@ def mosaic_error(errors: np.ndarray) -> float:
 def drift_ratio(errors: np.ndarray) -> float:
     """Mean e_j over the last quarter of frames / first quarter (frames with an e_j only; a
     quarter is max(n // 4, 1) frames). NaN when undefined (drift_note says why: a quarter
-    without a placed frame, or a first quarter whose mean e_j is 0 or inf); inf when the last
+    without a placed frame, or a first quarter whose mean e_j is 0 (up to EXACT_E_J_PX) or
+    inf); inf when the last
     quarter holds a frame placed at infinity."""
     return _drift(errors)[0]
 
@@ -82,6 +83,10 @@ def drift_note(errors: np.ndarray, frame_ids=None) -> str | None:
     """Why drift_ratio(errors) is undefined (None when it is a number), naming the quarters by
     frame_ids (default: positions 0..n-1)."""
     return _drift(errors, frame_ids)[1]
+
+
+# A mean e_j at or below this is 0 up to rounding (a reference frame written as the identity).
+EXACT_E_J_PX = 1e-9
 
 
 def _drift(errors: np.ndarray, frame_ids=None) -> tuple[float, str | None]:
@@ -105,8 +110,9 @@ def _drift(errors: np.ndarray, frame_ids=None) -> tuple[float, str | None]:
             f"({spans[0]}; {spans[1]}): drift = mean e_j of the last / of the first; none "
             f"placed in {' nor in '.join(empty)}")
     first, last = float(np.nanmean(first)), float(np.nanmean(last))
-    if first == 0.0:
+    if first <= EXACT_E_J_PX:
         # under 8 frames a quarter is the first frame alone: the reference, exact by definition
+        # (a method writes it as the identity up to rounding: 1e-14 px would give a ratio 1e13)
         why = " (with under 8 frames a quarter is one frame)" if q == 1 else ""
         return float("nan"), (f"the first quarter ({span(ids[:q])}) has mean e_j 0{why}: no "
                               "ratio to it")

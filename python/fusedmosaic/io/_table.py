@@ -84,14 +84,21 @@ def parse_numbers(path: str | Path, rows: np.ndarray, column: str, fields: np.nd
     return out
 
 
+INT64_MIN, INT64_MAX = int(np.iinfo(np.int64).min), int(np.iinfo(np.int64).max)
+
+
 def _parse(path: Path, row: int, column: str, field: str, integer: bool) -> float | int:
     if integer:
         try:
-            return int(field)
+            value = int(field)
         except ValueError:
             raise ValueError(
                 f"{path}: row {row}, column {column!r}: expected an integer, got {field!r}"
             ) from None
+        if not INT64_MIN <= value <= INT64_MAX:  # stored as int64
+            raise ValueError(f"{path}: row {row}, column {column!r}: {field!r} is out of range "
+                             f"(a 64-bit integer: {INT64_MIN}..{INT64_MAX})")
+        return value
     if not field:
         return math.nan
     try:

@@ -156,6 +156,15 @@ class OutputWriter:
         without a manifest record (older versions): used only when ``record`` has no entry in
         the manifest; those not written again are removed (a name ending in "/" as a folder).
 
+    foreign: "replace" (default): an existing file of a written name is replaced, whoever wrote
+        it (the caller checked); "refuse": one that the manifest does not record (any set) and
+        that is not in ``replaces`` nor ``older`` is a user's file: ValueError naming it, for
+        the ``expects`` names in ``__enter__`` (before the computation) and for every file in
+        the commit (before anything is moved).
+    older: names the caller recognised as an older version's outputs, besides ``replaces``
+        (used likewise only when ``record`` has no entry): replaced when written again, not
+        removed otherwise.
+
     ``__enter__`` checks up front that ``out_dir`` can be written (check_output_dir), so a bad
     OUT fails before the computation, with a ValueError.
     """
@@ -169,8 +178,15 @@ class OutputWriter:
         new_run: bool = False,
         expects: Iterable[str] = (),
         replaces: Iterable[str] = (),
+        foreign: str = "replace",
+        older: Iterable[str] = (),
     ) -> None:
+        if foreign not in ("replace", "refuse"):
+            raise ValueError(
+                f"OutputWriter: foreign must be 'replace' or 'refuse', got {foreign!r}")
         self.out_dir = Path(out_dir)
+        self.foreign = foreign
+        self.older = list(older)
         self.record = record
         self.stale_after_run = stale_after_run
         self.new_run = new_run
@@ -183,6 +199,8 @@ class OutputWriter:
         check_output_dir(self.out_dir)
         for name in self.expects:  # a user's folder named like one of our files (or reverse)
             self._check_kind(self.out_dir / name.rstrip("/"), name.endswith("/"))
+            if not name.endswith("/"):
+                self._check_ours(PurePath(name))
         if self.out_dir.is_dir():
             where, prefix = self.out_dir, TEMP_TAG
         else:
@@ -201,6 +219,29 @@ class OutputWriter:
             raise ValueError(
                 f"{target}: is a folder; the output needs a file of that name (remove or rename it)"
             )
+
+    def check_ours(self, *names: str) -> None:
+        """With foreign="refuse": ValueError when a file OUT/name exists that nobody recorded
+        as fusedmosaic's (see the class); for names the writer may write, checked before the
+        computation (the ``expects`` names are checked on entering)."""
+        for name in names:
+            self._check_ours(PurePath(name))
+
+    def _check_ours(self, relative: PurePath) -> None:
+        target = self.out_dir / relative
+        if self.foreign != "refuse" or not (target.is_file() or target.is_symlink()):
+            return
+        sets = read_manifest(self.out_dir) or {}
+        ours = {f for s in sets.values() for f in s["files"]}
+        older = [] if self.record in sets else [*self.replaces, *self.older]
+        ours.update(n for n in older if not n.endswith("/"))
+        folders = [PurePath(n.rstrip("/")) for n in older if n.endswith("/")]
+        if relative.as_posix() not in ours and not any(relative.is_relative_to(f)
+                                                       for f in folders):
+            raise ValueError(
+                f"{target}: exists and fusedmosaic did not write it (not listed in "
+                f"{self.out_dir / MANIFEST}); it is not replaced: choose another output folder, "
+                "or move the file away")
 
     def __exit__(self, exc_type, exc, tb) -> None:
         tmp, self._tmp = self._tmp, None
@@ -224,6 +265,8 @@ class OutputWriter:
                     plan(child, relative / child.name)
                 return
             self._check_kind(target, src.is_dir())
+            if not src.is_dir():
+                self._check_ours(relative)
             moves.append((src, target))
 
         for entry in sorted(tmp.iterdir()):

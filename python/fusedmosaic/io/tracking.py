@@ -415,9 +415,10 @@ def write_robot_csv(path: str | Path, samples: RobotSamples) -> None:
 
 
 def _time(t: float) -> str:
-    """Seconds readable at any magnitude: Unix times (in s or ms) keep their milliseconds
-    (1.7e+09 does not); beyond those, exponent form (not 300 digits for a time of 1e300)."""
-    return f"{t:.3f}" if 1e6 <= abs(t) < 1e15 else f"{t:.6g}"
+    """Seconds readable at any magnitude: times from 1 s to Unix times (in s or ms) keep their
+    milliseconds (1.7e+09 and 1000.2 for 1000.215 do not); beyond those, exponent form (not
+    300 digits for a time of 1e300)."""
+    return f"{t:.3f}" if 1e3 <= abs(t) < 1e15 else f"{t:.6g}"
 
 
 # Samples this many times sparser than the frames (median spacings) are taken for a unit

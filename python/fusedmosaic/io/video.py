@@ -304,11 +304,13 @@ class FrameSource(Sequence):
                 return image
             capture = self._open_capture()
             seeked = None  # the frame a seek went to, until its landing is checked
+            rewound = False  # sought frame 0 (FFmpeg may fail to go back from the end)
             if self._next < 0 or not 0 <= i - self._next <= VIDEO_READ_AHEAD:
                 start = i if self._seek_limit is None else min(i, self._seek_limit - 1)
                 if not 0 <= start <= self._next <= i:  # else decoding on from here is shorter
                     capture.set(cv2.CAP_PROP_POS_FRAMES, start)
                     self._next, seeked = start, start if start > 0 else None
+                    rewound = start == 0
             while True:
                 ok, image = capture.read()
                 if seeked is not None and (
@@ -322,6 +324,13 @@ class FrameSource(Sequence):
                     self._next, seeked = start, start if start > 0 else None
                     continue
                 seeked = None
+                if not ok and rewound and self._next == 0:
+                    # a seek back to frame 0 that does not decode (a one-frame video read
+                    # again): the capture is opened again, at the start
+                    capture.release()
+                    self._capture = None
+                    capture, rewound = self._open_capture(), False
+                    continue
                 if not ok:
                     if self._next >= i:
                         self._next = -1  # position unknown after a failed decode

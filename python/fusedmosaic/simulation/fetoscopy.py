@@ -159,6 +159,11 @@ class FetoscopyOptions:
                     "FetoscopyOptions.tracker_gap: expected [first, last] frames, "
                     f"got {self.tracker_gap}"
                 )
+            bad = [k for k in gap if not 0 <= k < self.n_frames]
+            if bad:
+                raise ValueError(
+                    f"FetoscopyOptions.tracker_gap: frame {bad[0]} outside 0..{self.n_frames - 1}"
+                )
         if self.lens_model not in LENS_MODELS:
             raise ValueError(f"FetoscopyOptions.lens_model: expected one of {LENS_MODELS}, "
                              f"got {self.lens_model!r}")
