@@ -130,3 +130,24 @@ def test_times_around_1000_s_keep_their_milliseconds():
     text = no_overlap_message("tracking.csv", "tracker", np.array([1000.215, 1000.255]),
                               999.882, 1000.2)
     assert "[999.882, 1000.200] s (the frames span [1000.215, 1000.255] s)" in text
+
+
+def test_sidecar_files_named_video_are_not_videos(tmp_path):
+    """A subtitle or metadata file beside the recording (video.srt, video.json) is not a
+    second video: the recording is read; alone, there is no video."""
+    path = tmp_path / "video.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25, (64, 48))
+    for k in range(3):
+        writer.write(np.full((48, 64, 3), 60 * k, np.uint8))
+    writer.release()
+    (tmp_path / "video.srt").write_text("1\n00:00:00,000 --> 00:00:01,000\nprobe at 3 mm\n")
+    (tmp_path / "video.json").write_text("{}")
+    frames = FrameSource.open(tmp_path)
+    assert frames.video == path and len(frames) == 3
+    path.unlink()
+    with pytest.raises(ValueError, match=r"no frames \(neither frames/\*\.png nor a video\.\* "
+                                         r"file\)"):
+        FrameSource.open(tmp_path)
+    (tmp_path / "frames").mkdir()
+    cv2.imwrite(str(tmp_path / "frames" / "0.png"), np.zeros((48, 64), np.uint8))
+    assert len(FrameSource.open(tmp_path)) == 1  # frames/ beside a sidecar: not two recordings

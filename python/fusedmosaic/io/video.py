@@ -73,6 +73,12 @@ def sort_frame_names(names: Iterable[str], folder: str | Path = "frames") -> lis
     return natural
 
 
+# Files named video.* that are a recording's sidecars (subtitles, metadata, notes), not videos.
+NOT_VIDEO_SUFFIXES = frozenset({".srt", ".vtt", ".ass", ".ssa", ".sub", ".json", ".xml", ".csv",
+                                ".txt", ".md", ".yaml", ".yml", ".log", ".nfo", ".sha256",
+                                ".md5"})
+
+
 class FrameSource(Sequence):
     """Sequence of frames read from disk on demand; no image is kept in memory (a video source
     keeps at most ``VIDEO_RECENT_FRAMES`` decoded frames it skipped over).
@@ -188,13 +194,15 @@ class FrameSource(Sequence):
         size_source: str = "camera.yaml",
         blank_unreadable: bool = False,
     ) -> FrameSource:
-        """Find ``frames/*.png`` (``.PNG`` too) or a single ``video.*`` under ``dataset_root``;
+        """Find ``frames/*.png`` (``.PNG`` too) or a single ``video.*`` under ``dataset_root``
+        (sidecar files such as video.srt or video.json, NOT_VIDEO_SUFFIXES, are not videos);
         both at once are refused (which one is the recording?). Frames are in natural name order
         (digit runs by value: ``frame_2.png`` before ``frame_10.png``); names whose decimal
         numbers make that order ambiguous are refused (see sort_frame_names)."""
         root = Path(dataset_root)
         frames_dir = root / "frames"
-        videos = sorted(p for p in root.glob("video.*") if p.is_file())
+        videos = sorted(p for p in root.glob("video.*") if p.is_file()
+                        and p.suffix.lower() not in NOT_VIDEO_SUFFIXES)
         if frames_dir.is_dir() and videos:
             raise ValueError(f"{root}: both frames/ and {videos[0].name}; a dataset holds its "
                              "frames one way: move one of them out")
