@@ -151,3 +151,43 @@ def test_sidecar_files_named_video_are_not_videos(tmp_path):
     (tmp_path / "frames").mkdir()
     cv2.imwrite(str(tmp_path / "frames" / "0.png"), np.zeros((48, 64), np.uint8))
     assert len(FrameSource.open(tmp_path)) == 1  # frames/ beside a sidecar: not two recordings
+
+
+# ------------------------------------------------------------------ audit 20 (CLI options)
+
+
+@pytest.mark.parametrize("command", [
+    ["simulate", "fetoscopy", "{out}", "--n-frames", "8", "--laps", "0.1", "--seed", "-1"],
+    ["simulate", "pcle", "{out}", "--n-frames", "8", "--width", "128", "--height", "112",
+     "--seed", "-1"],
+    ["simulate", "checkerboard", "{out}", "--seed", "-1"],
+    ["bench", "--seed", "-1"],
+])
+def test_a_negative_seed_is_named(tmp_path, capsys, command):
+    out = tmp_path / "s"
+    assert main([c.replace("{out}", str(out)) for c in command]) == 2
+    assert capsys.readouterr().err == (
+        "fusedmosaic: error: --seed: must be an integer >= 0, got -1\n")
+    assert not out.exists()
+
+
+def test_demo_needs_two_frames_and_stays_out_of_a_dataset(data, tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path / "d"), "--frames", "1"]) == 2
+    assert capsys.readouterr().err == "fusedmosaic: error: --frames must be >= 2, got 1\n"
+    assert not (tmp_path / "d").exists()
+    before = sorted(p.name for p in (data / "f6").iterdir())
+    assert main(["demo", "--out", str(data / "f6"), "--frames", "5"]) == 2
+    assert capsys.readouterr().err == (
+        f"fusedmosaic: error: {data / 'f6'}: is a dataset folder; writing the demo there would "
+        "corrupt it: choose --out outside it\n")
+    assert sorted(p.name for p in (data / "f6").iterdir()) == before
+
+
+def test_a_folder_given_for_a_file_is_named_a_folder(data, tmp_path, capsys):
+    from fusedmosaic.io import read_camera_yaml
+
+    assert main(["import", str(data / "f6"), str(tmp_path / "im")]) == 2
+    assert capsys.readouterr().err == (
+        f"fusedmosaic: error: {data / 'f6'}: is a folder; expected a file\n")
+    with pytest.raises(ValueError, match=r"f6: is a folder; expected a file$"):
+        read_camera_yaml(data / "f6")

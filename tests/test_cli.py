@@ -163,7 +163,7 @@ def test_flags_are_named_in_errors(datasets, tmp_path, capsys):
     assert main(["simulate", "fetoscopy", str(tmp_path / "s"), "--n-frames", "0"]) == 2
     assert "fusedmosaic: error: --n-frames: must be >= 1, got 0" in capsys.readouterr().err
     assert main(["demo", "--out", str(tmp_path / "s"), "--n-frames", "0"]) == 2
-    assert "fusedmosaic: error: --frames must be >= 1, got 0" in capsys.readouterr().err
+    assert "fusedmosaic: error: --frames must be >= 2, got 0" in capsys.readouterr().err
     feto = datasets / "feto"
     for extra, message in ((["--border", "-1"], "--border must be >= 0 (pixels), got -1.0"),
                            (["--bands", "0"], "--bands must be in 1..10, got 0"),

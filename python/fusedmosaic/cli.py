@@ -611,8 +611,11 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from fusedmosaic.io.output import OutputWriter, check_output_dir
     from fusedmosaic.runner import frames_to_compose, run_dataset
 
-    if args.frames < 1:
-        raise ValueError(f"--frames must be >= 1, got {args.frames}")
+    if args.frames < 2:  # a mosaic needs two frames (lba-emt registers a pair to start)
+        raise ValueError(f"--frames must be >= 2, got {args.frames}")
+    if (Path(args.out) / "camera.yaml").is_file() or (Path(args.out) / "frames").is_dir():
+        raise ValueError(f"{args.out}: is a dataset folder; writing the demo there would corrupt "
+                         "it: choose --out outside it")
     root = check_output_dir(args.out, "demo folder")
     data = root / "dataset"
     t0 = time.perf_counter()

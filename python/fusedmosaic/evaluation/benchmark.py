@@ -72,6 +72,8 @@ class BenchOptions:
             raise ValueError(f"detector: must be 'orb' or 'sift', got {self.detector!r}")
         if not isinstance(self.pcle_frames, int) or self.pcle_frames < 10:
             raise ValueError(f"pcle_frames: must be >= 10, got {self.pcle_frames}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed: must be an integer >= 0, got {self.seed}")
 
 
 def machine_info() -> dict:

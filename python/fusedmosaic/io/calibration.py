@@ -364,6 +364,8 @@ def read_camera_yaml(path: str | Path) -> Camera:
     Every problem, including an OpenCV parse error, is a ValueError naming the file (and the
     key, or the line of a parse error)."""
     path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{path}: is a folder; expected a file")
     if not path.is_file():
         raise ValueError(f"{path}: file not found")
     data = path.read_bytes()

@@ -312,6 +312,8 @@ def read_plus_sequence(path: str | Path) -> PlusSequence:
     (``CompressedData = True``), UltrasoundImageOrientation MF, MN, UF, UN (converted to MF).
     Every problem is a ValueError naming the file (and the field, line or frame)."""
     path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{path}: is a folder; expected a file")
     if not path.is_file():
         raise ValueError(f"{path}: file not found")
     header, frame_fields, header_end = _read_header(path)

@@ -45,6 +45,9 @@ def check_signs(options, *, positive=(), non_negative=()) -> None:
     not >= 0."""
     check_finite(options)
     cls = type(options).__name__
+    seed = getattr(options, "seed", 0)  # numpy's seeds are integers >= 0
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
+        raise ValueError(f"{cls}.seed: must be an integer >= 0, got {seed}")
     for names, ok, rule in ((positive, lambda v: v > 0, "> 0"),
                             (non_negative, lambda v: v >= 0, ">= 0")):
         for name in names:
