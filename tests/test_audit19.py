@@ -191,3 +191,24 @@ def test_a_folder_given_for_a_file_is_named_a_folder(data, tmp_path, capsys):
         f"fusedmosaic: error: {data / 'f6'}: is a folder; expected a file\n")
     with pytest.raises(ValueError, match=r"f6: is a folder; expected a file$"):
         read_camera_yaml(data / "f6")
+
+
+@pytest.mark.parametrize("option, message", [
+    (["--laps", "1e9"], "PcleOptions: the path is 3.14e+12 µm long (--radius-um x --laps); at "
+                        "most 1e+07 µm"),
+    (["--speed-um-per-frame", "1e12"], "PcleOptions: the frames span up to 7e+12 µm "
+                                       "(--radius-um x --laps, and --n-frames x "
+                                       "--speed-um-per-frame beyond the path): a texture of"),
+    (["--cell-size-um", "1e-9"], "--cell-size-um: must be at least a pixel (1.0 µm), got 1e-09"),
+    (["--fibre-spacing-px", "1e-6"], "--fibre-spacing-px: must be >= 1, got 1e-06"),
+    (["--noise-floor", "2"], "--noise-floor: must be in 0..1, got 2.0"),
+    (["--fibre-contrast", "5"], "--fibre-contrast: must be in 0..1, got 5.0"),
+])
+def test_pcle_sizes_and_fractions_refused_before_allocating(tmp_path, capsys, option, message):
+    """Before, these allocated the path or the texture first (a MemoryError traceback at
+    tens of GiB) or simulated clipped frames without a word."""
+    out = tmp_path / "p"
+    assert main(["simulate", "pcle", str(out), "--n-frames", "8", "--width", "128", "--height",
+                 "112", *option]) == 2
+    assert capsys.readouterr().err.startswith(f"fusedmosaic: error: {message}")
+    assert not out.exists()

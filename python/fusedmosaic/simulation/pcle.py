@@ -46,6 +46,9 @@ from fusedmosaic.simulation._options import option as _opt
 from fusedmosaic.simulation.textures import cell_texture, fibre_bundle_pattern
 
 TRAJECTORIES = ("circle", "spiral")
+MAX_PATH_UM = 1e7  # 10 m of probe path (1e7 polyline points)
+MAX_TEXTURE_PX = 60e6  # the tissue texture covering every field of view
+TEXTURE_MARGIN_PX = 24.0  # texture beyond the outermost fields of view
 
 
 @dataclass
@@ -133,6 +136,38 @@ class PcleOptions:
                 f"PcleOptions.spiral_inner_um: must be below radius_um "
                 f"({self.radius_um}), got {self.spiral_inner_um}"
             )
+        for name in ("noise_floor", "fibre_contrast"):  # fractions of the signal
+            if getattr(self, name) > 1:
+                raise ValueError(f"PcleOptions.{name}: must be in 0..1, got {getattr(self, name)}")
+        if self.cell_size_um / self.pixel_size_um < 1:
+            raise ValueError(f"PcleOptions.cell_size_um: must be at least a pixel "
+                             f"({self.pixel_size_um} µm), got {self.cell_size_um}")
+        if self.fibre_spacing_px < 1:
+            raise ValueError(f"PcleOptions.fibre_spacing_px: must be >= 1, got "
+                             f"{self.fibre_spacing_px}")
+        # Sizes checked before anything is allocated (the path is a polyline of 1 µm steps).
+        if self.trajectory == "circle":
+            length, extent, what = 2 * np.pi * self.radius_um * self.laps, 2 * self.radius_um, (
+                "PcleOptions.radius_um x PcleOptions.laps")
+        else:
+            length = (np.pi * self.spiral_turns * (self.spiral_inner_um + self.radius_um)
+                      + 2 * self.line_um)
+            extent, what = 2 * (self.radius_um + self.line_um), (
+                "PcleOptions.radius_um, PcleOptions.spiral_turns, PcleOptions.line_um")
+        if length > MAX_PATH_UM:
+            raise ValueError(f"PcleOptions: the path is {length:.3g} µm long ({what}); at most "
+                             f"{MAX_PATH_UM:.0e} µm")
+        travel = self.speed_um_per_frame * max(self.n_frames - 1, 0)
+        extent += max(travel - length, 0.0)  # frames beyond the path's end go straight on
+        if travel > length:
+            what += (", and PcleOptions.n_frames x PcleOptions.speed_um_per_frame beyond the "
+                     "path")
+        side = extent / self.pixel_size_um + 2 * TEXTURE_MARGIN_PX
+        if (side + self.width) * (side + self.height) > MAX_TEXTURE_PX:
+            raise ValueError(
+                f"PcleOptions: the frames span up to {extent:.3g} µm ({what}): a texture of "
+                f"~{side + self.width:.3g}x{side + self.height:.3g} px at "
+                f"{self.pixel_size_um} µm/px, at most {MAX_TEXTURE_PX:.0e} px")
 
 
 # --------------------------------------------------------------------------------------------
@@ -377,11 +412,11 @@ def generate_pcle(options: PcleOptions | None = None) -> PcleScene:
     )
 
     # Tissue texture covering every field of view with a margin.
-    margin = 24.0
+    margin = TEXTURE_MARGIN_PX
     lo = image_xy.min(0) / o.pixel_size_um - margin
     hi = image_xy.max(0) / o.pixel_size_um + np.array([o.width, o.height]) + margin
     tex_w, tex_h = (int(np.ceil(v)) for v in hi - lo)
-    if tex_w * tex_h > 60e6:
+    if tex_w * tex_h > MAX_TEXTURE_PX:
         raise ValueError(
             f"PcleOptions: the path needs a {tex_w}x{tex_h} px texture; reduce "
             "radius_um/laps/spiral_turns or raise pixel_size_um"
