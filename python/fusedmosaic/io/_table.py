@@ -84,6 +84,14 @@ def parse_numbers(path: str | Path, rows: np.ndarray, column: str, fields: np.nd
     return out
 
 
+def require_file(path: Path) -> None:
+    """ValueError naming ``path`` when it is a folder or does not exist (an input file)."""
+    if path.is_dir():
+        raise ValueError(f"{path}: is a folder; expected a file")
+    if not path.is_file():
+        raise ValueError(f"{path}: file not found")
+
+
 INT64_MIN, INT64_MAX = int(np.iinfo(np.int64).min), int(np.iinfo(np.int64).max)
 
 

@@ -11,6 +11,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from fusedmosaic.io._table import require_file
+
 DISTORTION_COUNTS = (4, 5, 8, 12, 14)  # lengths cv2.undistortPoints accepts
 # Lens models: "pinhole", OpenCV's standard model (a perspective projection with radial and
 # tangential distortion, 4-14 coefficients: cv2.calibrateCamera / undistortPoints); "fisheye",
@@ -364,10 +366,7 @@ def read_camera_yaml(path: str | Path) -> Camera:
     Every problem, including an OpenCV parse error, is a ValueError naming the file (and the
     key, or the line of a parse error)."""
     path = Path(path)
-    if path.is_dir():
-        raise ValueError(f"{path}: is a folder; expected a file")
-    if not path.is_file():
-        raise ValueError(f"{path}: file not found")
+    require_file(path)
     data = path.read_bytes()
     if data.startswith((b"\xff\xfe", b"\xfe\xff")):
         raise ValueError(f"{path}: UTF-16 text (a byte order mark FF FE / FE FF); save it as "

@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from fusedmosaic.io._table import require_file
 from fusedmosaic.io.calibration import Camera, read_camera_yaml
 from fusedmosaic.io.dataset import created_mode, write_dataset
 from fusedmosaic.io.tracking import (
@@ -312,10 +313,7 @@ def read_plus_sequence(path: str | Path) -> PlusSequence:
     (``CompressedData = True``), UltrasoundImageOrientation MF, MN, UF, UN (converted to MF).
     Every problem is a ValueError naming the file (and the field, line or frame)."""
     path = Path(path)
-    if path.is_dir():
-        raise ValueError(f"{path}: is a folder; expected a file")
-    if not path.is_file():
-        raise ValueError(f"{path}: file not found")
+    require_file(path)
     header, frame_fields, header_end = _read_header(path)
 
     def value(key: str, required: bool = True) -> str | None:
