@@ -33,11 +33,13 @@ install: deps venv
 wheel-check: install
 	cd /tmp && $(CURDIR)/$(PY) -c "import fusedmosaic._core as c; print('fusedmosaic._core', c.__version__, 'from', c.__file__)"
 
-# Serially: on 2 workers (pytest-xdist, `-n 2 --dist loadfile`) the suite takes ~9 instead of
-# ~13 min, but the real-time live replays (run --live) then drop frames under the other
-# worker's load and a start-up can fail (measured once in CI: test_live's late tracker).
+# The test files on 2 workers (pytest-xdist; a file's tests stay together, so its module
+# fixtures are computed once), then alone the tests marked realtime (live replays that measure
+# their processing time, sockets: beside another worker's load they drop frames, and once a
+# start-up failed in CI). The same tests serially: python -m pytest -q.
 test: wheel-check
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadfile -m "not realtime"
+	$(PY) -m pytest -q -m realtime
 
 demo: install
 	$(VENV)/bin/fusedmosaic demo --out demo_out

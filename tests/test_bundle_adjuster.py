@@ -341,6 +341,7 @@ def test_bad_camera_matrix():
 # ---------------------------------------------------------------- GIL
 
 
+@pytest.mark.realtime  # counts a thread's ticks during a solve
 def test_solve_releases_the_gil(scene):
     """Another Python thread keeps running while a solve is in progress."""
     ba = build(

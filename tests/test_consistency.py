@@ -204,6 +204,7 @@ def test_robot_in_other_units_or_axes_is_reported(pcle, work):
         assert all(w.startswith(str(data / "robot.csv")) for w in r.details["warnings"])
 
 
+@pytest.mark.realtime  # run --live: processing time measured
 def test_robot_check_of_a_streamed_run(pcle, work, capsys):
     """kalman-robot replayed live (`run --live`, the runner's path for `live` too) gets the
     robot check the offline method has, on the processed frames."""
@@ -233,6 +234,7 @@ def test_robot_check_of_a_streamed_run(pcle, work, capsys):
 # -- run / CLI: the warnings reach the terminal, report.json and report.md ------------------
 
 
+@pytest.mark.realtime  # run --live: processing time measured
 def test_run_prints_and_records_the_warnings(base, work, capsys):
     from fusedmosaic.cli import main
 

@@ -22,6 +22,9 @@ from fusedmosaic.io import read_dataset, read_poses_csv
 from fusedmosaic.registration.features import FeatureOptions
 from fusedmosaic.simulation import FetoscopyOptions, PcleOptions, simulate_fetoscopy, simulate_pcle
 
+# run --live and live sessions measure their processing time: run alone (make test)
+pytestmark = pytest.mark.realtime
+
 PCLE = PcleOptions(width=192, height=160, n_frames=14, speed_um_per_frame=12.0, radius_um=150.0,
                    contact_loss=False, stick_slip=False)
 

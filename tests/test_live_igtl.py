@@ -43,6 +43,9 @@ from fusedmosaic.io.recorder import DatasetRecorder, recover_unfinished_recordin
 from fusedmosaic.io.tracking import interpolate_camera_poses
 from fusedmosaic.simulation import FetoscopyOptions, simulate_fetoscopy
 
+# sockets and a sender on the wall clock: run alone (make test), not beside another worker
+pytestmark = pytest.mark.realtime
+
 N = 60
 
 
