@@ -166,7 +166,8 @@ def test_flags_are_named_in_errors(datasets, tmp_path, capsys):
     assert "fusedmosaic: error: --frames must be >= 2, got 0" in capsys.readouterr().err
     feto = datasets / "feto"
     for extra, message in ((["--border", "-1"], "--border must be >= 0 (pixels), got -1.0"),
-                           (["--bands", "0"], "--bands must be in 1..10, got 0"),
+                           (["--blend", "multiband", "--bands", "0"],
+                            "--bands must be in 1..10, got 0"),
                            (["--tile-size", "3"], "--tile-size must be >= 64 (pixels), got 3"),
                            (["--max-canvas-pixels", "0"], "--max-canvas-pixels must be > 0")):
         assert main(["run", str(feto), "--method", "emt", "--out", str(tmp_path / "o"),

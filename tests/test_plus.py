@@ -610,3 +610,11 @@ def test_import_with_tracker_time_offset(tmp_path, capsys):
     assert "--tracker-time-offset: expected seconds within +-10, got nan" in \
         capsys.readouterr().err
     assert not (tmp_path / "c").exists()
+    # an offset that moves every sample away from the frames is an error (it was a note on a
+    # dataset no tracked method could read), naming the shift and both spans
+    assert main(["import", str(seq), str(tmp_path / "d"), "--tracker-time-offset", "5"]) == 2
+    err = capsys.readouterr().err
+    assert "rec.mha: SensorToTrackerTransform shifted by -5 s (tracker time offset 5 s) " \
+           "spans [-5, -4.88] s, outside every frame's time ([0, 0.12] s): no frame would be " \
+           "tracked; check the offset (calibrate measures it)" in err, err
+    assert not (tmp_path / "d").exists()

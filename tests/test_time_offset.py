@@ -57,8 +57,9 @@ def test_offset_flag_errors(clocks, tmp_path, capsys):
     synced, _ = clocks
     assert main(["run", str(synced), "--method", "pairwise", "--out", str(tmp_path / "a"),
                  "--tracker-time-offset", "0.02"]) == 2
-    assert "--tracker-time-offset applies to the methods that use tracking.csv (ba-emt, emt, " \
-           "lba-emt), not pairwise" in capsys.readouterr().err
+    assert "--tracker-time-offset applies to the methods that use tracking.csv or the robot " \
+           "file (ba-emt, emt, kalman-robot, lba-emt, robot), not pairwise" in \
+        capsys.readouterr().err
     assert main(["run", str(synced), "--method", "emt", "--out", str(tmp_path / "b"),
                  "--tracker-time-offset", "20"]) == 2
     assert "--tracker-time-offset: expected seconds within +-10, got 20.0" in \

@@ -123,13 +123,20 @@ def _cmd_run(args: argparse.Namespace) -> int:
     overrides: dict = {}
     if args.tracker_time_offset:
         from fusedmosaic.io.tracking import check_time_offset
-        from fusedmosaic.runner import NEEDS_TRACKING
+        from fusedmosaic.runner import NEEDS_ROBOT, NEEDS_TRACKING
 
         check_time_offset(args.tracker_time_offset, "--tracker-time-offset")
-        if args.method not in NEEDS_TRACKING:
+        if args.method not in NEEDS_TRACKING | NEEDS_ROBOT:
             raise ValueError(f"--tracker-time-offset applies to the methods that use "
-                             f"tracking.csv ({', '.join(sorted(NEEDS_TRACKING))}), not "
+                             f"tracking.csv or the robot file "
+                             f"({', '.join(sorted(NEEDS_TRACKING | NEEDS_ROBOT))}), not "
                              f"{args.method}")
+    if args.robot_file is not None:
+        from fusedmosaic.runner import NEEDS_ROBOT
+
+        if args.method not in NEEDS_ROBOT:
+            raise ValueError(f"--robot-file applies to the methods that use the robot "
+                             f"({', '.join(sorted(NEEDS_ROBOT))}), not {args.method}")
     if args.motion_sigma_from:
         if args.method not in ("ba-emt", "lba-emt"):
             raise ValueError(f"--motion-sigma-from applies to ba-emt and lba-emt, not "
@@ -176,7 +183,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     blend, canvas = _blend_options(args), _canvas_options(args)
     check_compositing_options(blend, canvas, names=COMPOSITING_FLAGS)  # errors name the flags
     summary = run_dataset(args.dataset, args.method, args.out, fps=args.fps,
-                          robot_file=args.robot_file, allow_untracked=args.allow_untracked,
+                          robot_file=args.robot_file or "robot.csv",
+                          allow_untracked=args.allow_untracked,
                           progress=_progress(args), options=options, blend=blend,
                           canvas=canvas, video=args.video, report=not args.no_report,
                           live=args.live, tracker_time_offset=args.tracker_time_offset,
@@ -356,6 +364,9 @@ def _cmd_live(args: argparse.Namespace) -> int:
                       names={"max_frames": "--max-frames", "duration_s": "--duration",
                              "frame_timeout_s": "--frame-timeout"})
     check_time_offset(args.tracker_time_offset, "--tracker-time-offset")
+    if args.view_interval is not None and args.preview is None and args.serve_mosaic is None:
+        raise ValueError("--view-interval applies to --preview / --serve-mosaic (the mosaic as "
+                         "it grows); neither is given")
     blend, canvas = _blend_options(args), _canvas_options(args)
     check_compositing_options(blend, canvas, names=COMPOSITING_FLAGS)
     _say(args, f"live: connecting to {args.address} (Ctrl-C ends the session and writes the "
@@ -377,7 +388,9 @@ def _cmd_live(args: argparse.Namespace) -> int:
                            report=not args.no_report, method=args.method,
                            tracker_time_offset=args.tracker_time_offset,
                            preview=args.preview, serve_mosaic=args.serve_mosaic,
-                           view_interval_s=args.view_interval, say=lambda text: _say(args, text))
+                           view_interval_s=(1.0 if args.view_interval is None
+                                            else args.view_interval),
+                           say=lambda text: _say(args, text))
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
@@ -415,6 +428,10 @@ def _blend_options(args: argparse.Namespace):
     preference); None when no compositing flag is given."""
     from fusedmosaic.compositing import BlendOptions
 
+    if args.bands is not None and args.blend != "multiband":
+        what = "the method's own blending" if args.blend is None else f"--blend {args.blend}"
+        raise ValueError(f"--bands sets the pyramid levels of --blend multiband; it does not "
+                         f"apply to {what}")
     if (args.blend is None and not args.border and args.bands is None
             and not args.gain_compensation):
         return None
@@ -758,10 +775,12 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--fps", type=float, default=None,
                      help="frame rate giving the frame times when the dataset has no frames.csv "
                           "(default: the video's own frame rate, else 25)")
-    run.add_argument("--robot-file", default="robot.csv",
-                     help="robot positions file inside the dataset (default robot.csv)")
+    run.add_argument("--robot-file", default=None,
+                     help="robot / kalman-robot: robot positions file inside the dataset "
+                          "(default robot.csv)")
     _add_tracker_time_offset_flag(
-        run, "the sample for the frame at time t is tracking.csv's at t + S")
+        run, "the sample for the frame at time t is tracking.csv's (robot / kalman-robot: the "
+             "robot file's) at t + S")
     run.add_argument("--pair-selection", choices=["all", "emt-guided", "window"],
                      help="ba / ba-emt / emt: which image pairs to match (default: all for ba and "
                           "ba-emt as in the paper, emt-guided for emt)")
@@ -898,7 +917,7 @@ def build_parser() -> argparse.ArgumentParser:
                       help="send the mosaic as OpenIGTLink IMAGE 'Mosaic' to every client "
                            "connecting here (e.g. 3D Slicer's OpenIGTLinkIF as a client; PORT "
                            "alone listens on 127.0.0.1, 0.0.0.0:PORT on every interface)")
-    view.add_argument("--view-interval", type=float, default=1.0, metavar="S",
+    view.add_argument("--view-interval", type=float, default=None, metavar="S",
                       help="seconds between updates of --preview / --serve-mosaic (default 1)")
     _add_lba_flags(live)
     _add_feature_flags(live, "features")

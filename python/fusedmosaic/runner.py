@@ -53,7 +53,9 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
     fps: the frame rate giving the frame times of a dataset without frames.csv (None: the
         video's own, else 25; io.read_dataset).
     tracker_time_offset: s, the tracker's clock ahead of the video's (io.read_dataset):
-        calibrate's calibration.json "tracker_time_offset" / "applied_s".
+        calibrate's calibration.json "tracker_time_offset" / "applied_s"; for the methods that
+        use the robot (NEEDS_ROBOT), the robot's clock (read_dataset's robot_time_offset), as
+        run_igtl takes it for the sample stream.
     stop_on_unreadable: a frame that cannot be read (a damaged PNG, an undecodable video
         frame) stops the run with ValueError naming it. By default it is a frame without
         visual content (read as all zero: the pose methods place it from the tracker and
@@ -91,7 +93,10 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
     # unusable one is left out with a warning (dataset.ignored says why)
     dataset = read_dataset(dataset_root, fps=fps, robot_file=robot_file,
                            allow_untracked=allow_untracked or live,
-                           tracker_time_offset=tracker_time_offset,
+                           tracker_time_offset=(0.0 if method in NEEDS_ROBOT
+                                                else tracker_time_offset),
+                           robot_time_offset=(tracker_time_offset if method in NEEDS_ROBOT
+                                              else 0.0),
                            strict_tracking=method in NEEDS_TRACKING,
                            strict_robot=method in NEEDS_ROBOT,
                            blank_unreadable=not stop_on_unreadable)
@@ -107,6 +112,7 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
             ts = dataset.tracking.timestamps[dataset.tracking.valid]
             raise ValueError(no_overlap_message(str(dataset.root / "tracking.csv"), "tracker",
                                                 dataset.timestamps, ts[0], ts[-1]))
+    check_compositing_options(blend, canvas, camera=dataset.camera)  # the border fits its frames
     if method in NEEDS_CAMERA_MATRIX:
         dataset.camera.require_camera_matrix(method)
     if method in NEEDS_ROBOT and result is None:
@@ -231,15 +237,21 @@ def playback_rate(timestamps: np.ndarray) -> float:
     return float(np.clip(1.0 / np.median(steps), 1.0, 60.0))
 
 
-def check_compositing_options(blend, canvas, names: dict[str, str] | None = None) -> None:
+def check_compositing_options(blend, canvas, names: dict[str, str] | None = None,
+                              camera=None) -> None:
     """Raises ValueError for blend / canvas options compose_outputs cannot use; `names` maps
-    option fields to what the messages call them (the CLI's flags)."""
+    option fields to what the messages call them (the CLI's flags). With the `camera`, also a
+    frame border that would cover its whole field of view."""
     from fusedmosaic.compositing import BlendOptions, CanvasOptions
+    from fusedmosaic.compositing.blending import check_border, edge_distance, fov_mask_bool
 
     if isinstance(blend, str):
         BlendOptions(blend).validate(names)
     elif isinstance(blend, BlendOptions):  # its blend None: the method's, any is fine
         dataclasses.replace(blend, blend=blend.blend or "linear").validate(names)
+        if camera is not None and blend.border_px > 0:
+            mask = fov_mask_bool(camera.fov_mask(), camera.width, camera.height)
+            check_border(blend.border_px, edge_distance(mask), "border")
     elif blend is not None:
         raise ValueError(f"blend must be a blend name or BlendOptions, got {type(blend).__name__}")
     (canvas or CanvasOptions()).validate(names)
@@ -547,8 +559,6 @@ def _live_view(camera, method: str, record: Path, preview, serve_mosaic,
     from fusedmosaic.io.igtl import IgtlImageServer
     from fusedmosaic.io.output import check_output_dir
 
-    if not (np.isfinite(interval_s) and interval_s >= 0):
-        raise ValueError(f"view interval (--view-interval): must be >= 0 s, got {interval_s}")
     if preview is not None:
         preview = Path(preview)
         if preview.is_dir():
@@ -666,6 +676,9 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     if hand_eye is not None:
         hand_eye = hand_eye_matrix(hand_eye)
     check_live_limits(max_frames, duration_s, frame_timeout_s)
+    if not (np.isfinite(view_interval_s) and view_interval_s >= 0):  # with or without a view
+        raise ValueError(f"view interval (--view-interval): must be >= 0 s, got "
+                         f"{view_interval_s}")
     out, record = Path(out), Path(record)
     if is_under(out, record, or_equal=True):  # the recording does not exist yet
         raise ValueError(f"{out}: the output folder must not be the recording folder or inside "
@@ -677,7 +690,7 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
 
         check_video_suffix(video)
         check_video_destination(Path(video), out, record)
-    check_compositing_options(blend, canvas)
+    check_compositing_options(blend, canvas, camera=camera)
     from fusedmosaic.io.output import check_output_dir
 
     created = _missing_folders(out, record, *(() if preview is None else (Path(preview),)))

@@ -100,6 +100,16 @@ def edge_distance(mask: np.ndarray) -> np.ndarray:
     return cv2.distanceTransform(padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
 
 
+def check_border(border_px: float, distance: np.ndarray, name: str = "border_px") -> None:
+    """ValueError if a frame border of `border_px` covers the whole field of view whose
+    edge_distance is `distance`: every frame would be drawn black."""
+    inner = float(distance.max())
+    if border_px >= inner:
+        raise ValueError(f"{name} {border_px:g} covers the whole field of view (its centre is "
+                         f"{inner:g} px from the edge): the frames would be drawn all black; "
+                         f"give less than {inner:g} px (a thin seam, e.g. 1.5)")
+
+
 def footprint_box(G: np.ndarray, width: int, height: int, align: int = 1, pad: int = 0
                   ) -> tuple[int, int, int, int] | None:
     """Integer box [x0, x1) x [y0, y1) in reference pixels holding the frame's footprint
@@ -137,6 +147,7 @@ class FrameWarper:
         # its patch extends that far (filled by extrapolation); OpenCV pads 3 x 2^bands too.
         self.pad = 3 * self.align if multiband else 0
         self.distance = edge_distance(self.mask)
+        check_border(self.options.border_px, self.distance)
         if self.options.blend in ("linear", "multiband"):
             weight = self.distance / self.distance.max()
         else:

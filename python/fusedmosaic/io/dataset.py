@@ -13,7 +13,7 @@ import tempfile
 import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePath
 
 import numpy as np
 
@@ -107,6 +107,7 @@ def read_dataset(
     robot_file: str = "robot.csv",
     allow_untracked: bool = False,
     tracker_time_offset: float = 0.0,
+    robot_time_offset: float = 0.0,
     strict_tracking: bool = True,
     strict_robot: bool = True,
     blank_unreadable: bool = False,
@@ -126,6 +127,8 @@ def read_dataset(
         at time t is the one tracking.csv stamps t + tracker_time_offset (calibrate measures
         it: calibration.json "tracker_time_offset"); Dataset.tracking is then on the video's
         clock.
+    robot_time_offset : s, the robot's clock ahead of the video's, likewise for robot_file
+        (Dataset.robot is then on the video's clock).
     strict_tracking, strict_robot : the caller uses the EM tracker (tracking.csv with
         hand_eye.txt) / the robot (robot_file): a present file that cannot be read, or whose
         times do not fit the frames', raises ValueError (the default). False, for a method that
@@ -142,8 +145,10 @@ def read_dataset(
     """
     root = Path(root)
     tracker_time_offset = check_time_offset(tracker_time_offset)
+    robot_time_offset = check_time_offset(robot_time_offset, "robot_time_offset")
     if not root.is_dir():
         raise ValueError(f"{root}: dataset folder not found")
+    check_robot_file_name(robot_file, root)
     camera = read_camera_yaml(root / "camera.yaml")
     frames = FrameSource.open(root, expected_size=camera.size, size_source=camera.source,
                               blank_unreadable=blank_unreadable)
@@ -154,7 +159,7 @@ def read_dataset(
     dataset = Dataset(root, camera, frames, frame_ids, timestamps, np.eye(4),
                       robot_file=robot_file, frame_times=frame_times)
     _read_tracking(dataset, allow_untracked, tracker_time_offset, lenient=not strict_tracking)
-    _read_robot(dataset, allow_untracked, lenient=not strict_robot)
+    _read_robot(dataset, allow_untracked, robot_time_offset, lenient=not strict_robot)
     truth_path = root / "ground_truth.csv"
     if truth_path.exists():
         dataset.ground_truth = _align_ground_truth(truth_path, frame_ids)
@@ -201,18 +206,33 @@ def _read_tracking(dataset: Dataset, allow_untracked: bool, tracker_time_offset:
     dataset.tracking, dataset.cam_from_world, dataset.pose_valid = tracking, poses, valid
 
 
-def _read_robot(dataset: Dataset, allow_untracked: bool, *, lenient: bool) -> None:
-    """The robot file, if present, into ``dataset`` (positions at its frame times); ValueError
-    naming it, or with ``lenient`` the file left out and the reason in dataset.ignored."""
+def check_robot_file_name(robot_file: str, root: str | Path) -> None:
+    """The robot file is named relative to the dataset folder and stays inside it (a dataset is
+    one folder: reports and later runs find the file there): ValueError otherwise."""
+    name = PurePath(robot_file) if isinstance(robot_file, (str, PurePath)) else None
+    if name is None or not name.parts or name.is_absolute() or ".." in name.parts:
+        raise ValueError(f"{root}: the robot file must be named relative to the dataset folder "
+                         f"and stay inside it (e.g. robot_noisy.csv), got {robot_file!r}")
+
+
+def _read_robot(dataset: Dataset, allow_untracked: bool, time_offset: float, *,
+                lenient: bool) -> None:
+    """The robot file, if present, into ``dataset`` (positions at its frame times, its clock
+    time_offset s ahead of the video's); ValueError naming it, or with ``lenient`` the file
+    left out and the reason in dataset.ignored."""
     path = dataset.root / dataset.robot_file
     if not path.exists():
         return
     try:
         robot = read_robot_csv(path)
+        source = str(path)
+        if time_offset:
+            robot = RobotSamples(robot.timestamps - time_offset, robot.xy_um.copy())
+            source += f" (timestamps shifted by {-time_offset:+g} s, the clock offset)"
         xy, valid = interpolate_robot(robot, dataset.timestamps,
-                                      allow_outside=allow_untracked or lenient, source=str(path))
+                                      allow_outside=allow_untracked or lenient, source=source)
         if lenient:
-            _check_overlap(dataset.timestamps, robot.timestamps, str(path), "robot")
+            _check_overlap(dataset.timestamps, robot.timestamps, source, "robot")
     except ValueError as error:
         if not lenient:
             raise

@@ -7,6 +7,7 @@ removes only files that such a record names. Anything else in the folder belongs
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import math
 import os
@@ -66,7 +67,11 @@ def check_output_dir(
     try:
         fd, probe = tempfile.mkstemp(prefix=".fusedmosaic-probe-", dir=directory)
     except OSError as exc:
-        raise ValueError(f"{out}: cannot write in {directory}{why}: {_describe(exc)}") from None
+        # creating a file in an existing folder gives ENOENT only on file systems that do not
+        # take new files (/proc, /sys): strerror's "No such file or directory" would mislead
+        reason = ("the file system there takes no new files" if exc.errno == errno.ENOENT
+                  and directory.is_dir() else _describe(exc))
+        raise ValueError(f"{out}: cannot write in {directory}{why}: {reason}") from None
     os.close(fd)
     os.unlink(probe)
     return out

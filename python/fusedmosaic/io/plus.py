@@ -43,6 +43,7 @@ from fusedmosaic.io.tracking import (
     MAX_TIMESTAMP_S,
     MAX_TRANSLATION_MM,
     TrackingSamples,
+    _time,
     check_time_offset,
     hand_eye_matrix,
     rigid_defects,
@@ -833,6 +834,13 @@ def import_plus_sequence(
         t_ok = tracking.timestamps[ok]
         untracked = kept[(t[kept] < t_ok[0]) | (t[kept] > t_ok[-1])]
         invalid = np.flatnonzero(~ok)
+        if tracker_time_offset and untracked.size == kept.size:  # the offset moved them all
+            raise ValueError(
+                f"{sequence.path}: {selected.source} shifted by {-tracker_time_offset:+g} s "
+                f"(tracker time offset {tracker_time_offset:g} s) spans "
+                f"[{_time(t_ok[0])}, {_time(t_ok[-1])}] s, outside every frame's time "
+                f"([{_time(t[kept].min())}, {_time(t[kept].max())}] s): no frame would be "
+                "tracked; check the offset (calibrate measures it)")
 
     def frames():
         for i in kept:

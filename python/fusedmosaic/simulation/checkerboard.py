@@ -50,6 +50,7 @@ from fusedmosaic.simulation.fetoscopy import default_hand_eye, pose_matrix
 
 SUPERSAMPLE = 3  # samples per pixel side when rendering (anti-aliased board edges)
 TEXTURE_PX_PER_SQUARE = 96  # board texture resolution
+MIN_SQUARE_PX = 6.0  # a board square's width in the image at the farthest views, at least
 # tracker_from_board: the board lies in front of the field generator (any fixed rigid pose).
 TRACKER_FROM_BOARD = pose_matrix(np.array([0.25, -0.15, 0.4, 30.0, -20.0, 160.0]))
 
@@ -112,6 +113,24 @@ class CheckerboardOptions:
                              f"got {self.distance_variation}")
         if self.tilt_deg >= 70:
             raise ValueError(f"{name}.tilt_deg: must be below 70 deg, got {self.tilt_deg}")
+        # the principal point (offset along (0.8, -0.6)) in the frame's middle half, as in a
+        # real scope, and squares big enough to find the corners at the farthest views
+        shift = abs(self.principal_offset_px) * np.array([0.8, 0.6])
+        if not (np.isfinite(self.principal_offset_px)
+                and np.all(shift <= np.array([self.width, self.height]) / 4)):
+            raise ValueError(f"{name}.principal_offset_px: the principal point must stay in "
+                             f"the middle half of the {self.width}x{self.height} frame "
+                             f"(|offset| <= {min(self.width / 3.2, self.height / 2.4):g} px), "
+                             f"got {self.principal_offset_px}")
+        far_mm = self.distance_mm * (1 + self.distance_variation)
+        square_px = self.focal_factor * self.width * self.square_mm / far_mm
+        if square_px < MIN_SQUARE_PX:
+            raise ValueError(f"{name}.focal_factor: a {self.square_mm:g} mm square at the "
+                             f"farthest views ({far_mm:g} mm) would be {square_px:.3g} px wide "
+                             f"with focal factor {self.focal_factor:g}, under the "
+                             f"{MIN_SQUARE_PX:g} px the corner finder needs: raise "
+                             f"{name}.focal_factor or {name}.square_mm, or lower "
+                             f"{name}.distance_mm")
         if self.fisheye is not None and (np.asarray(self.fisheye).shape != (4,)
                                          or not np.isfinite(self.fisheye).all()):
             raise ValueError(f"{name}.fisheye: expected 4 finite numbers k1 k2 k3 k4, got "
