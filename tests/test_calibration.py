@@ -28,6 +28,7 @@ from fusedmosaic.io import (
     TrackingSamples,
     read_camera_yaml,
     read_hand_eye,
+    read_homographies_csv,
     read_tracking_csv,
     write_tracking_csv,
 )
@@ -613,3 +614,64 @@ def test_hand_eye_from_moving_frames_interpolates_a_sparse_tracker_by_splines(mo
         assert result.report["hand_eye"]["mode"].startswith("all frames")
         rot_deg, trans_mm = _hand_eye_errors(result.hand_eye, scene.hand_eye)
         assert trans_mm < 0.5 and rot_deg < 0.3, (seed, rot_deg, trans_mm)
+
+
+def test_run_takes_the_tracker_offset_and_noise_from_calibration_json(recording, tmp_path,
+                                                                      capsys):
+    """run / live --calibration CALIB.json: calibrate's applied time offset and tracker noise
+    (calibration.json hand_eye) stand in for --tracker-time-offset / --tracker-*-sigma: the run
+    is the one those flags give; an intrinsics-only calibration, a method without the tracker
+    and the flags beside it are refused."""
+    from fusedmosaic.estimation.calibration import read_tracker_calibration
+
+    late = _variant(recording, tmp_path / "late", shift_s=0.03)
+    assert main(["calibrate", str(late), "--board", "9x6", "--square-mm", "2", "--out",
+                 str(tmp_path / "cal"), "--quiet"]) == 0
+    cal_json = tmp_path / "cal" / "calibration.json"
+    cal = read_tracker_calibration(cal_json)
+    assert abs(cal.time_offset_s - 0.03) < 0.002
+    assert 0.5 < cal.rot_sigma_deg < 1.5 and 0.1 < cal.trans_sigma_mm < 0.5  # true 0.9, 0.25
+    data = tmp_path / "feto"
+    simulate_fetoscopy(data, FetoscopyOptions(n_frames=10, laps=10 / 37.5, width=200, height=200,
+                                              rot_sigma_deg=0.9, trans_sigma_mm=0.25))  # as board
+    s = read_tracking_csv(data / "tracking.csv")  # recorded with the calibrated set-up's clocks
+    write_tracking_csv(data / "tracking.csv", TrackingSamples(
+        s.timestamps + cal.time_offset_s, s.translations, s.quaternions, s.valid))
+    assert main(["run", str(data), "--method", "ba-emt", "--out", str(tmp_path / "a"),
+                 "--no-report", "--detector", "orb", "--calibration", str(cal_json)]) == 0
+    said = capsys.readouterr()
+    assert (f"from {cal_json}: tracker time offset {cal.time_offset_s:+.4f} s, tracker noise "
+            f"{cal.rot_sigma_deg:.3g} deg / {cal.trans_sigma_mm:.3g} mm per axis") in said.out
+    assert "warning" not in said.out + said.err  # the tracker agrees with the images
+    assert main(["--quiet", "run", str(data), "--method", "ba-emt", "--out",
+                 str(tmp_path / "b"), "--no-report", "--detector", "orb", "--tracker-time-offset",
+                 repr(cal.time_offset_s), "--tracker-rot-sigma", repr(cal.rot_sigma_deg),
+                 "--tracker-trans-sigma", repr(cal.trans_sigma_mm)]) == 0
+    _, Ga = read_homographies_csv(tmp_path / "a" / "homographies.csv")
+    _, Gb = read_homographies_csv(tmp_path / "b" / "homographies.csv")
+    np.testing.assert_allclose(Ga, Gb, atol=1e-9)  # (threaded solves: rounding apart)
+    report = json.loads((tmp_path / "a" / "report.json").read_text())
+    assert report["tracker_time_offset_s"] == cal.time_offset_s
+    assert "noise_ratio" in report["tracker_agreement"]
+    # refusals, before any work
+    intrinsics = tmp_path / "intrinsics"
+    shutil.copytree(recording, intrinsics, ignore=shutil.ignore_patterns("tracking.csv"))
+    assert main(["calibrate", str(intrinsics), "--board", "9x6", "--square-mm", "2", "--out",
+                 str(tmp_path / "cal_i"), "--quiet"]) == 0
+    for extra, method, message in (
+            (["--calibration", str(tmp_path / "cal_i" / "calibration.json")], "ba-emt",
+             f"calibration.json: holds no hand-eye calibration (no tracking.csv in "
+             f"{intrinsics}), so no tracker time offset or noise: calibrate a recording with "
+             "tracking.csv"),
+            (["--calibration", str(cal_json)], "pairwise",
+             "--calibration applies to the methods that use tracking.csv (ba-emt, emt, "
+             "lba-emt), not pairwise"),
+            (["--calibration", str(cal_json), "--tracker-rot-sigma", "1"], "lba-emt",
+             "--calibration gives the tracker's time offset and noise; --tracker-rot-sigma "
+             "beside it would contradict it: give one or the other"),
+            (["--calibration", str(tmp_path / "nothing.json")], "emt",
+             "nothing.json: not found: a calibration.json written by fusedmosaic calibrate")):
+        assert main(["run", str(data), "--method", method, "--out", str(tmp_path / "o"),
+                     *extra]) == 2
+        assert message in capsys.readouterr().err, message
+    assert not (tmp_path / "o").exists()

@@ -121,6 +121,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         check_fps(args.fps, "--fps")
     options = None
     overrides: dict = {}
+    _tracker_calibration(args)
     if args.tracker_time_offset:
         from fusedmosaic.io.tracking import check_time_offset
         from fusedmosaic.runner import NEEDS_ROBOT, NEEDS_TRACKING
@@ -191,6 +192,36 @@ def _cmd_run(args: argparse.Namespace) -> int:
                           stop_on_unreadable=args.stop_on_unreadable)
     _say_summary(args, summary)
     return 0
+
+
+def _tracker_calibration(args: argparse.Namespace) -> None:
+    """--calibration CALIB.json: calibrate's tracker time offset and noise in place of
+    --tracker-time-offset and (ba-emt / lba-emt) --tracker-rot-sigma / --tracker-trans-sigma;
+    refused beside them or for a method that does not use the tracker."""
+    if args.calibration is None:
+        return
+    from fusedmosaic.estimation.calibration import read_tracker_calibration
+    from fusedmosaic.runner import NEEDS_TRACKING
+
+    if args.method not in NEEDS_TRACKING:
+        raise ValueError(f"--calibration applies to the methods that use tracking.csv "
+                         f"({', '.join(sorted(NEEDS_TRACKING))}), not {args.method}")
+    given = [flag for flag, value in (("--tracker-time-offset", args.tracker_time_offset),
+                                      ("--tracker-rot-sigma", args.tracker_rot_sigma),
+                                      ("--tracker-trans-sigma", args.tracker_trans_sigma))
+             if value]
+    if given:
+        raise ValueError(f"--calibration gives the tracker's time offset and noise; "
+                         f"{' / '.join(given)} beside it would contradict it: give one or the "
+                         "other")
+    cal = read_tracker_calibration(args.calibration)
+    args.tracker_time_offset = cal.time_offset_s
+    said = f"tracker time offset {cal.time_offset_s:+.4f} s"
+    if args.method in ("ba-emt", "lba-emt"):
+        args.tracker_rot_sigma, args.tracker_trans_sigma = cal.rot_sigma_deg, cal.trans_sigma_mm
+        said += (f", tracker noise {cal.rot_sigma_deg:.3g} deg / {cal.trans_sigma_mm:.3g} mm "
+                 "per axis")
+    _say(args, f"from {args.calibration}: {said}")
 
 
 def _emt_sigma(args: argparse.Namespace) -> dict:
@@ -344,6 +375,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
     from fusedmosaic.io.tracking import check_time_offset
     from fusedmosaic.runner import check_compositing_options, check_live_limits, run_igtl
 
+    _tracker_calibration(args)
     overrides = _loop_pairs(args)
     if args.motion_sigma_from:
         from fusedmosaic.estimation.motion import motion_sigma_from_recording
@@ -1001,10 +1033,15 @@ def _add_lba_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tracker-rot-sigma", type=float, metavar="DEG",
                         help="ba-emt / lba-emt: the tracker's rotation noise per axis, the EMT "
                              "prior's (default: the paper's 0.017 rad, ~1 deg); calibrate "
-                             "measures it (calibration.json)")
+                             "measures it (--calibration takes it from calibration.json)")
     parser.add_argument("--tracker-trans-sigma", type=float, metavar="MM",
                         help="ba-emt / lba-emt: the tracker's translation noise per axis, mm "
                              "(default: the paper's 1 mm)")
+    parser.add_argument("--calibration", metavar="CALIB.json",
+                        help="tracked methods: the tracker time offset and (ba-emt / lba-emt) "
+                             "the tracker noise per axis that calibrate measured on a "
+                             "recording of the same set-up (its calibration.json), instead of "
+                             "--tracker-time-offset / --tracker-rot-sigma / --tracker-trans-sigma")
     parser.add_argument("--preset", choices=["syn", "phb", "ex"],
                      help="lba-emt: the paper's window presets (Sec. 4.2): syn W=5, chi_e=3, "
                           "K=3 x 5 (default); phb W=3, chi_e=1, K=3 x 3 (fewer pairs per frame: "

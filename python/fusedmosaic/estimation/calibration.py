@@ -1268,6 +1268,54 @@ def camera_model_difference(a: Camera, b: Camera, region: float = 0.8) -> float:
     return float(np.linalg.norm(back - px.reshape(-1, 2), axis=1).max())
 
 
+@dataclass(frozen=True)
+class TrackerCalibration:
+    """What calibrate measured of the tracker, for runs of recordings from the same set-up:
+    time_offset_s, the tracker's clock ahead of the video's (the offset calibrate applied: 0
+    when not significant); rot_sigma_deg / trans_sigma_mm, its noise per axis as seen against
+    the board (tracker_sigma_from says which samples: a still view's raw samples, or samples
+    interpolated at moving frames' times, below a raw sample's)."""
+
+    time_offset_s: float
+    rot_sigma_deg: float
+    trans_sigma_mm: float
+    sigma_from: str
+
+
+def read_tracker_calibration(path: str | Path) -> TrackerCalibration:
+    """The tracker's time offset and noise from a calibration.json calibrate wrote (its
+    "hand_eye" entry); ValueError naming the file when it has no hand-eye calibration or a
+    value is missing or out of range."""
+    from fusedmosaic.io.output import read_json_object
+    from fusedmosaic.io.tracking import check_time_offset
+
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: {'is a folder; expected' if path.is_dir() else 'not found:'} "
+                         "a calibration.json written by fusedmosaic calibrate")
+    he = read_json_object(path).get("hand_eye")
+    if not isinstance(he, dict) or "tracker_sigma_deg" not in he:
+        why = (he.get("skipped") or he.get("failed") if isinstance(he, dict) else None) \
+            or "no \"hand_eye\" entry"
+        raise ValueError(f"{path}: holds no hand-eye calibration ({why}), so no tracker time "
+                         "offset or noise: calibrate a recording with tracking.csv")
+    try:
+        offset = he["tracker_time_offset"]["applied_s"]
+        sigma = (he["tracker_sigma_deg"], he["tracker_sigma_mm"])
+    except (KeyError, TypeError):
+        raise ValueError(f"{path}: hand_eye lacks tracker_time_offset.applied_s, "
+                         "tracker_sigma_deg or tracker_sigma_mm") from None
+    offset = check_time_offset(offset, f"{path}: hand_eye.tracker_time_offset.applied_s")
+    for key, value, bound in zip(("tracker_sigma_deg", "tracker_sigma_mm"), sigma,
+                                 MAX_TRACKER_SIGMA, strict=True):
+        if (isinstance(value, bool) or not isinstance(value, (int, float))
+                or not 0 < value <= bound):
+            raise ValueError(f"{path}: hand_eye.{key} must be a number in (0, {bound:g}], got "
+                             f"{value!r}")
+    return TrackerCalibration(offset, float(sigma[0]), float(sigma[1]),
+                              str(he.get("tracker_sigma_from", "")))
+
+
 OUTPUT_FILES = ("camera.yaml", "hand_eye.txt", "calibration.json")
 OUTPUT_RECORD = "calibrate"  # the output set's key in the folder's manifest (io.output)
 
