@@ -132,3 +132,19 @@ def test_a_file_system_taking_no_files_is_named(capsys):
     assert main(["simulate", "fetoscopy", "/proc/fusedmosaic-test", "--n-frames", "3"]) == 2
     assert ("/proc/fusedmosaic-test: cannot write in /proc (the dataset folder is created "
             "there): the file system there takes no new files") in capsys.readouterr().err
+
+
+def test_a_folder_where_an_input_file_belongs_is_named_as_such(data, tmp_path, capsys):
+    """The table, hand-eye and evaluation inputs said 'file not found' for a folder there (the
+    second read's io._table.require_file, now used by all of them)."""
+    from fusedmosaic.io import read_hand_eye, read_tracking_csv
+
+    (tmp_path / "hand_eye.txt").mkdir()
+    (tmp_path / "tracking.csv").mkdir()
+    for read, name in ((read_hand_eye, "hand_eye.txt"), (read_tracking_csv, "tracking.csv")):
+        with pytest.raises(ValueError, match=rf"{name}: is a folder; expected a file$"):
+            read(tmp_path / name)
+    out = tmp_path / "out"
+    (out / "homographies.csv").mkdir(parents=True)
+    assert main(["evaluate", str(out), "--truth", str(data / "feto"), "--no-report"]) == 2
+    assert f"{out / 'homographies.csv'}: is a folder; expected a file" in capsys.readouterr().err

@@ -19,6 +19,8 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
+from fusedmosaic.io._table import require_file
+
 GRID_SIZE = 100  # points per axis, N_g = 100^2 (seed 000, Sec. 4.1)
 
 
@@ -243,8 +245,7 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
     if dataset.ground_truth is None:
         raise ValueError(f"{truth_root / 'ground_truth.csv'}: file not found; nothing to score")
     est_path = out_dir / "homographies.csv"
-    if not est_path.is_file():
-        raise ValueError(f"{est_path}: file not found")
+    require_file(est_path)
     report_path = out_dir / "report.json"
     report = read_json_object(report_path) if report_path.is_file() else None
     if report is not None:

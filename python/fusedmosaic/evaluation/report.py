@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fusedmosaic.io._table import require_file
 from fusedmosaic.io.output import read_json_object, read_plane_json
 
 PLOTS_DIR = "plots"
@@ -187,8 +188,7 @@ def load_run(out_dir: str | Path, frame_ids: np.ndarray | None = None) -> RunRec
 
     out = Path(out_dir)
     path = out / "homographies.csv"
-    if not path.is_file():
-        raise ValueError(f"{path}: file not found")
+    require_file(path)
     ids, G = read_homographies_csv(path)
     order = np.argsort(ids)
     ids, G = ids[order], G[order]

@@ -30,8 +30,7 @@ def read_table(
     Returns the columns by name and each data row's spreadsheet row number.
     """
     path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"{path}: file not found")
+    require_file(path)
     try:  # utf-8-sig: a byte order mark (spreadsheets' "CSV UTF-8") is not part of the header
         with path.open(newline="", encoding="utf-8-sig") as f:
             lines = list(csv.reader(f))

@@ -22,6 +22,7 @@ from fusedmosaic.io._table import (
     format_float,
     parse_numbers,
     read_table,
+    require_file,
     write_table,
 )
 
@@ -337,8 +338,7 @@ def read_hand_eye(path: str | Path) -> np.ndarray:
     """Read the 4x4 rigid sensor_from_camera transform (whitespace-separated text); checked and
     projected as `hand_eye_matrix` does."""
     path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"{path}: file not found")
+    require_file(path)
     if not path.read_bytes().strip():
         raise ValueError(f"{path}: empty file, expected a 4x4 matrix")
     try:

@@ -56,16 +56,21 @@ def check_signs(options, *, positive=(), non_negative=()) -> None:
                 raise ValueError(f"{cls}.{name}: must be {rule}, got {value}")
 
 
-def check_frame_list(options, name: str) -> list[int]:
+def check_frame_list(options, name: str, n_frames: int | None = None) -> list[int]:
     """The list field ``name`` as ints, or ValueError naming it when an entry is not a whole
-    number (NaN, inf, 2.5, text)."""
+    number (NaN, inf, 2.5, text) or, given n_frames, outside 0..n_frames - 1."""
     values = getattr(options, name)
     bad = [v for v in values if isinstance(v, bool) or not isinstance(v, numbers.Real)
            or not math.isfinite(v) or v != int(v)]
     if bad:
         raise ValueError(f"{type(options).__name__}.{name}: expected frame indices (whole "
                          f"numbers), got {values}")
-    return [int(v) for v in values]
+    frames = [int(v) for v in values]
+    outside = [k for k in frames if n_frames is not None and not 0 <= k < n_frames]
+    if outside:
+        raise ValueError(f"{type(options).__name__}.{name}: frame {outside[0]} outside "
+                         f"0..{n_frames - 1}")
+    return frames
 
 
 def check_time_offsets(options, *names: str) -> None:

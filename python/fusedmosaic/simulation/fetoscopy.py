@@ -146,12 +146,7 @@ class FetoscopyOptions:
                 f"FetoscopyOptions.tilt_deg: must be below 60 deg, got {self.tilt_deg}"
             )
         if self.black_frames is not None:
-            bad = [k for k in check_frame_list(self, "black_frames")
-                   if not 0 <= k < self.n_frames]
-            if bad:
-                raise ValueError(
-                    f"FetoscopyOptions.black_frames: frame {bad[0]} outside 0..{self.n_frames - 1}"
-                )
+            check_frame_list(self, "black_frames", self.n_frames)
         if self.tracker_gap is not None:
             gap = check_frame_list(self, "tracker_gap")
             if len(gap) != 2 or gap[0] > gap[1]:
@@ -159,11 +154,7 @@ class FetoscopyOptions:
                     "FetoscopyOptions.tracker_gap: expected [first, last] frames, "
                     f"got {self.tracker_gap}"
                 )
-            bad = [k for k in gap if not 0 <= k < self.n_frames]
-            if bad:
-                raise ValueError(
-                    f"FetoscopyOptions.tracker_gap: frame {bad[0]} outside 0..{self.n_frames - 1}"
-                )
+            check_frame_list(self, "tracker_gap", self.n_frames)
         if self.lens_model not in LENS_MODELS:
             raise ValueError(f"FetoscopyOptions.lens_model: expected one of {LENS_MODELS}, "
                              f"got {self.lens_model!r}")
