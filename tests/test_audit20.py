@@ -24,6 +24,9 @@ def data(tmp_path_factory):
     root = tmp_path_factory.mktemp("audit20")
     assert main(["--quiet", "simulate", "fetoscopy", str(root / "feto"), "--n-frames", "8",
                  "--width", "160", "--height", "120", "--laps", "0.2"]) == 0
+    assert main(["--quiet", "simulate", "fetoscopy", str(root / "lens"), "--n-frames", "8",
+                 "--width", "320", "--height", "240", "--laps", "0.1", "--lens-distortion",
+                 "0.5", "0", "0", "0"]) == 0
     options = PcleOptions(width=128, height=112, n_frames=20, contact_loss=False,
                           stick_slip=False)
     simulate_pcle(root / "pcle", options)
@@ -38,15 +41,22 @@ def data(tmp_path_factory):
 
 def test_a_border_covering_the_frames_is_refused_before_the_estimation(data, tmp_path, capsys):
     """--border 1e9 gave an all-black mosaic without a word: the 160x120 frames' centre is 60 px
-    from their edge."""
+    from their edge. Through a lens the undistorted frames' valid pixels are measured (those
+    the mosaic is drawn from): 114 px there against 120 raw, so 116 px is refused up front, not
+    after the estimation."""
     out = tmp_path / "o"
     assert main(["run", str(data / "feto"), "--method", "emt", "--out", str(out),
                  "--border", "1e9"]) == 2
-    assert ("border 1e+09 covers the whole field of view (its centre is 60 px from the edge): "
-            "the frames would be drawn all black; give less than 60 px") in \
-        capsys.readouterr().err
+    assert ("border (border_px, --border) 1e+09 covers the whole field of view (its centre is "
+            "60 px from the edge): the frames would be drawn all black; give less than 60 px") \
+        in capsys.readouterr().err
+    assert main(["run", str(data / "lens"), "--method", "pairwise", "--out", str(out),
+                 "--border", "116"]) == 2
+    assert "border (border_px, --border) 116 covers the whole field of view (its centre is " \
+           "114 px from the edge)" in capsys.readouterr().err
     assert not out.exists()
-    with pytest.raises(ValueError, match=r"border_px 60 covers the whole field of view"):
+    with pytest.raises(ValueError, match=r"border \(border_px, --border\) 60 covers the whole "
+                       r"field of view"):
         FrameWarper(160, 120, options=BlendOptions("linear", border_px=60.0))
     FrameWarper(160, 120, options=BlendOptions("linear", border_px=59.0))  # a ring is left
 
@@ -68,6 +78,10 @@ def test_robot_file_only_for_the_robot_methods_and_inside_the_dataset(data, tmp_
             "not ncc") in capsys.readouterr().err
     outside = tmp_path / "robot.csv"
     outside.write_text((data / "pcle" / "robot.csv").read_text())
+    assert main(["run", str(data / "pcle"), "--method", "robot", "--out", str(tmp_path / "o"),
+                 "--robot-file", ""]) == 2  # (was taken for robot.csv)
+    assert "the robot file must be named relative to the dataset folder" in \
+        capsys.readouterr().err
     for name in (str(outside), "../robot.csv", ""):
         with pytest.raises(ValueError, match=r"the robot file must be named relative to the "
                            r"dataset folder and stay inside it \(e.g. robot_noisy.csv\), got "):
@@ -86,6 +100,12 @@ def test_view_interval_without_a_view_is_refused(tmp_path, capsys):
                  "--view-interval", "2"]) == 2
     assert ("--view-interval applies to --preview / --serve-mosaic (the mosaic as it grows); "
             "neither is given") in capsys.readouterr().err
+    # calibrate's tracker figures are an EM tracker's: not for the robot stream
+    assert main(["live", "127.0.0.1:1", "--method", "kalman-robot", "--camera", "c.yaml",
+                 "--transform", "RobotToBase", "--record", str(tmp_path / "r"), "--out",
+                 str(tmp_path / "o"), "--calibration", "calibration.json"]) == 2
+    assert ("--calibration (an EM tracker's, from calibrate) applies to lba-emt, not "
+            "kalman-robot") in capsys.readouterr().err
     assert not (tmp_path / "r").exists() and not (tmp_path / "o").exists()
 
 
@@ -106,7 +126,9 @@ def test_robot_clock_offset_in_offline_runs(data, tmp_path):
     report = json.loads((tmp_path / "ahead" / "report.json").read_text())
     assert report["tracker_time_offset_s"] == AHEAD_S
     with pytest.raises(ValueError, match=r"robot.csv \(timestamps shifted by -5 s, the clock "
-                       r"offset\)"):
+                       r"offset\): none of the 20 frames lies in the robot's time span .*: check "
+                       r"the clock offset given \(--tracker-time-offset; calibrate measures the "
+                       r"tracker's\)$"):
         read_dataset(data / "pcle", robot_time_offset=5.0)
 
 

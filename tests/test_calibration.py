@@ -664,14 +664,31 @@ def test_run_takes_the_tracker_offset_and_noise_from_calibration_json(recording,
              f"{intrinsics}), so no tracker time offset or noise: calibrate a recording with "
              "tracking.csv"),
             (["--calibration", str(cal_json)], "pairwise",
-             "--calibration applies to the methods that use tracking.csv (ba-emt, emt, "
-             "lba-emt), not pairwise"),
+             "--calibration (an EM tracker's, from calibrate) applies to ba-emt, emt, lba-emt, "
+             "not pairwise"),
             (["--calibration", str(cal_json), "--tracker-rot-sigma", "1"], "lba-emt",
              "--calibration gives the tracker's time offset and noise; --tracker-rot-sigma "
              "beside it would contradict it: give one or the other"),
+            (["--calibration", str(cal_json), "--tracker-time-offset", "0"], "emt",
+             "--calibration gives the tracker's time offset and noise; --tracker-time-offset "
+             "beside it would contradict it"),
             (["--calibration", str(tmp_path / "nothing.json")], "emt",
              "nothing.json: not found: a calibration.json written by fusedmosaic calibrate")):
         assert main(["run", str(data), "--method", method, "--out", str(tmp_path / "o"),
                      *extra]) == 2
         assert message in capsys.readouterr().err, message
     assert not (tmp_path / "o").exists()
+    # what calibrate wrote when it did not apply an offset, and an entry without the noise
+    report = json.loads(cal_json.read_text())
+    report["hand_eye"]["tracker_time_offset"].update(applied_s=0.0, reason="not determined")
+    edited = tmp_path / "edited.json"
+    edited.write_text(json.dumps(report))
+    cal0 = read_tracker_calibration(edited)
+    assert cal0.time_offset_s == 0.0
+    assert cal0.time_offset_note == "calibrate did not apply one: not determined"
+    del report["hand_eye"]["tracker_sigma_mm"]
+    edited.write_text(json.dumps(report))
+    with pytest.raises(ValueError, match=r"edited.json: its hand_eye lacks tracker_time_offset"
+                       r".applied_s, tracker_sigma_deg or tracker_sigma_mm \(written by an "
+                       r"older calibrate\? calibrate the recording again\)"):
+        read_tracker_calibration(edited)

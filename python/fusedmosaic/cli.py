@@ -121,7 +121,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
         check_fps(args.fps, "--fps")
     options = None
     overrides: dict = {}
-    _tracker_calibration(args)
+    from fusedmosaic.runner import NEEDS_TRACKING
+
+    _tracker_calibration(args, NEEDS_TRACKING)
     if args.tracker_time_offset:
         from fusedmosaic.io.tracking import check_time_offset
         from fusedmosaic.runner import NEEDS_ROBOT, NEEDS_TRACKING
@@ -184,7 +186,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     blend, canvas = _blend_options(args), _canvas_options(args)
     check_compositing_options(blend, canvas, names=COMPOSITING_FLAGS)  # errors name the flags
     summary = run_dataset(args.dataset, args.method, args.out, fps=args.fps,
-                          robot_file=args.robot_file or "robot.csv",
+                          robot_file="robot.csv" if args.robot_file is None else args.robot_file,
                           allow_untracked=args.allow_untracked,
                           progress=_progress(args), options=options, blend=blend,
                           canvas=canvas, video=args.video, report=not args.no_report,
@@ -194,34 +196,38 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _tracker_calibration(args: argparse.Namespace) -> None:
+def _tracker_calibration(args: argparse.Namespace, methods) -> None:
     """--calibration CALIB.json: calibrate's tracker time offset and noise in place of
     --tracker-time-offset and (ba-emt / lba-emt) --tracker-rot-sigma / --tracker-trans-sigma;
-    refused beside them or for a method that does not use the tracker."""
-    if args.calibration is None:
-        return
-    from fusedmosaic.estimation.calibration import read_tracker_calibration
-    from fusedmosaic.runner import NEEDS_TRACKING
+    refused beside any of them (0 included) or for a method not among `methods` (those that
+    use the EM tracker). Leaves args.tracker_time_offset a number (0 when neither is given)."""
+    if args.calibration is not None:
+        from fusedmosaic.estimation.calibration import read_tracker_calibration
 
-    if args.method not in NEEDS_TRACKING:
-        raise ValueError(f"--calibration applies to the methods that use tracking.csv "
-                         f"({', '.join(sorted(NEEDS_TRACKING))}), not {args.method}")
-    given = [flag for flag, value in (("--tracker-time-offset", args.tracker_time_offset),
-                                      ("--tracker-rot-sigma", args.tracker_rot_sigma),
-                                      ("--tracker-trans-sigma", args.tracker_trans_sigma))
-             if value]
-    if given:
-        raise ValueError(f"--calibration gives the tracker's time offset and noise; "
-                         f"{' / '.join(given)} beside it would contradict it: give one or the "
-                         "other")
-    cal = read_tracker_calibration(args.calibration)
-    args.tracker_time_offset = cal.time_offset_s
-    said = f"tracker time offset {cal.time_offset_s:+.4f} s"
-    if args.method in ("ba-emt", "lba-emt"):
-        args.tracker_rot_sigma, args.tracker_trans_sigma = cal.rot_sigma_deg, cal.trans_sigma_mm
-        said += (f", tracker noise {cal.rot_sigma_deg:.3g} deg / {cal.trans_sigma_mm:.3g} mm "
-                 "per axis")
-    _say(args, f"from {args.calibration}: {said}")
+        if args.method not in methods:
+            raise ValueError(f"--calibration (an EM tracker's, from calibrate) applies to "
+                             f"{', '.join(sorted(methods))}, not {args.method}")
+        given = [flag for flag, value in (("--tracker-time-offset", args.tracker_time_offset),
+                                          ("--tracker-rot-sigma", args.tracker_rot_sigma),
+                                          ("--tracker-trans-sigma", args.tracker_trans_sigma))
+                 if value is not None]
+        if given:
+            raise ValueError(f"--calibration gives the tracker's time offset and noise; "
+                             f"{' / '.join(given)} beside it would contradict it: give one or "
+                             "the other")
+        cal = read_tracker_calibration(args.calibration)
+        args.tracker_time_offset = cal.time_offset_s
+        said = f"tracker time offset {cal.time_offset_s:+.4f} s"
+        if cal.time_offset_note:
+            said += f" ({cal.time_offset_note})"
+        if args.method in ("ba-emt", "lba-emt"):
+            args.tracker_rot_sigma = cal.rot_sigma_deg
+            args.tracker_trans_sigma = cal.trans_sigma_mm
+            said += (f", tracker noise {cal.rot_sigma_deg:.3g} deg / {cal.trans_sigma_mm:.3g} mm "
+                     "per axis")
+        _say(args, f"from {args.calibration}: {said}")
+    if args.tracker_time_offset is None:
+        args.tracker_time_offset = 0.0
 
 
 def _emt_sigma(args: argparse.Namespace) -> dict:
@@ -259,6 +265,7 @@ def _cmd_import(args: argparse.Namespace) -> int:
     from fusedmosaic.io.plus import import_plus_sequence
     from fusedmosaic.io.tracking import check_time_offset
 
+    args.tracker_time_offset = args.tracker_time_offset or 0.0  # (None: not given)
     check_time_offset(args.tracker_time_offset, "--tracker-time-offset")
     _check_dataset_target(args.out, args.overwrite)
     summary = import_plus_sequence(
@@ -375,7 +382,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
     from fusedmosaic.io.tracking import check_time_offset
     from fusedmosaic.runner import check_compositing_options, check_live_limits, run_igtl
 
-    _tracker_calibration(args)
+    _tracker_calibration(args, {"lba-emt"})
     overrides = _loop_pairs(args)
     if args.motion_sigma_from:
         from fusedmosaic.estimation.motion import motion_sigma_from_recording
@@ -1004,7 +1011,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _add_tracker_time_offset_flag(parser: argparse.ArgumentParser, effect: str) -> None:
     """--tracker-time-offset S (checked by io.tracking.check_time_offset in the command)."""
-    parser.add_argument("--tracker-time-offset", type=float, default=0.0, metavar="S",
+    parser.add_argument("--tracker-time-offset", type=float, default=None, metavar="S",
                         help="seconds the tracker's clock is ahead of the video's (calibrate "
                              f"measures it: calibration.json tracker_time_offset): {effect} "
                              "(default 0)")

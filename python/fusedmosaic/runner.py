@@ -112,9 +112,9 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
             ts = dataset.tracking.timestamps[dataset.tracking.valid]
             raise ValueError(no_overlap_message(str(dataset.root / "tracking.csv"), "tracker",
                                                 dataset.timestamps, ts[0], ts[-1]))
-    check_compositing_options(blend, canvas, camera=dataset.camera)  # the border fits its frames
     if method in NEEDS_CAMERA_MATRIX:
         dataset.camera.require_camera_matrix(method)
+    check_compositing_options(blend, canvas, camera=dataset.camera, method=method)  # the border
     if method in NEEDS_ROBOT and result is None:
         dataset.require_robot(method)
     if method in NEEDS_PIXEL_SIZE:
@@ -238,10 +238,11 @@ def playback_rate(timestamps: np.ndarray) -> float:
 
 
 def check_compositing_options(blend, canvas, names: dict[str, str] | None = None,
-                              camera=None) -> None:
+                              camera=None, method: str | None = None) -> None:
     """Raises ValueError for blend / canvas options compose_outputs cannot use; `names` maps
-    option fields to what the messages call them (the CLI's flags). With the `camera`, also a
-    frame border that would cover its whole field of view."""
+    option fields to what the messages call them (the CLI's flags). With the `camera` (and the
+    `method`, which says whether the frames are composed undistorted), also a frame border
+    that would cover the whole field of view the mosaic is drawn from."""
     from fusedmosaic.compositing import BlendOptions, CanvasOptions
     from fusedmosaic.compositing.blending import check_border, edge_distance, fov_mask_bool
 
@@ -250,8 +251,10 @@ def check_compositing_options(blend, canvas, names: dict[str, str] | None = None
     elif isinstance(blend, BlendOptions):  # its blend None: the method's, any is fine
         dataclasses.replace(blend, blend=blend.blend or "linear").validate(names)
         if camera is not None and blend.border_px > 0:
-            mask = fov_mask_bool(camera.fov_mask(), camera.width, camera.height)
-            check_border(blend.border_px, edge_distance(mask), "border")
+            lens = camera.undistortion() if method not in NEEDS_PIXEL_SIZE else None
+            mask = lens.mask if lens is not None else camera.fov_mask()  # as frames_to_compose
+            mask = fov_mask_bool(mask, camera.width, camera.height)
+            check_border(blend.border_px, edge_distance(mask))
     elif blend is not None:
         raise ValueError(f"blend must be a blend name or BlendOptions, got {type(blend).__name__}")
     (canvas or CanvasOptions()).validate(names)
@@ -676,7 +679,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     if hand_eye is not None:
         hand_eye = hand_eye_matrix(hand_eye)
     check_live_limits(max_frames, duration_s, frame_timeout_s)
-    if not (np.isfinite(view_interval_s) and view_interval_s >= 0):  # with or without a view
+    if not (isinstance(view_interval_s, (int, float)) and np.isfinite(view_interval_s)
+            and view_interval_s >= 0):  # with or without a view
         raise ValueError(f"view interval (--view-interval): must be >= 0 s, got "
                          f"{view_interval_s}")
     out, record = Path(out), Path(record)
@@ -690,7 +694,7 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
 
         check_video_suffix(video)
         check_video_destination(Path(video), out, record)
-    check_compositing_options(blend, canvas, camera=camera)
+    check_compositing_options(blend, canvas, camera=camera, method=method)
     from fusedmosaic.io.output import check_output_dir
 
     created = _missing_folders(out, record, *(() if preview is None else (Path(preview),)))

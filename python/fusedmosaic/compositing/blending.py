@@ -100,7 +100,8 @@ def edge_distance(mask: np.ndarray) -> np.ndarray:
     return cv2.distanceTransform(padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
 
 
-def check_border(border_px: float, distance: np.ndarray, name: str = "border_px") -> None:
+def check_border(border_px: float, distance: np.ndarray,
+                 name: str = "border (border_px, --border)") -> None:
     """ValueError if a frame border of `border_px` covers the whole field of view whose
     edge_distance is `distance`: every frame would be drawn black."""
     inner = float(distance.max())

@@ -1274,12 +1274,14 @@ class TrackerCalibration:
     time_offset_s, the tracker's clock ahead of the video's (the offset calibrate applied: 0
     when not significant); rot_sigma_deg / trans_sigma_mm, its noise per axis as seen against
     the board (tracker_sigma_from says which samples: a still view's raw samples, or samples
-    interpolated at moving frames' times, below a raw sample's)."""
+    interpolated at moving frames' times, below a raw sample's); time_offset_note: why the
+    offset is 0 or where it came from ("" when calibrate measured and applied it)."""
 
     time_offset_s: float
     rot_sigma_deg: float
     trans_sigma_mm: float
     sigma_from: str
+    time_offset_note: str = ""
 
 
 def read_tracker_calibration(path: str | Path) -> TrackerCalibration:
@@ -1294,17 +1296,19 @@ def read_tracker_calibration(path: str | Path) -> TrackerCalibration:
         raise ValueError(f"{path}: {'is a folder; expected' if path.is_dir() else 'not found:'} "
                          "a calibration.json written by fusedmosaic calibrate")
     he = read_json_object(path).get("hand_eye")
-    if not isinstance(he, dict) or "tracker_sigma_deg" not in he:
-        why = (he.get("skipped") or he.get("failed") if isinstance(he, dict) else None) \
-            or "no \"hand_eye\" entry"
+    why = (he.get("skipped") or he.get("failed")) if isinstance(he, dict) else \
+        'no "hand_eye" entry'
+    if why:
         raise ValueError(f"{path}: holds no hand-eye calibration ({why}), so no tracker time "
                          "offset or noise: calibrate a recording with tracking.csv")
     try:
-        offset = he["tracker_time_offset"]["applied_s"]
+        entry = he["tracker_time_offset"]
+        offset = entry["applied_s"]
         sigma = (he["tracker_sigma_deg"], he["tracker_sigma_mm"])
     except (KeyError, TypeError):
-        raise ValueError(f"{path}: hand_eye lacks tracker_time_offset.applied_s, "
-                         "tracker_sigma_deg or tracker_sigma_mm") from None
+        raise ValueError(f"{path}: its hand_eye lacks tracker_time_offset.applied_s, "
+                         "tracker_sigma_deg or tracker_sigma_mm (written by an older "
+                         "calibrate? calibrate the recording again)") from None
     offset = check_time_offset(offset, f"{path}: hand_eye.tracker_time_offset.applied_s")
     for key, value, bound in zip(("tracker_sigma_deg", "tracker_sigma_mm"), sigma,
                                  MAX_TRACKER_SIGMA, strict=True):
@@ -1312,8 +1316,15 @@ def read_tracker_calibration(path: str | Path) -> TrackerCalibration:
                 or not 0 < value <= bound):
             raise ValueError(f"{path}: hand_eye.{key} must be a number in (0, {bound:g}], got "
                              f"{value!r}")
+    if entry.get("estimated") and offset == 0:
+        note = f"calibrate did not apply one: {entry.get('reason', 'not significant')}"
+    elif not entry.get("estimated"):
+        note = (f"not estimated by calibrate: {entry['reason']}" if "reason" in entry
+                else "as given to calibrate")
+    else:
+        note = ""
     return TrackerCalibration(offset, float(sigma[0]), float(sigma[1]),
-                              str(he.get("tracker_sigma_from", "")))
+                              str(he.get("tracker_sigma_from", "")), note)
 
 
 OUTPUT_FILES = ("camera.yaml", "hand_eye.txt", "calibration.json")

@@ -24,6 +24,7 @@ from fusedmosaic.io.tracking import (
     MAX_FRAME_GAP_S,
     MAX_FRAME_SPACING_S,
     MAX_TIMESTAMP_S,
+    SHIFTED,
     RobotSamples,
     TrackingSamples,
     _time,
@@ -104,7 +105,7 @@ def read_dataset(
     root: str | Path,
     *,
     fps: float | None = None,
-    robot_file: str = "robot.csv",
+    robot_file: str | None = "robot.csv",
     allow_untracked: bool = False,
     tracker_time_offset: float = 0.0,
     robot_time_offset: float = 0.0,
@@ -120,7 +121,8 @@ def read_dataset(
     fps : frame rate giving the timestamps when frames.csv is absent (timestamp = frame / fps);
         None: the video's own frame rate (FrameSource.frame_rate), else DEFAULT_FPS. A dataset
         with frames.csv takes its times from it: an fps given as well is refused (ValueError).
-    robot_file : name of the robot positions file (e.g. robot_noisy.csv).
+    robot_file : name of the robot positions file (e.g. robot_noisy.csv), inside the dataset
+        folder; None: robot.csv.
     allow_untracked : flag frames outside the tracker's / robot's time span as invalid instead of
         raising.
     tracker_time_offset : s, the tracker's clock ahead of the video's: the sample for the frame
@@ -148,6 +150,7 @@ def read_dataset(
     robot_time_offset = check_time_offset(robot_time_offset, "robot_time_offset")
     if not root.is_dir():
         raise ValueError(f"{root}: dataset folder not found")
+    robot_file = "robot.csv" if robot_file is None else robot_file
     check_robot_file_name(robot_file, root)
     camera = read_camera_yaml(root / "camera.yaml")
     frames = FrameSource.open(root, expected_size=camera.size, size_source=camera.source,
@@ -191,7 +194,7 @@ def _read_tracking(dataset: Dataset, allow_untracked: bool, tracker_time_offset:
         source = str(tracking_path)
         if tracker_time_offset:
             tracking = shift_tracking(tracking, tracker_time_offset)
-            source += f" (timestamps shifted by {-tracker_time_offset:+g} s, the clock offset)"
+            source += SHIFTED.format(-tracker_time_offset)
         poses, valid = interpolate_camera_poses(tracking, dataset.timestamps, hand_eye,
                                                 allow_outside=allow_untracked or lenient,
                                                 source=source)
@@ -228,7 +231,7 @@ def _read_robot(dataset: Dataset, allow_untracked: bool, time_offset: float, *,
         source = str(path)
         if time_offset:
             robot = RobotSamples(robot.timestamps - time_offset, robot.xy_um.copy())
-            source += f" (timestamps shifted by {-time_offset:+g} s, the clock offset)"
+            source += SHIFTED.format(-time_offset)
         xy, valid = interpolate_robot(robot, dataset.timestamps,
                                       allow_outside=allow_untracked or lenient, source=source)
         if lenient:

@@ -443,12 +443,19 @@ def _check_rates(frame_times: np.ndarray, ts: np.ndarray, source: str, what: str
 
 def no_overlap_message(source: str, what: str, frame_times: np.ndarray, t0: float,
                        t1: float) -> str:
-    """No frame time lies in the samples' span [t0, t1]: the two files' clocks differ."""
+    """No frame time lies in the samples' span [t0, t1]: the two files' clocks differ (or the
+    clock offset given, named in `source` as SHIFTED says, moved the samples away)."""
+    hint = ("check the clock offset given (--tracker-time-offset; calibrate measures the "
+            "tracker's)" if SHIFTED_MARK in source else
+            f"the {what}'s timestamps and the frames' must be on one clock, in seconds (e.g. "
+            "both UNIX time: write frames.csv with the frames' own times)")
     return (f"{source}: none of the {frame_times.size} frames lies in the {what}'s time span "
             f"[{_time(t0)}, {_time(t1)}] s (the frames span [{_time(np.min(frame_times))}, "
-            f"{_time(np.max(frame_times))}] s): the {what}'s timestamps and the frames' must be "
-            "on one clock, in seconds (e.g. both UNIX time: write frames.csv with the frames' "
-            "own times)")
+            f"{_time(np.max(frame_times))}] s): {hint}")
+
+
+SHIFTED_MARK = "the clock offset)"
+SHIFTED = " (timestamps shifted by {:+g} s, " + SHIFTED_MARK  # a source read with an offset
 
 
 def _outside_span(
