@@ -248,3 +248,25 @@ def test_inconsistent_directions_are_flagged():
         register_ncc(a, b, max_disagreement=-1.0)
     with pytest.raises(ValueError, match="fallback_template_fraction"):
         register_ncc(a, b, fallback_template_fraction=1.5)
+
+
+@pytest.mark.parametrize("shape", [(448, 512), (101, 77)])
+def test_second_thread_gives_the_same_numbers(shape, monkeypatch):
+    """The backward search and half of the SSIM run on a second thread (ncc._SECOND): the same
+    displacements, scores and SSIM as on one thread, to the last bit."""
+    from fusedmosaic.registration import ncc
+
+    rng = np.random.default_rng(3)
+    a = cv2.GaussianBlur(rng.uniform(0, 255, shape), (0, 0), 2.0).astype(np.uint8)
+    b = np.roll(a, (5, -7), axis=(0, 1))
+    if ncc._SECOND is None:
+        pytest.skip("one core: no second thread")
+    threaded = (ncc.register_ncc(a, b), ncc.aligned_overlap_ssim(a, b, np.array([7.0, -5.0])))
+    monkeypatch.setattr(ncc, "_SECOND", None)
+    serial = (ncc.register_ncc(a, b), ncc.aligned_overlap_ssim(a, b, np.array([7.0, -5.0])))
+    from dataclasses import asdict
+
+    for name, value in asdict(threaded[0]).items():
+        np.testing.assert_array_equal(value, asdict(serial[0])[name], err_msg=name)
+    assert threaded[1] == serial[1] > 0.9
+    np.testing.assert_allclose(threaded[0].dx, [7.0, -5.0], atol=0.05)

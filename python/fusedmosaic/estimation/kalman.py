@@ -427,6 +427,18 @@ class RobotKalmanFilter:
         self._variance = np.full(2, self.options.initial_variance)
         self._step = 0
 
+    def snapshot(self) -> tuple:
+        """The state an update changes, for :meth:`restore` (the histories' entries are
+        immutable tuples: copying the deques is enough; ~20x cheaper than copy.deepcopy)."""
+        return (deque(self._alpha, self._alpha.maxlen), deque(self._norm, self._norm.maxlen),
+                self._position.copy(), self._variance.copy(), self._step)
+
+    def restore(self, snapshot: tuple) -> None:
+        """Back to a :meth:`snapshot` of this filter."""
+        alpha, norm, position, variance, self._step = snapshot
+        self._alpha, self._norm = deque(alpha, alpha.maxlen), deque(norm, norm.maxlen)
+        self._position, self._variance = position.copy(), variance.copy()
+
     @property
     def position(self) -> np.ndarray:
         """Current filtered position X_f (2,), a copy."""
