@@ -121,12 +121,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
         check_fps(args.fps, "--fps")
     options = None
     overrides: dict = {}
-    from fusedmosaic.runner import NEEDS_TRACKING
+    from fusedmosaic.runner import NEEDS_ROBOT, NEEDS_TRACKING
 
     _tracker_calibration(args, NEEDS_TRACKING)
     if args.tracker_time_offset:
         from fusedmosaic.io.tracking import check_time_offset
-        from fusedmosaic.runner import NEEDS_ROBOT, NEEDS_TRACKING
 
         check_time_offset(args.tracker_time_offset, "--tracker-time-offset")
         if args.method not in NEEDS_TRACKING | NEEDS_ROBOT:
@@ -134,12 +133,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
                              f"tracking.csv or the robot file "
                              f"({', '.join(sorted(NEEDS_TRACKING | NEEDS_ROBOT))}), not "
                              f"{args.method}")
-    if args.robot_file is not None:
-        from fusedmosaic.runner import NEEDS_ROBOT
-
-        if args.method not in NEEDS_ROBOT:
-            raise ValueError(f"--robot-file applies to the methods that use the robot "
-                             f"({', '.join(sorted(NEEDS_ROBOT))}), not {args.method}")
+    if args.robot_file is not None and args.method not in NEEDS_ROBOT:
+        raise ValueError(f"--robot-file applies to the methods that use the robot "
+                         f"({', '.join(sorted(NEEDS_ROBOT))}), not {args.method}")
     if args.motion_sigma_from:
         if args.method not in ("ba-emt", "lba-emt"):
             raise ValueError(f"--motion-sigma-from applies to ba-emt and lba-emt, not "

@@ -251,8 +251,7 @@ def check_compositing_options(blend, canvas, names: dict[str, str] | None = None
     elif isinstance(blend, BlendOptions):  # its blend None: the method's, any is fine
         dataclasses.replace(blend, blend=blend.blend or "linear").validate(names)
         if camera is not None and blend.border_px > 0:
-            lens = camera.undistortion() if method not in NEEDS_PIXEL_SIZE else None
-            mask = lens.mask if lens is not None else camera.fov_mask()  # as frames_to_compose
+            _, mask = composing_lens(camera, undistorted=method not in NEEDS_PIXEL_SIZE)
             mask = fov_mask_bool(mask, camera.width, camera.height)
             check_border(blend.border_px, edge_distance(mask))
     elif blend is not None:
@@ -322,11 +321,16 @@ def frames_to_compose(dataset, undistorted: bool = True):
     otherwise the frames and the camera's field-of-view mask as they are."""
     from fusedmosaic.io import UndistortedFrames
 
-    cam = dataset.camera
-    lens = cam.undistortion() if undistorted else None
-    if lens is None:
-        return dataset.frames, cam.fov_mask()
-    return UndistortedFrames(dataset.frames, lens), lens.mask
+    lens, mask = composing_lens(dataset.camera, undistorted)
+    return (dataset.frames if lens is None else UndistortedFrames(dataset.frames, lens)), mask
+
+
+def composing_lens(camera, undistorted: bool):
+    """(LensUndistortion or None, field-of-view mask) of frames composed undistorted or raw:
+    the lens and the mask of its valid pixels when camera.yaml has distortion and the
+    homographies hold between undistorted pixels, else None and the camera's own mask."""
+    lens = camera.undistortion() if undistorted else None
+    return lens, (camera.fov_mask() if lens is None else lens.mask)
 
 
 def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=None, video=None,
@@ -576,8 +580,7 @@ def _live_view(camera, method: str, record: Path, preview, serve_mosaic,
         except OSError as exc:
             raise ValueError(f"{preview}: cannot create the preview's folder "
                              f"({exc.strerror or exc})") from None
-    lens = camera.undistortion() if method == "lba-emt" else None
-    mask = lens.mask if lens is not None else camera.fov_mask()
+    lens, mask = composing_lens(camera, undistorted=method == "lba-emt")
     server = None if serve_mosaic is None else IgtlImageServer(serve_mosaic)
     try:
         view = LiveMosaicView(camera.width, camera.height, mask=mask, lens=lens,
