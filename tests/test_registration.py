@@ -4,6 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
+from fusedmosaic import _core
 from fusedmosaic.estimation.pairwise import chain_homographies
 from fusedmosaic.evaluation import frame_errors
 from fusedmosaic.registration.features import (
@@ -149,6 +150,48 @@ def test_parallel_matching_equals_serial(texture):
         [(r.frame_l, r.frame_m, r.n_inliers) for r in parallel]
     with pytest.raises(ValueError, match="no features for frame 9"):
         match_pairs(feats, [(9, 0)], SIZE)
+
+
+def _bf_ratio_matches(query, train, ratio):
+    """The reference: OpenCV's brute-force Hamming 2-NN, the ratio test, one query per train."""
+    knn = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(query, train, k=2)
+    best = {}
+    for p in knn:
+        if len(p) == 2 and p[0].distance < ratio * p[1].distance:
+            m = p[0]
+            if m.trainIdx not in best or m.distance < best[m.trainIdx].distance:
+                best[m.trainIdx] = m
+    return sorted((m.queryIdx, m.trainIdx, int(m.distance)) for m in best.values())
+
+
+@pytest.mark.parametrize("ratio", [0.6, 0.8, 1.0])
+def test_hamming_matcher_equals_opencv_brute_force(texture, ratio):
+    ext = FeatureExtractor(FeatureOptions(detector="orb"))
+    f0 = ext.extract(view(texture, similarity(0, 1, -200, -200)), 0)
+    f1 = ext.extract(view(texture, similarity(5, 1.05, -215, -190)), 1)
+    q, t, d = _core.match_hamming(f0.descriptors, f1.descriptors, ratio)
+    assert list(zip(q.tolist(), t.tolist(), d.tolist(), strict=True)) == \
+        _bf_ratio_matches(f0.descriptors, f1.descriptors, ratio)
+    assert len(q) > 100 and len(set(t.tolist())) == len(t)
+    # any length, not only ORB's 32 bytes (the word loop plus a byte tail)
+    rng = np.random.default_rng(3)
+    a, b = rng.integers(0, 256, (300, 13), np.uint8), rng.integers(0, 256, (250, 13), np.uint8)
+    b[:100] = a[:100] ^ (rng.random((100, 13)) < 0.05).astype(np.uint8)  # near copies
+    q, t, d = _core.match_hamming(a, b, ratio)
+    assert list(zip(q.tolist(), t.tolist(), d.tolist(), strict=True)) == \
+        _bf_ratio_matches(a, b, ratio)
+
+
+def test_hamming_matcher_bad_input():
+    a = np.zeros((10, 32), np.uint8)
+    with pytest.raises(ValueError, match="differ in length: 32 and 16 bytes"):
+        _core.match_hamming(a, np.zeros((10, 16), np.uint8), 0.8)
+    with pytest.raises(ValueError, match="query: expected a 2-D"):
+        _core.match_hamming(a[0], a, 0.8)
+    with pytest.raises(ValueError, match=r"ratio: expected a value in \(0, 1\]"):
+        _core.match_hamming(a, a, 1.5)
+    q, t, d = _core.match_hamming(a, a[:1], 0.8)  # one train descriptor: no second nearest
+    assert len(q) == len(t) == len(d) == 0
 
 
 def test_pair_selection_counts():

@@ -14,6 +14,7 @@ void BindGeometry(pybind11::module_& m);
 void BindResiduals(pybind11::module_& m);
 void BindProblem(pybind11::module_& m);
 void BindSlidingWindow(pybind11::module_& m);
+void BindRegistration(pybind11::module_& m);
 
 using RowMatrixXd = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
 

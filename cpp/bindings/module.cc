@@ -12,4 +12,5 @@ PYBIND11_MODULE(_core, m) {
   fusedmosaic::bindings::BindResiduals(m);
   fusedmosaic::bindings::BindProblem(m);
   fusedmosaic::bindings::BindSlidingWindow(m);
+  fusedmosaic::bindings::BindRegistration(m);
 }

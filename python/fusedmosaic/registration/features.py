@@ -17,8 +17,8 @@ import numpy as np
 class FeatureOptions:
     detector: str = "sift"  # "sift" (paper Sec. 4.1, VLFeat SIFT) or "orb" (faster)
     # Strongest keypoints kept per frame. 1000 ORB keypoints keep lba-emt at ~0.2 px on SYN where
-    # 500 gave ~0.55 px (bench/bench_sequential.py); ORB pairs are matched with LSH (pairs.py)
-    # so this stays real-time. SIFT finds fewer on low-contrast tissue anyway.
+    # 500 gave ~0.55 px (bench/bench_sequential.py); ORB pairs are matched in the C++ core
+    # (pairs.py) so this stays real-time. SIFT finds fewer on low-contrast tissue anyway.
     max_features: int = 1000
     # SIFT peak threshold. OpenCV's default is 0.04; the paper used VLFeat SIFT whose default
     # peak threshold is 0, which matters on low-contrast placenta: lower keeps more keypoints.
