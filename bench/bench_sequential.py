@@ -17,7 +17,8 @@ the hand-eye transform (io.interpolate_camera_poses), as a live loop would:
    checkpoints (they must stop growing).
 4. Linear solver of the window step: the window calls of the first frames of the long run are
    recorded and replayed into fresh C++ SlidingWindows with each configuration (solver x threads,
-   and fold_fixed_cameras off for reference), round-robin over repetitions so the load of other
+   and for reference the pairs' 2N residuals instead of the condensed blocks, and
+   fold_fixed_cameras off), round-robin over repetitions so the load of other
    processes spreads evenly; median step time and Ceres' time split per configuration.
 
 The long run goes first, so the peak-RSS figures are its own (VmHWM never decreases). Wall
@@ -246,13 +247,14 @@ def step_stats(steps: list[dict]) -> dict:
 
 # --------------------------------------------------------------------------------------------
 def replay(camera_matrix, calls, options: SequentialOptions, *, solver: str, threads: int,
-           fold: bool) -> tuple[list[dict], dict, np.ndarray]:
+           fold: bool, condense: bool = True) -> tuple[list[dict], dict, np.ndarray]:
     """Re-runs recorded window calls on a fresh SlidingWindow configured like the mosaicker's,
-    with the given linear solver, Ceres threads and fold_fixed_cameras."""
+    with the given linear solver, Ceres threads, fold_fixed_cameras and condense_pairs."""
     o = options
     costs = _core.BundleAdjusterOptions(
         sigma_v_px=o.sigma_v_px, loss=o.loss, linear_solver=solver,
-        max_iterations=o.max_iterations, function_tolerance=1e-6, num_threads=threads)
+        max_iterations=o.max_iterations, function_tolerance=1e-6, num_threads=threads,
+        condense_pairs=condense)
     if getattr(o, "motion_sigma", None) is not None:
         costs.motion_sigma = np.asarray(o.motion_sigma, np.float64)
     wo = _core.SlidingWindowOptions(window_size=o.window_size, num_new=o.num_new, costs=costs)
@@ -270,9 +272,12 @@ def replay(camera_matrix, calls, options: SequentialOptions, *, solver: str, thr
 
 
 def compare_solvers(camera_matrix, calls, options: SequentialOptions, repeats: int) -> list:
-    configs = [{"solver": s, "threads": t, "fold_fixed_cameras": True}
+    configs = [{"solver": s, "threads": t, "fold_fixed_cameras": True, "condense_pairs": True}
                for s in SOLVERS for t in (1, 2)]
-    configs += [{"solver": s, "threads": 1, "fold_fixed_cameras": False}
+    # references: the pairs' 2N residuals (as before the condensed blocks), and also unfolded
+    configs += [{"solver": s, "threads": 1, "fold_fixed_cameras": True, "condense_pairs": False}
+                for s in ("dense_schur", "sparse_normal_cholesky")]
+    configs += [{"solver": s, "threads": 1, "fold_fixed_cameras": False, "condense_pairs": False}
                 for s in ("dense_normal_cholesky", "sparse_normal_cholesky")]
     runs: list[list[list[dict]]] = [[] for _ in configs]
     reference = None
@@ -280,7 +285,8 @@ def compare_solvers(camera_matrix, calls, options: SequentialOptions, repeats: i
     for _ in range(repeats):
         for i, c in enumerate(configs):
             steps, poses, plane = replay(camera_matrix, calls, options, solver=c["solver"],
-                                         threads=c["threads"], fold=c["fold_fixed_cameras"])
+                                         threads=c["threads"], fold=c["fold_fixed_cameras"],
+                                         condense=c["condense_pairs"])
             runs[i].append(steps)
             if reference is None:
                 reference = (poses, plane)
@@ -401,10 +407,12 @@ def markdown(res: dict) -> str:
               f"{res['solvers']['configs'][0]['repeats']} round-robin repeats)", "",
               "linear_solver \"auto\" = sparse_normal_cholesky; max abs diff = largest pose / "
               "plane difference to the first configuration (same solution).", "",
-              "| solver | threads | fold fixed cameras | step median ms | p95 | CPU median ms | "
-              "evaluation | linear solve | max abs diff |", "|---|---|---|---|---|---|---|---|---|"]
+              "| solver | threads | fold fixed cameras | condensed pairs | step median ms | p95 | "
+              "CPU median ms | evaluation | linear solve | max abs diff |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in res["solvers"]["configs"]:
         lines.append(f"| {r['solver']} | {r['threads']} | {r['fold_fixed_cameras']} | "
+                     f"{r['condense_pairs']} | "
                      f"{r['step_ms']['median']:.2f} | {r['step_ms']['p95']:.2f} | "
                      f"{r['cpu_ms']['median']:.2f} | {r['evaluation_ms_median']:.2f} | "
                      f"{r['linear_solver_ms_median']:.2f} | {r['max_abs_diff_vs_first']:.1e} |")

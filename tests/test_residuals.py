@@ -87,6 +87,58 @@ def test_visual_transfer_jacobian_matches_numeric(pair, loss):
     )
 
 
+@pytest.mark.parametrize("loss", ["none", "huber", "cauchy"])
+@pytest.mark.parametrize("n_points", [1, 12])
+def test_visual_transfer_analytic_jacobian_equals_autodiff(pair, loss, n_points):
+    """The solvers' analytic Jacobians (chain rule per point through dM/dtheta) against
+    ceres::AutoDiffCostFunction of the same functor: equal to rounding."""
+    pose_l, pose_m, plane, points_l, points_m = pair
+    observed = points_l + np.random.default_rng(4).normal(0, 2.5, points_l.shape)
+    args = (pose_l, pose_m, plane, observed[:n_points], points_m[:n_points], K)
+    r_a, jac_a = _core.evaluate_visual_transfer(*args, loss=loss, jacobians="analytic")
+    r_d, jac_d = _core.evaluate_visual_transfer(*args, loss=loss, jacobians="autodiff")
+    np.testing.assert_allclose(r_a, r_d, rtol=1e-12, atol=1e-12)
+    for a, d in zip(jac_a, jac_d, strict=True):
+        np.testing.assert_allclose(a, d, rtol=1e-9, atol=1e-9 * np.abs(d).max())
+    with pytest.raises(ValueError, match="jacobians: expected 'analytic', 'autodiff' or 'none'"):
+        _core.evaluate_visual_transfer(*args, jacobians="numeric")
+
+
+@pytest.mark.parametrize("loss", ["none", "cauchy"])
+@pytest.mark.parametrize("fixed", ["none", "l", "m", "both"])
+@pytest.mark.parametrize("repeat_points", [False, True])
+def test_visual_transfer_condensed_form_keeps_normal_equations_and_cost(
+        pair, loss, fixed, repeat_points):
+    """The condensed block (P + 1 residuals) has the pair's J^T J, J^T r and cost, through the
+    homography's Cholesky (one free camera or two), the plane's Cholesky (both fixed) and, for
+    points that do not fix a homography (3 distinct points repeated), the QR fallback."""
+    pose_l, pose_m, plane, points_l, points_m = pair
+    observed = points_l + np.random.default_rng(5).normal(0, 2.5, points_l.shape)
+    if repeat_points:
+        observed, points_m = np.tile(observed[:3], (4, 1)), np.tile(points_m[:3], (4, 1))
+    args = (pose_l, pose_m, plane, observed, points_m, K)
+    kw = {"loss": loss, "fixed_cameras": fixed}
+    r, jac = _core.evaluate_visual_transfer(*args, **kw)
+    rc, jac_c = _core.evaluate_visual_transfer(*args, condense=True, **kw)
+    J, Jc = np.hstack(jac), np.hstack(jac_c)
+    n_free = J.shape[1]
+    assert n_free == {"none": 15, "l": 9, "m": 9, "both": 3}[fixed]
+    assert rc.shape == (n_free + 1,) and Jc.shape == (n_free + 1, n_free)
+    np.testing.assert_allclose(rc @ rc, r @ r, rtol=1e-9)
+    np.testing.assert_allclose(Jc.T @ rc, J.T @ r, rtol=1e-7, atol=1e-9 * np.abs(J.T @ r).max())
+    JtJ = J.T @ J
+    np.testing.assert_allclose(Jc.T @ Jc, JtJ, rtol=1e-7, atol=1e-9 * np.abs(JtJ).max())
+    # without Jacobians, the same cost: [0, ..., 0, |r|]
+    ro, none = _core.evaluate_visual_transfer(*args, condense=True, jacobians="none", **kw)
+    assert none == () and ro.shape == rc.shape
+    np.testing.assert_allclose(ro[-1], np.linalg.norm(r), rtol=1e-12)
+    assert not ro[:-1].any()
+    # too few points to save residuals: the block keeps its 2N
+    r3, _ = _core.evaluate_visual_transfer(pose_l, pose_m, plane, observed[:1], points_m[:1], K,
+                                           condense=True, **kw)
+    assert r3.shape == (2,)
+
+
 def test_visual_transfer_weighting_by_sigma(pair):
     pose_l, pose_m, plane, points_l, points_m = pair
     observed = points_l + 1.5

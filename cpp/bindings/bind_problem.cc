@@ -39,6 +39,7 @@ constexpr const char* kOptionFields[] = {"sigma_v_px",
                                          "loss_scale_px",
                                          "linear_solver",
                                          "residual_blocks",
+                                         "condense_pairs",
                                          "max_iterations",
                                          "function_tolerance",
                                          "gradient_tolerance",
@@ -123,6 +124,9 @@ void BindProblem(py::module_& m) {
                      "'dense_normal_cholesky' or 'iterative_schur'.")
       .def_readwrite("residual_blocks", &BundleAdjusterOptions::residual_blocks,
                      "'per_pair' (default) or 'per_point' residual blocks.")
+      .def_readwrite("condense_pairs", &BundleAdjusterOptions::condense_pairs,
+                     "Per-pair blocks enter Ceres condensed: P + 1 residuals with the pair's\n"
+                     "J^T J, J^T r and cost (the same steps, less per-residual work).")
       .def_readwrite("max_iterations", &BundleAdjusterOptions::max_iterations)
       .def_readwrite("function_tolerance", &BundleAdjusterOptions::function_tolerance)
       .def_readwrite("gradient_tolerance", &BundleAdjusterOptions::gradient_tolerance)

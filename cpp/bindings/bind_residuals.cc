@@ -1,5 +1,5 @@
 // Python bindings of cpp/fusedmosaic/residuals: evaluation helpers that return each functor's
-// residuals and autodiff Jacobians, so tests can check them against numeric derivatives.
+// residuals and Jacobians, so tests can check them against numeric derivatives.
 #include <pybind11/eigen.h>
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
@@ -24,7 +24,8 @@ using Mat = Eigen::Ref<const RowMatrixXd>;
 
 // Evaluates cost at the given parameter blocks; returns (residuals, (jacobian per block, ...)),
 // each Jacobian (num_residuals, block_size), row-major as Ceres lays it out.
-py::tuple Evaluate(const ceres::CostFunction& cost, const std::vector<const double*>& params) {
+py::tuple Evaluate(const ceres::CostFunction& cost, const std::vector<const double*>& params,
+                   bool with_jacobians = true) {
   const int n = cost.num_residuals();
   const std::vector<int32_t>& sizes = cost.parameter_block_sizes();
   Eigen::VectorXd residuals(n);
@@ -35,11 +36,13 @@ py::tuple Evaluate(const ceres::CostFunction& cost, const std::vector<const doub
     jacobians.emplace_back(n, size);
     jacobian_ptrs.push_back(jacobians.back().data());
   }
-  if (!cost.Evaluate(params.data(), residuals.data(), jacobian_ptrs.data())) {
+  if (!cost.Evaluate(params.data(), residuals.data(),
+                     with_jacobians ? jacobian_ptrs.data() : nullptr)) {
     throw std::invalid_argument(
         "evaluation failed: degenerate geometry (a camera centre on the plane, or a point "
         "transferred to infinity)");
   }
+  if (!with_jacobians) return py::make_tuple(residuals, py::tuple());
   py::tuple jac(jacobians.size());
   for (size_t i = 0; i < jacobians.size(); ++i) jac[i] = py::cast(jacobians[i]);
   return py::make_tuple(residuals, jac);
@@ -71,7 +74,8 @@ void BindResiduals(py::module_& m) {
       "evaluate_visual_transfer",
       [](const Vec& cam_l_from_world, const Vec& cam_m_from_world, const Vec& plane,
          const Mat& points_l, const Mat& points_m, const Mat& camera_matrix, double sigma_v_px,
-         const std::string& loss, double loss_scale_px) {
+         const std::string& loss, double loss_scale_px, const std::string& jacobians,
+         const std::string& fixed_cameras, bool condense) {
         const Vector6d pose_l = CheckedPose(cam_l_from_world, "cam_l_from_world");
         const Vector6d pose_m = CheckedPose(cam_m_from_world, "cam_m_from_world");
         CheckSize(plane, kPlaneSize, "plane");
@@ -82,17 +86,49 @@ void BindResiduals(py::module_& m) {
         if (!(loss_scale_px > 0)) throw std::invalid_argument("loss_scale_px: must be > 0");
         const Eigen::Matrix3d K = CheckCameraMatrix(camera_matrix);
         const Eigen::Vector3d pi = plane;
-        std::unique_ptr<ceres::CostFunction> cost(VisualTransferCostFunctor::Create(
-            K, points_l.transpose(), points_m.transpose(), sigma_v_px, RobustLossFromString(loss),
-            loss_scale_px));
-        return Evaluate(*cost, {pose_l.data(), pose_m.data(), pi.data()});
+        if (jacobians != "analytic" && jacobians != "autodiff" && jacobians != "none") {
+          throw std::invalid_argument(
+              "jacobians: expected 'analytic', 'autodiff' or 'none', got '" + jacobians + "'");
+        }
+        if (fixed_cameras != "none" && fixed_cameras != "l" && fixed_cameras != "m" &&
+            fixed_cameras != "both") {
+          throw std::invalid_argument(
+              "fixed_cameras: expected 'none', 'l', 'm' or 'both', got '" + fixed_cameras + "'");
+        }
+        const bool fixed_l = fixed_cameras == "l" || fixed_cameras == "both";
+        const bool fixed_m = fixed_cameras == "m" || fixed_cameras == "both";
+        if (jacobians == "autodiff" && (fixed_l || fixed_m || condense)) {
+          throw std::invalid_argument(
+              "jacobians='autodiff' is the reference block: both cameras free, not condensed");
+        }
+        const VisualTransferCostFunctor transfer(K, points_l.transpose(), points_m.transpose(),
+                                                 sigma_v_px, RobustLossFromString(loss),
+                                                 loss_scale_px);
+        std::unique_ptr<ceres::CostFunction> cost(
+            jacobians == "autodiff"
+                ? VisualTransferCostFunctor::CreateAutoDiff(K, points_l.transpose(),
+                                                            points_m.transpose(), sigma_v_px,
+                                                            RobustLossFromString(loss),
+                                                            loss_scale_px)
+                : CreateVisualTransferCost(transfer, fixed_l ? pose_l.data() : nullptr,
+                                           fixed_m ? pose_m.data() : nullptr, condense));
+        std::vector<const double*> params;
+        if (!fixed_l) params.push_back(pose_l.data());
+        if (!fixed_m) params.push_back(pose_m.data());
+        params.push_back(pi.data());
+        return Evaluate(*cost, params, jacobians != "none");
       },
       "cam_l_from_world"_a, "cam_m_from_world"_a, "plane"_a, "points_l"_a, "points_m"_a,
       "camera_matrix"_a, "sigma_v_px"_a = 1.0, "loss"_a = "none", "loss_scale_px"_a = 2.0,
-      "Visual transfer residual (Eq. 13, 18) of one pair block and its autodiff Jacobians.\n\n"
+      "jacobians"_a = "analytic", "fixed_cameras"_a = "none", "condense"_a = false,
+      "Visual transfer residual (Eq. 13, 18) of one pair block and its Jacobians.\n\n"
       "cam_l_from_world, cam_m_from_world : (6,) float64 [r, t]\nplane : (3,) float64\n"
       "points_l, points_m : (N, 2) float64 pixels (transfer m -> l)\n"
       "camera_matrix : (3, 3) float64\nloss : 'none' | 'huber' | 'cauchy' (per point)\n"
+      "jacobians : 'analytic' (what the solvers use) | 'autodiff' (the reference) | 'none'\n"
+      "fixed_cameras : 'none' | 'l' | 'm' | 'both': cameras that are constants of the block\n"
+      "  (their Jacobians are not returned), as in a sliding-window step\n"
+      "condense : the condensed form (P + 1 residuals with the same J^T J, J^T r and cost)\n"
       "Returns (residuals (2N,), (J_l (2N, 6), J_m (2N, 6), J_plane (2N, 3))); residuals are\n"
       "(mu - p_l) / sigma_v, interleaved x, y per point.");
 

@@ -48,7 +48,7 @@ void BindSlidingWindow(py::module_& m) {
       .def_readwrite("costs", &SlidingWindowOptions::costs)
       .def_readwrite("fold_fixed_cameras", &SlidingWindowOptions::fold_fixed_cameras,
                      "C_v blocks take the poses of the step's fixed cameras as values, so\n"
-                     "autodiff runs over the free parameters only (same residuals)")
+                     "their Jacobians span the free parameters only (same residuals)")
       .def_readwrite("full_report", &SlidingWindowOptions::full_report,
                      "keep Ceres' FullReport() in each step summary (diagnostics)")
       .def_readwrite("plane_max_relative_std", &SlidingWindowOptions::plane_max_relative_std,

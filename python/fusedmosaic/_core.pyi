@@ -109,13 +109,34 @@ def evaluate_visual_transfer(
     sigma_v_px: float = 1.0,
     loss: str = "none",
     loss_scale_px: float = 2.0,
-) -> tuple[_Array, tuple[_Array, _Array, _Array]]:
-    """Visual transfer residual (Eq. 13, 18) of one pair block and its autodiff Jacobians.
+    jacobians: str = "analytic",
+    fixed_cameras: str = "none",
+    condense: bool = False,
+) -> tuple[_Array, tuple[_Array, ...]]:
+    """Visual transfer residual (Eq. 13, 18) of one pair block and its Jacobians.
 
     points_l, points_m : (N, 2) pixels, row i of points_m transfers to row i of points_l.
     loss : 'none' | 'huber' | 'cauchy', applied per point (|r_i'|^2 = rho(|r_i|^2)).
+    jacobians : 'analytic' (the solvers' cost function) | 'autodiff' (ceres::AutoDiffCostFunction
+    of the same functor, the reference) | 'none' (residuals only, an empty tuple).
+    fixed_cameras : 'none' | 'l' | 'm' | 'both': cameras that are constants of the block, as in
+    a sliding-window step (no Jacobian is returned for them).
+    condense : the condensed form (P + 1 residuals, P free parameters, with the pair's J^T J,
+    J^T r and cost; residuals only: [0, ..., 0, |r|]).
     Returns (residuals (2N,), (J_l (2N, 6), J_m (2N, 6), J_plane (2N, 3))); residuals are
     (mu - p_l) / sigma_v interleaved x, y per point.
+    """
+
+def match_hamming(
+    query: _ArrayLike, train: _ArrayLike, ratio: float = 0.8
+) -> tuple[_Array, _Array, _Array]:
+    """Exact Hamming nearest neighbours of binary descriptors, ratio test, one-to-one.
+
+    query : (Nq, B) uint8, train : (Nt, B) uint8 (ORB: B = 32); ratio in (0, 1].
+    Returns (query_idx, train_idx, distance) of the kept matches, ascending query order: a query
+    is kept if its nearest train descriptor is nearer than ratio x the second nearest, and of the
+    queries kept for one train descriptor only the nearest (the first on a tie). The matches of
+    cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(k=2) with these filters, counted with popcount.
     """
 
 def evaluate_pose_prior(
@@ -169,6 +190,9 @@ class BundleAdjusterOptions:
     'iterative_schur'."""
     residual_blocks: str
     """'per_pair' (default: one block per image pair) or 'per_point'."""
+    condense_pairs: bool
+    """Per-pair blocks enter Ceres condensed: P + 1 residuals with the pair's J^T J, J^T r and
+    cost instead of 2N (the same steps to rounding, less per-residual work). Default True."""
     max_iterations: int
     function_tolerance: float
     gradient_tolerance: float

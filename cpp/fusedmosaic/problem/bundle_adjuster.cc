@@ -294,8 +294,10 @@ SolveSummary BundleAdjuster::Solve() {
     if (!per_point) {
       // Per-point robustness inside the block (visual_transfer.h).
       visual_blocks.push_back(problem.AddResidualBlock(
-          VisualTransferCostFunctor::Create(camera_matrix_, pair.points_l, pair.points_m,
-                                            options_.sigma_v_px, loss, options_.loss_scale_px),
+          CreateVisualTransferCost(
+              VisualTransferCostFunctor(camera_matrix_, pair.points_l, pair.points_m,
+                                        options_.sigma_v_px, loss, options_.loss_scale_px),
+              nullptr, nullptr, options_.condense_pairs),
           nullptr, pose_l, pose_m, plane));
       continue;
     }

@@ -1,8 +1,6 @@
 #include "fusedmosaic/problem/sliding_window.h"
 
 #include <Eigen/Eigenvalues>
-#include <ceres/autodiff_cost_function.h>
-#include <ceres/crs_matrix.h>
 #include <ceres/problem.h>
 #include <ceres/solver.h>
 
@@ -10,6 +8,7 @@
 #include <chrono>
 #include <cmath>
 #include <limits>
+#include <map>
 #include <set>
 #include <stdexcept>
 #include <string>
@@ -41,47 +40,6 @@ ceres::LinearSolverType WindowLinearSolver(const std::string& name) {
   return type;
 }
 
-// C_v blocks of pairs whose cameras are partly held constant in the step. They evaluate the
-// very same VisualTransferCostFunctor (identical residuals, Eq. 25) with the constant poses
-// passed in as values, so automatic differentiation carries Jets over the free parameters only:
-// 9 (one new camera + pi) or 3 (pi alone, a pair of two fixed cameras) instead of 15.
-struct OneFixedCameraTransfer {
-  VisualTransferCostFunctor transfer;
-  std::array<double, kPoseSize> fixed_pose;
-  bool fixed_is_l;  // the constant camera is frame l (else frame m)
-
-  template <typename T>
-  bool operator()(const T* const free_pose, const T* const plane, T* residuals) const {
-    T fixed[kPoseSize];
-    for (int i = 0; i < kPoseSize; ++i) fixed[i] = T(fixed_pose[i]);
-    return fixed_is_l ? transfer(fixed, free_pose, plane, residuals)
-                      : transfer(free_pose, fixed, plane, residuals);
-  }
-};
-
-struct PlaneOnlyTransfer {
-  VisualTransferCostFunctor transfer;
-  std::array<double, kPoseSize> pose_l, pose_m;
-
-  template <typename T>
-  bool operator()(const T* const plane, T* residuals) const {
-    T l[kPoseSize], m[kPoseSize];
-    for (int i = 0; i < kPoseSize; ++i) {
-      l[i] = T(pose_l[i]);
-      m[i] = T(pose_m[i]);
-    }
-    return transfer(l, m, plane, residuals);
-  }
-};
-
-// 2 residuals per correspondence; fixed-size for a single point, as VisualTransferCostFunctor.
-template <typename Functor, int... Sizes>
-ceres::CostFunction* AutoDiffTransfer(Functor* functor, int num_points) {
-  if (num_points == 1) return new ceres::AutoDiffCostFunction<Functor, 2, Sizes...>(functor);
-  return new ceres::AutoDiffCostFunction<Functor, ceres::DYNAMIC, Sizes...>(functor,
-                                                                            2 * num_points);
-}
-
 SlidingWindow::Pose ToVector(const std::array<double, kPoseSize>& a) {
   return Eigen::Map<const SlidingWindow::Pose>(a.data());
 }
@@ -100,28 +58,62 @@ double Seconds(std::chrono::steady_clock::time_point since) {
 // every cost of the step, Cov = (J^T J)^+ over the free parameters (residuals are whitened by
 // their sigmas, so it is absolute). A direction of J^T J without information that moves pi makes
 // pi unobservable (inf); one confined to the poses (a free camera without any cost) does not
-// concern pi and is left out, as the pseudo-inverse does. Built from one Jacobian evaluation:
-// ceres::Covariance (DENSE_SVD) took ~6 ms on a SYN step of 11k residuals, three times the step
-// itself; this takes ~0.6 ms, mostly the evaluation.
+// concern pi and is left out, as the pseudo-inverse does. Built from one Jacobian evaluation of
+// each residual block (the step's blocks have no ceres::LossFunction and no manifolds, so these
+// are the Jacobians Ceres uses), J_a^T J_b added block by block: ceres::Covariance (DENSE_SVD)
+// took ~6 ms on a SYN step of 11k residuals, Problem::Evaluate into a CRSMatrix 1.5 ms (it
+// builds a program and an evaluator per call), this ~0.6 ms, mostly the evaluation.
 double PlaneRelativeStd(ceres::Problem* problem, double* plane,
                         const std::vector<double*>& free_poses, double plane_norm) {
-  ceres::Problem::EvaluateOptions eo;
-  eo.parameter_blocks = free_poses;
-  eo.parameter_blocks.push_back(plane);  // the plane's columns are the last three
-  ceres::CRSMatrix crs;
-  if (!problem->Evaluate(eo, nullptr, nullptr, nullptr, &crs)) {
-    return std::numeric_limits<double>::infinity();
+  using RowMajorMatrix = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+  std::map<const double*, int> column;  // first column of each free block; the plane's last
+  int n = 0;
+  for (const double* p : free_poses) {
+    column[p] = n;
+    n += kPoseSize;
   }
-  // J^T J (lower triangle, which the eigensolver reads), accumulated row by row: most rows
-  // touch only pi.
-  const int n = crs.num_cols;
+  column[plane] = n;
+  n += kPlaneSize;
   Eigen::MatrixXd H = Eigen::MatrixXd::Zero(n, n);
-  for (int r = 0; r < crs.num_rows; ++r) {
-    for (int a = crs.rows[r]; a < crs.rows[r + 1]; ++a) {
-      const double va = crs.values[a];
-      for (int b = a; b < crs.rows[r + 1]; ++b) {
-        const int i = crs.cols[a], j = crs.cols[b];
-        H(std::max(i, j), std::min(i, j)) += va * crs.values[b];
+  std::vector<ceres::ResidualBlockId> blocks;
+  problem->GetResidualBlocks(&blocks);
+  std::vector<double*> parameters;
+  std::vector<RowMajorMatrix> jacobians;
+  std::vector<double*> jacobian_ptrs;
+  std::vector<int> cols;
+  Eigen::VectorXd residuals;
+  for (const ceres::ResidualBlockId block : blocks) {
+    problem->GetParameterBlocksForResidualBlock(block, &parameters);
+    const ceres::CostFunction* cost = problem->GetCostFunctionForResidualBlock(block);
+    const int m = cost->num_residuals();
+    const size_t k = parameters.size();
+    jacobians.resize(k);
+    jacobian_ptrs.assign(k, nullptr);
+    cols.assign(k, -1);
+    bool touches_free = false;
+    for (size_t b = 0; b < k; ++b) {
+      const auto it = column.find(parameters[b]);
+      if (it == column.end()) continue;  // held constant in this step
+      cols[b] = it->second;
+      jacobians[b].resize(m, cost->parameter_block_sizes()[b]);
+      jacobian_ptrs[b] = jacobians[b].data();
+      touches_free = true;
+    }
+    if (!touches_free) continue;
+    residuals.resize(m);
+    if (!cost->Evaluate(parameters.data(), residuals.data(), jacobian_ptrs.data())) {
+      return std::numeric_limits<double>::infinity();
+    }
+    for (size_t a = 0; a < k; ++a) {
+      if (cols[a] < 0) continue;
+      const RowMajorMatrix& Ja = jacobians[a];
+      H.block(cols[a], cols[a], Ja.cols(), Ja.cols()).noalias() += Ja.transpose() * Ja;
+      for (size_t b = a + 1; b < k; ++b) {
+        if (cols[b] < 0) continue;
+        const RowMajorMatrix& Jb = jacobians[b];
+        const Eigen::MatrixXd ab = Ja.transpose() * Jb;
+        H.block(cols[a], cols[b], ab.rows(), ab.cols()) += ab;
+        H.block(cols[b], cols[a], ab.cols(), ab.rows()) += ab.transpose();
       }
     }
   }
@@ -414,24 +406,19 @@ WindowStepSummary SlidingWindow::SolveStep(const std::vector<int>& free_ids,
         VisualTransferCostFunctor transfer(camera_matrix_, pair.points_l.middleCols(first, count),
                                            pair.points_m.middleCols(first, count), c.sigma_v_px,
                                            loss, c.loss_scale_px);
-        ceres::ResidualBlockId block;
-        if (fold_l && fold_m) {
-          auto* f = new PlaneOnlyTransfer{std::move(transfer), frames_.at(key.first).pose,
-                                          frames_.at(key.second).pose};
-          block = problem.AddResidualBlock(
-              AutoDiffTransfer<PlaneOnlyTransfer, kPlaneSize>(f, count), nullptr, plane_.data());
-        } else if (fold_l || fold_m) {
-          auto* f = new OneFixedCameraTransfer{
-              std::move(transfer), frames_.at(fold_l ? key.first : key.second).pose, fold_l};
-          block = problem.AddResidualBlock(
-              AutoDiffTransfer<OneFixedCameraTransfer, kPoseSize, kPlaneSize>(f, count), nullptr,
-              fold_l ? pose_m : pose_l, plane_.data());
-        } else {
-          block = problem.AddResidualBlock(
-              AutoDiffTransfer<VisualTransferCostFunctor, kPoseSize, kPoseSize, kPlaneSize>(
-                  new VisualTransferCostFunctor(std::move(transfer)), count),
-              nullptr, pose_l, pose_m, plane_.data());
-        }
+        // Cameras held constant in the step are folded into the block as constants, so its
+        // Jacobian spans only the free parameters: 9 (one new camera + pi) or 3 (pi alone, a
+        // pair of two fixed cameras) columns instead of 15.
+        ceres::CostFunction* cost = CreateVisualTransferCost(
+            std::move(transfer), fold_l ? frames_.at(key.first).pose.data() : nullptr,
+            fold_m ? frames_.at(key.second).pose.data() : nullptr,
+            c.condense_pairs && !per_point);
+        std::vector<double*> blocks_of_pair;
+        if (!fold_l) blocks_of_pair.push_back(pose_l);
+        if (!fold_m) blocks_of_pair.push_back(pose_m);
+        blocks_of_pair.push_back(plane_.data());
+        const ceres::ResidualBlockId block =
+            problem.AddResidualBlock(cost, nullptr, blocks_of_pair);
         visual_blocks.push_back(block);
       }
     }

@@ -43,8 +43,8 @@ struct SlidingWindowOptions {
   // count are set by the caller (estimation/sequential.py).
   BundleAdjusterOptions costs;
   // C_v blocks of pairs with a camera held constant in the step take its pose as a value, so
-  // automatic differentiation runs over the free parameters only (Jets of 9 or 3 instead of 15);
-  // the residuals are the same. false: every block has both poses as (constant) parameters.
+  // their Jacobians span the free parameters only (9 or 3 columns instead of 15); the residuals
+  // are the same. false: every block has both poses as (constant) parameters.
   // bench/bench_sequential.py: median step 5.6 -> 3.0 ms (sparse_normal_cholesky), 8.6 -> 5.8 ms
   // (dense_normal_cholesky); identical poses and plane.
   bool fold_fixed_cameras = true;

@@ -27,12 +27,17 @@
 #pragma once
 
 #include <ceres/autodiff_cost_function.h>
+#include <ceres/cost_function.h>
 #include <ceres/jet.h>
 
 #include <Eigen/Core>
+#include <Eigen/Cholesky>
+#include <Eigen/QR>
+#include <algorithm>
 #include <cmath>
 #include <stdexcept>
 #include <string>
+#include <utility>
 
 #include "fusedmosaic/geometry/homography.h"
 #include "fusedmosaic/geometry/plane.h"
@@ -93,18 +98,34 @@ struct VisualTransferCostFunctor {
   }
 
   int num_points() const { return static_cast<int>(points_l_.cols()); }
+  const Eigen::Matrix3d& camera_matrix() const { return camera_matrix_; }
+  const Matrix3Xd& rays_m() const { return rays_m_; }
+  const Matrix2Xd& points_l() const { return points_l_; }
+  double inv_sigma_v() const { return inv_sigma_v_; }
+  RobustLoss loss() const { return loss_; }
+  double loss_scale() const { return loss_scale_; }
 
   // cam_l_from_world, cam_m_from_world: [0..2] angle-axis, [3..5] translation (mm).
   // plane: pi = n / d (1/mm). residuals: 2N values, (x, y) per point.
+  // M = K H_l H_m^-1, the pixel transfer of normalised rays of frame m into frame l; false if
+  // camera m's centre is on the plane.
   template <typename T>
-  bool operator()(const T* const cam_l_from_world, const T* const cam_m_from_world,
-                  const T* const plane, T* residuals) const {
+  bool TransferMatrix(const T* const cam_l_from_world, const T* const cam_m_from_world,
+                      const T* const plane, Matrix3<T>* M) const {
     using std::abs;
     const Matrix3<T> H_m = InducedHomography(cam_m_from_world, plane);
     const T det_m = H_m.determinant();
     if (!(abs(det_m) > T(1e-12))) return false;  // camera m centre on the plane
-    const Matrix3<T> M =
-        camera_matrix_.cast<T>() * InducedHomography(cam_l_from_world, plane) * H_m.inverse();
+    *M = camera_matrix_.cast<T>() * InducedHomography(cam_l_from_world, plane) * H_m.inverse();
+    return true;
+  }
+
+  template <typename T>
+  bool operator()(const T* const cam_l_from_world, const T* const cam_m_from_world,
+                  const T* const plane, T* residuals) const {
+    using std::abs;
+    Matrix3<T> M;
+    if (!TransferMatrix(cam_l_from_world, cam_m_from_world, plane, &M)) return false;
     for (int i = 0; i < num_points(); ++i) {
       // Jet * double products only: the rays are constants.
       const double* ray = rays_m_.col(i).data();
@@ -125,12 +146,21 @@ struct VisualTransferCostFunctor {
   }
 
   // One block for all columns of points_l / points_m (N >= 1): 2N residuals, parameter blocks
-  // (cam_l_from_world: 6, cam_m_from_world: 6, plane: 3). A single point uses the fixed-size
-  // instantiation. Use loss = kNone and a ceres::LossFunction for Ceres-side robustness.
+  // (cam_l_from_world: 6, cam_m_from_world: 6, plane: 3), with the analytic Jacobians of
+  // VisualTransferCostFunction below. Use loss = kNone and a ceres::LossFunction for Ceres-side
+  // robustness.
   static ceres::CostFunction* Create(const Eigen::Matrix3d& camera_matrix,
                                      const Matrix2Xd& points_l, const Matrix2Xd& points_m,
                                      double sigma_v, RobustLoss loss = RobustLoss::kNone,
-                                     double loss_scale = 1.0) {
+                                     double loss_scale = 1.0);
+
+  // The same block differentiated by ceres::AutoDiffCostFunction (the reference the analytic
+  // Jacobians are tested against; a single point uses the fixed-size instantiation).
+  static ceres::CostFunction* CreateAutoDiff(const Eigen::Matrix3d& camera_matrix,
+                                             const Matrix2Xd& points_l,
+                                             const Matrix2Xd& points_m, double sigma_v,
+                                             RobustLoss loss = RobustLoss::kNone,
+                                             double loss_scale = 1.0) {
     auto* functor =
         new VisualTransferCostFunctor(camera_matrix, points_l, points_m, sigma_v, loss, loss_scale);
     if (functor->num_points() == 1) {
@@ -150,5 +180,322 @@ struct VisualTransferCostFunctor {
   RobustLoss loss_;
   double loss_scale_;  // in units of sigma_v
 };
+
+// VisualTransferCostFunctor's residuals with analytic Jacobians, for the solvers. Per block,
+// M = K H_l H_m^-1 and its derivatives dM/dtheta with respect to the P free parameters are formed
+// once with Jets (3x3 matrices); per point, with q = M ray, u = q_x / q_z, v = q_y / q_z,
+//     dr/dtheta = [dq_x - u dq_z; dq_y - v dq_z] / (q_z sigma_v),   dq = (dM/dtheta) ray,
+// and with a per-point kernel r' = w(s) r (s = |r|^2, w = sqrt(rho(s) / s), see above)
+//     dr'/dtheta = w dr/dtheta + r w'(s) 2 r^T dr/dtheta.
+// Automatic differentiation carried P-wide Jets through every point's transfer: in a SYN window
+// step (13k residuals, replayed on the 2-core Xeon) one Jacobian evaluation took 0.64 ms with
+// it, 0.52 ms with this. The residual values are VisualTransferCostFunctor's in doubles,
+// bit for bit those of the residual-only evaluations (AutoDiffCostFunction's differ from them in
+// the last bits: Jet division multiplies by the reciprocal).
+//
+// Condensed form (condense = true, for per-pair blocks with 2N > P + 1 residuals). Only through
+// J^T J, J^T r and |r|^2 do a block's residuals enter a Gauss-Newton / Levenberg-Marquardt
+// step, so the block can hand Ceres P + 1 residuals instead of 2N: with J = Q R (Householder),
+//     r~ = [ (Q^T r)_1..P ; |(Q^T r)_P+1..2N| ],   J~ = [ R ; 0 ],
+// J~^T J~ = J^T J, J~^T r~ = J^T r and |r~|^2 = |r|^2, so cost, gradient, normal equations,
+// Jacobi scaling and model cost change are those of the 2N residuals (to rounding), and with
+// them every step. The last row's true derivative is left out, as Gauss-Newton leaves out the
+// change of r's component outside the range of J. Evaluated without Jacobians, the block returns
+// [0, ..., 0, |r|] (the same cost; the minimizer only needs the cost there). In a SYN window
+// step the ~13k residuals of ~66 pair blocks become ~400 and Ceres' per-residual work (validity
+// checks, J^T J, column scaling) shrinks with them: the step's median 5.8 -> 3.7 ms, its linear
+// solves 1.3 -> 0.15 ms (replay of 400 frames' window calls, 2-core Xeon; the same poses to
+// 1e-13). The blocks with a free camera condense through their homography (below).
+//
+// Parameter blocks, in order: cam_l_from_world (6) if kFreeL, cam_m_from_world (6) if kFreeM,
+// plane (3). A camera that is not free is a constant of the block (a camera held fixed in a
+// sliding-window step: the derivatives then span only the free parameters).
+template <bool kFreeL, bool kFreeM>
+class VisualTransferCostFunction final : public ceres::CostFunction {
+ public:
+  static constexpr int kNumFree =
+      (kFreeL ? kPoseSize : 0) + (kFreeM ? kPoseSize : 0) + kPlaneSize;
+
+  // fixed_l / fixed_m: the constant pose of a camera that is not free (ignored otherwise).
+  // condense: the condensed form above, if it has fewer residuals (2N > P + 1).
+  VisualTransferCostFunction(VisualTransferCostFunctor transfer, const double* fixed_l,
+                             const double* fixed_m, bool condense = false)
+      : transfer_(std::move(transfer)),
+        num_full_(2 * transfer_.num_points()),
+        condensed_(condense && num_full_ > kNumFree + 1) {
+    set_num_residuals(condensed_ ? kNumFree + 1 : num_full_);
+    if (kFreeL) mutable_parameter_block_sizes()->push_back(kPoseSize);
+    if (kFreeM) mutable_parameter_block_sizes()->push_back(kPoseSize);
+    mutable_parameter_block_sizes()->push_back(kPlaneSize);
+    for (int i = 0; i < kPoseSize; ++i) {
+      fixed_l_[i] = kFreeL ? 0.0 : fixed_l[i];
+      fixed_m_[i] = kFreeM ? 0.0 : fixed_m[i];
+    }
+  }
+
+  bool condensed() const { return condensed_; }
+
+  bool Evaluate(double const* const* parameters, double* residuals,
+                double** jacobians) const override {
+    int b = 0;
+    const double* cam_l = kFreeL ? parameters[b++] : fixed_l_;
+    const double* cam_m = kFreeM ? parameters[b++] : fixed_m_;
+    const double* plane = parameters[b];
+    bool any_jacobian = false;
+    for (int i = 0; jacobians != nullptr && i <= b; ++i) any_jacobian |= jacobians[i] != nullptr;
+    if (!any_jacobian && !condensed_) return transfer_(cam_l, cam_m, plane, residuals);
+    Eigen::VectorXd r(num_full_);
+    if (!any_jacobian) {
+      if (!transfer_(cam_l, cam_m, plane, r.data())) return false;
+      Eigen::Map<Eigen::VectorXd>(residuals, kNumFree + 1).setZero();
+      residuals[kNumFree] = r.norm();
+      return true;
+    }
+    if (kNumFree > kHomographyDof && condensed_) {
+      FullJacobian R = FullJacobian::Zero(kNumFree + 1, kNumFree);
+      if (CondenseThroughHomography(cam_l, cam_m, plane, residuals, &R)) {
+        WriteBlocks(R, jacobians);
+        return true;
+      }
+    }
+    FullJacobian J(num_full_, kNumFree);
+    if (!Linearize(cam_l, cam_m, plane, r.data(), &J)) return false;
+    if (!condensed_) {
+      Eigen::Map<Eigen::VectorXd>(residuals, num_full_) = r;
+      WriteBlocks(J, jacobians);
+      return true;
+    }
+    FullJacobian R = FullJacobian::Zero(kNumFree + 1, kNumFree);
+    if (kNumFree == kPlaneSize && CondenseByCholesky(J, r, residuals, &R)) {
+      WriteBlocks(R, jacobians);
+      return true;
+    }
+    const Eigen::HouseholderQR<FullJacobian> qr(J);
+    r.applyOnTheLeft(qr.householderQ().adjoint());  // Q^T r
+    Eigen::Map<Eigen::VectorXd>(residuals, kNumFree) = r.head<kNumFree>();
+    residuals[kNumFree] = r.tail(num_full_ - kNumFree).norm();
+    R.template topRows<kNumFree>() =
+        qr.matrixQR().template topRows<kNumFree>().template triangularView<Eigen::Upper>();
+    WriteBlocks(R, jacobians);
+    return true;
+  }
+
+ private:
+  using Jet = ceres::Jet<double, kNumFree>;
+  using Gradient = Eigen::Matrix<double, 1, kNumFree>;
+  using FullJacobian = Eigen::Matrix<double, Eigen::Dynamic, kNumFree>;
+  static constexpr int kHomographyDof = 8;
+
+  // The condensed form from the normal equations, R = chol(J^T J), r~ = R^-T J^T r: for the
+  // pairs of two fixed cameras (P = 3, pi alone) whose J has full rank; ~5x cheaper than the
+  // Householder QR at these sizes. False (QR then) if J^T J is not numerically positive definite.
+  static bool CondenseByCholesky(const FullJacobian& J, const Eigen::VectorXd& r,
+                                 double* residuals, FullJacobian* R) {
+    const Eigen::Matrix<double, kNumFree, kNumFree> A = J.transpose() * J;
+    const Eigen::LLT<Eigen::Matrix<double, kNumFree, kNumFree>> llt(A);
+    if (llt.info() != Eigen::Success) return false;
+    const Eigen::Matrix<double, kNumFree, kNumFree> U = llt.matrixU();
+    if (!(U.diagonal().minCoeff() > 1e-6 * U.diagonal().maxCoeff())) return false;
+    const Eigen::Matrix<double, kNumFree, 1> head =
+        U.transpose().template triangularView<Eigen::Lower>().solve(J.transpose() * r);
+    Eigen::Map<Eigen::Matrix<double, kNumFree, 1>> out(residuals);
+    out = head;
+    residuals[kNumFree] = std::sqrt(std::max(0.0, r.squaredNorm() - head.squaredNorm()));
+    R->template topRows<kNumFree>() = U;
+    return true;
+  }
+
+  // A pair sees its free parameters only through its transfer, the homography
+  // h = M / M(2,2) (8 numbers), so J = G dh/dtheta with G = dr/dh (2N x 8): J^T J = (U dh)^T
+  // (U dh) with U = chol(G^T G), and J^T r = (U dh)^T U^-T G^T r. For the blocks with a free
+  // camera (P = 9 or 15, where J itself has rank <= 8) this gives the condensed form from an
+  // 8 x 8 Cholesky of sums over the points, instead of the points' P-wide derivatives and a
+  // (2N x P) QR: rows 0..7 = [U^-T G^T r; U dh], the last = the remainder, rows between zero.
+  // G^T G is Jacobi-scaled before the factorisation (h mixes pixels and 1/pixels). False (the
+  // QR then) if M(2,2) ~ 0 or G^T G is not numerically positive definite (< 4 points in
+  // general position).
+  bool CondenseThroughHomography(const double* cam_l, const double* cam_m, const double* plane,
+                                 double* residuals, FullJacobian* R) const {
+    using std::abs;
+    using Vector8d = Eigen::Matrix<double, kHomographyDof, 1>;
+    using Matrix8d = Eigen::Matrix<double, kHomographyDof, kHomographyDof>;
+    Jet l[kPoseSize], m[kPoseSize], pi[kPlaneSize];
+    Seed(cam_l, cam_m, plane, l, m, pi);
+    Eigen::Matrix3d M;
+    Matrix3<Jet> Mj;
+    if (!transfer_.TransferMatrix(cam_l, cam_m, plane, &M) ||
+        !transfer_.TransferMatrix(l, m, pi, &Mj)) {
+      return false;
+    }
+    if (!(abs(M(2, 2)) > 1e-6 * M.norm())) return false;
+    Eigen::Matrix<double, kHomographyDof, kNumFree> dh;  // rows: h00 h01 h02 h10 h11 h12 h20 h21
+    for (int e = 0; e < kHomographyDof; ++e) dh.row(e) = (Mj(e / 3, e % 3) / Mj(2, 2)).v;
+    const double inv_sigma = transfer_.inv_sigma_v();
+    const RobustLoss loss = transfer_.loss();
+    const auto& rays = transfer_.rays_m();
+    const auto& points_l = transfer_.points_l();
+    Matrix8d A = Matrix8d::Zero();
+    Vector8d b = Vector8d::Zero();
+    double rr = 0.0;
+    for (int i = 0; i < transfer_.num_points(); ++i) {
+      const double* ray = rays.col(i).data();
+      double q[3];  // as VisualTransferCostFunctor::operator()
+      for (int j = 0; j < 3; ++j) q[j] = M(j, 0) * ray[0] + M(j, 1) * ray[1] + M(j, 2) * ray[2];
+      if (!(abs(q[2]) > 1e-12)) return false;
+      const double u = q[0] / q[2], v = q[1] / q[2];
+      double r0 = (u - points_l(0, i)) * inv_sigma;
+      double r1 = (v - points_l(1, i)) * inv_sigma;
+      const double g = inv_sigma * M(2, 2) / q[2];  // d(q_x / q_z) / dh_0k = ray_k / (h ray)_z
+      Vector8d g0, g1;
+      g0 << g * ray[0], g * ray[1], g * ray[2], 0, 0, 0, -g * u * ray[0], -g * u * ray[1];
+      g1 << 0, 0, 0, g * ray[0], g * ray[1], g * ray[2], -g * v * ray[0], -g * v * ray[1];
+      if (loss != RobustLoss::kNone) {
+        const ceres::Jet<double, 1> w =
+            RobustResidualScale(loss, transfer_.loss_scale(),
+                                ceres::Jet<double, 1>(r0 * r0 + r1 * r1, 0));
+        const Vector8d ds = 2.0 * (r0 * g0 + r1 * g1);
+        g0 = w.a * g0 + (r0 * w.v[0]) * ds;
+        g1 = w.a * g1 + (r1 * w.v[0]) * ds;
+        r0 *= w.a;
+        r1 *= w.a;
+      }
+      A.template selfadjointView<Eigen::Lower>().rankUpdate(g0);
+      A.template selfadjointView<Eigen::Lower>().rankUpdate(g1);
+      b += r0 * g0 + r1 * g1;
+      rr += r0 * r0 + r1 * r1;
+    }
+    const Vector8d diagonal = A.diagonal();
+    if (!(diagonal.minCoeff() > 0.0)) return false;
+    const Vector8d scale = diagonal.cwiseSqrt().cwiseInverse();
+    const Matrix8d scaled = scale.asDiagonal() *
+                            Matrix8d(A.template selfadjointView<Eigen::Lower>()) *
+                            scale.asDiagonal();
+    const Eigen::LLT<Matrix8d> llt(scaled);
+    if (llt.info() != Eigen::Success) return false;
+    const Matrix8d Us = llt.matrixU();
+    if (!(Us.diagonal().minCoeff() > 1e-7 * Us.diagonal().maxCoeff())) return false;
+    const Matrix8d U = Us * scale.cwiseInverse().asDiagonal();  // U^T U = G^T G
+    const Vector8d head = U.transpose().template triangularView<Eigen::Lower>().solve(b);
+    Eigen::Map<Eigen::VectorXd> out(residuals, kNumFree + 1);
+    out.setZero();
+    out.template head<kHomographyDof>() = head;
+    out[kNumFree] = std::sqrt(std::max(0.0, rr - head.squaredNorm()));
+    R->template topRows<kHomographyDof>() = U * dh;
+    return true;
+  }
+
+  static void Seed(const double* cam_l, const double* cam_m, const double* plane, Jet* l, Jet* m,
+                   Jet* pi) {
+    int k = 0;
+    for (int i = 0; i < kPoseSize; ++i) l[i] = kFreeL ? Jet(cam_l[i], k++) : Jet(cam_l[i]);
+    for (int i = 0; i < kPoseSize; ++i) m[i] = kFreeM ? Jet(cam_m[i], k++) : Jet(cam_m[i]);
+    for (int i = 0; i < kPlaneSize; ++i) pi[i] = Jet(plane[i], k++);
+  }
+
+  // Columns of J to the requested parameter blocks (Ceres' row-major layout).
+  void WriteBlocks(const FullJacobian& J, double** jacobians) const {
+    int block = 0, column = 0;
+    auto put = [&](int size) {
+      if (jacobians[block] != nullptr) {
+        Eigen::Map<Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>>(
+            jacobians[block], J.rows(), size) = J.middleCols(column, size);
+      }
+      ++block;
+      column += size;
+    };
+    if (kFreeL) put(kPoseSize);
+    if (kFreeM) put(kPoseSize);
+    put(kPlaneSize);
+  }
+
+  // The 2N residuals and their (2N, P) Jacobian.
+  bool Linearize(const double* cam_l, const double* cam_m, const double* plane,
+                 double* residuals, FullJacobian* jacobian) const {
+    using std::abs;
+    Jet l[kPoseSize], m[kPoseSize], pi[kPlaneSize];
+    Seed(cam_l, cam_m, plane, l, m, pi);
+    // M from the functor's own double arithmetic (the residuals below are then those of the
+    // residual-only evaluations, bit for bit), dM/dtheta from the same function in Jets.
+    Eigen::Matrix3d M;
+    Matrix3<Jet> Mj;
+    if (!transfer_.TransferMatrix(cam_l, cam_m, plane, &M) ||
+        !transfer_.TransferMatrix(l, m, pi, &Mj)) {
+      return false;
+    }
+    Eigen::Matrix<double, 3, kNumFree> dM[3];  // dM[c].row(j) = d M(j, c) / d theta
+    for (int j = 0; j < 3; ++j) {
+      for (int c = 0; c < 3; ++c) dM[c].row(j) = Mj(j, c).v.transpose();
+    }
+    const double inv_sigma = transfer_.inv_sigma_v();
+    const RobustLoss loss = transfer_.loss();
+    const auto& rays = transfer_.rays_m();
+    const auto& points_l = transfer_.points_l();
+    for (int i = 0; i < transfer_.num_points(); ++i) {
+      const double* ray = rays.col(i).data();
+      double q[3];
+      for (int j = 0; j < 3; ++j) q[j] = M(j, 0) * ray[0] + M(j, 1) * ray[1] + M(j, 2) * ray[2];
+      if (!(abs(q[2]) > 1e-12)) return false;  // transferred to infinity
+      const double u = q[0] / q[2], v = q[1] / q[2];
+      double r0 = (u - points_l(0, i)) * inv_sigma;
+      double r1 = (v - points_l(1, i)) * inv_sigma;
+      const Eigen::Matrix<double, 3, kNumFree> dq = dM[0] * ray[0] + dM[1] * ray[1] + dM[2] * ray[2];
+      const double g = inv_sigma / q[2];
+      Gradient J0 = (dq.row(0) - u * dq.row(2)) * g;
+      Gradient J1 = (dq.row(1) - v * dq.row(2)) * g;
+      if (loss != RobustLoss::kNone) {
+        const ceres::Jet<double, 1> w =
+            RobustResidualScale(loss, transfer_.loss_scale(),
+                                ceres::Jet<double, 1>(r0 * r0 + r1 * r1, 0));
+        const Gradient ds = 2.0 * (r0 * J0 + r1 * J1);
+        J0 = w.a * J0 + (r0 * w.v[0]) * ds;
+        J1 = w.a * J1 + (r1 * w.v[0]) * ds;
+        r0 *= w.a;
+        r1 *= w.a;
+      }
+      residuals[2 * i] = r0;
+      residuals[2 * i + 1] = r1;
+      jacobian->row(2 * i) = J0;
+      jacobian->row(2 * i + 1) = J1;
+    }
+    return true;
+  }
+
+  VisualTransferCostFunctor transfer_;
+  int num_full_;    // 2N
+  bool condensed_;  // P + 1 residuals instead of 2N
+  double fixed_l_[kPoseSize], fixed_m_[kPoseSize];
+};
+
+// The block of one pair's correspondences with analytic Jacobians; a camera whose pose is given
+// here (fixed_l / fixed_m non-null) is a constant of the block, not a parameter block.
+// condense: VisualTransferCostFunction's condensed form where it has fewer residuals.
+inline ceres::CostFunction* CreateVisualTransferCost(VisualTransferCostFunctor transfer,
+                                                     const double* fixed_l = nullptr,
+                                                     const double* fixed_m = nullptr,
+                                                     bool condense = false) {
+  if (fixed_l == nullptr && fixed_m == nullptr) {
+    return new VisualTransferCostFunction<true, true>(std::move(transfer), nullptr, nullptr,
+                                                      condense);
+  }
+  if (fixed_l == nullptr) {
+    return new VisualTransferCostFunction<true, false>(std::move(transfer), nullptr, fixed_m,
+                                                       condense);
+  }
+  if (fixed_m == nullptr) {
+    return new VisualTransferCostFunction<false, true>(std::move(transfer), fixed_l, nullptr,
+                                                       condense);
+  }
+  return new VisualTransferCostFunction<false, false>(std::move(transfer), fixed_l, fixed_m,
+                                                      condense);
+}
+
+inline ceres::CostFunction* VisualTransferCostFunctor::Create(const Eigen::Matrix3d& camera_matrix,
+                                                              const Matrix2Xd& points_l,
+                                                              const Matrix2Xd& points_m,
+                                                              double sigma_v, RobustLoss loss,
+                                                              double loss_scale) {
+  return CreateVisualTransferCost(
+      VisualTransferCostFunctor(camera_matrix, points_l, points_m, sigma_v, loss, loss_scale));
+}
 
 }  // namespace fusedmosaic
