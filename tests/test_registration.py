@@ -182,6 +182,27 @@ def test_hamming_matcher_equals_opencv_brute_force(texture, ratio):
         _bf_ratio_matches(a, b, ratio)
 
 
+def test_lsh_binary_matcher_still_available(texture):
+    """MatchOptions(binary_matcher="lsh"): FLANN's approximate index, as before the C++ matcher;
+    it registers the pair as well, its matches mostly those of the exact search."""
+    A = similarity(0, 1, -250, -250)
+    B = np.array([[1.02, 0.03, -270], [-0.02, 0.99, -236], [2e-5, -1e-5, 1.0]])
+    ext = FeatureExtractor(FeatureOptions(detector="orb", max_features=1500))
+    fm, fl = ext.extract(view(texture, A), 0), ext.extract(view(texture, B), 1)
+    true_lm = B @ np.linalg.inv(A)
+    results = {m: match_pair(fl, fm, SIZE, MatchOptions(binary_matcher=m))
+               for m in ("exact", "lsh")}
+    for r in results.values():
+        assert r.ok, r.status
+        err = frame_errors(r.H_lm[None], (true_lm / true_lm[2, 2])[None], *SIZE)[0]
+        assert err < 0.5
+    exact = {tuple(p) for p in np.c_[results["exact"].points_m, results["exact"].points_l]}
+    lsh = [tuple(p) for p in np.c_[results["lsh"].points_m, results["lsh"].points_l]]
+    assert np.mean([p in exact for p in lsh]) > 0.8
+    with pytest.raises(ValueError, match="binary_matcher: expected one of"):
+        match_pair(fl, fm, SIZE, MatchOptions(binary_matcher="flann"))
+
+
 def test_hamming_matcher_bad_input():
     a = np.zeros((10, 32), np.uint8)
     with pytest.raises(ValueError, match="differ in length: 32 and 16 bytes"):

@@ -29,6 +29,12 @@ class MatchOptions:
     min_inlier_ratio: float = 0.2  # inliers / ratio-test matches
     max_scale_change: float = 4.0  # |det| of the affine part outside [1/4, 4]: degenerate
     num_threads: int = 2  # pairs matched in parallel (OpenCV releases the GIL)
+    # Binary descriptors (ORB): "exact" Hamming nearest neighbours in the C++ core, or "lsh",
+    # FLANN's approximate LSH index (the matcher before). On this 2-core Xeon per 1000 x 1000
+    # pair 2.4 ms vs 5.1 ms (lba-emt end to end 25 vs 20 frames/s, bench/bench_sequential.py).
+    # LSH's misses act as a stricter filter: lba-emt's e_M on SYN with ORB was 0.25 px with it,
+    # 0.33 px exact (mean over 4 seeds x 600 frames; it varies 0.2-0.45 px between seeds).
+    binary_matcher: str = "exact"
 
 
 @dataclass
@@ -52,17 +58,29 @@ class PairMatch:
         return len(self.points_l)
 
 
-def _ratio_matches(f_m: Features, f_l: Features, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+_LSH_INDEX = {"algorithm": 6, "table_number": 6, "key_size": 12, "multi_probe_level": 1}
+BINARY_MATCHERS = ("exact", "lsh")
+
+
+def _ratio_matches(f_m: Features, f_l: Features, ratio: float,
+                   binary_matcher: str = "exact") -> tuple[np.ndarray, np.ndarray]:
     """Points of frame m and of frame l of the ratio-test matches, one-to-one (the nearest query
     per target keypoint)."""
-    if f_m.binary:
+    if f_m.binary and binary_matcher == "exact":
         # ORB: exact Hamming nearest neighbours in the C++ core (registration/hamming_match.h:
         # the OpenCV wheels count bits by table look-up; on the benchmark's 2-core Xeon 1000 x
         # 1000 descriptors took 7.9 ms with cv2.BFMatcher, 5.1 ms with FLANN's approximate LSH
         # index, 2.4 ms there, the same matches as BFMatcher).
         query, train, _ = _core.match_hamming(f_m.descriptors, f_l.descriptors, ratio)
         return f_m.points[query].reshape(-1, 2), f_l.points[train].reshape(-1, 2)
-    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(f_m.descriptors, f_l.descriptors, k=2)
+    if f_m.binary:
+        # LSH draws random hash tables from OpenCV's thread-local RNG: seeded, so that a pair
+        # always gets the same matches (reproducible runs, serial == threaded matching).
+        cv2.setRNGSeed(0)
+        matcher = cv2.FlannBasedMatcher(_LSH_INDEX, {"checks": 32})
+    else:
+        matcher = cv2.BFMatcher(cv2.NORM_L2)
+    knn = matcher.knnMatch(f_m.descriptors, f_l.descriptors, k=2)
     good = [p[0] for p in knn if len(p) == 2 and p[0].distance < ratio * p[1].distance]
     # one-to-one: keep the best match per target keypoint
     best: dict[int, cv2.DMatch] = {}
@@ -97,11 +115,14 @@ def match_pair(f_l: Features, f_m: Features, image_size: tuple[int, int],
                options: MatchOptions | None = None) -> PairMatch:
     """Registers frame m (source) into frame l (target). image_size = (width, height)."""
     o = options or MatchOptions()
+    if o.binary_matcher not in BINARY_MATCHERS:
+        raise ValueError(f"binary_matcher: expected one of {BINARY_MATCHERS}, got "
+                         f"{o.binary_matcher!r}")
     out = PairMatch(f_l.frame_id, f_m.frame_id, "ok")
     if len(f_m) < o.min_inliers or len(f_l) < o.min_inliers:
         out.status = f"too few features ({len(f_m)}, {len(f_l)})"
         return out
-    pm, pl = _ratio_matches(f_m, f_l, o.ratio)
+    pm, pl = _ratio_matches(f_m, f_l, o.ratio, o.binary_matcher)
     out.n_matches = len(pm)
     if len(pm) < o.min_inliers:
         out.status = f"too few matches ({len(pm)} < {o.min_inliers})"
