@@ -20,12 +20,15 @@
 namespace fusedmosaic {
 namespace {
 
-// "auto" for the window. A step has chi_e * 6 + 3 free parameters (21 with the SYN preset) but
-// ~11k residuals, most of them (pairs of two fixed cameras) touching only pi: the dense solvers
-// pay for the full 11k x 21 Jacobian (J^T J, QR), the block-sparse J^T J does not. Measured in
-// bench/bench_sequential.py on a recorded SYN stream (median per step, 1 thread, fixed cameras
-// folded, idle 2-core machine): sparse_normal_cholesky 3.0 ms < dense_schur 3.4 ~ sparse_schur
-// 3.4 < dense_normal_cholesky 5.8 < dense_qr 10.5 ms; 2 threads were no faster.
+// "auto" for the window. A step has chi_e * 6 + 3 free parameters (21 with the SYN preset) and
+// ~13k residuals, most of them (pairs of two fixed cameras) touching only pi. With the 2N
+// residuals per pair the dense solvers paid for the full 13k x 21 Jacobian (J^T J, QR), the
+// block-sparse J^T J did not: bench/bench_sequential.py on a recorded SYN stream (median per
+// step, 1 thread, fixed cameras folded, idle 2-core EPYC): sparse_normal_cholesky 3.0 ms <
+// dense_schur 3.4 ~ sparse_schur 3.4 < dense_normal_cholesky 5.8 < dense_qr 10.5 ms. With the
+// condensed pair blocks (~400 residuals) they are close (2-core Xeon replay of 400 frames:
+// dense_schur 3.71 ~ sparse_normal_cholesky 3.74 < dense_normal_cholesky 3.83 < dense_qr 3.99
+// ms); 2 threads were no faster.
 constexpr ceres::LinearSolverType kWindowAutoSolver = ceres::SPARSE_NORMAL_CHOLESKY;
 
 ceres::LinearSolverType WindowLinearSolver(const std::string& name) {

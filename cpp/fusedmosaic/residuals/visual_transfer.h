@@ -469,33 +469,10 @@ class VisualTransferCostFunction final : public ceres::CostFunction {
 // The block of one pair's correspondences with analytic Jacobians; a camera whose pose is given
 // here (fixed_l / fixed_m non-null) is a constant of the block, not a parameter block.
 // condense: VisualTransferCostFunction's condensed form where it has fewer residuals.
-inline ceres::CostFunction* CreateVisualTransferCost(VisualTransferCostFunctor transfer,
-                                                     const double* fixed_l = nullptr,
-                                                     const double* fixed_m = nullptr,
-                                                     bool condense = false) {
-  if (fixed_l == nullptr && fixed_m == nullptr) {
-    return new VisualTransferCostFunction<true, true>(std::move(transfer), nullptr, nullptr,
-                                                      condense);
-  }
-  if (fixed_l == nullptr) {
-    return new VisualTransferCostFunction<true, false>(std::move(transfer), nullptr, fixed_m,
-                                                       condense);
-  }
-  if (fixed_m == nullptr) {
-    return new VisualTransferCostFunction<false, true>(std::move(transfer), fixed_l, nullptr,
-                                                       condense);
-  }
-  return new VisualTransferCostFunction<false, false>(std::move(transfer), fixed_l, fixed_m,
-                                                      condense);
-}
-
-inline ceres::CostFunction* VisualTransferCostFunctor::Create(const Eigen::Matrix3d& camera_matrix,
-                                                              const Matrix2Xd& points_l,
-                                                              const Matrix2Xd& points_m,
-                                                              double sigma_v, RobustLoss loss,
-                                                              double loss_scale) {
-  return CreateVisualTransferCost(
-      VisualTransferCostFunctor(camera_matrix, points_l, points_m, sigma_v, loss, loss_scale));
-}
+// (Defined in visual_transfer.cc, where the four instantiations are compiled once.)
+ceres::CostFunction* CreateVisualTransferCost(VisualTransferCostFunctor transfer,
+                                              const double* fixed_l = nullptr,
+                                              const double* fixed_m = nullptr,
+                                              bool condense = false);
 
 }  // namespace fusedmosaic
