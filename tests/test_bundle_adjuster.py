@@ -123,6 +123,24 @@ def test_per_pair_and_per_point_blocks_agree(scene):
     np.testing.assert_allclose(pi_pair, pi_point, rtol=1e-7)
 
 
+def test_condensed_pair_blocks_reach_the_same_solution(scene):
+    """condense_pairs (P + 1 residuals per pair block with its J^T J, J^T r and cost) against
+    the pairs' 2N residuals: the same steps, so the same optimum and iterations."""
+    results = {}
+    for condense in (True, False):
+        ba = build(scene["emt"], scene["noisy"], PLANE_GUESS, emt=scene["emt"],
+                   condense_pairs=condense)
+        results[condense] = (ba.solve(), ba.poses()[1], ba.plane())
+    (s_c, p_c, pi_c), (s_f, p_f, pi_f) = results.values()
+    assert s_c.termination == s_f.termination == "CONVERGENCE"
+    assert s_c.iterations == s_f.iterations
+    np.testing.assert_allclose(s_c.final_cost, s_f.final_cost, rtol=1e-9)
+    np.testing.assert_allclose(s_c.visual_cost, s_f.visual_cost, rtol=1e-9)
+    np.testing.assert_allclose(p_c, p_f, atol=1e-8)
+    np.testing.assert_allclose(pi_c, pi_f, rtol=1e-8)
+    assert s_c.num_residuals < s_f.num_residuals / 3
+
+
 @pytest.fixture(scope="module")
 def outlier_pairs(scene):
     """The noisy pairs with 15% of the points in frame l moved 15-40 px away."""
