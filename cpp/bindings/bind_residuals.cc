@@ -106,10 +106,7 @@ void BindResiduals(py::module_& m) {
                                                  loss_scale_px);
         std::unique_ptr<ceres::CostFunction> cost(
             jacobians == "autodiff"
-                ? VisualTransferCostFunctor::CreateAutoDiff(K, points_l.transpose(),
-                                                            points_m.transpose(), sigma_v_px,
-                                                            RobustLossFromString(loss),
-                                                            loss_scale_px)
+                ? VisualTransferCostFunctor::CreateAutoDiff(transfer)
                 : CreateVisualTransferCost(transfer, fixed_l ? pose_l.data() : nullptr,
                                            fixed_m ? pose_m.data() : nullptr, condense));
         std::vector<const double*> params;

@@ -6,7 +6,6 @@
 #include <stdexcept>
 #include <string>
 
-
 namespace fusedmosaic {
 namespace {
 
@@ -54,42 +53,42 @@ inline TwoNearest NearestTwo(const std::uint8_t* q, const std::uint8_t* train, i
   return out;
 }
 
-// The nearest two of every query. Built twice: with the popcount instruction, picked at run time
-// on CPUs that have it (every x86-64 since ~2008), and without (a bit-counting routine), so the
-// module never executes an instruction the CPU lacks.
-#define FUSEDMOSAIC_ALL_NEAREST_TWO                                                          \
-  {                                                                                          \
-    for (int i = 0; i < num_query; ++i) {                                                    \
-      const std::uint8_t* q = query + static_cast<size_t>(i) * bytes;                        \
-      out[i] = bytes == 32 ? NearestTwo<4>(q, train, num_train, bytes)                       \
-                           : NearestTwo<0>(q, train, num_train, bytes);                      \
-    }                                                                                        \
+// The nearest two of every query.
+__attribute__((always_inline)) inline void NearestTwoOfEach(const std::uint8_t* query,
+                                                            int num_query,
+                                                            const std::uint8_t* train,
+                                                            int num_train, int bytes,
+                                                            TwoNearest* out) {
+  for (int i = 0; i < num_query; ++i) {
+    const std::uint8_t* q = query + static_cast<size_t>(i) * bytes;
+    out[i] = bytes == 32 ? NearestTwo<4>(q, train, num_train, bytes)
+                         : NearestTwo<0>(q, train, num_train, bytes);
   }
+}
 
+// Built twice: with the popcount instruction (NearestTwoOfEach inlined into a popcnt-target
+// function), picked at run time on CPUs that have it (every x86-64 since ~2008), and without (a
+// bit-counting routine), so the module never executes an instruction the CPU lacks.
 #if defined(__x86_64__) && defined(__GNUC__)
 #define FUSEDMOSAIC_HAVE_POPCNT_CLONE 1
-
-__attribute__((target("popcnt"))) void AllNearestTwoPopcnt(const std::uint8_t* query,
-                                                           int num_query,
-                                                           const std::uint8_t* train,
-                                                           int num_train, int bytes,
-                                                           TwoNearest* out)
-    FUSEDMOSAIC_ALL_NEAREST_TWO
+__attribute__((target("popcnt"))) void NearestTwoOfEachPopcnt(const std::uint8_t* query,
+                                                              int num_query,
+                                                              const std::uint8_t* train,
+                                                              int num_train, int bytes,
+                                                              TwoNearest* out) {
+  NearestTwoOfEach(query, num_query, train, num_train, bytes, out);
+}
 #endif
-
-void AllNearestTwoPortable(const std::uint8_t* query, int num_query, const std::uint8_t* train,
-                           int num_train, int bytes, TwoNearest* out)
-    FUSEDMOSAIC_ALL_NEAREST_TWO
 
 void AllNearestTwo(const std::uint8_t* query, int num_query, const std::uint8_t* train,
                    int num_train, int bytes, TwoNearest* out) {
 #ifdef FUSEDMOSAIC_HAVE_POPCNT_CLONE
   if (__builtin_cpu_supports("popcnt")) {
-    AllNearestTwoPopcnt(query, num_query, train, num_train, bytes, out);
+    NearestTwoOfEachPopcnt(query, num_query, train, num_train, bytes, out);
     return;
   }
 #endif
-  AllNearestTwoPortable(query, num_query, train, num_train, bytes, out);
+  NearestTwoOfEach(query, num_query, train, num_train, bytes, out);
 }
 
 }  // namespace

@@ -98,15 +98,9 @@ struct VisualTransferCostFunctor {
   }
 
   int num_points() const { return static_cast<int>(points_l_.cols()); }
-  const Eigen::Matrix3d& camera_matrix() const { return camera_matrix_; }
   const Matrix3Xd& rays_m() const { return rays_m_; }
-  const Matrix2Xd& points_l() const { return points_l_; }
   double inv_sigma_v() const { return inv_sigma_v_; }
-  RobustLoss loss() const { return loss_; }
-  double loss_scale() const { return loss_scale_; }
 
-  // cam_l_from_world, cam_m_from_world: [0..2] angle-axis, [3..5] translation (mm).
-  // plane: pi = n / d (1/mm). residuals: 2N values, (x, y) per point.
   // M = K H_l H_m^-1, the pixel transfer of normalised rays of frame m into frame l; false if
   // camera m's centre is on the plane.
   template <typename T>
@@ -120,20 +114,49 @@ struct VisualTransferCostFunctor {
     return true;
   }
 
+  // Point i transferred by M: its place (u, v) in frame l, pixels, the homogeneous depth q_z
+  // and the whitened residual r = ((u, v) - p_l) / sigma_v; false if it goes to infinity. The
+  // one arithmetic of every form of this residual (autodiff, analytic, condensed), so their
+  // values agree bit for bit in doubles.
+  template <typename T>
+  bool TransferPoint(const Matrix3<T>& M, int i, T* u, T* v, T* q_z, T* r0, T* r1) const {
+    using std::abs;
+    const double* ray = rays_m_.col(i).data();  // Jet * double products only: rays are constants
+    T q[3];
+    for (int j = 0; j < 3; ++j) q[j] = M(j, 0) * ray[0] + M(j, 1) * ray[1] + M(j, 2) * ray[2];
+    if (!(abs(q[2]) > T(1e-12))) return false;  // transferred to infinity
+    *u = q[0] / q[2];
+    *v = q[1] / q[2];
+    *q_z = q[2];
+    *r0 = (*u - points_l_(0, i)) * inv_sigma_v_;
+    *r1 = (*v - points_l_(1, i)) * inv_sigma_v_;
+    return true;
+  }
+
+  // The per-point kernel on a point's residual (r0, r1) and on its derivative rows (J0, J1):
+  //     r' = w(s) r,   dr'/dtheta = w dr/dtheta + r w'(s) 2 r^T dr/dtheta,   s = |r|^2.
+  template <typename Row>
+  void ApplyKernel(double* r0, double* r1, Row* J0, Row* J1) const {
+    if (loss_ == RobustLoss::kNone) return;
+    const ceres::Jet<double, 1> w = RobustResidualScale(
+        loss_, loss_scale_, ceres::Jet<double, 1>(*r0 * *r0 + *r1 * *r1, 0));
+    const Row ds = 2.0 * (*r0 * *J0 + *r1 * *J1);
+    *J0 = w.a * *J0 + (*r0 * w.v[0]) * ds;
+    *J1 = w.a * *J1 + (*r1 * w.v[0]) * ds;
+    *r0 *= w.a;
+    *r1 *= w.a;
+  }
+
+  // cam_l_from_world, cam_m_from_world: [0..2] angle-axis, [3..5] translation (mm).
+  // plane: pi = n / d (1/mm). residuals: 2N values, (x, y) per point.
   template <typename T>
   bool operator()(const T* const cam_l_from_world, const T* const cam_m_from_world,
                   const T* const plane, T* residuals) const {
-    using std::abs;
     Matrix3<T> M;
     if (!TransferMatrix(cam_l_from_world, cam_m_from_world, plane, &M)) return false;
     for (int i = 0; i < num_points(); ++i) {
-      // Jet * double products only: the rays are constants.
-      const double* ray = rays_m_.col(i).data();
-      T q[3];
-      for (int j = 0; j < 3; ++j) q[j] = M(j, 0) * ray[0] + M(j, 1) * ray[1] + M(j, 2) * ray[2];
-      if (!(abs(q[2]) > T(1e-12))) return false;  // transferred to infinity
-      T r0 = (q[0] / q[2] - points_l_(0, i)) * inv_sigma_v_;
-      T r1 = (q[1] / q[2] - points_l_(1, i)) * inv_sigma_v_;
+      T u, v, q_z, r0, r1;
+      if (!TransferPoint(M, i, &u, &v, &q_z, &r0, &r1)) return false;
       if (loss_ != RobustLoss::kNone) {
         const T scale = RobustResidualScale(loss_, loss_scale_, T(r0 * r0 + r1 * r1));
         r0 *= scale;
@@ -156,13 +179,8 @@ struct VisualTransferCostFunctor {
 
   // The same block differentiated by ceres::AutoDiffCostFunction (the reference the analytic
   // Jacobians are tested against; a single point uses the fixed-size instantiation).
-  static ceres::CostFunction* CreateAutoDiff(const Eigen::Matrix3d& camera_matrix,
-                                             const Matrix2Xd& points_l,
-                                             const Matrix2Xd& points_m, double sigma_v,
-                                             RobustLoss loss = RobustLoss::kNone,
-                                             double loss_scale = 1.0) {
-    auto* functor =
-        new VisualTransferCostFunctor(camera_matrix, points_l, points_m, sigma_v, loss, loss_scale);
+  static ceres::CostFunction* CreateAutoDiff(const VisualTransferCostFunctor& transfer) {
+    auto* functor = new VisualTransferCostFunctor(transfer);
     if (functor->num_points() == 1) {
       return new ceres::AutoDiffCostFunction<VisualTransferCostFunctor, 2, kPoseSize, kPoseSize,
                                              kPlaneSize>(functor);
@@ -319,46 +337,25 @@ class VisualTransferCostFunction final : public ceres::CostFunction {
     using std::abs;
     using Vector8d = Eigen::Matrix<double, kHomographyDof, 1>;
     using Matrix8d = Eigen::Matrix<double, kHomographyDof, kHomographyDof>;
-    Jet l[kPoseSize], m[kPoseSize], pi[kPlaneSize];
-    Seed(cam_l, cam_m, plane, l, m, pi);
     Eigen::Matrix3d M;
     Matrix3<Jet> Mj;
-    if (!transfer_.TransferMatrix(cam_l, cam_m, plane, &M) ||
-        !transfer_.TransferMatrix(l, m, pi, &Mj)) {
-      return false;
-    }
+    if (!Transfer(cam_l, cam_m, plane, &M, &Mj)) return false;
     if (!(abs(M(2, 2)) > 1e-6 * M.norm())) return false;
     Eigen::Matrix<double, kHomographyDof, kNumFree> dh;  // rows: h00 h01 h02 h10 h11 h12 h20 h21
     for (int e = 0; e < kHomographyDof; ++e) dh.row(e) = (Mj(e / 3, e % 3) / Mj(2, 2)).v;
-    const double inv_sigma = transfer_.inv_sigma_v();
-    const RobustLoss loss = transfer_.loss();
-    const auto& rays = transfer_.rays_m();
-    const auto& points_l = transfer_.points_l();
     Matrix8d A = Matrix8d::Zero();
     Vector8d b = Vector8d::Zero();
     double rr = 0.0;
     for (int i = 0; i < transfer_.num_points(); ++i) {
-      const double* ray = rays.col(i).data();
-      double q[3];  // as VisualTransferCostFunctor::operator()
-      for (int j = 0; j < 3; ++j) q[j] = M(j, 0) * ray[0] + M(j, 1) * ray[1] + M(j, 2) * ray[2];
-      if (!(abs(q[2]) > 1e-12)) return false;
-      const double u = q[0] / q[2], v = q[1] / q[2];
-      double r0 = (u - points_l(0, i)) * inv_sigma;
-      double r1 = (v - points_l(1, i)) * inv_sigma;
-      const double g = inv_sigma * M(2, 2) / q[2];  // d(q_x / q_z) / dh_0k = ray_k / (h ray)_z
+      double u, v, q_z, r0, r1;
+      if (!transfer_.TransferPoint(M, i, &u, &v, &q_z, &r0, &r1)) return false;
+      const double* ray = transfer_.rays_m().col(i).data();
+      // d(q_x / q_z) / dh_0k = ray_k / (h ray)_z, and so on
+      const double g = transfer_.inv_sigma_v() * M(2, 2) / q_z;
       Vector8d g0, g1;
       g0 << g * ray[0], g * ray[1], g * ray[2], 0, 0, 0, -g * u * ray[0], -g * u * ray[1];
       g1 << 0, 0, 0, g * ray[0], g * ray[1], g * ray[2], -g * v * ray[0], -g * v * ray[1];
-      if (loss != RobustLoss::kNone) {
-        const ceres::Jet<double, 1> w =
-            RobustResidualScale(loss, transfer_.loss_scale(),
-                                ceres::Jet<double, 1>(r0 * r0 + r1 * r1, 0));
-        const Vector8d ds = 2.0 * (r0 * g0 + r1 * g1);
-        g0 = w.a * g0 + (r0 * w.v[0]) * ds;
-        g1 = w.a * g1 + (r1 * w.v[0]) * ds;
-        r0 *= w.a;
-        r1 *= w.a;
-      }
+      transfer_.ApplyKernel(&r0, &r1, &g0, &g1);
       A.template selfadjointView<Eigen::Lower>().rankUpdate(g0);
       A.template selfadjointView<Eigen::Lower>().rankUpdate(g1);
       b += r0 * g0 + r1 * g1;
@@ -384,12 +381,18 @@ class VisualTransferCostFunction final : public ceres::CostFunction {
     return true;
   }
 
-  static void Seed(const double* cam_l, const double* cam_m, const double* plane, Jet* l, Jet* m,
-                   Jet* pi) {
+  // M from the functor's own double arithmetic (the residuals are then those of the
+  // residual-only evaluations, bit for bit) and Mj, the same function in Jets seeded on the free
+  // parameters (their derivatives dM/dtheta).
+  bool Transfer(const double* cam_l, const double* cam_m, const double* plane,
+                Eigen::Matrix3d* M, Matrix3<Jet>* Mj) const {
+    Jet l[kPoseSize], m[kPoseSize], pi[kPlaneSize];
     int k = 0;
     for (int i = 0; i < kPoseSize; ++i) l[i] = kFreeL ? Jet(cam_l[i], k++) : Jet(cam_l[i]);
     for (int i = 0; i < kPoseSize; ++i) m[i] = kFreeM ? Jet(cam_m[i], k++) : Jet(cam_m[i]);
     for (int i = 0; i < kPlaneSize; ++i) pi[i] = Jet(plane[i], k++);
+    return transfer_.TransferMatrix(cam_l, cam_m, plane, M) &&
+           transfer_.TransferMatrix(l, m, pi, Mj);
   }
 
   // Columns of J to the requested parameter blocks (Ceres' row-major layout).
@@ -411,47 +414,22 @@ class VisualTransferCostFunction final : public ceres::CostFunction {
   // The 2N residuals and their (2N, P) Jacobian.
   bool Linearize(const double* cam_l, const double* cam_m, const double* plane,
                  double* residuals, FullJacobian* jacobian) const {
-    using std::abs;
-    Jet l[kPoseSize], m[kPoseSize], pi[kPlaneSize];
-    Seed(cam_l, cam_m, plane, l, m, pi);
-    // M from the functor's own double arithmetic (the residuals below are then those of the
-    // residual-only evaluations, bit for bit), dM/dtheta from the same function in Jets.
     Eigen::Matrix3d M;
     Matrix3<Jet> Mj;
-    if (!transfer_.TransferMatrix(cam_l, cam_m, plane, &M) ||
-        !transfer_.TransferMatrix(l, m, pi, &Mj)) {
-      return false;
-    }
+    if (!Transfer(cam_l, cam_m, plane, &M, &Mj)) return false;
     Eigen::Matrix<double, 3, kNumFree> dM[3];  // dM[c].row(j) = d M(j, c) / d theta
     for (int j = 0; j < 3; ++j) {
       for (int c = 0; c < 3; ++c) dM[c].row(j) = Mj(j, c).v.transpose();
     }
-    const double inv_sigma = transfer_.inv_sigma_v();
-    const RobustLoss loss = transfer_.loss();
-    const auto& rays = transfer_.rays_m();
-    const auto& points_l = transfer_.points_l();
     for (int i = 0; i < transfer_.num_points(); ++i) {
-      const double* ray = rays.col(i).data();
-      double q[3];
-      for (int j = 0; j < 3; ++j) q[j] = M(j, 0) * ray[0] + M(j, 1) * ray[1] + M(j, 2) * ray[2];
-      if (!(abs(q[2]) > 1e-12)) return false;  // transferred to infinity
-      const double u = q[0] / q[2], v = q[1] / q[2];
-      double r0 = (u - points_l(0, i)) * inv_sigma;
-      double r1 = (v - points_l(1, i)) * inv_sigma;
+      double u, v, q_z, r0, r1;
+      if (!transfer_.TransferPoint(M, i, &u, &v, &q_z, &r0, &r1)) return false;
+      const double* ray = transfer_.rays_m().col(i).data();
       const Eigen::Matrix<double, 3, kNumFree> dq = dM[0] * ray[0] + dM[1] * ray[1] + dM[2] * ray[2];
-      const double g = inv_sigma / q[2];
+      const double g = transfer_.inv_sigma_v() / q_z;
       Gradient J0 = (dq.row(0) - u * dq.row(2)) * g;
       Gradient J1 = (dq.row(1) - v * dq.row(2)) * g;
-      if (loss != RobustLoss::kNone) {
-        const ceres::Jet<double, 1> w =
-            RobustResidualScale(loss, transfer_.loss_scale(),
-                                ceres::Jet<double, 1>(r0 * r0 + r1 * r1, 0));
-        const Gradient ds = 2.0 * (r0 * J0 + r1 * J1);
-        J0 = w.a * J0 + (r0 * w.v[0]) * ds;
-        J1 = w.a * J1 + (r1 * w.v[0]) * ds;
-        r0 *= w.a;
-        r1 *= w.a;
-      }
+      transfer_.ApplyKernel(&r0, &r1, &J0, &J1);
       residuals[2 * i] = r0;
       residuals[2 * i + 1] = r1;
       jacobian->row(2 * i) = J0;
