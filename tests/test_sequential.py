@@ -15,7 +15,10 @@ from fusedmosaic.estimation.sequential import (
     run_lba_emt,
 )
 from fusedmosaic.evaluation import evaluate_output, frame_errors, mosaic_error
+from fusedmosaic.evaluation.benchmark import syn_stream
 from fusedmosaic.io import read_dataset
+from fusedmosaic.registration.features import FeatureOptions
+from fusedmosaic.registration.pairs import MatchOptions
 from fusedmosaic.runner import run_dataset
 from fusedmosaic.simulation import (
     PAPER_BLACK_FRAMES,
@@ -245,6 +248,39 @@ def test_emt_noise_fig9(work):
     assert lba.max() / lba.min() <= 2.0  # nearly flat
     assert np.corrcoef(nus, emt)[0, 1] > 0.9 and emt[-1] > 4 * emt[0]  # ~linear growth
     assert (lba[2:] < emt[2:]).all()  # below EMT from nu = 1 on
+
+
+def test_orb_pairs_matched_guided():
+    """ORB after the start-up: the recent frames are searched near where the previous frame's
+    motion, repeated and chained with the earlier pairs, puts their keypoints in the new frame,
+    and the loop frames near where the window's estimates put them
+    (MatchOptions.guided_radius_px), at no cost in accuracy. Measured on these 150 frames:
+    e_M 0.291 px guided vs 0.280 px all exhaustive, the 6 pairs of every frame guided, no
+    fallback to the exhaustive search."""
+    n = 150
+    scene, camera, poses, valid = syn_stream(n)
+    e, counts = {}, {}
+    for radius in (0.0, 20.0):
+        mosaicker = SequentialMosaicker(camera, SequentialOptions(
+            features=FeatureOptions(detector="orb"),
+            matching=MatchOptions(guided_radius_px=radius)))
+        results = []
+        for k in range(n):
+            mosaicker.add_frame(scene.render(k), float(scene.timestamps[k]),
+                                poses[k] if valid[k] else None)
+            results += mosaicker.finalized()
+        results += mosaicker.flush()
+        G = np.stack([r.homography for r in sorted(results, key=lambda r: r.frame_id)])
+        e[radius] = frame_errors(G, scene.homographies[:n], *scene.size)
+        counts[radius] = mosaicker.pair_counts
+    steady = n - SequentialOptions().bootstrap_frames
+    assert counts[0.0]["guided"] == counts[0.0]["guided_fallback"] == 0
+    assert counts[20.0]["guided"] >= 0.8 * 6 * steady  # measured 660 = 6 x 110
+    assert counts[20.0]["guided_fallback"] <= 0.05 * counts[20.0]["guided"]  # measured 0
+    assert counts[20.0]["registered"] == counts[0.0]["registered"]
+    assert np.isfinite(e[20.0]).all() and np.isfinite(e[0.0]).all()
+    assert e[20.0].mean() < 0.5 and e[0.0].mean() < 0.5  # px, against the simulator's truth
+    assert e[20.0].mean() <= 1.15 * e[0.0].mean()
 
 
 def test_sequence_shorter_than_the_bootstrap(work):

@@ -23,6 +23,28 @@ void CheckDescriptors(const Descriptors& d, const char* name) {
   }
 }
 
+using Points = py::array_t<double, py::array::c_style | py::array::forcecast>;
+
+void CheckDescriptorLengths(const Descriptors& query, const Descriptors& train) {
+  if (query.shape(1) != train.shape(1)) {
+    throw std::invalid_argument("query and train descriptors differ in length: " +
+                                std::to_string(query.shape(1)) + " and " +
+                                std::to_string(train.shape(1)) + " bytes");
+  }
+}
+
+void CheckPoints(const Points& xy, const Descriptors& d, const char* name, const char* of) {
+  if (xy.ndim() != 2 || xy.shape(1) != 2 || xy.shape(0) != d.shape(0)) {
+    std::string shape;
+    for (py::ssize_t i = 0; i < xy.ndim(); ++i) {
+      shape += (i ? ", " : "") + std::to_string(xy.shape(i));
+    }
+    throw std::invalid_argument(std::string(name) + ": expected (" + std::to_string(d.shape(0)) +
+                                ", 2) positions, one per " + of + " descriptor, got (" + shape +
+                                ")");
+  }
+}
+
 py::array_t<int> ToArray(const std::vector<int>& v) {
   py::array_t<int> out(static_cast<py::ssize_t>(v.size()));
   std::copy(v.begin(), v.end(), out.mutable_data());
@@ -37,11 +59,7 @@ void BindRegistration(py::module_& m) {
       [](const Descriptors& query, const Descriptors& train, double ratio) {
         CheckDescriptors(query, "query");
         CheckDescriptors(train, "train");
-        if (query.shape(1) != train.shape(1)) {
-          throw std::invalid_argument("query and train descriptors differ in length: " +
-                                      std::to_string(query.shape(1)) + " and " +
-                                      std::to_string(train.shape(1)) + " bytes");
-        }
+        CheckDescriptorLengths(query, train);
         HammingMatches found;
         {
           py::gil_scoped_release release;
@@ -61,6 +79,38 @@ order: a query is kept if its nearest train descriptor is nearer than ratio x th
 nearest, and of the queries kept for one train descriptor only the nearest (the first on a tie).
 The same matches as cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(query, train, k=2) with these two
 filters; computed with the CPU's popcount, the GIL released.)doc");
+
+  m.def(
+      "match_hamming_guided",
+      [](const Descriptors& query, const Points& query_xy, const Descriptors& train,
+         const Points& train_xy, double radius, double ratio, int max_distance) {
+        CheckDescriptors(query, "query");
+        CheckDescriptors(train, "train");
+        CheckDescriptorLengths(query, train);
+        CheckPoints(query_xy, query, "query_xy", "query");
+        CheckPoints(train_xy, train, "train_xy", "train");
+        HammingMatches found;
+        {
+          py::gil_scoped_release release;
+          found = MatchHammingGuided(query.data(), query_xy.data(),
+                                     static_cast<int>(query.shape(0)), train.data(),
+                                     train_xy.data(), static_cast<int>(train.shape(0)),
+                                     static_cast<int>(query.shape(1)), radius, ratio,
+                                     max_distance);
+        }
+        return py::make_tuple(ToArray(found.query), ToArray(found.train),
+                              ToArray(found.distance));
+      },
+      "query"_a, "query_xy"_a, "train"_a, "train_xy"_a, "radius"_a, "ratio"_a = 0.8,
+      "max_distance"_a = -1,
+      R"doc(match_hamming restricted to candidates near a predicted position (guided matching).
+
+query_xy : (Nq, 2) where each query keypoint is predicted in the train image (e.g. through a
+homography from a motion model; a non-finite row: that query is not matched); train_xy :
+(Nt, 2) the train keypoints. Only train descriptors within `radius` px of the prediction are
+compared; the ratio test uses the two nearest of those, and a query with a single candidate is
+kept if its distance is at most max_distance bits (-1: never). Same output as match_hamming.
+Cost grows with the candidates per query (a grid of radius-sized cells), not with Nt.)doc");
 }
 
 }  // namespace fusedmosaic::bindings

@@ -139,6 +139,21 @@ def match_hamming(
     cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(k=2) with these filters, counted with popcount.
     """
 
+def match_hamming_guided(
+    query: _ArrayLike,
+    query_xy: _ArrayLike,
+    train: _ArrayLike,
+    train_xy: _ArrayLike,
+    radius: float,
+    ratio: float = 0.8,
+    max_distance: int = -1,
+) -> tuple[_Array, _Array, _Array]:
+    """match_hamming restricted to train keypoints within `radius` px of each query's predicted
+    position query_xy (Nq, 2) in the train image (non-finite: not matched); train_xy (Nt, 2).
+    The ratio test compares the two nearest candidates in the radius; a single candidate is
+    kept if its distance <= max_distance bits (-1: never). Same output as match_hamming.
+    """
+
 def evaluate_pose_prior(
     cam_from_world: _ArrayLike, measurement: _ArrayLike, sigma: _ArrayLike = ...
 ) -> tuple[_Array, tuple[_Array]]:

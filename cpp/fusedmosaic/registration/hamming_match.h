@@ -29,4 +29,18 @@ HammingMatches MatchHammingRatio(const std::uint8_t* query, int num_query,
                                  const std::uint8_t* train, int num_train, int bytes,
                                  double ratio);
 
+// The same search restricted to train descriptors whose keypoint lies within `radius` pixels of
+// the query's predicted position (guided matching, as when a motion model predicts where a
+// keypoint reappears: ORB-SLAM's search by projection). query_xy: (num_query, 2) predicted
+// positions in the train image (a non-finite one: the query is not matched); train_xy:
+// (num_train, 2). The ratio test compares the two nearest candidates inside the radius; a query
+// with a single candidate is kept when its distance is at most max_distance bits (< 0: never).
+// Candidates are found through a grid of radius-sized cells, so the cost grows with the
+// candidates per query instead of num_train. Throws std::invalid_argument on bytes <= 0, a ratio
+// outside (0, 1] or a radius that is not positive and finite.
+HammingMatches MatchHammingGuided(const std::uint8_t* query, const double* query_xy,
+                                  int num_query, const std::uint8_t* train,
+                                  const double* train_xy, int num_train, int bytes,
+                                  double radius, double ratio, int max_distance);
+
 }  // namespace fusedmosaic

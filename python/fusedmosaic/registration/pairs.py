@@ -35,6 +35,18 @@ class MatchOptions:
     # LSH's misses act as a stricter filter: lba-emt's e_M on SYN with ORB was 0.25 px with it,
     # 0.33 px exact (mean over 4 seeds x 600 frames; it varies 0.2-0.45 px between seeds).
     binary_matcher: str = "exact"
+    # Guided matching (binary descriptors, exact matcher): when a caller predicts a pair's
+    # homography (the sequential mosaicker chains the new frame's registration to the previous
+    # frame with the earlier pairs and the window's estimates), only keypoints within this radius
+    # of their predicted position are compared; a pair the guided search cannot register is
+    # matched again exhaustively. 0: always exhaustive.
+    guided_radius_px: float = 20.0
+    # The guided search's ratio test sees only the neighbours of the prediction, fewer
+    # distractors than the whole frame: a stricter ratio keeps it as selective. Measured on SYN
+    # ORB pairs (1 and 3 frames apart, 400x400): exhaustive 0.8 -> 395 inliers per pair, median
+    # residual to the true homography 0.80 px; guided 0.8 -> 411, 0.82 px; guided 0.7 -> 389,
+    # 0.80 px.
+    guided_ratio: float = 0.7
 
 
 @dataclass
@@ -48,6 +60,7 @@ class PairMatch:
     points_l: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # inliers (N, 2)
     points_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     n_matches: int = 0
+    guided: bool = False  # matched by the guided search (a predicted homography), not exhaustive
 
     @property
     def ok(self) -> bool:
@@ -111,18 +124,53 @@ def degeneracy(H: np.ndarray, width: int, height: int, max_scale_change: float) 
     return None
 
 
+def _guided_matches(f_m: Features, f_l: Features, H_lm: np.ndarray, radius: float,
+                    ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """_ratio_matches among the keypoints of frame l within `radius` px of where H_lm puts
+    each keypoint of frame m."""
+    h = np.hstack([f_m.points, np.ones((len(f_m), 1))]) @ np.asarray(H_lm, np.float64).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        predicted = np.where(h[:, 2:] > 0, h[:, :2] / h[:, 2:], np.nan)  # behind: not matched
+    query, train, _ = _core.match_hamming_guided(f_m.descriptors, predicted, f_l.descriptors,
+                                                 f_l.points, radius, ratio)
+    return f_m.points[query].reshape(-1, 2), f_l.points[train].reshape(-1, 2)
+
+
 def match_pair(f_l: Features, f_m: Features, image_size: tuple[int, int],
-               options: MatchOptions | None = None) -> PairMatch:
-    """Registers frame m (source) into frame l (target). image_size = (width, height)."""
+               options: MatchOptions | None = None,
+               predicted: np.ndarray | None = None) -> PairMatch:
+    """Registers frame m (source) into frame l (target). image_size = (width, height).
+
+    predicted: an estimate of H_lm (3, 3) for the guided search (MatchOptions.guided_radius_px;
+    binary descriptors with the exact matcher only, otherwise ignored); if that search does not
+    register the pair, it is matched exhaustively."""
     o = options or MatchOptions()
     if o.binary_matcher not in BINARY_MATCHERS:
         raise ValueError(f"binary_matcher: expected one of {BINARY_MATCHERS}, got "
                          f"{o.binary_matcher!r}")
-    out = PairMatch(f_l.frame_id, f_m.frame_id, "ok")
+    if not (np.isfinite(o.guided_radius_px) and o.guided_radius_px >= 0):
+        raise ValueError(f"guided_radius_px: expected pixels >= 0 (0: no guided search), got "
+                         f"{o.guided_radius_px!r}")
+    if not 0 < o.guided_ratio <= 1:
+        raise ValueError(f"guided_ratio: expected a value in (0, 1], got {o.guided_ratio!r}")
+    if (predicted is not None and o.guided_radius_px > 0 and f_m.binary
+            and o.binary_matcher == "exact" and np.isfinite(predicted).all()):
+        out = _register(f_l, f_m, image_size, o, predicted)
+        if out.ok:
+            return out
+    return _register(f_l, f_m, image_size, o, None)
+
+
+def _register(f_l: Features, f_m: Features, image_size: tuple[int, int], o: MatchOptions,
+              predicted: np.ndarray | None) -> PairMatch:
+    out = PairMatch(f_l.frame_id, f_m.frame_id, "ok", guided=predicted is not None)
     if len(f_m) < o.min_inliers or len(f_l) < o.min_inliers:
         out.status = f"too few features ({len(f_m)}, {len(f_l)})"
         return out
-    pm, pl = _ratio_matches(f_m, f_l, o.ratio, o.binary_matcher)
+    if predicted is None:
+        pm, pl = _ratio_matches(f_m, f_l, o.ratio, o.binary_matcher)
+    else:
+        pm, pl = _guided_matches(f_m, f_l, predicted, o.guided_radius_px, o.guided_ratio)
     out.n_matches = len(pm)
     if len(pm) < o.min_inliers:
         out.status = f"too few matches ({len(pm)} < {o.min_inliers})"
