@@ -686,15 +686,19 @@ def test_a_failed_start_leaves_no_folder_behind(syn, tmp_path, capsys, fails):
     assert not list(tmp_path.iterdir())
 
 
-@pytest.mark.parametrize("stop", ["SIGTERM", "SIGHUP", "SIGINT"])
+@pytest.mark.parametrize("stop", ["SIGTERM", "SIGHUP", "SIGINT", "SIGHUP ignored"])
 def test_a_stop_signal_while_the_recording_is_finished_keeps_it(syn, tmp_path, monkeypatch,
                                                                   stop):
     """SIGTERM / SIGHUP (a launcher stopping the service, a closed terminal: the CLI turns them
     into Ctrl-C) or Ctrl-C arriving while the recording is moved into place is handled once it
-    is there (exit 130): it deleted the recording."""
+    is there (exit 130): it deleted the recording. A SIGHUP that the session was started to
+    ignore (`nohup fusedmosaic live ...`) stays ignored: the session ends normally (exit 0)."""
     from fusedmosaic.io import recorder
 
     move = recorder._replace_dir
+
+    ignore = stop.endswith(" ignored")
+    stop = stop.split()[0]
 
     def stopped_meanwhile(src, dst):
         os.kill(os.getpid(), getattr(signal, stop))
@@ -702,11 +706,22 @@ def test_a_stop_signal_while_the_recording_is_finished_keeps_it(syn, tmp_path, m
         move(src, dst)
 
     monkeypatch.setattr(recorder, "_replace_dir", stopped_meanwhile)
-    sender = Sender(dataset_events(syn, n_frames=15))
-    assert _live(syn, tmp_path, sender) == 130
+    # the signal's usual handling (a process started by a non-interactive shell's `cmd &`
+    # inherits SIGINT ignored: there Ctrl-C does nothing, and is rightly not deferred)
+    sig = getattr(signal, stop)
+    before = signal.signal(sig, signal.SIG_IGN if ignore else signal.default_int_handler
+                           if stop == "SIGINT" else signal.SIG_DFL)
+    try:
+        sender = Sender(dataset_events(syn, n_frames=15))
+        assert _live(syn, tmp_path, sender) == (0 if ignore else 130)
+        assert signal.getsignal(sig) is (signal.SIG_IGN if ignore else
+                                         signal.default_int_handler if stop == "SIGINT" else
+                                         signal.SIG_DFL)
+    finally:
+        signal.signal(sig, before)
     sender.join()
     assert len(read_dataset(tmp_path / "rec", allow_untracked=True)) == 15
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == (["out", "rec"] if ignore else ["rec"])
 
 
 _KILLED = """

@@ -411,7 +411,9 @@ def _cmd_live(args: argparse.Namespace) -> int:
     def stop(signum, frame):  # a closed terminal or a launcher's stop ends it as Ctrl-C does
         raise KeyboardInterrupt
 
-    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGTERM, signal.SIGHUP)}
+    # a signal ignored by whoever started us stays ignored (nohup: SIGHUP)
+    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGTERM, signal.SIGHUP)
+                if signal.getsignal(sig) is not signal.SIG_IGN}
     try:
         summary = run_igtl(args.address, args.out, record=args.record, camera=args.camera,
                            transform_device=args.transform, image_device=args.image_device,
