@@ -85,9 +85,10 @@ def test_run_feature_options(datasets, tmp_path, capsys):
     out = tmp_path / "orb"
     assert main(["--quiet", "run", str(feto), "--method", "ba-emt", "--out", str(out),
                  "--no-report", "--detector", "orb", "--max-features", "800",
-                 "--detect-max-side", "300", "--clahe"]) == 0
+                 "--detect-max-side", "300", "--clahe", "--orb-fast-threshold", "10"]) == 0
     features = json.loads((out / "report.json").read_text())["parameters"]["features"]
     assert features["detector"] == "orb" and features["max_features"] == 800
+    assert features["orb_fast_threshold"] == 10
     assert features["max_image_side"] == 300 and features["clahe"] is True
     out = tmp_path / "emt"
     assert main(["--quiet", "run", str(feto), "--method", "emt", "--out", str(out),
@@ -104,7 +105,10 @@ def test_run_feature_options(datasets, tmp_path, capsys):
             assert parameters["motion_sigma"] is not None
     for extra, message in (
             (["--method", "ncc", "--detector", "orb"],
-             "--detector / --max-features / --clahe / --detect-max-side apply to lba-emt"),
+             "--detector / --max-features / --clahe / --detect-max-side / "
+             "--orb-fast-threshold apply to lba-emt"),
+            (["--method", "lba-emt", "--orb-fast-threshold", "300"],
+             "--orb-fast-threshold must be an integer in 1..255 (grey levels), got 300"),
             (["--method", "pairwise", "--max-features", "0"],
              "--max-features must be an integer in 1..2147483647 (OpenCV's int), got 0"),
             (["--method", "lba-emt", "--max-features", "5000000000"],

@@ -54,6 +54,34 @@ def test_known_homography_recovered(texture, detector):
     assert np.median(np.linalg.norm(moved - res.points_l, axis=1)) < 1.0
 
 
+def test_orb_fast_threshold_and_the_low_contrast_retry(texture):
+    """FeatureOptions.orb_fast_threshold (default 5: OpenCV's ORB at that threshold exactly); a
+    raised one keeps a contrasted frame's keypoints and detects a low-contrast frame that gives
+    fewer than 90 % of max_features again at orb_fast_threshold_low."""
+    def orb(image, threshold):
+        return cv2.ORB_create(nfeatures=1000, fastThreshold=threshold).detectAndCompute(image,
+                                                                                        None)
+
+    image = view(texture, similarity(0, 1, -200, -200))
+    low = (image.astype(float) * 0.3 + 100).astype(np.uint8)  # contrast 0.3
+    counts = {t: len(orb(low, t)[0]) for t in (5, 10)}
+    assert counts[10] < 0.9 * 1000 < counts[5]  # measured 93 and 935
+    ext = {t: FeatureExtractor(FeatureOptions(detector="orb", orb_fast_threshold=t))
+           for t in (5, 10)}
+    np.testing.assert_array_equal(ext[5].extract(image).descriptors, orb(image, 5)[1])
+    np.testing.assert_array_equal(ext[10].extract(image).descriptors, orb(image, 10)[1])
+    np.testing.assert_array_equal(ext[10].extract(low).descriptors, orb(low, 5)[1])  # retried
+    no_retry = FeatureExtractor(FeatureOptions(detector="orb", orb_fast_threshold=10,
+                                               orb_fast_threshold_low=10))
+    assert len(no_retry.extract(low)) == counts[10]
+    for bad, message in (
+            (dict(orb_fast_threshold=0), "orb_fast_threshold must be an integer in 1..255"),
+            (dict(orb_fast_threshold=2.5), "orb_fast_threshold must be an integer in 1..255"),
+            (dict(orb_fast_threshold_low=256), "orb_fast_threshold_low must be an integer")):
+        with pytest.raises(ValueError, match=message):
+            FeatureExtractor(FeatureOptions(detector="orb", **bad))
+
+
 @pytest.mark.parametrize("detector", ["sift", "orb"])
 def test_detection_on_a_shrunk_copy_maps_keypoints_to_full_resolution(texture, detector):
     # Frames at twice the size, detected at half size (max_image_side): the keypoints are in

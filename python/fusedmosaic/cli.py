@@ -157,8 +157,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     features = _feature_options(args)
     if features is not None:
         if args.method not in FEATURE_METHODS:
-            raise ValueError(f"--detector / --max-features / --clahe / --detect-max-side apply "
-                             f"to {', '.join(FEATURE_METHODS)}, not {args.method}")
+            raise ValueError(f"--detector / --max-features / --clahe / --detect-max-side / "
+                             f"--orb-fast-threshold apply to {', '.join(FEATURE_METHODS)}, not "
+                             f"{args.method}")
         overrides["features"] = features
         if args.method == "pairwise":
             from fusedmosaic.estimation.pairwise import PairwiseOptions
@@ -439,19 +440,23 @@ FEATURE_METHODS = ("lba-emt", "ba-emt", "ba", "emt", "pairwise")
 
 
 def _feature_options(args: argparse.Namespace):
-    """FeatureOptions from --detector/--max-features/--clahe/--detect-max-side, or None."""
+    """FeatureOptions from --detector/--max-features/--clahe/--detect-max-side/
+    --orb-fast-threshold, or None."""
     from fusedmosaic.registration.features import FeatureOptions
 
     if (args.detector is None and args.max_features is None and not args.clahe
-            and args.detect_max_side is None):
+            and args.detect_max_side is None and args.orb_fast_threshold is None):
         return None
     options = FeatureOptions(clahe=args.clahe, max_image_side=args.detect_max_side)
     if args.detector is not None:
         options.detector = args.detector
     if args.max_features is not None:
         options.max_features = args.max_features
+    if args.orb_fast_threshold is not None:
+        options.orb_fast_threshold = args.orb_fast_threshold
     options.validate(names={"max_image_side": "--detect-max-side",
-                            "max_features": "--max-features"})
+                            "max_features": "--max-features",
+                            "orb_fast_threshold": "--orb-fast-threshold"})
     return options
 
 
@@ -1074,6 +1079,11 @@ def _add_feature_flags(parser: argparse.ArgumentParser, title: str) -> None:
                       help="detect on a copy of each frame shrunk to at most PX pixels on its "
                            "longer side, keypoints mapped back to full resolution (faster on "
                            "HD video; default: full resolution)")
+    feat.add_argument("--orb-fast-threshold", type=int, metavar="T",
+                      help="ORB's FAST corner threshold, grey levels (default 5; 10 halves ORB "
+                           "detection on HD frames at some cost in accuracy; a frame where "
+                           "fewer than 90 percent of the keypoints are found is detected again "
+                           "at 5)")
 
 
 def _add_compositing_flags(parser: argparse.ArgumentParser) -> None:
