@@ -315,6 +315,17 @@ def test_guided_hamming_matcher_bad_input():
             _core.match_hamming_guided(a, xy, a, xy, radius)
     with pytest.raises(ValueError, match="differ in length: 32 and 16 bytes"):
         _core.match_hamming_guided(a, xy, np.zeros((10, 16), np.uint8), xy, 5.0)
+    huge = xy.copy()
+    huge[0], huge[1] = -1e308, 1e308
+    with pytest.raises(ValueError, match="train_xy: the keypoints span more than a double"):
+        _core.match_hamming_guided(a, xy, a, huge, 5.0)
+    # queries predicted near 1e308 find nothing; the others their one candidate each
+    desc = np.random.default_rng(5).integers(0, 256, (10, 32), np.uint8)
+    spaced = np.c_[10.0 * np.arange(10), np.zeros(10)]
+    pred = spaced.copy()
+    pred[0], pred[1] = -1e308, 1e308
+    q, t, d = _core.match_hamming_guided(desc, pred, desc, spaced, 5.0, 0.8, 256)
+    assert q.tolist() == t.tolist() == list(range(2, 10)) and d.tolist() == [0] * 8
 
 
 def test_match_pair_guided_by_a_prediction(texture):

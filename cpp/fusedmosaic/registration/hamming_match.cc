@@ -48,6 +48,10 @@ Grid MakeGrid(const double* xy, int n, double radius) {
   if (!(min_x <= max_x)) return g;  // no finite train keypoint: an empty grid
   // Cells of the radius, widened so that there are at most ~4 per train keypoint.
   const double w = max_x - min_x, h = max_y - min_y;
+  if (!std::isfinite(w) || !std::isfinite(h)) {
+    throw std::invalid_argument(
+        "train_xy: the keypoints span more than a double holds (coordinates near 1e308)");
+  }
   g.cell = std::max(radius, std::sqrt(w * h / (4.0 * n + 16.0)));
   g.cell = std::max({g.cell, w / 4096.0, h / 4096.0});
   g.min_x = min_x, g.min_y = min_y;
