@@ -88,7 +88,7 @@ from fusedmosaic.io.tracking import MAX_TRANSLATION_MM, check_stream_timestamp
 from fusedmosaic.methods import MethodResult
 from fusedmosaic.registration.features import FeatureExtractor, FeatureOptions
 from fusedmosaic.registration.pair_selection import footprint_polygons, overlap_fraction
-from fusedmosaic.registration.pairs import MatchOptions, match_pair
+from fusedmosaic.registration.pairs import MatchOptions, guided_search, match_pair
 
 # Paper presets (Sec. 4.2): (W, chi_e, K, frames per cluster).
 PRESETS = {"syn": (5, 3, 3, 5), "phb": (3, 1, 3, 3), "ex": (12, 6, 3, 12)}
@@ -800,7 +800,8 @@ class SequentialMosaicker:
         near = ids[np.argsort(dist)][: o.loop_pairs]
         near = [i for i in near if np.linalg.norm(self._loop_centroids[i] - centre)
                 < self._loop_radius]
-        G_k = self._predict_reference(recent_ok) if self._guided(feats) else None
+        guided = guided_search(feats, self.options.matching)
+        G_k = self._predict_reference(recent_ok) if guided else None
         predicted = [None if G_k is None else np.linalg.solve(G_k, self._loop_G[i])
                      for i in near]  # loop frame i -> frame k pixels
         return self._match(feats, [self._loop_feats[i] for i in near], predicted)
@@ -818,7 +819,7 @@ class SequentialMosaicker:
         hand-held sequence 7 px median, 17 px at most), chained with the newest frame's pairs to
         the others, predicts each pair. Without that registration the newest is matched
         exhaustively first and its result chained instead."""
-        if not others or not self._guided(feats):
+        if not others or not guided_search(feats, self.options.matching):
             return self._match(feats, others)
         newest = others[-1]
         chained = self._pair_H.get(newest.frame_id, {})
@@ -832,11 +833,6 @@ class SequentialMosaicker:
         predicted = [first.H_lm @ chained[f.frame_id]
                      if first.ok and f.frame_id in chained else None for f in others[:-1]]
         return [*self._match(feats, others[:-1], predicted), first]
-
-    def _guided(self, feats) -> bool:
-        """Whether match_pair runs a guided search for these features when given a prediction."""
-        o = self.options.matching
-        return o.guided_radius_px > 0 and feats.binary and o.binary_matcher == "exact"
 
     def _match(self, feats, others: list, predicted: list | None = None) -> list:
         """match_pair of the new frame against each of `others`, in order (guided where

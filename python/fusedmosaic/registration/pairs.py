@@ -124,6 +124,12 @@ def degeneracy(H: np.ndarray, width: int, height: int, max_scale_change: float) 
     return None
 
 
+def guided_search(features: Features, options: MatchOptions) -> bool:
+    """Whether match_pair searches these features guided when it is given a prediction: binary
+    descriptors, the exact matcher, a guided radius."""
+    return options.guided_radius_px > 0 and features.binary and options.binary_matcher == "exact"
+
+
 def _guided_matches(f_m: Features, f_l: Features, H_lm: np.ndarray, radius: float,
                     ratio: float) -> tuple[np.ndarray, np.ndarray]:
     """_ratio_matches among the keypoints of frame l within `radius` px of where H_lm puts
@@ -153,8 +159,7 @@ def match_pair(f_l: Features, f_m: Features, image_size: tuple[int, int],
                          f"{o.guided_radius_px!r}")
     if not 0 < o.guided_ratio <= 1:
         raise ValueError(f"guided_ratio: expected a value in (0, 1], got {o.guided_ratio!r}")
-    if (predicted is not None and o.guided_radius_px > 0 and f_m.binary
-            and o.binary_matcher == "exact" and np.isfinite(predicted).all()):
+    if predicted is not None and guided_search(f_m, o) and np.isfinite(predicted).all():
         out = _register(f_l, f_m, image_size, o, predicted)
         if out.ok:
             return out
