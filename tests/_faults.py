@@ -1,4 +1,7 @@
-"""Fault injection shared by the streaming robustness tests (not a test module)."""
+"""Fault injection shared by the robustness tests (not a test module)."""
+
+import contextlib
+import signal
 
 
 def raise_once(original, exception, *, call_through=False, armed=True):
@@ -16,3 +19,15 @@ def raise_once(original, exception, *, call_through=False, armed=True):
         return original(*args, **kwargs)
 
     return replacement, state
+
+
+@contextlib.contextmanager
+def signal_handler(sig, handler):
+    """`handler` installed for `sig` inside the block, the previous one restored after. A test
+    that sends itself a signal sets the disposition it assumes: a process started in the
+    background by a non-interactive shell (`cmd &`) inherits SIGINT ignored."""
+    before = signal.signal(sig, handler)
+    try:
+        yield
+    finally:
+        signal.signal(sig, before)

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _faults import signal_handler
 
 from fusedmosaic import methods
 from fusedmosaic.cli import main
@@ -539,11 +540,9 @@ def test_ctrl_c_during_the_commit_is_deferred_until_it_is_complete(tmp_path, mon
         return replace(src, dst)
 
     monkeypatch.setattr(output.os, "replace", interrupted_replace)
-    # Ctrl-C as in a terminal: Python's handler. A process started in the background by a
-    # non-interactive shell (`cmd &`) inherits SIGINT ignored and Python keeps it so; there
-    # Ctrl-C does nothing, nothing is deferred, and this test would not see the interrupt.
-    before = signal.signal(signal.SIGINT, signal.default_int_handler)
-    try:
+    # Ctrl-C as in a terminal: Python's handler (where SIGINT is ignored, Ctrl-C does nothing
+    # and nothing is deferred)
+    with signal_handler(signal.SIGINT, signal.default_int_handler):
         out = tmp_path / "out"
         with pytest.raises(KeyboardInterrupt), OutputWriter(out, record="run") as w:
             for name in ("a.csv", "b.png", "c/d.json"):
@@ -551,8 +550,6 @@ def test_ctrl_c_during_the_commit_is_deferred_until_it_is_complete(tmp_path, mon
         assert listing(out) == [MANIFEST, "a.csv", "b.png", "c", "c/d.json"]  # all, not one
         assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
         assert no_temp(tmp_path)
-    finally:
-        signal.signal(signal.SIGINT, before)
 
 
 @pytest.mark.parametrize(("value", "message"), [

@@ -17,6 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from _faults import signal_handler
 from _igtl_sender import (
     T0,
     Sender,
@@ -699,26 +700,22 @@ def test_a_stop_signal_while_the_recording_is_finished_keeps_it(syn, tmp_path, m
 
     ignore = stop.endswith(" ignored")
     stop = stop.split()[0]
+    sig = getattr(signal, stop)
+    # the signal's usual handling (a process started by a non-interactive shell's `cmd &`
+    # inherits SIGINT ignored: there Ctrl-C does nothing, and is rightly not deferred)
+    handler = (signal.SIG_IGN if ignore else
+               signal.default_int_handler if stop == "SIGINT" else signal.SIG_DFL)
 
     def stopped_meanwhile(src, dst):
-        os.kill(os.getpid(), getattr(signal, stop))
+        os.kill(os.getpid(), sig)
         time.sleep(0.05)  # delivered here, in the middle
         move(src, dst)
 
     monkeypatch.setattr(recorder, "_replace_dir", stopped_meanwhile)
-    # the signal's usual handling (a process started by a non-interactive shell's `cmd &`
-    # inherits SIGINT ignored: there Ctrl-C does nothing, and is rightly not deferred)
-    sig = getattr(signal, stop)
-    before = signal.signal(sig, signal.SIG_IGN if ignore else signal.default_int_handler
-                           if stop == "SIGINT" else signal.SIG_DFL)
-    try:
+    with signal_handler(sig, handler):
         sender = Sender(dataset_events(syn, n_frames=15))
         assert _live(syn, tmp_path, sender) == (0 if ignore else 130)
-        assert signal.getsignal(sig) is (signal.SIG_IGN if ignore else
-                                         signal.default_int_handler if stop == "SIGINT" else
-                                         signal.SIG_DFL)
-    finally:
-        signal.signal(sig, before)
+        assert signal.getsignal(sig) is handler
     sender.join()
     assert len(read_dataset(tmp_path / "rec", allow_untracked=True)) == 15
     assert sorted(p.name for p in tmp_path.iterdir()) == (["out", "rec"] if ignore else ["rec"])
