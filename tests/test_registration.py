@@ -180,16 +180,16 @@ def test_parallel_matching_equals_serial(texture):
         match_pairs(feats, [(9, 0)], SIZE)
 
 
-def _bf_ratio_matches(query, train, ratio):
-    """The reference: OpenCV's brute-force Hamming 2-NN, the ratio test, one query per train."""
-    knn = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(query, train, k=2)
+def _bf_ratio_matches(query, train, ratio, norm=cv2.NORM_HAMMING):
+    """The reference: OpenCV's brute-force 2-NN, the ratio test, one query per train."""
+    knn = cv2.BFMatcher(norm).knnMatch(query, train, k=2)
     best = {}
     for p in knn:
         if len(p) == 2 and p[0].distance < ratio * p[1].distance:
             m = p[0]
             if m.trainIdx not in best or m.distance < best[m.trainIdx].distance:
                 best[m.trainIdx] = m
-    return sorted((m.queryIdx, m.trainIdx, int(m.distance)) for m in best.values())
+    return sorted((m.queryIdx, m.trainIdx, m.distance) for m in best.values())
 
 
 @pytest.mark.parametrize("ratio", [0.6, 0.8, 1.0])
@@ -244,10 +244,15 @@ def test_hamming_matcher_bad_input():
 
 
 def _guided_reference(query, query_xy, train, train_xy, radius, ratio, max_distance):
-    """The guided search written out: Hamming distances to every train keypoint within the
-    radius of the prediction, the two nearest of those, the ratio test (a single candidate:
-    max_distance), one query per train (the first on a tie)."""
-    bits = np.unpackbits(query[:, None, :] ^ train[None, :, :], axis=2).sum(axis=2)
+    """The guided search written out: distances (Hamming for uint8 descriptors, Euclidean in
+    float64 for float ones) to every train keypoint within the radius of the prediction, the
+    two nearest of those, the ratio test (a single candidate: max_distance), one query per
+    train (the first on a tie)."""
+    if query.dtype == np.uint8:
+        dist = np.unpackbits(query[:, None, :] ^ train[None, :, :], axis=2).sum(axis=2)
+    else:
+        diff = query[:, None, :].astype(np.float64) - train[None, :, :]
+        dist = np.sqrt((diff ** 2).sum(axis=2))
     d2 = ((query_xy[:, None, :] - train_xy[None, :, :]) ** 2).sum(axis=2)
     best = {}
     for i in range(len(query)):
@@ -256,12 +261,12 @@ def _guided_reference(query, query_xy, train, train_xy, radius, ratio, max_dista
         near = np.flatnonzero(d2[i] <= radius * radius)
         if len(near) == 0:
             continue
-        order = np.argsort(bits[i, near], kind="stable")
-        j, d = int(near[order[0]]), int(bits[i, near[order[0]]])
+        order = np.argsort(dist[i, near], kind="stable")
+        j, d = int(near[order[0]]), dist[i, near[order[0]]]
         if len(near) == 1:
             if not 0 <= d <= max_distance:
                 continue
-        elif not d < ratio * bits[i, near[order[1]]]:
+        elif not d < ratio * dist[i, near[order[1]]]:
             continue
         if j not in best or d < best[j][1]:
             best[j] = (i, d)
@@ -328,13 +333,84 @@ def test_guided_hamming_matcher_bad_input():
     assert q.tolist() == t.tolist() == list(range(2, 10)) and d.tolist() == [0] * 8
 
 
-def test_match_pair_guided_by_a_prediction(texture):
-    """With a predicted homography (ORB, exact matcher) match_pair searches near the
-    prediction and registers the pair as exhaustively; a wrong prediction falls back to the
+def _assert_same_matches(got, expected):
+    """The same (query, train) pairs and, to float32 rounding, the same distances."""
+    q, t, d = got
+    assert list(zip(q.tolist(), t.tolist(), strict=True)) == [(i, j) for i, j, _ in expected]
+    np.testing.assert_allclose(d, [e[2] for e in expected], rtol=1e-5)
+
+
+def test_guided_l2_matcher(texture):
+    """match_l2_guided, the guided search for float descriptors (SIFT) under the Euclidean
+    distance: the numpy statement of the search for small to large radii, with and without
+    accepting a lone candidate; unpredictable queries unmatched; a radius covering everything is
+    OpenCV's brute-force L2 matcher with the ratio test and the one-to-one filter."""
+    A, B = similarity(0, 1, -200, -200), similarity(5, 1.05, -215, -190)
+    ext = FeatureExtractor(FeatureOptions(detector="sift"))
+    f0, f1 = ext.extract(view(texture, A), 0), ext.extract(view(texture, B), 1)
+    assert f0.descriptors.dtype == np.float32 and f0.descriptors.shape[1] == 128
+    predicted = cv2.perspectiveTransform(f0.points[None], B @ np.linalg.inv(A))[0]
+    predicted += np.random.default_rng(0).normal(0, 1.0, predicted.shape)
+    predicted[:7] = np.nan
+    predicted[7:9] = 1e12
+    for radius in (3.0, 12.0, 40.0):
+        for max_distance in (-1.0, 150.0):
+            got = _core.match_l2_guided(f0.descriptors, predicted, f1.descriptors, f1.points,
+                                        radius, 0.8, max_distance)
+            _assert_same_matches(got, _guided_reference(
+                f0.descriptors, predicted, f1.descriptors, f1.points, radius, 0.8, max_distance))
+            assert len(got[0]) > 50 and not set(range(9)) & set(got[0].tolist())
+    for ratio in (0.6, 0.8, 1.0):
+        _assert_same_matches(
+            _core.match_l2_guided(f0.descriptors, np.zeros_like(f0.points), f1.descriptors,
+                                  f1.points, 1e4, ratio),
+            _bf_ratio_matches(f0.descriptors, f1.descriptors, ratio, cv2.NORM_L2))
+    # any length, not only SIFT's 128 (the 8-lane loop plus a tail): 13 floats
+    rng = np.random.default_rng(3)
+    a, b = rng.random((300, 13), np.float32), rng.random((250, 13), np.float32)
+    b[:100] = a[:100] + rng.normal(0, 0.01, (100, 13)).astype(np.float32)  # near copies
+    _assert_same_matches(_core.match_l2_guided(a, np.zeros((300, 2)), b, np.zeros((250, 2)),
+                                               1.0, 0.8),
+                         _bf_ratio_matches(a, b, 0.8, cv2.NORM_L2))
+
+
+def test_guided_l2_matcher_bad_input():
+    a, xy = np.zeros((10, 128), np.float32), np.zeros((10, 2))
+    with pytest.raises(ValueError, match="differ in length: 128 and 64 floats"):
+        _core.match_l2_guided(a, xy, np.zeros((10, 64), np.float32), xy, 5.0)
+    with pytest.raises(ValueError, match=r"query: expected a 2-D \(N, dims\) float32 array"):
+        _core.match_l2_guided(a[0], xy, a, xy, 5.0)
+    with pytest.raises(ValueError, match=r"train_xy: expected \(10, 2\) positions"):
+        _core.match_l2_guided(a, xy, a, xy[:3], 5.0)
+    with pytest.raises(ValueError, match="descriptors: expected at least one float"):
+        _core.match_l2_guided(np.zeros((10, 0), np.float32), xy, np.zeros((10, 0), np.float32),
+                              xy, 5.0)
+    for radius in (0.0, float("inf")):
+        with pytest.raises(ValueError, match="radius: expected a positive finite number"):
+            _core.match_l2_guided(a, xy, a, xy, radius)
+    with pytest.raises(ValueError, match=r"ratio: expected a value in \(0, 1\]"):
+        _core.match_l2_guided(a, xy, a, xy, 5.0, 0.0)
+    with pytest.raises(ValueError, match="max_distance: expected a number"):
+        _core.match_l2_guided(a, xy, a, xy, 5.0, 0.8, float("nan"))
+    # a descriptor with a non-finite element matches nothing; the others their copy
+    desc = np.random.default_rng(5).random((10, 128), np.float32)
+    spaced = np.c_[10.0 * np.arange(10), np.zeros(10)]
+    bad = desc.copy()
+    bad[0, 3], bad[1, 100] = np.nan, np.inf
+    q, t, d = _core.match_l2_guided(bad, spaced, desc, spaced, 5.0, 0.8, 1.0)
+    assert q.tolist() == t.tolist() == list(range(2, 10)) and d.tolist() == [0.0] * 8
+    q, t, d = _core.match_l2_guided(desc, spaced, bad, spaced, 5.0, 0.8, 1.0)
+    assert q.tolist() == t.tolist() == list(range(2, 10))
+
+
+@pytest.mark.parametrize("detector", ["orb", "sift"])
+def test_match_pair_guided_by_a_prediction(texture, detector):
+    """With a predicted homography (ORB with the exact matcher, SIFT) match_pair searches near
+    the prediction and registers the pair as exhaustively; a wrong prediction falls back to the
     exhaustive search, which registers it too."""
     A = similarity(0, 1, -250, -250)
     B = np.array([[1.02, 0.03, -270], [-0.02, 0.99, -236], [2e-5, -1e-5, 1.0]])
-    ext = FeatureExtractor(FeatureOptions(detector="orb", max_features=1500))
+    ext = FeatureExtractor(FeatureOptions(detector=detector, max_features=1500))
     fm, fl = ext.extract(view(texture, A), 0), ext.extract(view(texture, B), 1)
     true_lm = B @ np.linalg.inv(A)
     nearly = similarity(0.5, 1.0, 3, -2) @ true_lm  # a few px off

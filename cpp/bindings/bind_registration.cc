@@ -4,9 +4,10 @@
 
 #include <cstdint>
 #include <string>
+#include <type_traits>
 
 #include "bindings/bind.h"
-#include "fusedmosaic/registration/hamming_match.h"
+#include "fusedmosaic/registration/descriptor_match.h"
 
 namespace py = pybind11;
 using namespace pybind11::literals;
@@ -15,25 +16,39 @@ namespace fusedmosaic::bindings {
 namespace {
 
 using Descriptors = py::array_t<std::uint8_t, py::array::c_style | py::array::forcecast>;
+using FloatDescriptors = py::array_t<float, py::array::c_style | py::array::forcecast>;
 
-void CheckDescriptors(const Descriptors& d, const char* name) {
+template <typename T>
+const char* Layout() {
+  return std::is_same_v<T, float> ? "(N, dims) float32" : "(N, bytes) uint8";
+}
+template <typename T>
+const char* Unit() {
+  return std::is_same_v<T, float> ? " floats" : " bytes";
+}
+
+template <typename T>
+void CheckDescriptors(const py::array_t<T, py::array::c_style | py::array::forcecast>& d,
+                      const char* name) {
   if (d.ndim() != 2) {
-    throw std::invalid_argument(std::string(name) + ": expected a 2-D (N, bytes) uint8 array, got " +
-                                std::to_string(d.ndim()) + " dimension(s)");
+    throw std::invalid_argument(std::string(name) + ": expected a 2-D " + Layout<T>() +
+                                " array, got " + std::to_string(d.ndim()) + " dimension(s)");
   }
 }
 
 using Points = py::array_t<double, py::array::c_style | py::array::forcecast>;
 
-void CheckDescriptorLengths(const Descriptors& query, const Descriptors& train) {
+template <typename T>
+void CheckDescriptorLengths(const py::array_t<T, py::array::c_style | py::array::forcecast>& query,
+                            const py::array_t<T, py::array::c_style | py::array::forcecast>& train) {
   if (query.shape(1) != train.shape(1)) {
     throw std::invalid_argument("query and train descriptors differ in length: " +
                                 std::to_string(query.shape(1)) + " and " +
-                                std::to_string(train.shape(1)) + " bytes");
+                                std::to_string(train.shape(1)) + Unit<T>());
   }
 }
 
-void CheckPoints(const Points& xy, const Descriptors& d, const char* name, const char* of) {
+void CheckPoints(const Points& xy, const py::array& d, const char* name, const char* of) {
   if (xy.ndim() != 2 || xy.shape(1) != 2 || xy.shape(0) != d.shape(0)) {
     std::string shape;
     for (py::ssize_t i = 0; i < xy.ndim(); ++i) {
@@ -45,8 +60,9 @@ void CheckPoints(const Points& xy, const Descriptors& d, const char* name, const
   }
 }
 
-py::array_t<int> ToArray(const std::vector<int>& v) {
-  py::array_t<int> out(static_cast<py::ssize_t>(v.size()));
+template <typename T>
+py::array_t<T> ToArray(const std::vector<T>& v) {
+  py::array_t<T> out(static_cast<py::ssize_t>(v.size()));
   std::copy(v.begin(), v.end(), out.mutable_data());
   return out;
 }
@@ -111,6 +127,37 @@ homography from a motion model; a non-finite row: that query is not matched); tr
 compared; the ratio test uses the two nearest of those, and a query with a single candidate is
 kept if its distance is at most max_distance bits (-1: never). Same output as match_hamming.
 Cost grows with the candidates per query (a grid of radius-sized cells), not with Nt.)doc");
+
+  m.def(
+      "match_l2_guided",
+      [](const FloatDescriptors& query, const Points& query_xy, const FloatDescriptors& train,
+         const Points& train_xy, double radius, double ratio, double max_distance) {
+        CheckDescriptors(query, "query");
+        CheckDescriptors(train, "train");
+        CheckDescriptorLengths(query, train);
+        CheckPoints(query_xy, query, "query_xy", "query");
+        CheckPoints(train_xy, train, "train_xy", "train");
+        L2Matches found;
+        {
+          py::gil_scoped_release release;
+          found = MatchL2Guided(query.data(), query_xy.data(), static_cast<int>(query.shape(0)),
+                                train.data(), train_xy.data(), static_cast<int>(train.shape(0)),
+                                static_cast<int>(query.shape(1)), radius, ratio, max_distance);
+        }
+        return py::make_tuple(ToArray(found.query), ToArray(found.train),
+                              ToArray(found.distance));
+      },
+      "query"_a, "query_xy"_a, "train"_a, "train_xy"_a, "radius"_a, "ratio"_a = 0.8,
+      "max_distance"_a = -1.0,
+      R"doc(match_hamming_guided for float descriptors (SIFT) under the Euclidean distance.
+
+query : (Nq, D) float32, train : (Nt, D) float32; query_xy : (Nq, 2) predicted positions in the
+train image (a non-finite row: not matched), train_xy : (Nt, 2). Only train descriptors within
+`radius` px of the prediction are compared; a query is kept if its nearest candidate is nearer
+than ratio x the second nearest (Euclidean distances, as cv2.BFMatcher(cv2.NORM_L2)'s), or, with
+a single candidate, if that one is at most max_distance away (< 0: never); of the queries kept
+for one train descriptor only the nearest. Returns (query_idx, train_idx, distance): int, int,
+float32 arrays in ascending query order. A descriptor with a non-finite element matches nothing.)doc");
 }
 
 }  // namespace fusedmosaic::bindings

@@ -35,7 +35,7 @@ class MatchOptions:
     # LSH's misses act as a stricter filter: lba-emt's e_M on SYN with ORB was 0.25 px with it,
     # 0.33 px exact (mean over 4 seeds x 600 frames; it varies 0.2-0.45 px between seeds).
     binary_matcher: str = "exact"
-    # Guided matching (binary descriptors, exact matcher): when a caller predicts a pair's
+    # Guided matching (SIFT; ORB with the exact matcher): when a caller predicts a pair's
     # homography (the sequential mosaicker chains the new frame's registration to the previous
     # frame with the earlier pairs and the window's estimates), only keypoints within this radius
     # of their predicted position are compared; a pair the guided search cannot register is
@@ -45,7 +45,8 @@ class MatchOptions:
     # distractors than the whole frame: a stricter ratio keeps it as selective. Measured on SYN
     # ORB pairs (1 and 3 frames apart, 400x400): exhaustive 0.8 -> 395 inliers per pair, median
     # residual to the true homography 0.80 px; guided 0.8 -> 411, 0.82 px; guided 0.7 -> 389,
-    # 0.80 px.
+    # 0.80 px. SIFT, lba-emt on SYN (4 seeds x 300 frames): e_M 0.086 px exhaustive, guided
+    # 0.086 px at 0.7, 0.090 px at 0.8.
     guided_ratio: float = 0.7
 
 
@@ -80,7 +81,7 @@ def _ratio_matches(f_m: Features, f_l: Features, ratio: float,
     """Points of frame m and of frame l of the ratio-test matches, one-to-one (the nearest query
     per target keypoint)."""
     if f_m.binary and binary_matcher == "exact":
-        # ORB: exact Hamming nearest neighbours in the C++ core (registration/hamming_match.h:
+        # ORB: exact Hamming nearest neighbours in the C++ core (registration/descriptor_match.h:
         # the OpenCV wheels count bits by table look-up; on the benchmark's 2-core Xeon 1000 x
         # 1000 descriptors took 7.9 ms with cv2.BFMatcher, 5.1 ms with FLANN's approximate LSH
         # index, 2.4 ms there, the same matches as BFMatcher).
@@ -125,9 +126,10 @@ def degeneracy(H: np.ndarray, width: int, height: int, max_scale_change: float) 
 
 
 def guided_search(features: Features, options: MatchOptions) -> bool:
-    """Whether match_pair searches these features guided when it is given a prediction: binary
-    descriptors, the exact matcher, a guided radius."""
-    return options.guided_radius_px > 0 and features.binary and options.binary_matcher == "exact"
+    """Whether match_pair searches these features guided when it is given a prediction: a
+    guided radius, and float descriptors (SIFT) or binary ones with the exact matcher."""
+    return options.guided_radius_px > 0 and (not features.binary
+                                             or options.binary_matcher == "exact")
 
 
 def _guided_matches(f_m: Features, f_l: Features, H_lm: np.ndarray, radius: float,
@@ -137,8 +139,9 @@ def _guided_matches(f_m: Features, f_l: Features, H_lm: np.ndarray, radius: floa
     h = np.hstack([f_m.points, np.ones((len(f_m), 1))]) @ np.asarray(H_lm, np.float64).T
     with np.errstate(divide="ignore", invalid="ignore"):
         predicted = np.where(h[:, 2:] > 0, h[:, :2] / h[:, 2:], np.nan)  # behind: not matched
-    query, train, _ = _core.match_hamming_guided(f_m.descriptors, predicted, f_l.descriptors,
-                                                 f_l.points, radius, ratio)
+    guided = _core.match_hamming_guided if f_m.binary else _core.match_l2_guided
+    query, train, _ = guided(f_m.descriptors, predicted, f_l.descriptors, f_l.points, radius,
+                             ratio)
     return f_m.points[query].reshape(-1, 2), f_l.points[train].reshape(-1, 2)
 
 
@@ -148,8 +151,8 @@ def match_pair(f_l: Features, f_m: Features, image_size: tuple[int, int],
     """Registers frame m (source) into frame l (target). image_size = (width, height).
 
     predicted: an estimate of H_lm (3, 3) for the guided search (MatchOptions.guided_radius_px;
-    binary descriptors with the exact matcher only, otherwise ignored); if that search does not
-    register the pair, it is matched exhaustively."""
+    float descriptors, or binary ones with the exact matcher; ignored with LSH); if that search
+    does not register the pair, it is matched exhaustively."""
     o = options or MatchOptions()
     if o.binary_matcher not in BINARY_MATCHERS:
         raise ValueError(f"binary_matcher: expected one of {BINARY_MATCHERS}, got "

@@ -1,5 +1,7 @@
-// Exact nearest-neighbour matching of binary descriptors (ORB) under the Hamming distance, with
-// Lowe's ratio test and a one-to-one filter (seed 000, Sec. 3.1: correspondences of a pair).
+// Exact nearest-neighbour matching of descriptors with Lowe's ratio test and a one-to-one filter
+// (seed 000, Sec. 3.1: correspondences of a pair): binary descriptors (ORB) under the Hamming
+// distance, exhaustive or guided; float descriptors (SIFT) under the Euclidean distance, guided
+// (exhaustively, OpenCV's brute-force matcher is as fast).
 //
 // For every query descriptor the two nearest train descriptors are found by brute force; the
 // query is kept if d1 < ratio * d2 (a unique best), and of the queries kept for one train
@@ -16,11 +18,14 @@
 
 namespace fusedmosaic {
 
-struct HammingMatches {
-  std::vector<int> query;     // query descriptor row, ascending
-  std::vector<int> train;     // its matched train descriptor row
-  std::vector<int> distance;  // Hamming distance, bits
+template <typename Distance>
+struct Matches {
+  std::vector<int> query;           // query descriptor row, ascending
+  std::vector<int> train;           // its matched train descriptor row
+  std::vector<Distance> distance;  // their distance
 };
+using HammingMatches = Matches<int>;  // distances in bits
+using L2Matches = Matches<float>;     // Euclidean distances
 
 // query: (num_query, bytes) and train: (num_train, bytes) row-major uint8 descriptors.
 // ratio in (0, 1]. Fewer than two train descriptors: no match passes the ratio test.
@@ -42,5 +47,15 @@ HammingMatches MatchHammingGuided(const std::uint8_t* query, const double* query
                                   int num_query, const std::uint8_t* train,
                                   const double* train_xy, int num_train, int bytes,
                                   double radius, double ratio, int max_distance);
+
+// MatchHammingGuided for float descriptors (SIFT: dims = 128) under the Euclidean distance:
+// query (num_query, dims), train (num_train, dims) row-major float32. The ratio test compares
+// Euclidean distances (as cv2.BFMatcher(NORM_L2)'s do); a lone candidate is kept when its
+// distance is at most max_distance (< 0: never); distances are returned. A descriptor with a
+// non-finite element matches nothing. Throws std::invalid_argument on dims <= 0, a ratio outside
+// (0, 1], a radius that is not positive and finite, or a NaN max_distance.
+L2Matches MatchL2Guided(const float* query, const double* query_xy, int num_query,
+                        const float* train, const double* train_xy, int num_train, int dims,
+                        double radius, double ratio, double max_distance);
 
 }  // namespace fusedmosaic
