@@ -124,9 +124,11 @@ filters; computed with the CPU's popcount, the GIL released.)doc");
 query_xy : (Nq, 2) where each query keypoint is predicted in the train image (e.g. through a
 homography from a motion model; a non-finite row: that query is not matched); train_xy :
 (Nt, 2) the train keypoints. Only train descriptors within `radius` px of the prediction are
-compared; the ratio test uses the two nearest of those, and a query with a single candidate is
-kept if its distance is at most max_distance bits (-1: never). Same output as match_hamming.
-Cost grows with the candidates per query (a grid of radius-sized cells), not with Nt.)doc");
+compared; the ratio test uses the two nearest of those. A query with a single candidate is kept
+if its distance is at most max_distance bits or, with max_distance < 0 (default), if it passes
+the ratio test against the nearest of all the other train descriptors. Same output as
+match_hamming. Cost grows with the candidates per query (a grid of radius-sized cells), not
+with Nt (except for lone candidates under max_distance < 0).)doc");
 
   m.def(
       "match_l2_guided",
@@ -154,8 +156,8 @@ Cost grows with the candidates per query (a grid of radius-sized cells), not wit
 query : (Nq, D) float32, train : (Nt, D) float32; query_xy : (Nq, 2) predicted positions in the
 train image (a non-finite row: not matched), train_xy : (Nt, 2). Only train descriptors within
 `radius` px of the prediction are compared; a query is kept if its nearest candidate is nearer
-than ratio x the second nearest (Euclidean distances, as cv2.BFMatcher(cv2.NORM_L2)'s), or, with
-a single candidate, if that one is at most max_distance away (< 0: never); of the queries kept
+than ratio x the second nearest (Euclidean distances, as cv2.BFMatcher(cv2.NORM_L2)'s); a lone
+candidate as in match_hamming_guided, max_distance in the same units; of the queries kept
 for one train descriptor only the nearest. Returns (query_idx, train_idx, distance): int, int,
 float32 arrays in ascending query order. A descriptor with a non-finite element matches nothing.)doc");
 }

@@ -103,6 +103,9 @@ struct Search {
   int length;
   const double* query_xy = nullptr;  // guided only
   const Grid* grid = nullptr;
+  // Guided: a query with a single candidate in its radius takes as second nearest the nearest
+  // of all the other train rows (the ratio test the exhaustive search would apply to it).
+  bool lone_against_all = false;
 };
 
 // The two metrics. Compute<Fixed>: the distance of two descriptors, with the descriptor length
@@ -201,6 +204,14 @@ __attribute__((always_inline)) inline TwoNearest<typename Metric::Distance> Near
       }
     }
   }
+  if (s.lone_against_all && out.index >= 0 && out.second == out.kNone) {
+    for (int j = 0; j < s.num_train; ++j) {
+      if (j == out.index) continue;
+      out.second = std::min(out.second, Metric::template Compute<Fixed>(
+                                            q, s.train + static_cast<size_t>(j) * s.length,
+                                            s.length));
+    }
+  }
   return out;
 }
 
@@ -266,8 +277,8 @@ void CheckRadius(double radius) {
   }
 }
 
-// Ratio test (best < factor * second; a query with a single candidate: kept if best <=
-// max_distance, never when max_distance < 0), then one query per train row, the nearest (the
+// Ratio test (best < factor * second; a query with a single candidate and no second: kept if
+// best <= max_distance, never when max_distance < 0), then one query per train row, the nearest (the
 // first in query order on a tie); ascending query order. Distances in the metric's units.
 template <typename Metric, typename T = typename Metric::Element,
           typename D = typename Metric::Distance>
@@ -321,7 +332,8 @@ HammingMatches MatchHammingGuided(const std::uint8_t* query, const double* query
   CheckArguments(bytes, ratio, "byte");
   CheckRadius(radius);
   const Grid grid = MakeGrid(train_xy, num_train, radius);
-  Search<std::uint8_t> s{query, num_query, train, num_train, bytes, query_xy, &grid};
+  Search<std::uint8_t> s{query, num_query, train, num_train, bytes, query_xy, &grid,
+                         max_distance < 0};
   return Select<Hamming>(s, ratio, max_distance);
 }
 
@@ -334,7 +346,7 @@ L2Matches MatchL2Guided(const float* query, const double* query_xy, int num_quer
     throw std::invalid_argument("max_distance: expected a number (< 0: never), got nan");
   }
   const Grid grid = MakeGrid(train_xy, num_train, radius);
-  Search<float> s{query, num_query, train, num_train, dims, query_xy, &grid};
+  Search<float> s{query, num_query, train, num_train, dims, query_xy, &grid, max_distance < 0.0};
   // Squared distances: the ratio test d1 < ratio d2 is d1^2 < ratio^2 d2^2.
   const float max_squared =
       max_distance < 0.0 ? -1.0f : static_cast<float>(std::min(max_distance * max_distance, 1e38));

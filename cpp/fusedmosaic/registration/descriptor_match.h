@@ -38,10 +38,13 @@ HammingMatches MatchHammingRatio(const std::uint8_t* query, int num_query,
 // the query's predicted position (guided matching, as when a motion model predicts where a
 // keypoint reappears: ORB-SLAM's search by projection). query_xy: (num_query, 2) predicted
 // positions in the train image (a non-finite one: the query is not matched); train_xy:
-// (num_train, 2). The ratio test compares the two nearest candidates inside the radius; a query
-// with a single candidate is kept when its distance is at most max_distance bits (< 0: never).
-// Candidates are found through a grid of radius-sized cells, so the cost grows with the
-// candidates per query instead of num_train. Throws std::invalid_argument on bytes <= 0, a ratio
+// (num_train, 2). The ratio test compares the two nearest candidates inside the radius. A query
+// with a single candidate is kept when its distance is at most max_distance bits (ORB-SLAM's
+// absolute threshold) or, with max_distance < 0, when it passes the ratio test against the
+// nearest of all the other train descriptors (what the exhaustive search would test it against:
+// sparse keypoints, such as SIFT's ~100 on a low-texture frame, often leave one candidate in
+// the radius). Candidates are found through a grid of radius-sized cells, so the cost grows
+// with the candidates per query (plus num_train per lone candidate) instead of num_train. Throws std::invalid_argument on bytes <= 0, a ratio
 // outside (0, 1] or a radius that is not positive and finite.
 HammingMatches MatchHammingGuided(const std::uint8_t* query, const double* query_xy,
                                   int num_query, const std::uint8_t* train,
@@ -50,8 +53,8 @@ HammingMatches MatchHammingGuided(const std::uint8_t* query, const double* query
 
 // MatchHammingGuided for float descriptors (SIFT: dims = 128) under the Euclidean distance:
 // query (num_query, dims), train (num_train, dims) row-major float32. The ratio test compares
-// Euclidean distances (as cv2.BFMatcher(NORM_L2)'s do); a lone candidate is kept when its
-// distance is at most max_distance (< 0: never); distances are returned. A descriptor with a
+// Euclidean distances (as cv2.BFMatcher(NORM_L2)'s do), a lone candidate as above with
+// max_distance in the same units; distances are returned. A descriptor with a
 // non-finite element matches nothing. Throws std::invalid_argument on dims <= 0, a ratio outside
 // (0, 1], a radius that is not positive and finite, or a NaN max_distance.
 L2Matches MatchL2Guided(const float* query, const double* query_xy, int num_query,

@@ -35,19 +35,29 @@ class MatchOptions:
     # LSH's misses act as a stricter filter: lba-emt's e_M on SYN with ORB was 0.25 px with it,
     # 0.33 px exact (mean over 4 seeds x 600 frames; it varies 0.2-0.45 px between seeds).
     binary_matcher: str = "exact"
-    # Guided matching (SIFT; ORB with the exact matcher): when a caller predicts a pair's
-    # homography (the sequential mosaicker chains the new frame's registration to the previous
-    # frame with the earlier pairs and the window's estimates), only keypoints within this radius
-    # of their predicted position are compared; a pair the guided search cannot register is
-    # matched again exhaustively. 0: always exhaustive.
+    # Guided matching (ORB with the exact matcher; SIFT if guided_sift): when a caller predicts a
+    # pair's homography (the sequential mosaicker chains the new frame's registration to the
+    # previous frame with the earlier pairs and the window's estimates), only keypoints within
+    # this radius of their predicted position are compared; a pair the guided search cannot
+    # register is matched again exhaustively. 0: always exhaustive.
     guided_radius_px: float = 20.0
     # The guided search's ratio test sees only the neighbours of the prediction, fewer
     # distractors than the whole frame: a stricter ratio keeps it as selective. Measured on SYN
     # ORB pairs (1 and 3 frames apart, 400x400): exhaustive 0.8 -> 395 inliers per pair, median
     # residual to the true homography 0.80 px; guided 0.8 -> 411, 0.82 px; guided 0.7 -> 389,
-    # 0.80 px. SIFT, lba-emt on SYN (4 seeds x 300 frames): e_M 0.086 px exhaustive, guided
-    # 0.086 px at 0.7, 0.090 px at 0.8.
+    # 0.80 px.
     guided_ratio: float = 0.7
+    # SIFT pairs guided too (off by default). Faster (lba-emt, SYN 400x400, this 2-core Xeon,
+    # 300 frames, 2 runs: matching 9.9 -> 7.0 ms per frame, 24.2 -> 25.4 frames/s end to end;
+    # one 1000 x 1000 pair 20.8 -> 0.6 ms, SIFT's detection dominates) but not more accurate:
+    # SIFT's keypoints are sparse (~100 per SYN frame), so few neighbours share a radius and the
+    # local ratio test is weak: at ORB's 0.7 it admits matches 1-3 px off that RANSAC's 3 px
+    # keeps (Fig. 9's 17 frames: e_M 0.055 -> 0.095 px). At 0.5, lba-emt e_M SYN 4 seeds x 300
+    # frames 0.082 px vs 0.086 exhaustive, hand-held 2 x 300 frames 0.151 vs 0.148: within the
+    # run-to-run spread of these figures, so the default stays the exhaustive search, whose
+    # figures the paper's experiments were measured with.
+    guided_sift: bool = False
+    guided_sift_ratio: float = 0.5
 
 
 @dataclass
@@ -127,9 +137,11 @@ def degeneracy(H: np.ndarray, width: int, height: int, max_scale_change: float) 
 
 def guided_search(features: Features, options: MatchOptions) -> bool:
     """Whether match_pair searches these features guided when it is given a prediction: a
-    guided radius, and float descriptors (SIFT) or binary ones with the exact matcher."""
-    return options.guided_radius_px > 0 and (not features.binary
-                                             or options.binary_matcher == "exact")
+    guided radius, and binary descriptors with the exact matcher or float ones (SIFT) with
+    guided_sift."""
+    if features.binary:
+        return options.guided_radius_px > 0 and options.binary_matcher == "exact"
+    return options.guided_radius_px > 0 and options.guided_sift
 
 
 def _guided_matches(f_m: Features, f_l: Features, H_lm: np.ndarray, radius: float,
@@ -151,8 +163,8 @@ def match_pair(f_l: Features, f_m: Features, image_size: tuple[int, int],
     """Registers frame m (source) into frame l (target). image_size = (width, height).
 
     predicted: an estimate of H_lm (3, 3) for the guided search (MatchOptions.guided_radius_px;
-    float descriptors, or binary ones with the exact matcher; ignored with LSH); if that search
-    does not register the pair, it is matched exhaustively."""
+    binary descriptors with the exact matcher, float ones with guided_sift; otherwise ignored);
+    if that search does not register the pair, it is matched exhaustively."""
     o = options or MatchOptions()
     if o.binary_matcher not in BINARY_MATCHERS:
         raise ValueError(f"binary_matcher: expected one of {BINARY_MATCHERS}, got "
@@ -160,8 +172,9 @@ def match_pair(f_l: Features, f_m: Features, image_size: tuple[int, int],
     if not (np.isfinite(o.guided_radius_px) and o.guided_radius_px >= 0):
         raise ValueError(f"guided_radius_px: expected pixels >= 0 (0: no guided search), got "
                          f"{o.guided_radius_px!r}")
-    if not 0 < o.guided_ratio <= 1:
-        raise ValueError(f"guided_ratio: expected a value in (0, 1], got {o.guided_ratio!r}")
+    for name in ("guided_ratio", "guided_sift_ratio"):
+        if not 0 < getattr(o, name) <= 1:
+            raise ValueError(f"{name}: expected a value in (0, 1], got {getattr(o, name)!r}")
     if predicted is not None and guided_search(f_m, o) and np.isfinite(predicted).all():
         out = _register(f_l, f_m, image_size, o, predicted)
         if out.ok:
@@ -178,7 +191,8 @@ def _register(f_l: Features, f_m: Features, image_size: tuple[int, int], o: Matc
     if predicted is None:
         pm, pl = _ratio_matches(f_m, f_l, o.ratio, o.binary_matcher)
     else:
-        pm, pl = _guided_matches(f_m, f_l, predicted, o.guided_radius_px, o.guided_ratio)
+        ratio = o.guided_ratio if f_m.binary else o.guided_sift_ratio
+        pm, pl = _guided_matches(f_m, f_l, predicted, o.guided_radius_px, ratio)
     out.n_matches = len(pm)
     if len(pm) < o.min_inliers:
         out.status = f"too few matches ({len(pm)} < {o.min_inliers})"
