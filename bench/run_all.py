@@ -186,6 +186,27 @@ def textured_e_M(t1: dict, seq: str, name: str) -> float | None:
     return _mean([x for k, x in enumerate(e) if k not in black])
 
 
+def sequential_budgets_line(seq: dict | None) -> str | None:
+    """Issue 4's live budgets from bench_sequential.py's latest JSON (its own run, not this
+    one's), or None without it."""
+    b = (seq or {}).get("budgets") or {}
+    try:
+        v = {k: b[k]["value"] for k in ("step_median_ms", "step_p95_ms", "orb_frames_per_s",
+                                        "drift_ratio", "unplaced", "latency_growth")}
+    except (KeyError, TypeError):
+        return None
+    sift = ((seq.get("throughput") or {}).get("sift") or {}).get("frames_per_s_steady")
+    return (
+        f"lba-emt live budgets (`python bench/bench_sequential.py`, its own latest run: "
+        f"[bench/results/sequential.md](bench/results/sequential.md)): window step median "
+        f"{v['step_median_ms']:.2f} ms (<= 5), p95 {v['step_p95_ms']:.2f} ms (<= 15); end to end "
+        f"ORB {v['orb_frames_per_s']:.1f} frames/s (>= 25)"
+        + (f", SIFT {sift:.1f}" if sift else "")
+        + f"; 3300 frames: drift ratio {v['drift_ratio']:.2f} (<= 1.3), {v['unplaced']} "
+        f"unplaced, p95 latency growth {v['latency_growth']:.2f} (<= 1.2)."
+    )
+
+
 def summary_markdown(results: Path, run: dict | None) -> tuple[str, str, dict]:
     """(summary.md text, README section text, headline dict) from the JSON in `results`."""
     t1 = load(results, "table1.json")
@@ -262,6 +283,9 @@ def summary_markdown(results: Path, run: dict | None) -> tuple[str, str, dict]:
                 f"e_M {SEQ_TITLE[seq]}: lba-emt {e['lba-emt']:.3f} px vs ba-emt "
                 f"{e['ba-emt']:.3f} px (ratio {r:.2f})."
             )
+    seq_line = sequential_budgets_line(load(results, "sequential.json"))
+    if seq_line:
+        hl.append(seq_line)
     L += [f"- {x}" for x in hl] + [""]
 
     # Table 1
