@@ -427,22 +427,23 @@ class WindowRecorder:
             self.log.line("forget " + self.log.ids(ids))
         return self._window.forget(ids)
 
-    def step(self, keyframe_ids=()):
+    def step(self, keyframe_ids=(), hold_plane=False):
         if self.log:
-            self.log.line("step " + self.log.ids(keyframe_ids))
+            self.log.line("step " + self.log.ids(keyframe_ids) + (" hold" if hold_plane else ""))
         t0 = time.perf_counter()
-        s = self._window.step(list(keyframe_ids))
+        s = self._window.step(list(keyframe_ids), hold_plane)
         self.step_wall_s.append(time.perf_counter() - t0)
         self.step_cpp_s.append(s.step_time_s)
         self.step_frames.append(len(s.frame_ids))
         self.summaries.append(s)
         return s
 
-    def redo(self, frame_ids, keyframe_ids=()):
+    def redo(self, frame_ids, keyframe_ids=(), hold_plane=False):
         if self.log:
-            self.log.line("redo " + self.log.ids(frame_ids) + " " + self.log.ids(keyframe_ids))
+            self.log.line("redo " + self.log.ids(frame_ids) + " " + self.log.ids(keyframe_ids)
+                          + (" hold" if hold_plane else ""))
         t0 = time.perf_counter()
-        s = self._window.redo(list(frame_ids), list(keyframe_ids))
+        s = self._window.redo(list(frame_ids), list(keyframe_ids), hold_plane)
         self.step_wall_s[-1] += time.perf_counter() - t0
         self.step_cpp_s[-1] += s.step_time_s
         return s

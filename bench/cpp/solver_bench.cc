@@ -66,7 +66,7 @@ struct Call {
   std::vector<int> ids2;      // redo: keyframes
   std::optional<Vector6d> a;  // initial pose / set_pose / expect
   std::optional<Vector6d> b;  // EMT measurement
-  bool flag = false;          // fixed / constant
+  bool flag = false;          // fixed / constant; step / redo: hold pi
   double value = 0.0;         // sigma scale
   double ratio = 1.0, scale = 1.0;  // add_frame: C_p timing
   Eigen::Vector3d plane = Eigen::Vector3d::Zero();
@@ -202,11 +202,14 @@ Problem Load(const std::string& path) {
         continue;
       }
     } else if (name == "solve") {
-    } else if (name == "step") {
+    } else if (name == "step" || name == "redo") {
       c.ids = ReadIds(in, path, line);
-    } else if (name == "redo") {
-      c.ids = ReadIds(in, path, line);
-      c.ids2 = ReadIds(in, path, line);
+      if (name == "redo") c.ids2 = ReadIds(in, path, line);
+      std::string hold;  // optional: the step holds pi (SlidingWindow::Step's hold_plane)
+      if (in >> hold) {
+        if (hold != "hold") Fail(path, line, name + ": expected 'hold' or the end of the line");
+        c.flag = true;
+      }
     } else if (name == "forget") {
       c.ids = ReadIds(in, path, line);
     } else if (name == "set_emt_sigma_scale") {
@@ -382,7 +385,8 @@ std::string RunWindow(const Problem& p, int repeats) {
         max_diff = std::max(max_diff, MaxPoseDiff(window.GetPose(c.ids[0]), *c.a));
       } else if (c.name == "step" || c.name == "redo") {
         const auto t0 = Clock::now();
-        const auto s = c.name == "step" ? window.Step(c.ids) : window.Redo(c.ids, c.ids2);
+        const auto s = c.name == "step" ? window.Step(c.ids, c.flag)
+                                         : window.Redo(c.ids, c.ids2, c.flag);
         const double wall = Seconds(t0, Clock::now());
         if (c.name == "redo") {
           // A gating redo belongs to the step before it: one latency per step, as the caller
