@@ -150,8 +150,19 @@ def test_run_lba_emt_presets(datasets, tmp_path, capsys):
     assert (parameters["window_size"], parameters["num_new"], parameters["num_clusters"],
             parameters["frames_per_cluster"]) == (3, 1, 3, 3)
     assert parameters["loop_pairs"] == 1 and parameters["features"]["detector"] == "orb"
+    assert parameters["matching"]["guided_sift"] is False
+    out = tmp_path / "guided"
+    assert main(["--quiet", "run", str(feto), "--method", "lba-emt", "--out", str(out),
+                 "--no-report", "--guided-sift"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["parameters"]["matching"]["guided_sift"] is True
+    assert report["parameters"]["features"]["detector"] == "sift"
+    assert report["placed"] == 12
     for extra, message in ((["--method", "ba-emt", "--preset", "phb"],
-                            "--preset / --loop-pairs apply to lba-emt, not ba-emt"),
+                            "--preset / --loop-pairs / --guided-sift apply to lba-emt, not "
+                            "ba-emt"),
+                           (["--method", "pairwise", "--guided-sift"],
+                            "--guided-sift apply to lba-emt, not pairwise"),
                            (["--method", "lba-emt", "--loop-pairs", "-1"],
                             "--loop-pairs must be >= 0, got -1")):
         _run_refused(feto, tmp_path, capsys, extra, message)

@@ -327,6 +327,16 @@ def test_existing_recording_folder_is_refused_before_connecting(syn, tmp_path, c
     assert (tmp_path / "rec" / "notes.txt").read_text() == "mine"
 
 
+def test_lba_emt_flags_refused_for_kalman_robot_before_connecting(syn, tmp_path, capsys):
+    assert main(["live", "127.0.0.1:1", "--camera", str(syn.root / "camera.yaml"),
+                 "--transform", "SensorToTracker", "--record", str(tmp_path / "rec"),
+                 "--out", str(tmp_path / "out"), "--method", "kalman-robot",
+                 "--guided-sift"]) == 2
+    assert ("--guided-sift / --motion-sigma-from / --tracker-*-sigma / feature flags apply to "
+            "lba-emt, not kalman-robot") in capsys.readouterr().err
+    assert not (tmp_path / "rec").exists() and not (tmp_path / "out").exists()
+
+
 def test_inverse_device_names():
     assert inverse_device_name("SensorToTracker") == "TrackerToSensor"
     assert inverse_device_name("ToolToTracker") == "TrackerToTool"  # not 'olToTrackerTo'

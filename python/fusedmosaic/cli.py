@@ -168,9 +168,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
             overrides = {}
         elif args.method == "emt":  # the EMT baseline's own default pair selection
             overrides.setdefault("pair_selection", "emt-guided")
-    if args.preset is not None or args.loop_pairs is not None:
+    if args.preset is not None or args.loop_pairs is not None or args.guided_sift:
         if args.method != "lba-emt":
-            raise ValueError(f"--preset / --loop-pairs apply to lba-emt, not {args.method}")
+            raise ValueError(f"--preset / --loop-pairs / --guided-sift apply to lba-emt, not "
+                             f"{args.method}")
         overrides.update(_loop_pairs(args))
     if args.method == "lba-emt" and (overrides or args.preset is not None):
         from fusedmosaic.estimation.sequential import SequentialOptions
@@ -251,6 +252,16 @@ def _emt_sigma(args: argparse.Namespace) -> dict:
 
 
 def _loop_pairs(args: argparse.Namespace) -> dict:
+    """lba-emt's overrides from --loop-pairs and --guided-sift."""
+    out = {}
+    if args.guided_sift:
+        from fusedmosaic.registration.pairs import MatchOptions
+
+        out["matching"] = MatchOptions(guided_sift=True)
+    return out | _loop_pairs_count(args)
+
+
+def _loop_pairs_count(args: argparse.Namespace) -> dict:
     if args.loop_pairs is None:
         return {}
     if args.loop_pairs < 0:
@@ -392,8 +403,8 @@ def _cmd_live(args: argparse.Namespace) -> int:
     if args.method == "lba-emt":
         options = SequentialOptions.preset(args.preset or "syn", **overrides)
     elif overrides or args.preset is not None:
-        raise ValueError("--preset / --loop-pairs / --motion-sigma-from / --tracker-*-sigma / "
-                         "feature flags apply to lba-emt, not kalman-robot")
+        raise ValueError("--preset / --loop-pairs / --guided-sift / --motion-sigma-from / "
+                         "--tracker-*-sigma / feature flags apply to lba-emt, not kalman-robot")
     else:
         options = None
     check_live_limits(args.max_frames, args.duration, args.frame_timeout,
@@ -1060,6 +1071,11 @@ def _add_lba_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--loop-pairs", type=int, metavar="N",
                      help="lba-emt: spatial loop pairs per frame (default 2; 0 = the paper's "
                           "window alone, which drifts to the tracker's accuracy)")
+    parser.add_argument("--guided-sift", action="store_true",
+                     help="lba-emt with SIFT: search each pair's keypoints near where the "
+                          "predicted motion puts them instead of among all (as ORB's are; "
+                          "matching ~30 percent faster, accuracy within the spread of the "
+                          "exhaustive search's; MatchOptions.guided_sift)")
 
 
 def _add_feature_flags(parser: argparse.ArgumentParser, title: str) -> None:
