@@ -172,7 +172,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         if args.method != "lba-emt":
             raise ValueError(f"--preset / --loop-pairs / --guided-sift apply to lba-emt, not "
                              f"{args.method}")
-        overrides.update(_loop_pairs(args))
+        overrides.update(_lba_overrides(args))
     if args.method == "lba-emt" and (overrides or args.preset is not None):
         from fusedmosaic.estimation.sequential import SequentialOptions
 
@@ -251,17 +251,17 @@ def _emt_sigma(args: argparse.Namespace) -> dict:
     return {"emt_sigma": tuple(float(v) for v in sigma)}
 
 
-def _loop_pairs(args: argparse.Namespace) -> dict:
+def _lba_overrides(args: argparse.Namespace) -> dict:
     """lba-emt's overrides from --loop-pairs and --guided-sift."""
     out = {}
     if args.guided_sift:
         from fusedmosaic.registration.pairs import MatchOptions
 
         out["matching"] = MatchOptions(guided_sift=True)
-    return out | _loop_pairs_count(args)
+    return out | _loop_pairs(args)
 
 
-def _loop_pairs_count(args: argparse.Namespace) -> dict:
+def _loop_pairs(args: argparse.Namespace) -> dict:
     if args.loop_pairs is None:
         return {}
     if args.loop_pairs < 0:
@@ -391,7 +391,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
     from fusedmosaic.runner import check_compositing_options, check_live_limits, run_igtl
 
     _tracker_calibration(args, {"lba-emt"})
-    overrides = _loop_pairs(args)
+    overrides = _lba_overrides(args)
     if args.motion_sigma_from:
         from fusedmosaic.estimation.motion import motion_sigma_from_recording
 
