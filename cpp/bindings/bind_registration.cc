@@ -67,6 +67,27 @@ py::array_t<T> ToArray(const std::vector<T>& v) {
   return out;
 }
 
+// The guided matchers' shared binding: shape checks, the search with the GIL released (`match`
+// takes the row counts and the descriptor length), (query, train, distance) arrays.
+template <typename T, typename Match>
+py::tuple GuidedMatches(const py::array_t<T, py::array::c_style | py::array::forcecast>& query,
+                        const Points& query_xy,
+                        const py::array_t<T, py::array::c_style | py::array::forcecast>& train,
+                        const Points& train_xy, Match match) {
+  CheckDescriptors(query, "query");
+  CheckDescriptors(train, "train");
+  CheckDescriptorLengths(query, train);
+  CheckPoints(query_xy, query, "query_xy", "query");
+  CheckPoints(train_xy, train, "train_xy", "train");
+  decltype(match(0, 0, 0)) found;
+  {
+    py::gil_scoped_release release;
+    found = match(static_cast<int>(query.shape(0)), static_cast<int>(train.shape(0)),
+                  static_cast<int>(query.shape(1)));
+  }
+  return py::make_tuple(ToArray(found.query), ToArray(found.train), ToArray(found.distance));
+}
+
 }  // namespace
 
 void BindRegistration(py::module_& m) {
@@ -100,22 +121,10 @@ filters; computed with the CPU's popcount, the GIL released.)doc");
       "match_hamming_guided",
       [](const Descriptors& query, const Points& query_xy, const Descriptors& train,
          const Points& train_xy, double radius, double ratio, int max_distance) {
-        CheckDescriptors(query, "query");
-        CheckDescriptors(train, "train");
-        CheckDescriptorLengths(query, train);
-        CheckPoints(query_xy, query, "query_xy", "query");
-        CheckPoints(train_xy, train, "train_xy", "train");
-        HammingMatches found;
-        {
-          py::gil_scoped_release release;
-          found = MatchHammingGuided(query.data(), query_xy.data(),
-                                     static_cast<int>(query.shape(0)), train.data(),
-                                     train_xy.data(), static_cast<int>(train.shape(0)),
-                                     static_cast<int>(query.shape(1)), radius, ratio,
-                                     max_distance);
-        }
-        return py::make_tuple(ToArray(found.query), ToArray(found.train),
-                              ToArray(found.distance));
+        return GuidedMatches(query, query_xy, train, train_xy, [&](int nq, int nt, int bytes) {
+          return MatchHammingGuided(query.data(), query_xy.data(), nq, train.data(),
+                                    train_xy.data(), nt, bytes, radius, ratio, max_distance);
+        });
       },
       "query"_a, "query_xy"_a, "train"_a, "train_xy"_a, "radius"_a, "ratio"_a = 0.8,
       "max_distance"_a = -1,
@@ -134,20 +143,10 @@ with Nt (except for lone candidates under max_distance < 0).)doc");
       "match_l2_guided",
       [](const FloatDescriptors& query, const Points& query_xy, const FloatDescriptors& train,
          const Points& train_xy, double radius, double ratio, double max_distance) {
-        CheckDescriptors(query, "query");
-        CheckDescriptors(train, "train");
-        CheckDescriptorLengths(query, train);
-        CheckPoints(query_xy, query, "query_xy", "query");
-        CheckPoints(train_xy, train, "train_xy", "train");
-        L2Matches found;
-        {
-          py::gil_scoped_release release;
-          found = MatchL2Guided(query.data(), query_xy.data(), static_cast<int>(query.shape(0)),
-                                train.data(), train_xy.data(), static_cast<int>(train.shape(0)),
-                                static_cast<int>(query.shape(1)), radius, ratio, max_distance);
-        }
-        return py::make_tuple(ToArray(found.query), ToArray(found.train),
-                              ToArray(found.distance));
+        return GuidedMatches(query, query_xy, train, train_xy, [&](int nq, int nt, int dims) {
+          return MatchL2Guided(query.data(), query_xy.data(), nq, train.data(), train_xy.data(),
+                               nt, dims, radius, ratio, max_distance);
+        });
       },
       "query"_a, "query_xy"_a, "train"_a, "train_xy"_a, "radius"_a, "ratio"_a = 0.8,
       "max_distance"_a = -1.0,
