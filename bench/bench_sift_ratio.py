@@ -92,13 +92,15 @@ def main() -> None:
     p.add_argument("--seeds", type=int, default=12)
     p.add_argument("--ratios", type=float, nargs="+", default=[0.8, 0.6])
     p.add_argument("--frames", type=int, default=152)
-    p.add_argument("--out", type=Path, default=RESULTS / "sift_ratio.json")
+    default_out = RESULTS / "sift_ratio.json"
+    p.add_argument("--out", type=Path, default=default_out)
     args = p.parse_args()
     t_start = time.perf_counter()
     work, tmp = work_folder(None)
     res: dict = {"machine": machine_info(), "command": "python bench/bench_sift_ratio.py "
                  f"--seeds {args.seeds} --ratios {' '.join(map(str, args.ratios))} "
-                 f"--frames {args.frames}", "frames": args.frames}
+                 f"--frames {args.frames}"
+                 + ("" if args.out == default_out else f" --out {args.out}"), "frames": args.frames}
     res["seeds"] = measure(work, args.seeds, args.ratios, args.frames)
     res["summary"] = summary(res["seeds"], args.ratios)
     finish_run(res, args.out, t_start, tmp)
