@@ -6,7 +6,7 @@ PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
-APT_PACKAGES := libceres-dev libeigen3-dev cmake g++ python3-dev
+APT_PACKAGES := libceres-dev libeigen3-dev cmake g++ python3-dev python3-venv
 
 .PHONY: deps venv install test demo wheel-check dev bench clean
 

@@ -925,12 +925,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="mosaic a live OpenIGTLink stream (e.g. PLUS Server: video + tracker or robot) with "
              "lba-emt or kalman-robot, recording it as a dataset",
         description="Connects to an OpenIGTLink sender (PLUS Server streaming a tracked "
-                    "endoscope, or any sender of IMAGE and TRANSFORM messages), mosaics each "
-                    "frame (lba-emt or kalman-robot) as soon as the previous one is done "
-                    "(frames arriving meanwhile are dropped from the mosaic but recorded), "
+                    "endoscope, or any sender of IMAGE and TRANSFORM or POSITION messages), "
+                    "mosaics each frame (lba-emt or kalman-robot) as soon as the previous one is "
+                    "done (frames arriving meanwhile are dropped from the mosaic but recorded), "
                     "records every frame and tracker / robot sample into --record (a dataset: "
-                    "re-run it offline with any method), and when the stream ends (sender "
-                    "closes, --max-frames, --duration or Ctrl-C) writes --out as `run` does.")
+                    "re-run it offline with any method; frames outside the tracker's time span "
+                    "need run's --allow-untracked), and when the stream ends (sender closes, "
+                    "--max-frames, --duration or Ctrl-C) writes --out as `run` does.")
     live.add_argument("address", help="HOST:PORT of the OpenIGTLink sender (port default 18944)")
     live.add_argument("--method", choices=["lba-emt", "kalman-robot"], default="lba-emt",
                       help="lba-emt (EM-tracked endoscope, default) or kalman-robot (pCLE: "
@@ -981,7 +982,9 @@ def build_parser() -> argparse.ArgumentParser:
                         parents=[quiet])
     ev.add_argument("out", help="output folder with homographies.csv")
     ev.add_argument("--truth", required=True, help="dataset folder with ground_truth.csv")
-    ev.add_argument("--compare", nargs="*", help="more output folders (Wilcoxon vs the first)")
+    ev.add_argument("--compare", nargs="*",
+                    help="more output folders (translation methods: Wilcoxon signed-rank vs "
+                         "the first)")
     ev.add_argument("--positions", type=int, default=None,
                     help="also report position errors at N evenly spaced frames (seed 004)")
     ev.add_argument("--json", help="JSON path (default OUT/evaluation.json); the report goes "
