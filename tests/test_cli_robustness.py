@@ -203,6 +203,70 @@ def test_ctrl_c_prints_interrupted_and_leaves_nothing(data, tmp_path, monkeypatc
     assert listing(tmp_path) == []  # no OUT, no video, no temp folder
 
 
+@pytest.mark.parametrize("name", ["SIGTERM", "SIGHUP"])
+def test_sigterm_and_sighup_end_a_run_as_ctrl_c_does(data, tmp_path, monkeypatch, capsys, name):
+    """A scheduler's stop, `timeout` or a closed terminal: before, the process died at once and
+    left its staging folder and video behind (only `live` handled them)."""
+    import signal
+
+    import fusedmosaic.runner
+
+    sig = getattr(signal, name)
+
+    def stopped(*args, **kwargs):  # the signal arrives during compositing
+        signal.raise_signal(sig)
+        raise AssertionError(f"{name} did not interrupt the run")
+
+    monkeypatch.setattr(fusedmosaic.runner, "compose_outputs", stopped)
+    with signal_handler(sig, signal.SIG_DFL):
+        out = tmp_path / "out"
+        assert run(data / "feto", out, "emt", "--video", str(tmp_path / "v.mp4")) == 130
+        assert signal.getsignal(sig) is signal.SIG_DFL  # restored once main returns
+    assert capsys.readouterr().err == "fusedmosaic: interrupted\n"
+    assert listing(tmp_path) == []  # no OUT, no video, no temp folder
+
+
+def test_sigterm_during_simulate_leaves_nothing(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "sim"
+    proc = subprocess.Popen([sys.executable, "-m", "fusedmosaic.cli", "simulate", "fetoscopy",
+                             str(out), "--n-frames", "3000"], stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not any(tmp_path.iterdir()) and time.monotonic() < deadline:  # staging started
+            time.sleep(0.05)
+        assert any(tmp_path.iterdir()), "simulate wrote nothing within 60 s"
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err
+    assert err.endswith("fusedmosaic: interrupted\n")
+    assert listing(tmp_path) == []  # the staged dataset (.sim.tmp-*) removed
+
+
+@pytest.mark.parametrize(("argv", "name"), [
+    (["run", "DATA", "--method", "emt", "--out", ""], "OUT"),
+    (["simulate", "pcle", " ", "--n-frames", "3"], "OUT"),
+    (["evaluate", "", "--truth", "DATA"], "OUT"),
+    (["evaluate", "OUT", "--truth", ""], "--truth"),
+    (["run", "", "--method", "emt", "--out", "OUT"], "DATASET"),
+])
+def test_an_empty_path_is_refused_not_read_as_the_current_folder(data, tmp_path, monkeypatch,
+                                                                  capsys, argv, name):
+    monkeypatch.chdir(tmp_path)
+    argv = [str(data / "feto") if a == "DATA" else str(tmp_path / "o") if a == "OUT" else a
+            for a in argv]
+    assert main(["--quiet", *argv]) == 2
+    assert capsys.readouterr().err == (f"fusedmosaic: error: {name} is an empty path (an unset "
+                                       "shell variable?)\n")
+    assert listing(tmp_path) == []
+
+
 # --------------------------------------------------------------------------- 6, 7: OUT contents
 
 

@@ -678,6 +678,32 @@ def test_preview_folder_is_created_and_the_free_port_taken_is_told(syn, tmp_path
             "'Mosaic'; --serve-mosaic 0 took this free port)") in capsys.readouterr().out
     assert view["problems"] == {} and view["published"] >= 1
     assert cv2.imread(str(preview)).shape[2] == 3
+    # the next session into the same OUT replaces the preview its predecessor wrote
+    before = preview.stat().st_mtime_ns
+    sender = Sender(dataset_events(syn, n_frames=20))
+    code = main(["live", f"127.0.0.1:{sender.port}", "--quiet", "--camera",
+                 str(syn.root / "camera.yaml"), "--hand-eye", str(syn.root / "hand_eye.txt"),
+                 "--transform", "SensorToTracker", "--record", str(tmp_path / "rec2"), "--out",
+                 str(tmp_path / "out"), "--no-report", "--preview", str(preview)])
+    sender.join()
+    assert code == 0 and preview.stat().st_mtime_ns != before
+
+
+def test_preview_never_replaces_an_image_it_did_not_write(syn, tmp_path, capsys):
+    """--preview naming someone's PNG (e.g. a frame of another dataset): refused before
+    connecting, the file untouched (before: replaced by the mosaic every second)."""
+    mine = tmp_path / "frames" / "000005.png"
+    mine.parent.mkdir()
+    cv2.imwrite(str(mine), np.full((20, 30), 7, np.uint8))
+    content = mine.read_bytes()
+    assert main(["live", "127.0.0.1:1", "--camera", str(syn.root / "camera.yaml"),
+                 "--transform", "SensorToTracker", "--record", str(tmp_path / "rec"),
+                 "--out", str(tmp_path / "out"), "--preview", str(mine)]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"fusedmosaic: error: {mine}: exists and no earlier live session into "
+                   f"{tmp_path / 'out'} wrote it; choose another preview path, or move that "
+                   "file\n")
+    assert mine.read_bytes() == content and sorted(os.listdir(tmp_path)) == ["frames"]
 
 
 @pytest.mark.parametrize("fails", ["listen", "connect"])

@@ -4,9 +4,12 @@ entry point."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import re
+import signal
 import sys
+import threading
 import time
 import typing
 import warnings
@@ -418,16 +421,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
     check_compositing_options(blend, canvas, names=COMPOSITING_FLAGS)
     _say(args, f"live: connecting to {args.address} (Ctrl-C ends the session and writes the "
                "outputs)")
-    import signal
-
-    def stop(signum, frame):  # a closed terminal or a launcher's stop ends it as Ctrl-C does
-        raise KeyboardInterrupt
-
-    # a signal ignored by whoever started us stays ignored (nohup: SIGHUP)
-    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGTERM, signal.SIGHUP)
-                if signal.getsignal(sig) is not signal.SIG_IGN}
-    try:
-        summary = run_igtl(args.address, args.out, record=args.record, camera=args.camera,
+    summary = run_igtl(args.address, args.out, record=args.record, camera=args.camera,
                            transform_device=args.transform, image_device=args.image_device,
                            hand_eye=args.hand_eye, rgb=not args.bgr, options=options,
                            max_frames=args.max_frames, duration_s=args.duration,
@@ -440,9 +434,6 @@ def _cmd_live(args: argparse.Namespace) -> int:
                            view_interval_s=(1.0 if args.view_interval is None
                                             else args.view_interval),
                            say=lambda text: _say(args, text))
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
     _say_summary(args, summary)
     return 0
 
@@ -1144,11 +1135,48 @@ def _os_error(exc: OSError) -> str:
     return f"{where}: {what}" if where else what
 
 
+# Arguments naming a file or folder to write or read: an empty one (an unset shell variable)
+# would otherwise mean the current folder.
+PATH_ARGUMENTS = {"out": "OUT", "record": "--record", "preview": "--preview", "json": "--json",
+                  "video": "--video", "calibration": "--calibration",
+                  "motion_sigma_from": "--motion-sigma-from", "dataset": "DATASET",
+                  "recording": "RECORDING", "sequence": "SEQUENCE",
+                  "truth": "--truth", "camera": "--camera", "hand_eye": "--hand-eye"}
+
+
+@contextlib.contextmanager
+def _signals_as_interrupt():
+    """SIGTERM / SIGHUP (a closed terminal, `timeout`, a scheduler's stop) end any command as
+    Ctrl-C does, so its staged outputs are removed; a signal ignored by whoever started us stays
+    ignored (nohup: SIGHUP). Only the main thread can set handlers (main() called elsewhere:
+    unchanged)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGTERM, signal.SIGHUP)
+                if signal.getsignal(sig) is not signal.SIG_IGN}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    for dest, name in PATH_ARGUMENTS.items():
+        value = getattr(args, dest, None)
+        if isinstance(value, str) and not value.strip():
+            print(f"fusedmosaic: error: {name} is an empty path (an unset shell variable?)",
+                  file=sys.stderr)
+            return 2
     try:
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), _signals_as_interrupt():
             warnings.showwarning = _show_warning
             return args.func(args)
     except ValueError as exc:  # bad input: one clear line, no traceback

@@ -279,16 +279,34 @@ def check_video_destination(video: Path, out: Path, dataset_root: Path) -> None:
                          f"{dataset_root}; choose a path outside it (e.g. in the output folder)")
     if not (video.exists() or video.is_symlink()) or video.is_dir():
         return  # absent; a folder there is refused by the writer
-    earlier = None
-    if older_run_outputs(out) or "run" in (read_manifest(out) or {}):
-        try:
-            earlier = read_json_object(out / "report.json")["mosaic"]["video"]
-            earlier = earlier.get("path") or earlier["file"]
-        except (OSError, ValueError, KeyError, TypeError, AttributeError):
-            earlier = None
-    if not (isinstance(earlier, str) and Path(earlier).resolve() == video.resolve()):
+    if not _named_by_earlier_run(video, out, lambda report: (
+            report["mosaic"]["video"].get("path") or report["mosaic"]["video"]["file"])):
         raise ValueError(f"{video}: exists and no earlier run into {out} wrote it; choose another "
                          "video path, or move that file")
+
+
+def check_preview_destination(preview: Path, out: Path) -> None:
+    """live's --preview (replaced every second) replaces a file only when a live session into
+    ``out`` wrote it (its report.json names that path), never an image of the user's: ValueError
+    naming the path, before connecting."""
+    if not (preview.is_file() or preview.is_symlink()):
+        return  # absent (a folder there is refused by the live view)
+    if not _named_by_earlier_run(preview, out,
+                                 lambda report: report["live"]["view"]["preview"]):
+        raise ValueError(f"{preview}: exists and no earlier live session into {out} wrote it; "
+                         "choose another preview path, or move that file")
+
+
+def _named_by_earlier_run(path: Path, out: Path, lookup) -> bool:
+    """Whether an earlier run into ``out`` (recognisably fusedmosaic's) names ``path`` in its
+    report.json, as lookup(report) gives it."""
+    if not (older_run_outputs(out) or "run" in (read_manifest(out) or {})):
+        return False
+    try:
+        earlier = lookup(read_json_object(out / "report.json"))
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return False
+    return isinstance(earlier, str) and Path(earlier).resolve() == path.resolve()
 
 
 # What a run may write in OUT besides plots/ and a creation video inside it.
@@ -697,6 +715,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
 
         check_video_suffix(video)
         check_video_destination(Path(video), out, record)
+    if preview is not None:
+        check_preview_destination(Path(preview), out)
     check_compositing_options(blend, canvas, camera=camera, method=method)
     from fusedmosaic.io.output import check_output_dir
 
