@@ -85,6 +85,13 @@ def test_black_frames(work):
     first = min(PAPER_BLACK_FRAMES)
     e = np.array([np.nan if v is None else v for v in pairwise["e_j_px"]])
     assert np.isfinite(e[:first]).all() and np.isnan(e[first:]).all()
+    # said, not only in frame_status (before: exit 0 and no warning with 55 of 62 unplaced)
+    pair = f"pair ({first - 1}, {first}) not registered"
+    why = pairwise["report"]["frame_status"][first].removeprefix(f"unplaced: {pair}: ")
+    assert pairwise["report"]["warnings"] == [
+        f"the pairwise chain breaks at frame {first}: {pair} ({why}), so {62 - first} of 62 "
+        "frames are unplaced (PairVis cannot continue past a failed pair; ba-emt / lba-emt "
+        "place them with the tracker)"]
     ba_emt = run(data, "ba-emt", work)
     assert ba_emt["unplaced"] == 0
     status = ba_emt["report"]["frame_status"]

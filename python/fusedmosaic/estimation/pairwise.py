@@ -73,13 +73,21 @@ def run_pairwise(dataset, *, progress: bool = True,
         else:
             status.append("placed")
     ok = [m for m in matches if m.ok]
+    details = {"pairs": {"attempted": len(matches), "registered": len(ok),
+                         "mean_correspondences": float(np.mean([m.n_inliers for m in ok]))
+                         if ok else 0.0}}
+    if broken is not None:  # exit 0 with most frames unplaced must not pass unnoticed
+        ids = dataset.frame_ids
+        details["warnings"] = [
+            f"the pairwise chain breaks at frame {int(ids[broken])}: pair ({int(ids[broken - 1])}, "
+            f"{int(ids[broken])}) not registered ({matches[broken - 1].status}), so "
+            f"{n - broken} of {n} frames are unplaced (PairVis cannot continue past a failed "
+            "pair; ba-emt / lba-emt place them with the tracker)"]
     return MethodResult(
         homographies=G,
         status=status,
         timings=timings,
         parameters=asdict(o),
-        details={"pairs": {"attempted": len(matches), "registered": len(ok),
-                           "mean_correspondences": float(np.mean([m.n_inliers for m in ok]))
-                           if ok else 0.0}},
+        details=details,
     )
 
