@@ -422,18 +422,18 @@ def _cmd_live(args: argparse.Namespace) -> int:
     _say(args, f"live: connecting to {args.address} (Ctrl-C ends the session and writes the "
                "outputs)")
     summary = run_igtl(args.address, args.out, record=args.record, camera=args.camera,
-                           transform_device=args.transform, image_device=args.image_device,
-                           hand_eye=args.hand_eye, rgb=not args.bgr, options=options,
-                           max_frames=args.max_frames, duration_s=args.duration,
-                           frame_timeout_s=args.frame_timeout,
-                           overwrite_record=args.overwrite_record, progress=_progress(args),
-                           blend=blend, canvas=canvas, video=args.video,
-                           report=not args.no_report, method=args.method,
-                           tracker_time_offset=args.tracker_time_offset,
-                           preview=args.preview, serve_mosaic=args.serve_mosaic,
-                           view_interval_s=(1.0 if args.view_interval is None
-                                            else args.view_interval),
-                           say=lambda text: _say(args, text))
+                       transform_device=args.transform, image_device=args.image_device,
+                       hand_eye=args.hand_eye, rgb=not args.bgr, options=options,
+                       max_frames=args.max_frames, duration_s=args.duration,
+                       frame_timeout_s=args.frame_timeout,
+                       overwrite_record=args.overwrite_record, progress=_progress(args),
+                       blend=blend, canvas=canvas, video=args.video,
+                       report=not args.no_report, method=args.method,
+                       tracker_time_offset=args.tracker_time_offset,
+                       preview=args.preview, serve_mosaic=args.serve_mosaic,
+                       view_interval_s=(1.0 if args.view_interval is None
+                                        else args.view_interval),
+                       say=lambda text: _say(args, text))
     _say_summary(args, summary)
     return 0
 
