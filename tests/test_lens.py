@@ -166,6 +166,30 @@ def test_distortion_without_camera_matrix_is_refused(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def test_folding_lens_in_camera_yaml_is_refused(tmp_path):
+    """k1 = -5 at f = 480 px folds over: the distorted radius r (1 - 5 r^2) peaks at r = 1 /
+    sqrt(15), 83 px from the centre, and no ray reaches a raw pixel farther out. A run refuses
+    it naming camera.yaml and a pixel past the fold, leaving no output (before: accepted, e_M
+    305 px); inside a 75 px field of view the same lens is invertible and accepted."""
+    from fusedmosaic.io import write_dataset
+
+    K = np.array([[480.0, 0, 199.5], [0, 480.0, 199.5], [0, 0, 1]])
+    fold = [-5.0, 0.0, 0.0, 0.0, 0.0]
+    rng = np.random.default_rng(2)
+    frames = [rng.integers(0, 255, (400, 400), dtype=np.uint8) for _ in range(3)]
+    data = write_dataset(tmp_path / "data", camera=Camera(400, 400, K, distortion=fold),
+                         frames=frames, timestamps=np.arange(3) / 25.0)
+    with pytest.raises(ValueError, match=r"camera\.yaml: distortion_coefficients: \[-5\.0, 0\.0, "
+                       r"0\.0, 0\.0, 0\.0\] is not invertible over the 400x400 frame \(the "
+                       r"pinhole model folds over, e\.g\. at raw pixel \((\d+), (\d+)\)\)") as e:
+        run_dataset(data, "pairwise", tmp_path / "out", progress=False)
+    u, v = map(int, e.value.args[0].split("raw pixel (")[1].split(")")[0].split(", "))
+    assert np.hypot(u - 199.5, v - 199.5) > 82
+    assert not (tmp_path / "out").exists()
+    lens = Camera(400, 400, K, distortion=fold, fov_mask_radius=75).undistortion()
+    assert lens.mask.any()
+
+
 # A wide-angle scope (diagonal field of view ~100 deg) through OpenCV's fisheye model.
 FISHEYE = dict(focal_factor=0.8, lens_model="fisheye", lens_distortion=[0.02, -0.01, 0.0, 0.0])
 
