@@ -48,7 +48,8 @@ def test_a_border_covering_the_frames_is_refused_before_the_estimation(data, tmp
     assert main(["run", str(data / "feto"), "--method", "emt", "--out", str(out),
                  "--border", "1e9"]) == 2
     assert ("border (border_px, --border) 1e+09 covers the whole field of view (its centre is "
-            "60 px from the edge): the frames would be drawn all black; give less than 60 px") \
+            "60 px from the edge): the frames would be drawn all black; give at most 20.5 px (a "
+            "border is a thin seam, e.g. 1.5)") \
         in capsys.readouterr().err
     assert main(["run", str(data / "lens"), "--method", "pairwise", "--out", str(out),
                  "--border", "116"]) == 2
@@ -58,7 +59,13 @@ def test_a_border_covering_the_frames_is_refused_before_the_estimation(data, tmp
     with pytest.raises(ValueError, match=r"border \(border_px, --border\) 60 covers the whole "
                        r"field of view"):
         FrameWarper(160, 120, options=BlendOptions("linear", border_px=60.0))
-    FrameWarper(160, 120, options=BlendOptions("linear", border_px=59.0))  # a ring is left
+    # Just below: a sliver of each frame left, the mosaic black all the same (before: accepted).
+    # Accepted up to the median distance to the edge, where the border covers half the frame.
+    with pytest.raises(ValueError, match=r"border \(border_px, --border\) 59 covers 99 % of the "
+                       r"field of view \(its centre is 60 px from the edge\): the frames would be "
+                       r"drawn mostly black; give at most 20\.5 px"):
+        FrameWarper(160, 120, options=BlendOptions("linear", border_px=59.0))
+    FrameWarper(160, 120, options=BlendOptions("linear", border_px=20.5))
 
 
 def test_bands_apply_to_multiband_blending_only(data, tmp_path, capsys):

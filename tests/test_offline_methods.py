@@ -16,8 +16,9 @@ from fusedmosaic.simulation import PAPER_BLACK_FRAMES, FetoscopyOptions, simulat
 
 def run(data, method, out_root, options=None):
     out = out_root / f"{data.name}_{method}"
-    run_dataset(data, method, out, progress=False, options=options)
+    said = run_dataset(data, method, out, progress=False, options=options)
     result = evaluate_output(out, data)
+    result["said"] = said
     result["report"] = json.loads((out / "report.json").read_text())
     result["out"] = out
     return result
@@ -92,6 +93,10 @@ def test_black_frames(work):
         f"the pairwise chain breaks at frame {first}: {pair} ({why}), so {62 - first} of 62 "
         "frames are unplaced (PairVis cannot continue past a failed pair; ba-emt / lba-emt "
         "place them with the tracker)"]
+    # e_M is over the placed frames, and the summary says so (before: a bare e_M as if all were)
+    assert pairwise["said"].startswith(
+        f"pairwise: placed {first}/62 frames -> {pairwise['out']} (e_M = "
+        f"{pairwise['e_M_px']:.3f} px over the {first} placed frames)")
     ba_emt = run(data, "ba-emt", work)
     assert ba_emt["unplaced"] == 0
     status = ba_emt["report"]["frame_status"]

@@ -1106,7 +1106,8 @@ def _add_compositing_flags(parser: argparse.ArgumentParser) -> None:
                            "(seed 004), last (newest on top); default: the method's preference")
     comp.add_argument("--border", type=float, default=0.0, metavar="PX",
                       help="draw each frame's field-of-view edge as a thin black border of PX "
-                           "pixels, to show the seams (seed 000 Sec. 4.2; e.g. 1.5)")
+                           "pixels, to show the seams (seed 000 Sec. 4.2; e.g. 1.5; at most "
+                           "the median distance to the edge, where it covers half a frame)")
     comp.add_argument("--bands", type=int, default=None, help="multiband pyramid levels "
                       "(default 5)")
     comp.add_argument("--gain-compensation", action="store_true",

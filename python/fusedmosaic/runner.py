@@ -511,7 +511,15 @@ def _summary(method: str, G: np.ndarray, out: Path, report_json: dict, outputs: 
     placed = int(np.isfinite(G).all(axis=(1, 2)).sum())
     msg = f"{method}: placed {placed}/{len(G)} frames -> {out}"
     if "metrics" in report_json:
-        msg += f" (e_M = {report_json['metrics']['e_M_px']:.3f} px)"
+        e_M = report_json["metrics"]["e_M_px"]
+        if not np.isfinite(e_M) and not np.isinf(e_M):
+            msg += " (e_M undefined: no placed frame has a ground-truth homography)"
+        elif placed < len(G):  # e_M is over the placed frames: say so, e.g. 0.000 for the
+            # reference alone when a pairwise chain breaks at frame 1
+            msg += (f" (e_M = {e_M:.3f} px over the {placed} placed frame"
+                    f"{'' if placed == 1 else 's'})")
+        else:
+            msg += f" (e_M = {e_M:.3f} px)"
     m = outputs["mosaic"]
     if outputs["plan"] is None:
         lines = [msg, "  mosaic  not written (above the canvas budget: see report.json)"]

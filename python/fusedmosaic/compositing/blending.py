@@ -102,13 +102,21 @@ def edge_distance(mask: np.ndarray) -> np.ndarray:
 
 def check_border(border_px: float, distance: np.ndarray,
                  name: str = "border (border_px, --border)") -> None:
-    """ValueError if a frame border of `border_px` covers the whole field of view whose
-    edge_distance is `distance`: every frame would be drawn black."""
-    inner = float(distance.max())
-    if border_px >= inner:
-        raise ValueError(f"{name} {border_px:g} covers the whole field of view (its centre is "
-                         f"{inner:g} px from the edge): the frames would be drawn all black; "
-                         f"give less than {inner:g} px (a thin seam, e.g. 1.5)")
+    """ValueError if a frame border of `border_px` covers more than half the field of view whose
+    edge_distance is `distance`: the border is drawn black at a frame centre's weight, so most
+    of every frame, and of the mosaic, would be black. The largest border accepted is the
+    median distance to the edge (for a circular field of view 0.29 of its radius)."""
+    inside = distance[distance > 0]
+    inner = float(inside.max())
+    limit = float(np.median(inside))
+    if border_px <= limit:
+        return
+    covered = float(np.mean(inside <= border_px))
+    what = ("the whole field of view" if border_px >= inner
+            else f"{min(99.0, 100 * covered):.0f} % of the field of view")
+    raise ValueError(f"{name} {border_px:g} covers {what} (its centre is {inner:g} px from the "
+                     f"edge): the frames would be drawn {'all' if covered == 1 else 'mostly'} "
+                     f"black; give at most {limit:g} px (a border is a thin seam, e.g. 1.5)")
 
 
 def footprint_box(G: np.ndarray, width: int, height: int, align: int = 1, pad: int = 0

@@ -91,8 +91,9 @@ def tracker_agreement(poses: np.ndarray, tracker_poses: np.ndarray, tracker_vali
             out["warnings"].append(
                 f"{source}: the plane lies {distance:.3g} mm from the cameras (median), outside "
                 f"the {low:g}-{high:g} mm an endoscope views a surface from: check that the "
-                f"tracker's translations are in mm{unit}; poses.csv and plane.json are out of "
-                "scale")
+                f"tracker's translations are in mm{unit}, and camera.yaml's focal length in "
+                "pixels (a plane fitted to few or wrong registrations, or through a wrong lens, "
+                "is out of scale too); poses.csv and plane.json are out of scale")
     return out
 
 
