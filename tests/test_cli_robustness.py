@@ -226,6 +226,44 @@ def test_sigterm_and_sighup_end_a_run_as_ctrl_c_does(data, tmp_path, monkeypatch
     assert listing(tmp_path) == []  # no OUT, no video, no temp folder
 
 
+def test_ctrl_c_during_the_demo_simulation_leaves_no_empty_folder(tmp_path, monkeypatch,
+                                                                   capsys):
+    """Before: the simulation's staging removed itself, but the demo folder it was staged in
+    stayed, empty. A folder that existed before is kept."""
+    import fusedmosaic.io.dataset
+
+    def interrupt(*args, **kwargs):  # as if Ctrl-C hit once the dataset's staging exists
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(fusedmosaic.io.dataset, "write_camera_yaml", interrupt)
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--frames", "4"]) == 130
+    assert capsys.readouterr().err == "fusedmosaic: interrupted\n"
+    assert listing(tmp_path) == []
+    (tmp_path / "mine").mkdir()
+    assert main(["demo", "--out", str(tmp_path / "mine"), "--frames", "4"]) == 130
+    assert listing(tmp_path) == ["mine"]
+
+
+def test_ctrl_c_while_the_command_line_loads_is_not_a_traceback(monkeypatch, capsys):
+    """The first second of every command is importing NumPy, OpenCV and the core; a Ctrl-C
+    there printed a KeyboardInterrupt traceback (the console script imported fusedmosaic.cli,
+    and the package its mosaickers, before any handler)."""
+    import sys
+
+    from fusedmosaic import _entry
+
+    class Interrupted:  # a meta path finder: Ctrl-C while fusedmosaic.cli is imported
+        def find_spec(self, name, path=None, target=None):
+            if name == "fusedmosaic.cli":
+                raise KeyboardInterrupt
+            return None
+
+    monkeypatch.delitem(sys.modules, "fusedmosaic.cli")
+    monkeypatch.setattr(sys, "meta_path", [Interrupted(), *sys.meta_path])
+    assert _entry.main() == 130
+    assert capsys.readouterr().err == "fusedmosaic: interrupted\n"
+
+
 def test_sigterm_during_simulate_leaves_nothing(tmp_path):
     import signal
     import subprocess

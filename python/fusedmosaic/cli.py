@@ -665,19 +665,31 @@ def _load_for_report(outs: list[Path], truth_root):
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from fusedmosaic import methods, simulation
-    from fusedmosaic.compositing import BlendOptions, render_mosaic
-    from fusedmosaic.evaluation import evaluate_output
-    from fusedmosaic.io import read_dataset, read_homographies_csv
-    from fusedmosaic.io.output import OutputWriter, check_output_dir
-    from fusedmosaic.runner import frames_to_compose, run_dataset
+    from fusedmosaic.io.output import check_output_dir
 
     if args.frames < 2:  # a mosaic needs two frames (lba-emt registers a pair to start)
         raise ValueError(f"--frames must be >= 2, got {args.frames}")
     if (Path(args.out) / "camera.yaml").is_file() or (Path(args.out) / "frames").is_dir():
         raise ValueError(f"{args.out}: is a dataset folder; writing the demo there would corrupt "
                          "it: choose --out outside it")
+    made = not Path(args.out).exists()
     root = check_output_dir(args.out, "demo folder")
+    try:
+        return _demo_into(args, root)
+    except BaseException:  # Ctrl-C / SIGTERM in the simulation: no empty OUT left behind
+        if made and root.is_dir() and not any(root.iterdir()):
+            root.rmdir()
+        raise
+
+
+def _demo_into(args: argparse.Namespace, root: Path) -> int:
+    from fusedmosaic import methods, simulation
+    from fusedmosaic.compositing import BlendOptions, render_mosaic
+    from fusedmosaic.evaluation import evaluate_output
+    from fusedmosaic.io import read_dataset, read_homographies_csv
+    from fusedmosaic.io.output import OutputWriter
+    from fusedmosaic.runner import frames_to_compose, run_dataset
+
     data = root / "dataset"
     t0 = time.perf_counter()
     earlier = None
