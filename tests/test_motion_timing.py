@@ -37,6 +37,44 @@ def test_motion_timing():
     assert ratio == pytest.approx(4e7) and scale == pytest.approx(ratio / 8)
 
 
+def test_motion_sigma_from_a_recording_in_any_row_order_with_gaps(tmp_path):
+    """--motion-sigma-from's truth_poses.csv: rows in frame order whatever the file's (before:
+    shuffled rows gave second differences of unrelated poses), a gap in the frame ids is not
+    one constant-velocity step, and a still recording is said, not floored silently."""
+    from fusedmosaic.estimation.motion import (
+        constant_velocity_residuals,
+        motion_sigma_from_recording,
+    )
+    from fusedmosaic.estimation.world import poses_to_aligned, world_rotation
+    from fusedmosaic.io import write_poses_csv
+
+    poses = generate_fetoscopy(FetoscopyOptions(n_frames=40, seed=3)).poses
+    ids = np.arange(40)
+    write_poses_csv(tmp_path / "ordered.csv", ids, poses)
+    expected = estimate_motion_sigma(poses)
+    np.testing.assert_allclose(motion_sigma_from_recording(tmp_path / "ordered.csv"), expected,
+                               rtol=1e-12)
+    shuffled = np.random.default_rng(0).permutation(40)
+    write_poses_csv(tmp_path / "shuffled.csv", ids[shuffled], poses[shuffled])
+    np.testing.assert_allclose(motion_sigma_from_recording(tmp_path / "shuffled.csv"), expected,
+                               rtol=1e-12)
+    keep = np.r_[0:20, 25:40]  # frames 20-24 missing: the triples across the gap are left out
+    write_poses_csv(tmp_path / "gap.csv", ids[keep], poses[keep])
+    aligned = poses_to_aligned(poses[keep], world_rotation(poses[keep]))
+    r = np.vstack([constant_velocity_residuals(aligned[:20]),
+                   constant_velocity_residuals(aligned[20:])])
+    halves = np.sqrt(np.mean(r**2, axis=0))
+    gap = motion_sigma_from_recording(tmp_path / "gap.csv")
+    # tx, ty (SYN moves in a plane at constant rotation: the others are floored)
+    np.testing.assert_allclose(gap[3:5], halves[3:5], rtol=1e-9)
+    assert not np.allclose(gap[3:5], estimate_motion_sigma(poses[keep])[3:5], rtol=1e-2)
+    write_poses_csv(tmp_path / "still.csv", ids, np.repeat(poses[:1], 40, axis=0))
+    with pytest.warns(UserWarning, match=r"still\.csv: the camera's translations depart from "
+                      r"constant velocity by at most 0 mm RMS per frame \(a still or perfectly "
+                      r"smooth recording\), so Sigma_p's translations are floored at 0\.01 mm"):
+        motion_sigma_from_recording(tmp_path / "still.csv")
+
+
 @pytest.fixture(scope="module")
 def black(tmp_path_factory):
     """Fig. 10's 62 frames with the paper's black frames, and Sigma_p estimated from an

@@ -9,6 +9,8 @@ returns the per-component standard deviation of x_k - mu_p(x_{k-1}, x_{k-2}).
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from fusedmosaic import _core
@@ -64,15 +66,20 @@ def predict_constant_velocity(pose_km2: np.ndarray, pose_km1: np.ndarray,
     return np.asarray(_core.compose_poses(motion * ratio, pose_km1))
 
 
-def constant_velocity_residuals(poses: np.ndarray) -> np.ndarray:
-    """(N-2, 6) x_k - mu_p(x_{k-1}, x_{k-2}) with mu_p = T_{k-1} T_{k-2}^-1 T_{k-1} (Eq. 16)."""
+def constant_velocity_residuals(poses: np.ndarray, frame_ids=None) -> np.ndarray:
+    """(M, 6) x_k - mu_p(x_{k-1}, x_{k-2}) with mu_p = T_{k-1} T_{k-2}^-1 T_{k-1} (Eq. 16), over
+    the triples of consecutive finite rows; with frame_ids (N,), only triples evenly spaced in
+    frame ids (a gap, e.g. dropped frames, is not one constant-velocity step)."""
     poses = np.asarray(poses, np.float64)
     if poses.ndim != 2 or poses.shape[1] != 6 or len(poses) < 3:
         raise ValueError(f"poses: expected shape (N >= 3, 6), got {poses.shape}")
+    ids = None if frame_ids is None else np.asarray(frame_ids, np.int64)
     out = []
     for k in range(2, len(poses)):
         a, b, c = poses[k - 2], poses[k - 1], poses[k]
         if not (np.isfinite(a).all() and np.isfinite(b).all() and np.isfinite(c).all()):
+            continue
+        if ids is not None and ids[k] - ids[k - 1] != ids[k - 1] - ids[k - 2]:
             continue
         mu = _core.compose_poses(_core.compose_poses(b, _core.invert_pose(a)), b)
         out.append(c - mu)
@@ -81,20 +88,29 @@ def constant_velocity_residuals(poses: np.ndarray) -> np.ndarray:
     return np.array(out)
 
 
-def estimate_motion_sigma(poses: np.ndarray, *, floor: tuple[float, float] = (1e-4, 0.01)
-                          ) -> np.ndarray:
+# Sigma_p's floor (rad, mm): a perfectly smooth recording must not give a zero deviation.
+MOTION_SIGMA_FLOOR = (1e-4, 0.01)
+
+
+def _motion_rms(poses: np.ndarray, frame_ids=None) -> np.ndarray:
+    poses = np.asarray(poses, np.float64)
+    if poses.ndim == 2 and poses.shape[1:] == (6,):
+        poses = poses_to_aligned(poses, world_rotation(poses))
+    r = constant_velocity_residuals(poses, frame_ids)
+    return np.sqrt(np.mean(r**2, axis=0))
+
+
+def _floored(sigma: np.ndarray, floor: tuple[float, float]) -> np.ndarray:
+    return np.concatenate([np.maximum(sigma[:3], floor[0]), np.maximum(sigma[3:], floor[1])])
+
+
+def estimate_motion_sigma(poses: np.ndarray, *,
+                          floor: tuple[float, float] = MOTION_SIGMA_FLOOR) -> np.ndarray:
     """Per-component RMS of the constant-velocity residual (6,), rotations then translations,
     floored at (rad, mm) so a perfectly smooth recording does not give a zero deviation. The
     residuals are taken in the world the pose methods work in (estimation/world.py): angle-axis
     differences near a rotation of pi would otherwise be ~2 pi."""
-    poses = np.asarray(poses, np.float64)
-    if poses.ndim == 2 and poses.shape[1:] == (6,):
-        poses = poses_to_aligned(poses, world_rotation(poses))
-    r = constant_velocity_residuals(poses)
-    sigma = np.sqrt(np.mean(r**2, axis=0))
-    sigma[:3] = np.maximum(sigma[:3], floor[0])
-    sigma[3:] = np.maximum(sigma[3:], floor[1])
-    return sigma
+    return _floored(_motion_rms(poses), floor)
 
 
 def motion_sigma_from_recording(path) -> np.ndarray:
@@ -111,8 +127,19 @@ def motion_sigma_from_recording(path) -> np.ndarray:
     if not csv.is_file():
         raise ValueError(f"{csv}: no reference poses to estimate the motion prior from "
                          "(expected truth_poses.csv: frame,rx,ry,rz,tx,ty,tz)")
-    _, poses = read_poses_csv(csv)
+    ids, poses = read_poses_csv(csv)
+    order = np.argsort(ids, kind="stable")  # the rows in frame order, whatever the file's
     try:
-        return estimate_motion_sigma(poses)
+        rms = _motion_rms(poses[order], ids[order])
     except ValueError as e:
         raise ValueError(f"{csv}: {e}") from None
+    sigma = _floored(rms, MOTION_SIGMA_FLOOR)
+    if (rms[3:] < MOTION_SIGMA_FLOOR[1]).all():  # e.g. a still recording. (A constant
+        # rotation alone, as SYN's, is a motion the prior should hold stiffly: not said.)
+        warnings.warn(
+            f"{csv}: the camera's translations depart from constant velocity by at most "
+            f"{rms[3:].max():.2g} mm RMS per frame (a still or perfectly smooth recording), so "
+            f"Sigma_p's translations are floored at {MOTION_SIGMA_FLOOR[1]:g} mm and the motion "
+            "prior will be stiff; estimate it from a recording of the motion to be mosaicked",
+            stacklevel=2)
+    return sigma
