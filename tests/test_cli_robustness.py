@@ -186,6 +186,34 @@ def test_os_error_is_one_line_naming_the_path(data, tmp_path, monkeypatch, capsy
     assert err == f"fusedmosaic: error: {tmp_path / 'x' / 'mosaic.png'}: Permission denied\n"
 
 
+def test_a_video_that_does_not_read_back_is_an_error(data, tmp_path, monkeypatch, capsys):
+    """OpenCV's VideoWriter reports no write error: on a full disk --video left a file without
+    its index (unplayable) and the run exited 0. The video is read back on close; here the
+    disk 'fills' as the writer finishes (the file cut in half)."""
+    import cv2
+
+    real = cv2.VideoWriter
+
+    class FullDisk:
+        def __init__(self, path, *args):
+            self.path, self.writer = path, real(path, *args)
+
+        def __getattr__(self, name):
+            return getattr(self.writer, name)
+
+        def release(self):
+            self.writer.release()
+            os.truncate(self.path, os.path.getsize(self.path) // 2)
+
+    monkeypatch.setattr(cv2, "VideoWriter", FullDisk)
+    video = tmp_path / "v.mp4"
+    assert run(data / "feto", tmp_path / "out", "emt", "--video", str(video)) == 1
+    assert capsys.readouterr().err == (
+        f"fusedmosaic: error: {video}: the video does not read back (0 of 8 frames; a full "
+        "disk?): no video written\n")
+    assert listing(tmp_path) == []  # no video, no OUT, no temp file
+
+
 # --------------------------------------------------------------------------- 5: Ctrl-C
 
 

@@ -453,10 +453,15 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
         else:
             path = w.external_path(target)
         fps = playback_rate(dataset.timestamps)
-        n = write_creation_video(path, frames, G, cam.width, cam.height,
-                                 (plan.x0, plan.y0, plan.x1, plan.y1), use=plan.use, mask=mask,
-                                 blend=blend, fps=fps, gains=gains, frame_ids=ids,
-                                 progress=progress)
+        try:
+            n = write_creation_video(path, frames, G, cam.width, cam.height,
+                                     (plan.x0, plan.y0, plan.x1, plan.y1), use=plan.use,
+                                     mask=mask, blend=blend, fps=fps, gains=gains,
+                                     frame_ids=ids, progress=progress)
+        except OSError as exc:  # named by the user's path, not the staged one
+            if exc.filename != str(path):
+                raise
+            raise OSError(exc.errno, exc.strerror, str(target)) from None
         timings["video"] = time.perf_counter() - t0
         outputs["video"] = str(target)
         info["video"] = {"file": str(target), "path": str(target.resolve()), "frames": n,

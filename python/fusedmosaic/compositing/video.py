@@ -8,6 +8,7 @@ plus the encoding of one video frame, at frame 10 as at frame 10 000.
 
 from __future__ import annotations
 
+import errno
 import os
 from pathlib import Path
 
@@ -120,6 +121,17 @@ class MosaicVideoWriter:
         if self.frames_written == 0:
             self._tmp.unlink(missing_ok=True)
             raise ValueError(f"{self.path}: no frame could be placed; no video written")
+        # VideoWriter reports no write error: a full disk left an unplayable file (no index)
+        # and exit 0. Read the header back (~2 ms) and count the frames (exact in all five
+        # containers, measured; one frame of slack for a container that counts by duration).
+        reader = cv2.VideoCapture(str(self._tmp))
+        readable = int(reader.get(cv2.CAP_PROP_FRAME_COUNT)) if reader.isOpened() else 0
+        reader.release()
+        if abs(readable - self.frames_written) > 1:
+            self._tmp.unlink(missing_ok=True)
+            raise OSError(errno.EIO, f"the video does not read back ({readable} of "
+                          f"{self.frames_written} frames; a full disk?): no video written",
+                          str(self.path))
         os.replace(self._tmp, self.path)
 
     def abort(self) -> None:
