@@ -192,9 +192,9 @@ def work(tmp_path_factory):
     return tmp_path_factory.mktemp("sequential")
 
 
-def run(data, method, out_root, options=None, name=None):
+def run(data, method, out_root, options=None, name=None, report=True):
     out = out_root / (name or f"{data.name}_{method}")
-    run_dataset(data, method, out, progress=False, options=options)
+    run_dataset(data, method, out, progress=False, options=options, report=report)
     r = evaluate_output(out, data)
     r["report"] = json.loads((out / "report.json").read_text())
     return r
@@ -238,7 +238,8 @@ def test_emt_noise_fig9(work):
         data = simulate_fetoscopy(work / f"nu{nu}", FetoscopyOptions(
             n_frames=17, laps=17 / 37.5, noise_multiplier=nu, seed=11))
         # 17 frames: a 6-frame bootstrap so that most frames go through the window
-        r = run(data, "lba-emt", work, SequentialOptions(bootstrap_frames=6))
+        r = run(data, "lba-emt", work, SequentialOptions(bootstrap_frames=6),
+                report=False)  # report.md and its plots: ~2.6 s a run, not looked at here
         lba.append(r["e_M_px"])
         ds = read_dataset(data)
         true_plane = np.array(json.loads((data / "truth_plane.json").read_text())["plane"])
@@ -250,16 +251,23 @@ def test_emt_noise_fig9(work):
     assert (lba[2:] < emt[2:]).all()  # below EMT from nu = 1 on
 
 
+@pytest.fixture(scope="module")
+def syn150():
+    """syn_stream(150) and its frames, rendered once for the four runs below."""
+    scene, camera, poses, valid = syn_stream(150)
+    return scene, camera, poses, valid, [scene.render(k) for k in range(150)]
+
+
 @pytest.mark.parametrize("detector", ["orb", "sift"])
-def test_pairs_matched_guided(detector):
+def test_pairs_matched_guided(detector, syn150):
     """After the start-up: the recent frames are searched near where the previous frame's
     motion, repeated and chained with the earlier pairs, puts their keypoints in the new frame,
     and the loop frames near where the window's estimates put them
     (MatchOptions.guided_radius_px; SIFT with guided_sift), at no cost in accuracy. Measured
     on these 150 frames: ORB e_M 0.289 px guided vs 0.280 px all exhaustive, SIFT 0.076 vs
     0.076 px; the 6 pairs of every frame guided, no fallback to the exhaustive search."""
-    n = 150
-    scene, camera, poses, valid = syn_stream(n)
+    scene, camera, poses, valid, frames = syn150
+    n = len(frames)
     e, counts = {}, {}
     for radius in (0.0, 20.0):
         mosaicker = SequentialMosaicker(camera, SequentialOptions(
@@ -267,7 +275,7 @@ def test_pairs_matched_guided(detector):
             matching=MatchOptions(guided_radius_px=radius, guided_sift=True)))
         results = []
         for k in range(n):
-            mosaicker.add_frame(scene.render(k), float(scene.timestamps[k]),
+            mosaicker.add_frame(frames[k], float(scene.timestamps[k]),
                                 poses[k] if valid[k] else None)
             results += mosaicker.finalized()
         results += mosaicker.flush()
