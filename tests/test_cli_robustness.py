@@ -272,24 +272,45 @@ def test_ctrl_c_during_the_demo_simulation_leaves_no_empty_folder(tmp_path, monk
     assert listing(tmp_path) == ["mine"]
 
 
-def test_ctrl_c_while_the_command_line_loads_is_not_a_traceback(monkeypatch, capsys):
+@pytest.mark.parametrize("how", ["SIGINT", "SIGTERM", "SIGHUP"])
+def test_an_interrupt_while_the_command_line_loads_is_not_a_traceback(monkeypatch, capsys, how):
     """The first second of every command is importing NumPy, OpenCV and the core; a Ctrl-C
     there printed a KeyboardInterrupt traceback (the console script imported fusedmosaic.cli,
-    and the package its mosaickers, before any handler)."""
+    and the package its mosaickers, before any handler), and SIGTERM / SIGHUP killed it
+    outright (exit 143 / 129)."""
+    import signal
     import sys
 
     from fusedmosaic import _entry
 
-    class Interrupted:  # a meta path finder: Ctrl-C while fusedmosaic.cli is imported
+    class Interrupted:  # a meta path finder: the signal arrives while fusedmosaic.cli imports
         def find_spec(self, name, path=None, target=None):
             if name == "fusedmosaic.cli":
-                raise KeyboardInterrupt
+                signal.raise_signal(getattr(signal, how))
+                raise AssertionError(f"{how} did not interrupt the import")
             return None
 
     monkeypatch.delitem(sys.modules, "fusedmosaic.cli")
     monkeypatch.setattr(sys, "meta_path", [Interrupted(), *sys.meta_path])
-    assert _entry.main() == 130
+    with signal_handler(signal.SIGINT, signal.default_int_handler), \
+            signal_handler(signal.SIGTERM, signal.SIG_DFL), \
+            signal_handler(signal.SIGHUP, signal.SIG_DFL):
+        assert _entry.main() == 130
+        assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # restored
     assert capsys.readouterr().err == "fusedmosaic: interrupted\n"
+
+
+def test_the_console_entry_loads_nothing_heavy():
+    """What runs before the guard above (the package's __init__ and fusedmosaic._entry) must
+    stay light, or an interrupt there is a traceback again."""
+    import subprocess
+    import sys
+
+    code = ("import sys, fusedmosaic._entry; print(sorted({'numpy', 'cv2', 'scipy', "
+            "'fusedmosaic._core', 'fusedmosaic.cli'} & set(sys.modules)))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout
+    assert out == "[]\n"
 
 
 def test_sigterm_during_simulate_leaves_nothing(tmp_path):

@@ -32,7 +32,14 @@ if typing.TYPE_CHECKING:
     from fusedmosaic.estimation.translation import RobotPriorMosaicker, RobotPriorOptions
 
 
+# Subpackages reachable as attributes (fusedmosaic.io, ...), as when __init__ imported them.
+_SUBMODULES = ("cli", "compositing", "estimation", "evaluation", "io", "methods",
+               "registration", "runner", "simulation")
+
+
 def __getattr__(name: str):
+    if name in _SUBMODULES:
+        _LAZY[name] = (f"fusedmosaic.{name}", None)
     if name not in _LAZY:
         raise AttributeError(f"module 'fusedmosaic' has no attribute {name!r}")
     module, attribute = _LAZY[name]

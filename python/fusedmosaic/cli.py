@@ -4,18 +4,17 @@ entry point."""
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
 import re
-import signal
 import sys
-import threading
 import time
 import typing
 import warnings
 from pathlib import Path
 
 import numpy as np
+
+from fusedmosaic._entry import signals_as_interrupt
 
 
 # --------------------------------------------------------------------------------------------
@@ -1157,28 +1156,6 @@ PATH_ARGUMENTS = {"out": "OUT", "record": "--record", "preview": "--preview", "j
                   "truth": "--truth", "camera": "--camera", "hand_eye": "--hand-eye"}
 
 
-@contextlib.contextmanager
-def _signals_as_interrupt():
-    """SIGTERM / SIGHUP (a closed terminal, `timeout`, a scheduler's stop) end any command as
-    Ctrl-C does, so its staged outputs are removed; a signal ignored by whoever started us stays
-    ignored (nohup: SIGHUP). Only the main thread can set handlers (main() called elsewhere:
-    unchanged)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def stop(signum, frame):
-        raise KeyboardInterrupt
-
-    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGTERM, signal.SIGHUP)
-                if signal.getsignal(sig) is not signal.SIG_IGN}
-    try:
-        yield
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -1189,7 +1166,7 @@ def main(argv: list[str] | None = None) -> int:
                   file=sys.stderr)
             return 2
     try:
-        with warnings.catch_warnings(), _signals_as_interrupt():
+        with warnings.catch_warnings(), signals_as_interrupt():
             warnings.showwarning = _show_warning
             return args.func(args)
     except ValueError as exc:  # bad input: one clear line, no traceback
