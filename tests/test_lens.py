@@ -167,27 +167,41 @@ def test_distortion_without_camera_matrix_is_refused(tmp_path):
 
 
 def test_folding_lens_in_camera_yaml_is_refused(tmp_path):
-    """k1 = -5 at f = 480 px folds over: the distorted radius r (1 - 5 r^2) peaks at r = 1 /
-    sqrt(15), 83 px from the centre, and no ray reaches a raw pixel farther out. A run refuses
-    it naming camera.yaml and a pixel past the fold, leaving no output (before: accepted, e_M
-    305 px); inside a 75 px field of view the same lens is invertible and accepted."""
+    """k1 = -5 at f = 480 px folds over: the distorted radius r (1 - 5 r^2) turns back at r =
+    1 / sqrt(15), 124 px from the centre in undistorted pixels, so the undistorted frame
+    beyond that shows the centre again, mirrored. A run refuses it naming camera.yaml and an
+    undistorted pixel past the fold, leaving no output (before: accepted, e_M 305 px); a
+    75 px field of view does not help (the mirrored pixels come from inside it). Lenses
+    whose raw corners lie beyond their fold, never sampled by the undistorted frame, and a
+    strong barrel lens that undistortPoints' iteration does not converge on in 60 steps, are
+    accepted (refused by a first version of this check, a raw -> ray -> raw round trip)."""
     from fusedmosaic.io import write_dataset
 
-    K = np.array([[480.0, 0, 199.5], [0, 480.0, 199.5], [0, 0, 1]])
+    def K(f, w, h):
+        return np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1]])
+
     fold = [-5.0, 0.0, 0.0, 0.0, 0.0]
     rng = np.random.default_rng(2)
     frames = [rng.integers(0, 255, (400, 400), dtype=np.uint8) for _ in range(3)]
-    data = write_dataset(tmp_path / "data", camera=Camera(400, 400, K, distortion=fold),
+    data = write_dataset(tmp_path / "data", camera=Camera(400, 400, K(480, 400, 400),
+                                                          distortion=fold),
                          frames=frames, timestamps=np.arange(3) / 25.0)
-    with pytest.raises(ValueError, match=r"camera\.yaml: distortion_coefficients: \[-5\.0, 0\.0, "
-                       r"0\.0, 0\.0, 0\.0\] is not invertible over the 400x400 frame \(the "
-                       r"pinhole model folds over, e\.g\. at raw pixel \((\d+), (\d+)\)\)") as e:
+    message = (r"camera\.yaml: distortion_coefficients: \[-5\.0, 0\.0, 0\.0, 0\.0, 0\.0\] "
+               r"fold the pinhole lens model over inside the 400x400 frame \(e\.g\. "
+               r"undistorted pixel \((\d+), (\d+)\) is drawn from raw pixel \(\d+, \d+\), "
+               r"mirrored\): the undistorted frames would show a double image")
+    with pytest.raises(ValueError, match=message) as e:
         run_dataset(data, "pairwise", tmp_path / "out", progress=False)
-    u, v = map(int, e.value.args[0].split("raw pixel (")[1].split(")")[0].split(", "))
-    assert np.hypot(u - 199.5, v - 199.5) > 82
+    u, v = map(int, e.value.args[0].split("undistorted pixel (")[1].split(")")[0].split(", "))
+    assert np.hypot(u - 199.5, v - 199.5) > 124
     assert not (tmp_path / "out").exists()
-    lens = Camera(400, 400, K, distortion=fold, fov_mask_radius=75).undistortion()
-    assert lens.mask.any()
+    with pytest.raises(ValueError, match=message):
+        Camera(400, 400, K(480, 400, 400), distortion=fold, fov_mask_radius=75).undistortion()
+    for w, h, f, d, model in ((640, 480, 480, [-0.4, 0, 0, 0, 0], "pinhole"),  # fold at 292 px
+                              (640, 480, 200, [0.05, -0.02, 0.01, 0.0], "fisheye"),
+                              (1920, 1080, 1000, [-0.4, 0.15, 0, 0, 0], "pinhole")):
+        lens = Camera(w, h, K(f, w, h), distortion=d, lens_model=model).undistortion()
+        assert lens.mask.mean() > 0.5
 
 
 # A wide-angle scope (diagonal field of view ~100 deg) through OpenCV's fisheye model.

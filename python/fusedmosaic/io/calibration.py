@@ -233,8 +233,6 @@ class Camera:
 
 # cv2.undistortPoints' default is 5 fixed-point iterations; a fetoscope's strong barrel lens
 # (k1 ~ -0.3) needs more at the periphery. 40 iterations or 1e-10 (normalised units).
-# Round trip raw -> ray -> raw that camera.yaml's lens must pass inside the field of view.
-FOLD_TOLERANCE_PX = 1e-2
 UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10)
 
 
@@ -254,34 +252,6 @@ def undistort_points(points, camera_matrix, distortion, lens_model: str = "pinho
     else:
         out = cv2.undistortPoints(pts, K, d, P=P, criteria=criteria)
     return out.reshape(-1, 2)
-
-
-# A strong barrel lens (a fetoscope's) needs more iterations than the default to converge in the
-# corners; the fold check below runs with these.
-FOLD_CHECK_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 60, 1e-12)
-
-
-def undistort_unfolded(raw, camera_matrix, distortion, lens_model: str, size: tuple[int, int],
-                       what: str, tolerance_px: float) -> np.ndarray:
-    """(N, 2) raw pixels -> (N, 2) undistorted pixels (P = K), checking that the lens model is
-    invertible there: every raw pixel's undistorted ray projects back onto it within
-    tolerance_px. Raises ValueError naming ``what`` (the file or option that set the
-    coefficients) and the first raw pixel where the model folds over: that pixel has no ray,
-    or two, and a frame undistorted through it is garbage or a double image."""
-    K = np.asarray(camera_matrix, np.float64)
-    d = np.asarray(distortion, np.float64)
-    raw = np.asarray(raw, np.float64).reshape(-1, 2)
-    ideal = undistort_points(raw, K, d, lens_model, P=K, criteria=FOLD_CHECK_CRITERIA)
-    rays = np.linalg.solve(K, np.hstack([ideal, np.ones((len(ideal), 1))]).T).T
-    back = project_points(rays, K, d, lens_model)
-    bad = ~np.all(np.abs(back - raw) < tolerance_px, axis=1)  # NaN is bad too
-    if bad.any():
-        u, v = raw[np.argmax(bad)]
-        raise ValueError(
-            f"{what}: {d.tolist()} is not invertible over the {size[0]}x{size[1]} frame (the "
-            f"{lens_model} model folds over, e.g. at raw pixel ({u:.0f}, {v:.0f})): check the "
-            "coefficients' order, sign and scale, or use a milder lens")
-    return ideal
 
 
 def project_points(points, camera_matrix, distortion, lens_model: str = "pinhole",
@@ -339,27 +309,43 @@ class LensUndistortion:
             self._map1, self._map2 = cv2.initUndistortRectifyMap(
                 self.camera_matrix, self.distortion, None, self.camera_matrix,
                 (self.width, self.height), cv2.CV_16SC2)
-        self._check_unfolded(fov_mask, source)
         self.mask = self.valid(fov_mask)
         if not self.mask.any():
             raise ValueError(f"{source}: distortion_coefficients leave no pixel of the "
                              "undistorted frame inside the raw frame")
+        self._check_unfolded(source)
 
-    def _check_unfolded(self, fov_mask: np.ndarray | None, source: str) -> None:
-        """Refuses coefficients whose model folds over inside the field of view (the raw frame
-        without a mask): checked on a grid of raw pixels every ~1/200 of the frame plus its
-        edge rows and columns (~0.05 s), looser than the simulators' sub-pixel check since a
-        fold moves a round trip by pixels, not by iteration residue."""
-        step = max(1, round(max(self.width, self.height) / 200))
-        us = np.union1d(np.arange(0, self.width, step), [self.width - 1])
-        vs = np.union1d(np.arange(0, self.height, step), [self.height - 1])
-        u, v = np.meshgrid(us, vs)
-        raw = np.stack([u.ravel(), v.ravel()], -1)
-        if fov_mask is not None:
-            raw = raw[np.asarray(fov_mask)[raw[:, 1], raw[:, 0]] > 0]
-        undistort_unfolded(raw, self.camera_matrix, self.distortion, self.lens_model,
-                           (self.width, self.height), f"{source}: distortion_coefficients",
-                           FOLD_TOLERANCE_PX)
+    def _check_unfolded(self, source: str) -> None:
+        """Refuses coefficients whose model folds over where the undistorted frame is drawn from:
+        the map undistorted pixel -> raw pixel (the lens's forward projection) must keep its
+        orientation (Jacobian determinant > 0) over every pixel of `mask`; where it turns, two
+        directions land on one raw pixel and the undistorted frame shows a mirrored double
+        image. Only the pixels used are checked: a barrel lens whose raw corners lie beyond
+        the fold, never sampled, passes. The projection needs no iteration (~0.05 s at
+        1080p)."""
+        size = (self.width, self.height)
+        if self.lens_model == "fisheye":
+            mx, my = cv2.fisheye.initUndistortRectifyMap(
+                self.camera_matrix, self.distortion.reshape(FISHEYE_COUNT, 1), np.eye(3),
+                self.camera_matrix, size, cv2.CV_32FC1)
+        else:
+            mx, my = cv2.initUndistortRectifyMap(self.camera_matrix, self.distortion, None,
+                                                 self.camera_matrix, size, cv2.CV_32FC1)
+        mx, my = mx.astype(np.float64), my.astype(np.float64)
+        # forward differences at (v, u) towards (v, u + 1) and (v + 1, u), both in the mask
+        det = ((mx[:-1, 1:] - mx[:-1, :-1]) * (my[1:, :-1] - my[:-1, :-1])
+               - (mx[1:, :-1] - mx[:-1, :-1]) * (my[:-1, 1:] - my[:-1, :-1]))
+        used = self.mask > 0
+        used = used[:-1, :-1] & used[:-1, 1:] & used[1:, :-1]
+        folded = used & ~(det > 0)
+        if folded.any():
+            v, u = np.argwhere(folded)[0]
+            raise ValueError(
+                f"{source}: distortion_coefficients: {self.distortion.tolist()} fold the "
+                f"{self.lens_model} lens model over inside the {self.width}x{self.height} frame "
+                f"(e.g. undistorted pixel ({u}, {v}) is drawn from raw pixel "
+                f"({mx[v, u]:.0f}, {my[v, u]:.0f}), mirrored): the undistorted frames would "
+                "show a double image; check the coefficients' order, sign and scale")
 
     def valid(self, raw_mask: np.ndarray | None = None) -> np.ndarray:
         """(H, W) uint8, 255 where an undistorted pixel's whole bilinear support lies inside

@@ -4,10 +4,13 @@ over the frame."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
-from fusedmosaic.io.calibration import FOLD_CHECK_CRITERIA, undistort_points, undistort_unfolded
+from fusedmosaic.io.calibration import project_points, undistort_points
 
+# Iterated to convergence: a fetoscope's strong barrel lens needs more than io's default.
+_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 60, 1e-12)
 ROUND_TRIP_TOLERANCE_PX = 1e-3
 
 
@@ -21,11 +24,19 @@ def ideal_pixel_grid(camera_matrix: np.ndarray, distortion: np.ndarray, lens_mod
     folds over within the frame: a raw sample whose undistortion does not project back onto
     it (within ROUND_TRIP_TOLERANCE_PX) has no ray, or two, and would render garbage or a
     double image."""
+    K = np.asarray(camera_matrix, np.float64)
+    d = np.asarray(distortion, np.float64)
     S = supersample
     v, u = np.mgrid[0:height * S, 0:width * S].astype(np.float64)
     raw = np.stack([(u + 0.5) / S - 0.5, (v + 0.5) / S - 0.5], -1).reshape(-1, 2)
-    ideal = undistort_unfolded(raw, camera_matrix, distortion, lens_model, (width, height),
-                               what, ROUND_TRIP_TOLERANCE_PX)
+    ideal = undistort_points(raw, K, d, lens_model, P=K, criteria=_CRITERIA)
+    rays = np.linalg.solve(K, np.hstack([ideal, np.ones((len(ideal), 1))]).T).T
+    back = project_points(rays, K, d, lens_model)
+    if not np.all(np.abs(back - raw) < ROUND_TRIP_TOLERANCE_PX):  # NaN fails too
+        raise ValueError(
+            f"{what}: {d.tolist()} is not invertible over the {width}x{height} frame (the "
+            "model folds over); use a milder lens"
+        )
     return ideal.reshape(height * S, width * S, 2)
 
 
@@ -35,8 +46,7 @@ def on_inner_branch(pixels: np.ndarray, cam_points: np.ndarray, camera_matrix: n
     the frame shows there: their undistortion is their own direction, not a ray beyond the
     lens model's fold (whose projection also lands in the frame, but which the renderer, going
     from pixels to rays, never shows)."""
-    x = undistort_points(pixels, camera_matrix, distortion, lens_model,
-                         criteria=FOLD_CHECK_CRITERIA)
+    x = undistort_points(pixels, camera_matrix, distortion, lens_model, criteria=_CRITERIA)
     z = cam_points[:, 2:3]
     return bool(np.all(z > 0)) and bool(
         np.all(np.abs(x - cam_points[:, :2] / z) < 1e-6 * (1 + np.abs(x))))
