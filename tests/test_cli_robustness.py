@@ -212,6 +212,14 @@ def test_a_video_that_does_not_read_back_is_an_error(data, tmp_path, monkeypatch
         f"fusedmosaic: error: {video}: the video does not read back (0 of 8 frames; a full "
         "disk?): no video written\n")
     assert listing(tmp_path) == []  # no video, no OUT, no temp file
+    # one frame (a pairwise chain broken at frame 1 places only the reference): refused too
+    from fusedmosaic.compositing.video import MosaicVideoWriter
+
+    writer = MosaicVideoWriter(tmp_path / "one.mp4", (0, 0, 64, 48), 64, 48)
+    writer.add(np.full((48, 64, 3), 128, np.uint8), np.eye(3))
+    with pytest.raises(OSError, match=r"the video does not read back \(0 of 1 frames"):
+        writer.close()
+    assert listing(tmp_path) == []
 
 
 # --------------------------------------------------------------------------- 5: Ctrl-C

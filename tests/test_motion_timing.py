@@ -68,6 +68,11 @@ def test_motion_sigma_from_a_recording_in_any_row_order_with_gaps(tmp_path):
     # tx, ty (SYN moves in a plane at constant rotation: the others are floored)
     np.testing.assert_allclose(gap[3:5], halves[3:5], rtol=1e-9)
     assert not np.allclose(gap[3:5], estimate_motion_sigma(poses[keep])[3:5], rtol=1e-2)
+    # every other frame (evenly spaced, but two frames a step): no triple is one frame's motion
+    write_poses_csv(tmp_path / "stride2.csv", ids[::2], poses[::2])
+    with pytest.raises(ValueError, match=r"stride2\.csv: poses: no three consecutive frames "
+                       r"\(ids k-2, k-1, k\) with finite poses"):
+        motion_sigma_from_recording(tmp_path / "stride2.csv")
     write_poses_csv(tmp_path / "still.csv", ids, np.repeat(poses[:1], 40, axis=0))
     with pytest.warns(UserWarning, match=r"still\.csv: the camera's translations depart from "
                       r"constant velocity by at most 0 mm RMS per frame \(a still or perfectly "

@@ -97,7 +97,7 @@ def test_black_frames(work):
     # e_M is over the placed frames, and the summary says so (before: a bare e_M as if all were)
     assert pairwise["said"].startswith(
         f"pairwise: placed {first}/62 frames -> {pairwise['out']} (e_M = "
-        f"{pairwise['e_M_px']:.3f} px over the {first} placed frames)")
+        f"{pairwise['e_M_px']:.3f} px over {first} of 62 frames)")
     ba_emt = run(data, "ba-emt", work)
     assert ba_emt["unplaced"] == 0
     status = ba_emt["report"]["frame_status"]

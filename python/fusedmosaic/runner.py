@@ -176,7 +176,8 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
                                   dataset.camera.height)
             report_json["metrics"] = {
                 "e_M_px": mosaic_error(errors), "drift_ratio": drift_ratio(errors),
-                "max_e_j_px": float(np.nanmax(errors)) if np.isfinite(errors).any() else None}
+                "max_e_j_px": float(np.nanmax(errors)) if np.isfinite(errors).any() else None,
+                "frames_scored": int((~np.isnan(errors)).sum())}  # placed, with ground truth
         w.write_homographies(dataset.frame_ids, G)
         if result.poses is not None:
             w.write_poses(dataset.frame_ids, result.poses)
@@ -517,12 +518,12 @@ def _summary(method: str, G: np.ndarray, out: Path, report_json: dict, outputs: 
     msg = f"{method}: placed {placed}/{len(G)} frames -> {out}"
     if "metrics" in report_json:
         e_M = report_json["metrics"]["e_M_px"]
-        if not np.isfinite(e_M) and not np.isinf(e_M):
+        scored = report_json["metrics"]["frames_scored"]
+        if scored == 0:
             msg += " (e_M undefined: no placed frame has a ground-truth homography)"
-        elif placed < len(G):  # e_M is over the placed frames: say so, e.g. 0.000 for the
-            # reference alone when a pairwise chain breaks at frame 1
-            msg += (f" (e_M = {e_M:.3f} px over the {placed} placed frame"
-                    f"{'' if placed == 1 else 's'})")
+        elif scored < len(G):  # e_M is over the frames placed and with a ground truth: say
+            # so, e.g. 0.000 for the reference alone when a pairwise chain breaks at frame 1
+            msg += f" (e_M = {e_M:.3f} px over {scored} of {len(G)} frames)"
         else:
             msg += f" (e_M = {e_M:.3f} px)"
     m = outputs["mosaic"]

@@ -107,16 +107,19 @@ def check_border(border_px: float, distance: np.ndarray,
     of every frame, and of the mosaic, would be black. The largest border accepted is the
     median distance to the edge (for a circular field of view 0.29 of its radius)."""
     inside = distance[distance > 0]
+    if inside.size == 0:
+        raise ValueError("field-of-view mask is empty: no pixel would be blended")
     inner = float(inside.max())
     limit = float(np.median(inside))
-    if border_px <= limit:
+    if border_px < inner and border_px <= limit:  # (ties: a median at the centre's distance)
         return
     covered = float(np.mean(inside <= border_px))
     what = ("the whole field of view" if border_px >= inner
             else f"{min(99.0, 100 * covered):.0f} % of the field of view")
     raise ValueError(f"{name} {border_px:g} covers {what} (its centre is {inner:g} px from the "
                      f"edge): the frames would be drawn {'all' if covered == 1 else 'mostly'} "
-                     f"black; give at most {limit:g} px (a border is a thin seam, e.g. 1.5)")
+                     f"black; give {'less than' if limit >= inner else 'at most'} "
+                     f"{min(limit, inner):g} px (a border is a thin seam, e.g. 1.5)")
 
 
 def footprint_box(G: np.ndarray, width: int, height: int, align: int = 1, pad: int = 0

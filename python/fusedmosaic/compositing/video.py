@@ -123,11 +123,12 @@ class MosaicVideoWriter:
             raise ValueError(f"{self.path}: no frame could be placed; no video written")
         # VideoWriter reports no write error: a full disk left an unplayable file (no index)
         # and exit 0. Read the header back (~2 ms) and count the frames (exact in all five
-        # containers, measured; one frame of slack for a container that counts by duration).
+        # containers, measured; one frame of slack for a container that counts by duration,
+        # but never none: a one-frame video that does not open is refused too).
         reader = cv2.VideoCapture(str(self._tmp))
         readable = int(reader.get(cv2.CAP_PROP_FRAME_COUNT)) if reader.isOpened() else 0
         reader.release()
-        if abs(readable - self.frames_written) > 1:
+        if readable < 1 or abs(readable - self.frames_written) > 1:
             self._tmp.unlink(missing_ok=True)
             raise OSError(errno.EIO, f"the video does not read back ({readable} of "
                           f"{self.frames_written} frames; a full disk?): no video written",

@@ -68,8 +68,9 @@ def predict_constant_velocity(pose_km2: np.ndarray, pose_km1: np.ndarray,
 
 def constant_velocity_residuals(poses: np.ndarray, frame_ids=None) -> np.ndarray:
     """(M, 6) x_k - mu_p(x_{k-1}, x_{k-2}) with mu_p = T_{k-1} T_{k-2}^-1 T_{k-1} (Eq. 16), over
-    the triples of consecutive finite rows; with frame_ids (N,), only triples evenly spaced in
-    frame ids (a gap, e.g. dropped frames, is not one constant-velocity step)."""
+    the triples of consecutive finite rows; with frame_ids (N,), only triples of consecutive
+    frame ids (k-2, k-1, k): across a gap, e.g. dropped frames, the step is not one frame's,
+    and a second difference over s frames is ~s^2 times a frame's."""
     poses = np.asarray(poses, np.float64)
     if poses.ndim != 2 or poses.shape[1] != 6 or len(poses) < 3:
         raise ValueError(f"poses: expected shape (N >= 3, 6), got {poses.shape}")
@@ -79,12 +80,14 @@ def constant_velocity_residuals(poses: np.ndarray, frame_ids=None) -> np.ndarray
         a, b, c = poses[k - 2], poses[k - 1], poses[k]
         if not (np.isfinite(a).all() and np.isfinite(b).all() and np.isfinite(c).all()):
             continue
-        if ids is not None and ids[k] - ids[k - 1] != ids[k - 1] - ids[k - 2]:
+        if ids is not None and not ids[k] - ids[k - 1] == ids[k - 1] - ids[k - 2] == 1:
             continue
         mu = _core.compose_poses(_core.compose_poses(b, _core.invert_pose(a)), b)
         out.append(c - mu)
     if not out:
-        raise ValueError("poses: no three consecutive finite poses")
+        raise ValueError("poses: no three consecutive finite poses" if ids is None else
+                         "poses: no three consecutive frames (ids k-2, k-1, k) with finite "
+                         "poses")
     return np.array(out)
 
 

@@ -199,7 +199,9 @@ class CheckerboardScene:
             H = np.linalg.inv(M) @ np.linalg.inv(self.camera_matrix)
             b = cv2.perspectiveTransform(ideal, H).reshape(-1, 2)
             bx, by = b[:, 0], b[:, 1]
-            behind = ideal[:, 0] @ H[2, :2] + H[2, 2] <= 0
+            # behind the camera, or at the horizon, where perspectiveTransform gives (0, 0)
+            # for |w| <= FLT_EPSILON
+            behind = ideal[:, 0] @ H[2, :2] + H[2, 2] <= np.finfo(np.float32).eps
             map_x = ((bx - origin_mm[0]) / mm_per_px).astype(np.float32)
             map_y = ((by - origin_mm[1]) / mm_per_px).astype(np.float32)
             map_x[behind] = -1e6
