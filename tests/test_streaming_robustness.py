@@ -359,3 +359,72 @@ def test_bad_homography_message_names_the_frame():
     with pytest.raises(ValueError, match=r"frame 4: homography must be 3x3, got \(2, 3\)"):
         canvas.add(_frame(9), _shift(1.0)[:2])
     assert canvas.add(_frame(9), _shift(30.0, 70.0)) is not None
+
+
+# ----------------------------------------------------- options refused up front (audit 26)
+@pytest.mark.parametrize("field, value, message", [
+    ("pyramid_levels", 2.5, r"pyramid_levels must be an integer, got 2\.5"),
+    ("ssim_downsample", 2.5, r"ssim_downsample must be an integer, got 2\.5"),
+    ("max_displacement_px", np.inf, r"max_displacement_px must be finite and > 0, or None"),
+    ("fallback_template_fraction", 1.5, r"fallback_template_fraction must be in \(0, 1\)"),
+    ("max_disagreement_px", -1.0, r"max_disagreement_px must be finite and >= 0"),
+    ("presmooth_sigma", 1e4, r"presmooth_sigma must be in \[0, 512\] px, got 10000\.0"),
+])
+def test_robot_prior_options_refused_before_the_first_frame(field, value, message):
+    """Before: accepted, then every frame from the second on raised an error naming neither
+    the option nor the class (TypeError '>>', OverflowError, cv2.error), or, for a huge
+    presmooth_sigma, took seconds to minutes a frame inside cv2.GaussianBlur."""
+    from fusedmosaic.estimation.translation import RobotPriorOptions
+
+    with pytest.raises(ValueError, match=rf"RobotPriorOptions\.{message}"):
+        RobotPriorOptions(**{field: value})
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("gate_sigma_scale", 0.0, r"gate_sigma_scale must be finite and >= 1"),
+    ("gate_sigma_scale", np.nan, r"gate_sigma_scale must be finite and >= 1"),
+    ("gate_chi2", -1.0, r"gate_chi2 must be > 0"),
+    ("max_points_per_pair", 0, r"max_points_per_pair must be an integer >= 1, got 0"),
+    ("history_steps", -1, r"history_steps must be an integer >= 0, got -1"),
+    ("tracker_reanchor_after", 0.5, r"tracker_reanchor_after must be an integer >= 1"),
+    ("startup_wait_frames", True, r"startup_wait_frames must be an integer >= 1, got True"),
+])
+def test_sequential_options_refused_before_the_first_frame(field, value, message):
+    """Before: accepted; gate_sigma_scale 0 raised 'scale: must be finite and >= 1' on every
+    frame from the first gated step on, max_points_per_pair 0 'add_pair: needs at least 1
+    correspondence' on every frame from the start-up's end."""
+    from fusedmosaic.estimation.sequential import SequentialMosaicker, SequentialOptions
+
+    camera = Camera(64, 48, np.array([[80.0, 0, 31.5], [0, 80.0, 23.5], [0, 0, 1]]))
+    with pytest.raises(ValueError, match=rf"SequentialOptions\.{message}"):
+        SequentialMosaicker(camera, SequentialOptions(**{field: value}))
+    with pytest.raises(ValueError, match=r"options must be a SequentialOptions, got dict"):
+        SequentialMosaicker(camera, {"window_size": 5})
+
+
+def test_an_overflowing_rotation_vector_is_refused_naming_the_frame():
+    """[1e155] x 3 passed the finite check and failed inside the window ('angle_axis: contains
+    NaN or infinite values', naming neither the frame nor the argument)."""
+    from fusedmosaic.estimation.sequential import SequentialMosaicker
+
+    camera = Camera(64, 48, np.array([[80.0, 0, 31.5], [0, 80.0, 23.5], [0, 0, 1]]))
+    m = SequentialMosaicker(camera)
+    frame = np.random.default_rng(0).integers(0, 255, (48, 64), dtype=np.uint8)
+    with pytest.raises(ValueError, match=r"frame 0: tracker_pose rotation vector \[1e\+155, "
+                       r"1e\+155, 1e\+155\] has a component beyond 1e\+06 rad"):
+        m.add_frame(frame, 0.0, np.array([1e155, 1e155, 1e155, 0.0, 0.0, 30.0]))
+    assert m.frame_count == 0
+
+
+@pytest.mark.parametrize("dtype", [bool, np.complex128, object])
+def test_robot_prior_colour_frames_of_an_unsupported_type_are_refused(pcle, dtype):
+    """A grey frame of these types was refused, the same data as (H, W, 3) BGR was cast to grey
+    first: bool came out as 0/1 pixels, complex lost its imaginary part, an object array failed
+    inside the conversion."""
+    m = RobotPriorMosaicker(pcle.camera)
+    grey = np.asarray(pcle.frames[0])
+    colour = np.repeat(grey[..., None], 3, axis=2).astype(dtype)
+    with pytest.raises(ValueError, match=rf"frame 0: unsupported pixel type {np.dtype(dtype)}"):
+        m.add_frame(colour, 0.0, None)
+    with pytest.raises(ValueError, match=r"frame 0: image must be a numpy array, got list"):
+        m.add_frame(grey.tolist(), 0.0, None)

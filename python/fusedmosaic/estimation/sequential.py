@@ -273,11 +273,38 @@ def canonical_rotation_vector(r: np.ndarray) -> np.ndarray:
     return r * (wrapped / theta)
 
 
+# tracker_pose's rotation vector: components up to 1e6 rad (any wrap of a real angle, and
+# degrees passed by mistake, which the tracker checks then catch); beyond, refused.
+MAX_ROTATION_VECTOR_RAD = 1e6
+
+
 class SequentialMosaicker:
     """Frame-by-frame LBAVis+EMT. `camera` is an io.Camera with a camera_matrix."""
 
     def __init__(self, camera, options: SequentialOptions | None = None):
         self.options = o = options or SequentialOptions()
+        if not isinstance(o, SequentialOptions):
+            raise ValueError("options must be a SequentialOptions, got "
+                             f"{type(options).__name__}")
+        # Counts: integers within range, checked here (before: some failed only at the first
+        # window step, on every frame after it, e.g. max_points_per_pair = 0).
+        for name, low in (("max_points_per_pair", 1), ("bootstrap_frames", 1),
+                          ("num_clusters", 0), ("loop_pairs", 0), ("loop_min_separation", 0),
+                          ("hold_prior_only_steps", 0), ("history_steps", 0),
+                          ("max_keyframe_blocks", 1), ("tracker_reanchor_after", 1),
+                          ("startup_wait_frames", 1), ("seed", 0)):
+            value = getattr(o, name)
+            if (not isinstance(value, numbers.Integral) or isinstance(value, bool | np.bool_)
+                    or value < low):
+                raise ValueError(f"SequentialOptions.{name} must be an integer >= {low}, got "
+                                 f"{value!r}")
+        if not (isinstance(o.gate_sigma_scale, numbers.Real) and 1.0 <= o.gate_sigma_scale
+                < np.inf):
+            raise ValueError("SequentialOptions.gate_sigma_scale must be finite and >= 1 (the "
+                             f"factor on a gated sample's sigma), got {o.gate_sigma_scale!r}")
+        if not (isinstance(o.gate_chi2, numbers.Real) and 0.0 < o.gate_chi2):
+            raise ValueError("SequentialOptions.gate_chi2 must be > 0 (inf: no gate), got "
+                             f"{o.gate_chi2!r}")
         if not 0.0 <= o.startup_min_overlap <= 1.0:
             raise ValueError("SequentialOptions.startup_min_overlap must be a fraction in [0, 1], "
                              f"got {o.startup_min_overlap}")
@@ -501,6 +528,12 @@ class SequentialMosaicker:
                              "the camera beyond the dataset reader's bound of "
                              f"{MAX_TRANSLATION_MM:g} mm (1 km) from the tracker origin, not "
                              "physical")
+        # a rotation vector's norm is its angle: beyond ~1e150 it overflows (then NaN inside
+        # the window); any real angle is far below this bound before its wrap to [-pi, pi)
+        if np.abs(pose[:3]).max() > MAX_ROTATION_VECTOR_RAD:
+            raise ValueError(f"frame {k}: tracker_pose rotation vector {pose[:3].tolist()} has "
+                             f"a component beyond {MAX_ROTATION_VECTOR_RAD:g} rad: not an "
+                             "angle-axis rotation (degrees? a quaternion or matrix?)")
         pose[:3] = canonical_rotation_vector(pose[:3])
         return pose
 

@@ -82,6 +82,7 @@ the other are fine.
 from __future__ import annotations
 
 import copy
+import numbers
 import threading
 import time
 from collections import deque
@@ -123,6 +124,9 @@ __all__ = [
 ESTIMATES = {"image": ("ncc", "X_m"), "robot": ("robot", "X_r"), "fused": ("kalman-robot", "X_f")}
 CONFIDENCES = ("c_img", "c_rob", "c_angle", "c_speed", "c_match", "c_sp")
 STAGES = ("ncc", "ssim", "filter")
+
+
+MAX_PRESMOOTH_SIGMA_PX = 512.0  # RobotPriorOptions.presmooth_sigma's sanity bound
 
 
 @dataclass(frozen=True)
@@ -213,23 +217,37 @@ class RobotPriorOptions:
                 f"RobotPriorOptions.template_fraction must be in (0, 1), got "
                 f"{self.template_fraction}"
             )
+        for name in ("pyramid_levels", "ssim_downsample"):  # integers (a float failed at frame 1)
+            value = getattr(self, name)
+            if not isinstance(value, numbers.Integral) or isinstance(value, bool):
+                raise ValueError(f"RobotPriorOptions.{name} must be an integer, got {value!r}")
         if self.pyramid_levels < 0:
             raise ValueError(
                 f"RobotPriorOptions.pyramid_levels must be >= 0, got {self.pyramid_levels}"
             )
-        if not self.presmooth_sigma >= 0.0:
+        # A Gaussian over more than ~a frame blurs it flat, and its cost grows with sigma
+        # (1e4 px: 3 s a frame; 1e6: minutes, uninterruptible in cv2.GaussianBlur).
+        if not 0.0 <= self.presmooth_sigma <= MAX_PRESMOOTH_SIGMA_PX:
             raise ValueError(
-                f"RobotPriorOptions.presmooth_sigma must be >= 0, got {self.presmooth_sigma}"
+                f"RobotPriorOptions.presmooth_sigma must be in [0, {MAX_PRESMOOTH_SIGMA_PX:g}] "
+                f"px, got {self.presmooth_sigma}"
             )
-        if self.max_displacement_px is not None and not self.max_displacement_px > 0.0:
+        if self.max_displacement_px is not None and not 0.0 < self.max_displacement_px < np.inf:
             raise ValueError(
-                "RobotPriorOptions.max_displacement_px must be > 0 or None, got "
+                "RobotPriorOptions.max_displacement_px must be finite and > 0, or None, got "
                 f"{self.max_displacement_px}"
             )
         if self.ssim_downsample < 1:
             raise ValueError(
                 f"RobotPriorOptions.ssim_downsample must be >= 1, got {self.ssim_downsample}"
             )
+        if self.fallback_template_fraction is not None and not (
+                0.0 < self.fallback_template_fraction < 1.0):
+            raise ValueError("RobotPriorOptions.fallback_template_fraction must be in (0, 1) or "
+                             f"None, got {self.fallback_template_fraction}")
+        if self.max_disagreement_px is not None and not 0.0 <= self.max_disagreement_px < np.inf:
+            raise ValueError("RobotPriorOptions.max_disagreement_px must be finite and >= 0, or "
+                             f"None, got {self.max_disagreement_px}")
         if self.robot_sigma_window < 1 or self.robot_sigma_min_frames < 1:
             raise ValueError(
                 "RobotPriorOptions.robot_sigma_window and robot_sigma_min_frames must be >= 1, "
@@ -470,6 +488,13 @@ class RobotPriorMosaicker:
     # -- input checks --------------------------------------------------------------------------
 
     def _prepare_image(self, image, index: int) -> np.ndarray:
+        # the pixel type checked before a colour image is converted (before: BGR bool / complex
+        # / object arrays were cast to grey silently, or failed inside the conversion)
+        if not isinstance(image, np.ndarray):
+            raise ValueError(f"frame {index}: image must be a numpy array, got "
+                             f"{type(image).__name__}")
+        if image.dtype.kind not in "uif":
+            raise ValueError(f"frame {index}: unsupported pixel type {image.dtype}")
         image = gray_from_color(image)
         if image.ndim != 2:
             raise ValueError(
