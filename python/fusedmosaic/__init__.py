@@ -39,10 +39,11 @@ _SUBMODULES = ("cli", "compositing", "estimation", "evaluation", "io", "methods"
 
 def __getattr__(name: str):
     if name in _SUBMODULES:
-        _LAZY[name] = (f"fusedmosaic.{name}", None)
-    if name not in _LAZY:
+        module, attribute = f"fusedmosaic.{name}", None
+    elif name in _LAZY:
+        module, attribute = _LAZY[name]
+    else:
         raise AttributeError(f"module 'fusedmosaic' has no attribute {name!r}")
-    module, attribute = _LAZY[name]
     value = importlib.import_module(module)
     if attribute is not None:
         value = getattr(value, attribute)

@@ -118,8 +118,8 @@ def check_border(border_px: float, distance: np.ndarray,
             else f"{min(99.0, 100 * covered):.0f} % of the field of view")
     raise ValueError(f"{name} {border_px:g} covers {what} (its centre is {inner:g} px from the "
                      f"edge): the frames would be drawn {'all' if covered == 1 else 'mostly'} "
-                     f"black; give {'less than' if limit >= inner else 'at most'} "
-                     f"{min(limit, inner):g} px (a border is a thin seam, e.g. 1.5)")
+                     f"black; give {'less than' if limit == inner else 'at most'} "
+                     f"{limit:g} px (a border is a thin seam, e.g. 1.5)")  # (median <= max)
 
 
 def footprint_box(G: np.ndarray, width: int, height: int, align: int = 1, pad: int = 0

@@ -309,8 +309,7 @@ class SequentialMosaicker:
             raise ValueError("SequentialOptions.startup_min_overlap must be a fraction in [0, 1], "
                              f"got {o.startup_min_overlap}")
         for name in ("max_timestamp_gap_s", "tracker_max_speed_mm_s", "tracker_max_angular_speed",
-                     "tracker_jump_margin_mm", "tracker_jump_margin_rad", "tracker_max_gap_s",
-                     "tracker_reanchor_after", "startup_wait_frames"):
+                     "tracker_jump_margin_mm", "tracker_jump_margin_rad", "tracker_max_gap_s"):
             value = getattr(o, name)
             if not (isinstance(value, numbers.Real) and value > 0):
                 raise ValueError(f"SequentialOptions.{name} must be > 0, got {value!r}")
