@@ -380,6 +380,10 @@ def test_robot_prior_options_refused_before_the_first_frame(field, value, messag
         RobotPriorOptions(**{field: value})
 
 
+def _small_camera() -> Camera:
+    return Camera(64, 48, np.array([[80.0, 0, 31.5], [0, 80.0, 23.5], [0, 0, 1]]))
+
+
 @pytest.mark.parametrize("field, value, message", [
     ("gate_sigma_scale", 0.0, r"gate_sigma_scale must be finite and >= 1"),
     ("gate_sigma_scale", np.nan, r"gate_sigma_scale must be finite and >= 1"),
@@ -395,7 +399,7 @@ def test_sequential_options_refused_before_the_first_frame(field, value, message
     correspondence' on every frame from the start-up's end."""
     from fusedmosaic.estimation.sequential import SequentialMosaicker, SequentialOptions
 
-    camera = Camera(64, 48, np.array([[80.0, 0, 31.5], [0, 80.0, 23.5], [0, 0, 1]]))
+    camera = _small_camera()
     with pytest.raises(ValueError, match=rf"SequentialOptions\.{message}"):
         SequentialMosaicker(camera, SequentialOptions(**{field: value}))
     with pytest.raises(ValueError, match=r"options must be a SequentialOptions, got dict"):
@@ -407,7 +411,7 @@ def test_an_overflowing_rotation_vector_is_refused_naming_the_frame():
     NaN or infinite values', naming neither the frame nor the argument)."""
     from fusedmosaic.estimation.sequential import SequentialMosaicker
 
-    camera = Camera(64, 48, np.array([[80.0, 0, 31.5], [0, 80.0, 23.5], [0, 0, 1]]))
+    camera = _small_camera()
     m = SequentialMosaicker(camera)
     frame = np.random.default_rng(0).integers(0, 255, (48, 64), dtype=np.uint8)
     with pytest.raises(ValueError, match=r"frame 0: tracker_pose rotation vector \[1e\+155, "
