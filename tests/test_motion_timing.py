@@ -9,8 +9,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from fusedmosaic import _core
 from fusedmosaic.estimation.bundle import BundleOptions, run_ba_emt
-from fusedmosaic.estimation.motion import estimate_motion_sigma, motion_timing
+from fusedmosaic.estimation.motion import RELEASED, estimate_motion_sigma, motion_timing
 from fusedmosaic.estimation.sequential import SequentialOptions, run_lba_emt
 from fusedmosaic.evaluation import frame_errors
 from fusedmosaic.io import read_dataset
@@ -35,6 +36,62 @@ def test_motion_timing():
     assert motion_timing(0.0, 0.04, 0.04 + 1e-9, 0.04)[1] == 0.25
     ratio, scale = motion_timing(0.0, 1e-9, 0.04, 0.04)
     assert ratio == pytest.approx(4e7) and scale == pytest.approx(ratio / 8)
+
+
+def test_a_long_gap_breaks_the_motion_prior():
+    """An interval above MOTION_MAX_GAP_S (1 s) and 8 nominal intervals releases C_p: zero
+    velocity, no term (an infinite sigma scale), before the gap (d2) and after it (d1)."""
+    assert RELEASED == (0.0, np.inf)
+    assert motion_timing(0.0, 0.04, 60.04, 0.04) == RELEASED  # the pause before frame k
+    assert motion_timing(0.0, 60.0, 60.04, 0.04) == RELEASED  # and the frame after it
+    assert motion_timing(0.0, 0.04, 1.04, 0.04) == (25.0, pytest.approx(np.sqrt(625 * 26 / 2)))
+    assert motion_timing(0.0, 0.04, 1.05, 0.04) == RELEASED
+    assert motion_timing(0.0, 0.04, 1.05, None) == RELEASED  # nominal unknown: 1 s alone
+    # a slow recording (one frame every 2 s) stays linked up to 8 of its intervals
+    assert motion_timing(0.0, 2.0, 4.0, 2.0) == (1.0, 1.0)
+    assert motion_timing(0.0, 2.0, 18.0, 2.0)[0] == pytest.approx(8.0)
+    assert motion_timing(0.0, 2.0, 18.1, 2.0) == RELEASED
+    assert motion_timing(0.0, 0.04, 60.04, 0.04, max_gap_s=None)[0] == pytest.approx(1500.0)
+    assert motion_timing(0.0, 0.04, 60.04, 0.04, max_gap_s=100.0)[0] == pytest.approx(1500.0)
+
+
+@pytest.mark.parametrize("solver", ["bundle", "window"])
+def test_a_released_prior_adds_no_term_and_starts_at_the_previous_camera(solver):
+    """A gap between frames 3 and 4 releases the C_p of frames 4 and 5 (motion_sigma_scale
+    inf): the C++ problems leave those terms out, and frame 4, without a tracker sample, starts
+    (and, with nothing else on it, stays) at frame 3's starting pose (ratio 0)."""
+    scene = generate_fetoscopy(FetoscopyOptions(n_frames=6, width=200, height=200,
+                                                laps=6 / 152, seed=3))
+    K, poses = scene.camera_matrix, scene.poses
+
+    def timing(k, gap):
+        return RELEASED if gap and k in (4, 5) else (1.0, 1.0)
+
+    def solve(gap):
+        if solver == "bundle":
+            ba = _core.BundleAdjuster(K, _core.BundleAdjusterOptions())
+            for k in range(6):
+                ba.add_frame(k, poses[k] if k != 4 else poses[3],
+                             poses[k] if k != 4 else None, *timing(k, gap))
+            ba.set_plane(scene.plane)
+            summary = ba.solve()
+            return summary.num_motion_blocks, summary.num_residuals, ba.pose(4)
+        w = _core.SlidingWindow(K, _core.SlidingWindowOptions())
+        w.set_plane(scene.plane)
+        for k in range(6):
+            w.add_frame(k, poses[k] if k < 3 else None, poses[k] if k != 4 else None,
+                        fixed=k < 3, motion_ratio=timing(k, gap)[0],
+                        motion_sigma_scale=timing(k, gap)[1])
+        summary = w.step([])
+        return None, summary.num_residuals, w.pose(4)
+
+    motion, residuals, _ = solve(gap=False)
+    motion_gap, residuals_gap, pose4 = solve(gap=True)
+    assert residuals - residuals_gap == 2 * 6  # two 6-residual C_p terms fewer
+    if solver == "bundle":
+        assert (motion, motion_gap) == (4, 2)
+    # frame 3's starting pose, its tracker sample (the solve then moves frame 3, not frame 4)
+    np.testing.assert_allclose(pose4, poses[3], atol=1e-9)
 
 
 def test_motion_sigma_from_a_recording_in_any_row_order_with_gaps(tmp_path):

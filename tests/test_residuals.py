@@ -345,9 +345,14 @@ def test_constant_velocity_ratio_repeats_the_motion(triple):
     r, _ = _core.evaluate_constant_velocity(x_km2, x_km1, x_k, sigma, ratio=0.5)
     np.testing.assert_allclose(r, x_k - predict_constant_velocity(x_km2, x_km1, 0.5),
                                atol=1e-12)
-    with pytest.raises(ValueError, match="motion_ratio and motion_sigma_scale must be finite "
-                                         "and > 0"):
-        _core.evaluate_constant_velocity(x_km2, x_km1, x_k, ratio=0.0)
+    # ratio 0 (after a gap that breaks the prior: zero velocity) predicts frame k-1's pose
+    r, _ = _core.evaluate_constant_velocity(x_km2, x_km1, x_k, sigma, ratio=0.0)
+    np.testing.assert_allclose(r, x_k - x_km1, atol=1e-12)
+    for bad in (-0.5, np.inf, np.nan):
+        with pytest.raises(ValueError, match=r"evaluate_constant_velocity: motion_ratio must be "
+                           r"finite and >= 0 and motion_sigma_scale > 0 \(inf: no motion "
+                           r"prior\), got"):
+            _core.evaluate_constant_velocity(x_km2, x_km1, x_k, ratio=bad)
 
 
 def test_constant_velocity_bad_input(triple):

@@ -392,6 +392,7 @@ def _small_camera() -> Camera:
     ("history_steps", -1, r"history_steps must be an integer >= 0, got -1"),
     ("tracker_reanchor_after", 0.5, r"tracker_reanchor_after must be an integer >= 1"),
     ("startup_wait_frames", True, r"startup_wait_frames must be an integer >= 1, got True"),
+    ("motion_max_gap_s", np.nan, r"motion_max_gap_s must be > 0, got nan"),
 ])
 def test_sequential_options_refused_before_the_first_frame(field, value, message):
     """Before: accepted; gate_sigma_scale 0 raised 'scale: must be finite and >= 1' on every

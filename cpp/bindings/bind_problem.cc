@@ -203,7 +203,8 @@ void BindProblem(py::module_& m) {
           "emt_measurement : (6,) float64 EMT pose z_k [r, t], or None\n"
           "motion_ratio, motion_sigma_scale : timing of the constant-velocity prior over frames\n"
           "    id-2, id-1, id ((t_k - t_k-1) / (t_k-1 - t_k-2) and the sigma_p multiplier; 1, 1\n"
-          "    for evenly spaced frames; estimation.motion.motion_timing)")
+          "    for evenly spaced frames; 0, inf: no prior across a long gap;\n"
+          "    estimation.motion.motion_timing)")
       .def(
           "add_pair",
           [](BundleAdjuster& self, int frame_l, int frame_m, const Mat& points_l,

@@ -119,7 +119,8 @@ void BindSlidingWindow(py::module_& m) {
           "initial, emt_measurement : (6,) float64 cam_from_world [r, t] or None\n"
           "fixed : already estimated (enters the window fixed; needs initial)\n"
           "motion_ratio, motion_sigma_scale : timing of the constant-velocity prior linking this\n"
-          "    camera to the two preceding ones (1, 1: evenly spaced; see BundleAdjuster)")
+          "    camera to the two preceding ones (1, 1: evenly spaced; 0, inf: no prior across a\n"
+          "    long gap, the camera starting at the preceding one; see BundleAdjuster)")
       .def("set_emt_sigma_scale", &SlidingWindow::SetEmtSigmaScale, "frame_id"_a, "scale"_a)
       .def(
           "add_pair",

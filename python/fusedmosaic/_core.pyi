@@ -289,8 +289,9 @@ class BundleAdjuster:
     ) -> None:
         """Adds a frame. cam_from_world : (6,) initial pose; emt_measurement : (6,) z_k or None;
         motion_ratio, motion_sigma_scale : timing of the constant-velocity prior over frames
-        id-2, id-1, id (1, 1 for evenly spaced frames; estimation.motion.motion_timing).
-        ValueError for a duplicate id or a timing that is not finite and > 0."""
+        id-2, id-1, id (1, 1 for evenly spaced frames; 0, inf: no prior across a long gap;
+        estimation.motion.motion_timing). ValueError for a duplicate id, a ratio that is not
+        finite and >= 0 or a sigma scale that is not > 0."""
 
     def add_pair(
         self, frame_l: int, frame_m: int, points_l: _ArrayLike, points_m: _ArrayLike
@@ -396,7 +397,8 @@ class SlidingWindow:
         """initial, emt_measurement : (6,) cam_from_world or None; ids must increase.
         fixed : already estimated (enters the window fixed; needs initial).
         motion_ratio, motion_sigma_scale : timing of the constant-velocity prior linking this
-        camera to the two preceding ones (1, 1: evenly spaced; see BundleAdjuster.add_frame)."""
+        camera to the two preceding ones (1, 1: evenly spaced; 0, inf: no prior across a long
+        gap, the camera starting at the preceding one; see BundleAdjuster.add_frame)."""
 
     def set_emt_sigma_scale(self, frame_id: int, scale: float) -> None:
         """Inflates a frame's tracker standard deviations (gating), scale >= 1."""

@@ -329,6 +329,7 @@ SolveSummary BundleAdjuster::Solve() {
       auto km1 = frames_.find(id - 1);
       auto km2 = frames_.find(id - 2);
       if (km1 == frames_.end() || km2 == frames_.end()) continue;
+      if (!MotionPriorLinked(frame.motion_sigma_scale)) continue;
       motion_blocks.push_back(problem.AddResidualBlock(
           ConstantVelocityCostFunctor::Create(options_.motion_sigma * frame.motion_sigma_scale,
                                               frame.motion_ratio),

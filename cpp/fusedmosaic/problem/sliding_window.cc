@@ -438,7 +438,8 @@ WindowStepSummary SlidingWindow::SolveStep(const std::vector<int>& free_ids,
     }
     if (c.use_motion_prior) {
       auto it = frames_.find(id);
-      if (it != frames_.begin() && std::prev(it) != frames_.begin()) {
+      if (MotionPriorLinked(f.motion_sigma_scale) && it != frames_.begin() &&
+          std::prev(it) != frames_.begin()) {
         auto prev1 = std::prev(it);
         auto prev2 = std::prev(prev1);
         motion_blocks.push_back(problem.AddResidualBlock(

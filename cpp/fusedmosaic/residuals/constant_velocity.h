@@ -78,14 +78,21 @@ struct ConstantVelocityCostFunctor {
   double ratio_;
 };
 
-// Checks the timing arguments of an add_frame: ratio and sigma scale finite and > 0.
+// Checks the timing arguments of an add_frame: ratio finite and >= 0, sigma scale > 0. An
+// infinite sigma scale releases the prior (no C_p term for the frame: the frame follows a gap
+// too long for the velocity to carry over, estimation/motion.py motion_timing); ratio 0 then
+// predicts the frame at the preceding camera (zero velocity), its starting pose when it has no
+// tracker sample.
 inline void CheckMotionTiming(double ratio, double sigma_scale, const char* what) {
-  if (!(std::isfinite(ratio) && ratio > 0 && std::isfinite(sigma_scale) && sigma_scale > 0)) {
+  if (!(std::isfinite(ratio) && ratio >= 0 && !std::isnan(sigma_scale) && sigma_scale > 0)) {
     throw std::invalid_argument(std::string(what) +
-                                ": motion_ratio and motion_sigma_scale must be finite and > 0, "
-                                "got " + std::to_string(ratio) + " and " +
-                                std::to_string(sigma_scale));
+                                ": motion_ratio must be finite and >= 0 and motion_sigma_scale "
+                                "> 0 (inf: no motion prior), got " + std::to_string(ratio) +
+                                " and " + std::to_string(sigma_scale));
   }
 }
+
+// Whether a frame's timing keeps its constant-velocity term (see CheckMotionTiming).
+inline bool MotionPriorLinked(double sigma_scale) { return std::isfinite(sigma_scale); }
 
 }  // namespace fusedmosaic

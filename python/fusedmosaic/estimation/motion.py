@@ -24,9 +24,21 @@ PAPER_MOTION_SIGMA = np.array([0.0044, 0.0044, 0.0044, 15.2178, 15.2178, 15.2178
 # count as evenly spaced (camera clock jitter): the prior is then exactly Eq. 16.
 EVEN_SPACING_TOLERANCE = 0.01
 
+# An interval longer than this (s) and than GAP_INTERVALS nominal intervals breaks the
+# constant-velocity prior (motion_timing): the velocity before a pause, a dropout or a
+# restarted recording says nothing about the motion after it. At 25 frames/s this is a
+# 25-frame gap, where Eq. 16 scaled by motion_timing's Wiener model already allows
+# sigma_p x 88 (0.39 rad, 1.3 m); the interval bound keeps slow recordings (1 frame/s) linked.
+MOTION_MAX_GAP_S = 1.0
+GAP_INTERVALS = 8.0
 
-def motion_timing(t_km2: float, t_km1: float, t_k: float, nominal: float | None
-                  ) -> tuple[float, float]:
+# motion_timing's answer for a broken prior: zero velocity (the frame starts at the preceding
+# camera when it has no tracker sample), no C_p term (an infinite sigma_p).
+RELEASED = (0.0, float("inf"))
+
+
+def motion_timing(t_km2: float, t_km1: float, t_k: float, nominal: float | None,
+                  max_gap_s: float | None = MOTION_MAX_GAP_S) -> tuple[float, float]:
     """Timing of the constant-velocity prior over frames k-2, k-1, k (not in the paper, whose
     frames are evenly spaced): (motion_ratio, motion_sigma_scale) for the C++ add_frame.
 
@@ -37,13 +49,21 @@ def motion_timing(t_km2: float, t_km1: float, t_k: float, nominal: float | None
     (the spacing Sigma_p was estimated at) sigma_p is scaled by
     sqrt((d2/T)^2 (d2/T + d1/T) / 2), 1 for d1 = d2 = T. Returns (1, 1) (Eq. 16 exactly) when a
     time or the nominal interval is unknown, the times do not increase, or the spacing is even
-    within EVEN_SPACING_TOLERANCE."""
+    within EVEN_SPACING_TOLERANCE; RELEASED, (0, inf): no prior, zero velocity, when d1 or d2
+    exceeds max_gap_s (seconds; None: never) and GAP_INTERVALS nominal intervals.
+    Extrapolating across such a gap moved frames 1e3-1e5 px off: a tracker lost at frame 12 of
+    a sequence paused for 60 s at frame 15 had the last motion repeated 1500 times."""
     times = np.array([t_km2, t_km1, t_k], np.float64)
-    if nominal is None or not (np.isfinite(nominal) and nominal > 0) or not (
-            np.isfinite(times).all()):
+    if not np.isfinite(times).all():
         return 1.0, 1.0
     d1, d2 = times[1] - times[0], times[2] - times[1]
     if d1 <= 0 or d2 <= 0:
+        return 1.0, 1.0
+    known = nominal is not None and bool(np.isfinite(nominal) and nominal > 0)
+    if max_gap_s is not None and max(d1, d2) > max(max_gap_s, GAP_INTERVALS * nominal
+                                                    if known else 0.0):
+        return RELEASED
+    if not known:
         return 1.0, 1.0
     u1, u2 = d1 / nominal, d2 / nominal
     tol = EVEN_SPACING_TOLERANCE

@@ -76,7 +76,11 @@ from fusedmosaic.estimation.consistency import (
 )
 from fusedmosaic.estimation.guard import exclusive_call
 from fusedmosaic.estimation.keyframes import KeyframeIndex
-from fusedmosaic.estimation.motion import motion_timing, predict_constant_velocity
+from fusedmosaic.estimation.motion import (
+    MOTION_MAX_GAP_S,
+    motion_timing,
+    predict_constant_velocity,
+)
 from fusedmosaic.estimation.plane import estimate_plane
 from fusedmosaic.estimation.world import (
     plane_from_aligned,
@@ -109,7 +113,8 @@ class SequentialOptions:
     Registration: ``features`` (detector "sift" or "orb"), ``matching`` (ratio test, RANSAC,
     threads), ``max_points_per_pair`` inliers kept per pair.
     Costs: ``sigma_v_px`` (px), ``motion_sigma`` and ``emt_sigma`` (rad x3, mm x3; None = the
-    paper's appendix values), ``loss``, ``linear_solver``, ``max_iterations``.
+    paper's appendix values), ``loss``, ``linear_solver``, ``max_iterations``;
+    ``motion_max_gap_s`` (s): a longer frame interval breaks the motion prior.
     Start-up: the first ``bootstrap_frames`` frames are adjusted together (BA+EMT) before the
     window starts, matched by predicted overlap (``startup_min_overlap``, a fraction);
     ``startup_wait_frames`` bounds the wait for a tracker.
@@ -214,6 +219,10 @@ class SequentialOptions:
     # moved for good), as the pCLE robot gate re-anchors.
     tracker_max_gap_s: float = 1.0
     tracker_reanchor_after: int = 3
+    # A frame interval longer than this (s) and than 8 nominal intervals breaks the
+    # constant-velocity prior (motion.motion_timing): no C_p across it, zero velocity after it.
+    # Extrapolated across a 60 s pause with the tracker lost, frames were 1e3-1e5 px off.
+    motion_max_gap_s: float = MOTION_MAX_GAP_S
     # Frames the start-up keeps while it waits for a registered pair with tracker poses (the
     # tracker switched on late); older ones are handed out unplaced. 2 x bootstrap_frames.
     startup_wait_frames: int = 80
@@ -309,7 +318,8 @@ class SequentialMosaicker:
             raise ValueError("SequentialOptions.startup_min_overlap must be a fraction in [0, 1], "
                              f"got {o.startup_min_overlap}")
         for name in ("max_timestamp_gap_s", "tracker_max_speed_mm_s", "tracker_max_angular_speed",
-                     "tracker_jump_margin_mm", "tracker_jump_margin_rad", "tracker_max_gap_s"):
+                     "tracker_jump_margin_mm", "tracker_jump_margin_rad", "tracker_max_gap_s",
+                     "motion_max_gap_s"):
             value = getattr(o, name)
             if not (isinstance(value, numbers.Real) and value > 0):
                 raise ValueError(f"SequentialOptions.{name} must be > 0, got {value!r}")
@@ -934,7 +944,8 @@ class SequentialMosaicker:
         if k - 2 not in times or k - 1 not in times or k not in times:
             return 1.0, 1.0
         nominal = float(np.median(self._intervals)) if self._intervals else None
-        return motion_timing(times[k - 2], times[k - 1], times[k], nominal)
+        return motion_timing(times[k - 2], times[k - 1], times[k], nominal,
+                             self.options.motion_max_gap_s)
 
     def _predict_pose(self, timestamp: float | None = None) -> np.ndarray | None:
         """Constant-velocity prediction from the last two estimated poses, the motion scaled by
@@ -943,7 +954,8 @@ class SequentialMosaicker:
             return None
         (pose_a, ta), (pose_b, tb) = (self._poses[i] for i in sorted(self._poses)[-2:])
         # the ratio of motion_timing with b's interval as the nominal one (1 when within 1 %)
-        ratio = 1.0 if timestamp is None else motion_timing(ta, tb, timestamp, tb - ta)[0]
+        ratio = 1.0 if timestamp is None else motion_timing(
+            ta, tb, timestamp, tb - ta, self.options.motion_max_gap_s)[0]
         return predict_constant_velocity(pose_a, pose_b, ratio)
 
     def _bootstrap(self, final_step: bool = False) -> bool:
