@@ -433,3 +433,20 @@ def test_robot_prior_colour_frames_of_an_unsupported_type_are_refused(pcle, dtyp
         m.add_frame(colour, 0.0, None)
     with pytest.raises(ValueError, match=r"frame 0: image must be a numpy array, got list"):
         m.add_frame(grey.tolist(), 0.0, None)
+
+
+def test_robot_prior_frames_of_another_pixel_type_are_refused_and_change_nothing(pcle,
+                                                                                  baseline):
+    """A float 0-1 frame among uint8 ones (a capture path switching) scored c_match ~0.001: the
+    SSIM range follows the pixel type. Refused naming both types; the run then goes on as the
+    baseline; reset() takes a new first type."""
+    m = RobotPriorMosaicker(pcle.camera)
+    out = _feed(m, pcle, range(BAD))
+    as_float = np.asarray(pcle.frames[BAD], np.float64) / 255.0
+    with pytest.raises(ValueError, match=r"frame 10: pixel type float64 differs from the first "
+                       r"frame's uint8; all frames of a sequence must have one pixel type"):
+        m.add_frame(as_float, pcle.timestamps[BAD], pcle.robot_xy_um[BAD])
+    _feed(m, pcle, range(BAD, len(pcle)), out=out)
+    np.testing.assert_array_equal(_positions(out), _positions(baseline))
+    m.reset()
+    assert m.add_frame(as_float, 0.0, None).index == 0

@@ -455,6 +455,7 @@ class RobotPriorMosaicker:
     def _reset(self) -> None:
         self._count = 0
         self._last_timestamp = -np.inf
+        self._pixel_type: np.dtype | None = None  # the first image's, which every image keeps
         self._anchor: _Anchor | None = None
         self._robot_origin_um = _NAN2  # robot position at frame 0
         self._robot_anchor: tuple[np.ndarray, np.ndarray] | None = None  # (robot µm, X_f)
@@ -495,6 +496,12 @@ class RobotPriorMosaicker:
                              f"{type(image).__name__}")
         if image.dtype.kind not in "uif":
             raise ValueError(f"frame {index}: unsupported pixel type {image.dtype}")
+        if self._pixel_type is not None and image.dtype != self._pixel_type:
+            # c_match's SSIM range follows the type (uint8: 0-255, others: the overlap's own
+            # range): a float 0-1 frame after uint8 ones scored c_match ~0.001
+            raise ValueError(
+                f"frame {index}: pixel type {image.dtype} differs from the first frame's "
+                f"{self._pixel_type}; all frames of a sequence must have one pixel type")
         image = gray_from_color(image)
         if image.ndim != 2:
             raise ValueError(
@@ -553,8 +560,9 @@ class RobotPriorMosaicker:
 
         Parameters
         ----------
-        image : (H, W) uint8/float gray or (H, W, 3) BGR, the camera's size; may be None for the
-            ``robot`` estimate (which does not look at images).
+        image : (H, W) uint8/float gray or (H, W, 3) BGR, the camera's size and the first
+            image's pixel type; may be None for the ``robot`` estimate (which does not look at
+            images).
         timestamp : s, strictly increasing.
         robot_xy_um : (2,) robot position at the frame time (µm, image axes), or None / NaN when
             the robot has no sample for this frame.
@@ -562,9 +570,10 @@ class RobotPriorMosaicker:
         Raises
         ------
         ValueError
-            Naming the frame: a size differing from the camera's, bad pixel values or shapes, a
-            timestamp not after the previous one or beyond the bounds (``MAX_TIMESTAMP_S``,
-            ``MAX_FRAME_GAP_S``), a robot position beyond ``MAX_ROBOT_UM``.
+            Naming the frame: a size differing from the camera's, a pixel type differing from
+            the first image's, bad pixel values or shapes, a timestamp not after the previous
+            one or beyond the bounds (``MAX_TIMESTAMP_S``, ``MAX_FRAME_GAP_S``), a robot
+            position beyond ``MAX_ROBOT_UM``.
         TypeError
             Naming the frame and the argument: a timestamp or robot position that is not real
             numbers (a string, None, complex).
@@ -593,10 +602,13 @@ class RobotPriorMosaicker:
         # state is put back as it was, so the caller can give the frame again or go on.
         saved = self._state()
         try:
-            return self._place(i, t, robot, gray, t_start)
+            result = self._place(i, t, robot, gray, t_start)
         except BaseException:
             self._restore(saved)
             raise
+        if image is not None and self._pixel_type is None:
+            self._pixel_type = np.asarray(image).dtype
+        return result
 
     # Everything _place changes, for _restore. Copied shallowly (the values are replaced, the
     # innovations deque is appended to); the filter, changed in place, by its snapshot (a
