@@ -102,7 +102,7 @@ def test_motion_sigma_from_a_recording_in_any_row_order_with_gaps(tmp_path):
         constant_velocity_residuals,
         motion_sigma_from_recording,
     )
-    from fusedmosaic.estimation.world import poses_to_aligned, world_rotation
+    from fusedmosaic.estimation.world import poses_to_aligned, world_alignment
     from fusedmosaic.io import write_poses_csv
 
     poses = generate_fetoscopy(FetoscopyOptions(n_frames=40, seed=3)).poses
@@ -117,7 +117,7 @@ def test_motion_sigma_from_a_recording_in_any_row_order_with_gaps(tmp_path):
                                rtol=1e-12)
     keep = np.r_[0:20, 25:40]  # frames 20-24 missing: the triples across the gap are left out
     write_poses_csv(tmp_path / "gap.csv", ids[keep], poses[keep])
-    aligned = poses_to_aligned(poses[keep], world_rotation(poses[keep]))
+    aligned = poses_to_aligned(poses[keep], world_alignment(poses[keep]))
     r = np.vstack([constant_velocity_residuals(aligned[:20]),
                    constant_velocity_residuals(aligned[20:])])
     halves = np.sqrt(np.mean(r**2, axis=0))

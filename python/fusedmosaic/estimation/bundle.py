@@ -28,7 +28,7 @@ from fusedmosaic.estimation.world import (
     plane_from_aligned,
     poses_from_aligned,
     poses_to_aligned,
-    world_rotation,
+    world_alignment,
 )
 from fusedmosaic.methods import MethodResult
 from fusedmosaic.registration.features import FeatureOptions, extract_features
@@ -218,18 +218,19 @@ def _pair_details(front: FrontEnd) -> dict:
 def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None = None,
                use_emt: bool = True) -> MethodResult:
     """BAVis+EMT (use_emt=True, Eq. 17-20) or BAVis (visual cost only). With the EMT, the
-    adjustment runs in a world rotated so that the first tracked camera is not near a rotation
-    of pi (estimation/world.py); poses and plane are returned in the tracker's world."""
+    adjustment runs in a world aligned on the first tracked camera when that is near a rotation
+    of pi or far from the tracker's origin (estimation/world.py); poses and plane are returned
+    in the tracker's world."""
     K = dataset.camera.require_camera_matrix("ba-emt" if use_emt else "ba")
     if options is not None and options.emt_sigma is not None:  # before minutes of matching
         check_emt_sigma(options.emt_sigma, "BundleOptions.emt_sigma")
-    rotation = world_rotation(dataset.cam_from_world) if use_emt else None
-    if rotation is not None:
+    world = world_alignment(dataset.cam_from_world) if use_emt else None
+    if world is not None:
         aligned = replace(dataset, cam_from_world=poses_to_aligned(dataset.cam_from_world,
-                                                                   rotation))
+                                                                   world))
         result = run_bundle(aligned, progress=progress, options=options, use_emt=use_emt)
-        result.poses = poses_from_aligned(result.poses, rotation)
-        result.plane = plane_from_aligned(result.plane, rotation)
+        result.poses = poses_from_aligned(result.poses, world)
+        result.plane = plane_from_aligned(result.plane, world)
         return result
     o = options or BundleOptions()
     n = len(dataset.frames)

@@ -83,10 +83,11 @@ from fusedmosaic.estimation.motion import (
 )
 from fusedmosaic.estimation.plane import estimate_plane
 from fusedmosaic.estimation.world import (
+    WorldAlignment,
     plane_from_aligned,
     poses_from_aligned,
     poses_to_aligned,
-    world_rotation,
+    world_alignment,
 )
 from fusedmosaic.io.tracking import MAX_TRANSLATION_MM, check_stream_timestamp
 from fusedmosaic.methods import MethodResult
@@ -412,8 +413,9 @@ class SequentialMosaicker:
         self._trusted: tuple | None = None  # last tracker sample kept: (time, centre, R)
         self._implausible_run = 0  # tracker samples dropped in a row (re-anchor after 3)
         # The world the window works in (estimation/world.py): decided by the first tracker
-        # sample, rotated when that camera is near a rotation of pi in the tracker's frame.
-        self._world_rotation: np.ndarray | None = None
+        # sample, rotated when that camera is near a rotation of pi in the tracker's frame and
+        # centred on it when it is far from the tracker's origin.
+        self._world: WorldAlignment | None = None
         # C++ summaries of the last history_steps window steps (each frame's plane is in its
         # FrameResult).
         self.step_summaries: deque = deque(maxlen=o.history_steps)
@@ -435,7 +437,7 @@ class SequentialMosaicker:
         """The current plane pi = n / d in the tracker's world (None before the start-up)."""
         if self._plane is None:
             return None
-        return plane_from_aligned(self._plane, self._world_rotation)
+        return plane_from_aligned(self._plane, self._world)
 
     @staticmethod
     def _frame_outline(camera) -> np.ndarray:
@@ -568,7 +570,7 @@ class SequentialMosaicker:
               "num_steps", "_finalized", "_boot_feats", "_boot_matches", "_loop_feats",
               "_loop_centroids", "_loop_G", "_pair_H", "_recent_G", "_poses", "pair_counts",
               "_mirror_frames", "_mirror_pairs", "_mirror_plane", "_implausible_run",
-              "_world_rotation", "_times", "_intervals", "_unanchored", "bootstrap_summary")
+              "_world", "_times", "_intervals", "_unanchored", "bootstrap_summary")
 
     def _save(self) -> dict:
         """What a call may change, copied (shallowly: the values it replaces, never mutates)."""
@@ -688,6 +690,27 @@ class SequentialMosaicker:
             pending.append(p)
         self._pending = pending
 
+    def _realign_startup(self, sample: np.ndarray, timestamp: float) -> np.ndarray:
+        """During the start-up, after a re-anchoring on `sample` (aligned in the current
+        world): the world decided again from it, the pending samples and the reference moved
+        into it; returns `sample` in the new world."""
+        raw = poses_from_aligned(sample, self._world)
+        world = world_alignment(raw)
+        if world is None and self._world is None:
+            return sample
+
+        def move(pose):
+            return None if pose is None else poses_to_aligned(
+                poses_from_aligned(pose, self._world), world)
+
+        self._pending = [dict(p, tracker=move(p["tracker"]), sample=move(p.get("sample")))
+                         for p in self._pending]
+        self._world, self._startup_plane = world, None
+        sample = poses_to_aligned(raw, world)
+        R = _core.rotation_from_angle_axis(sample[:3])
+        self._trusted = (timestamp, -R.T @ sample[3:], R)
+        return sample
+
     def _add_frame(self, k, image, timestamp, tracker_pose) -> FrameResult:
         self._next_id += 1
         if k - 1 in self._times:
@@ -696,8 +719,8 @@ class SequentialMosaicker:
         self._last_timestamp = timestamp
         if tracker_pose is not None:
             if self._trusted is None:  # the first tracker sample decides the world
-                self._world_rotation = world_rotation(tracker_pose)
-            tracker_pose = poses_to_aligned(tracker_pose, self._world_rotation)
+                self._world = world_alignment(tracker_pose)
+            tracker_pose = poses_to_aligned(tracker_pose, self._world)
         verdict = None if tracker_pose is None else self._plausible(timestamp, tracker_pose)
         dropped = verdict == "drop"
         sample = tracker_pose  # kept with a dropped frame: a re-anchoring may restore it
@@ -705,6 +728,9 @@ class SequentialMosaicker:
             tracker_pose = None
         if verdict == "reanchor" and self._plane is None:
             self._reanchor_startup()
+            # the world was decided by the old reference (e.g. a bad first sample 10 m off,
+            # which made a far origin of its own): decided again by the new one
+            tracker_pose = sample = self._realign_startup(sample, timestamp)
         timings: dict[str, float] = {}
 
         t0 = time.perf_counter()
@@ -1090,7 +1116,7 @@ class SequentialMosaicker:
             status = ("dead-reckoned" if dead_reckoned else
                       "placed" if p["visual"] else "prior-only")
             self._finalized.append(FrameResult(
-                k, p["timestamp"], G, poses_from_aligned(pose, self._world_rotation), status,
+                k, p["timestamp"], G, poses_from_aligned(pose, self._world), status,
                 True, k in gated or p["dropped"], p["timings"], self.plane,
                 tracker_dropped=p["dropped"]))
         for old in sorted(self._poses)[:-2]:
@@ -1134,7 +1160,7 @@ class SequentialMosaicker:
         plane, reference = self._plane, self._reference_pose
         if plane is None and k in self._startup_G:
             reported = (np.full(6, np.nan) if pose is None
-                        else poses_from_aligned(pose, self._world_rotation))
+                        else poses_from_aligned(pose, self._world))
             return FrameResult(k, timestamp, self._startup_G[k].copy(), reported, "provisional",
                                False, timings=timings)
         if plane is None:
@@ -1147,7 +1173,7 @@ class SequentialMosaicker:
                                "unplaced: waiting for the first window step", False,
                                timings=timings)
         G = _core.transfer_homography(reference, pose, plane, self.K)
-        return FrameResult(k, timestamp, G, poses_from_aligned(pose, self._world_rotation),
+        return FrameResult(k, timestamp, G, poses_from_aligned(pose, self._world),
                            "provisional", False, timings=timings)
 
 
