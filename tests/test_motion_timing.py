@@ -32,27 +32,35 @@ def test_motion_timing():
     assert ratio == pytest.approx(0.5) and scale == pytest.approx(np.sqrt(1 * 3 / 2))
     for args in ((0.0, 0.04, 0.12, None), (0.0, np.nan, 0.12, 0.04), (0.0, 0.04, 0.04, 0.04)):
         assert motion_timing(*args) == (1.0, 1.0)  # unknown or not increasing: Eq. 16
-    # nearly coincident times: the prior is not made far stiffer, nor a tiny d1 extrapolated
-    assert motion_timing(0.0, 0.04, 0.04 + 1e-9, 0.04)[1] == 0.25
-    ratio, scale = motion_timing(0.0, 1e-9, 0.04, 0.04)
-    assert ratio == pytest.approx(4e7) and scale == pytest.approx(ratio / 8)
+    # close times: the prior is not made far stiffer, nor a short d1 extrapolated far
+    assert motion_timing(0.0, 0.04, 0.046, 0.04) == (pytest.approx(0.15), 0.25)
+    ratio, scale = motion_timing(0.0, 0.006, 0.046, 0.04)
+    assert ratio == pytest.approx(40 / 6) and scale == pytest.approx(40 / 6 / 8)  # ratio / 8
 
 
 def test_a_long_gap_breaks_the_motion_prior():
-    """An interval above MOTION_MAX_GAP_S (1 s) and 8 nominal intervals releases C_p: zero
-    velocity, no term (an infinite sigma scale), before the gap (d2) and after it (d1)."""
+    """An interval more than 8 times the other, or above MOTION_MAX_GAP_S (1 s) and 8 nominal
+    intervals, releases C_p: zero velocity, no term (an infinite sigma scale), before the gap
+    (d2) and after it (d1)."""
     assert RELEASED == (0.0, np.inf)
     assert motion_timing(0.0, 0.04, 60.04, 0.04) == RELEASED  # the pause before frame k
     assert motion_timing(0.0, 60.0, 60.04, 0.04) == RELEASED  # and the frame after it
-    assert motion_timing(0.0, 0.04, 1.04, 0.04) == (25.0, pytest.approx(np.sqrt(625 * 26 / 2)))
-    assert motion_timing(0.0, 0.04, 1.05, 0.04) == RELEASED
-    assert motion_timing(0.0, 0.04, 1.05, None) == RELEASED  # nominal unknown: 1 s alone
+    assert motion_timing(0.0, 0.04, 0.36, 0.04)[0] == pytest.approx(8.0)  # 7 frames dropped
+    assert motion_timing(0.0, 0.04, 0.37, 0.04) == RELEASED
+    assert motion_timing(0.0, 0.33, 0.37, 0.04) == RELEASED
+    assert motion_timing(0.0, 0.04, 0.04 + 1e-9, 0.04) == RELEASED  # a repeated frame
+    assert motion_timing(0.0, 1e-9, 0.04, 0.04) == RELEASED
+    # both intervals long: 1 s and 8 nominal intervals (1 s alone when it is unknown)
+    assert motion_timing(0.0, 1.0, 2.0, 0.04)[0] == pytest.approx(1.0)
+    assert motion_timing(0.0, 1.05, 2.1, 0.04) == RELEASED
+    assert motion_timing(0.0, 1.05, 2.1, None) == RELEASED
     # a slow recording (one frame every 2 s) stays linked up to 8 of its intervals
     assert motion_timing(0.0, 2.0, 4.0, 2.0) == (1.0, 1.0)
     assert motion_timing(0.0, 2.0, 18.0, 2.0)[0] == pytest.approx(8.0)
     assert motion_timing(0.0, 2.0, 18.1, 2.0) == RELEASED
-    assert motion_timing(0.0, 0.04, 60.04, 0.04, max_gap_s=None)[0] == pytest.approx(1500.0)
-    assert motion_timing(0.0, 0.04, 60.04, 0.04, max_gap_s=100.0)[0] == pytest.approx(1500.0)
+    assert motion_timing(0.0, 16.0, 32.0, 2.0)[0] == pytest.approx(1.0)
+    assert motion_timing(0.0, 17.0, 34.0, 2.0) == RELEASED
+    assert motion_timing(0.0, 17.0, 34.0, 2.0, max_gap_s=None)[0] == pytest.approx(1.0)
 
 
 @pytest.mark.parametrize("solver", ["bundle", "window"])

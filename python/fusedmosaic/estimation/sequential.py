@@ -115,7 +115,8 @@ class SequentialOptions:
     threads), ``max_points_per_pair`` inliers kept per pair.
     Costs: ``sigma_v_px`` (px), ``motion_sigma`` and ``emt_sigma`` (rad x3, mm x3; None = the
     paper's appendix values), ``loss``, ``linear_solver``, ``max_iterations``;
-    ``motion_max_gap_s`` (s): a longer frame interval breaks the motion prior.
+    ``motion_max_gap_s`` (s): a longer frame interval (or one 8 x its neighbour) breaks the
+    motion prior.
     Start-up: the first ``bootstrap_frames`` frames are adjusted together (BA+EMT) before the
     window starts, matched by predicted overlap (``startup_min_overlap``, a fraction);
     ``startup_wait_frames`` bounds the wait for a tracker.
@@ -220,9 +221,10 @@ class SequentialOptions:
     # moved for good), as the pCLE robot gate re-anchors.
     tracker_max_gap_s: float = 1.0
     tracker_reanchor_after: int = 3
-    # A frame interval longer than this (s) and than 8 nominal intervals breaks the
-    # constant-velocity prior (motion.motion_timing): no C_p across it, zero velocity after it.
-    # Extrapolated across a 60 s pause with the tracker lost, frames were 1e3-1e5 px off.
+    # A frame interval longer than this (s) and than 8 nominal intervals, or 8 times the one
+    # before or after it, breaks the constant-velocity prior (motion.motion_timing): no C_p
+    # across it, zero velocity after it. Extrapolated across a pause of 0.5-60 s with the
+    # tracker lost, frames were 1e3-1e5 px off.
     motion_max_gap_s: float = MOTION_MAX_GAP_S
     # Frames the start-up keeps while it waits for a registered pair with tracker poses (the
     # tracker switched on late); older ones are handed out unplaced. 2 x bootstrap_frames.
