@@ -389,3 +389,30 @@ def test_solve_releases_the_gil(scene):
     # Were the GIL held for the whole solve, the loop could tick at most ~2 times (before the
     # worker enters solve() and after it returns); a loaded machine still gives far more than 10.
     assert ticks >= 10
+
+
+def test_plane_relative_std_on_request(scene):
+    """plane_std: sqrt(trace(Cov_pi)) / |pi| at the solution (the sequential start-up's check):
+    NaN unless asked for, or with the BAVis gauge; larger with fewer pairs; it agrees with the
+    spread of pi over noise draws."""
+    summary = build(scene["emt"], scene["noisy"], PLANE_GUESS, emt=scene["emt"]).solve()
+    assert np.isnan(summary.plane_relative_std)
+    assert np.isnan(build(scene["emt"], scene["noisy"], PLANE_GUESS, plane_std=True)
+                    .solve().plane_relative_std)  # no EMT: the gauge holds |pi|
+    full = build(scene["emt"], scene["noisy"], PLANE_GUESS, emt=scene["emt"], plane_std=True)
+    few = build(scene["emt"], scene["noisy"][:3], PLANE_GUESS, emt=scene["emt"],
+                plane_std=True)
+    s_full, s_few = full.solve().plane_relative_std, few.solve().plane_relative_std
+    assert 0 < s_full < s_few < np.inf
+    assert full.solve().as_dict()["plane_relative_std"] == pytest.approx(s_full, rel=1e-6)
+    rng = np.random.default_rng(3)
+    planes = []
+    for _ in range(20):
+        pairs = plane_point_pairs(scene["poses"], scene["plane"], K, SIZE, rng, n_points=30,
+                                  noise_px=1.0, max_distance=9.0)
+        emt = scene["poses"] + rng.normal(0.0, 1.0, scene["poses"].shape) * EMT_NOISE
+        ba = build(emt, pairs, PLANE_GUESS, emt=emt)
+        ba.solve()
+        planes.append(ba.plane())
+    spread = np.sqrt(np.var(np.array(planes), axis=0).sum()) / np.linalg.norm(scene["plane"])
+    assert 0.5 * spread < s_full < 2.0 * spread, (s_full, spread)

@@ -173,7 +173,7 @@ def test_bad_limit_is_refused(value):
         _core.SlidingWindow(K, o)
     camera = Camera(64, 64, camera_matrix=np.array([[60.0, 0, 31.5], [0, 60.0, 31.5], [0, 0, 1]]))
     with pytest.raises(ValueError, match=r"SequentialOptions.plane_max_relative_std must be "
-                                         r"finite and >= 0 \(0 disables the plane gate\)"):
+                                         r"finite and >= 0 \(0 disables the check\)"):
         SequentialMosaicker(camera, SequentialOptions(plane_max_relative_std=value))
     with pytest.raises(ValueError, match=r"plane_max_relative_std .* got True"):
         SequentialMosaicker(camera, SequentialOptions(plane_max_relative_std=True))

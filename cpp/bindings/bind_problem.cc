@@ -46,7 +46,8 @@ constexpr const char* kOptionFields[] = {"sigma_v_px",
                                          "parameter_tolerance",
                                          "num_threads",
                                          "use_emt",
-                                         "use_motion_prior"};
+                                         "use_motion_prior",
+                                         "plane_std"};
 
 constexpr const char* kSummaryFields[] = {"iterations",
                                           "initial_cost",
@@ -65,7 +66,8 @@ constexpr const char* kSummaryFields[] = {"iterations",
                                           "num_visual_blocks",
                                           "num_emt_blocks",
                                           "num_motion_blocks",
-                                          "gauge_fixed_by_constraints"};
+                                          "gauge_fixed_by_constraints",
+                                          "plane_relative_std"};
 
 std::string Repr(const py::object& self, const char* cls, const char* const* fields, size_t n) {
   std::ostringstream out;
@@ -136,6 +138,9 @@ void BindProblem(py::module_& m) {
                      "Add the EMT pose prior (Eq. 19) for frames with a measurement.")
       .def_readwrite("use_motion_prior", &BundleAdjusterOptions::use_motion_prior,
                      "Add the constant-velocity prior (Eq. 20) for frame ids k-2, k-1, k.")
+      .def_readwrite("plane_std", &BundleAdjusterOptions::plane_std,
+                     "Compute SolveSummary.plane_relative_std (dense in 6 N + 3: small\n"
+                     "problems, e.g. the sequential start-up).")
       .def("validate", &BundleAdjusterOptions::Validate,
            "Raises ValueError naming the first invalid field.")
       .def("__repr__", [](const py::object& self) {
@@ -164,6 +169,9 @@ void BindProblem(py::module_& m) {
       .def_readonly("num_emt_blocks", &SolveSummary::num_emt_blocks)
       .def_readonly("num_motion_blocks", &SolveSummary::num_motion_blocks)
       .def_readonly("gauge_fixed_by_constraints", &SolveSummary::gauge_fixed_by_constraints)
+      .def_readonly("plane_relative_std", &SolveSummary::plane_relative_std,
+                    "sqrt(trace(Cov_pi)) / |pi| at the solution with options.plane_std (pi free,\n"
+                    "EMT priors, per-pair blocks); NaN otherwise, inf: pi unobservable.")
       .def(
           "as_dict",
           [](const py::object& self) {

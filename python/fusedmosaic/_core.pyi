@@ -217,6 +217,9 @@ class BundleAdjusterOptions:
     """Add the EMT pose prior (Eq. 19) for frames with a measurement."""
     use_motion_prior: bool
     """Add the constant-velocity prior (Eq. 20) for present frame ids k-2, k-1, k."""
+    plane_std: bool
+    """Compute SolveSummary.plane_relative_std (dense in 6 N + 3: small problems, e.g. the
+    sequential start-up). Default False."""
 
     def __init__(self, **kwargs: Any) -> None: ...
     def validate(self) -> None:
@@ -251,6 +254,9 @@ class SolveSummary:
     gauge_fixed_by_constraints: bool
     """True when no EMT prior was present and the BAVis gauge (first frame constant, |pi|
     fixed) was applied."""
+    plane_relative_std: float
+    """sqrt(trace(Cov_pi)) / |pi| at the solution with options.plane_std (pi free, EMT priors,
+    per-pair blocks); NaN otherwise, inf: pi unobservable."""
 
     def as_dict(self) -> dict[str, Any]:
         """All fields except full_report, JSON-serialisable."""

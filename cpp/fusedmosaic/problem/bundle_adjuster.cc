@@ -13,6 +13,8 @@
 #include <stdexcept>
 #include <string>
 
+#include "fusedmosaic/problem/plane_observability.h"
+
 namespace fusedmosaic {
 namespace {
 
@@ -398,6 +400,18 @@ SolveSummary BundleAdjuster::Solve() {
   out.num_visual_blocks = static_cast<int>(visual_blocks.size());
   out.num_emt_blocks = static_cast<int>(emt_blocks.size());
   out.num_motion_blocks = static_cast<int>(motion_blocks.size());
+  if (options_.plane_std && !per_point && !out.gauge_fixed_by_constraints &&
+      problem.HasParameterBlock(plane) && !problem.IsParameterBlockConstant(plane)) {
+    std::vector<double*> free_poses;
+    for (auto& [id, frame] : frames_) {
+      double* pose = frame.pose.data();
+      if (problem.HasParameterBlock(pose) && !problem.IsParameterBlockConstant(pose)) {
+        free_poses.push_back(pose);
+      }
+    }
+    out.plane_relative_std = PlaneRelativeStd(&problem, plane, free_poses,
+                                              Eigen::Map<const Eigen::Vector3d>(plane).norm());
+  }
   return out;
 }
 

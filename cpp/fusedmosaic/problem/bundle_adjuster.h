@@ -31,6 +31,7 @@
 #include <array>
 #include <map>
 #include <mutex>
+#include <limits>
 #include <optional>
 #include <string>
 #include <utility>
@@ -66,6 +67,9 @@ struct BundleAdjusterOptions {
   int num_threads = 2;
   bool use_emt = true;           // add C_EMT for frames with a measurement
   bool use_motion_prior = true;  // add C_p for consecutive frame ids k-2, k-1, k
+  // Compute SolveSummary::plane_relative_std: a dense eigen-decomposition of the
+  // (6 N + 3)^2 information matrix, for small problems (the sequential start-up).
+  bool plane_std = false;
 
   // Throws std::invalid_argument naming the offending field.
   void Validate() const;
@@ -97,6 +101,9 @@ struct SolveSummary {
   int num_emt_blocks = 0;
   int num_motion_blocks = 0;
   bool gauge_fixed_by_constraints = false;  // true when the BAVis gauge constraints were applied
+  // sqrt(trace(Cov_pi)) / |pi| at the solution (plane_observability.h) when options.plane_std
+  // and pi is free with EMT priors, per-pair blocks; NaN otherwise; inf: pi unobservable.
+  double plane_relative_std = std::numeric_limits<double>::quiet_NaN();
 };
 
 class BundleAdjuster {

@@ -13,6 +13,7 @@
 #include <stdexcept>
 #include <string>
 
+#include "fusedmosaic/problem/plane_observability.h"
 #include "fusedmosaic/residuals/constant_velocity.h"
 #include "fusedmosaic/residuals/pose_prior.h"
 #include "fusedmosaic/residuals/visual_transfer.h"
@@ -56,85 +57,6 @@ void CheckPose(const SlidingWindow::Pose& pose, const char* name) {
 
 double Seconds(std::chrono::steady_clock::time_point since) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
-}
-
-// sqrt(trace(Cov_pi)) / plane_norm at the solution: the marginal covariance of the plane given
-// every cost of the step, Cov = (J^T J)^+ over the free parameters (residuals are whitened by
-// their sigmas, so it is absolute). A direction of J^T J without information that moves pi makes
-// pi unobservable (inf); one confined to the poses (a free camera without any cost) does not
-// concern pi and is left out, as the pseudo-inverse does. Built from one Jacobian evaluation of
-// each residual block (the step's blocks have no ceres::LossFunction and no manifolds, so these
-// are the Jacobians Ceres uses), J_a^T J_b added block by block: ceres::Covariance (DENSE_SVD)
-// took ~6 ms on a SYN step of 11k residuals, Problem::Evaluate into a CRSMatrix 1.5 ms (it
-// builds a program and an evaluator per call), this ~0.6 ms, mostly the evaluation.
-double PlaneRelativeStd(ceres::Problem* problem, double* plane,
-                        const std::vector<double*>& free_poses, double plane_norm) {
-  using RowMajorMatrix = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
-  std::map<const double*, int> column;  // first column of each free block; the plane's last
-  int n = 0;
-  for (const double* p : free_poses) {
-    column[p] = n;
-    n += kPoseSize;
-  }
-  column[plane] = n;
-  n += kPlaneSize;
-  Eigen::MatrixXd H = Eigen::MatrixXd::Zero(n, n);
-  std::vector<ceres::ResidualBlockId> blocks;
-  problem->GetResidualBlocks(&blocks);
-  std::vector<double*> parameters;
-  std::vector<RowMajorMatrix> jacobians;
-  std::vector<double*> jacobian_ptrs;
-  std::vector<int> cols;
-  Eigen::VectorXd residuals;
-  for (const ceres::ResidualBlockId block : blocks) {
-    problem->GetParameterBlocksForResidualBlock(block, &parameters);
-    const ceres::CostFunction* cost = problem->GetCostFunctionForResidualBlock(block);
-    const int m = cost->num_residuals();
-    const size_t k = parameters.size();
-    jacobians.resize(k);
-    jacobian_ptrs.assign(k, nullptr);
-    cols.assign(k, -1);
-    bool touches_free = false;
-    for (size_t b = 0; b < k; ++b) {
-      const auto it = column.find(parameters[b]);
-      if (it == column.end()) continue;  // held constant in this step
-      cols[b] = it->second;
-      jacobians[b].resize(m, cost->parameter_block_sizes()[b]);
-      jacobian_ptrs[b] = jacobians[b].data();
-      touches_free = true;
-    }
-    if (!touches_free) continue;
-    residuals.resize(m);
-    if (!cost->Evaluate(parameters.data(), residuals.data(), jacobian_ptrs.data())) {
-      return std::numeric_limits<double>::infinity();
-    }
-    for (size_t a = 0; a < k; ++a) {
-      if (cols[a] < 0) continue;
-      const RowMajorMatrix& Ja = jacobians[a];
-      H.block(cols[a], cols[a], Ja.cols(), Ja.cols()).noalias() += Ja.transpose() * Ja;
-      for (size_t b = a + 1; b < k; ++b) {
-        if (cols[b] < 0) continue;
-        const RowMajorMatrix& Jb = jacobians[b];
-        const Eigen::MatrixXd ab = Ja.transpose() * Jb;
-        H.block(cols[a], cols[b], ab.rows(), ab.cols()) += ab;
-        H.block(cols[b], cols[a], ab.cols(), ab.rows()) += ab.transpose();
-      }
-    }
-  }
-  const Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(H);
-  if (eig.info() != Eigen::Success) return std::numeric_limits<double>::infinity();
-  const Eigen::VectorXd& lambda = eig.eigenvalues();  // ascending
-  const double tolerance = 1e-12 * std::max(lambda(n - 1), 0.0);
-  double trace = 0.0;
-  for (int k = 0; k < n; ++k) {
-    const auto v_plane = eig.eigenvectors().col(k).tail<kPlaneSize>();
-    if (lambda(k) > tolerance) {
-      trace += v_plane.squaredNorm() / lambda(k);
-    } else if (v_plane.norm() > 1e-6) {
-      return std::numeric_limits<double>::infinity();
-    }
-  }
-  return std::sqrt(trace) / plane_norm;
 }
 
 }  // namespace

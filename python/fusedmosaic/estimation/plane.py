@@ -18,6 +18,21 @@ import numpy as np
 from fusedmosaic import _core
 
 
+def plane_depths(poses: np.ndarray, plane: np.ndarray) -> np.ndarray:
+    """(N,) distance along each camera's optical axis to the plane pi (pi . X + 1 = 0), for
+    (N, 6) cam_from_world poses: > 0 when the plane is in front of the camera, <= 0 or inf when
+    it is behind it or parallel to the axis."""
+    poses = np.atleast_2d(np.asarray(poses, np.float64))
+    plane = np.asarray(plane, np.float64)
+    out = np.empty(len(poses))
+    for i, pose in enumerate(poses):
+        R = _core.rotation_from_angle_axis(pose[:3])
+        centre, axis = -R.T @ pose[3:], R[2]  # the optical axis (camera z) in the world
+        along = float(plane @ axis)
+        out[i] = -(plane @ centre + 1.0) / along if along != 0.0 else np.inf
+    return out
+
+
 def plane_from_pair(H_lm: np.ndarray, K: np.ndarray, cam_l: np.ndarray,
                     cam_m: np.ndarray) -> np.ndarray | None:
     """pi (world) from one homography and two cam_from_world poses; None if ill-posed."""

@@ -81,7 +81,7 @@ from fusedmosaic.estimation.motion import (
     motion_timing,
     predict_constant_velocity,
 )
-from fusedmosaic.estimation.plane import estimate_plane
+from fusedmosaic.estimation.plane import estimate_plane, plane_depths
 from fusedmosaic.estimation.world import (
     WorldAlignment,
     plane_from_aligned,
@@ -119,7 +119,8 @@ class SequentialOptions:
     motion prior.
     Start-up: the first ``bootstrap_frames`` frames are adjusted together (BA+EMT) before the
     window starts, matched by predicted overlap (``startup_min_overlap``, a fraction);
-    ``startup_wait_frames`` bounds the wait for a tracker.
+    ``startup_wait_frames`` bounds the wait for a tracker and for a plane in front of the
+    cameras whose relative std is at most ``startup_max_plane_std``.
     Beyond the paper (0 disables each): ``loop_pairs`` spatial loop pairs per frame (at least
     ``loop_min_separation`` frames back), ``hold_prior_only_steps``, the plane observability
     gate ``plane_max_relative_std``.
@@ -229,6 +230,14 @@ class SequentialOptions:
     # Frames the start-up keeps while it waits for a registered pair with tracker poses (the
     # tracker switched on late); older ones are handed out unplaced. 2 x bootstrap_frames.
     startup_wait_frames: int = 80
+    # The start-up also waits while its plane's relative standard deviation (the marginal
+    # covariance of pi given the start-up's costs, over |pi|) is above this (0: never), until
+    # it holds startup_wait_frames frames. The simulated start-ups give 0.012-0.025 (40
+    # frames, 400 px; 0.07 with 8 frames of 200 px), a weakly textured one with 3 registered
+    # pairs 1.8 (frames then ~1000 px off; waiting: 6 pairs, 0.23, 42 px). 0.05 made it wait
+    # for 28 pairs, 8.6 px, but then a start-up re-solves its growing adjustment every frame
+    # (~30 ms at 80 frames) where 0.25 leaves every simulated start-up alone.
+    startup_max_plane_std: float = 0.25
     seed: int = 0
 
     @classmethod
@@ -326,11 +335,12 @@ class SequentialMosaicker:
             value = getattr(o, name)
             if not (isinstance(value, numbers.Real) and value > 0):
                 raise ValueError(f"SequentialOptions.{name} must be > 0, got {value!r}")
-        if not (isinstance(o.plane_max_relative_std, numbers.Real)
-                and not isinstance(o.plane_max_relative_std, bool | np.bool_)
-                and 0 <= o.plane_max_relative_std < np.inf):
-            raise ValueError("SequentialOptions.plane_max_relative_std must be finite and >= 0 "
-                             f"(0 disables the plane gate), got {o.plane_max_relative_std!r}")
+        for name in ("plane_max_relative_std", "startup_max_plane_std"):
+            value = getattr(o, name)
+            if not (isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_)
+                    and 0 <= value < np.inf):
+                raise ValueError(f"SequentialOptions.{name} must be finite and >= 0 (0 disables "
+                                 f"the check), got {value!r}")
         if o.frames_per_cluster < o.window_size - 1:
             # a keyframe block shorter than the fixed part of the window can be evicted while
             # its frames are still in the window (every preset has frames_per_cluster >= W)
@@ -405,6 +415,7 @@ class SequentialMosaicker:
         # the start-up pairs registered so far.
         self._startup_G: dict[int, np.ndarray] = {}
         self._startup_plane: np.ndarray | None = None
+        self._startup_problem: str | None = None  # why the last start-up adjustment was refused
         # Frames finalised without an anchor: no tracker sample used and no registered pair
         # leading to an anchored camera (e.g. black frames in a tracker dropout, and the visual
         # chain after them). Kept while the window or the keyframe reservoir may hold them;
@@ -568,7 +579,7 @@ class SequentialMosaicker:
             raise
 
     _SAVED = ("_next_id", "_last_timestamp", "_trusted", "_reference_pose", "_plane",
-              "_startup_G", "_startup_plane",
+              "_startup_G", "_startup_plane", "_startup_problem",
               "num_steps", "_finalized", "_boot_feats", "_boot_matches", "_loop_feats",
               "_loop_centroids", "_loop_G", "_pair_H", "_recent_G", "_poses", "pair_counts",
               "_mirror_frames", "_mirror_pairs", "_mirror_plane", "_implausible_run",
@@ -821,7 +832,8 @@ class SequentialMosaicker:
         self._boot_feats = [f for f in self._boot_feats if f.frame_id not in ids]
         self._boot_matches = [m for m in self._boot_matches
                               if m.frame_l not in ids and m.frame_m not in ids]
-        status = ("unplaced: no registered pair with tracker poses within the start-up's "
+        status = (f"unplaced: {self._startup_problem}" if self._startup_problem else
+                  "unplaced: no registered pair with tracker poses within the start-up's "
                   f"{self.options.startup_wait_frames} frames")
         self._finalized = self._finalized + [
             FrameResult(p["id"], p["timestamp"], np.full((3, 3), np.nan), np.full(6, np.nan),
@@ -833,9 +845,9 @@ class SequentialMosaicker:
         if self._pending:
             if self._plane is None:
                 if not self._bootstrap(final_step=True):
-                    raise ValueError(
+                    raise ValueError(self._startup_problem or (
                         f"no pair among the first {len(self._pending)} frames could be "
-                        "registered with tracker poses: the plane cannot be initialised")
+                        "registered with tracker poses: the plane cannot be initialised"))
             else:
                 self._step(final_step=True)
         return list(self._finalized)
@@ -988,7 +1000,8 @@ class SequentialMosaicker:
 
     def _bootstrap(self, final_step: bool = False) -> bool:
         """BA+EMT over the first frames (all their pairs): plane and poses to start from.
-        False (nothing done) while no registered pair has tracker poses for both frames."""
+        False (nothing done) while no registered pair has tracker poses for both frames, or
+        when the plane it gives is not in front of every start-up camera."""
         t0 = time.perf_counter()
         tracked, table = self._pending_tracker_poses()
         usable = [m for m in self._boot_matches if m.frame_l in tracked and m.frame_m in tracked]
@@ -1000,6 +1013,7 @@ class SequentialMosaicker:
                                                  num_threads=1)
         ba_options.motion_sigma = self._costs.motion_sigma
         ba_options.emt_sigma = self._costs.emt_sigma
+        ba_options.plane_std = o.startup_max_plane_std > 0
         ba = _core.BundleAdjuster(self.K, ba_options)
         ids = [p["id"] for p in self._pending]
         filled = fill_missing_poses(table[ids])
@@ -1010,7 +1024,31 @@ class SequentialMosaicker:
         for m in self._boot_matches:
             ba.add_pair(m.frame_l, m.frame_m, *self._subsample(m))
         ba.set_plane(plane)
-        self.bootstrap_summary = ba.solve().as_dict()
+        summary = ba.solve().as_dict()
+        # A plane behind a start-up camera is no plane it sees: too few registered pairs, or
+        # too short a baseline, for the start-up to tell (60 untextured frames, one start-up
+        # pair with a 2.5 mm baseline: pi behind every camera, then frames 182 px to 3.4e6 px
+        # off). The start-up waits for more frames instead.
+        depths = plane_depths(np.array([ba.pose(k) for k in ids]), np.asarray(ba.plane()))
+        if not (np.isfinite(depths) & (depths > 0)).all():
+            behind = [k for k, d in zip(ids, depths, strict=True) if not (np.isfinite(d) and d > 0)]
+            self._startup_problem = (
+                f"the plane the start-up estimated from {len(usable)} registered pairs is not "
+                f"in front of frames {behind[:5]}{' ...' if len(behind) > 5 else ''}: too few "
+                "pairs or too short a baseline to initialise it")
+            return False
+        # Nor is a plane the start-up cannot tell (the same 60 frames, 3 pairs after 20 frames:
+        # relative std 1.8, depth 4 mm for 30, frames ~1000 px off), unless the sequence ends
+        # or the start-up holds startup_wait_frames frames: then the best it has is taken.
+        std = summary["plane_relative_std"]
+        limit = o.startup_max_plane_std
+        if (limit > 0 and not final_step and len(ids) < o.startup_wait_frames
+                and not std <= limit):
+            self._startup_problem = (
+                f"the plane the start-up estimated from {len(usable)} registered pairs has a "
+                f"relative standard deviation of {std:.2g} (startup_max_plane_std {limit:g})")
+            return False
+        self.bootstrap_summary = summary
         self._plane = np.asarray(ba.plane())
         self._startup_G, self._startup_plane = {}, None
         self._win_set_plane(self._plane)
