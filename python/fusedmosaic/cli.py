@@ -594,6 +594,9 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+DEMO_FRAMES_PER_LAP = 37.5  # the SYN motion of the demo: the default 150 frames make 4 laps
+
+
 def _demo_dataset_options(data: Path) -> dict:
     """The simulator options of the dataset an earlier demo left in ``data`` (its
     simulation.json), so that a demo with other --frames / --motion simulates again instead of
@@ -695,14 +698,18 @@ def _demo_into(args: argparse.Namespace, root: Path) -> int:
     if data.is_symlink() or (data.exists() and not (data.is_dir() and not any(data.iterdir()))):
         earlier = _demo_dataset_options(data)
     asked = {"n_frames": args.frames, "motion": args.motion}
+    if args.motion == "syn":
+        # the SYN pace whatever the length (150 frames: the paper's 4 laps); at 4 laps, 12
+        # frames were 120 degrees apart and no method could place them (ba-emt 277 px)
+        asked["laps"] = args.frames / DEMO_FRAMES_PER_LAP
     if earlier is not None and all(earlier.get(k) == v for k, v in asked.items()):
         _say(args, f"[demo] reusing the simulated sequence in {data}")
     else:
         if earlier is not None:
             _say(args, f"[demo] {data} holds a {earlier.get('motion')} sequence of "
                        f"{earlier.get('n_frames')} frames; simulating the one asked for")
-        simulation.simulate_fetoscopy(data, simulation.FetoscopyOptions(
-            n_frames=args.frames, motion=args.motion), overwrite=earlier is not None)
+        simulation.simulate_fetoscopy(data, simulation.FetoscopyOptions(**asked),
+                                      overwrite=earlier is not None)
         _say(args, f"[demo] simulated a {args.motion} fetoscopy sequence ({args.frames} frames, "
                    f"EM tracker at 40 Hz, ground truth): {data}")
     names = methods.available()
@@ -998,7 +1005,8 @@ def build_parser() -> argparse.ArgumentParser:
                           parents=[quiet])
     demo.add_argument("--out", default="demo_out", help="folder for everything (default demo_out)")
     demo.add_argument("--frames", "--n-frames", type=int, default=150,
-                      help="frames to simulate (default 150)")
+                      help="frames to simulate (default 150), at the SYN pace of 37.5 "
+                           "frames per lap")
     demo.add_argument("--motion", choices=simulation.fetoscopy.MOTIONS, default="syn",
                       help="syn: the paper's circular SYN sequence; handheld: a free-hand sweep "
                            "over a tilted plane with a circular field of view")
