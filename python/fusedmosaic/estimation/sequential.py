@@ -102,6 +102,10 @@ PRESETS = {"syn": (5, 3, 3, 5), "phb": (3, 1, 3, 3), "ex": (12, 6, 3, 12)}
 # dead-reckoned motion before the tracker came back is no evidence for the frame.
 RELEASED_MOTION_SIGMA_SCALE = 1e3
 
+# The median of chi2 with 6 degrees of freedom (scipy.stats.chi2.median(6)): the start-up's
+# tracker gate scales gate_chi2 by the samples' median Mahalanobis^2 over it.
+CHI2_6_MEDIAN = 5.348120627447
+
 
 @dataclass
 class SequentialOptions:
@@ -998,6 +1002,39 @@ class SequentialMosaicker:
             ta, tb, timestamp, tb - ta, self.options.motion_max_gap_s)[0]
         return predict_constant_velocity(pose_a, pose_b, ratio)
 
+    def _solve_startup(self, ids, tracked, table, timing):
+        """The start-up's BA+EMT over frames ids with the samples `tracked` (id -> z): the
+        adjuster and its summary (a dict)."""
+        o = self.options
+        usable = [m for m in self._boot_matches if m.frame_l in tracked and m.frame_m in tracked]
+        plane = estimate_plane(usable, table, self.K)
+        ba_options = _core.BundleAdjusterOptions(sigma_v_px=o.sigma_v_px, loss=o.loss,
+                                                 num_threads=1)
+        ba_options.motion_sigma = self._costs.motion_sigma
+        ba_options.emt_sigma = self._costs.emt_sigma
+        ba_options.plane_std = o.startup_max_plane_std > 0
+        ba = _core.BundleAdjuster(self.K, ba_options)
+        filled = fill_missing_poses(table[ids])
+        for i, k in enumerate(ids):
+            ba.add_frame(k, filled[i], tracked.get(k), *timing[k])
+        for m in self._boot_matches:
+            ba.add_pair(m.frame_l, m.frame_m, *self._subsample(m))
+        ba.set_plane(plane)
+        return ba, ba.solve().as_dict()
+
+    def _startup_outlier(self, ba, tracked: dict) -> int | None:
+        """The tracked start-up frame whose sample disagrees most with the adjustment, if its
+        Mahalanobis^2 exceeds gate_chi2 x max(1, median / chi2(6)'s median); else None."""
+        if len(tracked) < 4 or not np.isfinite(self.options.gate_chi2):
+            return None
+        sigma = np.asarray(self._costs.emt_sigma, np.float64)
+        ids = sorted(tracked)
+        m2 = np.array([np.sum(((np.asarray(ba.pose(k)) - tracked[k]) / sigma) ** 2)
+                       for k in ids])
+        limit = self.options.gate_chi2 * max(1.0, float(np.median(m2)) / CHI2_6_MEDIAN)
+        worst = int(np.argmax(m2))
+        return ids[worst] if m2[worst] > limit else None
+
     def _bootstrap(self, final_step: bool = False) -> bool:
         """BA+EMT over the first frames (all their pairs): plane and poses to start from.
         False (nothing done) while no registered pair has tracker poses for both frames, or
@@ -1007,24 +1044,29 @@ class SequentialMosaicker:
         usable = [m for m in self._boot_matches if m.frame_l in tracked and m.frame_m in tracked]
         if not usable:
             return False
-        plane = estimate_plane(usable, table, self.K)
         o = self.options
-        ba_options = _core.BundleAdjusterOptions(sigma_v_px=o.sigma_v_px, loss=o.loss,
-                                                 num_threads=1)
-        ba_options.motion_sigma = self._costs.motion_sigma
-        ba_options.emt_sigma = self._costs.emt_sigma
-        ba_options.plane_std = o.startup_max_plane_std > 0
-        ba = _core.BundleAdjuster(self.K, ba_options)
         ids = [p["id"] for p in self._pending]
-        filled = fill_missing_poses(table[ids])
         times = {p["id"]: p["timestamp"] for p in self._pending}
         timing = {k: self._timing(k, times) for k in ids}
-        for i, k in enumerate(ids):
-            ba.add_frame(k, filled[i], tracked.get(k), *timing[k])
-        for m in self._boot_matches:
-            ba.add_pair(m.frame_l, m.frame_m, *self._subsample(m))
-        ba.set_plane(plane)
-        summary = ba.solve().as_dict()
+        # Tracker samples that disagree with the adjustment are gated as the window's are, one
+        # at a time (the worst), at most a quarter of them: Mahalanobis^2 above gate_chi2
+        # scaled by the samples' own median over chi2(6)'s (noisier samples than Sigma_EMT,
+        # Fig. 9's nu = 4: median 57, every sample above 22.5, none an outlier). A glitch on
+        # the first sample (+100 mm: 328 against a median of 50) was the glitch filter's
+        # reference and was kept: frames up to 144 px off.
+        gated: list[int] = []
+        most = len(tracked) // 4
+        while True:
+            ba, summary = self._solve_startup(ids, tracked, table, timing)
+            worst = self._startup_outlier(ba, tracked) if len(gated) < most else None
+            if worst is None:
+                break
+            gated.append(worst)
+            tracked = {k: z for k, z in tracked.items() if k != worst}
+            table = table.copy()
+            table[worst] = np.nan
+            if not any(m.frame_l in tracked and m.frame_m in tracked for m in usable):
+                return False
         # A plane behind a start-up camera is no plane it sees: too few registered pairs, or
         # too short a baseline, for the start-up to tell (60 untextured frames, one start-up
         # pair with a 2.5 mm baseline: pi behind every camera, then frames 182 px to 3.4e6 px
@@ -1060,7 +1102,7 @@ class SequentialMosaicker:
             self._win_add_pair(m.frame_l, m.frame_m, *self._subsample(m))
         self._boot_feats, self._boot_matches = [], []
         elapsed = (time.perf_counter() - t0) / len(ids)
-        self._finalize(ids, [ba.pose(k) for k in ids], [], elapsed, 0.0, final_step)
+        self._finalize(ids, [ba.pose(k) for k in ids], gated, elapsed, 0.0, final_step)
         return True
 
     def _step(self, final_step: bool = False) -> None:
