@@ -753,7 +753,36 @@ def test_a_startup_plane_behind_the_cameras_or_unobserved_is_not_taken(weak):
 def test_a_sequence_ending_with_the_startup_plane_behind_the_cameras_is_refused(weak):
     m = SequentialMosaicker(weak.camera, SequentialOptions(bootstrap_frames=8))
     weak.feed(m, range(10), {})
+    # (the frames of the pair: the others see no plane the start-up could check)
     with pytest.raises(ValueError, match=r"the plane the start-up estimated from 1 registered "
-                       r"pairs is not in front of frames \[0, 1, 2, 3, 4\] \.\.\.: too few pairs "
-                       r"or too short a baseline to initialise it"):
+                       r"pairs is not in front of frames \[5, 6\]: too few pairs or too short a "
+                       r"baseline to initialise it"):
         m.flush()
+
+
+def test_startup_checks_ignore_frames_without_a_registered_pair(scene):
+    """Four black frames while the scope turns in (tracked, 120 to 30 degrees from frame 0's
+    orientation): they see no plane, so the start-up's in-front check and gate look only at the
+    frames with a registered pair. Before, the plane was 'not in front of frames [0]' and the
+    start-up waited to frame 27 of 28, or flush refused the sequence (gate off)."""
+    R0 = _core.rotation_from_angle_axis(scene.tracker[0, :3])
+    c0 = -R0.T @ scene.tracker[0, 3:]
+    dt = scene.timestamps[1] - scene.timestamps[0]
+    frames, times, tracker = [], [], []
+    for i, angle in enumerate((120, 90, 60, 30)):
+        R = _core.rotation_from_angle_axis(np.array([np.deg2rad(angle), 0.0, 0.0])) @ R0
+        frames.append(np.zeros_like(scene.frames[0]))
+        times.append(scene.timestamps[0] - (4 - i) * dt)
+        tracker.append(np.r_[_core.angle_axis_from_rotation(R), -R @ c0])
+    frames += list(scene.frames)
+    times += list(scene.timestamps)
+    tracker += list(scene.tracker)
+    m = SequentialMosaicker(scene.camera, SequentialOptions(bootstrap_frames=8,
+                                                            gate_chi2=np.inf))
+    first = None
+    for k in range(len(frames)):
+        m.add_frame(frames[k], times[k], tracker[k])
+        if first is None and m.finalized():
+            first = k
+    m.flush()
+    assert first is not None and first <= 10

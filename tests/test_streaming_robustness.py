@@ -450,3 +450,9 @@ def test_robot_prior_frames_of_another_pixel_type_are_refused_and_change_nothing
     np.testing.assert_array_equal(_positions(out), _positions(baseline))
     m.reset()
     assert m.add_frame(as_float, 0.0, None).index == 0
+    # floats of another width, and another byte order, are alike
+    m.add_frame(as_float.astype(np.float32), 1.0, None)
+    m.add_frame(as_float.astype(">f8"), 2.0, None)
+    with pytest.raises(ValueError, match=r"frame 3: pixel type uint16 differs from the first "
+                       r"frame's float64"):
+        m.add_frame(np.asarray(pcle.frames[3], np.uint16), 3.0, None)

@@ -43,6 +43,7 @@
 #include <optional>
 #include <sstream>
 #include <stdexcept>
+#include <cstdlib>
 #include <string>
 #include <vector>
 
@@ -172,7 +173,15 @@ Problem Load(const std::string& path) {
       if (!(in >> has_emt)) Fail(path, line, "add_frame: expected has_emt");
       if (has_emt) c.b = ReadPose(in, path, line);
       if (!(in >> fixed)) Fail(path, line, "add_frame: expected fixed");
-      if (!(in >> c.ratio >> c.scale)) c.ratio = c.scale = 1.0;  // optional C_p timing
+      // optional C_p timing; the scale may be "inf" (a released prior), which operator>>
+      // does not parse, so both are read as words
+      std::string ratio, scale;
+      if (in >> ratio >> scale) {
+        c.ratio = std::strtod(ratio.c_str(), nullptr);
+        c.scale = std::strtod(scale.c_str(), nullptr);
+      } else {
+        c.ratio = c.scale = 1.0;
+      }
       c.ids = {id};
       c.flag = fixed != 0;
       ++p.num_frames;

@@ -40,7 +40,8 @@ RELEASED = (0.0, float("inf"))
 
 
 def motion_timing(t_km2: float, t_km1: float, t_k: float, nominal: float | None,
-                  max_gap_s: float | None = MOTION_MAX_GAP_S) -> tuple[float, float]:
+                  max_gap_s: float | None = MOTION_MAX_GAP_S,
+                  max_ratio: float | None = GAP_INTERVALS) -> tuple[float, float]:
     """Timing of the constant-velocity prior over frames k-2, k-1, k (not in the paper, whose
     frames are evenly spaced): (motion_ratio, motion_sigma_scale) for the C++ add_frame.
 
@@ -52,10 +53,10 @@ def motion_timing(t_km2: float, t_km1: float, t_k: float, nominal: float | None,
     sqrt((d2/T)^2 (d2/T + d1/T) / 2), 1 for d1 = d2 = T. Returns (1, 1) (Eq. 16 exactly) when a
     time or the nominal interval is unknown, the times do not increase, or the spacing is even
     within EVEN_SPACING_TOLERANCE; RELEASED, (0, inf): no prior, zero velocity, when d1 or d2
-    is more than GAP_INTERVALS times the other, or exceeds max_gap_s (seconds; None: never)
-    and GAP_INTERVALS nominal intervals. Extrapolating across such a gap moved frames 1e3-1e5
-    px off: a tracker lost at frame 12 of a sequence paused for 60 s at frame 15 had the last
-    motion repeated 1500 times."""
+    is more than max_ratio times the other (None: never), or exceeds max_gap_s (seconds;
+    None: never) and GAP_INTERVALS nominal intervals. Extrapolating across such a gap moved
+    frames 1e3-1e5 px off: a tracker lost at frame 12 of a sequence paused for 60 s at frame 15
+    had the last motion repeated 1500 times."""
     times = np.array([t_km2, t_km1, t_k], np.float64)
     if not np.isfinite(times).all():
         return 1.0, 1.0
@@ -63,7 +64,7 @@ def motion_timing(t_km2: float, t_km1: float, t_k: float, nominal: float | None,
     if d1 <= 0 or d2 <= 0:
         return 1.0, 1.0
     known = nominal is not None and bool(np.isfinite(nominal) and nominal > 0)
-    if max(d1, d2) > GAP_INTERVALS * min(d1, d2) or (
+    if (max_ratio is not None and max(d1, d2) > max_ratio * min(d1, d2)) or (
             max_gap_s is not None
             and max(d1, d2) > max(max_gap_s, GAP_INTERVALS * nominal if known else 0.0)):
         return RELEASED

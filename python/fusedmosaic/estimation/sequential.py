@@ -797,8 +797,8 @@ class SequentialMosaicker:
             anchored = tracker_pose is not None or any(m.frame_m not in lost for m in ok + loops)
             if anchored and lost:
                 ok = [m for m in ok if m.frame_m not in lost]
-                if lost & {k - 1, k - 2}:
-                    timing = (timing[0], RELEASED_MOTION_SIGMA_SCALE)
+                if lost & {k - 1, k - 2}:  # (a prior released by motion_timing stays so)
+                    timing = (timing[0], max(timing[1], RELEASED_MOTION_SIGMA_SCALE))
             pairs = [(m.frame_l, m.frame_m, *self._subsample(m)) for m in ok + loops]
             timings["matching"] += time.perf_counter() - t0
             self._win_add_frame(k, None, tracker_pose, timing=timing)
@@ -818,8 +818,9 @@ class SequentialMosaicker:
         result = self._provisional(k, timestamp, tracker_pose, timings)
         result.tracker_gated = result.tracker_dropped = dropped
         if waiting:
-            result.status = ("unplaced: waiting for a registered pair with tracker poses to "
-                             "initialise the plane")
+            result.status = ("unplaced: " + (
+                f"the start-up waits: {self._startup_problem}" if self._startup_problem else
+                "waiting for a registered pair with tracker poses to initialise the plane"))
         return result
 
     def _drop_oldest_startup_frames(self) -> None:
@@ -997,9 +998,12 @@ class SequentialMosaicker:
         if len(self._poses) < 2:
             return None
         (pose_a, ta), (pose_b, tb) = (self._poses[i] for i in sorted(self._poses)[-2:])
-        # the ratio of motion_timing with b's interval as the nominal one (1 when within 1 %)
+        # the ratio of motion_timing with b's interval as the nominal one (1 when within 1 %);
+        # a frame many frames ahead of the last estimated one (a step's pending frames) is no
+        # pause: only the long-pause rule applies
+        nominal = float(np.median(self._intervals)) if self._intervals else tb - ta
         ratio = 1.0 if timestamp is None else motion_timing(
-            ta, tb, timestamp, tb - ta, self.options.motion_max_gap_s)[0]
+            ta, tb, timestamp, nominal, self.options.motion_max_gap_s, max_ratio=None)[0]
         return predict_constant_velocity(pose_a, pose_b, ratio)
 
     def _solve_startup(self, ids, tracked, table, timing):
@@ -1022,13 +1026,15 @@ class SequentialMosaicker:
         ba.set_plane(plane)
         return ba, ba.solve().as_dict()
 
-    def _startup_outlier(self, ba, tracked: dict) -> int | None:
-        """The tracked start-up frame whose sample disagrees most with the adjustment, if its
-        Mahalanobis^2 exceeds gate_chi2 x max(1, median / chi2(6)'s median); else None."""
-        if len(tracked) < 4 or not np.isfinite(self.options.gate_chi2):
+    def _startup_outlier(self, ba, tracked: dict, seen: set) -> int | None:
+        """Among the tracked start-up frames with a registered pair (`seen`: the images can
+        contradict their samples, as the window gates only frames with visual evidence), the
+        one whose sample disagrees most with the adjustment, if its Mahalanobis^2 exceeds
+        gate_chi2 x max(1, median / chi2(6)'s median); else None."""
+        ids = sorted(k for k in tracked if k in seen)
+        if len(ids) < 4 or not np.isfinite(self.options.gate_chi2):
             return None
         sigma = np.asarray(self._costs.emt_sigma, np.float64)
-        ids = sorted(tracked)
         m2 = np.array([np.sum(((np.asarray(ba.pose(k)) - tracked[k]) / sigma) ** 2)
                        for k in ids])
         limit = self.options.gate_chi2 * max(1.0, float(np.median(m2)) / CHI2_6_MEDIAN)
@@ -1040,11 +1046,15 @@ class SequentialMosaicker:
         False (nothing done) while no registered pair has tracker poses for both frames, or
         when the plane it gives is not in front of every start-up camera."""
         t0 = time.perf_counter()
+        self._startup_problem = None
         tracked, table = self._pending_tracker_poses()
         usable = [m for m in self._boot_matches if m.frame_l in tracked and m.frame_m in tracked]
         if not usable:
             return False
         o = self.options
+        # frames with a registered pair: the checks below look at these only (a black frame
+        # or one looking away while the scope goes in sees no plane, and proves nothing)
+        seen = {i for m in self._boot_matches for i in (m.frame_l, m.frame_m)}
         ids = [p["id"] for p in self._pending]
         times = {p["id"]: p["timestamp"] for p in self._pending}
         timing = {k: self._timing(k, times) for k in ids}
@@ -1058,22 +1068,26 @@ class SequentialMosaicker:
         most = len(tracked) // 4
         while True:
             ba, summary = self._solve_startup(ids, tracked, table, timing)
-            worst = self._startup_outlier(ba, tracked) if len(gated) < most else None
-            if worst is None:
-                break
+            worst = self._startup_outlier(ba, tracked, seen) if len(gated) < most else None
+            rest = {k: z for k, z in tracked.items() if k != worst}
+            if worst is None or not any(m.frame_l in rest and m.frame_m in rest
+                                        for m in usable):
+                break  # (a gate that would leave no registered pair with samples: not applied)
             gated.append(worst)
-            tracked = {k: z for k, z in tracked.items() if k != worst}
+            tracked = rest
             table = table.copy()
             table[worst] = np.nan
-            if not any(m.frame_l in tracked and m.frame_m in tracked for m in usable):
-                return False
+        usable = [m for m in usable if m.frame_l in tracked and m.frame_m in tracked]
         # A plane behind a start-up camera is no plane it sees: too few registered pairs, or
         # too short a baseline, for the start-up to tell (60 untextured frames, one start-up
         # pair with a 2.5 mm baseline: pi behind every camera, then frames 182 px to 3.4e6 px
         # off). The start-up waits for more frames instead.
-        depths = plane_depths(np.array([ba.pose(k) for k in ids]), np.asarray(ba.plane()))
+        checked = [k for k in ids if k in seen]
+        depths = plane_depths(np.array([ba.pose(k) for k in checked]).reshape(-1, 6),
+                              np.asarray(ba.plane()))
         if not (np.isfinite(depths) & (depths > 0)).all():
-            behind = [k for k, d in zip(ids, depths, strict=True) if not (np.isfinite(d) and d > 0)]
+            behind = [k for k, d in zip(checked, depths, strict=True)
+                      if not (np.isfinite(d) and d > 0)]
             self._startup_problem = (
                 f"the plane the start-up estimated from {len(usable)} registered pairs is not "
                 f"in front of frames {behind[:5]}{' ...' if len(behind) > 5 else ''}: too few "

@@ -308,6 +308,12 @@ def translation_homography(position) -> np.ndarray:
     return G
 
 
+def _pixel_family(dtype: np.dtype):
+    """What RobotPriorMosaicker requires every frame to share: floats of any width, else the
+    integer type itself (either byte order)."""
+    return "float" if dtype.kind == "f" else dtype.newbyteorder("=")
+
+
 @dataclass(frozen=True)
 class FrameResult:
     """What :meth:`RobotPriorMosaicker.add_frame` returns for one frame.
@@ -496,9 +502,11 @@ class RobotPriorMosaicker:
                              f"{type(image).__name__}")
         if image.dtype.kind not in "uif":
             raise ValueError(f"frame {index}: unsupported pixel type {image.dtype}")
-        if self._pixel_type is not None and image.dtype != self._pixel_type:
+        if (self._pixel_type is not None and self.estimate != "robot"
+                and _pixel_family(image.dtype) != _pixel_family(self._pixel_type)):
             # c_match's SSIM range follows the type (uint8: 0-255, others: the overlap's own
-            # range): a float 0-1 frame after uint8 ones scored c_match ~0.001
+            # range): a float 0-1 frame after uint8 ones scored c_match ~0.001. Floats of any
+            # width, and either byte order, are alike
             raise ValueError(
                 f"frame {index}: pixel type {image.dtype} differs from the first frame's "
                 f"{self._pixel_type}; all frames of a sequence must have one pixel type")
