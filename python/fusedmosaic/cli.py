@@ -706,8 +706,11 @@ def _demo_into(args: argparse.Namespace, root: Path) -> int:
         _say(args, f"[demo] reusing the simulated sequence in {data}")
     else:
         if earlier is not None:
+            pace = ""
+            if (earlier.get("n_frames"), earlier.get("motion")) == (args.frames, args.motion):
+                pace = f" over {earlier.get('laps')} laps (the demo's: {asked.get('laps'):g})"
             _say(args, f"[demo] {data} holds a {earlier.get('motion')} sequence of "
-                       f"{earlier.get('n_frames')} frames; simulating the one asked for")
+                       f"{earlier.get('n_frames')} frames{pace}; simulating the one asked for")
         simulation.simulate_fetoscopy(data, simulation.FetoscopyOptions(**asked),
                                       overwrite=earlier is not None)
         _say(args, f"[demo] simulated a {args.motion} fetoscopy sequence ({args.frames} frames, "
