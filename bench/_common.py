@@ -20,6 +20,7 @@ from fusedmosaic.evaluation.benchmark import (  # noqa: F401 (re-exported)
     load_average,
     machine_info,
 )
+from fusedmosaic.simulation.fetoscopy import SYN_FRAMES_PER_LAP
 
 BENCH = Path(__file__).resolve().parent
 REPO = BENCH.parent
@@ -82,7 +83,7 @@ PCLE_CASES = {
 
 # -- the simulated sequences -----------------------------------------------------------------
 
-FRAMES_PER_LAP = 37.5  # SYN: the default 150 frames make 4 laps (paper Fig. 1); keep that motion
+FRAMES_PER_LAP = SYN_FRAMES_PER_LAP  # keep the SYN motion of the default 150 frames / 4 laps
 
 
 @dataclass(frozen=True)

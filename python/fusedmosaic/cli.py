@@ -80,6 +80,7 @@ def _warn_low_overlap(root: Path) -> None:
     features can match): --laps is per sequence, so few --n-frames make big steps."""
     from fusedmosaic.evaluation.metrics import positions_px
     from fusedmosaic.io import read_camera_yaml, read_homographies_csv
+    from fusedmosaic.simulation.fetoscopy import SYN_FRAMES_PER_LAP
 
     # (the ground truth and the image size only: a dataset simulated with a tracker gap at its
     # start or end is read by run only with --allow-untracked)
@@ -93,8 +94,8 @@ def _warn_low_overlap(root: Path) -> None:
         print(f"fusedmosaic: warning: consecutive frames move by {step:.0f} px (median), more "
               f"than half of the {min(w, h)} px side: they barely overlap, and the sequential "
               "methods (lba-emt's window, pairwise) register consecutive frames. --laps is per "
-              "sequence; the SYN motion is ~37.5 frames per lap (e.g. --laps "
-              f"{len(c) / 37.5:.2f} for {len(c)} frames)", file=sys.stderr)
+              f"sequence; the SYN motion is ~{SYN_FRAMES_PER_LAP:g} frames per lap (e.g. --laps "
+              f"{len(c) / SYN_FRAMES_PER_LAP:.2f} for {len(c)} frames)", file=sys.stderr)
 
 
 def _simulate(args: argparse.Namespace) -> Path:
@@ -594,9 +595,6 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
-DEMO_FRAMES_PER_LAP = 37.5  # the SYN motion of the demo: the default 150 frames make 4 laps
-
-
 def _demo_dataset_options(data: Path) -> dict:
     """The simulator options of the dataset an earlier demo left in ``data`` (its
     simulation.json), so that a demo with other --frames / --motion simulates again instead of
@@ -701,7 +699,7 @@ def _demo_into(args: argparse.Namespace, root: Path) -> int:
     if args.motion == "syn":
         # the SYN pace whatever the length (150 frames: the paper's 4 laps); at 4 laps, 12
         # frames were 120 degrees apart and no method could place them (ba-emt 277 px)
-        asked["laps"] = args.frames / DEMO_FRAMES_PER_LAP
+        asked["laps"] = args.frames / simulation.fetoscopy.SYN_FRAMES_PER_LAP
     if earlier is not None and all(earlier.get(k) == v for k, v in asked.items()):
         _say(args, f"[demo] reusing the simulated sequence in {data}")
     else:

@@ -1034,8 +1034,8 @@ class SequentialMosaicker:
         ids = sorted(k for k in tracked if k in seen)
         if len(ids) < 4 or not np.isfinite(self.options.gate_chi2):
             return None
-        sigma = np.asarray(self._costs.emt_sigma, np.float64)
-        m2 = np.array([np.sum(((np.asarray(ba.pose(k)) - tracked[k]) / sigma) ** 2)
+        sigma = self._costs.emt_sigma  # the C_EMT residual, whitened, squared
+        m2 = np.array([np.sum(_core.evaluate_pose_prior(ba.pose(k), tracked[k], sigma)[0] ** 2)
                        for k in ids])
         limit = self.options.gate_chi2 * max(1.0, float(np.median(m2)) / CHI2_6_MEDIAN)
         worst = int(np.argmax(m2))
@@ -1085,9 +1085,9 @@ class SequentialMosaicker:
         checked = [k for k in ids if k in seen]
         depths = plane_depths(np.array([ba.pose(k) for k in checked]).reshape(-1, 6),
                               np.asarray(ba.plane()))
-        if not (np.isfinite(depths) & (depths > 0)).all():
-            behind = [k for k, d in zip(checked, depths, strict=True)
-                      if not (np.isfinite(d) and d > 0)]
+        behind = [k for k, d in zip(checked, depths, strict=True)
+                  if not (np.isfinite(d) and d > 0)]
+        if behind:
             self._startup_problem = (
                 f"the plane the start-up estimated from {len(usable)} registered pairs is not "
                 f"in front of frames {behind[:5]}{' ...' if len(behind) > 5 else ''}: too few "

@@ -521,11 +521,7 @@ class RobotPriorMosaicker:
                 f"frame {index}: image is {image.shape[1]}x{image.shape[0]} but the camera (and "
                 f"frame 0) is {self.width}x{self.height}; all frames must have one size"
             )
-        if image.dtype != np.uint8:
-            if not (
-                np.issubdtype(image.dtype, np.floating) or np.issubdtype(image.dtype, np.integer)
-            ):
-                raise ValueError(f"frame {index}: unsupported pixel type {image.dtype}")
+        if image.dtype != np.uint8:  # (integer or float: checked above)
             image = np.ascontiguousarray(image, dtype=np.float32)
             if not np.isfinite(image).all():
                 raise ValueError(f"frame {index}: image contains NaN or infinite pixels")

@@ -51,6 +51,9 @@ from fusedmosaic.simulation.textures import placenta_texture
 PAPER_BLACK_FRAMES = [7, 11, 12, 23, 24, 37, 38, 42, 43, 45, 51, 54]
 
 MOTIONS = ("syn", "handheld")
+# The SYN pace: the default 150 frames make the default 4 laps (paper 000 Fig. 1); shorter or
+# longer sequences keep the motion with laps = n_frames / SYN_FRAMES_PER_LAP.
+SYN_FRAMES_PER_LAP = 37.5
 
 
 @dataclass
