@@ -110,8 +110,8 @@ def poses_from_aligned(poses: np.ndarray, world: WorldAlignment | None) -> np.nd
     """Inverse of :func:`poses_to_aligned`: (R' R_a, t' - R' R_a c_a)."""
     if world is None:
         return np.array(poses, dtype=np.float64)
-    p = _transform(poses, Rotation.from_matrix(world.rotation), np.zeros(3))
-    return _transform(p, Rotation.identity(), -np.asarray(world.centre, np.float64))
+    return _transform(poses, Rotation.from_matrix(world.rotation),
+                      -world.rotation @ np.asarray(world.centre, np.float64))
 
 
 def plane_to_aligned(plane: np.ndarray, world: WorldAlignment | None) -> np.ndarray:
