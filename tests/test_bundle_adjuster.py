@@ -341,6 +341,8 @@ def test_solve_without_frames():
         ({"sigma_v_px": 0.0}, ValueError, "sigma_v_px: must be finite and > 0"),
         ({"max_iterations": 0}, ValueError, "max_iterations: must be >= 1"),
         ({"num_threads": 0}, ValueError, "num_threads: must be >= 1"),
+        ({"motion_gate_chi2": 0.0}, ValueError, r"motion_gate_chi2: must be > 0 \(inf: no gate"),
+        ({"motion_gate_chi2": np.nan}, ValueError, "motion_gate_chi2: must be > 0"),
         ({"sigma_vpx": 1.0}, TypeError, "unknown option 'sigma_vpx'"),
     ],
 )

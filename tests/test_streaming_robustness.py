@@ -388,6 +388,7 @@ def _small_camera() -> Camera:
     ("gate_sigma_scale", 0.0, r"gate_sigma_scale must be finite and >= 1"),
     ("gate_sigma_scale", np.nan, r"gate_sigma_scale must be finite and >= 1"),
     ("gate_chi2", -1.0, r"gate_chi2 must be > 0"),
+    ("motion_gate_chi2", 0.0, r"motion_gate_chi2 must be > 0 \(inf: no gate\), got 0.0"),
     ("max_points_per_pair", 0, r"max_points_per_pair must be an integer >= 1, got 0"),
     ("history_steps", -1, r"history_steps must be an integer >= 0, got -1"),
     ("tracker_reanchor_after", 0.5, r"tracker_reanchor_after must be an integer >= 1"),

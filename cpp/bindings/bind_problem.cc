@@ -47,6 +47,7 @@ constexpr const char* kOptionFields[] = {"sigma_v_px",
                                          "num_threads",
                                          "use_emt",
                                          "use_motion_prior",
+                                         "motion_gate_chi2",
                                          "plane_std"};
 
 constexpr const char* kSummaryFields[] = {"iterations",
@@ -67,7 +68,8 @@ constexpr const char* kSummaryFields[] = {"iterations",
                                           "num_emt_blocks",
                                           "num_motion_blocks",
                                           "gauge_fixed_by_constraints",
-                                          "plane_relative_std"};
+                                          "plane_relative_std",
+                                          "motion_released_ids"};
 
 std::string Repr(const py::object& self, const char* cls, const char* const* fields, size_t n) {
   std::ostringstream out;
@@ -138,6 +140,10 @@ void BindProblem(py::module_& m) {
                      "Add the EMT pose prior (Eq. 19) for frames with a measurement.")
       .def_readwrite("use_motion_prior", &BundleAdjusterOptions::use_motion_prior,
                      "Add the constant-velocity prior (Eq. 20) for frame ids k-2, k-1, k.")
+      .def_readwrite("motion_gate_chi2", &BundleAdjusterOptions::motion_gate_chi2,
+                     "Motion gate: after a solve the C_p block with the largest whitened\n"
+                     "squared norm above this is released and the problem solved again, at most\n"
+                     "a quarter of the blocks (default 22.46, chi2(6) 0.999; inf: off).")
       .def_readwrite("plane_std", &BundleAdjusterOptions::plane_std,
                      "Compute SolveSummary.plane_relative_std (dense in 6 N + 3: small\n"
                      "problems, e.g. the sequential start-up).")
@@ -172,6 +178,8 @@ void BindProblem(py::module_& m) {
       .def_readonly("plane_relative_std", &SolveSummary::plane_relative_std,
                     "sqrt(trace(Cov_pi)) / |pi| at the solution with options.plane_std (pi free,\n"
                     "EMT priors, per-pair blocks); NaN otherwise, inf: pi unobservable.")
+      .def_readonly("motion_released_ids", &SolveSummary::motion_released_ids,
+                    "frames whose C_p block the motion gate released (options.motion_gate_chi2)")
       .def(
           "as_dict",
           [](const py::object& self) {

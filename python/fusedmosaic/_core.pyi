@@ -217,6 +217,11 @@ class BundleAdjusterOptions:
     """Add the EMT pose prior (Eq. 19) for frames with a measurement."""
     use_motion_prior: bool
     """Add the constant-velocity prior (Eq. 20) for present frame ids k-2, k-1, k."""
+    motion_gate_chi2: float
+    """Motion gate (not in the paper): after a solve, the C_p block with the largest whitened
+    squared norm above this is released (for good: later solves leave it out too) and the
+    problem solved again, at most a quarter of the blocks. Default 22.46 (chi2(6) 0.999);
+    inf: off."""
     plane_std: bool
     """Compute SolveSummary.plane_relative_std (dense in 6 N + 3: small problems, e.g. the
     sequential start-up). Default False."""
@@ -257,6 +262,9 @@ class SolveSummary:
     plane_relative_std: float
     """sqrt(trace(Cov_pi)) / |pi| at the solution with options.plane_std (pi free, EMT priors,
     per-pair blocks); NaN otherwise, inf: pi unobservable."""
+    motion_released_ids: list[int]
+    """Frames whose C_p block the motion gate released (options.motion_gate_chi2); iterations
+    and solve_time_s cover every solve."""
 
     def as_dict(self) -> dict[str, Any]:
         """All fields except full_report, JSON-serialisable."""
@@ -376,6 +384,7 @@ class WindowStepSummary:
     """sqrt(trace(Cov_pi)) / |pi before the step| from the step's costs; NaN: no visual cost
     or the gate off; inf: pi unobservable; for a step the gate held, its first solve's value."""
     plane_held: bool  # pi kept its value from before the step (no visual cost, or the gate)
+    motion_released_ids: list[int]  # estimated cameras whose C_p the motion gate released
     preprocessor_time_s: float
     evaluation_time_s: float
     linear_solver_time_s: float

@@ -13,6 +13,7 @@
 #include <stdexcept>
 #include <string>
 
+#include "fusedmosaic/problem/motion_gate.h"
 #include "fusedmosaic/problem/plane_observability.h"
 
 namespace fusedmosaic {
@@ -111,6 +112,10 @@ void BundleAdjusterOptions::Validate() const {
   CheckPositive(sigma_v_px, "sigma_v_px");
   CheckSigma(emt_sigma, "emt_sigma");
   CheckSigma(motion_sigma, "motion_sigma");
+  if (!(motion_gate_chi2 > 0)) {  // inf allowed: no gate
+    throw std::invalid_argument("motion_gate_chi2: must be > 0 (inf: no gate), got " +
+                                std::to_string(motion_gate_chi2));
+  }
   RobustLossFromString(loss);
   CheckPositive(loss_scale_px, "loss_scale_px");
   LinearSolverFromString(linear_solver);
@@ -287,7 +292,8 @@ SolveSummary BundleAdjuster::Solve() {
   const bool per_point = options_.residual_blocks == "per_point";
 
   ceres::Problem problem;
-  std::vector<ceres::ResidualBlockId> visual_blocks, emt_blocks, motion_blocks;
+  std::vector<ceres::ResidualBlockId> visual_blocks, emt_blocks;
+  MotionBlocks motion;
   double* plane = plane_.data();
 
   for (const Pair& pair : pairs_) {
@@ -332,10 +338,12 @@ SolveSummary BundleAdjuster::Solve() {
       auto km2 = frames_.find(id - 2);
       if (km1 == frames_.end() || km2 == frames_.end()) continue;
       if (!MotionPriorLinked(frame.motion_sigma_scale)) continue;
-      motion_blocks.push_back(problem.AddResidualBlock(
-          ConstantVelocityCostFunctor::Create(options_.motion_sigma * frame.motion_sigma_scale,
-                                              frame.motion_ratio),
-          nullptr, km2->second.pose.data(), km1->second.pose.data(), frame.pose.data()));
+      motion.Add(problem.AddResidualBlock(
+                     ConstantVelocityCostFunctor::Create(
+                         options_.motion_sigma * frame.motion_sigma_scale, frame.motion_ratio),
+                     nullptr, km2->second.pose.data(), km1->second.pose.data(),
+                     frame.pose.data()),
+                 id);
     }
   }
 
@@ -381,14 +389,29 @@ SolveSummary BundleAdjuster::Solve() {
 
   ceres::Solver::Summary summary;
   ceres::Solve(solver_options, &problem, &summary);
-
-  out.iterations = summary.num_successful_steps + summary.num_unsuccessful_steps;
   out.initial_cost = summary.initial_cost;
+  int iterations = summary.num_successful_steps + summary.num_unsuccessful_steps;
+  double solve_time_s = summary.total_time_in_seconds;
+  // The motion gate (motion_gate.h): a released frame keeps no C_p in later solves either.
+  const int max_releases =
+      MaxMotionReleases(static_cast<int>(motion.blocks.size()), options_.motion_gate_chi2);
+  for (int r = 0; r < max_releases; ++r) {
+    const std::optional<int> released =
+        ReleaseWorstMotionBlock(&problem, &motion, options_.motion_gate_chi2);
+    if (!released) break;
+    frames_.at(*released).motion_sigma_scale = std::numeric_limits<double>::infinity();
+    out.motion_released_ids.push_back(*released);
+    ceres::Solve(solver_options, &problem, &summary);
+    iterations += summary.num_successful_steps + summary.num_unsuccessful_steps;
+    solve_time_s += summary.total_time_in_seconds;
+  }
+
+  out.iterations = iterations;
   out.final_cost = summary.final_cost;
   out.visual_cost = EvaluateCost(problem, visual_blocks, options_.num_threads);
   out.emt_cost = EvaluateCost(problem, emt_blocks, options_.num_threads);
-  out.motion_cost = EvaluateCost(problem, motion_blocks, options_.num_threads);
-  out.solve_time_s = summary.total_time_in_seconds;
+  out.motion_cost = EvaluateCost(problem, motion.blocks, options_.num_threads);
+  out.solve_time_s = solve_time_s;
   out.termination = ceres::TerminationTypeToString(summary.termination_type);
   out.message = summary.message;
   out.full_report = summary.FullReport();
@@ -399,7 +422,7 @@ SolveSummary BundleAdjuster::Solve() {
   out.num_free_parameters = summary.num_effective_parameters_reduced;
   out.num_visual_blocks = static_cast<int>(visual_blocks.size());
   out.num_emt_blocks = static_cast<int>(emt_blocks.size());
-  out.num_motion_blocks = static_cast<int>(motion_blocks.size());
+  out.num_motion_blocks = static_cast<int>(motion.blocks.size());
   if (options_.plane_std && !per_point && !out.gauge_fixed_by_constraints &&
       problem.HasParameterBlock(plane) && !problem.IsParameterBlockConstant(plane)) {
     std::vector<double*> free_poses;

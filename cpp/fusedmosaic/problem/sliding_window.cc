@@ -13,6 +13,7 @@
 #include <stdexcept>
 #include <string>
 
+#include "fusedmosaic/problem/motion_gate.h"
 #include "fusedmosaic/problem/plane_observability.h"
 #include "fusedmosaic/residuals/constant_velocity.h"
 #include "fusedmosaic/residuals/pose_prior.h"
@@ -290,7 +291,8 @@ WindowStepSummary SlidingWindow::SolveStep(const std::vector<int>& free_ids,
   }
 
   ceres::Problem problem;
-  std::vector<ceres::ResidualBlockId> visual_blocks, emt_blocks, motion_blocks;
+  std::vector<ceres::ResidualBlockId> visual_blocks, emt_blocks;
+  MotionBlocks motion;
   const RobustLoss loss = RobustLossFromString(c.loss);
   const bool per_point = c.residual_blocks == "per_point";
 
@@ -364,11 +366,12 @@ WindowStepSummary SlidingWindow::SolveStep(const std::vector<int>& free_ids,
           std::prev(it) != frames_.begin()) {
         auto prev1 = std::prev(it);
         auto prev2 = std::prev(prev1);
-        motion_blocks.push_back(problem.AddResidualBlock(
-            ConstantVelocityCostFunctor::Create(c.motion_sigma * f.motion_sigma_scale,
-                                                f.motion_ratio),
-            nullptr, prev2->second.pose.data(),
-            prev1->second.pose.data(), f.pose.data()));
+        motion.Add(problem.AddResidualBlock(
+                       ConstantVelocityCostFunctor::Create(c.motion_sigma * f.motion_sigma_scale,
+                                                           f.motion_ratio),
+                       nullptr, prev2->second.pose.data(), prev1->second.pose.data(),
+                       f.pose.data()),
+                   id);
         for (auto p : {prev1, prev2})
           if (!in_problem.count(p->first)) problem.SetParameterBlockConstant(p->second.pose.data());
       }
@@ -420,6 +423,18 @@ WindowStepSummary SlidingWindow::SolveStep(const std::vector<int>& free_ids,
   for (int id : free_ids) poses_before.push_back(frames_.at(id).pose);
 
   solve(/*first=*/true);
+  // The motion gate (motion_gate.h), before the plane gate: a released frame keeps no C_p in a
+  // redo either.
+  const int max_releases =
+      MaxMotionReleases(static_cast<int>(motion.blocks.size()), c.motion_gate_chi2);
+  for (int r = 0; r < max_releases; ++r) {
+    const std::optional<int> released =
+        ReleaseWorstMotionBlock(&problem, &motion, c.motion_gate_chi2);
+    if (!released) break;
+    frames_.at(*released).motion_sigma_scale = std::numeric_limits<double>::infinity();
+    out.motion_released_ids.push_back(*released);
+    solve(/*first=*/false);
+  }
   const double limit = options_.plane_max_relative_std;
   if (plane_free && limit > 0.0) {
     std::vector<double*> free_poses;
@@ -446,7 +461,7 @@ WindowStepSummary SlidingWindow::SolveStep(const std::vector<int>& free_ids,
   };
   out.visual_cost = term_cost(visual_blocks);
   out.emt_cost = term_cost(emt_blocks);
-  out.motion_cost = term_cost(motion_blocks);
+  out.motion_cost = term_cost(motion.blocks);
   return out;
 }
 

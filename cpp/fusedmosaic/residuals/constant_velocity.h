@@ -31,6 +31,10 @@ namespace fusedmosaic {
 inline const Vector6d kDefaultMotionSigma =
     (Vector6d() << 0.0044, 0.0044, 0.0044, 15.2178, 15.2178, 15.2178).finished();
 
+// Default motion gate (BundleAdjusterOptions::motion_gate_chi2): chi2(6)'s 0.999 quantile, the
+// tracker gate's threshold (estimation/sequential.py gate_chi2).
+inline constexpr double kDefaultMotionGateChi2 = 22.46;
+
 // mu_p: the motion T_{k-1} T_{k-2}^-1 repeated `ratio` times from T_{k-1} (see below); ratio 1
 // is Eq. 16 exactly (no round trip through the 6-vector).
 template <typename T>

@@ -22,7 +22,12 @@ from fusedmosaic.estimation.consistency import (
     solver_warning,
     tracker_agreement,
 )
-from fusedmosaic.estimation.motion import motion_timing
+from fusedmosaic.estimation.motion import (
+    MOTION_GATE_CHI2,
+    RELEASED,
+    motion_timing,
+    tracker_motion_breaks,
+)
 from fusedmosaic.estimation.plane import estimate_plane
 from fusedmosaic.estimation.world import (
     plane_from_aligned,
@@ -59,6 +64,10 @@ class BundleOptions:
     loss_scale_px: float = 2.0
     linear_solver: str = "auto"
     max_iterations: int = 100
+    # Motion gate (not in the paper; SequentialOptions.motion_gate_chi2): C_p does not link a
+    # frame whose tracker samples over k-2, k-1, k, or whose solved block, depart from constant
+    # velocity by more than this (Mahalanobis^2; inf: off).
+    motion_gate_chi2: float = MOTION_GATE_CHI2
     num_threads: int = 2
     seed: int = 0  # inlier subsampling
 
@@ -191,7 +200,8 @@ def _adjuster(K, options: BundleOptions, use_emt: bool):
     costs = _core.BundleAdjusterOptions(
         sigma_v_px=options.sigma_v_px, loss=options.loss, loss_scale_px=options.loss_scale_px,
         linear_solver=options.linear_solver, max_iterations=options.max_iterations,
-        num_threads=options.num_threads, use_emt=use_emt, use_motion_prior=use_emt)
+        num_threads=options.num_threads, use_emt=use_emt, use_motion_prior=use_emt,
+        motion_gate_chi2=options.motion_gate_chi2)
     if options.motion_sigma is not None:
         costs.motion_sigma = np.asarray(options.motion_sigma, np.float64)
     if options.emt_sigma is not None:
@@ -224,6 +234,9 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     K = dataset.camera.require_camera_matrix("ba-emt" if use_emt else "ba")
     if options is not None and options.emt_sigma is not None:  # before minutes of matching
         check_emt_sigma(options.emt_sigma, "BundleOptions.emt_sigma")
+    if options is not None and not options.motion_gate_chi2 > 0:
+        raise ValueError("BundleOptions.motion_gate_chi2 must be > 0 (inf: no gate), got "
+                         f"{options.motion_gate_chi2!r}")
     world = world_alignment(dataset.cam_from_world) if use_emt else None
     if world is not None:
         aligned = replace(dataset, cam_from_world=poses_to_aligned(dataset.cam_from_world,
@@ -273,11 +286,19 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     ba = _adjuster(K, o, use_emt)
     times = np.asarray(dataset.timestamps, np.float64)
     nominal = float(np.median(np.diff(times))) if n > 1 else None  # Sigma_p's frame spacing
+    # C_p over frames k-2, k-1, k follows their timestamps (dropped frames: motion_timing),
+    # released where the tracker says the motion left constant velocity (tracker_motion_breaks)
+    timing = [motion_timing(*times[k - 2:k + 1], nominal) if k >= 2 else (1.0, 1.0)
+              for k in range(n)]
+    if use_emt:
+        samples = np.where(np.asarray(dataset.pose_valid, bool)[:, None],
+                           dataset.cam_from_world, np.nan)
+        for k in tracker_motion_breaks(samples, timing, ba.options.motion_sigma,
+                                       ba.options.emt_sigma, o.motion_gate_chi2):
+            timing[k] = RELEASED
     for k in frames:
         z = dataset.cam_from_world[k] if use_emt and dataset.pose_valid[k] else None
-        # C_p over frames k-2, k-1, k follows their timestamps (dropped frames: motion_timing)
-        timing = motion_timing(*times[k - 2:k + 1], nominal) if k >= 2 else (1.0, 1.0)
-        ba.add_frame(k, init[k], z, *timing)
+        ba.add_frame(k, init[k], z, *timing[k])
     in_problem = set(frames)
     for m in ok:
         if m.frame_l in in_problem and m.frame_m in in_problem:

@@ -34,6 +34,14 @@ EVEN_SPACING_TOLERANCE = 0.01
 GAP_INTERVALS = 8.0
 MOTION_MAX_GAP_S = 1.0
 
+# The motion gate (not in the paper): C_p does not link a frame whose tracker samples over
+# k-2, k-1, k depart from constant velocity by more than MOTION_GATE_CHI2 (chi2(6)'s 0.999
+# quantile, as the tracker gate), each component's variance raised by max(1, its median /
+# CHI2_1_MEDIAN) over the samples (a tracker noisier than Sigma_EMT). See tracker_motion_m2.
+MOTION_GATE_CHI2 = 22.46
+CHI2_6_MEDIAN = 5.348120627447  # scipy.stats.chi2.median(6)
+CHI2_1_MEDIAN = 0.454936423119572  # scipy.stats.chi2.median(1)
+
 # motion_timing's answer for a broken prior: zero velocity (the frame starts at the preceding
 # camera when it has no tracker sample), no C_p term (an infinite sigma_p).
 RELEASED = (0.0, float("inf"))
@@ -81,6 +89,54 @@ def motion_timing(t_km2: float, t_km1: float, t_k: float, nominal: float | None,
     # 2.1 px and no convergence without, 0.2 px with (10 iterations; now released, above).
     scale = max(float(np.sqrt(u2 * u2 * (u2 + u1) / 2.0)), ratio / 8.0, 0.25)
     return float(ratio), scale
+
+
+def tracker_motion_terms(z_km2: np.ndarray, z_km1: np.ndarray, z_k: np.ndarray,
+                         motion_sigma: np.ndarray, emt_sigma: np.ndarray,
+                         timing: tuple[float, float] = (1.0, 1.0)) -> np.ndarray:
+    """How far three tracker samples (cam_from_world, frames k-2, k-1, k) depart from constant
+    velocity (not in the paper), per component (6,): the C_p residual x_k - mu_p (Eq. 15-16) at
+    the samples, squared over its variance there, sigma_p^2 s^2 plus the samples' own noise
+    propagated, (1 + (1 + rho)^2 + rho^2) Sigma_EMT (rho, s: motion_timing's ratio and sigma
+    scale; 6 Sigma_EMT for even spacing). Each is chi2(1) or less when the motion keeps within
+    Sigma_p and the tracker's noise is Sigma_EMT."""
+    ratio, scale = timing
+    raw, _ = _core.evaluate_constant_velocity(z_km2, z_km1, z_k, np.ones(6), ratio)
+    variance = (np.asarray(motion_sigma, np.float64) * scale) ** 2 + (
+        1.0 + (1.0 + ratio) ** 2 + ratio ** 2) * np.asarray(emt_sigma, np.float64) ** 2
+    return np.asarray(raw) ** 2 / variance
+
+
+def tracker_motion_m2(terms: np.ndarray, history=None) -> float:
+    """The motion gate's Mahalanobis^2 from tracker_motion_terms: their sum, each divided by
+    max(1, median of that component over `history` (M, 6) / CHI2_1_MEDIAN) when given (M >= 3):
+    a tracker noisier than Sigma_EMT raises the components its noise dominates, and only
+    those."""
+    terms = np.asarray(terms, np.float64)
+    if history is not None and len(history) >= 3:
+        scale = np.maximum(1.0, np.median(np.asarray(history), axis=0) / CHI2_1_MEDIAN)
+        terms = terms / scale
+    return float(np.sum(terms))
+
+
+def tracker_motion_breaks(samples: np.ndarray, timings: list, motion_sigma: np.ndarray,
+                          emt_sigma: np.ndarray, gate_chi2: float = MOTION_GATE_CHI2) -> list[int]:
+    """The frames k whose tracker samples over k-2, k-1, k (rows of `samples`, NaN where a
+    frame has none) break constant velocity, offline: tracker_motion_m2 (timings[k]: frame k's
+    motion_timing; released ones are not judged), scaled by the whole sequence's medians, above
+    gate_chi2."""
+    samples = np.asarray(samples, np.float64)
+    ids, terms = [], []
+    for k in range(2, len(samples)):
+        if not (np.isfinite(samples[k - 2:k + 1]).all() and np.isfinite(timings[k][1])):
+            continue
+        ids.append(k)
+        terms.append(tracker_motion_terms(samples[k - 2], samples[k - 1], samples[k],
+                                          motion_sigma, emt_sigma, timings[k]))
+    if not ids or not np.isfinite(gate_chi2):
+        return []
+    return [k for k, t in zip(ids, terms, strict=True)
+            if tracker_motion_m2(t, terms) > gate_chi2]
 
 
 def predict_constant_velocity(pose_km2: np.ndarray, pose_km1: np.ndarray,

@@ -77,9 +77,14 @@ from fusedmosaic.estimation.consistency import (
 from fusedmosaic.estimation.guard import exclusive_call
 from fusedmosaic.estimation.keyframes import KeyframeIndex
 from fusedmosaic.estimation.motion import (
+    CHI2_6_MEDIAN,
+    MOTION_GATE_CHI2,
     MOTION_MAX_GAP_S,
+    RELEASED,
     motion_timing,
     predict_constant_velocity,
+    tracker_motion_m2,
+    tracker_motion_terms,
 )
 from fusedmosaic.estimation.plane import estimate_plane, plane_depths
 from fusedmosaic.estimation.world import (
@@ -102,9 +107,6 @@ PRESETS = {"syn": (5, 3, 3, 5), "phb": (3, 1, 3, 3), "ex": (12, 6, 3, 12)}
 # dead-reckoned motion before the tracker came back is no evidence for the frame.
 RELEASED_MOTION_SIGMA_SCALE = 1e3
 
-# The median of chi2 with 6 degrees of freedom (scipy.stats.chi2.median(6)): the start-up's
-# tracker gate scales gate_chi2 by the samples' median Mahalanobis^2 over it.
-CHI2_6_MEDIAN = 5.348120627447
 
 
 @dataclass
@@ -129,8 +131,10 @@ class SequentialOptions:
     ``loop_min_separation`` frames back), ``hold_prior_only_steps``, the plane observability
     gate ``plane_max_relative_std``.
     Tracker checks: ``gate_chi2`` / ``gate_sigma_scale`` down-weight a sample that disagrees
-    with the images; ``tracker_max_speed_mm_s`` (mm/s), ``tracker_max_angular_speed`` (rad/s),
-    ``tracker_jump_margin_mm`` / ``_rad``, ``tracker_max_gap_s`` (s) and
+    with the images; ``motion_gate_chi2`` releases C_p where the tracker or a solve says the
+    motion left constant velocity; ``tracker_max_speed_mm_s`` (mm/s),
+    ``tracker_max_angular_speed`` (rad/s), ``tracker_jump_margin_mm`` / ``_rad``,
+    ``tracker_max_gap_s`` (s) and
     ``tracker_reanchor_after`` drop glitches. ``max_timestamp_gap_s`` (s) refuses unit
     mix-ups. ``history_steps`` window step summaries are kept; ``seed`` seeds the keyframe
     picks. The comments at each field in the source give the measurements behind the values.
@@ -162,6 +166,17 @@ class SequentialOptions:
     # step redone, when the frame has visual evidence to judge it by.
     gate_chi2: float = 22.46
     gate_sigma_scale: float = 10.0
+    # Motion gate (not in the paper): C_p does not link a frame whose tracker samples over
+    # frames k-2, k-1, k depart from constant velocity by more than this (Mahalanobis^2 with
+    # Sigma_p and their own noise; scaled by the recent samples' median as the tracker gate),
+    # nor one whose C_p block a solve leaves above it (BundleAdjusterOptions.motion_gate_chi2).
+    # Black frames tracked while the scope spun in at 30 deg per frame (120 sigma_p) and
+    # stopped: their C_p turned the textured frames of the start-up with it, e_M 12 to 263 px
+    # on the 24-frame test scene (0.47 px without them), 0.45-0.88 px with the gate. Simulated
+    # sequences (SYN, hand-held, black frames) leave solved C_p blocks at <= 1.1 and no tracker
+    # triple above it; the first three of a tracker 4x noisier than Sigma_EMT (Fig. 9 nu = 4)
+    # break before there are earlier ones to scale by (e_M 0.2228 vs 0.2221 px). inf: off.
+    motion_gate_chi2: float = MOTION_GATE_CHI2
     max_keyframe_blocks: int = 200  # bound on retained keyframe candidates (memory, per-step cost)
     # Initialisation: the first frames are bundle-adjusted together (all pairs, BA+EMT) to get the
     # plane and their poses before the window starts. A plane from the first chi_e frames alone
@@ -327,9 +342,11 @@ class SequentialMosaicker:
                 < np.inf):
             raise ValueError("SequentialOptions.gate_sigma_scale must be finite and >= 1 (the "
                              f"factor on a gated sample's sigma), got {o.gate_sigma_scale!r}")
-        if not (isinstance(o.gate_chi2, numbers.Real) and 0.0 < o.gate_chi2):
-            raise ValueError("SequentialOptions.gate_chi2 must be > 0 (inf: no gate), got "
-                             f"{o.gate_chi2!r}")
+        for name in ("gate_chi2", "motion_gate_chi2"):
+            value = getattr(o, name)
+            if not (isinstance(value, numbers.Real) and 0.0 < value):
+                raise ValueError(f"SequentialOptions.{name} must be > 0 (inf: no gate), got "
+                                 f"{value!r}")
         if not 0.0 <= o.startup_min_overlap <= 1.0:
             raise ValueError("SequentialOptions.startup_min_overlap must be a fraction in [0, 1], "
                              f"got {o.startup_min_overlap}")
@@ -363,7 +380,8 @@ class SequentialMosaicker:
                                                  self._fov_radius)[0]
         costs = _core.BundleAdjusterOptions(
             sigma_v_px=o.sigma_v_px, loss=o.loss, linear_solver=o.linear_solver,
-            max_iterations=o.max_iterations, function_tolerance=1e-6, num_threads=1)
+            max_iterations=o.max_iterations, function_tolerance=1e-6, num_threads=1,
+            motion_gate_chi2=o.motion_gate_chi2)
         if o.motion_sigma is not None:
             costs.motion_sigma = np.asarray(o.motion_sigma, np.float64)
         if o.emt_sigma is not None:
@@ -411,6 +429,10 @@ class SequentialMosaicker:
         # motion.motion_timing) and the recent intervals, whose median is the nominal spacing.
         self._times: dict[int, float] = {}
         self._intervals: deque = deque(maxlen=200)
+        # The tracker's motion check (_tracker_breaks_motion): the last three frames' samples
+        # used (id -> pose) and the recent samples' departures from constant velocity.
+        self._samples: dict[int, np.ndarray] = {}
+        self._motion_terms: deque = deque(maxlen=200)
         self._reference_pose: np.ndarray | None = None
         self._plane: np.ndarray | None = None
         # Provisional placements in the start-up, until its adjustment gives self._plane: start-up
@@ -587,7 +609,8 @@ class SequentialMosaicker:
               "num_steps", "_finalized", "_boot_feats", "_boot_matches", "_loop_feats",
               "_loop_centroids", "_loop_G", "_pair_H", "_recent_G", "_poses", "pair_counts",
               "_mirror_frames", "_mirror_pairs", "_mirror_plane", "_implausible_run",
-              "_world", "_times", "_intervals", "_unanchored", "bootstrap_summary")
+              "_world", "_times", "_intervals", "_unanchored", "bootstrap_summary",
+              "_samples", "_motion_terms")
 
     def _save(self) -> dict:
         """What a call may change, copied (shallowly: the values it replaces, never mutates)."""
@@ -647,9 +670,11 @@ class SequentialMosaicker:
         """window.step / redo; afterwards the solved frames are fixed at their new poses."""
         self._window_touched = True
         summary = summary_call(*args)
+        released = set(summary.motion_released_ids)  # by the motion gate, for good
         for k in ids:
             _, emt, scale, _, timing = self._mirror_frames[k]
-            self._mirror_frames[k] = (np.asarray(self.window.pose(k)), emt, scale, True, timing)
+            self._mirror_frames[k] = (np.asarray(self.window.pose(k)), emt, scale, True,
+                                      RELEASED if k in released else timing)
         self._mirror_plane = np.asarray(self.window.plane())
         return summary
 
@@ -706,6 +731,7 @@ class SequentialMosaicker:
                 p = dict(p, tracker=p["sample"], dropped=False)
             pending.append(p)
         self._pending = pending
+        self._samples = {}  # the old reference's: no motion to judge against the new one
 
     def _realign_startup(self, sample: np.ndarray, timestamp: float) -> np.ndarray:
         """During the start-up, after a re-anchoring on `sample` (aligned in the current
@@ -722,6 +748,7 @@ class SequentialMosaicker:
 
         self._pending = [dict(p, tracker=move(p["tracker"]), sample=move(p.get("sample")))
                          for p in self._pending]
+        self._samples = {i: move(z) for i, z in self._samples.items()}
         self._world, self._startup_plane = world, None
         sample = poses_to_aligned(raw, world)
         R = _core.rotation_from_angle_axis(sample[:3])
@@ -748,6 +775,7 @@ class SequentialMosaicker:
             # the world was decided by the old reference (e.g. a bad first sample 10 m off,
             # which made a far origin of its own): decided again by the new one
             tracker_pose = sample = self._realign_startup(sample, timestamp)
+        motion_break = self._tracker_breaks_motion(k, tracker_pose)
         timings: dict[str, float] = {}
 
         t0 = time.perf_counter()
@@ -772,7 +800,8 @@ class SequentialMosaicker:
                          for p in self._pending]  # a registered pair: evidence for both frames
         self._pending.append({"id": k, "timestamp": timestamp, "tracker": tracker_pose,
                               "visual": bool(ok), "timings": timings, "features": feats,
-                              "held": 0, "dropped": dropped, "sample": sample})
+                              "held": 0, "dropped": dropped, "sample": sample,
+                              "motion_break": motion_break})
         self._finalized = []
         waiting = False
         if self._plane is None:  # bootstrap: keep everything until the initial adjustment
@@ -792,7 +821,7 @@ class SequentialMosaicker:
             # anchor of its own (its tracker sample, or a registered pair to an anchored frame)
             # is not tied to the lost frames by pairs or the constant-velocity term: they would
             # pull it off. A frame without one keeps chaining through them.
-            timing = self._timing(k)
+            timing = RELEASED if motion_break else self._timing(k)
             lost = self._lost_ids()
             anchored = tracker_pose is not None or any(m.frame_m not in lost for m in ok + loops)
             if anchored and lost:
@@ -992,6 +1021,28 @@ class SequentialMosaicker:
         return motion_timing(times[k - 2], times[k - 1], times[k], nominal,
                              self.options.motion_max_gap_s)
 
+    def _tracker_breaks_motion(self, k: int, sample: np.ndarray | None) -> bool:
+        """Whether the tracker samples of frames k-2, k-1, k (those kept: none dropped as a
+        glitch) say the camera left constant velocity (not in the paper): their departure
+        (motion.tracker_motion_m2, each component scaled by its median over the earlier
+        samples, from three on: a tracker noisier than Sigma_EMT) above motion_gate_chi2. C_p
+        then does not link frame k, as after a pause. The scope spun in at 30 deg
+        per frame (120 sigma_p) and stopped at the first textured frame: in the start-up C_p
+        turned the textured frames with it (a 30 deg step: 11 px e_M, 0.52 px with this)."""
+        self._samples = {i: z for i, z in self._samples.items() if i >= k - 2}
+        if sample is not None:
+            self._samples[k] = sample
+        if sample is None or k - 1 not in self._samples or k - 2 not in self._samples:
+            return False
+        timing = self._timing(k)
+        if not np.isfinite(timing[1]):
+            return False  # released already (a pause)
+        terms = tracker_motion_terms(self._samples[k - 2], self._samples[k - 1], sample,
+                                     self._costs.motion_sigma, self._costs.emt_sigma, timing)
+        m2 = tracker_motion_m2(terms, self._motion_terms)  # scaled by the earlier samples'
+        self._motion_terms.append(terms)
+        return m2 > self.options.motion_gate_chi2
+
     def _predict_pose(self, timestamp: float | None = None) -> np.ndarray | None:
         """Constant-velocity prediction from the last two estimated poses, the motion scaled by
         the time since the last one (when the times are known)."""
@@ -1017,6 +1068,7 @@ class SequentialMosaicker:
         ba_options.motion_sigma = self._costs.motion_sigma
         ba_options.emt_sigma = self._costs.emt_sigma
         ba_options.plane_std = o.startup_max_plane_std > 0
+        ba_options.motion_gate_chi2 = o.motion_gate_chi2
         ba = _core.BundleAdjuster(self.K, ba_options)
         filled = fill_missing_poses(table[ids])
         for i, k in enumerate(ids):
@@ -1057,7 +1109,8 @@ class SequentialMosaicker:
         seen = {i for m in self._boot_matches for i in (m.frame_l, m.frame_m)}
         ids = [p["id"] for p in self._pending]
         times = {p["id"]: p["timestamp"] for p in self._pending}
-        timing = {k: self._timing(k, times) for k in ids}
+        timing = {p["id"]: RELEASED if p.get("motion_break") else self._timing(p["id"], times)
+                  for p in self._pending}
         # Tracker samples that disagree with the adjustment are gated as the window's are, one
         # at a time (the worst), at most a quarter of them: Mahalanobis^2 above gate_chi2
         # scaled by the samples' own median over chi2(6)'s (noisier samples than Sigma_EMT,
