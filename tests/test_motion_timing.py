@@ -330,6 +330,9 @@ def test_a_scope_spun_in_does_not_turn_the_mosaic(tmp_path, method):
         else:
             res = run_lba_emt(data, progress=False, options=SequentialOptions(
                 bootstrap_frames=8, motion_gate_chi2=gate))
+        released = res.details["motion_released"]  # in the report: the frames at the stop
+        assert (released and max(released) <= len(lead) + 1) if np.isfinite(gate) and any(
+            lead) else released == []
         G = res.homographies[len(lead):]
         return frame_errors(np.linalg.inv(G[0]) @ G, ds.ground_truth, 200, 200).mean()
 

@@ -207,6 +207,18 @@ def test_black_frames_tracked_while_the_scope_turned_in(scene, baseline, lead):
     errors = frame_errors(np.linalg.inv(G[0]) @ G, scene.truth, SIZE, SIZE)
     assert errors.mean() < baseline[1].mean() + 0.5
     assert errors.max() < 2.5
+    # flagged: the frames at the stop (and the spin's start), none of the later ones
+    released = {k for k, r in out.items() if r.motion_released}
+    assert released and max(released) <= len(lead) + 1
+
+
+def test_no_motion_prior_released_on_a_steady_scan(scene):
+    m = scene.mosaicker()
+    out = scene.feed(m, range(N), {})
+    out.update({f.frame_id: f for f in m.flush()})
+    assert not any(r.motion_released for r in out.values())
+    assert m.bootstrap_summary["motion_released_ids"] == []
+    assert all(s.motion_released_ids == [] for s in m.step_summaries)
 
 
 def test_matching_threads_give_the_same_mosaic(scene, baseline):

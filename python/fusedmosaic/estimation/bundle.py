@@ -290,11 +290,13 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     # released where the tracker says the motion left constant velocity (tracker_motion_breaks)
     timing = [motion_timing(*times[k - 2:k + 1], nominal) if k >= 2 else (1.0, 1.0)
               for k in range(n)]
+    breaks = []
     if use_emt:
         samples = np.where(np.asarray(dataset.pose_valid, bool)[:, None],
                            dataset.cam_from_world, np.nan)
-        for k in tracker_motion_breaks(samples, timing, ba.options.motion_sigma,
-                                       ba.options.emt_sigma, o.motion_gate_chi2):
+        breaks = tracker_motion_breaks(samples, timing, ba.options.motion_sigma,
+                                       ba.options.emt_sigma, o.motion_gate_chi2)
+        for k in breaks:
             timing[k] = RELEASED
     for k in frames:
         z = dataset.cam_from_world[k] if use_emt and dataset.pose_valid[k] else None
@@ -316,6 +318,8 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     placed = np.isfinite(G).all(axis=(1, 2))
     details = _pair_details(front)
     details["solver"] = summary.as_dict()
+    if use_emt:  # C_p released by the motion gate: tracker samples, or the solve
+        details["motion_released"] = sorted({*breaks, *summary.motion_released_ids})
     details["warnings"] = [w for w in [solver_warning(summary, o.max_iterations)] if w]
     if use_emt:
         add_tracker_agreement(details, poses, dataset, plane, o.emt_sigma)

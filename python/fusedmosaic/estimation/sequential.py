@@ -284,7 +284,9 @@ class FrameResult:
     estimate will not change. tracker_gated: its tracker sample was down-weighted by the
     window step (gate_chi2) or dropped as a glitch; tracker_dropped: dropped (never used).
     timings: seconds per stage (features, matching, window_solve, keyframe_selection). plane:
-    (3,) pi = n / d of the step that made the frame final.
+    (3,) pi = n / d of the step that made the frame final. motion_released: the motion gate
+    (motion_gate_chi2) released its constant-velocity term (over frames k-2, k-1, k): the
+    tracker samples, or the solve, said the camera left constant velocity there.
     """
 
     frame_id: int
@@ -300,6 +302,8 @@ class FrameResult:
     plane: np.ndarray | None = None  # (3,) pi of the step that made the frame final
     # its tracker sample was dropped as a glitch and never used (implies tracker_gated)
     tracker_dropped: bool = False
+    # its C_p term was released by the motion gate (SequentialOptions.motion_gate_chi2)
+    motion_released: bool = False
 
 
 def canonical_rotation_vector(r: np.ndarray) -> np.ndarray:
@@ -671,12 +675,19 @@ class SequentialMosaicker:
         self._window_touched = True
         summary = summary_call(*args)
         released = set(summary.motion_released_ids)  # by the motion gate, for good
+        self._mark_motion_released(released)
         for k in ids:
             _, emt, scale, _, timing = self._mirror_frames[k]
             self._mirror_frames[k] = (np.asarray(self.window.pose(k)), emt, scale, True,
                                       RELEASED if k in released else timing)
         self._mirror_plane = np.asarray(self.window.plane())
         return summary
+
+    def _mark_motion_released(self, ids) -> None:
+        """The pending frames whose C_p term a solve released (motion gate)."""
+        for p in self._pending:
+            if p["id"] in ids:
+                p["motion_break"] = True
 
     def _win_forget(self, ids) -> None:
         self._window_touched = True
@@ -1158,13 +1169,15 @@ class SequentialMosaicker:
                 f"relative standard deviation of {std:.2g} (startup_max_plane_std {limit:g})")
             return False
         self.bootstrap_summary = summary
+        self._mark_motion_released(set(summary["motion_released_ids"]))  # for FrameResult
         self._plane = np.asarray(ba.plane())
         self._startup_G, self._startup_plane = {}, None
         self._win_set_plane(self._plane)
+        released = set(summary["motion_released_ids"])
         for k in ids:
             # held prior-only frames of the start-up's tail are solved again by the next step
             self._win_add_frame(k, np.asarray(ba.pose(k)), tracked.get(k), fixed=True,
-                                timing=timing[k])
+                                timing=RELEASED if k in released else timing[k])
         for m in self._boot_matches:
             self._win_add_pair(m.frame_l, m.frame_m, *self._subsample(m))
         self._boot_feats, self._boot_matches = [], []
@@ -1267,7 +1280,7 @@ class SequentialMosaicker:
             self._finalized.append(FrameResult(
                 k, p["timestamp"], G, poses_from_aligned(pose, self._world), status,
                 True, k in gated or p["dropped"], p["timings"], self.plane,
-                tracker_dropped=p["dropped"]))
+                tracker_dropped=p["dropped"], motion_released=bool(p.get("motion_break"))))
         for old in sorted(self._poses)[:-2]:
             del self._poses[old]  # keep only what the motion prediction needs
         if forget:
@@ -1406,6 +1419,8 @@ def run_lba_emt(dataset, *, progress: bool = True,
                   "loop_registered": c["loop_registered"]},
         "tracker_gated": [k for k in range(n) if results[k].tracker_gated],
         "tracker_dropped": [k for k in range(n) if results[k].tracker_dropped],
+        # C_p released by the motion gate (SequentialOptions.motion_gate_chi2)
+        "motion_released": [k for k in range(n) if results[k].motion_released],
         # the plane observability gate (SequentialOptions.plane_max_relative_std)
         "plane_gate": _plane_gate_details(plane_steps),
         # per frame: the plane of the step that made the frame final
