@@ -141,9 +141,10 @@ void BindProblem(py::module_& m) {
       .def_readwrite("use_motion_prior", &BundleAdjusterOptions::use_motion_prior,
                      "Add the constant-velocity prior (Eq. 20) for frame ids k-2, k-1, k.")
       .def_readwrite("motion_gate_chi2", &BundleAdjusterOptions::motion_gate_chi2,
-                     "Motion gate: after a solve the C_p block with the largest whitened\n"
-                     "squared norm above this is released and the problem solved again, at most\n"
-                     "a quarter of the blocks (default 22.46, chi2(6) 0.999; inf: off).")
+                     "Motion gate: after a solve the C_p blocks whose whitened squared norm is\n"
+                     "above this (the largest among their neighbours) are left out and the\n"
+                     "problem solved again, in rounds, at most a quarter of the blocks (default\n"
+                     "22.46, chi2(6) 0.999; inf: off).")
       .def_readwrite("plane_std", &BundleAdjusterOptions::plane_std,
                      "Compute SolveSummary.plane_relative_std (dense in 6 N + 3: small\n"
                      "problems, e.g. the sequential start-up).")
@@ -179,7 +180,7 @@ void BindProblem(py::module_& m) {
                     "sqrt(trace(Cov_pi)) / |pi| at the solution with options.plane_std (pi free,\n"
                     "EMT priors, per-pair blocks); NaN otherwise, inf: pi unobservable.")
       .def_readonly("motion_released_ids", &SolveSummary::motion_released_ids,
-                    "frames whose C_p block the motion gate released (options.motion_gate_chi2)")
+                    "frames whose C_p block the motion gate released in this solve")
       .def(
           "as_dict",
           [](const py::object& self) {

@@ -88,7 +88,7 @@ void BindSlidingWindow(py::module_& m) {
       .def_readonly("plane_held", &WindowStepSummary::plane_held,
                     "pi kept its value from before the step (no visual cost, or the gate)")
       .def_readonly("motion_released_ids", &WindowStepSummary::motion_released_ids,
-                    "estimated cameras whose C_p block the motion gate released (lasting)")
+                    "estimated cameras whose C_p block the motion gate released in this step")
       .def_readonly("preprocessor_time_s", &WindowStepSummary::preprocessor_time_s)
       .def_readonly("evaluation_time_s", &WindowStepSummary::evaluation_time_s,
                     "Ceres residual + Jacobian evaluation time")

@@ -218,10 +218,10 @@ class BundleAdjusterOptions:
     use_motion_prior: bool
     """Add the constant-velocity prior (Eq. 20) for present frame ids k-2, k-1, k."""
     motion_gate_chi2: float
-    """Motion gate (not in the paper): after a solve, the C_p block with the largest whitened
-    squared norm above this is released (for good: later solves leave it out too) and the
-    problem solved again, at most a quarter of the blocks. Default 22.46 (chi2(6) 0.999);
-    inf: off."""
+    """Motion gate (not in the paper): after a solve, the C_p blocks whose whitened squared
+    norm is above this and the largest among their neighbours (frames within 2) are left out of
+    the solve and the problem solved again, in rounds, at most a quarter of the blocks. Default
+    22.46 (chi2(6) 0.999); inf: off."""
     plane_std: bool
     """Compute SolveSummary.plane_relative_std (dense in 6 N + 3: small problems, e.g. the
     sequential start-up). Default False."""
@@ -263,8 +263,8 @@ class SolveSummary:
     """sqrt(trace(Cov_pi)) / |pi| at the solution with options.plane_std (pi free, EMT priors,
     per-pair blocks); NaN otherwise, inf: pi unobservable."""
     motion_released_ids: list[int]
-    """Frames whose C_p block the motion gate released (options.motion_gate_chi2); iterations
-    and solve_time_s cover every solve."""
+    """Frames whose C_p block the motion gate released in this solve
+    (options.motion_gate_chi2); iterations and solve_time_s cover every round."""
 
     def as_dict(self) -> dict[str, Any]:
         """All fields except full_report, JSON-serialisable."""
@@ -385,6 +385,7 @@ class WindowStepSummary:
     or the gate off; inf: pi unobservable; for a step the gate held, its first solve's value."""
     plane_held: bool  # pi kept its value from before the step (no visual cost, or the gate)
     motion_released_ids: list[int]  # estimated cameras whose C_p the motion gate released
+    # in this step or redo
     preprocessor_time_s: float
     evaluation_time_s: float
     linear_solver_time_s: float

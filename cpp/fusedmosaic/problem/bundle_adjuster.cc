@@ -10,6 +10,7 @@
 #include <cmath>
 #include <limits>
 #include <memory>
+#include <set>
 #include <stdexcept>
 #include <string>
 
@@ -332,6 +333,8 @@ SolveSummary BundleAdjuster::Solve() {
   }
 
   if (options_.use_motion_prior) {
+    std::set<int> visual;  // frames with a pair: the motion gate judges their C_p only
+    for (const Pair& pair : pairs_) visual.insert({pair.frame_l, pair.frame_m});
     for (auto& [id, frame] : frames_) {
       if (id < std::numeric_limits<int>::min() + 2) continue;
       auto km1 = frames_.find(id - 1);
@@ -343,7 +346,10 @@ SolveSummary BundleAdjuster::Solve() {
                          options_.motion_sigma * frame.motion_sigma_scale, frame.motion_ratio),
                      nullptr, km2->second.pose.data(), km1->second.pose.data(),
                      frame.pose.data()),
-                 id);
+                 id,
+                 MotionJudged(visual.count(id) > 0, km2->second.emt_measurement.has_value(),
+                              km1->second.emt_measurement.has_value(),
+                              frame.emt_measurement.has_value()));
     }
   }
 
@@ -392,15 +398,16 @@ SolveSummary BundleAdjuster::Solve() {
   out.initial_cost = summary.initial_cost;
   int iterations = summary.num_successful_steps + summary.num_unsuccessful_steps;
   double solve_time_s = summary.total_time_in_seconds;
-  // The motion gate (motion_gate.h): a released frame keeps no C_p in later solves either.
-  const int max_releases =
+  // The motion gate (motion_gate.h), in rounds, each followed by a solve; for this solve only.
+  int releases_left =
       MaxMotionReleases(static_cast<int>(motion.blocks.size()), options_.motion_gate_chi2);
-  for (int r = 0; r < max_releases; ++r) {
-    const std::optional<int> released =
-        ReleaseWorstMotionBlock(&problem, &motion, options_.motion_gate_chi2);
-    if (!released) break;
-    frames_.at(*released).motion_sigma_scale = std::numeric_limits<double>::infinity();
-    out.motion_released_ids.push_back(*released);
+  while (releases_left > 0) {
+    const std::vector<int> released =
+        ReleaseMotionBlocks(&problem, &motion, options_.motion_gate_chi2, releases_left);
+    if (released.empty()) break;
+    releases_left -= static_cast<int>(released.size());
+    out.motion_released_ids.insert(out.motion_released_ids.end(), released.begin(),
+                                   released.end());
     ceres::Solve(solver_options, &problem, &summary);
     iterations += summary.num_successful_steps + summary.num_unsuccessful_steps;
     solve_time_s += summary.total_time_in_seconds;

@@ -67,10 +67,10 @@ struct BundleAdjusterOptions {
   int num_threads = 2;
   bool use_emt = true;           // add C_EMT for frames with a measurement
   bool use_motion_prior = true;  // add C_p for consecutive frame ids k-2, k-1, k
-  // Motion gate (not in the paper; motion_gate.h): after a solve the C_p block whose whitened
-  // squared norm is largest and above this is released (removed, the frame's motion prior
-  // broken as after a pause) and the problem solved again, at most a quarter of the blocks, one
-  // at a time. The constant-velocity model cannot describe every motion (a scope spun in at
+  // Motion gate (not in the paper; motion_gate.h): after a solve the C_p blocks whose whitened
+  // squared norm is above this and the largest among their neighbours are released (left out
+  // of this solve, as after a pause) and the problem solved again, in rounds, at most a quarter
+  // of the blocks. The constant-velocity model cannot describe every motion (a scope spun in at
   // 30 deg per frame is 120 sigma_p of rotation): such a block pulled textured frames up to
   // 263 px off. Simulated solutions (SYN, hand-held, with black frames) peak at 1.1. inf: off.
   double motion_gate_chi2 = kDefaultMotionGateChi2;
@@ -111,8 +111,8 @@ struct SolveSummary {
   // sqrt(trace(Cov_pi)) / |pi| at the solution (plane_observability.h) when options.plane_std
   // and pi is free with EMT priors, per-pair blocks; NaN otherwise; inf: pi unobservable.
   double plane_relative_std = std::numeric_limits<double>::quiet_NaN();
-  // Frames whose C_p block the motion gate released, in order (options.motion_gate_chi2); the
-  // release lasts for later solves. The times, iterations and final values cover every solve.
+  // Frames whose C_p block the motion gate released in this solve, in order
+  // (options.motion_gate_chi2). The times, iterations and final values cover every round.
   std::vector<int> motion_released_ids;
 };
 

@@ -371,7 +371,12 @@ WindowStepSummary SlidingWindow::SolveStep(const std::vector<int>& free_ids,
                                                            f.motion_ratio),
                        nullptr, prev2->second.pose.data(), prev1->second.pose.data(),
                        f.pose.data()),
-                   id);
+                   id,
+                   MotionJudged(std::any_of(f.pair_keys.begin(), f.pair_keys.end(),
+                                            [&](const auto& key) { return used.count(key) > 0; }),
+                                prev2->second.emt_measurement.has_value(),
+                                prev1->second.emt_measurement.has_value(),
+                                f.emt_measurement.has_value()));
         for (auto p : {prev1, prev2})
           if (!in_problem.count(p->first)) problem.SetParameterBlockConstant(p->second.pose.data());
       }
@@ -423,16 +428,17 @@ WindowStepSummary SlidingWindow::SolveStep(const std::vector<int>& free_ids,
   for (int id : free_ids) poses_before.push_back(frames_.at(id).pose);
 
   solve(/*first=*/true);
-  // The motion gate (motion_gate.h), before the plane gate: a released frame keeps no C_p in a
-  // redo either.
-  const int max_releases =
+  // The motion gate (motion_gate.h), in rounds, each followed by a solve, before the plane
+  // gate; for this step only (a redo, after the caller's tracker gate, judges again).
+  int releases_left =
       MaxMotionReleases(static_cast<int>(motion.blocks.size()), c.motion_gate_chi2);
-  for (int r = 0; r < max_releases; ++r) {
-    const std::optional<int> released =
-        ReleaseWorstMotionBlock(&problem, &motion, c.motion_gate_chi2);
-    if (!released) break;
-    frames_.at(*released).motion_sigma_scale = std::numeric_limits<double>::infinity();
-    out.motion_released_ids.push_back(*released);
+  while (releases_left > 0) {
+    const std::vector<int> released =
+        ReleaseMotionBlocks(&problem, &motion, c.motion_gate_chi2, releases_left);
+    if (released.empty()) break;
+    releases_left -= static_cast<int>(released.size());
+    out.motion_released_ids.insert(out.motion_released_ids.end(), released.begin(),
+                                   released.end());
     solve(/*first=*/false);
   }
   const double limit = options_.plane_max_relative_std;

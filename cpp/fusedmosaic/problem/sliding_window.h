@@ -98,8 +98,8 @@ struct WindowStepSummary {
   // held step cover both solves.
   double plane_relative_std = std::numeric_limits<double>::quiet_NaN();
   bool plane_held = false;
-  // Estimated cameras whose C_p block the motion gate released (costs.motion_gate_chi2), in
-  // order; the release lasts (a redo keeps it). Iterations and times cover every solve.
+  // Estimated cameras whose C_p block the motion gate released in this step or redo
+  // (costs.motion_gate_chi2), in order. Iterations and times cover every round.
   std::vector<int> motion_released_ids;
   // Ceres' time split (s): building the reduced problem, residual + Jacobian evaluation, linear
   // solves; and Ceres' FullReport() (empty unless SlidingWindowOptions::full_report).

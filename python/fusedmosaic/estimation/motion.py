@@ -37,9 +37,10 @@ MOTION_MAX_GAP_S = 1.0
 # The motion gate (not in the paper): C_p does not link a frame whose tracker samples over
 # k-2, k-1, k depart from constant velocity by more than MOTION_GATE_CHI2 (chi2(6)'s 0.999
 # quantile, as the tracker gate), each component's variance raised by max(1, its median /
-# CHI2_1_MEDIAN) over the samples (a tracker noisier than Sigma_EMT). See tracker_motion_m2.
+# CHI2_1_MEDIAN) over the samples (a tracker noisier than Sigma_EMT). See
+# tracker_motion_departure and breaks_constant_velocity.
 MOTION_GATE_CHI2 = 22.46
-CHI2_6_MEDIAN = 5.348120627447  # scipy.stats.chi2.median(6)
+CHI2_6_MEDIAN = 5.348120627447  # scipy.stats.chi2.median(6), the tracker gate's scale
 CHI2_1_MEDIAN = 0.454936423119572  # scipy.stats.chi2.median(1)
 
 # motion_timing's answer for a broken prior: zero velocity (the frame starts at the preceding
@@ -91,52 +92,73 @@ def motion_timing(t_km2: float, t_km1: float, t_k: float, nominal: float | None,
     return float(ratio), scale
 
 
-def tracker_motion_terms(z_km2: np.ndarray, z_km1: np.ndarray, z_k: np.ndarray,
-                         motion_sigma: np.ndarray, emt_sigma: np.ndarray,
-                         timing: tuple[float, float] = (1.0, 1.0)) -> np.ndarray:
+def tracker_motion_departure(z_km2: np.ndarray, z_km1: np.ndarray, z_k: np.ndarray,
+                             motion_sigma: np.ndarray, emt_sigma: np.ndarray,
+                             timing: tuple[float, float] = (1.0, 1.0)) -> np.ndarray:
     """How far three tracker samples (cam_from_world, frames k-2, k-1, k) depart from constant
-    velocity (not in the paper), per component (6,): the C_p residual x_k - mu_p (Eq. 15-16) at
-    the samples, squared over its variance there, sigma_p^2 s^2 plus the samples' own noise
-    propagated, (1 + (1 + rho)^2 + rho^2) Sigma_EMT (rho, s: motion_timing's ratio and sigma
-    scale; 6 Sigma_EMT for even spacing). Each is chi2(1) or less when the motion keeps within
-    Sigma_p and the tracker's noise is Sigma_EMT."""
+    velocity (not in the paper), whitened per component (6,): the C_p residual x_k - mu_p
+    (Eq. 15-16) at the samples over its standard deviation there, sigma_p^2 s^2 plus the
+    samples' own noise propagated, (1 + (1 + rho)^2 + rho^2) Sigma_EMT (rho, s: motion_timing's
+    ratio and sigma scale; 6 Sigma_EMT for even spacing). Each squared is chi2(1) or less when
+    the motion keeps within Sigma_p and the tracker's noise is Sigma_EMT."""
     ratio, scale = timing
     raw, _ = _core.evaluate_constant_velocity(z_km2, z_km1, z_k, np.ones(6), ratio)
     variance = (np.asarray(motion_sigma, np.float64) * scale) ** 2 + (
         1.0 + (1.0 + ratio) ** 2 + ratio ** 2) * np.asarray(emt_sigma, np.float64) ** 2
-    return np.asarray(raw) ** 2 / variance
+    return np.asarray(raw) / np.sqrt(variance)
 
 
-def tracker_motion_m2(terms: np.ndarray, history=None) -> float:
-    """The motion gate's Mahalanobis^2 from tracker_motion_terms: their sum, each divided by
-    max(1, median of that component over `history` (M, 6) / CHI2_1_MEDIAN) when given (M >= 3):
-    a tracker noisier than Sigma_EMT raises the components its noise dominates, and only
-    those."""
-    terms = np.asarray(terms, np.float64)
-    if history is not None and len(history) >= 3:
-        scale = np.maximum(1.0, np.median(np.asarray(history), axis=0) / CHI2_1_MEDIAN)
-        terms = terms / scale
-    return float(np.sum(terms))
+def motion_departure_scale(history) -> np.ndarray:
+    """Per component (6,): max(1, median of the squared departures in `history` (M, 6) /
+    CHI2_1_MEDIAN), 1 with fewer than 3: a tracker noisier than Sigma_EMT raises the components
+    its noise dominates, and only those."""
+    if history is None or len(history) < 3:
+        return np.ones(6)
+    return np.maximum(1.0, np.median(np.asarray(history) ** 2, axis=0) / CHI2_1_MEDIAN)
+
+
+def breaks_constant_velocity(w_k: np.ndarray, w_km1: np.ndarray | None,
+                             w_km2: np.ndarray | None, scale: np.ndarray,
+                             gate_chi2: float = MOTION_GATE_CHI2) -> bool:
+    """Whether frame k's departure w_k (tracker_motion_departure, each component divided by
+    sqrt(scale)) says the camera left constant velocity: its squared norm above gate_chi2, and
+    not explained by one bad sample before it. A sample off by d at frame j makes the triples
+    ending at j, j + 1, j + 2 depart by d, -2 d, d (one jump of the motion: the triple at the
+    jump only), so w_k = -2 w_{k-1} (sample k-1), or w_k = w_{k-2} with w_{k-1} = -2 w_{k-2}
+    (sample k-2), within the gate, is that sample's fault: C_p then holds its frame."""
+    root = np.sqrt(scale)
+    w = np.asarray(w_k) / root
+    if not float(w @ w) > gate_chi2:
+        return False
+    if w_km1 is not None:
+        a = np.asarray(w_km1) / root
+        if float((w + 2 * a) @ (w + 2 * a)) <= gate_chi2:
+            return False
+        if w_km2 is not None:
+            b = np.asarray(w_km2) / root
+            if (float((w - b) @ (w - b)) <= gate_chi2
+                    and float((a + 2 * b) @ (a + 2 * b)) <= gate_chi2):
+                return False
+    return True
 
 
 def tracker_motion_breaks(samples: np.ndarray, timings: list, motion_sigma: np.ndarray,
                           emt_sigma: np.ndarray, gate_chi2: float = MOTION_GATE_CHI2) -> list[int]:
     """The frames k whose tracker samples over k-2, k-1, k (rows of `samples`, NaN where a
-    frame has none) break constant velocity, offline: tracker_motion_m2 (timings[k]: frame k's
-    motion_timing; released ones are not judged), scaled by the whole sequence's medians, above
-    gate_chi2."""
+    frame has none) break constant velocity, offline: breaks_constant_velocity with the
+    departures of k-1 and k-2 (timings[k]: frame k's motion_timing; released ones are not
+    judged), scaled by the whole sequence's medians."""
     samples = np.asarray(samples, np.float64)
-    ids, terms = [], []
+    w: dict[int, np.ndarray] = {}
     for k in range(2, len(samples)):
-        if not (np.isfinite(samples[k - 2:k + 1]).all() and np.isfinite(timings[k][1])):
-            continue
-        ids.append(k)
-        terms.append(tracker_motion_terms(samples[k - 2], samples[k - 1], samples[k],
-                                          motion_sigma, emt_sigma, timings[k]))
-    if not ids or not np.isfinite(gate_chi2):
+        if np.isfinite(samples[k - 2:k + 1]).all() and np.isfinite(timings[k][1]):
+            w[k] = tracker_motion_departure(samples[k - 2], samples[k - 1], samples[k],
+                                            motion_sigma, emt_sigma, timings[k])
+    if not w or not np.isfinite(gate_chi2):
         return []
-    return [k for k, t in zip(ids, terms, strict=True)
-            if tracker_motion_m2(t, terms) > gate_chi2]
+    scale = motion_departure_scale(list(w.values()))
+    return [k for k in w
+            if breaks_constant_velocity(w[k], w.get(k - 1), w.get(k - 2), scale, gate_chi2)]
 
 
 def predict_constant_velocity(pose_km2: np.ndarray, pose_km1: np.ndarray,

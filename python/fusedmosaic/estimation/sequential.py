@@ -81,10 +81,11 @@ from fusedmosaic.estimation.motion import (
     MOTION_GATE_CHI2,
     MOTION_MAX_GAP_S,
     RELEASED,
+    breaks_constant_velocity,
+    motion_departure_scale,
     motion_timing,
     predict_constant_velocity,
-    tracker_motion_m2,
-    tracker_motion_terms,
+    tracker_motion_departure,
 )
 from fusedmosaic.estimation.plane import estimate_plane, plane_depths
 from fusedmosaic.estimation.world import (
@@ -434,9 +435,11 @@ class SequentialMosaicker:
         self._times: dict[int, float] = {}
         self._intervals: deque = deque(maxlen=200)
         # The tracker's motion check (_tracker_breaks_motion): the last three frames' samples
-        # used (id -> pose) and the recent samples' departures from constant velocity.
+        # used (id -> pose), the recent departures from constant velocity and the last two by
+        # frame id.
         self._samples: dict[int, np.ndarray] = {}
-        self._motion_terms: deque = deque(maxlen=200)
+        self._motion_history: deque = deque(maxlen=200)
+        self._departures: dict[int, np.ndarray] = {}
         self._reference_pose: np.ndarray | None = None
         self._plane: np.ndarray | None = None
         # Provisional placements in the start-up, until its adjustment gives self._plane: start-up
@@ -614,7 +617,7 @@ class SequentialMosaicker:
               "_loop_centroids", "_loop_G", "_pair_H", "_recent_G", "_poses", "pair_counts",
               "_mirror_frames", "_mirror_pairs", "_mirror_plane", "_implausible_run",
               "_world", "_times", "_intervals", "_unanchored", "bootstrap_summary",
-              "_samples", "_motion_terms")
+              "_samples", "_motion_history", "_departures")
 
     def _save(self) -> dict:
         """What a call may change, copied (shallowly: the values it replaces, never mutates)."""
@@ -674,20 +677,20 @@ class SequentialMosaicker:
         """window.step / redo; afterwards the solved frames are fixed at their new poses."""
         self._window_touched = True
         summary = summary_call(*args)
-        released = set(summary.motion_released_ids)  # by the motion gate, for good
-        self._mark_motion_released(released)
+        self._mark_motion_gated(ids, summary.motion_released_ids)
         for k in ids:
             _, emt, scale, _, timing = self._mirror_frames[k]
-            self._mirror_frames[k] = (np.asarray(self.window.pose(k)), emt, scale, True,
-                                      RELEASED if k in released else timing)
+            self._mirror_frames[k] = (np.asarray(self.window.pose(k)), emt, scale, True, timing)
         self._mirror_plane = np.asarray(self.window.plane())
         return summary
 
-    def _mark_motion_released(self, ids) -> None:
-        """The pending frames whose C_p term a solve released (motion gate)."""
+    def _mark_motion_gated(self, solved, released) -> None:
+        """Of the pending frames `solved`, those whose C_p term the solve left out (the C++
+        motion gate): the last solve of a frame decides its flag."""
+        solved, released = set(solved), set(released)
         for p in self._pending:
-            if p["id"] in ids:
-                p["motion_break"] = True
+            if p["id"] in solved:
+                p["motion_gated"] = p["id"] in released
 
     def _win_forget(self, ids) -> None:
         self._window_touched = True
@@ -740,7 +743,7 @@ class SequentialMosaicker:
                 p = dict(p, tracker=None, dropped=True)
             elif p["dropped"] and p.get("sample") is not None and p["id"] > max(old, default=-1):
                 p = dict(p, tracker=p["sample"], dropped=False)
-            pending.append(p)
+            pending.append(dict(p, departure=None))  # (from the old reference's samples)
         self._pending = pending
         self._samples = {}  # the old reference's: no motion to judge against the new one
 
@@ -757,7 +760,8 @@ class SequentialMosaicker:
             return None if pose is None else poses_to_aligned(
                 poses_from_aligned(pose, self._world), world)
 
-        self._pending = [dict(p, tracker=move(p["tracker"]), sample=move(p.get("sample")))
+        self._pending = [dict(p, tracker=move(p["tracker"]), sample=move(p.get("sample")),
+                              departure=None)  # (from samples in the old world)
                          for p in self._pending]
         self._samples = {i: move(z) for i, z in self._samples.items()}
         self._world, self._startup_plane = world, None
@@ -786,7 +790,7 @@ class SequentialMosaicker:
             # the world was decided by the old reference (e.g. a bad first sample 10 m off,
             # which made a far origin of its own): decided again by the new one
             tracker_pose = sample = self._realign_startup(sample, timestamp)
-        motion_break = self._tracker_breaks_motion(k, tracker_pose)
+        departure = self._tracker_departure(k, tracker_pose)
         timings: dict[str, float] = {}
 
         t0 = time.perf_counter()
@@ -812,7 +816,7 @@ class SequentialMosaicker:
         self._pending.append({"id": k, "timestamp": timestamp, "tracker": tracker_pose,
                               "visual": bool(ok), "timings": timings, "features": feats,
                               "held": 0, "dropped": dropped, "sample": sample,
-                              "motion_break": motion_break})
+                              "departure": departure, "motion_break": False})
         self._finalized = []
         waiting = False
         if self._plane is None:  # bootstrap: keep everything until the initial adjustment
@@ -832,6 +836,8 @@ class SequentialMosaicker:
             # anchor of its own (its tracker sample, or a registered pair to an anchored frame)
             # is not tied to the lost frames by pairs or the constant-velocity term: they would
             # pull it off. A frame without one keeps chaining through them.
+            motion_break = self._tracker_breaks_motion(k, departure)
+            self._pending[-1]["motion_break"] = motion_break
             timing = RELEASED if motion_break else self._timing(k)
             lost = self._lost_ids()
             anchored = tracker_pose is not None or any(m.frame_m not in lost for m in ok + loops)
@@ -1032,27 +1038,40 @@ class SequentialMosaicker:
         return motion_timing(times[k - 2], times[k - 1], times[k], nominal,
                              self.options.motion_max_gap_s)
 
-    def _tracker_breaks_motion(self, k: int, sample: np.ndarray | None) -> bool:
-        """Whether the tracker samples of frames k-2, k-1, k (those kept: none dropped as a
-        glitch) say the camera left constant velocity (not in the paper): their departure
-        (motion.tracker_motion_m2, each component scaled by its median over the earlier
-        samples, from three on: a tracker noisier than Sigma_EMT) above motion_gate_chi2. C_p
-        then does not link frame k, as after a pause. The scope spun in at 30 deg
-        per frame (120 sigma_p) and stopped at the first textured frame: in the start-up C_p
-        turned the textured frames with it (a 30 deg step: 11 px e_M, 0.52 px with this)."""
+    def _tracker_departure(self, k: int, sample: np.ndarray | None) -> np.ndarray | None:
+        """How far the tracker samples of frames k-2, k-1, k (those kept: none dropped as a
+        glitch) depart from constant velocity, whitened (motion.tracker_motion_departure);
+        None without three samples or across a pause (C_p released already)."""
         self._samples = {i: z for i, z in self._samples.items() if i >= k - 2}
         if sample is not None:
             self._samples[k] = sample
         if sample is None or k - 1 not in self._samples or k - 2 not in self._samples:
-            return False
+            return None
         timing = self._timing(k)
         if not np.isfinite(timing[1]):
-            return False  # released already (a pause)
-        terms = tracker_motion_terms(self._samples[k - 2], self._samples[k - 1], sample,
-                                     self._costs.motion_sigma, self._costs.emt_sigma, timing)
-        m2 = tracker_motion_m2(terms, self._motion_terms)  # scaled by the earlier samples'
-        self._motion_terms.append(terms)
-        return m2 > self.options.motion_gate_chi2
+            return None
+        return tracker_motion_departure(self._samples[k - 2], self._samples[k - 1], sample,
+                                        self._costs.motion_sigma, self._costs.emt_sigma, timing)
+
+    def _tracker_breaks_motion(self, k: int, w: np.ndarray | None) -> bool:
+        """After the start-up: whether a new frame's tracker samples say the camera left
+        constant velocity (not in the paper), so that C_p does not link it, as after a pause
+        (motion.breaks_constant_velocity: its departure above motion_gate_chi2, each component
+        scaled by its median over the earlier frames', and not one bad sample's doing: a +20 deg
+        glitch on a black frame makes its two successors depart too; released, the frame
+        followed the glitch, 116 px off; its own triple only: 16 px, 27 without the gate). The
+        scope spun in at 30 deg per frame
+        (120 sigma_p) and stopped: C_p turned the textured frames with it (e_M 12-263 px, 0.5
+        px with this; the start-up decides its frames in _bootstrap)."""
+        self._departures = {i: d for i, d in self._departures.items() if i >= k - 2}
+        if w is None:
+            return False
+        scale = motion_departure_scale(self._motion_history)
+        self._motion_history.append(w)
+        self._departures[k] = w
+        return breaks_constant_velocity(w, self._departures.get(k - 1),
+                                        self._departures.get(k - 2), scale,
+                                        self.options.motion_gate_chi2)
 
     def _predict_pose(self, timestamp: float | None = None) -> np.ndarray | None:
         """Constant-velocity prediction from the last two estimated poses, the motion scaled by
@@ -1120,7 +1139,16 @@ class SequentialMosaicker:
         seen = {i for m in self._boot_matches for i in (m.frame_l, m.frame_m)}
         ids = [p["id"] for p in self._pending]
         times = {p["id"]: p["timestamp"] for p in self._pending}
-        timing = {p["id"]: RELEASED if p.get("motion_break") else self._timing(p["id"], times)
+        # The tracker's motion check over the start-up (see _tracker_breaks_motion), each
+        # component scaled by its median over all the start-up's triples (its first ones have no
+        # earlier ones: a tracker 4x noisier than Sigma_EMT broke them, e_M 1.6 -> 3.9 px)
+        w = {p["id"]: p["departure"] for p in self._pending if p["departure"] is not None}
+        scale = motion_departure_scale(list(w.values()))
+        for p in self._pending:
+            k = p["id"]
+            p["motion_break"] = k in w and breaks_constant_velocity(
+                w[k], w.get(k - 1), w.get(k - 2), scale, o.motion_gate_chi2)
+        timing = {p["id"]: RELEASED if p["motion_break"] else self._timing(p["id"], times)
                   for p in self._pending}
         # Tracker samples that disagree with the adjustment are gated as the window's are, one
         # at a time (the worst), at most a quarter of them: Mahalanobis^2 above gate_chi2
@@ -1169,15 +1197,16 @@ class SequentialMosaicker:
                 f"relative standard deviation of {std:.2g} (startup_max_plane_std {limit:g})")
             return False
         self.bootstrap_summary = summary
-        self._mark_motion_released(set(summary["motion_released_ids"]))  # for FrameResult
+        self._mark_motion_gated(ids, summary["motion_released_ids"])
+        self._motion_history.extend(w.values())  # the window's checks scale by these too
+        self._departures = {k: d for k, d in w.items() if k >= max(w, default=0) - 1}
         self._plane = np.asarray(ba.plane())
         self._startup_G, self._startup_plane = {}, None
         self._win_set_plane(self._plane)
-        released = set(summary["motion_released_ids"])
         for k in ids:
             # held prior-only frames of the start-up's tail are solved again by the next step
             self._win_add_frame(k, np.asarray(ba.pose(k)), tracked.get(k), fixed=True,
-                                timing=RELEASED if k in released else timing[k])
+                                timing=timing[k])
         for m in self._boot_matches:
             self._win_add_pair(m.frame_l, m.frame_m, *self._subsample(m))
         self._boot_feats, self._boot_matches = [], []
@@ -1280,7 +1309,8 @@ class SequentialMosaicker:
             self._finalized.append(FrameResult(
                 k, p["timestamp"], G, poses_from_aligned(pose, self._world), status,
                 True, k in gated or p["dropped"], p["timings"], self.plane,
-                tracker_dropped=p["dropped"], motion_released=bool(p.get("motion_break"))))
+                tracker_dropped=p["dropped"],
+                motion_released=p["motion_break"] or p.get("motion_gated", False)))
         for old in sorted(self._poses)[:-2]:
             del self._poses[old]  # keep only what the motion prediction needs
         if forget:
