@@ -169,14 +169,14 @@ class SequentialOptions:
     gate_sigma_scale: float = 10.0
     # Motion gate (not in the paper): C_p does not link a frame whose tracker samples over
     # frames k-2, k-1, k depart from constant velocity by more than this (Mahalanobis^2 with
-    # Sigma_p and their own noise; scaled by the recent samples' median as the tracker gate),
-    # nor one whose C_p block a solve leaves above it (BundleAdjusterOptions.motion_gate_chi2).
-    # Black frames tracked while the scope spun in at 30 deg per frame (120 sigma_p) and
-    # stopped: their C_p turned the textured frames of the start-up with it, e_M 12 to 263 px
-    # on the 24-frame test scene (0.47 px without them), 0.45-0.88 px with the gate. Simulated
-    # sequences (SYN, hand-held, black frames) leave solved C_p blocks at <= 1.1 and no tracker
-    # triple above it; the first three of a tracker 4x noisier than Sigma_EMT (Fig. 9 nu = 4)
-    # break before there are earlier ones to scale by (e_M 0.2228 vs 0.2221 px). inf: off.
+    # Sigma_p and their own noise, each component scaled by its median; not where one bad
+    # sample before explains it: motion.breaks_constant_velocity), nor a frame with pairs and a
+    # triple missing a tracker sample whose C_p block a solve leaves above it
+    # (BundleAdjusterOptions.motion_gate_chi2). Black frames tracked while the scope spun in at
+    # 30 deg per frame (120 sigma_p) and stopped: their C_p turned the textured frames of the
+    # start-up with it, e_M 12 to 263 px on the 24-frame test scene (0.47 px without them),
+    # 0.45-0.88 px with the gate. Simulated sequences (SYN, hand-held, black frames, a tracker
+    # 4x noisier than Sigma_EMT) are left alone (identical e_M). inf: off.
     motion_gate_chi2: float = MOTION_GATE_CHI2
     max_keyframe_blocks: int = 200  # bound on retained keyframe candidates (memory, per-step cost)
     # Initialisation: the first frames are bundle-adjusted together (all pairs, BA+EMT) to get the
