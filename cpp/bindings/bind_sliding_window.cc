@@ -124,6 +124,10 @@ void BindSlidingWindow(py::module_& m) {
           "    camera to the two preceding ones (1, 1: evenly spaced; 0, inf: no prior across a\n"
           "    long gap, the camera starting at the preceding one; see BundleAdjuster)")
       .def("set_emt_sigma_scale", &SlidingWindow::SetEmtSigmaScale, "frame_id"_a, "scale"_a)
+      .def("set_motion_timing", &SlidingWindow::SetMotionTiming, "frame_id"_a,
+           "motion_ratio"_a, "motion_sigma_scale"_a,
+           "The timing of a frame's constant-velocity prior (as add_frame's), from the next "
+           "step or redo that estimates it on.")
       .def(
           "add_pair",
           [](SlidingWindow& self, int frame_l, int frame_m,

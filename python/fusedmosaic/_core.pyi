@@ -419,6 +419,12 @@ class SlidingWindow:
     def set_emt_sigma_scale(self, frame_id: int, scale: float) -> None:
         """Inflates a frame's tracker standard deviations (gating), scale >= 1."""
 
+    def set_motion_timing(
+        self, frame_id: int, motion_ratio: float, motion_sigma_scale: float
+    ) -> None:
+        """The timing of a frame's constant-velocity prior (as add_frame's), from the next
+        step or redo that estimates it on."""
+
     def add_pair(
         self, frame_l: int, frame_m: int, points_l: _ArrayLike, points_m: _ArrayLike
     ) -> None:

@@ -25,7 +25,7 @@ struct MotionBlocks {
 // Whether a solve may release frame k's C_p: only a frame with visual residuals (the images
 // then place it; a frame without keeps C_p, its only hold besides its tracker sample), and only
 // when a frame of the triple has no tracker sample: where all three have one, the tracker has
-// judged the motion already (estimation/motion.py tracker_motion_terms, the caller's check), and
+// judged the motion already (estimation/motion.py motion_verdict, the caller's check), and
 // a solution that leaves C_p far off was pulled by something else (a +20 deg glitch on a black
 // frame spread into its textured neighbours' C_p: released, the black frame went 48 px off
 // instead of 27).

@@ -143,6 +143,15 @@ void SlidingWindow::SetEmtSigmaScale(int frame_id, double scale) {
   FindFrame(frame_id, "set_emt_sigma_scale").emt_sigma_scale = scale;
 }
 
+void SlidingWindow::SetMotionTiming(int frame_id, double motion_ratio,
+                                    double motion_sigma_scale) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  CheckMotionTiming(motion_ratio, motion_sigma_scale, "set_motion_timing");
+  Frame& frame = FindFrame(frame_id, "set_motion_timing");
+  frame.motion_ratio = motion_ratio;
+  frame.motion_sigma_scale = motion_sigma_scale;
+}
+
 void SlidingWindow::AddPair(int frame_l, int frame_m, const Points& points_l,
                             const Points& points_m) {
   std::lock_guard<std::mutex> lock(mutex_);

@@ -131,6 +131,9 @@ class SlidingWindow {
                 double motion_ratio = 1.0, double motion_sigma_scale = 1.0);
   // Inflates the tracker standard deviations of a pending camera (gating, >= 1).
   void SetEmtSigmaScale(int frame_id, double scale);
+  // The timing of a camera's constant-velocity prior, as AddFrame's, from the next Step or
+  // Redo that estimates it on (e.g. judged again when later tracker samples are known).
+  void SetMotionTiming(int frame_id, double motion_ratio, double motion_sigma_scale);
   void AddPair(int frame_l, int frame_m, const Points& points_l, const Points& points_m);
   void SetPlane(const Eigen::Vector3d& plane);
 

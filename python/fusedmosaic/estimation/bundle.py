@@ -26,7 +26,7 @@ from fusedmosaic.estimation.motion import (
     MOTION_GATE_CHI2,
     RELEASED,
     motion_timing,
-    tracker_motion_breaks,
+    tracker_motion_verdicts,
 )
 from fusedmosaic.estimation.plane import estimate_plane
 from fusedmosaic.estimation.world import (
@@ -65,8 +65,10 @@ class BundleOptions:
     linear_solver: str = "auto"
     max_iterations: int = 100
     # Motion gate (not in the paper; SequentialOptions.motion_gate_chi2): C_p does not link a
-    # frame whose tracker samples over k-2, k-1, k, or whose solved block, depart from constant
-    # velocity by more than this (Mahalanobis^2; inf: off).
+    # frame whose tracker samples over k-2, k-1, k depart from constant velocity by more than
+    # this (Mahalanobis^2) unless bad samples explain it (those are then left out: details
+    # tracker_glitches; motion.motion_verdict), nor a frame with pairs and a triple missing a
+    # sample whose solved block departs that far (details motion_released; inf: off).
     motion_gate_chi2: float = MOTION_GATE_CHI2
     num_threads: int = 2
     seed: int = 0  # inlier subsampling
@@ -290,16 +292,20 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     # released where the tracker says the motion left constant velocity (tracker_motion_breaks)
     timing = [motion_timing(*times[k - 2:k + 1], nominal) if k >= 2 else (1.0, 1.0)
               for k in range(n)]
-    breaks = []
+    # (and tracker samples that explained a departure, motion_verdict, are left out: a +20 deg
+    # glitch on a black frame pulled it and its neighbours against C_p)
+    breaks, glitches = [], []
     if use_emt:
         samples = np.where(np.asarray(dataset.pose_valid, bool)[:, None],
                            dataset.cam_from_world, np.nan)
-        breaks = tracker_motion_breaks(samples, timing, ba.options.motion_sigma,
-                                       ba.options.emt_sigma, o.motion_gate_chi2)
+        breaks, glitches = tracker_motion_verdicts(
+            samples, times, ba.options.motion_sigma, ba.options.emt_sigma, o.motion_gate_chi2,
+            nominal)
         for k in breaks:
             timing[k] = RELEASED
     for k in frames:
-        z = dataset.cam_from_world[k] if use_emt and dataset.pose_valid[k] else None
+        z = (dataset.cam_from_world[k] if use_emt and dataset.pose_valid[k]
+             and k not in glitches else None)
         ba.add_frame(k, init[k], z, *timing[k])
     in_problem = set(frames)
     for m in ok:
@@ -320,6 +326,7 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     details["solver"] = summary.as_dict()
     if use_emt:  # C_p released by the motion gate: tracker samples, or the solve
         details["motion_released"] = sorted({*breaks, *summary.motion_released_ids})
+        details["tracker_glitches"] = [int(k) for k in glitches]
     details["warnings"] = [w for w in [solver_warning(summary, o.max_iterations)] if w]
     if use_emt:
         add_tracker_agreement(details, poses, dataset, plane, o.emt_sigma)

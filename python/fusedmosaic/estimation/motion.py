@@ -101,11 +101,8 @@ def tracker_motion_departure(z_km2: np.ndarray, z_km1: np.ndarray, z_k: np.ndarr
     samples' own noise propagated, (1 + (1 + rho)^2 + rho^2) Sigma_EMT (rho, s: motion_timing's
     ratio and sigma scale; 6 Sigma_EMT for even spacing). Each squared is chi2(1) or less when
     the motion keeps within Sigma_p and the tracker's noise is Sigma_EMT."""
-    ratio, scale = timing
-    raw, _ = _core.evaluate_constant_velocity(z_km2, z_km1, z_k, np.ones(6), ratio)
-    variance = (np.asarray(motion_sigma, np.float64) * scale) ** 2 + (
-        1.0 + (1.0 + ratio) ** 2 + ratio ** 2) * np.asarray(emt_sigma, np.float64) ** 2
-    return np.asarray(raw) / np.sqrt(variance)
+    raw, variance = departure_parts(z_km2, z_km1, z_k, motion_sigma, emt_sigma, timing)
+    return raw / np.sqrt(variance)
 
 
 def motion_departure_scale(history) -> np.ndarray:
@@ -117,48 +114,159 @@ def motion_departure_scale(history) -> np.ndarray:
     return np.maximum(1.0, np.median(np.asarray(history) ** 2, axis=0) / CHI2_1_MEDIAN)
 
 
-def breaks_constant_velocity(w_k: np.ndarray, w_km1: np.ndarray | None,
-                             w_km2: np.ndarray | None, scale: np.ndarray,
-                             gate_chi2: float = MOTION_GATE_CHI2) -> bool:
-    """Whether frame k's departure w_k (tracker_motion_departure, each component divided by
-    sqrt(scale)) says the camera left constant velocity: its squared norm above gate_chi2, and
-    not explained by one bad sample before it. A sample off by d at frame j makes the triples
-    ending at j, j + 1, j + 2 depart by d, -2 d, d (one jump of the motion: the triple at the
-    jump only), so w_k = -2 w_{k-1} (sample k-1), or w_k = w_{k-2} with w_{k-1} = -2 w_{k-2}
-    (sample k-2), within the gate, is that sample's fault: C_p then holds its frame."""
+# breaks_constant_velocity's explanations of a departure by bad samples: the frames left out,
+# offsets from k, one or two of k-3 ... k+1 with one of k-2, k-1, k among them (else the
+# triple k-2, k-1, k is kept); those after k once their samples are known (offline, or a
+# frame judged again before its step). An explanation must also take away most of the
+# departure: each triple of kept samples spanning a left-out one departs at most
+# GLITCH_REMAINDER times as much as w_k (squared, at the variance of k-2, k-1, k): a turn or
+# a jump of the motion departs alike over every triple across it (extrapolated from before
+# it), only whitened by a larger variance where the samples are further apart; a +90 deg
+# jump seen by a tracker 4x noisier than Sigma_EMT was "explained" by k-1 and k-2 left out
+# (k-4, k-3, k: 11 against the gate's 22.5) without this.
+GLITCH_SETS = ((-1,), (-2,), (0,), (-2, -1), (-3, -2), (-3, -1), (-1, 0), (-2, 0), (0, 1),
+               (-1, 1), (-2, 1), (-3, 0))
+GLITCH_REMAINDER = 1.0 / 3.0
+
+
+def departure_parts(z_km2: np.ndarray, z_km1: np.ndarray, z_k: np.ndarray,
+                    motion_sigma: np.ndarray, emt_sigma: np.ndarray,
+                    timing: tuple[float, float] = (1.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
+    """tracker_motion_departure's raw C_p residual at the samples and its variance, (6,)
+    each."""
+    ratio, scale = timing
+    raw, _ = _core.evaluate_constant_velocity(z_km2, z_km1, z_k, np.ones(6), ratio)
+    variance = (np.asarray(motion_sigma, np.float64) * scale) ** 2 + (
+        1.0 + (1.0 + ratio) ** 2 + ratio ** 2) * np.asarray(emt_sigma, np.float64) ** 2
+    return np.asarray(raw), variance
+
+
+def triple_departures(samples, times=None, nominal: float | None = None, *,
+                      motion_sigma: np.ndarray, emt_sigma: np.ndarray,
+                      max_gap_s: float | None = MOTION_MAX_GAP_S):
+    """departure(a, b, c): the samples of frames a < b < c (`samples`: frame id ->
+    cam_from_world, or an (N, 6) array with NaN rows where a frame has none) as
+    (tracker_motion_departure, its variance before whitening), timed by motion_timing over
+    their `times` (a mapping or sequence by frame id; None or a time missing: the frame ids,
+    evenly spaced) and nominal interval (None: the triple's mean interval per frame); None
+    where a sample is missing or the triple spans a pause (motion_timing releases it)."""
+    def get(table, i):
+        if table is None:
+            return None
+        if isinstance(table, dict):
+            return table.get(i)
+        return table[i] if 0 <= i < len(table) else None
+
+    def departure(a: int, b: int, c: int) -> tuple[np.ndarray, np.ndarray] | None:
+        z = [get(samples, i) for i in (a, b, c)]
+        if any(v is None or not np.isfinite(v).all() for v in z):
+            return None
+        t = [get(times, i) for i in (a, b, c)]
+        if all(v is not None and np.isfinite(v) for v in t):
+            unit = nominal if nominal is not None else (t[2] - t[0]) / (c - a)
+            timing = motion_timing(*t, unit, max_gap_s)
+        else:
+            timing = motion_timing(a, b, c, 1.0, None)
+        if not np.isfinite(timing[1]):
+            return None
+        raw, variance = departure_parts(*z, motion_sigma, emt_sigma, timing)
+        return raw / np.sqrt(variance), variance
+    return departure
+
+
+def motion_verdict(w_k: np.ndarray, k: int, departure, scale: np.ndarray,
+                   gate_chi2: float = MOTION_GATE_CHI2) -> tuple[bool, frozenset[int]]:
+    """(breaks, bad samples): whether frame k's departure w_k (tracker_motion_departure over k-2,
+    k-1, k; each component divided by sqrt(scale) here) says the camera left constant velocity:
+    its squared norm above gate_chi2, and not explained by bad samples. A sample off at frame j
+    makes the triples ending at j, j + 1, j + 2 depart (d, -2 d, d when evenly spaced), two
+    consecutive ones four triples; a turn between k-1 and k makes every triple across it depart,
+    from the velocity before it. So for each GLITCH_SETS of frames left out, the triples of
+    consecutive kept samples over k-5 ... k+3 that span one left out (`departure(a, b, c)`, see
+    triple_departures; None: unknown, a sample missing, not yet given, or a pause between) must
+    keep within the gate and depart at most GLITCH_REMAINDER times as much as w_k, every frame
+    left out spanned by one known (samples on both sides pass it by; a spin from a sequence's
+    first frame was "frame 0's sample off" without): then the departure is the samples' doing
+    and C_p holds frame k. Nor does it break where no left-out set has a triple known (e.g. the
+    first triples after a pause): a +20 deg glitch on a black frame just after a 2 s pause then
+    released the next frame's C_p, and the frame followed its sample (lba-emt 76 px, 16 px with
+    C_p). Frame k's own sample is left out only with a later one known: at k a bad sample and a
+    turn look the same. Bad samples: the frames left out by the explanation found (empty when it
+    breaks or none is needed)."""
     root = np.sqrt(scale)
     w = np.asarray(w_k) / root
-    if not float(w @ w) > gate_chi2:
-        return False
-    if w_km1 is not None:
-        a = np.asarray(w_km1) / root
-        if float((w + 2 * a) @ (w + 2 * a)) <= gate_chi2:
-            return False
-        if w_km2 is not None:
-            b = np.asarray(w_km2) / root
-            if (float((w - b) @ (w - b)) <= gate_chi2
-                    and float((a + 2 * b) @ (a + 2 * b)) <= gate_chi2):
-                return False
-    return True
+    m2 = float(w @ w)
+    if not m2 > gate_chi2:
+        return False, frozenset()
+    base = departure(k - 2, k - 1, k)
+    judged = False
+    single: dict[tuple[int, ...], bool] = {}
+    found: frozenset[int] | None = None
+    for left_out in GLITCH_SETS:
+        out = {k + i for i in left_out}
+        kept = [j for j in range(k - 5, k + 4) if j not in out]
+        spanned: set[int] = set()
+        explained = False
+        for a, b, c in zip(kept, kept[1:], kept[2:], strict=False):
+            if not any(a < j < c for j in out) or (d := departure(a, b, c)) is None:
+                continue
+            e = d[0] / root
+            spanned |= {j for j in out if a < j < c}
+            explained = float(e @ e) <= gate_chi2
+            if explained and base is not None:
+                e = e * np.sqrt(d[1] / base[1])  # at the variance of k-2, k-1, k
+                explained = float(e @ e) <= GLITCH_REMAINDER * m2
+            if not explained:
+                break
+        known = spanned == out
+        judged |= known
+        single[left_out] = known
+        if known and explained and found is None:
+            found = frozenset(out)
+    if found is None:
+        return judged, frozenset()
+    # the samples are named bad only where each of k-2, k-1, k alone was put to the test
+    # (a +20 deg glitch on the first frame after a pause, with no sample before it in reach,
+    # was taken for its successor's: the one there to test)
+    return False, found if all(single.get((i,), False) for i in (-2, -1, 0)) else frozenset()
 
 
-def tracker_motion_breaks(samples: np.ndarray, timings: list, motion_sigma: np.ndarray,
-                          emt_sigma: np.ndarray, gate_chi2: float = MOTION_GATE_CHI2) -> list[int]:
-    """The frames k whose tracker samples over k-2, k-1, k (rows of `samples`, NaN where a
-    frame has none) break constant velocity, offline: breaks_constant_velocity with the
-    departures of k-1 and k-2 (timings[k]: frame k's motion_timing; released ones are not
-    judged), scaled by the whole sequence's medians."""
+def breaks_constant_velocity(w_k: np.ndarray, k: int, departure, scale: np.ndarray,
+                             gate_chi2: float = MOTION_GATE_CHI2) -> bool:
+    """motion_verdict's first answer: whether C_p should not link frame k."""
+    return motion_verdict(w_k, k, departure, scale, gate_chi2)[0]
+
+
+def tracker_motion_verdicts(samples: np.ndarray, times, motion_sigma: np.ndarray,
+                            emt_sigma: np.ndarray, gate_chi2: float = MOTION_GATE_CHI2,
+                            nominal: float | None = None,
+                            max_gap_s: float | None = MOTION_MAX_GAP_S
+                            ) -> tuple[list[int], list[int]]:
+    """Offline (breaks, bad samples): the frames k whose tracker samples over k-2, k-1, k
+    (rows of `samples`, NaN where a frame has none) break constant velocity, and the samples
+    that explained other departures (motion_verdict over the sequence's `times`, None: evenly
+    spaced, and nominal interval, each component scaled by the whole sequence's medians;
+    triples across a pause, released, are not judged)."""
     samples = np.asarray(samples, np.float64)
-    w: dict[int, np.ndarray] = {}
-    for k in range(2, len(samples)):
-        if np.isfinite(samples[k - 2:k + 1]).all() and np.isfinite(timings[k][1]):
-            w[k] = tracker_motion_departure(samples[k - 2], samples[k - 1], samples[k],
-                                            motion_sigma, emt_sigma, timings[k])
+    departure = triple_departures(samples, times, nominal, motion_sigma=motion_sigma,
+                                  emt_sigma=emt_sigma, max_gap_s=max_gap_s)
+    w = {k: d[0] for k in range(2, len(samples))
+         if (d := departure(k - 2, k - 1, k)) is not None}
     if not w or not np.isfinite(gate_chi2):
-        return []
+        return [], []
     scale = motion_departure_scale(list(w.values()))
-    return [k for k in w
-            if breaks_constant_velocity(w[k], w.get(k - 1), w.get(k - 2), scale, gate_chi2)]
+    verdicts = {k: motion_verdict(w[k], k, departure, scale, gate_chi2) for k in w}
+    return ([k for k, (broken, _) in verdicts.items() if broken],
+            sorted(set().union(*(bad for _, bad in verdicts.values()))))
+
+
+def tracker_motion_breaks(samples: np.ndarray, times, motion_sigma: np.ndarray,
+                          emt_sigma: np.ndarray, gate_chi2: float = MOTION_GATE_CHI2,
+                          nominal: float | None = None,
+                          max_gap_s: float | None = MOTION_MAX_GAP_S) -> list[int]:
+    """tracker_motion_verdicts' breaks."""
+    return tracker_motion_verdicts(samples, times, motion_sigma, emt_sigma, gate_chi2, nominal,
+                                   max_gap_s)[0]
 
 
 def predict_constant_velocity(pose_km2: np.ndarray, pose_km1: np.ndarray,

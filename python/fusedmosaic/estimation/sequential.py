@@ -84,8 +84,10 @@ from fusedmosaic.estimation.motion import (
     breaks_constant_velocity,
     motion_departure_scale,
     motion_timing,
+    motion_verdict,
     predict_constant_velocity,
     tracker_motion_departure,
+    triple_departures,
 )
 from fusedmosaic.estimation.plane import estimate_plane, plane_depths
 from fusedmosaic.estimation.world import (
@@ -107,7 +109,9 @@ PRESETS = {"syn": (5, 3, 3, 5), "phb": (3, 1, 3, 3), "ex": (12, 6, 3, 12)}
 # any anchor (see SequentialMosaicker._unanchored): the term is in effect released, the
 # dead-reckoned motion before the tracker came back is no evidence for the frame.
 RELEASED_MOTION_SIGMA_SCALE = 1e3
-
+# The tracker samples and times kept for the motion checks, frames back from the newest: the
+# held frames judged again before their step look 5 frames further back (_judge_motion_again).
+SAMPLES_KEPT = 20
 
 
 @dataclass
@@ -169,8 +173,10 @@ class SequentialOptions:
     gate_sigma_scale: float = 10.0
     # Motion gate (not in the paper): C_p does not link a frame whose tracker samples over
     # frames k-2, k-1, k depart from constant velocity by more than this (Mahalanobis^2 with
-    # Sigma_p and their own noise, each component scaled by its median; not where one bad
-    # sample before explains it: motion.breaks_constant_velocity), nor a frame with pairs and a
+    # Sigma_p and their own noise, each component scaled by its median; not where one or two
+    # bad samples explain it, which are then gated, nor where no explanation can be tested,
+    # e.g. just after a pause: motion.motion_verdict, judged again before each step with the
+    # later samples), nor a frame with pairs and a
     # triple missing a tracker sample whose C_p block a solve leaves above it
     # (BundleAdjusterOptions.motion_gate_chi2). Black frames tracked while the scope spun in at
     # 30 deg per frame (120 sigma_p) and stopped: their C_p turned the textured frames of the
@@ -434,12 +440,10 @@ class SequentialMosaicker:
         # motion.motion_timing) and the recent intervals, whose median is the nominal spacing.
         self._times: dict[int, float] = {}
         self._intervals: deque = deque(maxlen=200)
-        # The tracker's motion check (_tracker_breaks_motion): the last three frames' samples
-        # used (id -> pose), the recent departures from constant velocity and the last two by
-        # frame id.
+        # The tracker's motion check (_tracker_breaks_motion): the last five frames' samples
+        # used (id -> pose) and the recent departures from constant velocity.
         self._samples: dict[int, np.ndarray] = {}
         self._motion_history: deque = deque(maxlen=200)
-        self._departures: dict[int, np.ndarray] = {}
         self._reference_pose: np.ndarray | None = None
         self._plane: np.ndarray | None = None
         # Provisional placements in the start-up, until its adjustment gives self._plane: start-up
@@ -617,7 +621,7 @@ class SequentialMosaicker:
               "_loop_centroids", "_loop_G", "_pair_H", "_recent_G", "_poses", "pair_counts",
               "_mirror_frames", "_mirror_pairs", "_mirror_plane", "_implausible_run",
               "_world", "_times", "_intervals", "_unanchored", "bootstrap_summary",
-              "_samples", "_motion_history", "_departures")
+              "_samples", "_motion_history")
 
     def _save(self) -> dict:
         """What a call may change, copied (shallowly: the values it replaces, never mutates)."""
@@ -671,6 +675,12 @@ class SequentialMosaicker:
         self._window_touched = True
         self.window.set_emt_sigma_scale(k, scale)
         initial, emt, _, fixed, timing = self._mirror_frames[k]
+        self._mirror_frames[k] = (initial, emt, scale, fixed, timing)
+
+    def _win_set_timing(self, k, timing) -> None:
+        self._window_touched = True
+        self.window.set_motion_timing(k, *timing)
+        initial, emt, scale, fixed, _ = self._mirror_frames[k]
         self._mirror_frames[k] = (initial, emt, scale, fixed, timing)
 
     def _win_solved(self, ids, summary_call, *args):
@@ -774,7 +784,8 @@ class SequentialMosaicker:
         self._next_id += 1
         if k - 1 in self._times:
             self._intervals.append(timestamp - self._times[k - 1])
-        self._times = {i: t for i, t in self._times.items() if i >= k - 2} | {k: timestamp}
+        self._times = {i: t for i, t in self._times.items()
+                       if i >= k - SAMPLES_KEPT} | {k: timestamp}
         self._last_timestamp = timestamp
         if tracker_pose is not None:
             if self._trusted is None:  # the first tracker sample decides the world
@@ -838,13 +849,15 @@ class SequentialMosaicker:
             # pull it off. A frame without one keeps chaining through them.
             motion_break = self._tracker_breaks_motion(k, departure)
             self._pending[-1]["motion_break"] = motion_break
-            timing = RELEASED if motion_break else self._timing(k)
+            unbroken = self._timing(k)
             lost = self._lost_ids()
             anchored = tracker_pose is not None or any(m.frame_m not in lost for m in ok + loops)
             if anchored and lost:
                 ok = [m for m in ok if m.frame_m not in lost]
                 if lost & {k - 1, k - 2}:  # (a prior released by motion_timing stays so)
-                    timing = (timing[0], max(timing[1], RELEASED_MOTION_SIGMA_SCALE))
+                    unbroken = (unbroken[0], max(unbroken[1], RELEASED_MOTION_SIGMA_SCALE))
+            self._pending[-1]["cv_timing"] = unbroken  # (judged again before its step)
+            timing = RELEASED if motion_break else unbroken
             pairs = [(m.frame_l, m.frame_m, *self._subsample(m)) for m in ok + loops]
             timings["matching"] += time.perf_counter() - t0
             self._win_add_frame(k, None, tracker_pose, timing=timing)
@@ -1042,7 +1055,7 @@ class SequentialMosaicker:
         """How far the tracker samples of frames k-2, k-1, k (those kept: none dropped as a
         glitch) depart from constant velocity, whitened (motion.tracker_motion_departure);
         None without three samples or across a pause (C_p released already)."""
-        self._samples = {i: z for i, z in self._samples.items() if i >= k - 2}
+        self._samples = {i: z for i, z in self._samples.items() if i >= k - SAMPLES_KEPT}
         if sample is not None:
             self._samples[k] = sample
         if sample is None or k - 1 not in self._samples or k - 2 not in self._samples:
@@ -1057,21 +1070,26 @@ class SequentialMosaicker:
         """After the start-up: whether a new frame's tracker samples say the camera left
         constant velocity (not in the paper), so that C_p does not link it, as after a pause
         (motion.breaks_constant_velocity: its departure above motion_gate_chi2, each component
-        scaled by its median over the earlier frames', and not one bad sample's doing: a +20 deg
+        scaled by its median over the earlier frames', and not bad samples' doing: a +20 deg
         glitch on a black frame makes its two successors depart too; released, the frame
-        followed the glitch, 116 px off; its own triple only: 16 px, 27 without the gate). The
-        scope spun in at 30 deg per frame
+        followed the glitch, 116 px off; judged again before the step, _judge_motion_again).
+        The scope spun in at 30 deg per frame
         (120 sigma_p) and stopped: C_p turned the textured frames with it (e_M 12-263 px, 0.5
         px with this; the start-up decides its frames in _bootstrap)."""
-        self._departures = {i: d for i, d in self._departures.items() if i >= k - 2}
         if w is None:
             return False
         scale = motion_departure_scale(self._motion_history)
         self._motion_history.append(w)
-        self._departures[k] = w
-        return breaks_constant_velocity(w, self._departures.get(k - 1),
-                                        self._departures.get(k - 2), scale,
-                                        self.options.motion_gate_chi2)
+        return breaks_constant_velocity(w, k, self._departure_of(self._samples, self._times),
+                                        scale, self.options.motion_gate_chi2)
+
+    def _departure_of(self, samples: dict, times: dict):
+        """motion.triple_departures over these samples and times, the nominal interval and
+        the motion's and tracker's sigmas of the C_p terms."""
+        nominal = float(np.median(self._intervals)) if self._intervals else None
+        return triple_departures(samples, times, nominal, motion_sigma=self._costs.motion_sigma,
+                                 emt_sigma=self._costs.emt_sigma,
+                                 max_gap_s=self.options.motion_max_gap_s)
 
     def _predict_pose(self, timestamp: float | None = None) -> np.ndarray | None:
         """Constant-velocity prediction from the last two estimated poses, the motion scaled by
@@ -1144,11 +1162,15 @@ class SequentialMosaicker:
         # earlier ones: a tracker 4x noisier than Sigma_EMT broke them, e_M 1.6 -> 3.9 px)
         w = {p["id"]: p["departure"] for p in self._pending if p["departure"] is not None}
         scale = motion_departure_scale(list(w.values()))
+        departure = self._departure_of(
+            {p["id"]: p["tracker"] for p in self._pending if p["tracker"] is not None}, times)
         for p in self._pending:
             k = p["id"]
             p["motion_break"] = k in w and breaks_constant_velocity(
-                w[k], w.get(k - 1), w.get(k - 2), scale, o.motion_gate_chi2)
-        timing = {p["id"]: RELEASED if p["motion_break"] else self._timing(p["id"], times)
+                w[k], k, departure, scale, o.motion_gate_chi2)
+        for p in self._pending:
+            p["cv_timing"] = self._timing(p["id"], times)
+        timing = {p["id"]: RELEASED if p["motion_break"] else p["cv_timing"]
                   for p in self._pending}
         # Tracker samples that disagree with the adjustment are gated as the window's are, one
         # at a time (the worst), at most a quarter of them: Mahalanobis^2 above gate_chi2
@@ -1199,7 +1221,6 @@ class SequentialMosaicker:
         self.bootstrap_summary = summary
         self._mark_motion_gated(ids, summary["motion_released_ids"])
         self._motion_history.extend(w.values())  # the window's checks scale by these too
-        self._departures = {k: d for k, d in w.items() if k >= max(w, default=0) - 1}
         self._plane = np.asarray(ba.plane())
         self._startup_G, self._startup_plane = {}, None
         self._win_set_plane(self._plane)
@@ -1214,8 +1235,37 @@ class SequentialMosaicker:
         self._finalize(ids, [ba.pose(k) for k in ids], gated, elapsed, 0.0, final_step)
         return True
 
+    def _judge_motion_again(self) -> None:
+        """Before a step: the pending frames' motion checks (_tracker_breaks_motion) again,
+        with the tracker samples given since. A bad sample shows as such once later ones
+        return to the motion: two consecutive +20 deg glitches on black frames released both
+        frames' C_p on arrival, and the held frames followed their samples (116 px)."""
+        if not np.isfinite(self.options.motion_gate_chi2):
+            return
+        scale = motion_departure_scale(self._motion_history)
+        departure = self._departure_of(self._samples, self._times)
+        bad: set[int] = set()
+        for p in self._pending:
+            if p.get("departure") is None or "cv_timing" not in p:
+                continue
+            broken, samples = motion_verdict(p["departure"], p["id"], departure, scale,
+                                             self.options.motion_gate_chi2)
+            bad |= samples
+            if broken != p["motion_break"]:
+                p["motion_break"] = broken
+                self._win_set_timing(p["id"], RELEASED if broken else p["cv_timing"])
+        # The samples that explained a departure are bad: gated as the window gates a sample
+        # its visual evidence contradicts (black frames have none to contradict them). A
+        # +20 deg glitch on a black frame: e_M / worst 1.13 / 14.2 px with its C_p, 0.61 / 3.7
+        # px with the sample gated too.
+        for p in self._pending:
+            if p["id"] in bad and p["tracker"] is not None and not p.get("motion_glitch"):
+                p["motion_glitch"] = True
+                self._win_set_scale(p["id"], self.options.gate_sigma_scale)
+
     def _step(self, final_step: bool = False) -> None:
         t0 = time.perf_counter()
+        self._judge_motion_again()
         ids = [p["id"] for p in self._pending]
         window_ids = set(self.window.window_ids())
         keyframe_ids = self.keyframes.select(self.options.num_clusters,
@@ -1226,7 +1276,8 @@ class SequentialMosaicker:
         # A step with none cannot inform pi: it is held.
         fixed = (window_ids | set(keyframe_ids) | set(self._loop_feats)) - set(ids)
         visual = self._linked(fixed - self._unanchored, set())
-        tracked = {p["id"] for p in self._pending if p["tracker"] is not None}
+        glitched = [p["id"] for p in self._pending if p.get("motion_glitch")]
+        tracked = {p["id"] for p in self._pending if p["tracker"] is not None} - set(glitched)
         hold = not (visual or tracked)
         if any(p["held"] for p in self._pending):  # frames held back by the last step
             summary = self._win_solved(ids, self.window.redo, ids, keyframe_ids, hold)
@@ -1243,6 +1294,7 @@ class SequentialMosaicker:
         self.step_summaries.append(summary)
         self.num_steps += 1
         self._plane = np.asarray(self.window.plane())
+        gated += [k for k in glitched if k not in gated]
         self._finalize(ids, [self.window.pose(k) for k in ids], gated,
                        summary.step_time_s / len(ids), t_kf / len(ids), final_step, anchored)
 
