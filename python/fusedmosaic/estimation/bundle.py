@@ -289,7 +289,7 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     times = np.asarray(dataset.timestamps, np.float64)
     nominal = float(np.median(np.diff(times))) if n > 1 else None  # Sigma_p's frame spacing
     # C_p over frames k-2, k-1, k follows their timestamps (dropped frames: motion_timing),
-    # released where the tracker says the motion left constant velocity (tracker_motion_breaks)
+    # released where the tracker says the motion left constant velocity (tracker_motion_verdicts)
     timing = [motion_timing(*times[k - 2:k + 1], nominal) if k >= 2 else (1.0, 1.0)
               for k in range(n)]
     # (and tracker samples that explained a departure, motion_verdict, are left out: a +20 deg

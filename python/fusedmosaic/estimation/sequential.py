@@ -440,8 +440,8 @@ class SequentialMosaicker:
         # motion.motion_timing) and the recent intervals, whose median is the nominal spacing.
         self._times: dict[int, float] = {}
         self._intervals: deque = deque(maxlen=200)
-        # The tracker's motion check (_tracker_breaks_motion): the last five frames' samples
-        # used (id -> pose) and the recent departures from constant velocity.
+        # The tracker's motion check (_judge_motion_again): the last SAMPLES_KEPT frames'
+        # samples used (id -> pose) and the recent departures from constant velocity.
         self._samples: dict[int, np.ndarray] = {}
         self._motion_history: deque = deque(maxlen=200)
         self._reference_pose: np.ndarray | None = None
@@ -847,8 +847,8 @@ class SequentialMosaicker:
             # anchor of its own (its tracker sample, or a registered pair to an anchored frame)
             # is not tied to the lost frames by pairs or the constant-velocity term: they would
             # pull it off. A frame without one keeps chaining through them.
-            motion_break = self._tracker_breaks_motion(k, departure)
-            self._pending[-1]["motion_break"] = motion_break
+            if departure is not None:  # (the motion checks scale by these)
+                self._motion_history.append(departure)
             unbroken = self._timing(k)
             lost = self._lost_ids()
             anchored = tracker_pose is not None or any(m.frame_m not in lost for m in ok + loops)
@@ -856,11 +856,11 @@ class SequentialMosaicker:
                 ok = [m for m in ok if m.frame_m not in lost]
                 if lost & {k - 1, k - 2}:  # (a prior released by motion_timing stays so)
                     unbroken = (unbroken[0], max(unbroken[1], RELEASED_MOTION_SIGMA_SCALE))
-            self._pending[-1]["cv_timing"] = unbroken  # (judged again before its step)
-            timing = RELEASED if motion_break else unbroken
+            # C_p as timed; the motion check decides before the frame's step
+            self._pending[-1]["cv_timing"] = unbroken
             pairs = [(m.frame_l, m.frame_m, *self._subsample(m)) for m in ok + loops]
             timings["matching"] += time.perf_counter() - t0
-            self._win_add_frame(k, None, tracker_pose, timing=timing)
+            self._win_add_frame(k, None, tracker_pose, timing=unbroken)
             for pair in pairs:
                 self._win_add_pair(*pair)
             self._pending[-1]["visual"] = bool(ok or loops)
@@ -1066,23 +1066,6 @@ class SequentialMosaicker:
         return tracker_motion_departure(self._samples[k - 2], self._samples[k - 1], sample,
                                         self._costs.motion_sigma, self._costs.emt_sigma, timing)
 
-    def _tracker_breaks_motion(self, k: int, w: np.ndarray | None) -> bool:
-        """After the start-up: whether a new frame's tracker samples say the camera left
-        constant velocity (not in the paper), so that C_p does not link it, as after a pause
-        (motion.breaks_constant_velocity: its departure above motion_gate_chi2, each component
-        scaled by its median over the earlier frames', and not bad samples' doing: a +20 deg
-        glitch on a black frame makes its two successors depart too; released, the frame
-        followed the glitch, 116 px off; judged again before the step, _judge_motion_again).
-        The scope spun in at 30 deg per frame
-        (120 sigma_p) and stopped: C_p turned the textured frames with it (e_M 12-263 px, 0.5
-        px with this; the start-up decides its frames in _bootstrap)."""
-        if w is None:
-            return False
-        scale = motion_departure_scale(self._motion_history)
-        self._motion_history.append(w)
-        return breaks_constant_velocity(w, k, self._departure_of(self._samples, self._times),
-                                        scale, self.options.motion_gate_chi2)
-
     def _departure_of(self, samples: dict, times: dict):
         """motion.triple_departures over these samples and times, the nominal interval and
         the motion's and tracker's sigmas of the C_p terms."""
@@ -1157,7 +1140,7 @@ class SequentialMosaicker:
         seen = {i for m in self._boot_matches for i in (m.frame_l, m.frame_m)}
         ids = [p["id"] for p in self._pending]
         times = {p["id"]: p["timestamp"] for p in self._pending}
-        # The tracker's motion check over the start-up (see _tracker_breaks_motion), each
+        # The tracker's motion check over the start-up (see _judge_motion_again), each
         # component scaled by its median over all the start-up's triples (its first ones have no
         # earlier ones: a tracker 4x noisier than Sigma_EMT broke them, e_M 1.6 -> 3.9 px)
         w = {p["id"]: p["departure"] for p in self._pending if p["departure"] is not None}
@@ -1168,8 +1151,7 @@ class SequentialMosaicker:
             k = p["id"]
             p["motion_break"] = k in w and breaks_constant_velocity(
                 w[k], k, departure, scale, o.motion_gate_chi2)
-        for p in self._pending:
-            p["cv_timing"] = self._timing(p["id"], times)
+            p["cv_timing"] = self._timing(k, times)
         timing = {p["id"]: RELEASED if p["motion_break"] else p["cv_timing"]
                   for p in self._pending}
         # Tracker samples that disagree with the adjustment are gated as the window's are, one
@@ -1236,10 +1218,15 @@ class SequentialMosaicker:
         return True
 
     def _judge_motion_again(self) -> None:
-        """Before a step: the pending frames' motion checks (_tracker_breaks_motion) again,
-        with the tracker samples given since. A bad sample shows as such once later ones
-        return to the motion: two consecutive +20 deg glitches on black frames released both
-        frames' C_p on arrival, and the held frames followed their samples (116 px)."""
+        """After the start-up, before each step: whether the pending frames' tracker samples
+        say the camera left constant velocity (not in the paper), so that C_p does not link
+        them, as after a pause (motion.motion_verdict: a departure above motion_gate_chi2, each
+        component scaled by its median over the frames so far, and not bad samples' doing),
+        with every sample given so far: a bad sample shows as such once later ones return to
+        the motion (judged on arrival, two consecutive +20 deg glitches on black frames released
+        both frames' C_p, and the held frames followed their samples: 116 px). The scope spun in
+        at 30 deg per frame (120 sigma_p) and stopped: C_p turned the textured frames with it
+        (e_M 12-263 px, 0.5 px with this; the start-up decides its frames in _bootstrap)."""
         if not np.isfinite(self.options.motion_gate_chi2):
             return
         scale = motion_departure_scale(self._motion_history)
@@ -1256,7 +1243,7 @@ class SequentialMosaicker:
                 self._win_set_timing(p["id"], RELEASED if broken else p["cv_timing"])
         # The samples that explained a departure are bad: gated as the window gates a sample
         # its visual evidence contradicts (black frames have none to contradict them). A
-        # +20 deg glitch on a black frame: e_M / worst 1.13 / 14.2 px with its C_p, 0.61 / 3.7
+        # +20 deg glitch on a black frame: e_M / worst 1.13 / 14.2 px with its C_p, 0.60 / 3.9
         # px with the sample gated too.
         for p in self._pending:
             if p["id"] in bad and p["tracker"] is not None and not p.get("motion_glitch"):
