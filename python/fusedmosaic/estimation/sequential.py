@@ -81,7 +81,6 @@ from fusedmosaic.estimation.motion import (
     MOTION_GATE_CHI2,
     MOTION_MAX_GAP_S,
     RELEASED,
-    breaks_constant_velocity,
     motion_departure_scale,
     motion_timing,
     motion_verdict,
@@ -1147,21 +1146,36 @@ class SequentialMosaicker:
         scale = motion_departure_scale(list(w.values()))
         departure = self._departure_of(
             {p["id"]: p["tracker"] for p in self._pending if p["tracker"] is not None}, times)
+        bad: set[int] = set()
         for p in self._pending:
             k = p["id"]
-            p["motion_break"] = k in w and breaks_constant_velocity(
-                w[k], k, departure, scale, o.motion_gate_chi2)
+            p["motion_break"], samples = (
+                motion_verdict(w[k], k, departure, scale, o.motion_gate_chi2) if k in w
+                else (False, frozenset()))
+            bad |= samples
             p["cv_timing"] = self._timing(k, times)
         timing = {p["id"]: RELEASED if p["motion_break"] else p["cv_timing"]
                   for p in self._pending}
+        # The samples that explained a departure are left out, as the window gates them: no
+        # registered pair contradicts a black frame's (+20 deg glitches on black frames 9, 10 of
+        # a 16-frame start-up: e_M / worst 2.74 / 23.3 px kept, 0.50 / 0.9 px left out). A
+        # start-up of 8 frames has too few triples for the scale to stand out of its glitches.
+        gated = [k for k in sorted(bad) if k in tracked]
+        rest = {k: z for k, z in tracked.items() if k not in bad}
+        if gated and any(m.frame_l in rest and m.frame_m in rest for m in usable):
+            tracked, table = rest, table.copy()
+            table[gated] = np.nan
+        else:
+            gated = []
+        for p in self._pending:  # (decided again while the start-up waits)
+            p["motion_glitch"] = p["id"] in gated
         # Tracker samples that disagree with the adjustment are gated as the window's are, one
         # at a time (the worst), at most a quarter of them: Mahalanobis^2 above gate_chi2
         # scaled by the samples' own median over chi2(6)'s (noisier samples than Sigma_EMT,
         # Fig. 9's nu = 4: median 57, every sample above 22.5, none an outlier). A glitch on
         # the first sample (+100 mm: 328 against a median of 50) was the glitch filter's
         # reference and was kept: frames up to 144 px off.
-        gated: list[int] = []
-        most = len(tracked) // 4
+        most = len(tracked) // 4 + len(gated)
         while True:
             ba, summary = self._solve_startup(ids, tracked, table, timing)
             worst = self._startup_outlier(ba, tracked, seen) if len(gated) < most else None
