@@ -77,17 +77,30 @@ double PlaneRelativeStd(ceres::Problem* problem, double* plane,
       }
     }
   }
-  const Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(H);
+  // Jacobi scaling, H = D S D with D = diag(H)^(1/2), so that the null test is relative to each
+  // parameter's own information: unscaled, the rotations' (visual, ~1e11) set the tolerance,
+  // and a start-up's camera translations, held by their tracker samples alone (~0.5), counted
+  // as no information: pi was "unobservable" (inf) in start-ups with ~160 pairs and a tracker
+  // gap, which then waited to startup_wait_frames. A parameter without information (a zero
+  // diagonal) stays in S's null space. H^+ = D^-1 S^+ D^-1 where S is invertible.
+  const Eigen::VectorXd diagonal = H.diagonal();
+  Eigen::VectorXd inv_d = Eigen::VectorXd::Zero(n);
+  for (int i = 0; i < n; ++i) {
+    if (diagonal(i) > 0.0) inv_d(i) = 1.0 / std::sqrt(diagonal(i));
+  }
+  const Eigen::MatrixXd S = inv_d.asDiagonal() * H * inv_d.asDiagonal();
+  const Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(S);
   if (eig.info() != Eigen::Success) return std::numeric_limits<double>::infinity();
   const Eigen::VectorXd& lambda = eig.eigenvalues();  // ascending
   const double tolerance = 1e-12 * std::max(lambda(n - 1), 0.0);
   double trace = 0.0;
   for (int k = 0; k < n; ++k) {
     const auto v_plane = eig.eigenvectors().col(k).tail<kPlaneSize>();
+    const auto d_plane = inv_d.tail<kPlaneSize>();
     if (lambda(k) > tolerance) {
-      trace += v_plane.squaredNorm() / lambda(k);
+      trace += v_plane.cwiseProduct(d_plane).squaredNorm() / lambda(k);
     } else if (v_plane.norm() > 1e-6) {
-      return std::numeric_limits<double>::infinity();
+      return std::numeric_limits<double>::infinity();  // (a zero-information pi included)
     }
   }
   return std::sqrt(trace) / plane_norm;
