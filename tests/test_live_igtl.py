@@ -16,6 +16,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pyigtl
 import pytest
 from _faults import signal_handler
 from _igtl_sender import (
@@ -151,7 +152,7 @@ def test_position_messages_are_poses_like_transforms(syn):
            position_message(M[3] * [1, 1, 1, np.nan], t[3] + 0.004)]  # x, y, z NaN
     raw = bytearray(position_message(M[3], t[3] + 0.005))
     raw[-4:] = np.array([3.0], ">f4").tobytes()  # w = 3: not a unit quaternion
-    bad.append(bytes(raw))
+    bad.append(_with_crc(bytes(raw)))  # (as a sender would compute it)
     sender = Sender(events + [(t[3], m) for m in bad], speed=100.0, delay=0.0)
     with IgtlSource(f":{sender.port}", transform_device="SensorToTracker") as source:
         sender.join()
@@ -862,3 +863,58 @@ def test_a_recording_that_cannot_be_written_further_keeps_its_frames(tmp_path, m
     assert len(ds) == 3 and ds.frames[2][0, 0] == 20
     assert recorder.finish() == tmp_path / "rec"  # done: again returns the folder
     assert sorted(p.name for p in tmp_path.iterdir()) == ["rec"]
+
+
+def _with_crc(message: bytes) -> bytes:
+    """The message with its header's CRC64 computed again over its (edited) body."""
+    import crcmod
+
+    crc = crcmod.mkCrcFun(0x142F0E1EBA9EA3693, rev=False, initCrc=0, xorOut=0)(message[58:])
+    return message[:50] + crc.to_bytes(8, "big") + message[58:]
+
+
+def test_corrupted_undecodable_and_unread_tracker_messages_are_named():
+    """Review of the OpenIGTLink reader against the spec (openigtlink/OpenIGTLink Documents/
+    Protocol): a body that fails its CRC64 was taken as a pose (one bit flipped: ty 3.25 mm ->
+    -7e-39); metadata in ISO-8859-1 (legal, pyigtl reads only ASCII / UTF-8) ended the session
+    with "exceptions must derive from BaseException"; a timestamp of 0 (the spec's "unused")
+    read as "not after the previous sample"; TDATA / QTRANS were dropped unheard. Now invalid
+    samples with their reason, and the devices of unread types listed."""
+    pose = tracker_matrix([12.5, -3.25, 150.0], [0.1, 0.2, 0.3, np.sqrt(0.86)])
+    good = transform_message(pose, 0.00)
+    flipped = bytearray(transform_message(pose, 0.04))
+    flipped[58 + 40] ^= 0x01  # a bit of ty, the header's CRC kept
+    latin = pyigtl.TransformMessage(pose, timestamp=T0 + 0.08, device_name="SensorToTracker")
+    latin.header_version, latin.metadata = 2, {"Note": "ok"}
+    raw = bytearray(latin.pack())
+    meta = raw[-(2 + 8 + len("Note") + len("ok")):]  # index count, then key size, encoding
+    assert meta[:2] == b"\x00\x01" and meta[4:6] == (3).to_bytes(2, "big")  # US-ASCII
+    raw[len(raw) - len(meta) + 4: len(raw) - len(meta) + 6] = (4).to_bytes(2, "big")
+    unstamped = pyigtl.TransformMessage(pose, timestamp=0.0, device_name="SensorToTracker")
+    tdata = pyigtl.MessageBase(timestamp=T0 + 0.1, device_name="Tracker")
+    tdata._message_type = "TDATA"
+    image = np.zeros((8, 8), np.uint8)
+    events = [(0.0, image_message(image, 0.0)), (0.0, good), (0.04, bytes(flipped)),
+              (0.08, _with_crc(bytes(raw))), (0.1, unstamped.pack()), (0.1, tdata.pack()),
+              (0.12, transform_message(pose, 0.12)), (0.12, image_message(image, 0.12))]
+    sender = Sender(events, delay=0.1)
+    with IgtlSource(f":{sender.port}", transform_device="SensorToTracker") as source:
+        while source.next_frame(2.0) is not None:
+            pass
+    sender.join()
+    assert source.valid_samples == 2
+    assert source.invalid_samples == {
+        "CRC64 of the body differs from the header's (corrupted message)": 1,
+        "its metadata is in a text encoding other than ASCII or UTF-8": 1,
+        "no timestamp (0): the sender does not stamp its samples": 1}
+    assert source.ignored_devices == {"TDATA Tracker (type not read)"}
+
+
+def test_images_without_timestamps_end_the_session_with_the_reason():
+    sender = Sender([(0.0, pyigtl.ImageMessage(np.zeros((1, 8, 8), np.uint8), timestamp=0.0,
+                                               device_name="Video").pack())], delay=0.1)
+    with IgtlSource(f":{sender.port}", transform_device="SensorToTracker") as source:
+        with pytest.raises(ValueError, match=r"the IMAGE messages of 'Video' carry no "
+                                             r"timestamp \(0\)"):
+            source.next_frame(2.0)
+    sender.join()

@@ -341,6 +341,17 @@ def test_bad_header(tmp_path, case):
     _refused(tmp_path, path, match)
 
 
+@pytest.mark.parametrize("start, what", [
+    (b"NRRD0004\n# Complete NRRD file format specification at:\n", r"a NRRD file"),
+    (b"PK\x03\x04\x14\x00\x00\x00\x08\x00", r"a zip archive \(e\.g\. a 3D Slicer \.mrb")])
+def test_nrrd_and_mrb_sequences_are_named_as_such(tmp_path, start, what):
+    """A PLUS / Slicer .seq.nrrd or a Slicer .mrb was refused as "line 1 is not a 'Key =
+    Value' header line" (with zip bytes in the message)."""
+    path = tmp_path / "scan.seq.mha"
+    path.write_bytes(start + bytes(range(256)))
+    _refused(tmp_path, path, what + r".*, not a MetaImage sequence; only PLUS \.mha / \.mhd")
+
+
 def test_bad_data(tmp_path):
     _refused(tmp_path, tmp_path / "nope.seq.mha", "file not found", names="nope.seq.mha")
     path = _small(tmp_path)

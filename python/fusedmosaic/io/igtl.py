@@ -19,7 +19,13 @@ reconnect.
   `pose_at(t)` gives the camera pose at a frame time from it (see there). A sample whose matrix
   is not finite, not a rotation (orthonormal within 1e-3, det +1), beyond
   ``MAX_TRANSLATION_MM``, or flagged by the sender (metadata ``TransformStatus`` not ``OK``, as
-  PLUS sends a lost sensor) is kept as an invalid sample: a glitch does not end a session.
+  PLUS sends a lost sensor), whose body fails its CRC64 (header field, ECMA-182, as Slicer's
+  OpenIGTLinkIF checks), or that pyigtl cannot decode (e.g. metadata in an encoding other than
+  ASCII or UTF-8) is kept as an invalid sample: a glitch does not end a session. Frames are not
+  CRC-checked (~8 ms per 400x400 RGB frame in pure Python on the receiving thread); an IMAGE
+  that cannot be decoded ends the session, naming the device and why.
+- Other message types (e.g. TDATA, QTDATA, QTRANS) are not read; their devices are listed in
+  ``ignored_devices`` with "(type not read)", as the other devices heard are.
 - A transform device named ``BToA`` answers a request for ``AToB`` (inverted).
 
 Timestamps are the messages' own (the sender's clock, seconds since 1970): frame and tracker
@@ -59,6 +65,7 @@ DEFAULT_PORT = 18944  # the OpenIGTLink port (PLUS Server's default)
 # A message body above this is a corrupt header (an 8K RGB frame is 100 MB), not a frame to buffer.
 MAX_BODY_BYTES = 512 * 2**20
 _BACKWARDS = "timestamp not after the previous sample"
+_READ = ("IMAGE", "TRANSFORM", "POSITION")
 _HISTORY = 128  # tracker samples kept for pose_at (3 s at 40 Hz)
 
 
@@ -329,8 +336,11 @@ class IgtlSource:
                 kind, device = fields["message_type"], fields["device_name"]
                 if kind == "IMAGE":
                     self._on_image(fields, body, device)
-                elif kind in ("TRANSFORM", "POSITION"):
-                    self._on_transform(fields, body, device)
+                elif kind in _READ:
+                    crc = struct.unpack(">Q", header[-8:])[0]
+                    self._on_transform(fields, body, device, crc)
+                elif kind:
+                    self.ignored_devices.add(f"{kind} {device} (type not read)")
         except BaseException as exc:  # reported to the consumer, which raises it
             with self._cond:
                 self._error = exc
@@ -368,8 +378,13 @@ class IgtlSource:
         if device != self.image_device:
             self.ignored_devices.add(f"IMAGE {device}")
             return
+        if fields["timestamp"] == 0:  # the spec's "unused"
+            raise ValueError(f"the IMAGE messages of {device!r} carry no timestamp (0): frame "
+                             "and tracker times must come from the sender's clock")
         message = ImageMessage()
-        message.unpack(fields, body)
+        problem = _unpack(message, fields, body)
+        if problem is not None:
+            raise ValueError(f"the IMAGE message of {device!r} cannot be decoded: {problem}")
         image = _frame_image(message.image, self.rgb)
         frame = LiveFrame(image, float(fields["timestamp"]), time.perf_counter(), self.received)
         self.received += 1
@@ -381,7 +396,7 @@ class IgtlSource:
             self._slot = frame
             self._cond.notify_all()
 
-    def _on_transform(self, fields: dict, body: bytes, device: str) -> None:
+    def _on_transform(self, fields: dict, body: bytes, device: str, crc: int) -> None:
         from pyigtl import TransformMessage
 
         kind = fields["message_type"]
@@ -389,23 +404,31 @@ class IgtlSource:
             self.ignored_devices.add(f"{kind} {device}")
             return
         message = TransformMessage() if kind == "TRANSFORM" else _position_message_type()()
-        message.unpack(fields, body)
-        if kind == "TRANSFORM":
-            matrix, problem = np.asarray(message.matrix, dtype=np.float64), None
+        problem = ("CRC64 of the body differs from the header's (corrupted message)"
+                   if _crc64(body) != crc else
+                   "no timestamp (0): the sender does not stamp its samples"
+                   if fields["timestamp"] == 0 else _unpack(message, fields, body))
+        if problem is not None:
+            matrix = np.full((4, 4), np.nan)
+        elif kind == "TRANSFORM":
+            matrix = np.asarray(message.matrix, dtype=np.float64)
         else:
             matrix, problem = position_message_matrix(message.content)
             if problem is None and len(message.content) == 12 and self.orientation_required:
                 problem = "POSITION without an orientation (a 6-DoF pose is needed)"
-        status = str(message.metadata.get("TransformStatus", "OK"))
         if problem is None:
+            status = str(message.metadata.get("TransformStatus", "OK"))
             problem = _rigid_problem(matrix) if status.upper() == "OK" else f"status {status}"
         if problem is None and device == self._inverse_device:
             matrix = np.linalg.inv(matrix)
         sample = TrackerSample(float(fields["timestamp"]), matrix, problem is None, problem)
+        # (one going back in time, or without a time, is not recorded: tracking.csv is in order)
+        unrecorded = fields["timestamp"] == 0
         with self._cond:
             if self._last_sample_time is not None and sample.timestamp <= self._last_sample_time:
-                sample.valid, sample.problem = False, _BACKWARDS
-            else:
+                sample.valid, sample.problem = False, sample.problem or _BACKWARDS
+                unrecorded = True
+            elif not unrecorded:
                 self._last_sample_time = sample.timestamp
             if not sample.valid:
                 self.invalid_samples[sample.problem] = self.invalid_samples.get(
@@ -414,8 +437,35 @@ class IgtlSource:
                 self.samples.append(sample)
                 self.valid_samples += 1
             self._cond.notify_all()
-        if self.on_sample is not None and sample.problem != _BACKWARDS:
+        if self.on_sample is not None and not unrecorded:
             self.on_sample(sample)  # invalid ones too: the recording keeps the dropout
+
+
+@functools.cache
+def _crc64_function() -> Callable[[bytes], int]:
+    import crcmod  # (pyigtl's dependency, as its own CRC64)
+
+    return crcmod.mkCrcFun(0x142F0E1EBA9EA3693, rev=False, initCrc=0, xorOut=0)
+
+
+def _crc64(body: bytes) -> int:
+    """The OpenIGTLink header's CRC64 of a body (ECMA-182 polynomial, no reflection)."""
+    return _crc64_function()(body)
+
+
+def _unpack(message, fields: dict, body: bytes) -> str | None:
+    """Decodes body into the pyigtl message; None, or why it cannot be decoded."""
+    try:
+        message.unpack(fields, body)
+    except TypeError as exc:
+        if "derive from BaseException" in str(exc):  # pyigtl's raise("Unsupported encoding")
+            return "its metadata is in a text encoding other than ASCII or UTF-8"
+        return f"{type(exc).__name__}: {exc}"
+    except (ValueError, KeyError, IndexError, struct.error, NotImplementedError,
+            UnicodeDecodeError) as exc:
+        what = f"unknown value {exc}" if isinstance(exc, KeyError) else str(exc)
+        return f"{type(exc).__name__}: {what} (body of {len(body)} bytes)"
+    return None
 
 
 # OpenIGTLink POSITION content: x, y, z (mm), then the orientation quaternion ox, oy, oz, w,

@@ -231,6 +231,14 @@ def _read_header(path: Path) -> tuple[dict[str, tuple[str, int]], dict[int, dict
     header: dict[str, tuple[str, int]] = {}
     frames: dict[int, dict[str, tuple[str, int, str]]] = {}
     with path.open("rb") as f:
+        magic = f.read(8)
+        for start, what in ((b"NRRD000", "a NRRD file (PLUS's or 3D Slicer's .seq.nrrd)"),
+                            (b"PK\x03\x04", "a zip archive (e.g. a 3D Slicer .mrb scene)")):
+            if magic.startswith(start):
+                raise ValueError(f"{path}: {what}, not a MetaImage sequence; only PLUS "
+                                 ".mha / .mhd sequence metafiles are read (PLUS's "
+                                 "EditSequenceFile writes one from a .seq.nrrd)")
+        f.seek(0)
         line_number = 0
         while True:
             raw = f.readline(_MAX_HEADER_LINE)
