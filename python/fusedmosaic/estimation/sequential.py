@@ -132,8 +132,9 @@ class SequentialOptions:
     ``startup_wait_frames`` bounds the wait for a tracker and for a plane in front of the
     cameras whose relative std is at most ``startup_max_plane_std``.
     Beyond the paper (0 disables each): ``loop_pairs`` spatial loop pairs per frame (at least
-    ``loop_min_separation`` frames back), ``hold_prior_only_steps``, the plane observability
-    gate ``plane_max_relative_std``.
+    ``loop_min_separation`` frames back), ``hold_prior_only_steps``,
+    ``hold_unanchored_frames`` (frames without an anchor stay free until one follows), the
+    plane observability gate ``plane_max_relative_std``.
     Tracker checks: ``gate_chi2`` / ``gate_sigma_scale`` down-weight a sample that disagrees
     with the images; ``motion_gate_chi2`` releases C_p where the tracker or a solve says the
     motion left constant velocity; ``tracker_max_speed_mm_s`` (mm/s),
