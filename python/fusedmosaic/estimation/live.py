@@ -430,7 +430,7 @@ def _warn_without_samples(source, method: str, elapsed_s: float | None) -> bool:
     import warnings
 
     device = getattr(source, "transform_device", "the tracker")
-    invalid = getattr(source, "invalid_samples", {})
+    invalid = dict(getattr(source, "invalid_samples", {}))  # (the receiving thread adds to it)
     heard = sorted(getattr(source, "ignored_devices", ()))
     if invalid:
         instead = ("its samples are all invalid: "

@@ -760,6 +760,7 @@ class SequentialMosaicker:
         start-up every pending sample still kept was accepted by the current reference (a
         re-anchoring drops the others), so those are the old reference's."""
         old = {p["id"] for p in self._pending if p["tracker"] is not None}
+        self._startup_refused = (0, 0)  # (its pairs counted with the old samples)
         pending = []
         for p in self._pending:
             if p["id"] in old and p["tracker"] is not None:
@@ -1146,7 +1147,7 @@ class SequentialMosaicker:
         scene's start-up was solved again at every frame while it waited (up to ~46 ms a frame
         at 60 frames of 200 px), though only new pairs see the plane much better."""
         pairs, frames = self._startup_refused
-        if not pairs or len(self._pending) >= max(self.options.startup_wait_frames, 1.25 * frames):
+        if not pairs or len(self._pending) >= min(self.options.startup_wait_frames, 1.25 * frames):
             return True
         tracked = {p["id"] for p in self._pending if p["tracker"] is not None}
         usable = sum(m.frame_l in tracked and m.frame_m in tracked for m in self._boot_matches)
