@@ -733,3 +733,20 @@ def test_camera_pose_from_one_live_sample():
         camera_pose_from_sample([0, np.nan, 0], [0, 0, 0, 1])
     with pytest.raises(ValueError, match=r"translation \(3,\), quaternion \(4,\)"):
         camera_pose_from_sample([0, 0], [0, 0, 0, 1])
+
+
+def test_robot_frames_in_a_gap_of_samples_are_flagged_not_bridged():
+    """A fuzz of the pCLE path: 2 s without robot samples were bridged by a straight line
+    (kalman-robot 72 px mean, 103 px off to the end; 0.7 px once the gap is flagged, the image
+    taking over). As for tracking.csv: a gap over 3x the median spacing leaves its frames
+    without a sample."""
+    from fusedmosaic.io.tracking import RobotSamples, interpolate_robot
+
+    ts = np.r_[np.arange(0.0, 2.0, 0.1), np.arange(4.0, 6.0, 0.1)]
+    samples = RobotSamples(ts, np.stack([ts * 100.0, -ts * 50.0], axis=1))
+    frames = np.arange(0.0, 5.9, 0.04)
+    xy, valid = interpolate_robot(samples, frames)
+    gap = (frames > ts[19]) & (frames < 4.0)
+    assert gap.any() and not valid[gap].any() and np.isnan(xy[gap]).all()
+    assert valid[~gap].all()
+    np.testing.assert_allclose(xy[~gap, 0], frames[~gap] * 100.0)

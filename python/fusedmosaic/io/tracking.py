@@ -602,7 +602,10 @@ def interpolate_robot(
     source: str = "robot.csv",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Robot positions (N, 2) µm at frame times, linear between samples, and valid (N,) bool.
-    Frames outside the robot's time span raise, or with ``allow_outside`` get NaN/invalid."""
+    Frames outside the robot's time span raise, or with ``allow_outside`` get NaN/invalid;
+    frames in a gap between samples (longer than 3x the median spacing) are flagged invalid,
+    as interpolate_camera_poses does (a 2 s gap was bridged by a straight line: kalman-robot
+    103 px off to the end, worse than ncc alone)."""
     frame_times = np.asarray(frame_times, dtype=np.float64).reshape(-1)
     ts = samples.timestamps
     if ts.size == 0:
@@ -612,5 +615,10 @@ def interpolate_robot(
     _check_rates(frame_times, ts, source, "robot")
     outside = _outside_span(frame_times, ts[0], ts[-1], source, "robot", allow_outside)
     xy = np.stack([np.interp(frame_times, ts, samples.xy_um[:, j]) for j in range(2)], axis=1)
-    xy[outside] = np.nan
-    return xy, ~outside
+    invalid = outside.copy()
+    if ts.size >= 2:
+        k = np.clip(np.searchsorted(ts, frame_times, side="right") - 1, 0, ts.size - 2)
+        on_sample = (frame_times == ts[k]) | (frame_times == ts[k + 1])
+        invalid |= (ts[k + 1] - ts[k] > 3.0 * float(np.median(np.diff(ts)))) & ~on_sample
+    xy[invalid] = np.nan
+    return xy, ~invalid
