@@ -204,6 +204,24 @@ def test_robot_in_other_units_or_axes_is_reported(pcle, work):
         assert all(w.startswith(str(data / "robot.csv")) for w in r.details["warnings"])
 
 
+def test_a_wrong_assumed_frame_rate_is_named_beside_the_robot(pcle, work):
+    """Without frames.csv the frame times are frame / 25 fps (PNG frames); a 10 Hz recording
+    then samples the robot at the wrong times and its steps come out 0.4 x the images' (a fuzz
+    finding: the warning blamed only the robot's units and axes). With frames.csv the hint is
+    left out."""
+    from fusedmosaic.estimation.translation import run_kalman_robot
+
+    data = shutil.copytree(pcle, work / "robot_no_frames_csv")
+    (data / "frames.csv").unlink()
+    r = run_kalman_robot(read_dataset(data), progress=False)  # the simulator records at 10 Hz
+    assert r.details["warnings"], r.details["robot_agreement"]
+    hint = ("or the frame times the robot is sampled at, frame / 25 fps (the default: PNG "
+            "frames; no frames.csv): give the recording's frame rate (--fps) or a frames.csv")
+    assert all(w.endswith(hint) for w in r.details["warnings"]), r.details["warnings"]
+    good = run_kalman_robot(read_dataset(data, fps=10.0), progress=False)
+    assert good.details["warnings"] == []
+
+
 @pytest.mark.realtime  # run --live: processing time measured
 def test_robot_check_of_a_streamed_run(pcle, work, capsys):
     """kalman-robot replayed live (`run --live`, the runner's path for `live` too) gets the

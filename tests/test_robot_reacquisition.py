@@ -169,6 +169,88 @@ def test_bad_span_cap_is_refused():
         translation.RobotPriorOptions(robot_gate_max_span=0)
 
 
+def _scan(tmp_path_factory, **options):
+    """The simulator's default scan (512x448 px, contact loss in frames ~7-13), 60 frames: the
+    image chain drifts (X_m 53-127 px mean off), the perfect robot does not."""
+    root = simulate_pcle(tmp_path_factory.mktemp("pcle") / "scan",
+                         PcleOptions(n_frames=60, **options))
+    return read_dataset(root)
+
+
+def _fused_errors(pcle, every):
+    """X_f and X_m errors (px) with a robot sample on every `every`-th frame only, None between."""
+    robot = pcle.robot_xy_um.copy()
+    robot[np.arange(len(pcle)) % every != 0] = np.nan
+    m = RobotPriorMosaicker(pcle.camera)
+    out = [m.add_frame(pcle.frames[k], pcle.timestamps[k], robot[k]) for k in range(len(pcle))]
+    err = np.hypot(*(np.stack([r.position for r in out]) - _truth(pcle)).T)
+    image = np.hypot(*(np.stack([r.position_image for r in out]) - _truth(pcle)).T)
+    return out, err, image
+
+
+def test_a_robot_at_half_the_frame_rate_is_measured_and_weighed(tmp_path_factory):
+    """Each sample's displacement spans 2 frames and feeds the sigma_r0 estimate
+    (robot_sigma_max_span). Before, only one-frame spans did: sigma_r0 stayed inf for the whole
+    scan, the robot had no weight and X_f was the drifting image chain (seed 1, with stick-slip:
+    38.6 px mean vs 10.4 with a sample every frame; now 7.0). Tolerance: within 1.5x of the same
+    scan with a sample every frame, and under a third of the image chain's error."""
+    pcle = _scan(tmp_path_factory, seed=1)
+    _, every_frame, _ = _fused_errors(pcle, 1)
+    out, err, image = _fused_errors(pcle, 2)
+    assert np.isfinite(out[-1].sigma_robot0)
+    assert err.mean() <= 1.5 * every_frame.mean(), (err.mean(), every_frame.mean())
+    assert err.mean() < image.mean() / 3, (err.mean(), image.mean())
+
+
+def test_the_robot_places_untrusted_frames_before_its_noise_is_measured(tmp_path_factory):
+    """Seed 2, a robot sample every 3rd frame: the contact loss (frames 9-13) comes before
+    sigma_r0 is measured (3 trusted samples). A sigma_r0 of inf there let registrations of
+    confidence c_img ~0.1 place the frames, and the robot anchor kept their ~170 px error for
+    good (X_f 138 px mean, worse than X_m's 127); now such a frame uses KalmanOptions.sigma_robot0
+    (18 px mean: at c_img 0.11 the paper's weighing leaves ~11 % of the correction out).
+    Tolerance: under a third of the image chain's error."""
+    pcle = _scan(tmp_path_factory, seed=2, stick_slip=False)
+    out, err, image = _fused_errors(pcle, 3)
+    assert any(r.c_img < 0.5 and np.isfinite(r.displacement_robot).all() for r in out[5:15])
+    assert err.mean() < image.mean() / 3, (err.mean(), image.mean())
+
+
+def test_an_unjudged_registration_does_not_veto_the_robot(tmp_path_factory):
+    """A fast scan (600 µm/frame at 1 µm/px, 512x448 px frames: no two frames overlap): the
+    registrations fail or lock on the fibre pattern at ~0 px, so the filter never leaves its
+    warm-up and such a lock came with c_img = c_img0 = 1; the gate took it as trusted and vetoed
+    the correct robot: 4 of 30 frames 550-670 px off (84.6 px mean vs 4.2 for the robot alone).
+    Tolerance: within 1 px of the robot alone (the perfect robot is the only information)."""
+    root = simulate_pcle(tmp_path_factory.mktemp("pcle") / "fast", PcleOptions(
+        n_frames=30, speed_um_per_frame=600.0, radius_um=3000.0, seed=8))
+    pcle = read_dataset(root)
+    m = RobotPriorMosaicker(pcle.camera)
+    out = [m.add_frame(pcle.frames[k], pcle.timestamps[k], pcle.robot_xy_um[k])
+           for k in range(len(pcle))]
+    err = np.hypot(*(np.stack([r.position for r in out]) - _truth(pcle)).T)
+    robot = np.hypot(*(np.stack([r.position_robot for r in out]) - _truth(pcle)).T)
+    assert not any(r.robot_gated for r in out)
+    assert err.max() < robot.max() + 1.0, (err.round(0), robot.round(0))
+    # registered (an NCC score) but placed by the robot alone
+    unjudged = [r for r in out if np.isfinite(r.ncc_score) and r.status == "prior-only"]
+    assert unjudged and all(r.c_img == 0.0 and r.c_rob == 1.0 for r in unjudged)
+
+
+def test_a_glitch_after_the_first_agreement_is_still_gated_in_the_warm_up(pcle):
+    """The warm-up exception needs no registration to have agreed with the robot yet: a +5 mm
+    glitch at frame 3 (the filter's history not full, two agreements measured) is gated."""
+    robot = pcle.robot_xy_um.copy()
+    robot[3, 0] += GLITCH_UM
+    out = _run(pcle, robot)
+    assert _gated(out) == [3]
+    assert _errors(out, pcle).max() < 5.0
+
+
+def test_bad_sigma_span_is_refused():
+    with pytest.raises(ValueError, match="robot_sigma_max_span must be an integer >= 1, got 0"):
+        translation.RobotPriorOptions(robot_sigma_max_span=0)
+
+
 @pytest.mark.parametrize("dropout", [range(0), DROPOUT], ids=["no-dropout", "at-the-return"])
 def test_a_lasting_robot_offset_is_gated_until_the_rebase(pcle, dropout):
     """Gated frames do not widen the gate: a robot re-homed (its samples offset from frame

@@ -258,10 +258,88 @@ def test_robot_estimate_needs_no_images_and_flags_missing_samples(small):
     out = _stream(dataset, "robot", frames=[None] * len(dataset), robot=robot)
     assert out[3].status == "unplaced: no robot sample at this frame"
     assert out[4].status == "prior-only"
-    robot[0] = np.nan
-    out = _stream(dataset, "robot", frames=[None] * len(dataset), robot=robot)
-    assert out[0].status == "placed"
-    assert out[1].status == "unplaced: no robot sample at the reference frame 0"
+    robot[:2] = np.nan  # no sample at frame 0: the first one (frame 2) is the origin
+    m = RobotPriorMosaicker(dataset.camera, estimate="robot")
+    out = [m.add_frame(None, dataset.timestamps[k], robot[k]) for k in range(len(dataset))]
+    assert out[0].status == "placed"  # the reference
+    assert out[1].status == "unplaced: no robot sample at this frame"
+    assert m.origin_frames == {"image": None, "robot": 2}
+    np.testing.assert_array_equal(out[2].position, [0.0, 0.0])
+    np.testing.assert_allclose(
+        out[5].position, (robot[5] - robot[2]) / dataset.camera.pixel_size_um)
+
+
+def _without_frame0(small, tmp_path, what):
+    """A copy of the clean scan whose frame 0 is black ("image") or whose robot.csv starts
+    after frame 0 ("robot")."""
+    import shutil
+
+    import cv2
+
+    root = shutil.copytree(small, tmp_path / what)
+    if what == "image":
+        first = sorted((root / "frames").iterdir())[0]
+        cv2.imwrite(str(first), np.zeros_like(cv2.imread(str(first), cv2.IMREAD_UNCHANGED)))
+    else:
+        t0 = read_dataset(small).timestamps[0]
+        lines = (root / "robot.csv").read_text().splitlines()
+        kept = [line for line in lines[1:] if float(line.split(",")[0]) > t0 + 0.05]
+        (root / "robot.csv").write_text("\n".join([lines[0], *kept]) + "\n")
+    return read_dataset(root, allow_untracked=True)
+
+
+@pytest.mark.parametrize("what", ["image", "robot"])
+def test_a_chain_without_frame0_starts_at_the_first_usable_frame_and_warns(small, tmp_path,
+                                                                           what):
+    """A black frame 0 (ncc) or no robot sample at frame 0 (robot): every other frame was left
+    unplaced, exit 0, no warning (a fuzz finding: the mosaic was frame 0 alone). Now the first
+    textured frame (robot sample) is put at frame 0's position and the chain goes on from it: the
+    positions are offset by the motion between the two, the mosaic consistent; a warning says
+    so. Tolerance: positions relative to frame 1 within 0.5 px of the truth's (clean scan)."""
+    dataset = _without_frame0(small, tmp_path, what)
+    run = run_ncc if what == "image" else run_robot
+    result = run(dataset, progress=False)
+    assert all(not s.startswith("unplaced") for s in result.status), result.status
+    (warning,) = result.details["warnings"]
+    expected = ("frame 0 is blank (a constant image): the NCC chain starts at frame 1" if
+                what == "image" else "robot.csv has no sample at frame 0: the robot positions "
+                "start at frame 1")
+    assert warning.startswith(expected), warning
+    assert "offset by the (unknown) motion between frames 0 and 1" in warning
+    position = result.homographies[:, :2, 2]
+    truth = dataset.ground_truth[:, :2, 2]
+    np.testing.assert_array_equal(position[1], [0.0, 0.0])
+    np.testing.assert_allclose(position[1:] - position[1], truth[1:] - truth[1], atol=0.5)
+
+
+@pytest.mark.parametrize(("size", "option"), [((5, 5), "fallback_template_fraction"),
+                                               ((40, 4), "template_fraction")])
+def test_frames_too_small_for_ncc_are_refused_up_front_naming_the_camera(size, option):
+    """5x5 frames passed frame 1 (0.6 gives a 3x3 template) and failed at the first wide-range
+    retry (0.4: 2x2) mid-run, naming only the option; now the mosaicker refuses them at once,
+    naming the camera file. The robot estimate reads no image and takes them."""
+    camera = Camera(*size, pixel_size_um=1.0, source="cam.yaml")
+    expected = (f"cam.yaml: frames of {size[0]}x{size[1]} px are too small to register by NCC: "
+                f"RobotPriorOptions.{option}=")
+    for estimate in ("image", "fused"):
+        with pytest.raises(ValueError, match=expected):
+            RobotPriorMosaicker(camera, estimate=estimate)
+    RobotPriorMosaicker(camera, estimate="robot")
+
+
+def test_a_run_without_any_textured_frame_warns(small, tmp_path):
+    import shutil
+
+    import cv2
+
+    root = shutil.copytree(small, tmp_path / "black")
+    for path in (root / "frames").iterdir():
+        cv2.imwrite(str(path), np.zeros_like(cv2.imread(str(path), cv2.IMREAD_UNCHANGED)))
+    result = run_ncc(read_dataset(root), progress=False)
+    assert set(result.status[1:]) == {"unplaced: blank frame (constant image)"}
+    assert result.details["warnings"] == [
+        "frame 0 is blank (a constant image) and no frame is textured: only frame 0, the "
+        "reference, is placed"]
 
 
 def test_adaptive_robot_sigma_tracks_the_robot_noise(cases):

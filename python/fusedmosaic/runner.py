@@ -566,7 +566,7 @@ def add_streamed_checks(result: methods.MethodResult, dataset, method: str, opti
         from fusedmosaic.estimation.consistency import add_robot_agreement
 
         add_robot_agreement(details, str(dataset.root / dataset.robot_file),
-                            result.parameters.get("pixel_size_um"))
+                            result.parameters.get("pixel_size_um"), dataset.frame_times)
         return
     if (method != "lba-emt" or "tracker_agreement" in details or result.poses is None
             or dataset.cam_from_world is None):

@@ -107,7 +107,8 @@ def add_tracker_agreement(details: dict, poses: np.ndarray, dataset, plane,
     details["tracker_agreement"] = agreement
 
 
-def add_robot_agreement(details: dict, source: str, pixel_size_um: float | None) -> None:
+def add_robot_agreement(details: dict, source: str, pixel_size_um: float | None,
+                        frame_times: str = "frames.csv") -> None:
     """robot_agreement of a kalman-robot result from its ``details`` (trajectories_px X_m and
     X_r, confidences c_img; frames whose c_img is None were not processed and are left out,
     so a dropped frame's interval falls in the next step) into them: "robot_agreement", and
@@ -117,7 +118,7 @@ def add_robot_agreement(details: dict, source: str, pixel_size_um: float | None)
     paths = details["trajectories_px"]
     agreement = robot_agreement(paths["X_m"][rows], paths["X_r"][rows],
                                 np.array([c_img[k] for k in rows], float), source=source,
-                                pixel_size_um=pixel_size_um)
+                                pixel_size_um=pixel_size_um, frame_times=frame_times)
     details["warnings"] = agreement.pop("warnings") + details.get("warnings", [])
     details["robot_agreement"] = agreement
 
@@ -147,11 +148,15 @@ MIN_ROBOT_STEPS = 5  # fewer compared steps: no check
 
 
 def robot_agreement(image_px: np.ndarray, robot_px: np.ndarray, c_img, *,
-                    source: str = "robot.csv", pixel_size_um: float | None = None) -> dict:
+                    source: str = "robot.csv", pixel_size_um: float | None = None,
+                    frame_times: str = "frames.csv") -> dict:
     """Do the robot's positions (N, 2 px, X_r) move like the image registrations' chain (N, 2,
     X_m)? Per step, on steps whose image confidence c_img (N,) exceeds 0.5 and that move >= 2
     px: the median ratio of the step lengths (robot / image) and the median cosine between the
-    steps. Returns the figures and "warnings" (naming ``source``)."""
+    steps. Returns the figures and "warnings" (naming ``source``). ``frame_times``
+    (Dataset.frame_times): where the frame times the robot is sampled at come from; when not
+    frames.csv (an assumed frame rate) the warnings name it too, a wrong rate being as likely a
+    cause as the robot's units or axes."""
     d_image = np.diff(np.asarray(image_px, np.float64), axis=0)
     d_robot = np.diff(np.asarray(robot_px, np.float64), axis=0)
     c = np.asarray(c_img, np.float64)[1:]
@@ -170,6 +175,9 @@ def robot_agreement(image_px: np.ndarray, robot_px: np.ndarray, c_img, *,
         else float("nan")
     out.update(length_ratio=ratio, median_cosine=cosine)
     pixel = "" if pixel_size_um is None else f" ({pixel_size_um:g} µm/px)"
+    times = ("" if frame_times.startswith("frames.csv") else
+             f", or the frame times the robot is sampled at, {frame_times}: give the "
+             "recording's frame rate (--fps) or a frames.csv")
     low, high = ROBOT_RATIO_RANGE
     if not low <= ratio <= high:
         unit = (" (x 0.001: mm instead of µm?)" if 0.0005 < ratio < 0.002 else
@@ -177,11 +185,11 @@ def robot_agreement(image_px: np.ndarray, robot_px: np.ndarray, c_img, *,
         out["warnings"].append(
             f"{source}: the robot's steps are {ratio:.3g} x the image registrations' (median "
             f"over {out['steps']} confident steps), where 1 is expected{unit}: check that the "
-            f"robot positions are in µm and camera.yaml's pixel_size_um{pixel}")
+            f"robot positions are in µm and camera.yaml's pixel_size_um{pixel}{times}")
     if cosine < MIN_ROBOT_COSINE:  # also False for NaN (a robot standing still: the ratio)
         out["warnings"].append(
             f"{source}: the robot moves in other directions than the images show (median "
             f"cosine {cosine:.2f} between their steps over {out['steps']} confident steps, 1 "
             "expected): check that the robot's x and y are in the image axes (x right, y down), "
-            "not swapped or flipped")
+            f"not swapped or flipped{times}")
     return out

@@ -45,7 +45,12 @@ absolute value) of the robot-minus-image displacement over the last ``robot_sigm
 frames whose image was trusted (``c_img >= 0.5``), floored at ``robot_sigma_floor_px``. Until
 ``robot_sigma_min_frames`` such frames exist the robot is uninformative (``sigma_r0 = inf``,
 ``robot_unknown_at_start``: the paper relies on the image at the start, Sec. II-B; else
-``KalmanOptions.sigma_robot0`` is used). With
+``KalmanOptions.sigma_robot0`` is used), except on a frame whose registration the filter does
+not trust (``c_img < robot_sigma_c_img``, e.g. a contact loss in the first frames), which uses
+``KalmanOptions.sigma_robot0``: an infinite ``sigma_r0`` would let a registration of
+confidence ~0.1 place it. A robot sampled more slowly than the frames (``robot_xy_um`` None
+between samples) feeds the estimate with displacements spanning up to
+``robot_sigma_max_span`` frames. With
 ``adaptive_robot_sigma=False`` the filter is the paper's with fixed ``sigma_robot0``.
 
 Robot gating (not in the paper). Eq. 17-18 bound the robot's confidence below by
@@ -64,8 +69,18 @@ when the robot returns after frames without a sample (a dropout), its displaceme
 frames too and differs from the registration by the image chain's drift over them, which the
 returning robot is there to correct; so the bounds are allowed once per frame spanned (the
 drift each frame would have been let through with), up to ``robot_gate_max_span`` times (a
-larger jump stays a glitch however long the dropout), and such a re-acquisition is kept out of
-the ``sigma_r0`` estimate (not a one-frame disagreement).
+larger jump stays a glitch however long the dropout), and a re-acquisition spanning more than
+``robot_sigma_max_span`` frames is kept out of the ``sigma_r0`` estimate. While the filter is
+in its warm-up (``c_img`` is the initial ``c_img0``, no judgement) and no registration has
+agreed with the robot yet, a registration disagreeing beyond the bounds does not veto the
+robot: the robot places the frame, as for an inconsistent registration (a fast scan whose
+frames do not overlap, its registrations locking on the fibre pattern).
+
+Origin. Frame 0 is the reference (0, 0). When frame 0 is blank, X_m starts at the first
+textured frame, put at frame 0's position; when the robot has no sample at frame 0, X_r starts
+at its first sample the same way (``RobotPriorMosaicker.origin_frames``; the batch methods
+warn): every position then carries the unknown motion between the two frames, the mosaic is
+consistent.
 
 Input checks (streaming): timestamps are real numbers in seconds, below ``MAX_TIMESTAMP_S`` and
 at most ``MAX_FRAME_GAP_S`` after the previous frame (a larger value is a unit mix-up: ms, µs or
@@ -107,6 +122,7 @@ from fusedmosaic.registration.ncc import (
     flat_field,
     gray_from_color,
     register_ncc,
+    template_problem,
 )
 
 __all__ = [
@@ -160,6 +176,14 @@ class RobotPriorOptions:
     robot_sigma_floor_px: float = 0.1
     # Frames with c_img at or above this feed the estimate: the 0.5 level of Eq. 15.
     robot_sigma_c_img: float = 0.5
+    # A robot displacement spanning up to this many frames feeds the estimate: a robot sampled
+    # more slowly than the frames (robot_xy_um None between its samples) spans 2 or 3 frames at
+    # each sample, and its difference to the image chain over them is that of the displacement
+    # the filter fuses at that step (a white robot error is span-independent). Spanning only one
+    # frame, a robot at half the frame rate was never measured: sigma_r0 stayed inf, the robot
+    # had no weight (seed 1, 60 frames: X_f 38.6 px mean vs 10.4 with a sample every frame).
+    # Longer spans (a re-acquisition after a dropout) hold the image chain's drift.
+    robot_sigma_max_span: int = 4
     # Forward/backward consistency and wide-range retry of register_ncc (ncc.py): the two
     # directions must agree within this (px; below the probe's 3.5 µm optical resolution,
     # Sec. III-B), else the 2/5 template retries over +-3/10 of the frame. None = no check.
@@ -252,6 +276,12 @@ class RobotPriorOptions:
             raise ValueError(
                 "RobotPriorOptions.robot_sigma_window and robot_sigma_min_frames must be >= 1, "
                 f"got {self.robot_sigma_window} and {self.robot_sigma_min_frames}"
+            )
+        if not (isinstance(self.robot_sigma_max_span, int | np.integer)
+                and self.robot_sigma_max_span >= 1):
+            raise ValueError(
+                "RobotPriorOptions.robot_sigma_max_span must be an integer >= 1, got "
+                f"{self.robot_sigma_max_span!r}"
             )
         if self.robot_sigma_min_frames > self.robot_sigma_window:
             raise ValueError(
@@ -434,6 +464,14 @@ class RobotPriorMosaicker:
         if pixel_size is not None and not (np.isfinite(pixel_size) and pixel_size > 0):
             raise ValueError(f"{source}: pixel_size_um must be a positive number, got {pixel_size}")
         self.pixel_size_um = None if pixel_size is None else float(pixel_size)
+        if estimate != "robot":  # before frame 1 (or a wide-range retry mid-run) finds out
+            for name in ("template_fraction", "fallback_template_fraction"):
+                fraction = getattr(self.options, name)
+                problem = None if fraction is None else template_problem(
+                    (self.height, self.width), fraction, f"RobotPriorOptions.{name}")
+                if problem is not None:
+                    raise ValueError(f"{source}: frames of {self.width}x{self.height} px are too "
+                                     f"small to register by NCC: {problem}")
         self.fixed_pattern = None
         if fixed_pattern is not None:
             gain = np.asarray(fixed_pattern, dtype=np.float32)
@@ -464,6 +502,10 @@ class RobotPriorMosaicker:
         self._pixel_type: np.dtype | None = None  # the first image's, which every image keeps
         self._anchor: _Anchor | None = None
         self._robot_origin_um = _NAN2  # robot position at frame 0
+        # The frames whose X_m / X_r are the origin (0, 0): frame 0, or when frame 0 is blank
+        # (no robot sample) the first textured frame (the first robot sample), see origin_frames.
+        self._image_origin: int | None = None
+        self._robot_origin: int | None = None
         self._robot_anchor: tuple[np.ndarray, np.ndarray] | None = None  # (robot µm, X_f)
         # Frames placed from the image alone, for want of a robot sample, since the robot anchor:
         # the robot displacement spans that many more image steps than the image displacement.
@@ -476,6 +518,16 @@ class RobotPriorMosaicker:
     def frame_count(self) -> int:
         """Frames added since the last :meth:`reset`."""
         return self._count
+
+    @property
+    def origin_frames(self) -> dict:
+        """{"image": k, "robot": k}: the frame whose X_m (X_r) is the origin (0, 0), None before
+        there is one. Frame 0 normally; when frame 0 is blank (has no robot sample) nothing
+        places frame 0's image (robot position), so the first textured frame (robot sample) is
+        put at frame 0's position: X_m (X_r) are then relative to that frame, a consistent mosaic
+        offset by the unknown motion between the two (reported by the batch methods as a
+        warning)."""
+        return {"image": self._image_origin, "robot": self._robot_origin}
 
     @property
     def sigma_robot0(self) -> float:
@@ -617,7 +669,8 @@ class RobotPriorMosaicker:
     # Everything _place changes, for _restore. Copied shallowly (the values are replaced, the
     # innovations deque is appended to); the filter, changed in place, by its snapshot (a
     # deepcopy took ~0.5 ms, 5 % of a 512x448 frame).
-    _STATE = ("_count", "_last_timestamp", "_anchor", "_robot_origin_um", "_robot_anchor",
+    _STATE = ("_count", "_last_timestamp", "_anchor", "_robot_origin_um", "_image_origin",
+              "_robot_origin", "_robot_anchor",
               "_steps_without_robot", "_gated_in_a_row", "_innovations")
 
     def _state(self) -> dict:
@@ -646,8 +699,8 @@ class RobotPriorMosaicker:
         robot_gated = False
 
         # Robot position X_r (Eq. 3), relative to frame 0.
-        if i == 0:
-            self._robot_origin_um = robot
+        if self._robot_origin is None and np.isfinite(robot).all():
+            self._robot_origin_um, self._robot_origin = robot, i
         x_r = _NAN2
         if self.pixel_size_um is not None:
             x_r = (robot - self._robot_origin_um) / self.pixel_size_um
@@ -697,6 +750,10 @@ class RobotPriorMosaicker:
         else:
             x_m = self._anchor.x_m + dx if self._anchor is not None else _NAN2
             x_f = _NAN2
+            if self._image_origin is None and gray is not None and not blank:
+                x_m = np.zeros(2)  # the first textured frame after a blank frame 0
+        if self._image_origin is None and gray is not None and not blank:
+            self._image_origin = i
 
         # The chosen estimate.
         if i == 0:
@@ -708,8 +765,6 @@ class RobotPriorMosaicker:
             position = x_r
             if np.isfinite(x_r).all():
                 status = "prior-only"
-            elif not np.isfinite(self._robot_origin_um).all():
-                status = "unplaced: no robot sample at the reference frame 0"
             else:
                 status = "unplaced: no robot sample at this frame"
         else:
@@ -733,8 +788,25 @@ class RobotPriorMosaicker:
                     kf.options = replace(kf.options, sigma_robot0=sigma_r)
                 c_match = conf["c_match"] if image_ok else 0.0
                 if image_ok and robot_ok:
-                    robot_gated = self._robot_glitch(kf, dx_img_f, dx_rob_f, c_match, sigma_r)
-                step = kf.update(dx_img_f, _NAN2 if robot_gated else dx_rob_f, c_match)
+                    verdict = self._robot_glitch(kf, dx_img_f, dx_rob_f, c_match, sigma_r)
+                    robot_gated = verdict == "glitch"
+                    if verdict == "unjudged":  # as an inconsistent registration: the robot
+                        image_ok, dx_img_f, c_match = False, _NAN2, 0.0  # places the frame
+                dx_rob_used = _NAN2 if robot_gated else dx_rob_f
+                unknown = (image_ok and robot_ok and not robot_gated and np.isinf(sigma_r)
+                           and np.isfinite(self.options.kalman.sigma_robot0))
+                saved = kf.snapshot() if unknown else None
+                step = kf.update(dx_img_f, dx_rob_used, c_match)
+                if unknown and step.c_img < self.options.robot_sigma_c_img:
+                    # sigma_r0 not measured yet and the image not trusted at this frame (a
+                    # contact loss in the first frames): relying on the image (sigma_r0 = inf)
+                    # would let a 0-confidence registration place the frame, and the robot
+                    # anchor would keep its error for good; KalmanOptions.sigma_robot0, the
+                    # paper's fixed filter, weighs the two by c_img and c_rob instead.
+                    kf.restore(saved)
+                    sigma_r = self.options.kalman.sigma_robot0
+                    kf.options = replace(kf.options, sigma_robot0=sigma_r)
+                    step = kf.update(dx_img_f, dx_rob_used, c_match)
                 for name in CONFIDENCES:
                     conf[name] = float(getattr(step, name))
                 x_f = position = step.position
@@ -743,7 +815,8 @@ class RobotPriorMosaicker:
                     image_ok
                     and robot_ok
                     and not robot_gated
-                    and self._steps_without_robot == 0  # a re-acquisition spans many steps
+                    # a re-acquisition after a dropout spans many steps, and their drift
+                    and self._steps_without_robot < self.options.robot_sigma_max_span
                     and step.c_img >= self.options.robot_sigma_c_img
                 ):
                     self._innovations.append(dx_rob_f - dx_img_f)
@@ -794,10 +867,19 @@ class RobotPriorMosaicker:
             **conf,
         )
 
-    def _robot_glitch(self, kf, dx_image, dx_robot, c_match: float, sigma_r: float) -> bool:
-        """Whether the robot displacement is a gross outlier next to a trusted registration
-        (module docstring, "Robot gating"). The image confidence c_img (Eq. 16) does not depend
-        on the robot; it is read from a trial update of a copy of the filter.
+    def _robot_glitch(self, kf, dx_image, dx_robot, c_match: float, sigma_r: float):
+        """"glitch" when the robot displacement is a gross outlier next to a trusted
+        registration (module docstring, "Robot gating"), else None. The image confidence c_img
+        (Eq. 16) does not depend on the robot; it is read from a trial update of a copy of the
+        filter. "unjudged" when they disagree beyond the bound while the filter is still in its
+        warm-up (c_img is the initial c_img0 of Sec. II-B, no judgement of this registration)
+        and no registration has agreed with the robot yet (no sigma_r0 sample): nothing says
+        the image is the one to believe, and it must not veto the robot. A fast scan whose
+        frames do not overlap keeps the filter in warm-up (its registrations fail or lock on the
+        fibre pattern at ~0 px); such locks vetoed the correct robot and placed 4 of 30 frames
+        550-670 px off (seed 8, 600 µm/frame: 84.6 px mean, the robot alone 4.2). The frame is
+        then placed by the robot, as for an inconsistent registration. (So a robot glitch at
+        frame 1, before any agreement, places that frame at the glitch; the next is back.)
 
         ``_steps_without_robot``: frames placed from the image alone since the robot anchor,
         for want of a robot sample. The robot displacement then spans 1 + that many image steps
@@ -815,9 +897,11 @@ class RobotPriorMosaicker:
             bound = max(self.options.robot_gate_sigmas * sigma_r, bound)
         bound *= min(1 + self._steps_without_robot, self.options.robot_gate_max_span)
         if not np.abs(dx_robot - dx_image).max() > bound:  # also False for bound = inf
-            return False
+            return None
         trial = copy.deepcopy(kf).update(dx_image, _NAN2, c_match)
-        return bool(trial.c_img >= self.options.robot_sigma_c_img)
+        if trial.warmup and not self._innovations:
+            return "unjudged"
+        return "glitch" if trial.c_img >= self.options.robot_sigma_c_img else None
 
 
 # -- batch methods (`fusedmosaic run --method ncc|robot|kalman-robot`) ---------------------------
@@ -884,11 +968,11 @@ def _run(
         "ncc_score": column("ncc_score"),
         "sigma_robot0_px": column("sigma_robot0"),
         "per_frame_ms": ms_stats(per_frame * 1e3),
-        "warnings": [],
+        "warnings": _origin_warnings(dataset, mosaicker, estimate),
     }
     if estimate == "fused":  # robot and images both seen: do they move alike?
         add_robot_agreement(details, str(dataset.root / dataset.robot_file),
-                            mosaicker.pixel_size_um)
+                            mosaicker.pixel_size_um, dataset.frame_times)
     parameters = {
         "estimate": estimate,
         "pixel_size_um": mosaicker.pixel_size_um,
@@ -904,6 +988,29 @@ def _run(
         blend="average",
         undistorted=False,  # NCC on the raw frames
     )
+
+
+def _origin_warnings(dataset, mosaicker: RobotPriorMosaicker, estimate: str) -> list[str]:
+    """A run whose X_m (X_r) starts after frame 0 (RobotPriorMosaicker.origin_frames): every
+    position carries the unknown motion between frame 0 and that frame; or never starts."""
+    ids, n = dataset.frame_ids, len(dataset)
+    warnings = []
+    wanted = {"image": ("image",), "robot": ("robot",), "fused": ()}[estimate]
+    first = int(ids[0])
+    for source in wanted:
+        k = mosaicker.origin_frames[source]
+        what = (f"frame {first} is blank (a constant image)" if source == "image" else
+                f"{dataset.robot_file} has no sample at frame {first}")
+        if k is None and n > 1:
+            none = "no frame is textured" if source == "image" else "no frame has a robot sample"
+            warnings.append(f"{what} and {none}: only frame {first}, the reference, is placed")
+        elif k is not None and k > 0:
+            chain = "the NCC chain starts" if source == "image" else "the robot positions start"
+            warnings.append(
+                f"{what}: {chain} at frame {int(ids[k])}, put at frame {first}'s position, so "
+                f"every frame is offset by the (unknown) motion between frames {first} and "
+                f"{int(ids[k])}; the mosaic itself is consistent")
+    return warnings
 
 
 def run_ncc(

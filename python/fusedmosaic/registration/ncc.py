@@ -369,6 +369,18 @@ def register_ncc(
     return result
 
 
+def template_problem(shape: tuple[int, int], template_fraction: float,
+                     name: str = "template_fraction") -> str | None:
+    """Why frames of `shape` (H, W) cannot be registered with a central template of
+    `template_fraction` of their size (the option called `name`), or None when they can."""
+    h, w = shape
+    th, tw = int(template_fraction * h), int(template_fraction * w)
+    if th < 3 or tw < 3 or th > h - 2 or tw > w - 2:
+        return (f"{name}={template_fraction} gives a {th}x{tw} template for frames of shape "
+                f"{tuple(shape)}; need at least 3x3 and a margin of 1 px on each side")
+    return None
+
+
 def _register(
     prev: np.ndarray,
     curr: np.ndarray,
@@ -381,11 +393,9 @@ def _register(
     template. Also returns whether either peak was clipped at the edge of the search range."""
     h, w = prev.shape
     th, tw = int(template_fraction * h), int(template_fraction * w)
-    if th < 3 or tw < 3 or th > h - 2 or tw > w - 2:
-        raise ValueError(
-            f"template_fraction={template_fraction} gives a {th}x{tw} template for frames of "
-            f"shape {prev.shape}; need at least 3x3 and a margin of 1 px on each side"
-        )
+    problem = template_problem(prev.shape, template_fraction)
+    if problem is not None:
+        raise ValueError(problem)
     oy, ox = (h - th) // 2, (w - tw) // 2
     if max_displacement is None:
         max_shift = (w - tw, h - th)
