@@ -373,6 +373,8 @@ class FrameResult:
     robot_gated : True when the robot sample was left out as a glitch (module docstring): the
         frame follows the image (``c_rob = 0``, ``c_sp`` NaN); ``displacement_robot`` is the
         rejected robot displacement.
+    ncc_consistent : whether the registration's forward and backward directions agreed (after
+        the wide-range retry, ``RobotPriorOptions.max_disagreement_px``); None without one.
     """
 
     index: int
@@ -395,6 +397,7 @@ class FrameResult:
     displacement_robot: np.ndarray
     timings: dict[str, float]
     robot_gated: bool = False
+    ncc_consistent: bool | None = None
 
     @property
     def placed(self) -> bool:
@@ -707,7 +710,7 @@ class RobotPriorMosaicker:
 
         # Image registration against the anchor (frame i-1 unless it was blank or failed).
         dx, why_no_image = _NAN2, None
-        inconsistent = False
+        inconsistent, consistent = False, None
         if i > 0 and self.estimate != "robot":
             if blank:
                 why_no_image = "blank frame (constant image)"
@@ -727,7 +730,7 @@ class RobotPriorMosaicker:
                 )
                 t1 = time.perf_counter()
                 timings["ncc"] = t1 - t0
-                dx, score = reg.dx, reg.score
+                dx, score, consistent = reg.dx, reg.score, bool(reg.consistent)
                 inconsistent = self.options.distrust_inconsistent and not reg.consistent
                 if inconsistent:
                     why_no_image = (f"NCC registration against frame {self._anchor.index}: "
@@ -864,6 +867,7 @@ class RobotPriorMosaicker:
             displacement_robot=np.array(dx_rob_f),
             timings=timings,
             robot_gated=robot_gated,
+            ncc_consistent=consistent,
             **conf,
         )
 
@@ -970,6 +974,8 @@ def _run(
         "per_frame_ms": ms_stats(per_frame * 1e3),
         "warnings": _origin_warnings(dataset, mosaicker, estimate),
     }
+    if estimate != "robot":
+        _add_inconsistency(details, results, dataset, estimate)
     if estimate == "fused":  # robot and images both seen: do they move alike?
         add_robot_agreement(details, str(dataset.root / dataset.robot_file),
                             mosaicker.pixel_size_um, dataset.frame_times)
@@ -988,6 +994,31 @@ def _run(
         blend="average",
         undistorted=False,  # NCC on the raw frames
     )
+
+
+# Registrations whose directions disagree, of those made, above which an ncc run warns: the
+# simulator's scans with contact loss and stick-slip have 1-7 % (circle and spiral, seeds 0-3),
+# a scan too fast for its frames to overlap (600 µm/frame, 512x448 px of 1 µm) 86 %.
+MAX_INCONSISTENT_FRACTION = 0.25
+
+
+def _add_inconsistency(details: dict, results: list, dataset, estimate: str) -> None:
+    """details["ncc_inconsistent"]: frame IDs whose registration's directions disagreed; for
+    X_m a warning when they exceed MAX_INCONSISTENT_FRACTION of the registrations (the fused
+    estimate places such frames by the robot)."""
+    ids = dataset.frame_ids
+    made = [r for r in results if r.ncc_consistent is not None]
+    bad = [int(ids[r.index]) for r in made if not r.ncc_consistent]
+    details["ncc_inconsistent"] = bad
+    if estimate == "image" and made and len(bad) > MAX_INCONSISTENT_FRACTION * len(made):
+        listed = ", ".join(map(str, bad[:10])) + (f", ... ({len(bad) - 10} more)"
+                                                  if len(bad) > 10 else "")
+        details["warnings"].append(
+            f"{len(bad)} of {len(made)} NCC registrations have forward and backward directions "
+            f"that disagree even after the wide-range retry (frames {listed}): consecutive "
+            "frames likely do not overlap (a scan too fast for the frame rate) or lack texture; "
+            "X_m places them anyway and is unreliable (kalman-robot places them by the robot; "
+            "report.json ncc_inconsistent)")
 
 
 def _origin_warnings(dataset, mosaicker: RobotPriorMosaicker, estimate: str) -> list[str]:
