@@ -819,6 +819,9 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                        # the recording's samples are on the video's clock (stamped - offset)
                        "tracker_time_offset_s": offset,
                        "frames_received": src.received,
+                       # IMAGE messages failing their CRC64, dropped (None: not checked)
+                       "frames_corrupted": (src.corrupted_frames if src.frames_crc_checked
+                                            else None),
                        "frames_refused": dict(rejected),
                        "frames_refused_first": dict(first_refused),
                        "tracker_samples_valid": src.valid_samples,
@@ -868,4 +871,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     if session.no_sample:
         lines.append(f"  tracker {len(session.no_sample)} frame(s) without a usable sample"
                      f"{samples_heard(src)}")
+    if src.corrupted_frames:
+        lines.append(f"  frames  {src.corrupted_frames} IMAGE message(s) failed their CRC64 "
+                     "(corrupted in transit) and were dropped (report.json live "
+                     "frames_corrupted)")
     return "\n".join(lines)
