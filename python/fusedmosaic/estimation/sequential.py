@@ -1549,7 +1549,9 @@ def run_lba_emt(dataset, *, progress: bool = True,
         # the plane observability gate (SequentialOptions.plane_max_relative_std)
         "plane_gate": _plane_gate_details(plane_steps),
         # per frame: the plane of the step that made the frame final
-        "plane_history": [results[k].plane.tolist() for k in range(n)],
+        # (None for a frame handed out before any plane: dropped from a waiting start-up)
+        "plane_history": [None if results[k].plane is None else
+                          np.asarray(results[k].plane).tolist() for k in range(n)],
     }
     details["warnings"] = _solver_warnings(mosaicker.bootstrap_summary, unconverged,
                                            len(step_times), o.max_iterations)
