@@ -33,6 +33,16 @@ def plane_depths(poses: np.ndarray, plane: np.ndarray) -> np.ndarray:
     return out
 
 
+def camera_baseline_mm(poses: np.ndarray) -> float:
+    """The largest distance between the centres of (N, 6) cam_from_world poses (world units,
+    mm): how far the cameras moved, which is what makes the plane's distance observable."""
+    poses = np.atleast_2d(np.asarray(poses, np.float64))
+    centres = np.array([-_core.rotation_from_angle_axis(p[:3]).T @ p[3:] for p in poses])
+    if len(centres) < 2:
+        return 0.0
+    return float(np.max(np.linalg.norm(centres[:, None] - centres[None], axis=2)))
+
+
 def plane_from_pair(H_lm: np.ndarray, K: np.ndarray, cam_l: np.ndarray,
                     cam_m: np.ndarray) -> np.ndarray | None:
     """pi (world) from one homography and two cam_from_world poses; None if ill-posed."""

@@ -88,7 +88,7 @@ from fusedmosaic.estimation.motion import (
     tracker_motion_departure,
     triple_departures,
 )
-from fusedmosaic.estimation.plane import estimate_plane, plane_depths
+from fusedmosaic.estimation.plane import camera_baseline_mm, estimate_plane, plane_depths
 from fusedmosaic.estimation.world import (
     WorldAlignment,
     plane_from_aligned,
@@ -1225,8 +1225,8 @@ class SequentialMosaicker:
         # pair with a 2.5 mm baseline: pi behind every camera, then frames 182 px to 3.4e6 px
         # off). The start-up waits for more frames instead.
         checked = [k for k in ids if k in seen]
-        depths = plane_depths(np.array([ba.pose(k) for k in checked]).reshape(-1, 6),
-                              np.asarray(ba.plane()))
+        checked_poses = np.array([ba.pose(k) for k in checked]).reshape(-1, 6)
+        depths = plane_depths(checked_poses, np.asarray(ba.plane()))
         behind = [k for k, d in zip(checked, depths, strict=True)
                   if not (np.isfinite(d) and d > 0)]
         if behind:
@@ -1234,7 +1234,9 @@ class SequentialMosaicker:
             self._startup_problem = (
                 f"the plane the start-up estimated from {len(usable)} registered pairs is not "
                 f"in front of frames {behind[:5]}{' ...' if len(behind) > 5 else ''}: too few "
-                "pairs or too short a baseline to initialise it")
+                "pairs or too short a baseline to initialise it (the start-up cameras' centres "
+                f"lie within {camera_baseline_mm(checked_poses):.2g} mm of each other; a camera "
+                "held still or only turning about its axis gives the images no depth)")
             return False
         # Nor is a plane the start-up cannot tell (the same 60 frames, 3 pairs after 20 frames:
         # relative std 1.8, depth 4 mm for 30, frames ~1000 px off), unless the sequence ends
