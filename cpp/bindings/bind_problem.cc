@@ -247,6 +247,8 @@ void BindProblem(py::module_& m) {
           "frame_id"_a, "pose"_a, "Sets a frame's pose.\n\npose : (6,) float64 cam_from_world")
       .def("set_constant_frame", &BundleAdjuster::SetConstantFrame, "frame_id"_a,
            "constant"_a = true, "Holds a frame's pose constant (or frees it again).")
+      .def("set_constant_plane", &BundleAdjuster::SetConstantPlane, "constant"_a = true,
+           "Holds the plane constant during solve() (or frees it again).")
       .def("solve", &BundleAdjuster::Solve, py::call_guard<py::gil_scoped_release>(),
            "Runs Ceres (GIL released) and returns a SolveSummary; poses and plane are updated.")
       .def(

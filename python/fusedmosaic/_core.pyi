@@ -325,6 +325,9 @@ class BundleAdjuster:
     def set_constant_frame(self, frame_id: int, constant: bool = True) -> None:
         """Holds a frame's pose constant during solve() (or frees it again)."""
 
+    def set_constant_plane(self, constant: bool = True) -> None:
+        """Holds the plane constant during solve() (or frees it again)."""
+
     def solve(self) -> SolveSummary:
         """Runs Ceres with the GIL released; the stored poses and plane are updated."""
 

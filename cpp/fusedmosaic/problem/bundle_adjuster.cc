@@ -220,6 +220,11 @@ void BundleAdjuster::SetPlane(const Eigen::Vector3d& plane) {
   plane_set_ = true;
 }
 
+void BundleAdjuster::SetConstantPlane(bool constant) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  plane_constant_ = constant;
+}
+
 void BundleAdjuster::SetPose(int frame_id, const Pose& cam_from_world) {
   std::lock_guard<std::mutex> lock(mutex_);
   Frame& frame = FindFrame(frame_id, "set_pose");
@@ -375,6 +380,10 @@ SolveSummary BundleAdjuster::Solve() {
     }
   }
 
+  if (plane_constant_ && problem.HasParameterBlock(plane)) {
+    problem.SetParameterBlockConstant(plane);
+  }
+
   // BAVis gauge (see the header): without EMT priors hold the first frame and |pi|.
   SolveSummary out;
   if (emt_blocks.empty()) {
@@ -383,7 +392,7 @@ SolveSummary BundleAdjuster::Solve() {
       problem.SetParameterBlockConstant(frames_.at(first_id).pose.data());
       constant_ids.push_back(first_id);
     }
-    if (constant_ids.size() < 2 && problem.HasParameterBlock(plane)) {
+    if (constant_ids.size() < 2 && problem.HasParameterBlock(plane) && !plane_constant_) {
       problem.SetManifold(plane, new ceres::SphereManifold<kPlaneSize>());
     }
   }

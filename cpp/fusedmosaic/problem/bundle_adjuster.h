@@ -140,6 +140,8 @@ class BundleAdjuster {
   void SetPlane(const Eigen::Vector3d& plane);
   void SetPose(int frame_id, const Pose& cam_from_world);
   void SetConstantFrame(int frame_id, bool constant = true);
+  // Holds the plane constant during Solve() (or frees it again): poses adjusted to a given pi.
+  void SetConstantPlane(bool constant = true);
 
   SolveSummary Solve();
 
@@ -180,6 +182,7 @@ class BundleAdjuster {
   std::vector<Pair> pairs_;
   std::array<double, kPlaneSize> plane_{};
   bool plane_set_ = false;
+  bool plane_constant_ = false;
 };
 
 }  // namespace fusedmosaic

@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from fusedmosaic import _core
+from fusedmosaic.estimation.plane import MIN_BASELINE_RATIO, baseline_ratio, camera_baseline_mm
 
 # Above this ratio of the tracker-estimate disagreement to the prior's noise, a warning: at
 # twice the assumed noise the prior weighs the tracker 4x too much (~1.3 measured there).
@@ -85,8 +86,21 @@ def tracker_agreement(poses: np.ndarray, tracker_poses: np.ndarray, tracker_vali
         distance = float(np.median([_core.camera_plane_distance(x, np.asarray(plane, float))
                                     for x in poses[ok]]))
         out["plane_distance_mm"] = distance
+        ratio = baseline_ratio(poses[ok], np.asarray(plane, float))
+        out["baseline_ratio"] = ratio if np.isfinite(ratio) else None
         low, high = PLANE_DISTANCE_RANGE_MM
-        if not low <= abs(distance) <= high:
+        if ratio < MIN_BASELINE_RATIO:
+            # (before the unit check: a still camera's plane is out of range, the unit is not
+            # the cause)
+            out["warnings"].append(
+                f"{source}: the camera barely translated: its centres lie within "
+                f"{camera_baseline_mm(poses[ok]):.2g} mm of each other, {100 * ratio:.2g} % of "
+                f"the plane's depth along their axes (distance {distance:.3g} mm, median), so "
+                "the images show "
+                "no parallax and the plane's distance is not measured (a camera held still or "
+                "only turning about its axis). The mosaic does not depend on it; plane.json's "
+                "distance and poses.csv's translations are unreliable")
+        elif not low <= abs(distance) <= high:
             unit = " (metres?)" if abs(distance) < low else " (micrometres?)"
             out["warnings"].append(
                 f"{source}: the plane lies {distance:.3g} mm from the cameras (median), outside "

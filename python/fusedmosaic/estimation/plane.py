@@ -43,6 +43,40 @@ def camera_baseline_mm(poses: np.ndarray) -> float:
     return float(np.max(np.linalg.norm(centres[:, None] - centres[None], axis=2)))
 
 
+# Below this ratio of the cameras' spread (camera_baseline_mm) to their distance from the plane
+# the images show no parallax the plane could be measured by: at a focal length of ~300 px, 1 %
+# moves a point by ~3 px across the frame. A camera held still (50 frames, centres within 3.9
+# mm by the tracker's noise) gave a plane 3.7e4 mm away (truth 35 mm), 1e-4; hand-held and SYN
+# sequences 0.2-0.5; translations in metres or micrometres keep it (both shrink or grow).
+MIN_BASELINE_RATIO = 0.01
+
+
+def baseline_ratio(poses: np.ndarray, plane: np.ndarray) -> float:
+    """camera_baseline_mm of (N, 6) cam_from_world poses over their median distance along the
+    optical axis to the plane pi (its absolute value: a plane behind them counts as well): below
+    MIN_BASELINE_RATIO the images cannot tell where the plane is, and the mosaic does not
+    depend on it (0 for a plane at infinity or parallel to the axes; NaN for fewer than two
+    poses)."""
+    depths = np.abs(plane_depths(poses, plane))
+    if len(depths) < 2:
+        return float("nan")
+    return camera_baseline_mm(poses) / float(np.median(depths))
+
+
+def plane_facing(poses: np.ndarray, distance_mm: float) -> np.ndarray:
+    """pi of the plane perpendicular to the (N, 6) cam_from_world poses' mean optical axis,
+    distance_mm in front of their mean centre: a nominal plane for cameras that did not
+    translate (its distance cannot be measured; the homographies between such cameras do not
+    depend on it)."""
+    poses = np.atleast_2d(np.asarray(poses, np.float64))
+    Rs = [_core.rotation_from_angle_axis(p[:3]) for p in poses]
+    centre = np.mean([-R.T @ p[3:] for R, p in zip(Rs, poses, strict=True)], axis=0)
+    axis = np.sum([R[2] for R in Rs], axis=0)
+    axis /= np.linalg.norm(axis)
+    point = centre + distance_mm * axis  # pi . X + 1 = 0 through it, normal along the axis
+    return -axis / float(axis @ point)
+
+
 def plane_from_pair(H_lm: np.ndarray, K: np.ndarray, cam_l: np.ndarray,
                     cam_m: np.ndarray) -> np.ndarray | None:
     """pi (world) from one homography and two cam_from_world poses; None if ill-posed."""

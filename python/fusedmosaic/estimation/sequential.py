@@ -88,7 +88,14 @@ from fusedmosaic.estimation.motion import (
     tracker_motion_departure,
     triple_departures,
 )
-from fusedmosaic.estimation.plane import camera_baseline_mm, estimate_plane, plane_depths
+from fusedmosaic.estimation.plane import (
+    MIN_BASELINE_RATIO,
+    baseline_ratio,
+    camera_baseline_mm,
+    estimate_plane,
+    plane_depths,
+    plane_facing,
+)
 from fusedmosaic.estimation.world import (
     WorldAlignment,
     plane_from_aligned,
@@ -274,6 +281,15 @@ class SequentialOptions:
     # 60-frame scene: 0.1 gave 5.6 / 19.5 px where 0.25 gives 4.4 / 10.6 on seeds 3 / 5);
     # 0.25 leaves every simulated start-up alone (up to 0.11 with 8 frames).
     startup_max_plane_std: float = 0.25
+    # A start-up camera that did not translate (held still, or turning about its axis) shows
+    # no parallax: its plane comes out anywhere, near infinity, on either side of the cameras
+    # (relative std 2.1 over 50 still frames; behind them after 80). When the start-up must
+    # decide (the sequence ends, or it holds startup_wait_frames frames) and its cameras'
+    # spread is below MIN_BASELINE_RATIO of the plane's depth, the plane is put facing them at
+    # this distance and held while their poses are adjusted: the images tie their centres
+    # together, so the homographies do not depend on it, and the window measures pi once the
+    # camera translates (fetoscopes view the placenta from 10-50 mm).
+    nominal_plane_distance_mm: float = 30.0
     seed: int = 0
 
     @classmethod
@@ -375,7 +391,7 @@ class SequentialMosaicker:
                              f"got {o.startup_min_overlap}")
         for name in ("max_timestamp_gap_s", "tracker_max_speed_mm_s", "tracker_max_angular_speed",
                      "tracker_jump_margin_mm", "tracker_jump_margin_rad", "tracker_max_gap_s",
-                     "motion_max_gap_s"):
+                     "motion_max_gap_s", "nominal_plane_distance_mm"):
             value = getattr(o, name)
             if not (isinstance(value, numbers.Real) and value > 0):
                 raise ValueError(f"SequentialOptions.{name} must be > 0, got {value!r}")
@@ -1229,20 +1245,36 @@ class SequentialMosaicker:
         depths = plane_depths(checked_poses, np.asarray(ba.plane()))
         behind = [k for k, d in zip(checked, depths, strict=True)
                   if not (np.isfinite(d) and d > 0)]
+        std = summary["plane_relative_std"]
+        limit = o.startup_max_plane_std
+        if ((behind or (limit > 0 and not std <= limit))
+                and (final_step or len(ids) >= o.startup_wait_frames)
+                and baseline_ratio(checked_poses, np.asarray(ba.plane())) < MIN_BASELINE_RATIO):
+            # No parallax: nominal_plane_distance_mm. Before, 80 frames held still were handed
+            # out unplaced and the sequence refused (ba-emt: e_M 0.027 px), 50 gave a plane
+            # 3.7e4 mm away.
+            ba.set_plane(plane_facing(checked_poses, o.nominal_plane_distance_mm))
+            ba.set_constant_plane(True)
+            summary = ba.solve().as_dict()
+            checked_poses = np.array([ba.pose(k) for k in checked]).reshape(-1, 6)
+            depths = plane_depths(checked_poses, np.asarray(ba.plane()))
+            behind = [k for k, d in zip(checked, depths, strict=True)
+                      if not (np.isfinite(d) and d > 0)]
+            std = 0.0  # (given, not estimated)
         if behind:
             self._startup_refused = (refused_pairs, len(ids))
             self._startup_problem = (
                 f"the plane the start-up estimated from {len(usable)} registered pairs is not "
                 f"in front of frames {behind[:5]}{' ...' if len(behind) > 5 else ''}: too few "
                 "pairs or too short a baseline to initialise it (the start-up cameras' centres "
-                f"lie within {camera_baseline_mm(checked_poses):.2g} mm of each other; a camera "
-                "held still or only turning about its axis gives the images no depth)")
+                f"lie within {camera_baseline_mm(checked_poses):.3g} mm of each other" + (
+                    "; a camera held still or only turning about its axis gives the images no "
+                    "parallax" if baseline_ratio(checked_poses, np.asarray(ba.plane()))
+                    < MIN_BASELINE_RATIO else "") + ")")
             return False
         # Nor is a plane the start-up cannot tell (the same 60 frames, 3 pairs after 20 frames:
         # relative std 1.8, depth 4 mm for 30, frames ~1000 px off), unless the sequence ends
         # or the start-up holds startup_wait_frames frames: then the best it has is taken.
-        std = summary["plane_relative_std"]
-        limit = o.startup_max_plane_std
         if (limit > 0 and not final_step and len(ids) < o.startup_wait_frames
                 and not std <= limit):
             self._startup_refused = (refused_pairs, len(ids))
