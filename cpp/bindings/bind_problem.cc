@@ -48,7 +48,8 @@ constexpr const char* kOptionFields[] = {"sigma_v_px",
                                          "use_emt",
                                          "use_motion_prior",
                                          "motion_gate_chi2",
-                                         "plane_std"};
+                                         "plane_std",
+                                         "plane_std_paired_only"};
 
 constexpr const char* kSummaryFields[] = {"iterations",
                                           "initial_cost",
@@ -148,6 +149,9 @@ void BindProblem(py::module_& m) {
       .def_readwrite("plane_std", &BundleAdjusterOptions::plane_std,
                      "Compute SolveSummary.plane_relative_std (dense in 6 N + 3: small\n"
                      "problems, e.g. the sequential start-up).")
+      .def_readwrite("plane_std_paired_only", &BundleAdjusterOptions::plane_std_paired_only,
+                     "With plane_std, only the poses of frames in a pair enter the covariance\n"
+                     "(the others held: a lower bound; dense in 6 M + 3 for M paired frames).")
       .def("validate", &BundleAdjusterOptions::Validate,
            "Raises ValueError naming the first invalid field.")
       .def("__repr__", [](const py::object& self) {

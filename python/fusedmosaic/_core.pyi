@@ -225,6 +225,10 @@ class BundleAdjusterOptions:
     plane_std: bool
     """Compute SolveSummary.plane_relative_std (dense in 6 N + 3: small problems, e.g. the
     sequential start-up). Default False."""
+    plane_std_paired_only: bool
+    """With plane_std, only the poses of frames in a pair enter the covariance; the others are
+    held at their values (conditioned on: a lower bound). Dense in 6 M + 3 for M paired frames.
+    Default False."""
 
     def __init__(self, **kwargs: Any) -> None: ...
     def validate(self) -> None:

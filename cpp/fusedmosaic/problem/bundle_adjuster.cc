@@ -441,9 +441,12 @@ SolveSummary BundleAdjuster::Solve() {
   out.num_motion_blocks = static_cast<int>(motion.blocks.size());
   if (options_.plane_std && !per_point && !out.gauge_fixed_by_constraints &&
       problem.HasParameterBlock(plane) && !problem.IsParameterBlockConstant(plane)) {
+    std::set<int> paired;
+    for (const Pair& pair : pairs_) paired.insert({pair.frame_l, pair.frame_m});
     std::vector<double*> free_poses;
     for (auto& [id, frame] : frames_) {
       double* pose = frame.pose.data();
+      if (options_.plane_std_paired_only && paired.count(id) == 0) continue;
       if (problem.HasParameterBlock(pose) && !problem.IsParameterBlockConstant(pose)) {
         free_poses.push_back(pose);
       }

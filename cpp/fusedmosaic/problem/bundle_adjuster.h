@@ -77,6 +77,11 @@ struct BundleAdjusterOptions {
   // Compute SolveSummary::plane_relative_std: a dense eigen-decomposition of the
   // (6 N + 3)^2 information matrix, for small problems (the sequential start-up).
   bool plane_std = false;
+  // With plane_std, only the poses of frames in a pair enter the covariance; the others (with
+  // their EMT and motion priors only) are held at their values, i.e. conditioned on, so the
+  // std is a lower bound. Dense in 6 M + 3 for M paired frames: a long ba-emt run with few
+  // registered pairs.
+  bool plane_std_paired_only = false;
 
   // Throws std::invalid_argument naming the offending field.
   void Validate() const;

@@ -8,6 +8,7 @@ homographies G_k = H_0 H_k^-1 from the estimated poses and plane.
 
 from __future__ import annotations
 
+import numbers
 import time
 from collections import deque
 from dataclasses import asdict, dataclass, field, replace
@@ -72,6 +73,12 @@ class BundleOptions:
     motion_gate_chi2: float = MOTION_GATE_CHI2
     num_threads: int = 2
     seed: int = 0  # inlier subsampling
+    # ba-emt computes the plane's relative standard deviation given the costs (details
+    # plane_relative_std; a warning above consistency.MAX_PLANE_RELATIVE_STD) over the poses of
+    # the frames in a registered pair, the others held (a lower bound), when there are at most
+    # this many: dense in 6 M + 3 (+0.1 s at 50 paired frames, +1.2 s at 150 on a 12 s run).
+    # Beyond, so many frames see the plane that it is observed (0: never computed).
+    plane_std_max_frames: int = 150
 
 
 @dataclass
@@ -198,12 +205,13 @@ def _visual_initialisation(n: int, matches: list[PairMatch], K: np.ndarray) -> n
     return poses
 
 
-def _adjuster(K, options: BundleOptions, use_emt: bool):
+def _adjuster(K, options: BundleOptions, use_emt: bool, plane_std: bool = False):
     costs = _core.BundleAdjusterOptions(
         sigma_v_px=options.sigma_v_px, loss=options.loss, loss_scale_px=options.loss_scale_px,
         linear_solver=options.linear_solver, max_iterations=options.max_iterations,
         num_threads=options.num_threads, use_emt=use_emt, use_motion_prior=use_emt,
-        motion_gate_chi2=options.motion_gate_chi2)
+        motion_gate_chi2=options.motion_gate_chi2, plane_std=plane_std,
+        plane_std_paired_only=plane_std)
     if options.motion_sigma is not None:
         costs.motion_sigma = np.asarray(options.motion_sigma, np.float64)
     if options.emt_sigma is not None:
@@ -236,6 +244,11 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     K = dataset.camera.require_camera_matrix("ba-emt" if use_emt else "ba")
     if options is not None and options.emt_sigma is not None:  # before minutes of matching
         check_emt_sigma(options.emt_sigma, "BundleOptions.emt_sigma")
+    if options is not None and not (isinstance(options.plane_std_max_frames, numbers.Integral)
+                                    and not isinstance(options.plane_std_max_frames, bool)
+                                    and options.plane_std_max_frames >= 0):
+        raise ValueError("BundleOptions.plane_std_max_frames must be an integer >= 0, got "
+                         f"{options.plane_std_max_frames!r}")
     if options is not None and not options.motion_gate_chi2 > 0:
         raise ValueError("BundleOptions.motion_gate_chi2 must be > 0 (inf: no gate), got "
                          f"{options.motion_gate_chi2!r}")
@@ -285,7 +298,8 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     timings["initialisation"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    ba = _adjuster(K, o, use_emt)
+    paired = {k for m in ok for k in (m.frame_l, m.frame_m)}
+    ba = _adjuster(K, o, use_emt, use_emt and len(paired) <= o.plane_std_max_frames)
     times = np.asarray(dataset.timestamps, np.float64)
     nominal = float(np.median(np.diff(times))) if n > 1 else None  # Sigma_p's frame spacing
     # C_p over frames k-2, k-1, k follows their timestamps (dropped frames: motion_timing),
@@ -324,6 +338,8 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     placed = np.isfinite(G).all(axis=(1, 2))
     details = _pair_details(front)
     details["solver"] = summary.as_dict()
+    std = summary.plane_relative_std
+    details["plane_relative_std"] = None if np.isnan(std) else float(std)
     if use_emt:  # C_p released by the motion gate: tracker samples, or the solve
         details["motion_released"] = sorted({*breaks, *summary.motion_released_ids})
         details["tracker_glitches"] = [int(k) for k in glitches]

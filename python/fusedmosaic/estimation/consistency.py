@@ -26,6 +26,11 @@ MAX_NOISE_RATIO = 2.0
 # Camera-plane distances an endoscope images a surface at (fetoscopes: 10-50 mm); outside,
 # the tracker's unit is the likely cause.
 PLANE_DISTANCE_RANGE_MM = (1.0, 2000.0)
+# Above this relative standard deviation of pi (sqrt(trace(Cov_pi)) / |pi| given the costs) the
+# images barely observe the plane (as SequentialOptions.startup_max_plane_std): a 50-frame
+# hand-held sequence through a 60 px field stop registered 2 pairs, 5.3, plane 7.8 mm for 29,
+# ba-emt / lba-emt e_M 166 px against the tracker alone's 91. Normal runs: 0.002-0.11.
+MAX_PLANE_RELATIVE_STD = 0.25
 CONVENTIONS = ("tracking.csv holds tracker_from_sensor (not its inverse) with quaternions x, y, "
                "z, w and translations in mm, and hand_eye.txt holds sensor_from_camera (not its "
                "inverse)")
@@ -47,11 +52,14 @@ def check_emt_sigma(sigma, what: str = "emt_sigma") -> tuple[float, ...]:
 
 
 def tracker_agreement(poses: np.ndarray, tracker_poses: np.ndarray, tracker_valid: np.ndarray,
-                      plane, emt_sigma=None, *, source: str = "tracking.csv") -> dict:
+                      plane, emt_sigma=None, *, source: str = "tracking.csv",
+                      plane_relative_std: float | None = None,
+                      registered_pairs: int | None = None) -> dict:
     """How far the estimated cam_from_world poses (N, 6) lie from the tracker's (N, 6; valid
-    (N,)), per axis, against the prior's noise ``emt_sigma`` (None: the default), and how far
-    the plane lies from the cameras. Returns the figures and "warnings" (messages naming
-    ``source``; empty when all is plausible)."""
+    (N,)), per axis, against the prior's noise ``emt_sigma`` (None: the default), how far the
+    plane lies from the cameras, and whether the images observe it (``plane_relative_std``, of
+    ``registered_pairs``; None: not judged). Returns the figures and "warnings" (messages
+    naming ``source``; empty when all is plausible)."""
     sigma = default_emt_sigma() if emt_sigma is None else np.asarray(emt_sigma, np.float64)
     poses = np.asarray(poses, np.float64)
     tracker_poses = np.asarray(tracker_poses, np.float64)
@@ -100,6 +108,15 @@ def tracker_agreement(poses: np.ndarray, tracker_poses: np.ndarray, tracker_vali
                 "no parallax and the plane's distance is not measured (a camera held still or "
                 "only turning about its axis). The mosaic does not depend on it; plane.json's "
                 "distance and poses.csv's translations are unreliable")
+        elif plane_relative_std is not None and plane_relative_std > MAX_PLANE_RELATIVE_STD:
+            pairs = "" if registered_pairs is None else f" from {registered_pairs} registered pairs"
+            out["warnings"].append(
+                f"{source}: the images barely observe the plane: its relative standard "
+                f"deviation{pairs} is {plane_relative_std:.2g} (above "
+                f"{MAX_PLANE_RELATIVE_STD:g}; plane {distance:.3g} mm from the cameras): frames "
+                "placed without a registered pair (prior-only) follow the tracker through this "
+                "plane and may be far off, and plane.json is unreliable (too few registrations: "
+                "a small field of view, weak texture, or frames too far apart)")
         elif not low <= abs(distance) <= high:
             unit = " (metres?)" if abs(distance) < low else " (micrometres?)"
             out["warnings"].append(
@@ -114,9 +131,14 @@ def tracker_agreement(poses: np.ndarray, tracker_poses: np.ndarray, tracker_vali
 def add_tracker_agreement(details: dict, poses: np.ndarray, dataset, plane,
                           emt_sigma=None) -> None:
     """tracker_agreement of a pose method's result on ``dataset`` (its tracking.csv poses) into
-    its ``details``: "tracker_agreement", and the warnings first in "warnings"."""
+    its ``details``: "tracker_agreement", and the warnings first in "warnings". The details'
+    "plane_relative_std" (None or NaN: not computed) and pairs.registered judge whether the
+    images observe the plane."""
+    std = details.get("plane_relative_std")
     agreement = tracker_agreement(poses, dataset.cam_from_world, dataset.pose_valid, plane,
-                                  emt_sigma, source=str(dataset.root / "tracking.csv"))
+                                  emt_sigma, source=str(dataset.root / "tracking.csv"),
+                                  plane_relative_std=None if std is None or np.isnan(std) else std,
+                                  registered_pairs=details.get("pairs", {}).get("registered"))
     details["warnings"] = agreement.pop("warnings") + details.get("warnings", [])
     details["tracker_agreement"] = agreement
 

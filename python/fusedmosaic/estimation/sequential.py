@@ -1587,6 +1587,12 @@ def run_lba_emt(dataset, *, progress: bool = True,
         "plane_history": [None if results[k].plane is None else
                           np.asarray(results[k].plane).tolist() for k in range(n)],
     }
+    # whether the images observe the plane: the window steps that measured it, else the
+    # start-up's (taken when the sequence ended or startup_wait_frames was reached)
+    std = details["plane_gate"]["median_relative_std"]
+    if std is None:
+        std = (mosaicker.bootstrap_summary or {}).get("plane_relative_std")
+    details["plane_relative_std"] = None if std is None or np.isnan(std) else float(std)
     details["warnings"] = _solver_warnings(mosaicker.bootstrap_summary, unconverged,
                                            len(step_times), o.max_iterations)
     if dataset.cam_from_world is not None:
