@@ -80,6 +80,27 @@ def test_emt_guided_pairs_keep_accuracy(syn150, syn150_results, work):
     assert r["e_M_px"] <= 1.1 * full["e_M_px"] + 0.01  # within 10 % (+ 0.01 px floor)
 
 
+def test_frames_with_no_anchor_are_flagged_and_left_out(work):
+    """Black frames 10-15 inside a tracker gap 8-20 (30 hand-held frames): nothing but C_p
+    places them. lba-emt called them dead-reckoned and left them out of the mosaic, ba-emt
+    called them prior-only and drew them, and neither said so (a helper's fuzzing: 16 such
+    frames up to 170 px off). Both now flag them alike, with a warning naming them."""
+    data = simulate_fetoscopy(work / "gap_black", FetoscopyOptions(
+        n_frames=30, width=200, height=200, motion="handheld", tracker_gap=[8, 20],
+        black_frames=list(range(10, 16))))
+    for method in ("ba-emt", "lba-emt"):
+        r = run(data, method, work)
+        status = r["report"]["frame_status"]
+        assert [k for k, s in enumerate(status) if s == "dead-reckoned"] == list(range(10, 16))
+        assert r["report"]["warnings"][0] == (
+            "6 of 30 frames had neither a tracker sample nor a registered pair chaining them to a "
+            "frame with one (frames 10-15; the longest run 6 frames): placed by the "
+            "constant-velocity prior alone (status dead-reckoned), they may lie far off; left out "
+            "of the mosaic and the video, kept in homographies.csv")
+        skipped = r["report"]["mosaic"]["skipped_frames"]
+        assert all(skipped[str(k)].startswith("dead-reckoned") for k in range(10, 16))
+
+
 def test_black_frames(work):
     data = simulate_fetoscopy(work / "black", FetoscopyOptions(
         n_frames=62, black_frames=list(PAPER_BLACK_FRAMES)))

@@ -35,7 +35,7 @@ class MethodResult:
 
     homographies: (N, 3, 3) frame -> reference, all-NaN rows for frames that could not be placed.
     status: per frame, "placed", "prior-only" (placed from priors without visual evidence),
-        "dead-reckoned" (lba-emt: placed with no anchor at all, see FrameResult) or
+        "dead-reckoned" (lba-emt, ba-emt: placed with no anchor at all, see FrameResult) or
         "unplaced: <reason>".
     """
 

@@ -228,6 +228,23 @@ def _status(n: int, placed: np.ndarray, matches: list[PairMatch], why: str) -> l
             for p, s in zip(placed, seen, strict=True)]
 
 
+def _unanchored(n: int, matches: list[PairMatch], tracked: np.ndarray) -> np.ndarray:
+    """(n,) True for the frames not linked by registered pairs (through any chain of them) to
+    a frame with a tracker sample (`tracked`, (n,) bool): the EMT does not anchor them."""
+    parent = list(range(n))
+
+    def root(k: int) -> int:
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    for m in matches:
+        parent[root(m.frame_l)] = root(m.frame_m)
+    anchored = {root(k) for k in np.flatnonzero(tracked)}
+    return np.array([root(k) not in anchored for k in range(n)], dtype=bool)
+
+
 def _pair_details(front: FrontEnd) -> dict:
     ok = [m for m in front.matches if m.ok]
     return {"pairs": {"attempted": len(front.matches), "registered": len(ok),
@@ -346,8 +363,13 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     details["warnings"] = [w for w in [solver_warning(summary, o.max_iterations)] if w]
     if use_emt:
         add_tracker_agreement(details, poses, dataset, plane, o.emt_sigma)
-    return MethodResult(G, _status(n, placed, ok, "not connected to frame 0 by registered pairs"),
-                        poses=poses, plane=plane, timings=timings, parameters=asdict(o),
+    status = _status(n, placed, ok, "not connected to frame 0 by registered pairs")
+    if use_emt:  # as lba-emt's: placed by C_p alone, however far from their anchors
+        tracked = np.asarray(dataset.pose_valid, bool).copy()
+        tracked[list(glitches)] = False
+        for k in np.flatnonzero(placed & _unanchored(n, ok, tracked)):
+            status[k] = "dead-reckoned"
+    return MethodResult(G, status, poses=poses, plane=plane, timings=timings, parameters=asdict(o),
                         details=details)
 
 

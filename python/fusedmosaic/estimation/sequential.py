@@ -1294,9 +1294,20 @@ class SequentialMosaicker:
                                 timing=timing[k])
         for m in self._boot_matches:
             self._win_add_pair(m.frame_l, m.frame_m, *self._subsample(m))
+        # frames with no anchor (no tracker sample, no pairs chaining them to a frame with
+        # one), as the window's: 6 black frames in a tracker gap of a 30-frame start-up were
+        # "prior-only" here and "dead-reckoned" after it (and in ba-emt)
+        anchored, grew = set(tracked), True
+        while grew:
+            grew = False
+            for m in self._boot_matches:
+                if (m.frame_l in anchored) != (m.frame_m in anchored):
+                    anchored |= {m.frame_l, m.frame_m}
+                    grew = True
         self._boot_feats, self._boot_matches = [], []
         elapsed = (time.perf_counter() - t0) / len(ids)
-        self._finalize(ids, [ba.pose(k) for k in ids], gated, elapsed, 0.0, final_step)
+        self._finalize(ids, [ba.pose(k) for k in ids], gated, elapsed, 0.0, final_step,
+                       anchored)
         return True
 
     def _judge_motion_again(self) -> None:
