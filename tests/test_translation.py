@@ -312,6 +312,42 @@ def test_a_chain_without_frame0_starts_at_the_first_usable_frame_and_warns(small
     np.testing.assert_allclose(position[1:] - position[1], truth[1:] - truth[1], atol=0.5)
 
 
+def _robot_scaled(small, tmp_path, factor):
+    """A copy of the clean scan whose robot.csv positions are `factor` times the true ones (a
+    robot in the wrong units)."""
+    import shutil
+
+    root = shutil.copytree(small, tmp_path / f"robot_x{factor:g}")
+    lines = (root / "robot.csv").read_text().splitlines()
+    assert lines[0].split(",")[:3] == ["timestamp", "x", "y"], lines[0]
+    rows = []
+    for line in lines[1:]:
+        t, x, y, *rest = line.split(",")
+        rows.append(",".join([t, repr(factor * float(x)), repr(factor * float(y)), *rest]))
+    (root / "robot.csv").write_text("\n".join([lines[0], *rows]) + "\n")
+    return read_dataset(root)
+
+
+def test_a_robot_in_the_wrong_units_does_not_take_over_the_run(small, tmp_path):
+    """A robot 10x too large (120 px steps against the images' 12, beyond the gate's 80 px
+    floor on every frame): in the filter's warm-up its disagreement with the registrations is
+    "unjudged" and the robot places the frame; an unjudged frame adds no image step to the
+    filter's history, so the warm-up never ended and the robot placed every frame, with no
+    warning (robot_agreement found no confident step; sim60 x10: 59 of 60 frames prior-only,
+    e_M 6467 px). Now after robot_gate_rebase (3) unjudged registrations in a row they are
+    believed: the robot is gated, the images place the frames and the units warning is back."""
+    result = run_kalman_robot(_robot_scaled(small, tmp_path, 10.0), progress=False)
+    assert result.status[1:4] == ["prior-only"] * 3, result.status
+    assert result.status[4:] == ["placed"] * (len(result.status) - 4), result.status
+    assert result.details["robot_gated"][:3] == [4, 5, 6]  # then re-anchored, gated again
+    (warning,) = [w for w in result.details["warnings"] if "robot's steps" in w]
+    assert "robot.csv: the robot's steps are 10 x the image registrations'" in warning, warning
+    # the images' steps from frame 3 on (frames 1-3 were placed by the robot)
+    position = result.homographies[:, :2, 2]
+    truth = read_dataset(small).ground_truth[:, :2, 2]
+    np.testing.assert_allclose(position[3:] - position[3], truth[3:] - truth[3], atol=0.5)
+
+
 @pytest.mark.parametrize(("size", "option"), [((5, 5), "fallback_template_fraction"),
                                                ((40, 4), "template_fraction")])
 def test_frames_too_small_for_ncc_are_refused_up_front_naming_the_camera(size, option):

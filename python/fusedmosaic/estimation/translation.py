@@ -74,7 +74,11 @@ larger jump stays a glitch however long the dropout), and a re-acquisition spann
 in its warm-up (``c_img`` is the initial ``c_img0``, no judgement) and no registration has
 agreed with the robot yet, a registration disagreeing beyond the bounds does not veto the
 robot: the robot places the frame, as for an inconsistent registration (a fast scan whose
-frames do not overlap, its registrations locking on the fibre pattern).
+frames do not overlap, its registrations locking on the fibre pattern). Such a frame adds no
+image step to the filter's history, so the warm-up would never end: after ``robot_gate_rebase``
+such registrations in a row (a robot disagreeing with every frame, e.g. in the wrong units),
+they are believed over the robot, as ``robot_gate_rebase`` gated frames in a row make the robot
+believed over them: the robot is judged (gated) from then on.
 
 Origin. Frame 0 is the reference (0, 0). When frame 0 is blank, X_m starts at the first
 textured frame, put at frame 0's position; when the robot has no sample at frame 0, X_r starts
@@ -514,6 +518,9 @@ class RobotPriorMosaicker:
         # the robot displacement spans that many more image steps than the image displacement.
         self._steps_without_robot = 0
         self._gated_in_a_row = 0
+        # Registrations left "unjudged" in a row (_robot_glitch); once robot_gate_rebase, the
+        # warm-up exception is over for the sequence (kept at that count).
+        self._unjudged_in_a_row = 0
         self._innovations: deque[np.ndarray] = deque(maxlen=self.options.robot_sigma_window)
         self._kf = RobotKalmanFilter(self.options.kalman) if self.estimate == "fused" else None
 
@@ -674,7 +681,7 @@ class RobotPriorMosaicker:
     # deepcopy took ~0.5 ms, 5 % of a 512x448 frame).
     _STATE = ("_count", "_last_timestamp", "_anchor", "_robot_origin_um", "_image_origin",
               "_robot_origin", "_robot_anchor",
-              "_steps_without_robot", "_gated_in_a_row", "_innovations")
+              "_steps_without_robot", "_gated_in_a_row", "_unjudged_in_a_row", "_innovations")
 
     def _state(self) -> dict:
         state = {name: copy.copy(getattr(self, name)) for name in self._STATE}
@@ -790,11 +797,16 @@ class RobotPriorMosaicker:
                 if sigma_r != kf.options.sigma_robot0:
                     kf.options = replace(kf.options, sigma_robot0=sigma_r)
                 c_match = conf["c_match"] if image_ok else 0.0
+                verdict = None
                 if image_ok and robot_ok:
                     verdict = self._robot_glitch(kf, dx_img_f, dx_rob_f, c_match, sigma_r)
                     robot_gated = verdict == "glitch"
                     if verdict == "unjudged":  # as an inconsistent registration: the robot
                         image_ok, dx_img_f, c_match = False, _NAN2, 0.0  # places the frame
+                if verdict == "unjudged":
+                    self._unjudged_in_a_row += 1
+                elif not self._streak_judged():
+                    self._unjudged_in_a_row = 0
                 dx_rob_used = _NAN2 if robot_gated else dx_rob_f
                 unknown = (image_ok and robot_ok and not robot_gated and np.isinf(sigma_r)
                            and np.isfinite(self.options.kalman.sigma_robot0))
@@ -871,6 +883,11 @@ class RobotPriorMosaicker:
             **conf,
         )
 
+    def _streak_judged(self) -> bool:
+        """True once robot_gate_rebase registrations in a row were left unjudged: they are
+        then believed over the robot (_robot_glitch)."""
+        return self._unjudged_in_a_row >= self.options.robot_gate_rebase
+
     def _robot_glitch(self, kf, dx_image, dx_robot, c_match: float, sigma_r: float):
         """"glitch" when the robot displacement is a gross outlier next to a trusted
         registration (module docstring, "Robot gating"), else None. The image confidence c_img
@@ -884,6 +901,13 @@ class RobotPriorMosaicker:
         550-670 px off (seed 8, 600 µm/frame: 84.6 px mean, the robot alone 4.2). The frame is
         then placed by the robot, as for an inconsistent registration. (So a robot glitch at
         frame 1, before any agreement, places that frame at the glitch; the next is back.)
+        Only up to robot_gate_rebase such frames in a row (_streak_judged): an unjudged frame
+        adds no image step to the filter's history, so a robot that disagrees on every frame
+        (in the wrong units: 10 x the image steps) kept the filter in warm-up for good and
+        placed every frame alone, with no units warning (robot_agreement had no confident
+        step; 256x224 px circle, 60 frames, robot x 10: 59 prior-only, e_M 6467 px; now 3
+        prior-only, 42 gated, 2639 px and the warning). The fast scan's locks come one at a
+        time between failed registrations, which end a streak.
 
         ``_steps_without_robot``: frames placed from the image alone since the robot anchor,
         for want of a robot sample. The robot displacement then spans 1 + that many image steps
@@ -903,7 +927,7 @@ class RobotPriorMosaicker:
         if not np.abs(dx_robot - dx_image).max() > bound:  # also False for bound = inf
             return None
         trial = copy.deepcopy(kf).update(dx_image, _NAN2, c_match)
-        if trial.warmup and not self._innovations:
+        if trial.warmup and not self._innovations and not self._streak_judged():
             return "unjudged"
         return "glitch" if trial.c_img >= self.options.robot_sigma_c_img else None
 
