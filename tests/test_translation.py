@@ -263,7 +263,7 @@ def test_robot_estimate_needs_no_images_and_flags_missing_samples(small):
     out = [m.add_frame(None, dataset.timestamps[k], robot[k]) for k in range(len(dataset))]
     assert out[0].status == "placed"  # the reference
     assert out[1].status == "unplaced: no robot sample at this frame"
-    assert m.origin_frames == {"image": None, "robot": 2}
+    assert m.origin_frames == {"image": None, "robot": 2, "fused": None}
     np.testing.assert_array_equal(out[2].position, [0.0, 0.0])
     np.testing.assert_allclose(
         out[5].position, (robot[5] - robot[2]) / dataset.camera.pixel_size_um)
@@ -271,16 +271,16 @@ def test_robot_estimate_needs_no_images_and_flags_missing_samples(small):
 
 def _without_frame0(small, tmp_path, what):
     """A copy of the clean scan whose frame 0 is black ("image") or whose robot.csv starts
-    after frame 0 ("robot")."""
+    after frame 0 ("robot"), or both ("both")."""
     import shutil
 
     import cv2
 
     root = shutil.copytree(small, tmp_path / what)
-    if what == "image":
+    if what in ("image", "both"):
         first = sorted((root / "frames").iterdir())[0]
         cv2.imwrite(str(first), np.zeros_like(cv2.imread(str(first), cv2.IMREAD_UNCHANGED)))
-    else:
+    if what in ("robot", "both"):
         t0 = read_dataset(small).timestamps[0]
         lines = (root / "robot.csv").read_text().splitlines()
         kept = [line for line in lines[1:] if float(line.split(",")[0]) > t0 + 0.05]
@@ -346,6 +346,33 @@ def test_a_robot_in_the_wrong_units_does_not_take_over_the_run(small, tmp_path):
     position = result.homographies[:, :2, 2]
     truth = read_dataset(small).ground_truth[:, :2, 2]
     np.testing.assert_allclose(position[3:] - position[3], truth[3:] - truth[3], atol=0.5)
+
+
+def test_kalman_robot_without_frame0_image_and_robot_starts_at_frame1_and_warns(small,
+                                                                              tmp_path):
+    """A black frame 0 without a robot sample: kalman-robot placed frame 0 alone (both of its
+    anchors need a placed frame, textured or with a robot sample), exit 0, no warning, every
+    other frame "unplaced: ... and no robot sample" though it had one (sim60: placed 1 of 60).
+    Now frame 1 is put at frame 0's position, as ncc and robot do, with the warning. Tolerance:
+    positions relative to frame 1 within 0.5 px of the truth's (clean scan)."""
+    dataset = _without_frame0(small, tmp_path, "both")
+    result = run_kalman_robot(dataset, progress=False)
+    assert all(not s.startswith("unplaced") for s in result.status), result.status
+    assert result.details["warnings"] == [
+        "frame 0 is blank (a constant image) and robot.csv has no sample at frame 0: the fused "
+        "chain starts at frame 1, put at frame 0's position, so every frame is offset by the "
+        "(unknown) motion between frames 0 and 1; the mosaic itself is consistent"]
+    position = result.homographies[:, :2, 2]
+    truth = dataset.ground_truth[:, :2, 2]
+    np.testing.assert_array_equal(position[1], [0.0, 0.0])
+    np.testing.assert_allclose(position[1:] - position[1], truth[1:] - truth[1], atol=0.5)
+    # a frame that has a robot sample but nothing to take its displacement from says so
+    m = RobotPriorMosaicker(dataset.camera)
+    clean = read_dataset(small)
+    m.add_frame(clean.frames[0], clean.timestamps[0], None)
+    out = m.add_frame(np.zeros_like(clean.frames[1]), clean.timestamps[1], clean.robot_xy_um[1])
+    assert out.status == ("unplaced: no image registration (blank frame (constant image)) "
+                             "and no robot sample at a placed frame before it"), out.status
 
 
 @pytest.mark.parametrize(("size", "option"), [((5, 5), "fallback_template_fraction"),

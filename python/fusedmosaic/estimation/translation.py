@@ -82,8 +82,9 @@ believed over them: the robot is judged (gated) from then on.
 
 Origin. Frame 0 is the reference (0, 0). When frame 0 is blank, X_m starts at the first
 textured frame, put at frame 0's position; when the robot has no sample at frame 0, X_r starts
-at its first sample the same way (``RobotPriorMosaicker.origin_frames``; the batch methods
-warn): every position then carries the unknown motion between the two frames, the mosaic is
+at its first sample the same way, and X_f, when frame 0 is blank and has no robot sample, at
+the first frame that is textured or has one (``RobotPriorMosaicker.origin_frames``; the batch
+methods warn): every position then carries the unknown motion between the two frames, the mosaic is
 consistent.
 
 Input checks (streaming): timestamps are real numbers in seconds, below ``MAX_TIMESTAMP_S`` and
@@ -513,6 +514,9 @@ class RobotPriorMosaicker:
         # (no robot sample) the first textured frame (the first robot sample), see origin_frames.
         self._image_origin: int | None = None
         self._robot_origin: int | None = None
+        # X_f's: frame 0, or when frame 0 is blank and has no robot sample the first frame that
+        # is textured or has one.
+        self._fused_origin: int | None = None
         self._robot_anchor: tuple[np.ndarray, np.ndarray] | None = None  # (robot µm, X_f)
         # Frames placed from the image alone, for want of a robot sample, since the robot anchor:
         # the robot displacement spans that many more image steps than the image displacement.
@@ -531,13 +535,16 @@ class RobotPriorMosaicker:
 
     @property
     def origin_frames(self) -> dict:
-        """{"image": k, "robot": k}: the frame whose X_m (X_r) is the origin (0, 0), None before
-        there is one. Frame 0 normally; when frame 0 is blank (has no robot sample) nothing
-        places frame 0's image (robot position), so the first textured frame (robot sample) is
-        put at frame 0's position: X_m (X_r) are then relative to that frame, a consistent mosaic
-        offset by the unknown motion between the two (reported by the batch methods as a
-        warning)."""
-        return {"image": self._image_origin, "robot": self._robot_origin}
+        """{"image": k, "robot": k, "fused": k}: the frame whose X_m (X_r, X_f) is the origin
+        (0, 0), None before there is one. Frame 0 normally; when frame 0 is blank (has no robot
+        sample) nothing places frame 0's image (robot position), so the first textured frame
+        (robot sample) is put at frame 0's position: X_m (X_r) are then relative to that frame, a
+        consistent mosaic offset by the unknown motion between the two (reported by the batch
+        methods as a warning). X_f needs either: it starts after frame 0 only when frame 0 is
+        blank and has no robot sample, at the first frame that is textured or has one (only with
+        ``estimate="fused"``)."""
+        return {"image": self._image_origin, "robot": self._robot_origin,
+                "fused": self._fused_origin}
 
     @property
     def sigma_robot0(self) -> float:
@@ -680,7 +687,7 @@ class RobotPriorMosaicker:
     # innovations deque is appended to); the filter, changed in place, by its snapshot (a
     # deepcopy took ~0.5 ms, 5 % of a 512x448 frame).
     _STATE = ("_count", "_last_timestamp", "_anchor", "_robot_origin_um", "_image_origin",
-              "_robot_origin", "_robot_anchor",
+              "_robot_origin", "_fused_origin", "_robot_anchor",
               "_steps_without_robot", "_gated_in_a_row", "_unjudged_in_a_row", "_innovations")
 
     def _state(self) -> dict:
@@ -766,8 +773,12 @@ class RobotPriorMosaicker:
             self._image_origin = i
 
         # The chosen estimate.
+        textured = gray is not None and not blank
+        usable = textured or bool(np.isfinite(robot).all())  # something X_f can start from
         if i == 0:
             position, status = np.zeros(2), "placed"  # the reference defines the origin
+            if self.estimate == "fused" and usable:
+                self._fused_origin = 0
         elif self.estimate == "image":
             position = x_m
             status = "placed" if np.isfinite(x_m).all() else f"unplaced: {why_no_image}"
@@ -789,9 +800,22 @@ class RobotPriorMosaicker:
                 dx_img_f = self._anchor.x_f + dx - previous  # likelihood mean - X_f(i-1), Eq. 5
             image_ok = bool(np.isfinite(dx_img_f).all())
             robot_ok = bool(np.isfinite(dx_rob_f).all())
-            if not image_ok and not robot_ok:
+            if not image_ok and not robot_ok and self._fused_origin is None and usable:
+                # Frame 0 blank and without a robot sample: nothing relates it to later frames,
+                # and neither anchor could ever be set (they need a placed textured frame, a
+                # placed frame with a robot sample). As X_m and X_r do, the first frame that is
+                # textured or has a robot sample is put at frame 0's position and the chain goes
+                # on from it (both anchors are set below); the batch method warns.
+                x_f = position = previous
+                status = "placed" if textured else "prior-only"
+                self._fused_origin = i
+            elif not image_ok and not robot_ok:
                 position = _NAN2
-                status = f"unplaced: no image registration ({why_no_image}) and no robot sample"
+                if not np.isfinite(robot).all():
+                    no_robot = "no robot sample"
+                else:  # a sample, but no earlier placed one to take the displacement from
+                    no_robot = "no robot sample at a placed frame before it"
+                status = f"unplaced: no image registration ({why_no_image}) and {no_robot}"
             else:
                 sigma_r = self.sigma_robot0
                 if sigma_r != kf.options.sigma_robot0:
@@ -1046,8 +1070,8 @@ def _add_inconsistency(details: dict, results: list, dataset, estimate: str) -> 
 
 
 def _origin_warnings(dataset, mosaicker: RobotPriorMosaicker, estimate: str) -> list[str]:
-    """A run whose X_m (X_r) starts after frame 0 (RobotPriorMosaicker.origin_frames): every
-    position carries the unknown motion between frame 0 and that frame; or never starts."""
+    """A run whose X_m (X_r, X_f) starts after frame 0 (RobotPriorMosaicker.origin_frames):
+    every position carries the unknown motion between frame 0 and that frame; or never starts."""
     ids, n = dataset.frame_ids, len(dataset)
     warnings = []
     wanted = {"image": ("image",), "robot": ("robot",), "fused": ()}[estimate]
@@ -1065,6 +1089,18 @@ def _origin_warnings(dataset, mosaicker: RobotPriorMosaicker, estimate: str) -> 
                 f"{what}: {chain} at frame {int(ids[k])}, put at frame {first}'s position, so "
                 f"every frame is offset by the (unknown) motion between frames {first} and "
                 f"{int(ids[k])}; the mosaic itself is consistent")
+    if estimate == "fused":  # needs frame 0 textured or with a robot sample
+        k = mosaicker.origin_frames["fused"]
+        what = (f"frame {first} is blank (a constant image) and {dataset.robot_file} has no "
+                f"sample at frame {first}")
+        if k is None and n > 1:
+            warnings.append(f"{what}, and no frame is textured or has a robot sample: only frame "
+                            f"{first}, the reference, is placed")
+        elif k is not None and k > 0:
+            warnings.append(
+                f"{what}: the fused chain starts at frame {int(ids[k])}, put at frame {first}'s "
+                f"position, so every frame is offset by the (unknown) motion between frames "
+                f"{first} and {int(ids[k])}; the mosaic itself is consistent")
     return warnings
 
 
