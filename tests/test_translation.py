@@ -408,6 +408,32 @@ def test_ncc_warns_when_most_registrations_disagree_between_directions(small, tm
     assert clean.details["ncc_inconsistent"] == [] and clean.details["warnings"] == []
 
 
+def test_a_failed_registration_is_not_counted_as_disagreeing_directions(small, tmp_path):
+    """Frames whose centre is saturated (a featureless template, textured border): NCC fails,
+    which register_ncc reports as inconsistent, so ncc listed them in ncc_inconsistent and, 5
+    of 13 here, warned that their directions "disagree ... X_m places them anyway", though they
+    are unplaced. Now a failed registration has ncc_consistent None and is not counted."""
+    import shutil
+
+    import cv2
+
+    root = shutil.copytree(small, tmp_path / "saturated")
+    paths = sorted((root / "frames").iterdir())
+    for path in paths[2:11:2]:
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        image[30:130, 30:162] = np.iinfo(image.dtype).max
+        cv2.imwrite(str(path), image)
+    result = run_ncc(read_dataset(root), progress=False)
+    for k in range(2, 11, 2):
+        assert result.status[k] == ("unplaced: NCC registration against frame "
+                                    f"{k - 1} failed (featureless template)"), result.status
+    assert result.details["ncc_inconsistent"] == []
+    assert result.details["warnings"] == []
+    fused = run_kalman_robot(read_dataset(root), progress=False)
+    assert fused.details["ncc_inconsistent"] == []
+    assert [fused.status[k] for k in range(2, 11, 2)] == ["prior-only"] * 5
+
+
 def test_a_run_without_any_textured_frame_warns(small, tmp_path):
     import shutil
 

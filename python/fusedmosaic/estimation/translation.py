@@ -379,7 +379,9 @@ class FrameResult:
         frame follows the image (``c_rob = 0``, ``c_sp`` NaN); ``displacement_robot`` is the
         rejected robot displacement.
     ncc_consistent : whether the registration's forward and backward directions agreed (after
-        the wide-range retry, ``RobotPriorOptions.max_disagreement_px``); None without one.
+        the wide-range retry, ``RobotPriorOptions.max_disagreement_px``); None without one, or
+        when it failed (a featureless template: no displacement, status ``unplaced`` or
+        ``prior-only``).
     """
 
     index: int
@@ -744,8 +746,13 @@ class RobotPriorMosaicker:
                 )
                 t1 = time.perf_counter()
                 timings["ncc"] = t1 - t0
-                dx, score, consistent = reg.dx, reg.score, bool(reg.consistent)
-                inconsistent = self.options.distrust_inconsistent and not reg.consistent
+                dx, score = reg.dx, reg.score
+                # a failed registration (featureless template: dx NaN, reported inconsistent)
+                # has no directions to disagree: None, not counted by _add_inconsistency
+                failed = not np.isfinite(dx).all()
+                consistent = None if failed else bool(reg.consistent)
+                inconsistent = (self.options.distrust_inconsistent and not failed
+                                and not reg.consistent)
                 if inconsistent:
                     why_no_image = (f"NCC registration against frame {self._anchor.index}: "
                                     "forward and backward directions disagree")
@@ -1053,7 +1060,8 @@ MAX_INCONSISTENT_FRACTION = 0.25
 def _add_inconsistency(details: dict, results: list, dataset, estimate: str) -> None:
     """details["ncc_inconsistent"]: frame IDs whose registration's directions disagreed; for
     X_m a warning when they exceed MAX_INCONSISTENT_FRACTION of the registrations (the fused
-    estimate places such frames by the robot)."""
+    estimate places such frames by the robot). Failed registrations (ncc_consistent None: no
+    displacement, the frame not placed by them) are not counted."""
     ids = dataset.frame_ids
     made = [r for r in results if r.ncc_consistent is not None]
     bad = [int(ids[r.index]) for r in made if not r.ncc_consistent]
