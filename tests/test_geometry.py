@@ -185,3 +185,28 @@ def test_reference_index_out_of_range():
     with pytest.raises(IndexError, match="reference: index 5 outside"):
         _core.frame_to_reference(np.zeros((3, 6)), np.array([0, 0, -0.03]), np.eye(3),
                                  reference=5)
+
+
+def test_a_pose_through_a_registered_pair_and_the_plane_is_exact():
+    """estimation.bundle.pose_through_pair: the other frame of a pair from one frame's pose,
+    the pair's homography (any scale or sign) and the plane, in either direction."""
+    from fusedmosaic.estimation.bundle import pose_through_pair
+
+    K = np.array([[300.0, 0, 150], [0, 300.0, 150], [0, 0, 1]])
+    plane = np.array([0.01, -0.005, -1 / 30])
+    rng = np.random.default_rng(0)
+
+    def H(p):
+        R = _core.rotation_from_angle_axis(p[:3])
+        return K @ (R - np.outer(p[3:], plane)) @ np.linalg.inv(K)
+
+    for _ in range(5):
+        pose_l, pose_m = (np.r_[rng.normal(0, 0.1, 3), rng.normal(0, 3, 3)] for _ in range(2))
+        H_lm = H(pose_l) @ np.linalg.inv(H(pose_m))
+        assert np.allclose(pose_through_pair(2.7 * H_lm, pose_l, True, plane, K), pose_m,
+                           atol=1e-9)
+        assert np.allclose(pose_through_pair(-1.3 * H_lm, pose_m, False, plane, K), pose_l,
+                           atol=1e-9)
+    # a degenerate homography gives no pose
+    for known_is_l in (True, False):
+        assert pose_through_pair(np.zeros((3, 3)), np.zeros(6), known_is_l, plane, K) is None

@@ -101,6 +101,30 @@ def test_frames_with_no_anchor_are_flagged_and_left_out(work):
         assert all(skipped[str(k)].startswith("dead-reckoned") for k in range(10, 16))
 
 
+def test_a_run_whose_frame_0_is_unplaced_names_its_reference(work):
+    """lba-emt with the tracker on from frame 18 of 30, its start-up keeping 10 frames: the
+    first frames are handed out unplaced and the first placed frame is the reference. The
+    output said nothing of it, and evaluate scored it in frame 0's grid, every e_j holding
+    that frame's true offset (a streamed run of a helper's fuzzing: e_j 19-44 px). Now run
+    warns, report.json and evaluation.json name the reference, and the truth is taken to it."""
+    from fusedmosaic.estimation.sequential import SequentialOptions
+
+    data = simulate_fetoscopy(work / "late", FetoscopyOptions(
+        n_frames=30, width=200, height=200, laps=30 / 37.5, seed=3, tracker_gap=[0, 17]))
+    r = run(data, "lba-emt", work, SequentialOptions(bootstrap_frames=8,
+                                                     startup_wait_frames=10))
+    status = r["report"]["frame_status"]
+    first = next(k for k, s in enumerate(status) if not s.startswith("unplaced"))
+    assert first > 0 and r["report"]["reference_frame"] == r["reference_frame"] == first
+    assert r["report"]["warnings"][0].startswith(
+        f"frame 0 was not placed ({status[0]}): homographies.csv maps the frames to frame "
+        f"{first}'s pixel grid, the first placed frame, not frame 0's")
+    e = np.array([np.nan if v is None else v for v in r["e_j_px"]])
+    placed = np.array([s == "placed" for s in status])
+    assert placed.sum() >= 15 and e[placed].max() < 3.0  # px, in frame `first`'s grid
+    assert r["report"]["metrics"]["e_M_px"] == pytest.approx(r["e_M_px"])
+
+
 def test_black_frames(work):
     data = simulate_fetoscopy(work / "black", FetoscopyOptions(
         n_frames=62, black_frames=list(PAPER_BLACK_FRAMES)))

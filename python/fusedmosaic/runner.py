@@ -146,6 +146,7 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
                 dataset.frames[k]
         unreadable = flag_unreadable_frames(result, dataset)
         flag_dead_reckoned_frames(result, dataset)
+        reference = flag_reference_frame(result, dataset)
         timings.update(result.timings)
         G = result.homographies
         placed = np.isfinite(G).all(axis=(1, 2))
@@ -157,6 +158,8 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
             "dataset_fingerprint": dataset_fingerprint(dataset),
             "frames": len(G),
             "placed": int(placed.sum()),
+            # the frame whose pixel grid homographies.csv maps to: frame 0 unless unplaced
+            "reference_frame": reference,
             "parameters": result.parameters,
             "frame_times": dataset.frame_times,
             "tracker_time_offset_s": float(tracker_time_offset),
@@ -172,9 +175,10 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
             report_json["frame_bits_in_use"] = dataset.frames.bits_in_use
         if dataset.ground_truth is not None:
             from fusedmosaic.evaluation import drift_ratio, frame_errors, mosaic_error
+            from fusedmosaic.evaluation.metrics import truth_in_reference
 
-            errors = frame_errors(G, dataset.ground_truth, dataset.camera.width,
-                                  dataset.camera.height)
+            errors = frame_errors(G, truth_in_reference(G, dataset.ground_truth)[0],
+                                  dataset.camera.width, dataset.camera.height)
             report_json["metrics"] = {
                 "e_M_px": mosaic_error(errors), "drift_ratio": drift_ratio(errors),
                 "max_e_j_px": float(np.nanmax(errors)) if np.isfinite(errors).any() else None,
@@ -228,6 +232,24 @@ def flag_unreadable_frames(result: methods.MethodResult, dataset) -> dict[str, s
         "placed from the priors, left out of the mosaic (report.json unreadable_frames)",
         *result.details.get("warnings", [])]
     return {str(int(ids[k])): message for k, message in found.items()}
+
+
+def flag_reference_frame(result: methods.MethodResult, dataset) -> int:
+    """The id of the frame whose pixel grid the result's homographies map to (design.md: frame
+    0's), with a warning in its details when that is not frame 0: frame 0 unplaced, the first
+    placed frame is the reference (lba-emt's start-up handing frames out before its tracker
+    came on, a pCLE chain starting at its first usable frame)."""
+    from fusedmosaic.evaluation.metrics import reference_frame
+
+    r = reference_frame(result.homographies)
+    ids = dataset.frame_ids
+    if r:
+        result.details["warnings"] = [
+            f"frame {ids[0]} was not placed ({result.status[0]}): homographies.csv maps the "
+            f"frames to frame {ids[r]}'s pixel grid, the first placed frame, not frame "
+            f"{ids[0]}'s (report.json reference_frame; evaluate scores in that grid)",
+            *result.details.get("warnings", [])]
+    return int(ids[r])
 
 
 def flag_dead_reckoned_frames(result: methods.MethodResult, dataset) -> None:

@@ -163,6 +163,72 @@ def fill_missing_poses(poses: np.ndarray) -> np.ndarray:
     return out
 
 
+def pose_through_pair(H_lm: np.ndarray, known: np.ndarray, known_is_l: bool,
+                      plane: np.ndarray, K: np.ndarray) -> np.ndarray | None:
+    """cam_from_world of one frame of a registered pair (H_lm: pixels m -> l) from the other
+    frame's pose `known` (frame l's when known_is_l) and the plane pi (world): the plane fixes
+    the homography's decomposition. None when the result is not finite or the plane is not in
+    front of the camera."""
+    Rj = _core.rotation_from_angle_axis(known[:3])
+    tj = known[3:]
+    Hj = K @ (Rj - np.outer(tj, plane)) @ np.linalg.inv(K)  # virtual camera -> frame j
+    try:
+        Hk = (np.linalg.inv(H_lm) @ Hj) if known_is_l else (H_lm @ Hj)
+    except np.linalg.LinAlgError:  # (a singular homography)
+        return None
+    M = np.linalg.inv(K) @ Hk @ K  # = s (R_k - t_k pi^T)
+    n = plane / np.linalg.norm(plane)
+    a = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(n, a)
+    Ma, Mb = M @ a, M @ b  # directions in the plane: M v = s R_k v
+    s = 0.5 * (np.linalg.norm(Ma) + np.linalg.norm(Mb))
+    if not np.isfinite(s) or s <= 0:
+        return None
+    for sign in (1.0, -1.0):
+        A = np.column_stack([a, b, np.cross(a, b)])
+        B = np.column_stack([sign * Ma / s, sign * Mb / s,
+                             np.cross(sign * Ma / s, sign * Mb / s)])
+        U, _, Vt = np.linalg.svd(B @ A.T)
+        R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        t = (R @ plane - sign * (M @ plane) / s) / float(plane @ plane)
+        pose = np.r_[_core.angle_axis_from_rotation(R), t]
+        centre = -R.T @ t
+        along = float(plane @ R[2])
+        depth = -(plane @ centre + 1.0) / along if along != 0.0 else np.inf
+        if np.isfinite(pose).all() and np.isfinite(depth) and depth > 0:
+            return pose
+    return None
+
+
+def chain_missing_poses(poses: np.ndarray, pairs, plane: np.ndarray, K: np.ndarray, *,
+                        fill: bool = True) -> np.ndarray:
+    """Initial values for frames without a tracker sample (NaN rows of `poses`, indexed by
+    frame id): through registered pairs (PairMatch, ok) from frames with one, breadth first
+    (pose_through_pair with the plane), the rest as fill_missing_poses (fill False: left NaN).
+    A start-up whose first 10 of 19 frames had no sample started them all at the first
+    sample's pose and stopped at its iteration limit with the tracked frames 15 mm from their
+    samples: the next prior-only frame was 1073 px off."""
+    out = np.array(poses, np.float64)
+    known = np.isfinite(out).all(axis=1)
+    if known.all() or not known.any():
+        return fill_missing_poses(out) if fill else out
+    usable = [m for m in pairs if m.ok]
+    grew = True
+    while grew:
+        grew = False
+        for m in usable:
+            l_known, m_known = known[m.frame_l], known[m.frame_m]
+            if l_known == m_known:
+                continue
+            j, k = (m.frame_l, m.frame_m) if l_known else (m.frame_m, m.frame_l)
+            pose = pose_through_pair(m.H_lm, out[j], bool(l_known), plane, K)
+            if pose is not None:
+                out[k], known[k] = pose, True
+                grew = True
+    return fill_missing_poses(out) if fill else out
+
+
 def _pose_from_homography(G: np.ndarray, K: np.ndarray) -> np.ndarray:
     """cam_from_world of a frame whose frame -> reference homography is G, for the plane
     pi = (0, 0, -1) in the reference camera (virtual camera = frame 0, unit distance).
@@ -300,7 +366,7 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
         emt = dataset.cam_from_world
         if plane is None:
             plane = estimate_plane(ok, emt, K)
-        init = fill_missing_poses(emt)
+        init = chain_missing_poses(emt, ok, plane, K)
         frames = range(n)
     else:
         init = _visual_initialisation(n, ok, K)

@@ -66,6 +66,7 @@ from tqdm import tqdm
 
 from fusedmosaic import _core
 from fusedmosaic.estimation.bundle import (
+    chain_missing_poses,
     fill_missing_poses,
     subsample_inliers,
 )
@@ -1133,7 +1134,9 @@ class SequentialMosaicker:
         ba_options.plane_std = o.startup_max_plane_std > 0
         ba_options.motion_gate_chi2 = o.motion_gate_chi2
         ba = _core.BundleAdjuster(self.K, ba_options)
-        filled = fill_missing_poses(table[ids])
+        # (frames without a sample: through the registered pairs from frames with one)
+        filled = fill_missing_poses(chain_missing_poses(table, self._boot_matches, plane,
+                                                        self.K, fill=False)[ids])
         for i, k in enumerate(ids):
             ba.add_frame(k, filled[i], tracked.get(k), *timing[k])
         for m in self._boot_matches:

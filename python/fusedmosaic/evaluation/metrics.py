@@ -81,6 +81,39 @@ def drift_ratio(errors: np.ndarray) -> float:
     return _drift(errors)[0]
 
 
+def reference_frame(G: np.ndarray) -> int:
+    """Index of the frame whose pixel grid (N, 3, 3) frame -> reference homographies map to:
+    0, or, when frame 0 is unplaced, the first placed frame if it is written as the identity
+    (lba-emt's start-up handing out frames before its tracker came on, a pCLE chain starting at
+    its first usable frame); else 0."""
+    G = np.asarray(G, np.float64)
+    placed = np.flatnonzero(np.isfinite(G).all(axis=(1, 2)))
+    if len(placed) == 0 or placed[0] == 0:
+        return 0
+    r = int(placed[0])
+    return r if np.allclose(G[r] / G[r][2, 2], np.eye(3), atol=1e-9) else 0
+
+
+def rereferenced(G: np.ndarray, r: int) -> np.ndarray:
+    """(N, 3, 3) frame -> frame r homographies from frame -> frame 0 ones (NaN stays NaN)."""
+    G = np.asarray(G, np.float64)
+    if r == 0:
+        return G
+    out = np.linalg.inv(G[r]) @ G
+    return out / out[:, 2:3, 2:3]
+
+
+def truth_in_reference(G_est: np.ndarray, G_true: np.ndarray) -> tuple[np.ndarray, int]:
+    """The true homographies in the estimate's reference grid, and its index: frame 0's, or,
+    when frame 0 is unplaced, that of reference_frame(G_est) when the truth places it (else
+    the score holds frame r's true offset on every frame: a streamed run whose tracker came on
+    late, e_j 19-44 px)."""
+    r = reference_frame(G_est)
+    if r and np.isfinite(G_true[r]).all():
+        return rereferenced(G_true, r), r
+    return np.asarray(G_true, np.float64), 0
+
+
 def drift_note(errors: np.ndarray, frame_ids=None) -> str | None:
     """Why drift_ratio(errors) is undefined (None when it is a number), naming the quarters by
     frame_ids (default: positions 0..n-1)."""
@@ -259,7 +292,8 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
                          f"(missing {missing}, unexpected {extra})")
     G_est = G_est[np.argsort(ids)]
     w, h = dataset.camera.width, dataset.camera.height
-    errors = frame_errors(G_est, dataset.ground_truth, w, h)
+    G_true, r = truth_in_reference(G_est, dataset.ground_truth)
+    errors = frame_errors(G_est, G_true, w, h)
     placed = np.isfinite(G_est).all(axis=(1, 2))
     scored = ~np.isnan(errors)
     drift, why = _drift(errors, truth_ids)
@@ -273,6 +307,7 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
         "max_e_j_px": float(np.nanmax(errors)) if scored.any() else None,
         "drift_ratio": None if np.isnan(drift) else drift,
         "e_j_px": [None if np.isnan(e) else float(e) for e in errors],
+        "reference_frame": int(truth_ids[r]),
     }
     if why is not None:
         result["drift_ratio_note"] = why
@@ -292,7 +327,7 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
                          f"errors in µm at {positions_n} evenly spaced frames (a pCLE "
                          "measure): leave out positions_n (--positions)")
     if dataset.camera.pixel_size_um:
-        err_um = position_errors_um(G_est, dataset.ground_truth, w, h,
+        err_um = position_errors_um(G_est, G_true, w, h,
                                     dataset.camera.pixel_size_um)
         result["position_errors_um"] = [None if not np.isfinite(e) else float(e) for e in err_um]
         result["position_all_um"] = _json_stats(position_stats(err_um))

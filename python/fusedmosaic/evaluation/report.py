@@ -392,7 +392,12 @@ def write_report(directory: str | Path, runs: list[RunRecord], truth: TruthRecor
     """Writes `name` and its PNG plots (in `plots_dir`, relative to `directory`).
 
     mosaic / video: links relative to `directory` shown at the top. Returns the .md path."""
-    from fusedmosaic.evaluation.metrics import drift_ratio, frame_errors, mosaic_error
+    from fusedmosaic.evaluation.metrics import (
+        drift_ratio,
+        frame_errors,
+        mosaic_error,
+        truth_in_reference,
+    )
 
     directory = Path(directory)
     plots = directory / plots_dir
@@ -403,8 +408,9 @@ def write_report(directory: str | Path, runs: list[RunRecord], truth: TruthRecor
         lines += [f"Dataset: `{truth.root}`", ""]
     errors = None
     if truth is not None and truth.homographies is not None:
-        errors = [frame_errors(r.homographies, truth.homographies, truth.width, truth.height)
-                  for r in runs]
+        errors = [frame_errors(r.homographies,
+                               truth_in_reference(r.homographies, truth.homographies)[0],
+                               truth.width, truth.height) for r in runs]
     header = ("| method | output | frames placed | e_M (px) | max e_j (px) | drift "
               "| sum of stage times (s) |")
     lines += [header, "|---|---|---|---|---|---|---|"]
