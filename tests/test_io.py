@@ -750,3 +750,18 @@ def test_robot_frames_in_a_gap_of_samples_are_flagged_not_bridged():
     assert gap.any() and not valid[gap].any() and np.isnan(xy[gap]).all()
     assert valid[~gap].all()
     np.testing.assert_allclose(xy[~gap, 0], frames[~gap] * 100.0)
+
+
+def test_a_homography_far_from_the_reference_is_not_singular(tmp_path):
+    """A pCLE frame 40 000 px from the reference (a robot in nm): relative to its largest
+    entry the determinant was 1.6e-14 and evaluate refused the row as singular."""
+    from fusedmosaic.io import read_homographies_csv, write_homographies_csv
+
+    far = np.eye(3)
+    far[0, 2] = 4e4
+    line = np.array([[1.0, 1.0, 0], [0, 0, 0], [0, 0, 1.0]])
+    write_homographies_csv(tmp_path / "ok.csv", [0, 1], np.stack([np.eye(3), far]))
+    assert np.allclose(read_homographies_csv(tmp_path / "ok.csv")[1][1], far)
+    write_homographies_csv(tmp_path / "bad.csv", [0, 1], np.stack([far, line]))
+    with pytest.raises(ValueError, match=r"bad.csv: row 3 \(frame 1\): singular homography"):
+        read_homographies_csv(tmp_path / "bad.csv")
