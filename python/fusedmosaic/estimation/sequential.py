@@ -291,6 +291,11 @@ class SequentialOptions:
     # together, so the homographies do not depend on it, and the window measures pi once the
     # camera translates (fetoscopes view the placenta from 10-50 mm).
     nominal_plane_distance_mm: float = 30.0
+    # The start-up adjustment starts from the tracker's poses, far from its solution when the
+    # tracker's noise is large against the scene (5 mm from the plane: initial cost 1.3e8, 187
+    # iterations to converge; a SYN circle of 0.3 mm hovering: 128-200; a hand-held one at 30
+    # mm: 11). Ceres' default 100 stopped those short, with a warning, at the same e_M.
+    startup_max_iterations: int = 300
     seed: int = 0
 
     @classmethod
@@ -372,7 +377,8 @@ class SequentialMosaicker:
                           ("hold_prior_only_steps", 0), ("hold_unanchored_frames", 0),
                           ("history_steps", 0),
                           ("max_keyframe_blocks", 1), ("tracker_reanchor_after", 1),
-                          ("startup_wait_frames", 1), ("seed", 0)):
+                          ("startup_wait_frames", 1), ("startup_max_iterations", 1),
+                          ("seed", 0)):
             value = getattr(o, name)
             if (not isinstance(value, numbers.Integral) or isinstance(value, bool | np.bool_)
                     or value < low):
@@ -1128,7 +1134,8 @@ class SequentialMosaicker:
         usable = [m for m in self._boot_matches if m.frame_l in tracked and m.frame_m in tracked]
         plane = estimate_plane(usable, table, self.K)
         ba_options = _core.BundleAdjusterOptions(sigma_v_px=o.sigma_v_px, loss=o.loss,
-                                                 num_threads=1)
+                                                 num_threads=1,
+                                                 max_iterations=o.startup_max_iterations)
         ba_options.motion_sigma = self._costs.motion_sigma
         ba_options.emt_sigma = self._costs.emt_sigma
         ba_options.plane_std = o.startup_max_plane_std > 0
@@ -1521,11 +1528,11 @@ def _plane_gate_details(steps: list[tuple[float, bool]]) -> dict:
             "median_relative_std": float(np.median(kept)) if kept else None}
 
 
-def _solver_warnings(bootstrap, unconverged: list[str], steps: int,
-                     max_iterations: int) -> list[str]:
+def _solver_warnings(bootstrap, unconverged: list[str], steps: int, max_iterations: int,
+                     startup_max_iterations: int) -> list[str]:
     """Messages for a start-up adjustment and window steps that did not converge."""
-    limit = _core.BundleAdjusterOptions().max_iterations  # the start-up's (_bootstrap)
-    out = [solver_warning(bootstrap, limit, "the start-up adjustment")] if bootstrap else []
+    out = ([solver_warning(bootstrap, startup_max_iterations, "the start-up adjustment")]
+           if bootstrap else [])
     if unconverged:
         kinds = ", ".join(sorted(set(unconverged)))
         out.append(f"{len(unconverged)} of {steps} window steps did not converge (Ceres "
@@ -1608,7 +1615,8 @@ def run_lba_emt(dataset, *, progress: bool = True,
         std = (mosaicker.bootstrap_summary or {}).get("plane_relative_std")
     details["plane_relative_std"] = None if std is None or np.isnan(std) else float(std)
     details["warnings"] = _solver_warnings(mosaicker.bootstrap_summary, unconverged,
-                                           len(step_times), o.max_iterations)
+                                           len(step_times), o.max_iterations,
+                                           o.startup_max_iterations)
     if dataset.cam_from_world is not None:
         add_tracker_agreement(details, poses, dataset, mosaicker.plane, o.emt_sigma)
     status = [results[k].status for k in range(n)]
