@@ -138,6 +138,7 @@ def replay_live(dataset, method: str, *, options=None, progress: bool = True,
     status = [None] * n
     for k, busy in dropped:
         status[k] = DROPPED.format(busy=int(dataset.frame_ids[busy]))
+    processed = order  # dataset index of each frame given to the mosaicker, in order
     order = sorted(latency)
     details = {"live": {
         "frames_processed": len(latency), "frames_dropped": len(dropped),
@@ -149,6 +150,10 @@ def replay_live(dataset, method: str, *, options=None, progress: bool = True,
         # processed frames whose newest sample was missing or older than max_sample_age_s
         "frames_without_sample": [int(dataset.frame_ids[k]) for k in sorted(stream.no_sample)],
         "processing_time": "measured" if processing_time is None else "given"}}
+    if method == "kalman-robot":  # a chain starting after frame 0 warns as offline
+        details["warnings"] = _origin_warnings(
+            stream.mosaicker.origin_frames, [int(dataset.frame_ids[k]) for k in processed],
+            dataset.robot_file)
     return _streamed_result(method, status, finals, getattr(stream.mosaicker, "plane", None),
                             details, measured, {"live": True, **stream.parameters})
 
@@ -178,6 +183,15 @@ def _streamed_result(method: str, status: list, finals: dict, plane, details: di
                         timings={"processing": processing_s}, parameters=parameters,
                         details=details, blend="linear" if method == "lba-emt" else "average",
                         undistorted=method == "lba-emt")
+
+
+def _origin_warnings(origin_frames: dict, ids: list, robot_name: str) -> list[str]:
+    """kalman-robot's warnings when its chain starts after frame 0 (frame 0 blank, no robot
+    sample at it) or never, as the offline run gives them (translation.origin_warnings); ids:
+    the id of each frame given to the mosaicker, in order."""
+    from fusedmosaic.estimation.translation import origin_warnings
+
+    return origin_warnings(origin_frames, ids, len(ids), "fused", robot_name)
 
 
 def _timing_details(latency_s: list, processing_s: list, ages_s: list) -> dict:
@@ -317,6 +331,8 @@ class LiveSession:
     stopped_by: str = ""
     plane: object = None
     parameters: dict = field(default_factory=dict)  # the mosaicker's, for report.json
+    # kalman-robot: RobotPriorMosaicker.origin_frames (indices into `processed`)
+    origin_frames: dict | None = None
 
 
 def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, options=None,
@@ -418,6 +434,7 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
         with stop_signals_deferred():  # a second Ctrl-C / SIGTERM waits for the last step
             take(mosaicker.flush())
     session.plane = getattr(mosaicker, "plane", None)
+    session.origin_frames = getattr(mosaicker, "origin_frames", None)
     return session
 
 
@@ -484,6 +501,10 @@ def session_result(session: LiveSession, timestamps, dropped: list[int], *,
                           [session.processing[k] for k in session.processed], session.ages),
         "frames_without_sample": [int(k) for k in session.no_sample],
     }}
+    if method == "kalman-robot" and session.origin_frames is not None and session.processed:
+        details["warnings"] = _origin_warnings(session.origin_frames,
+                                               [int(k) for k in session.processed],
+                                               "the robot stream")
     return _streamed_result(method, status, session.finals, session.plane, details,
                             float(sum(session.processing.values())),
                             {"live": "openigtlink", **session.parameters})

@@ -1078,16 +1078,25 @@ def _add_inconsistency(details: dict, results: list, dataset, estimate: str) -> 
 
 
 def _origin_warnings(dataset, mosaicker: RobotPriorMosaicker, estimate: str) -> list[str]:
+    """origin_warnings of a batch run: the mosaicker was given every frame of `dataset`."""
+    return origin_warnings(mosaicker.origin_frames, dataset.frame_ids, len(dataset), estimate,
+                           dataset.robot_file)
+
+
+def origin_warnings(origin_frames: dict, ids, n: int, estimate: str,
+                    robot_name: str) -> list[str]:
     """A run whose X_m (X_r, X_f) starts after frame 0 (RobotPriorMosaicker.origin_frames):
-    every position carries the unknown motion between frame 0 and that frame; or never starts."""
-    ids, n = dataset.frame_ids, len(dataset)
+    every position carries the unknown motion between frame 0 and that frame; or never starts.
+    ids[k]: the id of the k-th frame the mosaicker was given (a streamed run's processed
+    frames); n: the frames of the run; robot_name: where the robot positions come from (the
+    robot file, or a live session's stream)."""
     warnings = []
     wanted = {"image": ("image",), "robot": ("robot",), "fused": ()}[estimate]
     first = int(ids[0])
     for source in wanted:
-        k = mosaicker.origin_frames[source]
+        k = origin_frames[source]
         what = (f"frame {first} is blank (a constant image)" if source == "image" else
-                f"{dataset.robot_file} has no sample at frame {first}")
+                f"{robot_name} has no sample at frame {first}")
         if k is None and n > 1:
             none = "no frame is textured" if source == "image" else "no frame has a robot sample"
             warnings.append(f"{what} and {none}: only frame {first}, the reference, is placed")
@@ -1098,8 +1107,8 @@ def _origin_warnings(dataset, mosaicker: RobotPriorMosaicker, estimate: str) -> 
                 f"every frame is offset by the (unknown) motion between frames {first} and "
                 f"{int(ids[k])}; the mosaic itself is consistent")
     if estimate == "fused":  # needs frame 0 textured or with a robot sample
-        k = mosaicker.origin_frames["fused"]
-        what = (f"frame {first} is blank (a constant image) and {dataset.robot_file} has no "
+        k = origin_frames["fused"]
+        what = (f"frame {first} is blank (a constant image) and {robot_name} has no "
                 f"sample at frame {first}")
         if k is None and n > 1:
             warnings.append(f"{what}, and no frame is textured or has a robot sample: only frame "
