@@ -189,6 +189,14 @@ def test_agreement_figures_follow_the_noise():
         assert (a["warnings"] != []) == (scale > MAX_NOISE_RATIO)
     empty = tracker_agreement(truth, np.full_like(truth, np.nan), np.zeros(200, bool), plane)
     assert empty == {"frames": 0, "warnings": []}
+    # the plane check: a std the images leave unbounded (a start-up's assumed plane), a bound
+    # one below the limit, none computed
+    for std, warned in ((np.inf, "unbounded"), (0.5, "0.5"), (0.1, None), (None, None)):
+        a = tracker_agreement(truth, truth, np.ones(200, bool), plane, plane_relative_std=std,
+                              registered_pairs=2)
+        assert a["warnings"] == [] if warned is None else a["warnings"][0].startswith(
+            "tracking.csv: the images barely observe the plane: its relative standard "
+            f"deviation from 2 registered pairs is {warned} (above 0.25; plane ")
     json.dumps(a)  # report.json material
 
 

@@ -421,3 +421,22 @@ def test_a_session_without_frame0_warns_as_the_offline_run(pcle, tmp_path):
         "frame 0 is blank (a constant image) and the robot stream has no sample at frame 0: the "
         "fused chain starts at frame 1, put at frame 0's position, so every frame is offset by "
         "the (unknown) motion between frames 0 and 1; the mosaic itself is consistent"]
+
+
+def test_a_streamed_run_reports_a_plane_the_images_barely_observe(tmp_path):
+    """lba-emt replayed live through a 60 px field stop (50 hand-held frames, a frame every
+    50 ms of processing, so some dropped): one registered pair, the plane's relative std ~2;
+    the offline run warned of it (consistency.MAX_PLANE_RELATIVE_STD) and the streamed one
+    did not, its details having no plane_relative_std."""
+    from fusedmosaic.estimation.consistency import MAX_PLANE_RELATIVE_STD
+    from fusedmosaic.runner import add_streamed_checks
+
+    dataset = read_dataset(simulate_fetoscopy(tmp_path / "d", FetoscopyOptions(
+        n_frames=50, width=300, height=300, motion="handheld", fov_mask_radius=60)))
+    result = replay_live(dataset, "lba-emt", progress=False, processing_time=lambda k: 0.05)
+    assert result.details["plane_relative_std"] > MAX_PLANE_RELATIVE_STD
+    add_streamed_checks(result, dataset, "lba-emt", None)
+    registered = result.details["pairs"]["registered"]
+    assert any(w.startswith(f"{dataset.root / 'tracking.csv'}: the images barely observe the "
+                            f"plane: its relative standard deviation from {registered} "
+                            "registered pairs is ") for w in result.details["warnings"])

@@ -112,8 +112,10 @@ def tracker_agreement(poses: np.ndarray, tracker_poses: np.ndarray, tracker_vali
             pairs = "" if registered_pairs is None else f" from {registered_pairs} registered pairs"
             out["warnings"].append(
                 f"{source}: the images barely observe the plane: its relative standard "
-                f"deviation{pairs} is {plane_relative_std:.2g} (above "
-                f"{MAX_PLANE_RELATIVE_STD:g}; plane {distance:.3g} mm from the cameras): frames "
+                f"deviation{pairs} is "
+                f"{'unbounded' if np.isinf(plane_relative_std) else f'{plane_relative_std:.2g}'}"
+                f" (above {MAX_PLANE_RELATIVE_STD:g}; plane {distance:.3g} mm from the cameras, "
+                "or assumed there when unbounded): frames "
                 "placed without a registered pair (prior-only) follow the tracker through this "
                 "plane and may be far off, and plane.json is unreliable (too few registrations: "
                 "a small field of view, weak texture, or frames too far apart)")

@@ -150,6 +150,11 @@ def replay_live(dataset, method: str, *, options=None, progress: bool = True,
         # processed frames whose newest sample was missing or older than max_sample_age_s
         "frames_without_sample": [int(dataset.frame_ids[k]) for k in sorted(stream.no_sample)],
         "processing_time": "measured" if processing_time is None else "given"}}
+    if method == "lba-emt":  # for the plane check (consistency.tracker_agreement)
+        from fusedmosaic.estimation.sequential import observed_plane_std
+
+        details["plane_relative_std"] = observed_plane_std(stream.mosaicker)
+        details["pairs"] = {"registered": stream.mosaicker.pair_counts["registered"]}
     if method == "kalman-robot":  # a chain starting after frame 0 warns as offline
         details["warnings"] = _origin_warnings(
             stream.mosaicker.origin_frames, [int(dataset.frame_ids[k]) for k in processed],

@@ -1270,7 +1270,9 @@ class SequentialMosaicker:
             depths = plane_depths(checked_poses, np.asarray(ba.plane()))
             behind = [k for k, d in zip(checked, depths, strict=True)
                       if not (np.isfinite(d) and d > 0)]
-            std = 0.0  # (given, not estimated)
+            std = 0.0  # (given: not refused for its std)
+            # but not measured: the run's plane check says so unless the window measures it
+            summary["plane_relative_std"] = np.inf
         if behind:
             self._startup_refused = (refused_pairs, len(ids))
             self._startup_problem = (
@@ -1528,6 +1530,20 @@ def _plane_gate_details(steps: list[tuple[float, bool]]) -> dict:
             "median_relative_std": float(np.median(kept)) if kept else None}
 
 
+def observed_plane_std(mosaicker: SequentialMosaicker,
+                       plane_steps: list[tuple[float, bool]] | None = None) -> float | None:
+    """Whether the images observe the plane (consistency.MAX_PLANE_RELATIVE_STD): the median
+    relative std of the window steps that measured it (plane_steps: every step's (std,
+    held); default the mosaicker's step_summaries), else the start-up's (taken when the
+    sequence ended or startup_wait_frames was reached); None when none was computed."""
+    if plane_steps is None:
+        plane_steps = [(s.plane_relative_std, s.plane_held) for s in mosaicker.step_summaries]
+    std = _plane_gate_details(plane_steps)["median_relative_std"]
+    if std is None:
+        std = (mosaicker.bootstrap_summary or {}).get("plane_relative_std")
+    return None if std is None or np.isnan(std) else float(std)
+
+
 def _solver_warnings(bootstrap, unconverged: list[str], steps: int, max_iterations: int,
                      startup_max_iterations: int) -> list[str]:
     """Messages for a start-up adjustment and window steps that did not converge."""
@@ -1608,12 +1624,7 @@ def run_lba_emt(dataset, *, progress: bool = True,
         "plane_history": [None if results[k].plane is None else
                           np.asarray(results[k].plane).tolist() for k in range(n)],
     }
-    # whether the images observe the plane: the window steps that measured it, else the
-    # start-up's (taken when the sequence ended or startup_wait_frames was reached)
-    std = details["plane_gate"]["median_relative_std"]
-    if std is None:
-        std = (mosaicker.bootstrap_summary or {}).get("plane_relative_std")
-    details["plane_relative_std"] = None if std is None or np.isnan(std) else float(std)
+    details["plane_relative_std"] = observed_plane_std(mosaicker, plane_steps)
     details["warnings"] = _solver_warnings(mosaicker.bootstrap_summary, unconverged,
                                            len(step_times), o.max_iterations,
                                            o.startup_max_iterations)
