@@ -210,3 +210,25 @@ def test_a_pose_through_a_registered_pair_and_the_plane_is_exact():
     # a degenerate homography gives no pose
     for known_is_l in (True, False):
         assert pose_through_pair(np.zeros((3, 3)), np.zeros(6), known_is_l, plane, K) is None
+
+
+def test_homography_parallax_tells_rotation_from_translation():
+    """estimation.plane.homography_parallax: 0 for pairs of a camera that only rotated, about
+    baseline / depth for one that translated (the start-up's no-parallax test)."""
+    from types import SimpleNamespace
+
+    from fusedmosaic.estimation.plane import homography_parallax
+
+    K = np.array([[300.0, 0, 150], [0, 300.0, 150], [0, 0, 1]])
+    plane = np.array([0.0, 0.0, -1 / 30])  # 30 mm in front of the world's camera
+
+    def pair(pose):  # frame l = the world's camera, frame m at `pose`
+        R = _core.rotation_from_angle_axis(pose[:3])
+        H_m = K @ (R - np.outer(pose[3:], plane)) @ np.linalg.inv(K)
+        return SimpleNamespace(H_lm=np.linalg.inv(H_m))
+
+    turned = [pair(np.r_[0.0, 0.0, a, 0.0, 0.0, 0.0]) for a in (0.1, 0.5, 1.0)]
+    moved = [pair(np.r_[0.0, 0.0, 0.1, t, 0.0, 0.0]) for t in (1.5, 3.0, 6.0)]  # mm
+    assert homography_parallax(turned, K) < 1e-9
+    assert homography_parallax(moved, K) == pytest.approx(6.0 / 30, rel=0.1)
+    assert np.isnan(homography_parallax([], K))

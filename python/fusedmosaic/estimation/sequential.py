@@ -90,10 +90,12 @@ from fusedmosaic.estimation.motion import (
     triple_departures,
 )
 from fusedmosaic.estimation.plane import (
+    MAX_NOMINAL_PARALLAX,
     MIN_BASELINE_RATIO,
     baseline_ratio,
     camera_baseline_mm,
     estimate_plane,
+    homography_parallax,
     plane_depths,
     plane_facing,
 )
@@ -1257,13 +1259,17 @@ class SequentialMosaicker:
                   if not (np.isfinite(d) and d > 0)]
         std = summary["plane_relative_std"]
         limit = o.startup_max_plane_std
+        # (the spread of every tracked start-up camera: those of a few pairs may be neighbours
+        # of a camera that moved; 1 pair, 0.009 of the depth, the cameras' 0.6)
+        spread = np.array([ba.pose(k) for k in ids if k in tracked]).reshape(-1, 6)
         if ((behind or (limit > 0 and not std <= limit))
                 and (final_step or len(ids) >= o.startup_wait_frames)
-                and baseline_ratio(checked_poses, np.asarray(ba.plane())) < MIN_BASELINE_RATIO):
+                and baseline_ratio(spread, np.asarray(ba.plane())) < MIN_BASELINE_RATIO
+                and not homography_parallax(usable, self.K) > MAX_NOMINAL_PARALLAX):
             # No parallax: nominal_plane_distance_mm. Before, 80 frames held still were handed
             # out unplaced and the sequence refused (ba-emt: e_M 0.027 px), 50 gave a plane
             # 3.7e4 mm away.
-            ba.set_plane(plane_facing(checked_poses, o.nominal_plane_distance_mm))
+            ba.set_plane(plane_facing(spread, o.nominal_plane_distance_mm))
             ba.set_constant_plane(True)
             summary = ba.solve().as_dict()
             checked_poses = np.array([ba.pose(k) for k in checked]).reshape(-1, 6)
@@ -1287,12 +1293,18 @@ class SequentialMosaicker:
         # Nor is a plane the start-up cannot tell (the same 60 frames, 3 pairs after 20 frames:
         # relative std 1.8, depth 4 mm for 30, frames ~1000 px off), unless the sequence ends
         # or the start-up holds startup_wait_frames frames: then the best it has is taken.
-        if (limit > 0 and not final_step and len(ids) < o.startup_wait_frames
-                and not std <= limit):
+        # An unbounded one is no plane at all, even then (2 pairs behind a 55 px field stop,
+        # streamed: pi 6e-5 mm from the world's origin, frames' homographies singular, the
+        # run crashed): refused as a plane behind the cameras is.
+        if limit > 0 and not std <= limit and (
+                np.isinf(std) or (not final_step and len(ids) < o.startup_wait_frames)):
             self._startup_refused = (refused_pairs, len(ids))
             self._startup_problem = (
                 f"the plane the start-up estimated from {len(usable)} registered pairs has a "
-                f"relative standard deviation of {std:.2g} (startup_max_plane_std {limit:g})")
+                + ("relative standard deviation that the images leave unbounded (too few "
+                   "pairs, or pairs that do not see it)" if np.isinf(std) else
+                   f"relative standard deviation of {std:.2g}")
+                + f" (startup_max_plane_std {limit:g})")
             return False
         self.bootstrap_summary = summary
         self._mark_motion_gated(ids, summary["motion_released_ids"])
@@ -1437,10 +1449,22 @@ class SequentialMosaicker:
         for p, pose in zip(self._pending[:cut], poses[:cut], strict=True):
             k = p["id"]
             pose = np.asarray(pose)
-            if self._reference_pose is None:
-                self._reference_pose = pose
             self._poses[k] = (pose, p["timestamp"])
-            G = self._to_reference(pose)
+            reference = pose if self._reference_pose is None else self._reference_pose
+            try:
+                G = _core.transfer_homography(reference, pose, self._plane, self.K)
+            except ValueError:
+                # the plane passes through the camera (or the reference's): a frame without
+                # registered pairs the start-up's plane checks did not see, placed from its
+                # priors alone (a 55 px field stop, live: crashed the run, nothing written)
+                self._finalized.append(FrameResult(
+                    k, p["timestamp"], np.full((3, 3), np.nan),
+                    poses_from_aligned(pose, self._world),
+                    "unplaced: the estimated plane passes through its camera centre", True,
+                    k in gated or p["dropped"], p["timings"], self.plane,
+                    tracker_dropped=p["dropped"]))
+                continue
+            self._reference_pose = reference
             centroid = self._centroid(G)
             forget += self.keyframes.add(k, centroid)
             dead_reckoned = anchored is not None and k not in anchored
