@@ -238,14 +238,34 @@ def flag_reference_frame(result: methods.MethodResult, dataset) -> int:
     """The id of the frame whose pixel grid the result's homographies map to (design.md: frame
     0's), with a warning in its details when that is not frame 0: frame 0 unplaced, the first
     placed frame is the reference (lba-emt's start-up handing frames out before its tracker
-    came on, a pCLE chain starting at its first usable frame)."""
+    came on, a pCLE chain starting at its first usable frame); frame 0 dead-reckoned (no
+    anchor: its pose extrapolated by C_p alone), the homographies are re-expressed in the
+    first anchored frame's grid (10 black frames at the start of a tracker gap: every frame
+    150-224 px off in frame 0's grid, 0.5 px in frame 10's)."""
     from fusedmosaic.evaluation.metrics import reference_frame
 
-    r = reference_frame(result.homographies)
     ids = dataset.frame_ids
+    G = result.homographies
+    status = result.status
+    if status and status[0] == "dead-reckoned":
+        anchored = [k for k, s in enumerate(status) if s in ("placed", "prior-only")
+                    and np.isfinite(G[k]).all()]
+        if anchored:
+            r = anchored[0]
+            with np.errstate(invalid="ignore"):
+                G = np.linalg.inv(G[r]) @ G
+                result.homographies = G / G[:, 2:3, 2:3]
+            result.details["warnings"] = [
+                f"frame {ids[0]} has no anchor ({status[0]}: placed by the motion prior "
+                f"alone): homographies.csv maps the frames to frame {ids[r]}'s pixel grid, the "
+                f"first frame placed with one, not frame {ids[0]}'s (report.json "
+                "reference_frame; evaluate scores in that grid)",
+                *result.details.get("warnings", [])]
+            return int(ids[r])
+    r = reference_frame(G)
     if r:
         result.details["warnings"] = [
-            f"frame {ids[0]} was not placed ({result.status[0]}): homographies.csv maps the "
+            f"frame {ids[0]} was not placed ({status[0]}): homographies.csv maps the "
             f"frames to frame {ids[r]}'s pixel grid, the first placed frame, not frame "
             f"{ids[0]}'s (report.json reference_frame; evaluate scores in that grid)",
             *result.details.get("warnings", [])]

@@ -83,15 +83,14 @@ def drift_ratio(errors: np.ndarray) -> float:
 
 def reference_frame(G: np.ndarray) -> int:
     """Index of the frame whose pixel grid (N, 3, 3) frame -> reference homographies map to:
-    0, or, when frame 0 is unplaced, the first placed frame if it is written as the identity
-    (lba-emt's start-up handing out frames before its tracker came on, a pCLE chain starting at
-    its first usable frame); else 0."""
+    the first frame written as the identity (0 normally; a later one when frame 0 is unplaced,
+    lba-emt's start-up handing out frames before its tracker came on or a pCLE chain starting
+    at its first usable frame, or has no anchor, runner.flag_reference_frame); 0 if none is."""
     G = np.asarray(G, np.float64)
-    placed = np.flatnonzero(np.isfinite(G).all(axis=(1, 2)))
-    if len(placed) == 0 or placed[0] == 0:
-        return 0
-    r = int(placed[0])
-    return r if np.allclose(G[r] / G[r][2, 2], np.eye(3), atol=1e-9) else 0
+    for r in np.flatnonzero(np.isfinite(G).all(axis=(1, 2))):
+        if G[r][2, 2] != 0 and np.allclose(G[r] / G[r][2, 2], np.eye(3), atol=1e-9):
+            return int(r)
+    return 0
 
 
 def rereferenced(G: np.ndarray, r: int) -> np.ndarray:
@@ -318,6 +317,15 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
     without_truth = placed & ~scored
     if without_truth.any():  # placed, but ground_truth.csv has no homography for them
         result["placed_without_truth"] = [int(k) for k in dataset.frame_ids[without_truth]]
+    statuses = report.get("frame_status") if report is not None else None
+    if isinstance(statuses, list) and len(statuses) == len(errors):
+        # frames placed with no anchor (lba-emt, ba-emt): counted as placed, and apart
+        dead = np.array([s == "dead-reckoned" for s in statuses])
+        if dead.any():
+            rest = scored & ~dead
+            result["dead_reckoned"] = [int(k) for k in truth_ids[dead]]
+            result["e_M_px_without_dead_reckoned"] = (mosaic_error(errors[rest]) if rest.any()
+                                                      else None)
     if report is not None:
         warning = dataset_mismatch(report, dataset, report_path)
         if warning:
