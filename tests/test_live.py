@@ -454,3 +454,15 @@ def test_a_streamed_startup_whose_plane_is_unbounded_is_refused(tmp_path):
                        r"pairs has a relative standard deviation that the images leave "
                        r"unbounded"):
         replay_live(dataset, "lba-emt", progress=False, processing_time=lambda k: 0.03)
+
+
+def test_a_streamed_run_reports_a_startup_that_did_not_converge(tmp_path):
+    """The solver warnings of the offline run (a start-up stopped at its iteration limit, here
+    a scope 5 mm from the plane held to 100 iterations) were missing from streamed runs."""
+    dataset = read_dataset(simulate_fetoscopy(tmp_path / "d", FetoscopyOptions(
+        n_frames=40, width=300, height=300, motion="handheld", distance_mm=5.0,
+        radius_mm=3.0)))
+    result = replay_live(dataset, "lba-emt", progress=False, processing_time=lambda k: 0.0,
+                         options=SequentialOptions(startup_max_iterations=100))
+    assert any(w.startswith("the start-up adjustment stopped at its iteration limit (100)")
+               for w in result.details["warnings"]), result.details.get("warnings")

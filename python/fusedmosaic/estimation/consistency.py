@@ -118,7 +118,9 @@ def tracker_agreement(poses: np.ndarray, tracker_poses: np.ndarray, tracker_vali
                 "or assumed there when unbounded): frames "
                 "placed without a registered pair (prior-only) follow the tracker through this "
                 "plane and may be far off, and plane.json is unreliable (too few registrations: "
-                "a small field of view, weak texture, or frames too far apart)")
+                "a small field of view, weak texture, or frames too far apart; unbounded, also a "
+                "camera that barely translated while lba-emt's start-up watched, its plane then "
+                "assumed nominal_plane_distance_mm away)")
         elif not low <= abs(distance) <= high:
             unit = " (metres?)" if abs(distance) < low else " (micrometres?)"
             out["warnings"].append(

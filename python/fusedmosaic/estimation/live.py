@@ -150,11 +150,8 @@ def replay_live(dataset, method: str, *, options=None, progress: bool = True,
         # processed frames whose newest sample was missing or older than max_sample_age_s
         "frames_without_sample": [int(dataset.frame_ids[k]) for k in sorted(stream.no_sample)],
         "processing_time": "measured" if processing_time is None else "given"}}
-    if method == "lba-emt":  # for the plane check (consistency.tracker_agreement)
-        from fusedmosaic.estimation.sequential import observed_plane_std
-
-        details["plane_relative_std"] = observed_plane_std(stream.mosaicker)
-        details["pairs"] = {"registered": stream.mosaicker.pair_counts["registered"]}
+    if method == "lba-emt":
+        details.update(_lba_checks(stream.mosaicker))
     if method == "kalman-robot":  # a chain starting after frame 0 warns as offline
         details["warnings"] = _origin_warnings(
             stream.mosaicker.origin_frames, [int(dataset.frame_ids[k]) for k in processed],
@@ -188,6 +185,17 @@ def _streamed_result(method: str, status: list, finals: dict, plane, details: di
                         timings={"processing": processing_s}, parameters=parameters,
                         details=details, blend="linear" if method == "lba-emt" else "average",
                         undistorted=method == "lba-emt")
+
+
+def _lba_checks(mosaicker) -> dict:
+    """report.json entries of a streamed lba-emt run that the offline one has: the plane's
+    relative std and the registered pairs (for consistency.tracker_agreement's plane check),
+    and the start-up's and window steps' solver warnings."""
+    from fusedmosaic.estimation.sequential import live_solver_warnings, observed_plane_std
+
+    return {"plane_relative_std": observed_plane_std(mosaicker),
+            "pairs": {"registered": mosaicker.pair_counts["registered"]},
+            "warnings": live_solver_warnings(mosaicker)}
 
 
 def _origin_warnings(origin_frames: dict, ids: list, robot_name: str) -> list[str]:
@@ -338,6 +346,8 @@ class LiveSession:
     parameters: dict = field(default_factory=dict)  # the mosaicker's, for report.json
     # kalman-robot: RobotPriorMosaicker.origin_frames (indices into `processed`)
     origin_frames: dict | None = None
+    # lba-emt: report.json entries of the mosaicker's (plane_relative_std, pairs, warnings)
+    checks: dict = field(default_factory=dict)
 
 
 def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, options=None,
@@ -440,6 +450,8 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
             take(mosaicker.flush())
     session.plane = getattr(mosaicker, "plane", None)
     session.origin_frames = getattr(mosaicker, "origin_frames", None)
+    if method == "lba-emt":
+        session.checks = _lba_checks(mosaicker)
     return session
 
 
@@ -506,6 +518,7 @@ def session_result(session: LiveSession, timestamps, dropped: list[int], *,
                           [session.processing[k] for k in session.processed], session.ages),
         "frames_without_sample": [int(k) for k in session.no_sample],
     }}
+    details.update(session.checks)
     if method == "kalman-robot" and session.origin_frames is not None and session.processed:
         details["warnings"] = _origin_warnings(session.origin_frames,
                                                [int(k) for k in session.processed],

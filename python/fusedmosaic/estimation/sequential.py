@@ -1568,6 +1568,16 @@ def observed_plane_std(mosaicker: SequentialMosaicker,
     return None if std is None or np.isnan(std) else float(std)
 
 
+def live_solver_warnings(mosaicker: SequentialMosaicker) -> list[str]:
+    """_solver_warnings of a streamed run, from the mosaicker's start-up summary and its kept
+    step summaries (the last history_steps)."""
+    o = mosaicker.options
+    steps = mosaicker.step_summaries
+    unconverged = [s.termination for s in steps if solver_warning(s, o.max_iterations)]
+    return _solver_warnings(mosaicker.bootstrap_summary, unconverged, len(steps),
+                            o.max_iterations, o.startup_max_iterations)
+
+
 def _solver_warnings(bootstrap, unconverged: list[str], steps: int, max_iterations: int,
                      startup_max_iterations: int) -> list[str]:
     """Messages for a start-up adjustment and window steps that did not converge."""
