@@ -331,3 +331,15 @@ def test_tracker_noise_flags(work, capsys):
     assert main(["run", str(data), "--method", "pairwise", "--out", str(out),
                  "--tracker-rot-sigma", "2"]) == 2
     assert "apply to ba-emt and lba-emt, not pairwise" in capsys.readouterr().err
+
+
+def test_no_tracker_agreement_after_a_failed_adjustment(work):
+    """ba-emt behind a 55 px field stop (60 hand-held frames, seed 1): Ceres fails (invalid
+    steps) and leaves the tracker's poses, whose agreement with the tracker, 0.0 on every
+    axis, read as perfect (helper fuzz 32). It is skipped, the failure warned of."""
+    root = simulate_fetoscopy(work / "fov55", FetoscopyOptions(
+        n_frames=60, width=280, height=280, motion="handheld", fov_mask_radius=55, seed=1))
+    r = run_ba_emt(read_dataset(root), progress=False)
+    assert r.details["solver"]["termination"] == "FAILURE"
+    assert r.details["tracker_agreement"] == {"skipped": "the adjustment failed"}
+    assert r.details["warnings"][0].startswith("the adjustment failed: Ceres FAILURE")

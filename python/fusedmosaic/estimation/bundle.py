@@ -427,7 +427,11 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
         details["motion_released"] = sorted({*breaks, *summary.motion_released_ids})
         details["tracker_glitches"] = [int(k) for k in glitches]
     details["warnings"] = [w for w in [solver_warning(summary, o.max_iterations)] if w]
-    if use_emt:
+    if use_emt and summary.termination == "FAILURE":
+        # the poses are where the failed solve left them (the tracker's, at first): their
+        # agreement, 0.0 on every axis, read as perfect (e_M 117 px; helper fuzz 32)
+        details["tracker_agreement"] = {"skipped": "the adjustment failed"}
+    elif use_emt:
         add_tracker_agreement(details, poses, dataset, plane, o.emt_sigma)
     status = _status(n, placed, ok, "not connected to frame 0 by registered pairs")
     if use_emt:  # as lba-emt's: placed by C_p alone, however far from their anchors
