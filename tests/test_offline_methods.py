@@ -150,6 +150,21 @@ def test_a_frame_0_without_an_anchor_is_not_the_reference(work):
         assert r["e_M_px_without_dead_reckoned"] < 1.5 < r["e_M_px"]
 
 
+def test_a_reference_frame_placed_by_the_tracker_alone_is_warned_of(work):
+    """A black frame 0 with a tracker sample stays the reference (documented), every frame
+    carrying its tracker-placed offset: now said."""
+    data = simulate_fetoscopy(work / "black0", FetoscopyOptions(
+        n_frames=20, width=220, height=220, motion="handheld", black_frames=[0]))
+    for method in ("ba-emt", "lba-emt"):
+        r = run(data, method, work)
+        assert r["report"]["frame_status"][0] == "prior-only"
+        assert r["report"]["reference_frame"] == 0
+        assert r["report"]["warnings"][0] == (
+            "frame 0, the reference of homographies.csv, has no registered pair (prior-only): "
+            "its pose comes from the tracker and the motion prior alone, so every homography "
+            "carries its error (the mosaic itself is consistent)")
+
+
 def test_black_frames(work):
     data = simulate_fetoscopy(work / "black", FetoscopyOptions(
         n_frames=62, black_frames=list(PAPER_BLACK_FRAMES)))
