@@ -192,7 +192,8 @@ def test_a_robot_at_half_the_frame_rate_is_measured_and_weighed(tmp_path_factory
     """Each sample's displacement spans 2 frames and feeds the sigma_r0 estimate
     (robot_sigma_max_span). Before, only one-frame spans did: sigma_r0 stayed inf for the whole
     scan, the robot had no weight and X_f was the drifting image chain (seed 1, with stick-slip:
-    38.6 px mean vs 10.4 with a sample every frame; now 7.0). Tolerance: within 1.5x of the same
+    38.6 px mean vs 10.4 with a sample every frame; then 7.0, 5.6 with image gating, 7.2 with a
+    sample every frame). Tolerance: within 1.5x of the same
     scan with a sample every frame, and under a third of the image chain's error."""
     pcle = _scan(tmp_path_factory, seed=1)
     _, every_frame, _ = _fused_errors(pcle, 1)
@@ -207,12 +208,42 @@ def test_the_robot_places_untrusted_frames_before_its_noise_is_measured(tmp_path
     sigma_r0 is measured (3 trusted samples). A sigma_r0 of inf there let registrations of
     confidence c_img ~0.1 place the frames, and the robot anchor kept their ~170 px error for
     good (X_f 138 px mean, worse than X_m's 127); now such a frame uses KalmanOptions.sigma_robot0
-    (18 px mean: at c_img 0.11 the paper's weighing leaves ~11 % of the correction out).
+    (18 px mean: at c_img 0.11 the paper's weighing leaves ~11 % of the correction out; 7.9
+    since such registrations, far from the robot, are gated).
     Tolerance: under a third of the image chain's error."""
     pcle = _scan(tmp_path_factory, seed=2, stick_slip=False)
     out, err, image = _fused_errors(pcle, 3)
     assert any(r.c_img < 0.5 and np.isfinite(r.displacement_robot).all() for r in out[5:15])
     assert err.mean() < image.mean() / 3, (err.mean(), image.mean())
+
+
+@pytest.mark.parametrize("stick_slip", [False, True])
+def test_an_untrusted_registration_far_from_the_robot_is_left_out(tmp_path_factory, stick_slip):
+    """A robot sampled at a third of the frame rate, interpolated to the frames (as `run`
+    reads robot.csv): sigma_r0 measures its interpolation error, ~1.6 px, not the ~0.1 px of a
+    robot sampled every frame. During the contact loss the registrations lock on the fibre
+    pattern (0 px while the robot says ~40 px, c_img 0.11) and during stick-slip NCC sees the
+    stuck tissue; the Eq. 9-10 weighing (sigma_img^2 = 1 / 0.11 against sigma_rob^2 = 1.6^2)
+    let each such registration pull the frame ~7 px off the robot, for good in the chain.
+    Image gating leaves them out. 256x224 px, 60 frames, seed 0: X_f 7.6 px mean without
+    stick-slip, 40.3 with (robot alone 2.2 and 8.8); now 2.6 and 12.5. Tolerance: within 2x
+    the robot alone."""
+    root = simulate_pcle(tmp_path_factory.mktemp("pcle") / "third", PcleOptions(
+        width=256, height=224, n_frames=60, robot_rate_hz=10.0 / 3.0, stick_slip=stick_slip))
+    pcle = read_dataset(root)
+    m = RobotPriorMosaicker(pcle.camera)
+    out = [m.add_frame(pcle.frames[k], pcle.timestamps[k], pcle.robot_xy_um[k])
+           for k in range(len(pcle))]
+    err = np.hypot(*(np.stack([r.position for r in out]) - _truth(pcle)).T)
+    robot = np.hypot(*(np.stack([r.position_robot for r in out]) - _truth(pcle)).T)
+    assert err.mean() < 2.0 * robot.mean(), (err.mean(), robot.mean())
+    # registered consistently, yet placed by the robot alone
+    assert any(r.ncc_consistent and r.status == "prior-only" and r.c_img == 0.0 for r in out)
+
+
+def test_bad_image_gate_is_refused():
+    with pytest.raises(ValueError, match="image_gate_sigmas must be a finite number > 0"):
+        translation.RobotPriorOptions(image_gate_sigmas=0.0)
 
 
 def test_an_unjudged_registration_does_not_veto_the_robot(tmp_path_factory):
