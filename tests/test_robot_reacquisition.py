@@ -277,6 +277,29 @@ def test_a_glitch_after_the_first_agreement_is_still_gated_in_the_warm_up(pcle):
     assert _errors(out, pcle).max() < 5.0
 
 
+def test_a_glitch_at_frame_1_is_gated_when_the_frames_overlap(pcle):
+    """Nothing agreed with the robot before frame 1, so its registration was "unjudged" and the
+    robot placed the frame at a +5 mm glitch (5000 px off). Frames 0 and 1 overlap (c_match
+    ~0.8, a fibre-pattern lock scores ~0.5): the registration is believed, the robot gated
+    (warmup_overlap_c_match). 256x224 px, 120 frames, the glitch interpolated to 3425 px at
+    frame 1: e_M 39.4 -> 10.5 px (10.5 without the glitch)."""
+    robot = pcle.robot_xy_um.copy()
+    robot[1, 0] += GLITCH_UM
+    out = _run(pcle, robot)
+    assert _gated(out) == [1]
+    assert _errors(out, pcle).max() < 5.0
+    # never: the robot places the frame, as before
+    never = replace(translation.RobotPriorOptions(), warmup_overlap_c_match=2.0)
+    m = RobotPriorMosaicker(pcle.camera, never)
+    first = _feed(m, pcle, range(3), robot)
+    assert first[1].status == "prior-only" and not first[1].robot_gated
+
+
+def test_bad_warmup_overlap_is_refused():
+    with pytest.raises(ValueError, match="warmup_overlap_c_match must be a number >= 0"):
+        translation.RobotPriorOptions(warmup_overlap_c_match=float("nan"))
+
+
 def test_bad_sigma_span_is_refused():
     with pytest.raises(ValueError, match="robot_sigma_max_span must be an integer >= 1, got 0"):
         translation.RobotPriorOptions(robot_sigma_max_span=0)

@@ -334,18 +334,19 @@ def test_a_robot_in_the_wrong_units_does_not_take_over_the_run(small, tmp_path):
     "unjudged" and the robot places the frame; an unjudged frame adds no image step to the
     filter's history, so the warm-up never ended and the robot placed every frame, with no
     warning (robot_agreement found no confident step; sim60 x10: 59 of 60 frames prior-only,
-    e_M 6467 px). Now after robot_gate_rebase (3) unjudged registrations in a row they are
-    believed: the robot is gated, the images place the frames and the units warning is back."""
+    e_M 6467 px). Then after robot_gate_rebase (3) unjudged registrations in a row they were
+    believed (frames 1-3 placed by the robot); now a registration whose frames visibly overlap
+    (c_match >= warmup_overlap_c_match) is believed from frame 1: the robot is gated, the
+    images place every frame and the units warning is there."""
     result = run_kalman_robot(_robot_scaled(small, tmp_path, 10.0), progress=False)
-    assert result.status[1:4] == ["prior-only"] * 3, result.status
-    assert result.status[4:] == ["placed"] * (len(result.status) - 4), result.status
-    assert result.details["robot_gated"][:3] == [4, 5, 6]  # then re-anchored, gated again
+    assert result.status[1:] == ["placed"] * (len(result.status) - 1), result.status
+    assert result.details["robot_gated"][:3] == [1, 2, 3]  # then re-anchored, gated again
     (warning,) = [w for w in result.details["warnings"] if "robot's steps" in w]
     assert "robot.csv: the robot's steps are 10 x the image registrations'" in warning, warning
-    # the images' steps from frame 3 on (frames 1-3 were placed by the robot)
+    # the images' steps from frame 0 on
     position = result.homographies[:, :2, 2]
     truth = read_dataset(small).ground_truth[:, :2, 2]
-    np.testing.assert_allclose(position[3:] - position[3], truth[3:] - truth[3], atol=0.5)
+    np.testing.assert_allclose(position - position[0], truth - truth[0], atol=0.5)
 
 
 def test_kalman_robot_without_frame0_image_and_robot_starts_at_frame1_and_warns(small,

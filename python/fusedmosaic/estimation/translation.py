@@ -74,7 +74,9 @@ larger jump stays a glitch however long the dropout), and a re-acquisition spann
 in its warm-up (``c_img`` is the initial ``c_img0``, no judgement) and no registration has
 agreed with the robot yet, a registration disagreeing beyond the bounds does not veto the
 robot: the robot places the frame, as for an inconsistent registration (a fast scan whose
-frames do not overlap, its registrations locking on the fibre pattern). Such a frame adds no
+frames do not overlap, its registrations locking on the fibre pattern), unless the aligned
+overlap's c_match reaches ``warmup_overlap_c_match`` (the frames visibly overlap: the robot is
+gated, e.g. a glitch at frame 1). Such a frame adds no
 image step to the filter's history, so the warm-up would never end: after ``robot_gate_rebase``
 such registrations in a row (a robot disagreeing with every frame, e.g. in the wrong units),
 they are believed over the robot, as ``robot_gate_rebase`` gated frames in a row make the robot
@@ -257,6 +259,16 @@ class RobotPriorOptions:
     # scan, 120 frames: X_f 41.5 -> 14.7 px (robot alone 11.5); without stick-slip 15.5 -> 2.6
     # (1.45).
     image_gate_sigmas: float | None = 10.0
+    # In the warm-up, before any registration agreed with the robot, a registration disagreeing
+    # with the robot beyond the gate is believed (the robot gated) when its c_match (SSIM of
+    # the aligned overlap) is at least this: the two frames then visibly overlap, it is no
+    # lock on the fibre pattern (module docstring, "Robot gating"). Measured: the consistent
+    # registrations of fast scans whose frames do not overlap (600 µm/frame at 512x448 px,
+    # seeds 3, 5, 8) have c_match <= 0.50 (fibre-pattern locks at 0 px: 0.48-0.50); frames
+    # 1-3 of the simulator's scans 0.77-0.87 (circle seed 0, spiral seed 1, 256x224 seed 0).
+    # Before, a +5 mm robot glitch at frame 1 placed frame 1 at the glitch (256x224, 120
+    # frames: e_M 39.4 px, 10.5 without the glitch). > 1: never (the robot places the frame).
+    warmup_overlap_c_match: float = 0.65
 
     def __post_init__(self) -> None:
         if not isinstance(self.kalman, KalmanOptions):
@@ -349,6 +361,11 @@ class RobotPriorOptions:
             raise ValueError(
                 "RobotPriorOptions.image_gate_sigmas must be a finite number > 0 or None, got "
                 f"{self.image_gate_sigmas}"
+            )
+        if not self.warmup_overlap_c_match >= 0.0:  # (NaN too)
+            raise ValueError(
+                "RobotPriorOptions.warmup_overlap_c_match must be a number >= 0, got "
+                f"{self.warmup_overlap_c_match}"
             )
         if self.robot_gate_rebase < 1:
             raise ValueError(
@@ -979,8 +996,10 @@ class RobotPriorMosaicker:
         frames do not overlap keeps the filter in warm-up (its registrations fail or lock on the
         fibre pattern at ~0 px); such locks vetoed the correct robot and placed 4 of 30 frames
         550-670 px off (seed 8, 600 µm/frame: 84.6 px mean, the robot alone 4.2). The frame is
-        then placed by the robot, as for an inconsistent registration. (So a robot glitch at
-        frame 1, before any agreement, places that frame at the glitch; the next is back.)
+        then placed by the robot, as for an inconsistent registration; unless its c_match is
+        at least warmup_overlap_c_match: the frames visibly overlap (a fibre-pattern lock scores
+        ~0.5), so the registration is believed and the robot gated (a +5 mm robot glitch at
+        frame 1 placed that frame at the glitch).
         Only up to robot_gate_rebase such frames in a row (_streak_judged): an unjudged frame
         adds no image step to the filter's history, so a robot that disagrees on every frame
         (in the wrong units: 10 x the image steps) kept the filter in warm-up for good and
@@ -1008,6 +1027,8 @@ class RobotPriorMosaicker:
             return None
         trial = copy.deepcopy(kf).update(dx_image, _NAN2, c_match)
         if trial.warmup and not self._innovations and not self._streak_judged():
+            if c_match >= self.options.warmup_overlap_c_match:
+                return "glitch"  # the frames overlap: the registration is no lock
             return "unjudged"
         return "glitch" if trial.c_img >= self.options.robot_sigma_c_img else None
 
