@@ -87,8 +87,10 @@ def _drift_registrations(monkeypatch, m, frames):
     monkeypatch.setattr(translation, "aligned_overlap_ssim", true_ssim)
 
 
-def _errors(out, pcle):
-    positions = np.stack([out[k].position for k in sorted(out)])
+def _errors(out, pcle, what="position"):
+    """Per-frame distance (px) of FrameResult.<what> (position, position_robot, ...) from the
+    truth, for `out` {frame: result} over every frame."""
+    positions = np.stack([getattr(out[k], what) for k in sorted(out)])
     return np.linalg.norm(positions - _truth(pcle), axis=1)
 
 
@@ -231,14 +233,12 @@ def test_an_untrusted_registration_far_from_the_robot_is_left_out(tmp_path_facto
     root = simulate_pcle(tmp_path_factory.mktemp("pcle") / "third", PcleOptions(
         width=256, height=224, n_frames=60, robot_rate_hz=10.0 / 3.0, stick_slip=stick_slip))
     pcle = read_dataset(root)
-    m = RobotPriorMosaicker(pcle.camera)
-    out = [m.add_frame(pcle.frames[k], pcle.timestamps[k], pcle.robot_xy_um[k])
-           for k in range(len(pcle))]
-    err = np.hypot(*(np.stack([r.position for r in out]) - _truth(pcle)).T)
-    robot = np.hypot(*(np.stack([r.position_robot for r in out]) - _truth(pcle)).T)
+    out = _run(pcle, pcle.robot_xy_um)
+    err, robot = _errors(out, pcle), _errors(out, pcle, "position_robot")
     assert err.mean() < 2.0 * robot.mean(), (err.mean(), robot.mean())
     # registered consistently, yet placed by the robot alone
-    assert any(r.ncc_consistent and r.status == "prior-only" and r.c_img == 0.0 for r in out)
+    assert any(r.ncc_consistent and r.status == "prior-only" and r.c_img == 0.0
+               for r in out.values())
 
 
 def test_bad_image_gate_is_refused():
@@ -255,15 +255,12 @@ def test_an_unjudged_registration_does_not_veto_the_robot(tmp_path_factory):
     root = simulate_pcle(tmp_path_factory.mktemp("pcle") / "fast", PcleOptions(
         n_frames=30, speed_um_per_frame=600.0, radius_um=3000.0, seed=8))
     pcle = read_dataset(root)
-    m = RobotPriorMosaicker(pcle.camera)
-    out = [m.add_frame(pcle.frames[k], pcle.timestamps[k], pcle.robot_xy_um[k])
-           for k in range(len(pcle))]
-    err = np.hypot(*(np.stack([r.position for r in out]) - _truth(pcle)).T)
-    robot = np.hypot(*(np.stack([r.position_robot for r in out]) - _truth(pcle)).T)
-    assert not any(r.robot_gated for r in out)
+    out = _run(pcle, pcle.robot_xy_um)
+    err, robot = _errors(out, pcle), _errors(out, pcle, "position_robot")
+    assert not _gated(out)
     assert err.max() < robot.max() + 1.0, (err.round(0), robot.round(0))
     # registered (an NCC score) but placed by the robot alone
-    unjudged = [r for r in out if np.isfinite(r.ncc_score) and r.status == "prior-only"]
+    unjudged = [r for r in out.values() if np.isfinite(r.ncc_score) and r.status == "prior-only"]
     assert unjudged and all(r.c_img == 0.0 and r.c_rob == 1.0 for r in unjudged)
 
 
