@@ -226,12 +226,16 @@ def flag_unreadable_frames(result: methods.MethodResult, dataset) -> dict[str, s
     placed = sum(not result.status[k].startswith("unplaced") for k in found)
     listed = ", ".join(str(int(ids[k])) for k in list(found)[:10])
     more = f", ... ({len(found) - 10} more)" if len(found) > 10 else ""
-    result.details["warnings"] = [
+    _warn_first(result, (
         f"{len(found)} of {len(ids)} frames could not be read (frames {listed}{more}; first: "
         f"{next(iter(found.values()))}): taken as frames without visual content, {placed} "
-        "placed from the priors, left out of the mosaic (report.json unreadable_frames)",
-        *result.details.get("warnings", [])]
+        "placed from the priors, left out of the mosaic (report.json unreadable_frames)"))
     return {str(int(ids[k])): message for k, message in found.items()}
+
+
+def _warn_first(result: methods.MethodResult, message: str) -> None:
+    """`message` at the head of the result's details["warnings"]."""
+    result.details["warnings"] = [message, *result.details.get("warnings", [])]
 
 
 def flag_reference_frame(result: methods.MethodResult, dataset) -> int:
@@ -242,7 +246,7 @@ def flag_reference_frame(result: methods.MethodResult, dataset) -> int:
     anchor: its pose extrapolated by C_p alone), the homographies are re-expressed in the
     first anchored frame's grid (10 black frames at the start of a tracker gap: every frame
     150-224 px off in frame 0's grid, 0.5 px in frame 10's)."""
-    from fusedmosaic.evaluation.metrics import reference_frame
+    from fusedmosaic.evaluation.metrics import reference_frame, rereferenced
 
     ids = dataset.frame_ids
     G = result.homographies
@@ -252,32 +256,28 @@ def flag_reference_frame(result: methods.MethodResult, dataset) -> int:
                     and np.isfinite(G[k]).all()]
         if anchored:
             r = anchored[0]
-            with np.errstate(invalid="ignore"):
-                G = np.linalg.inv(G[r]) @ G
-                result.homographies = G / G[:, 2:3, 2:3]
-            result.details["warnings"] = [
+            with np.errstate(invalid="ignore"):  # (unplaced rows stay NaN)
+                result.homographies = rereferenced(G, r)
+            _warn_first(result, (
                 f"frame {ids[0]} has no anchor ({status[0]}: placed by the motion prior "
                 f"alone): homographies.csv maps the frames to frame {ids[r]}'s pixel grid, the "
                 f"first frame placed with one, not frame {ids[0]}'s (report.json "
-                "reference_frame; evaluate scores in that grid)",
-                *result.details.get("warnings", [])]
+                "reference_frame; evaluate scores in that grid)"))
             return int(ids[r])
     if (status and status[0] == "prior-only" and result.poses is not None
             and "placed" in status):
         # (documented: the reference stays frame 0; a black frame 0 with a tracker sample put
         # every frame 23 px off, 0.10 px from frame 1, without a word; helper fuzz 32)
-        result.details["warnings"] = [
+        _warn_first(result, (
             f"frame {ids[0]}, the reference of homographies.csv, has no registered pair "
             "(prior-only): its pose comes from the tracker and the motion prior alone, so every "
-            "homography carries its error (the mosaic itself is consistent)",
-            *result.details.get("warnings", [])]
+            "homography carries its error (the mosaic itself is consistent)"))
     r = reference_frame(G)
     if r:
-        result.details["warnings"] = [
+        _warn_first(result, (
             f"frame {ids[0]} was not placed ({status[0]}): homographies.csv maps the "
             f"frames to frame {ids[r]}'s pixel grid, the first placed frame, not frame "
-            f"{ids[0]}'s (report.json reference_frame; evaluate scores in that grid)",
-            *result.details.get("warnings", [])]
+            f"{ids[0]}'s (report.json reference_frame; evaluate scores in that grid)"))
     return int(ids[r])
 
 
@@ -299,13 +299,12 @@ def flag_dead_reckoned_frames(result: methods.MethodResult, dataset) -> None:
     listed = ", ".join(f"{ids[a]}-{ids[b]}" if b > a else f"{ids[a]}" for a, b in runs[:10])
     more = f", ... ({len(runs) - 10} more runs)" if len(runs) > 10 else ""
     longest = max(b - a + 1 for a, b in runs)
-    result.details["warnings"] = [
+    _warn_first(result, (
         f"{len(dead)} of {len(ids)} frames had neither a tracker sample nor a registered pair "
         f"chaining them to a frame with one (frames {listed}{more}; the longest run "
         f"{longest} frames): placed by the constant-velocity prior alone (status "
         "dead-reckoned), they may lie far off; left out of the mosaic and the video, kept in "
-        "homographies.csv",
-        *result.details.get("warnings", [])]
+        "homographies.csv"))
 
 
 def playback_rate(timestamps: np.ndarray) -> float:

@@ -294,9 +294,10 @@ def _status(n: int, placed: np.ndarray, matches: list[PairMatch], why: str) -> l
             for p, s in zip(placed, seen, strict=True)]
 
 
-def _unanchored(n: int, matches: list[PairMatch], tracked: np.ndarray) -> np.ndarray:
+def unanchored_frames(n: int, matches: list[PairMatch], tracked: np.ndarray) -> np.ndarray:
     """(n,) True for the frames not linked by registered pairs (through any chain of them) to
-    a frame with a tracker sample (`tracked`, (n,) bool): the EMT does not anchor them."""
+    a frame with a tracker sample (`tracked`, (n,) bool): the EMT does not anchor them. Frame
+    ids index the arrays (ba-emt; lba-emt's start-up)."""
     parent = list(range(n))
 
     def root(k: int) -> int:
@@ -437,7 +438,7 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     if use_emt:  # as lba-emt's: placed by C_p alone, however far from their anchors
         tracked = np.asarray(dataset.pose_valid, bool).copy()
         tracked[list(glitches)] = False
-        for k in np.flatnonzero(placed & _unanchored(n, ok, tracked)):
+        for k in np.flatnonzero(placed & unanchored_frames(n, ok, tracked)):
             status[k] = "dead-reckoned"
     return MethodResult(G, status, poses=poses, plane=plane, timings=timings, parameters=asdict(o),
                         details=details)

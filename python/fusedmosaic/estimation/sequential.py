@@ -69,6 +69,7 @@ from fusedmosaic.estimation.bundle import (
     chain_missing_poses,
     fill_missing_poses,
     subsample_inliers,
+    unanchored_frames,
 )
 from fusedmosaic.estimation.consistency import (
     add_tracker_agreement,
@@ -1254,9 +1255,13 @@ class SequentialMosaicker:
         # off). The start-up waits for more frames instead.
         checked = [k for k in ids if k in seen]
         checked_poses = np.array([ba.pose(k) for k in checked]).reshape(-1, 6)
-        depths = plane_depths(checked_poses, np.asarray(ba.plane()))
-        behind = [k for k, d in zip(checked, depths, strict=True)
-                  if not (np.isfinite(d) and d > 0)]
+
+        def not_in_front(poses):
+            depths = plane_depths(poses, np.asarray(ba.plane()))
+            return [k for k, d in zip(checked, depths, strict=True)
+                    if not (np.isfinite(d) and d > 0)]
+
+        behind = not_in_front(checked_poses)
         std = summary["plane_relative_std"]
         limit = o.startup_max_plane_std
         # (the spread of every tracked start-up camera: those of a few pairs may be neighbours
@@ -1273,9 +1278,7 @@ class SequentialMosaicker:
             ba.set_constant_plane(True)
             summary = ba.solve().as_dict()
             checked_poses = np.array([ba.pose(k) for k in checked]).reshape(-1, 6)
-            depths = plane_depths(checked_poses, np.asarray(ba.plane()))
-            behind = [k for k, d in zip(checked, depths, strict=True)
-                      if not (np.isfinite(d) and d > 0)]
+            behind = not_in_front(checked_poses)
             std = 0.0  # (given: not refused for its std)
             # but not measured: the run's plane check says so unless the window measures it
             summary["plane_relative_std"] = np.inf
@@ -1321,13 +1324,10 @@ class SequentialMosaicker:
         # frames with no anchor (no tracker sample, no pairs chaining them to a frame with
         # one), as the window's: 6 black frames in a tracker gap of a 30-frame start-up were
         # "prior-only" here and "dead-reckoned" after it (and in ba-emt)
-        anchored, grew = set(tracked), True
-        while grew:
-            grew = False
-            for m in self._boot_matches:
-                if (m.frame_l in anchored) != (m.frame_m in anchored):
-                    anchored |= {m.frame_l, m.frame_m}
-                    grew = True
+        has_sample = np.zeros(self._next_id, bool)
+        has_sample[list(tracked)] = True
+        lost = unanchored_frames(self._next_id, self._boot_matches, has_sample)
+        anchored = {k for k in ids if not lost[k]}
         self._boot_feats, self._boot_matches = [], []
         elapsed = (time.perf_counter() - t0) / len(ids)
         self._finalize(ids, [ba.pose(k) for k in ids], gated, elapsed, 0.0, final_step,
