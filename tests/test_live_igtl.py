@@ -12,6 +12,7 @@ import socket
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import cv2
@@ -456,16 +457,69 @@ def test_live_kalman_robot_session(tmp_path, position):
     assert e_live < 1.0, (e_live, e_offline)
 
 
-def test_live_kalman_robot_needs_pixel_size(syn, tmp_path, capsys):
-    assert main(["live", "127.0.0.1:1", "--method", "kalman-robot", "--camera",
+@pytest.mark.parametrize("with_robot", [True, False], ids=["robot-streamed", "images-only"])
+def test_live_ncc_session(tmp_path, with_robot):
+    """A hand-held pCLE probe (no robot, no --transform) mosaicked live by ncc, the images
+    only: no warning for the samples it does not take, every frame placed as the offline ncc
+    run on the recording places it; a robot's stream (--transform given) is recorded as
+    robot.csv (the recording re-runs with kalman-robot) but not used."""
+    from _igtl_sender import robot_events
+
+    from fusedmosaic.estimation.translation import run_ncc
+    from fusedmosaic.simulation import PcleOptions, simulate_pcle
+
+    ds = read_dataset(simulate_pcle(tmp_path / "pcle", PcleOptions(
+        width=192, height=160, n_frames=30, speed_um_per_frame=12.0, radius_um=150.0,
+        contact_loss=False, stick_slip=False)))
+    events = robot_events(ds)
+    if not with_robot:  # (the header's message type: bytes 2-14)
+        events = [(t, m) for t, m in events if m[2:14].rstrip(b"\0") == b"IMAGE"]
+    sender = Sender(events, speed=2.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # (no "no valid robot sample" warning)
+        assert main(["--quiet", "live", f"127.0.0.1:{sender.port}", "--method", "ncc",
+                     "--camera", str(ds.root / "camera.yaml"),
+                     *(["--transform", "RobotToBase"] if with_robot else []),
+                     "--record", str(tmp_path / "rec"), "--out", str(tmp_path / "out"),
+                     "--no-report"]) == 0
+    sender.join()
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    live = report["live"]
+    assert live["frames_recorded"] == len(ds) and live["frames_without_sample"] == []
+    assert report["parameters"]["estimate"] == "image" and report["warnings"] == []
+    rec = read_dataset(tmp_path / "rec", allow_untracked=True)
+    assert (rec.robot is not None) == with_robot
+    _, G = read_homographies_csv(tmp_path / "out" / "homographies.csv")
+    processed = np.isfinite(G).all(axis=(1, 2))
+    assert processed.sum() == live["frames_processed"] > len(ds) // 2
+    # against the truth (clean scan): below 1 px (measured 0.13)
+    assert mosaic_error(frame_errors(G[processed], ds.ground_truth[processed], 192, 160)) < 1.0
+    if processed.all():  # (frames dropped while busy: the chain registers across them)
+        np.testing.assert_allclose(G, run_ncc(rec, progress=False).homographies, atol=1e-6)
+
+
+@pytest.mark.parametrize("method", ["lba-emt", "kalman-robot", "robot"])
+def test_live_needs_the_transform_device_except_for_ncc(syn, tmp_path, capsys, method):
+    assert main(["live", "127.0.0.1:1", "--method", method, "--camera",
+                 str(syn.root / "camera.yaml"), "--record", str(tmp_path / "rec"), "--out",
+                 str(tmp_path / "out")]) == 2
+    device = "tracker" if method == "lba-emt" else "robot"
+    assert (f"live session: {method} needs the device of the {device} (--transform)"
+            in capsys.readouterr().err)
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("method", ["kalman-robot", "robot"])
+def test_live_kalman_robot_needs_pixel_size(syn, tmp_path, capsys, method):
+    assert main(["live", "127.0.0.1:1", "--method", method, "--camera",
                  str(syn.root / "camera.yaml"), "--transform", "RobotToBase", "--record",
                  str(tmp_path / "rec"), "--out", str(tmp_path / "out")]) == 2
-    assert "pixel_size_um" in capsys.readouterr().err
+    assert f"camera.yaml: no pixel_size_um; method {method!r} needs" in capsys.readouterr().err
     assert not list(tmp_path.iterdir())
-    assert main(["live", "127.0.0.1:1", "--method", "kalman-robot", "--camera",
+    assert main(["live", "127.0.0.1:1", "--method", method, "--camera",
                  str(syn.root / "camera.yaml"), "--transform", "RobotToBase", "--record",
                  str(tmp_path / "rec"), "--out", str(tmp_path / "out"), "--preset", "phb"]) == 2
-    assert "apply to lba-emt, not kalman-robot" in capsys.readouterr().err
+    assert f"apply to lba-emt, not {method}" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("flag, value", [("--duration", "0"), ("--max-frames", "-3"),

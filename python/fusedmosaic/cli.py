@@ -407,7 +407,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
         options = SequentialOptions.preset(args.preset or "syn", **overrides)
     elif overrides or args.preset is not None:
         raise ValueError("--preset / --loop-pairs / --guided-sift / --motion-sigma-from / "
-                         "--tracker-*-sigma / feature flags apply to lba-emt, not kalman-robot")
+                         f"--tracker-*-sigma / feature flags apply to lba-emt, not {args.method}")
     else:
         options = None
     check_live_limits(args.max_frames, args.duration, args.frame_timeout,
@@ -859,7 +859,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "content, flagged (report.json unreadable_frames, a warning) and left "
                           "out of the mosaic")
     run.add_argument("--live", action="store_true",
-                     help="lba-emt / kalman-robot: replay the recording as a live source on this "
+                     help="lba-emt / kalman-robot / ncc / robot: replay the recording as a live "
+                          "source on this "
                           "machine (frames at their timestamps with the newest tracker/robot "
                           "sample; frames arriving while one is processed are dropped, except "
                           "the newest); report.json 'live' gives drops and latency")
@@ -933,26 +934,33 @@ def build_parser() -> argparse.ArgumentParser:
     live = sub.add_parser(
         "live", parents=[quiet],
         help="mosaic a live OpenIGTLink stream (e.g. PLUS Server: video + tracker or robot) with "
-             "lba-emt or kalman-robot, recording it as a dataset",
+             "lba-emt or the pCLE methods (kalman-robot, ncc, robot), recording it as a "
+             "dataset",
         description="Connects to an OpenIGTLink sender (PLUS Server streaming a tracked "
                     "endoscope, or any sender of IMAGE and TRANSFORM or POSITION messages), "
-                    "mosaics each frame (lba-emt or kalman-robot) as soon as the previous one is "
+                    "mosaics each frame (lba-emt, kalman-robot, ncc or robot) as soon as the "
+                    "previous one is "
                     "done (frames arriving meanwhile are dropped from the mosaic but recorded), "
                     "records every frame and tracker / robot sample into --record (a dataset: "
                     "re-run it offline with any method; frames outside the tracker's time span "
                     "need run's --allow-untracked), and when the stream ends (sender closes, "
                     "--max-frames, --duration or Ctrl-C) writes --out as `run` does.")
     live.add_argument("address", help="HOST:PORT of the OpenIGTLink sender (port default 18944)")
-    live.add_argument("--method", choices=["lba-emt", "kalman-robot"], default="lba-emt",
-                      help="lba-emt (EM-tracked endoscope, default) or kalman-robot (pCLE: "
+    live.add_argument("--method", choices=["lba-emt", "kalman-robot", "ncc", "robot"],
+                      default="lba-emt",
+                      help="lba-emt (EM-tracked endoscope, default), kalman-robot (pCLE: "
                            "--transform is then the robot's device, its translation (or a "
                            "POSITION's) the probe position in mm in the image axes; camera.yaml "
-                           "needs pixel_size_um)")
+                           "needs pixel_size_um), ncc (pCLE images only, e.g. a hand-held "
+                           "probe: a robot stream is recorded, not used) or robot (the robot "
+                           "positions only)")
     _add_tracked_camera_flags(
         live, transform="TRANSFORM (or POSITION: position + quaternion) device of the sensor on "
                         "the endoscope, tracker_from_sensor in mm, e.g. SensorToTracker (name "
-                        "it so: a sender that streams TrackerToSensor instead is inverted)",
-        default=None)
+                        "it so: a sender that streams TrackerToSensor instead is inverted); "
+                        "kalman-robot / robot: the robot's; required except for ncc (images "
+                        "alone; given, its samples are recorded as robot.csv)",
+        default=None, transform_required=False)
     live.add_argument("--image-device", metavar="DEVICE",
                       help="IMAGE device of the video (default: the first one heard)")
     live.add_argument("--bgr", action="store_true",
@@ -1046,14 +1054,17 @@ def _add_tracker_time_offset_flag(parser: argparse.ArgumentParser, effect: str) 
 
 
 def _add_tracked_camera_flags(parser: argparse.ArgumentParser, *, transform: str,
-                              default: str | None, camera_help: str | None = None) -> None:
+                              default: str | None, camera_help: str | None = None,
+                              transform_required: bool | None = None) -> None:
     """--camera (required unless camera_help says what its absence means), --transform
-    (required without a default) and --hand-eye: what a tracked endoscope's recording or stream
-    does not carry itself (import and live)."""
+    (required without a default, unless transform_required says otherwise) and --hand-eye:
+    what a tracked endoscope's recording or stream does not carry itself (import and live)."""
     parser.add_argument("--camera", required=camera_help is None, metavar="CAMERA.yaml",
                         help="camera.yaml of the endoscope (image size, camera matrix; the "
                              "images' size must match)" + (camera_help or ""))
-    parser.add_argument("--transform", required=default is None, default=default,
+    parser.add_argument("--transform", default=default,
+                        required=(default is None if transform_required is None
+                                  else transform_required),
                         metavar="NAME", help=transform)
     parser.add_argument("--hand-eye", metavar="HAND_EYE.txt",
                         help="4x4 sensor_from_camera (default identity)")

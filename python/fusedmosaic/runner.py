@@ -47,7 +47,7 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
     report: also write report.md with PNG plots (plots/).
     live: replay the recording as a live source through the method's streaming form (frames at
         their timestamps, the newest tracker / robot sample, frames dropped while busy; see
-        estimation.live), for lba-emt and kalman-robot.
+        estimation.live), for lba-emt and the pCLE methods (kalman-robot, ncc, robot).
     result: the method's result, already computed on this dataset (a live session, whose
         recording the dataset is): only the outputs are written.
     fps: the frame rate giving the frame times of a dataset without frames.csv (None: the
@@ -740,7 +740,7 @@ def _refusal_reason(message: str) -> str:
 
 
 def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
-             transform_device: str, image_device: str | None = None, hand_eye=None,
+             transform_device: str | None, image_device: str | None = None, hand_eye=None,
              rgb: bool = True, options=None, max_frames: int | None = None,
              duration_s: float | None = None, frame_timeout_s: float = 5.0,
              overwrite_record: bool = False, progress: bool = True, blend=None, canvas=None,
@@ -751,7 +751,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     """A live session on an OpenIGTLink source (io.igtl: e.g. PLUS Server streaming a tracked
     endoscope), lba-emt, or kalman-robot with a robot streaming the probe position (the
     transform's translation, mm, in the image axes; the camera needs pixel_size_um; recorded
-    into robot.csv): frames and tracker poses are received as they come, each frame is
+    into robot.csv), or the pCLE baselines ncc (the images alone: samples recorded, not used)
+    and robot: frames and tracker poses are received as they come, each frame is
     mosaicked as soon as the previous one is done (frames arriving meanwhile are dropped but
     recorded), until the sender closes the stream, max_frames frames were recorded (no more are),
     duration_s passed or Ctrl-C. Every received frame and tracker sample is recorded into the
@@ -777,6 +778,9 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     from fusedmosaic.io.tracking import check_stream_timestamp, check_time_offset, hand_eye_matrix
 
     check_live_method(method)
+    if transform_device is None and method != "ncc":  # (ncc: the images alone)
+        raise ValueError(f"live session: {method} needs the device of the "
+                         f"{'tracker' if method == 'lba-emt' else 'robot'} (--transform)")
     offset = check_time_offset(tracker_time_offset)
     if say is None:
         say = lambda text: warnings.warn(text, stacklevel=3)  # noqa: E731
@@ -785,10 +789,11 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     if method == "lba-emt":
         camera.require_camera_matrix(method)
     else:
-        camera.require_pixel_size(method)
+        if method in NEEDS_ROBOT:  # (ncc, as offline, needs no pixel size)
+            camera.require_pixel_size(method)
         if hand_eye is not None:
             raise ValueError("live session: a hand-eye applies to lba-emt (a tracked camera), "
-                             "not to kalman-robot")
+                             f"not to {method}")
     if hand_eye is not None:
         hand_eye = hand_eye_matrix(hand_eye)
     check_live_limits(max_frames, duration_s, frame_timeout_s)
@@ -860,7 +865,7 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                        f"{first_refused[why]})" for why, n in rejected.items())
 
     def samples_heard(src) -> str:
-        if src is None or src.valid_samples:
+        if src is None or src.valid_samples or transform_device is None:
             return ""
         heard = ", ".join(sorted(src.ignored_devices)) or "none"
         return (f"; no valid TRANSFORM or POSITION sample of {transform_device} arrived (other "
@@ -871,10 +876,12 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
         if preview is not None or serve_mosaic is not None:  # before connecting
             view, server = _live_view(camera, method, record, preview, serve_mosaic,
                                       view_interval_s, say)
+        # (the pCLE methods record the samples as robot positions: ncc's recording re-runs
+        # with kalman-robot when a robot streamed)
         recorder = DatasetRecorder(record, camera, hand_eye, overwrite=overwrite_record,
-                                   robot=method == "kalman-robot")
+                                   robot=method != "lba-emt")
         with IgtlSource(address, transform_device=transform_device, image_device=image_device,
-                        rgb=rgb, orientation_required=method != "kalman-robot",
+                        rgb=rgb, orientation_required=method == "lba-emt",
                         on_frame=on_frame, on_sample=lambda s: recorder.add_sample(
                             s.timestamp - offset, s.matrix if s.valid else None)) as src:
             try:

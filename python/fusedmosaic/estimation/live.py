@@ -1,7 +1,7 @@
 """Live replay: a recorded dataset fed to a streaming mosaicker as a live source would feed it.
 
-``fusedmosaic run DATA --method lba-emt --live`` (or ``kalman-robot``) answers "what would this
-recording have looked like live, on this machine?":
+``fusedmosaic run DATA --method lba-emt --live`` (or ``kalman-robot``, ``ncc``, ``robot``)
+answers "what would this recording have looked like live, on this machine?":
 
 - frame k arrives at its timestamp (relative to frame 0's) and gets the newest tracker (or robot)
   sample taken at or before that time, as a live loop has it: no interpolation towards a sample
@@ -41,7 +41,9 @@ from fusedmosaic.methods import MethodResult, ms_stats
 __all__ = ["LIVE_METHODS", "replay_live", "check_live_method", "newest_sample_index",
            "extrapolated_robot"]
 
-LIVE_METHODS = ("lba-emt", "kalman-robot")
+LIVE_METHODS = ("lba-emt", "kalman-robot", "ncc", "robot")
+# the pCLE methods: RobotPriorMosaicker's estimate of each (translation.ESTIMATES)
+TRANSLATION_ESTIMATES = {"kalman-robot": "fused", "ncc": "image", "robot": "robot"}
 DROPPED = "unplaced: dropped (live replay: arrived while frame {busy} was being processed)"
 
 
@@ -152,10 +154,10 @@ def replay_live(dataset, method: str, *, options=None, progress: bool = True,
         "processing_time": "measured" if processing_time is None else "given"}}
     if method == "lba-emt":
         details.update(_lba_checks(stream.mosaicker))
-    if method == "kalman-robot":  # a chain starting after frame 0 warns as offline
-        details["warnings"] = _origin_warnings(
-            stream.mosaicker.origin_frames, [int(dataset.frame_ids[k]) for k in processed],
-            dataset.robot_file)
+    if method in TRANSLATION_ESTIMATES:  # a chain starting after frame 0 warns as offline
+        ids = [int(dataset.frame_ids[k]) for k in processed]
+        details.update(_translation_checks(method, stream.mosaicker.origin_frames, ids,
+                                           [finals[k] for k in processed], dataset.robot_file))
     return _streamed_result(method, status, finals, getattr(stream.mosaicker, "plane", None),
                             details, measured, {"live": True, **stream.parameters})
 
@@ -198,13 +200,20 @@ def _lba_checks(mosaicker) -> dict:
             "warnings": live_solver_warnings(mosaicker)}
 
 
-def _origin_warnings(origin_frames: dict, ids: list, robot_name: str) -> list[str]:
-    """kalman-robot's warnings when its chain starts after frame 0 (frame 0 blank, no robot
-    sample at it) or never, as the offline run gives them (translation.origin_warnings); ids:
-    the id of each frame given to the mosaicker, in order."""
-    from fusedmosaic.estimation.translation import origin_warnings
+def _translation_checks(method: str, origin_frames: dict, ids: list, results: list,
+                        robot_name: str) -> dict:
+    """A streamed pCLE method's report.json entries that the offline run gives: the warnings
+    when its chain starts after frame 0 (frame 0 blank, no robot sample at it) or never
+    (translation.origin_warnings) and, with images, ncc_inconsistent (with ncc's warning when
+    most registrations disagree); ids / results: the id / FrameResult of each frame given to
+    the mosaicker, in order."""
+    from fusedmosaic.estimation.translation import add_inconsistency, origin_warnings
 
-    return origin_warnings(origin_frames, ids, len(ids), "fused", robot_name)
+    estimate = TRANSLATION_ESTIMATES[method]
+    checks = {"warnings": origin_warnings(origin_frames, ids, len(ids), estimate, robot_name)}
+    if estimate != "robot":
+        add_inconsistency(checks, results, ids, estimate)
+    return checks
 
 
 def _timing_details(latency_s: list, processing_s: list, ages_s: list) -> dict:
@@ -268,12 +277,14 @@ def streaming_mosaicker(method: str, camera, options, where: str,
     from fusedmosaic.estimation.translation import RobotPriorMosaicker, RobotPriorOptions
 
     options = RobotPriorOptions() if options is None else options
-    if options.flat_field:
+    estimate = TRANSLATION_ESTIMATES[method]
+    if options.flat_field and estimate != "robot":
         raise ValueError(f"{where}: flat_field needs the fibre pattern of the whole recording "
                          "(not known live); run without --flat-field")
-    mosaicker = RobotPriorMosaicker(camera, options)
-    return mosaicker, {"estimate": "fused", "pixel_size_um": mosaicker.pixel_size_um,
-                       "robot_file": robot_file, **asdict(options)}
+    mosaicker = RobotPriorMosaicker(camera, options, estimate=estimate)
+    return mosaicker, {"estimate": estimate, "pixel_size_um": mosaicker.pixel_size_um,
+                       "robot_file": robot_file if estimate != "image" else None,
+                       **asdict(options)}
 
 
 def _streaming(dataset, method: str, options, max_age: float | None) -> _Stream:
@@ -300,6 +311,13 @@ def _streaming(dataset, method: str, options, max_age: float | None) -> _Stream:
             return mosaicker.finalized()
 
         stream.feed = feed
+        return stream
+    if method == "ncc":  # images only: no samples (as offline, no pixel size needed)
+        mosaicker, parameters = streaming_mosaicker(method, dataset.camera, options,
+                                                    "live replay")
+        stream = _Stream(mosaicker, None, 0.0, parameters)
+        stream.feed = lambda k, image: [mosaicker.add_frame(image, float(dataset.timestamps[k]),
+                                                            None)]
         return stream
     dataset.require_robot(method)
     dataset.require_pixel_size(method)
@@ -413,7 +431,7 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
                 session.stopped_by = "the sender closed the stream"
                 break
             sample, age = sample_at(frame.timestamp + offset)
-            if sample is None:
+            if sample is None and method != "ncc":  # (ncc takes none)
                 session.no_sample.append(frame.index)
             elif age is not None:
                 session.ages.append(age)
@@ -459,7 +477,7 @@ def _warn_without_samples(source, method: str, elapsed_s: float | None) -> bool:
     """Warns (once: returns True) when `source` has had no valid sample of its tracker (robot)
     device, naming what it heard instead; elapsed_s: since the first frame (None: the
     session's end)."""
-    if getattr(source, "valid_samples", 1):
+    if method == "ncc" or getattr(source, "valid_samples", 1):  # (ncc takes none)
         return False
     import warnings
 
@@ -486,6 +504,8 @@ def _sample_at(method: str, source, hand_eye, max_age: float | None) -> Callable
     live source, or None; the sample's age)."""
     if method == "lba-emt":
         return lambda t: source.pose_at(t, hand_eye, max_age_s=max_age)
+    if method == "ncc":  # the images only (a robot stream is recorded, not used)
+        return lambda t: (None, None)
 
     def robot_at(t: float):
         position, age = source.position_at(t, max_age_s=max_age)
@@ -519,10 +539,11 @@ def session_result(session: LiveSession, timestamps, dropped: list[int], *,
         "frames_without_sample": [int(k) for k in session.no_sample],
     }}
     details.update(session.checks)
-    if method == "kalman-robot" and session.origin_frames is not None and session.processed:
-        details["warnings"] = _origin_warnings(session.origin_frames,
-                                               [int(k) for k in session.processed],
-                                               "the robot stream")
+    if method in TRANSLATION_ESTIMATES and session.origin_frames is not None \
+            and session.processed:
+        details.update(_translation_checks(
+            method, session.origin_frames, [int(k) for k in session.processed],
+            [session.finals[k] for k in session.processed], "the robot stream"))
     return _streamed_result(method, status, session.finals, session.plane, details,
                             float(sum(session.processing.values())),
                             {"live": "openigtlink", **session.parameters})

@@ -155,12 +155,15 @@ class IgtlSource:
 
     image_device: IMAGE device name (None: the first image device heard; others are ignored and
     listed in `ignored_devices`). transform_device: TRANSFORM device of the tracked sensor (its
-    inverse name is accepted, see the module docstring). rgb: colour images are sent RGB
-    (PLUS) and are converted to BGR. connect_timeout_s: for the TCP connection.
+    inverse name is accepted, see the module docstring); None: no samples are taken (images
+    alone, e.g. live ncc), every TRANSFORM / POSITION heard is listed in `ignored_devices`.
+    rgb: colour images are sent RGB (PLUS) and are converted to BGR. connect_timeout_s: for
+    the TCP connection.
     orientation_required: a POSITION of 12 bytes (a position alone) is an invalid sample (a
     tracker's pose needs its orientation; a robot's probe position does not: False)."""
 
-    def __init__(self, address: str, *, transform_device: str, image_device: str | None = None,
+    def __init__(self, address: str, *, transform_device: str | None,
+                 image_device: str | None = None,
                  rgb: bool = True, connect_timeout_s: float = 5.0,
                  orientation_required: bool = True,
                  on_frame: Callable[[LiveFrame], None] | None = None,
@@ -170,7 +173,8 @@ class IgtlSource:
         self.host, self.port = parse_address(address)
         self.where = f"OpenIGTLink {format_address(self.host, self.port)}"
         self.transform_device = transform_device
-        self._inverse_device = inverse_device_name(transform_device, self.where)
+        self._inverse_device = (None if transform_device is None else
+                                inverse_device_name(transform_device, self.where))
         self.image_device = image_device
         self.rgb = rgb
         self.orientation_required = orientation_required
@@ -408,7 +412,8 @@ class IgtlSource:
         from pyigtl import TransformMessage
 
         kind = fields["message_type"]
-        if device not in (self.transform_device, self._inverse_device):
+        if self.transform_device is None or device not in (self.transform_device,
+                                                           self._inverse_device):
             self.ignored_devices.add(f"{kind} {device}")
             return
         message = TransformMessage() if kind == "TRANSFORM" else _position_message_type()()
