@@ -236,9 +236,16 @@ def test_an_untrusted_registration_far_from_the_robot_is_left_out(tmp_path_facto
     out = _run(pcle, pcle.robot_xy_um)
     err, robot = _errors(out, pcle), _errors(out, pcle, "position_robot")
     assert err.mean() < 2.0 * robot.mean(), (err.mean(), robot.mean())
-    # registered consistently, yet placed by the robot alone
-    assert any(r.ncc_consistent and r.status == "prior-only" and r.c_img == 0.0
-               for r in out.values())
+    # registered consistently, yet placed by the robot alone, and flagged so
+    gated = [k for k, r in out.items() if r.image_gated]
+    assert any(out[k].ncc_consistent for k in gated)
+    assert all(out[k].status == "prior-only" and out[k].c_img == 0.0
+               and np.isfinite(out[k].displacement_image).all() for k in gated)
+    # (what else is prior-only had no registration to gate)
+    assert all(r.image_gated or not np.isfinite(r.displacement_image).all()
+               for r in out.values() if r.status == "prior-only" and r.index > 0)
+    batch = translation.run_kalman_robot(pcle, progress=False)
+    assert batch.details["image_gated"] == gated
 
 
 def test_bad_image_gate_is_refused():

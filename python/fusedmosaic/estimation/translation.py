@@ -425,6 +425,9 @@ class FrameResult:
     robot_gated : True when the robot sample was left out as a glitch (module docstring): the
         frame follows the image (``c_rob = 0``, ``c_sp`` NaN); ``displacement_robot`` is the
         rejected robot displacement.
+    image_gated : True when the registration was left out by the image gate (module docstring,
+        "Image gating"): the robot places the frame (``prior-only``, ``c_img = 0``);
+        ``displacement_image`` is the rejected registration.
     ncc_consistent : whether the registration's forward and backward directions agreed (after
         the wide-range retry, ``RobotPriorOptions.max_disagreement_px``); None without one, or
         when it failed (a featureless template: no displacement, status ``unplaced`` or
@@ -452,6 +455,7 @@ class FrameResult:
     timings: dict[str, float]
     robot_gated: bool = False
     ncc_consistent: bool | None = None
+    image_gated: bool = False
 
     @property
     def placed(self) -> bool:
@@ -762,7 +766,7 @@ class RobotPriorMosaicker:
         conf = dict.fromkeys(CONFIDENCES, nan)
         score, sigma_r = nan, nan
         dx_img_f, dx_rob_f = _NAN2, _NAN2
-        robot_gated = False
+        robot_gated = image_gated = False
 
         # Robot position X_r (Eq. 3), relative to frame 0.
         if self._robot_origin is None and np.isfinite(robot).all():
@@ -795,7 +799,7 @@ class RobotPriorMosaicker:
                 timings["ncc"] = t1 - t0
                 dx, score = reg.dx, reg.score
                 # a failed registration (featureless template: dx NaN, reported inconsistent)
-                # has no directions to disagree: None, not counted by _add_inconsistency
+                # has no directions to disagree: None, not counted by add_inconsistency
                 failed = not np.isfinite(dx).all()
                 consistent = None if failed else bool(reg.consistent)
                 inconsistent = (self.options.distrust_inconsistent and not failed
@@ -903,7 +907,7 @@ class RobotPriorMosaicker:
                     step = kf.update(dx_img_f, dx_rob_used, c_match)
                 if before is not None and self._image_outlier(step, dx_img_f, dx_rob_used):
                     kf.restore(before)  # the robot places the frame (c_img = 0)
-                    image_ok, c_match = False, 0.0
+                    image_ok, c_match, image_gated = False, 0.0, True
                     step = kf.update(_NAN2, dx_rob_used, c_match)
                 for name in CONFIDENCES:
                     conf[name] = float(getattr(step, name))
@@ -963,6 +967,7 @@ class RobotPriorMosaicker:
             timings=timings,
             robot_gated=robot_gated,
             ncc_consistent=consistent,
+            image_gated=image_gated,
             **conf,
         )
 
@@ -1037,9 +1042,10 @@ class RobotPriorMosaicker:
 
 
 def frame_columns(results: list) -> dict:
-    """report.json's per-frame "confidences", "trajectories_px" (X_m, X_r, X_f) and
-    "robot_gated" (frame indices) of a run's FrameResults, one per frame, None for a frame not
-    processed (a live run's dropped frames: confidences None, positions NaN)."""
+    """report.json's per-frame "confidences", "trajectories_px" (X_m, X_r, X_f), "robot_gated"
+    and "image_gated" (frame indices: the robot sample, the registration left out) of a run's
+    FrameResults, one per frame, None for a frame not processed (a live run's dropped frames:
+    confidences None, positions NaN)."""
     return {
         "confidences": {name: [None if r is None else float(getattr(r, name)) for r in results]
                         for name in CONFIDENCES},
@@ -1049,6 +1055,7 @@ def frame_columns(results: list) -> dict:
             for key, field in (("X_m", "position_image"), ("X_r", "position_robot"),
                                ("X_f", "position_fused"))},
         "robot_gated": [k for k, r in enumerate(results) if r is not None and r.robot_gated],
+        "image_gated": [k for k, r in enumerate(results) if r is not None and r.image_gated],
     }
 
 
@@ -1100,7 +1107,7 @@ def _run(
         "warnings": _origin_warnings(dataset, mosaicker, estimate),
     }
     if estimate != "robot":
-        _add_inconsistency(details, results, dataset, estimate)
+        add_inconsistency(details, results, dataset.frame_ids, estimate)
     if estimate == "fused":  # robot and images both seen: do they move alike?
         add_robot_agreement(details, str(dataset.root / dataset.robot_file),
                             mosaicker.pixel_size_um, dataset.frame_times)
@@ -1127,12 +1134,12 @@ def _run(
 MAX_INCONSISTENT_FRACTION = 0.25
 
 
-def _add_inconsistency(details: dict, results: list, dataset, estimate: str) -> None:
-    """details["ncc_inconsistent"]: frame IDs whose registration's directions disagreed; for
-    X_m a warning when they exceed MAX_INCONSISTENT_FRACTION of the registrations (the fused
-    estimate places such frames by the robot). Failed registrations (ncc_consistent None: no
-    displacement, the frame not placed by them) are not counted."""
-    ids = dataset.frame_ids
+def add_inconsistency(details: dict, results: list, ids, estimate: str) -> None:
+    """details["ncc_inconsistent"]: frame IDs (ids[r.index]: the id of the mosaicker's r.index-th
+    frame) whose registration's directions disagreed; for X_m a warning (appended to
+    details["warnings"]) when they exceed MAX_INCONSISTENT_FRACTION of the registrations (the
+    fused estimate places such frames by the robot). Failed registrations (ncc_consistent
+    None: no displacement, the frame not placed by them) are not counted."""
     made = [r for r in results if r.ncc_consistent is not None]
     bad = [int(ids[r.index]) for r in made if not r.ncc_consistent]
     details["ncc_inconsistent"] = bad
