@@ -461,6 +461,47 @@ def test_startup_without_tracker_poses_keeps_frames_without_raising(scene):
     assert len(m._pending) == 5  # refused, nothing lost: the tracker may still come
 
 
+def test_a_late_tracker_startup_is_tried_on_a_short_iteration_budget(monkeypatch):
+    """A tracker switched on at frame 40 of 60: the start-up holds 40+ frames with a handful of
+    tracked ones, poorly conditioned; each attempt ran Ceres up to startup_max_iterations
+    towards a plane refused anyway (400x400, 73 frames: 6 s an attempt, 16 s over 4 frames).
+    While a refusal only makes it wait, an attempt is first solved with
+    startup_trial_iterations: a plane still too uncertain then is refused at once, else it is
+    solved on. Here (startup_max_plane_std 0.1) attempts at 46 and 47 frames are refused after
+    11 iterations (std 0.135, 0.102), the one at 48 is solved on (0.087): the same mosaic as
+    with full attempts (e_M 1.636 px both: 40 frames placed through their pairs alone)."""
+    n, late = 60, 40
+    scene = Scene(n=n, seed=3)
+    tracker = [None] * late + list(scene.tracker[late:])
+    solves = []
+    solve = SequentialMosaicker._solve_startup
+
+    def recorded(self, *args, **kwargs):
+        ba, summary = solve(self, *args, **kwargs)
+        solves.append(summary)
+        return ba, summary
+
+    monkeypatch.setattr(SequentialMosaicker, "_solve_startup", recorded)
+    errors = {}
+    for trial in (10, 300):
+        solves.clear()
+        m = SequentialMosaicker(scene.camera, SequentialOptions(
+            startup_trial_iterations=trial, startup_max_plane_std=0.1))
+        results = {}
+        for k in range(n):
+            m.add_frame(scene.frames[k], scene.timestamps[k], tracker[k])
+            results.update({f.frame_id: f for f in m.finalized()})
+        G = scene.finish(m, results)
+        errors[trial] = frame_errors(G, scene.truth, SIZE, SIZE).mean()
+        assert errors[trial] < 2.0, (trial, errors[trial])
+        assert m.bootstrap_summary["termination"] == "CONVERGENCE"
+        assert m.bootstrap_summary["plane_relative_std"] <= 0.1
+        short = [s for s in solves[:-1]
+                 if s["iterations"] <= trial + 1 and s["termination"] == "NO_CONVERGENCE"]
+        assert bool(short) == (trial == 10), solves  # refused after a short attempt
+    assert abs(errors[10] - errors[300]) < 0.01, errors
+
+
 # ------------------------------------------------------------------ item 8: threads
 def test_concurrent_calls_are_refused_and_other_threads_may_call_in_turn(scene, baseline,
                                                                           monkeypatch):
