@@ -128,6 +128,8 @@ SAMPLES_KEPT = 20
 # 101, 81 frames held, 2 tracked: 300 iterations, 7.7 s, cost 1297.20; at 1e-6: 18, 0.5 s,
 # 1297.33, e_M 0.115 -> 0.120 px; SYN 150 frames: 8 -> 6 iterations, e_M 0.1454 -> 0.1453).
 FUNCTION_TOLERANCE = 1e-6
+# Relative std of a start-up plane from which it is not told even in sign (see _bootstrap).
+UNDETERMINED_PLANE_RELATIVE_STD = 1.0
 
 
 @dataclass
@@ -1144,7 +1146,8 @@ class SequentialMosaicker:
             ta, tb, timestamp, nominal, self.options.motion_max_gap_s, max_ratio=None)[0]
         return predict_constant_velocity(pose_a, pose_b, ratio)
 
-    def _solve_startup(self, ids, tracked, table, timing, max_iterations=None, start=None):
+    def _solve_startup(self, ids, tracked, table, timing, max_iterations=None, start=None,
+                       function_tolerance=FUNCTION_TOLERANCE):
         """The start-up's BA+EMT over frames ids with the samples `tracked` (id -> z): the
         adjuster and its summary (a dict). At most `max_iterations` (None:
         startup_max_iterations); `start`: an adjuster of these frames to start from (its poses
@@ -1154,7 +1157,7 @@ class SequentialMosaicker:
         plane = estimate_plane(usable, table, self.K) if start is None else start.plane()
         ba_options = _core.BundleAdjusterOptions(
             sigma_v_px=o.sigma_v_px, loss=o.loss, num_threads=1,
-            function_tolerance=FUNCTION_TOLERANCE,
+            function_tolerance=function_tolerance,
             max_iterations=o.startup_max_iterations if max_iterations is None else max_iterations)
         ba_options.motion_sigma = self._costs.motion_sigma
         ba_options.emt_sigma = self._costs.emt_sigma
@@ -1291,6 +1294,15 @@ class SequentialMosaicker:
             table = table.copy()
             table[worst] = np.nan
         usable = [m for m in usable if m.frame_l in tracked and m.frame_m in tracked]
+        if (limit > 0 and not summary["plane_relative_std"] < UNDETERMINED_PLANE_RELATIVE_STD
+                and (final_step or len(ids) >= o.startup_wait_frames)):
+            # Taken or refused below for good: solved on to the offline adjustment's tolerance
+            # first. Stopped at FUNCTION_TOLERANCE, a plane the images leave unbounded came out
+            # finite (2 pairs behind a 55 px field stop: relative std 643, |pi| 97 / mm; taken,
+            # frames up to 9780 px off); solved on, it is told unbounded (inf) and refused.
+            ba, summary = self._solve_startup(
+                ids, tracked, table, timing, start=ba,
+                function_tolerance=_core.BundleAdjusterOptions().function_tolerance)
         # A plane behind a start-up camera is no plane it sees: too few registered pairs, or
         # too short a baseline, for the start-up to tell (60 untextured frames, one start-up
         # pair with a 2.5 mm baseline: pi behind every camera, then frames 182 px to 3.4e6 px
