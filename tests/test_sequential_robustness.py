@@ -502,6 +502,28 @@ def test_a_late_tracker_startup_is_tried_on_a_short_iteration_budget(monkeypatch
     assert abs(errors[10] - errors[300]) < 0.01, errors
 
 
+def test_a_forced_late_tracker_startup_converges_at_the_windows_tolerance(tmp_path):
+    """A tracker invalid over frames 0-85 of 110 (300x300, the simulated tracker's noise): the
+    start-up must decide on its 81 frames, 2 of them tracked. Solved to BundleAdjusterOptions'
+    1e-10 it took 241 iterations (4.5 s; at startup_max_iterations 200: stopped there, with a
+    warning); to the window steps' FUNCTION_TOLERANCE, 146 (2.8 s), cost 751.43 against
+    751.41."""
+    from fusedmosaic.io import read_dataset
+    from fusedmosaic.simulation import simulate_fetoscopy
+
+    ds = read_dataset(simulate_fetoscopy(tmp_path / "late", FetoscopyOptions(
+        n_frames=110, width=300, height=300, tracker_gap=(0, 85))))
+    m = SequentialMosaicker(ds.camera, SequentialOptions(startup_max_iterations=200))
+    for k in range(len(ds)):
+        m.add_frame(ds.frames[k], float(ds.timestamps[k]),
+                    ds.cam_from_world[k] if ds.pose_valid[k] else None)
+        m.finalized()
+    m.flush()
+    assert m.bootstrap_summary["num_emt_blocks"] <= 3  # (the case: a handful tracked)
+    assert m.bootstrap_summary["termination"] == "CONVERGENCE", m.bootstrap_summary
+    assert not sequential.live_solver_warnings(m)
+
+
 # ------------------------------------------------------------------ item 8: threads
 def test_concurrent_calls_are_refused_and_other_threads_may_call_in_turn(scene, baseline,
                                                                           monkeypatch):
