@@ -771,14 +771,19 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     view_interval_s; report.json "live" "view". say(text): tells the user what they need during
     the session (the port --serve-mosaic 0 took); None: as a warning. A start that fails
     leaves no folder behind. Returns the terminal summary."""
-    from fusedmosaic.estimation.live import check_live_method, live_session, session_result
+    from fusedmosaic.estimation.live import (
+        check_live_method,
+        live_session,
+        session_result,
+        takes_samples,
+    )
     from fusedmosaic.io.calibration import Camera, read_camera_yaml
     from fusedmosaic.io.igtl import IgtlSource, format_address
     from fusedmosaic.io.recorder import DatasetRecorder
     from fusedmosaic.io.tracking import check_stream_timestamp, check_time_offset, hand_eye_matrix
 
     check_live_method(method)
-    if transform_device is None and method != "ncc":  # (ncc: the images alone)
+    if transform_device is None and takes_samples(method):
         raise ValueError(f"live session: {method} needs the device of the "
                          f"{'tracker' if method == 'lba-emt' else 'robot'} (--transform)")
     offset = check_time_offset(tracker_time_offset)

@@ -47,6 +47,11 @@ TRANSLATION_ESTIMATES = {"kalman-robot": "fused", "ncc": "image", "robot": "robo
 DROPPED = "unplaced: dropped (live replay: arrived while frame {busy} was being processed)"
 
 
+def takes_samples(method: str) -> bool:
+    """Whether `method` uses a tracker or robot sample per frame (ncc: the images alone)."""
+    return TRANSLATION_ESTIMATES.get(method) != "image"
+
+
 def check_live_method(method: str) -> None:
     """ValueError unless `method` has a streaming form (LIVE_METHODS)."""
     if method not in LIVE_METHODS:
@@ -312,7 +317,7 @@ def _streaming(dataset, method: str, options, max_age: float | None) -> _Stream:
 
         stream.feed = feed
         return stream
-    if method == "ncc":  # images only: no samples (as offline, no pixel size needed)
+    if not takes_samples(method):  # ncc: as offline, no pixel size needed
         mosaicker, parameters = streaming_mosaicker(method, dataset.camera, options,
                                                     "live replay")
         stream = _Stream(mosaicker, None, 0.0, parameters)
@@ -431,7 +436,7 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
                 session.stopped_by = "the sender closed the stream"
                 break
             sample, age = sample_at(frame.timestamp + offset)
-            if sample is None and method != "ncc":  # (ncc takes none)
+            if sample is None and takes_samples(method):
                 session.no_sample.append(frame.index)
             elif age is not None:
                 session.ages.append(age)
@@ -477,7 +482,7 @@ def _warn_without_samples(source, method: str, elapsed_s: float | None) -> bool:
     """Warns (once: returns True) when `source` has had no valid sample of its tracker (robot)
     device, naming what it heard instead; elapsed_s: since the first frame (None: the
     session's end)."""
-    if method == "ncc" or getattr(source, "valid_samples", 1):  # (ncc takes none)
+    if not takes_samples(method) or getattr(source, "valid_samples", 1):
         return False
     import warnings
 
@@ -504,7 +509,7 @@ def _sample_at(method: str, source, hand_eye, max_age: float | None) -> Callable
     live source, or None; the sample's age)."""
     if method == "lba-emt":
         return lambda t: source.pose_at(t, hand_eye, max_age_s=max_age)
-    if method == "ncc":  # the images only (a robot stream is recorded, not used)
+    if not takes_samples(method):  # (a robot stream is recorded, not used)
         return lambda t: (None, None)
 
     def robot_at(t: float):

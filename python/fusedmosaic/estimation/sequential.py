@@ -1164,12 +1164,14 @@ class SequentialMosaicker:
         ba_options.plane_std = o.startup_max_plane_std > 0
         ba_options.motion_gate_chi2 = o.motion_gate_chi2
         ba = _core.BundleAdjuster(self.K, ba_options)
-        # (frames without a sample: through the registered pairs from frames with one)
-        filled = fill_missing_poses(chain_missing_poses(table, self._boot_matches, plane,
-                                                        self.K, fill=False)[ids])
+        if start is None:  # (frames without a sample: through the registered pairs from frames
+            # with one)
+            initial = fill_missing_poses(chain_missing_poses(table, self._boot_matches, plane,
+                                                             self.K, fill=False)[ids])
+        else:
+            initial = [start.pose(k) for k in ids]
         for i, k in enumerate(ids):
-            ba.add_frame(k, filled[i] if start is None else start.pose(k), tracked.get(k),
-                         *timing[k])
+            ba.add_frame(k, initial[i], tracked.get(k), *timing[k])
         for m in self._boot_matches:
             ba.add_pair(m.frame_l, m.frame_m, *self._subsample(m))
         ba.set_plane(plane)
@@ -1267,9 +1269,10 @@ class SequentialMosaicker:
         # reference and was kept: frames up to 144 px off.
         most = len(tracked) // 4 + len(gated)
         limit = o.startup_max_plane_std
-        # (see startup_trial_iterations: a refusal would make it wait)
-        trial = (limit > 0 and not final_step and len(ids) < o.startup_wait_frames
-                 and len(tracked) < len(ids) / 2)
+        # the plane is taken or refused for good (else a refusal makes the start-up wait)
+        must_decide = final_step or len(ids) >= o.startup_wait_frames
+        # (see startup_trial_iterations)
+        trial = limit > 0 and not must_decide and len(tracked) < len(ids) / 2
         while True:
             if trial:
                 ba, summary = self._solve_startup(ids, tracked, table, timing,
@@ -1295,7 +1298,7 @@ class SequentialMosaicker:
             table[worst] = np.nan
         usable = [m for m in usable if m.frame_l in tracked and m.frame_m in tracked]
         if (limit > 0 and not summary["plane_relative_std"] < UNDETERMINED_PLANE_RELATIVE_STD
-                and (final_step or len(ids) >= o.startup_wait_frames)):
+                and must_decide):
             # Taken or refused below for good: solved on to the offline adjustment's tolerance
             # first. Stopped at FUNCTION_TOLERANCE, a plane the images leave unbounded came out
             # finite (2 pairs behind a 55 px field stop: relative std 643, |pi| 97 / mm; taken,
@@ -1321,7 +1324,7 @@ class SequentialMosaicker:
         # of a camera that moved; 1 pair, 0.009 of the depth, the cameras' 0.6)
         spread = np.array([ba.pose(k) for k in ids if k in tracked]).reshape(-1, 6)
         if ((behind or (limit > 0 and not std <= limit))
-                and (final_step or len(ids) >= o.startup_wait_frames)
+                and must_decide
                 and baseline_ratio(spread, np.asarray(ba.plane())) < MIN_BASELINE_RATIO
                 and not homography_parallax(usable, self.K) > MAX_NOMINAL_PARALLAX):
             # No parallax: nominal_plane_distance_mm. Before, 80 frames held still were handed
@@ -1353,7 +1356,7 @@ class SequentialMosaicker:
         # streamed: pi 6e-5 mm from the world's origin, frames' homographies singular, the
         # run crashed): refused as a plane behind the cameras is.
         if limit > 0 and not std <= limit and (
-                np.isinf(std) or (not final_step and len(ids) < o.startup_wait_frames)):
+                np.isinf(std) or not must_decide):
             self._startup_refused = (refused_pairs, len(ids))
             self._startup_problem = self._std_refusal(std, len(usable))
             return False
