@@ -469,7 +469,9 @@ def test_a_late_tracker_startup_is_tried_on_a_short_iteration_budget(monkeypatch
     startup_trial_iterations: a plane still too uncertain then is refused at once, else it is
     solved on. Here (startup_max_plane_std 0.1) attempts at 46 and 47 frames are refused after
     11 iterations (std 0.135, 0.102), the one at 48 is solved on (0.087): the same mosaic as
-    with full attempts (e_M 1.636 px both: 40 frames placed through their pairs alone)."""
+    with full attempts (e_M 1.636 px both: 40 frames placed through their pairs alone).
+    Measured with Levenberg-Marquardt: the start-up's default dogleg converges on each attempt
+    within the trial's 10 iterations here (startup_trust_region), leaving no short attempt."""
     n, late = 60, 40
     scene = Scene(n=n, seed=3)
     tracker = [None] * late + list(scene.tracker[late:])
@@ -486,7 +488,8 @@ def test_a_late_tracker_startup_is_tried_on_a_short_iteration_budget(monkeypatch
     for trial in (10, 300):
         solves.clear()
         m = SequentialMosaicker(scene.camera, SequentialOptions(
-            startup_trial_iterations=trial, startup_max_plane_std=0.1))
+            startup_trial_iterations=trial, startup_max_plane_std=0.1,
+            startup_trust_region="levenberg_marquardt"))
         results = {}
         for k in range(n):
             m.add_frame(scene.frames[k], scene.timestamps[k], tracker[k])
@@ -507,21 +510,28 @@ def test_a_forced_late_tracker_startup_converges_at_the_windows_tolerance(tmp_pa
     start-up must decide on its 81 frames, 2 of them tracked. Solved to BundleAdjusterOptions'
     1e-10 it took 241 iterations (4.5 s; at startup_max_iterations 200: stopped there, with a
     warning); to the window steps' FUNCTION_TOLERANCE, 146 (2.8 s), cost 751.43 against
+    751.41. Started from the nominal plane (_initial_plane: the lower cost after 5 iterations)
+    Levenberg-Marquardt takes 11, the start-up's dogleg 3 (0.36 s with the probes), cost
     751.41."""
     from fusedmosaic.io import read_dataset
     from fusedmosaic.simulation import simulate_fetoscopy
 
     ds = read_dataset(simulate_fetoscopy(tmp_path / "late", FetoscopyOptions(
         n_frames=110, width=300, height=300, tracker_gap=(0, 85))))
-    m = SequentialMosaicker(ds.camera, SequentialOptions(startup_max_iterations=200))
-    for k in range(len(ds)):
-        m.add_frame(ds.frames[k], float(ds.timestamps[k]),
-                    ds.cam_from_world[k] if ds.pose_valid[k] else None)
-        m.finalized()
-    m.flush()
-    assert m.bootstrap_summary["num_emt_blocks"] <= 3  # (the case: a handful tracked)
-    assert m.bootstrap_summary["termination"] == "CONVERGENCE", m.bootstrap_summary
-    assert not sequential.live_solver_warnings(m)
+    for trust_region in ("levenberg_marquardt", "dogleg"):
+        m = SequentialMosaicker(ds.camera, SequentialOptions(startup_max_iterations=200,
+                                                             startup_trust_region=trust_region))
+        for k in range(len(ds)):
+            m.add_frame(ds.frames[k], float(ds.timestamps[k]),
+                        ds.cam_from_world[k] if ds.pose_valid[k] else None)
+            m.finalized()
+        m.flush()
+        summary = m.bootstrap_summary
+        assert summary["num_emt_blocks"] <= 3  # (the case: a handful tracked)
+        assert summary["termination"] == "CONVERGENCE", summary
+        assert summary["iterations"] <= (30 if trust_region == "dogleg" else 60), summary
+        assert summary["final_cost"] < 751.41 * 1.0001, summary  # (the 1e-10 solution's)
+        assert not sequential.live_solver_warnings(m)
 
 
 # ------------------------------------------------------------------ item 8: threads

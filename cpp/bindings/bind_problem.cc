@@ -38,6 +38,7 @@ constexpr const char* kOptionFields[] = {"sigma_v_px",
                                          "loss",
                                          "loss_scale_px",
                                          "linear_solver",
+                                         "trust_region",
                                          "residual_blocks",
                                          "condense_pairs",
                                          "max_iterations",
@@ -127,6 +128,10 @@ void BindProblem(py::module_& m) {
                      "'auto' (sparse_schur, measured fastest in bench/bench_solvers.py), "
                      "'dense_schur', 'sparse_schur', 'sparse_normal_cholesky', 'dense_qr', "
                      "'dense_normal_cholesky' or 'iterative_schur'.")
+      .def_readwrite("trust_region", &BundleAdjusterOptions::trust_region,
+                     "'levenberg_marquardt' (default) or 'dogleg' (Ceres' trust region\n"
+                     "strategy; dogleg takes Gauss-Newton steps where they fit, see\n"
+                     "SequentialOptions.startup_trust_region).")
       .def_readwrite("residual_blocks", &BundleAdjusterOptions::residual_blocks,
                      "'per_pair' (default) or 'per_point' residual blocks.")
       .def_readwrite("condense_pairs", &BundleAdjusterOptions::condense_pairs,

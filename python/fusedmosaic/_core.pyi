@@ -203,6 +203,8 @@ class BundleAdjusterOptions:
     """'auto' (= 'sparse_schur', measured in bench/bench_solvers.py), 'dense_schur',
     'sparse_schur', 'sparse_normal_cholesky', 'dense_qr', 'dense_normal_cholesky',
     'iterative_schur'."""
+    trust_region: str
+    """'levenberg_marquardt' (default) or 'dogleg' (Ceres' trust region strategy)."""
     residual_blocks: str
     """'per_pair' (default: one block per image pair) or 'per_point'."""
     condense_pairs: bool

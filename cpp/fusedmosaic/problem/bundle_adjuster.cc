@@ -54,6 +54,13 @@ ceres::LinearSolverType LinearSolverFromString(const std::string& name) {
       name + "'");
 }
 
+ceres::TrustRegionStrategyType TrustRegionFromString(const std::string& name) {
+  if (name == "levenberg_marquardt") return ceres::LEVENBERG_MARQUARDT;
+  if (name == "dogleg") return ceres::DOGLEG;
+  throw std::invalid_argument("trust_region: expected 'levenberg_marquardt' or 'dogleg', got '" +
+                              name + "'");
+}
+
 void CheckPositive(double value, const char* name) {
   if (!(std::isfinite(value) && value > 0)) {
     throw std::invalid_argument(std::string(name) + ": must be finite and > 0, got " +
@@ -106,6 +113,7 @@ ceres::Solver::Options SolverOptionsFor(const BundleAdjusterOptions& options,
   so.num_threads = options.num_threads;
   so.logging_type = ceres::SILENT;
   so.minimizer_progress_to_stdout = false;
+  so.trust_region_strategy_type = TrustRegionFromString(options.trust_region);
   return so;
 }
 
@@ -120,6 +128,7 @@ void BundleAdjusterOptions::Validate() const {
   RobustLossFromString(loss);
   CheckPositive(loss_scale_px, "loss_scale_px");
   LinearSolverFromString(linear_solver);
+  TrustRegionFromString(trust_region);
   if (residual_blocks != "per_pair" && residual_blocks != "per_point") {
     throw std::invalid_argument("residual_blocks: expected 'per_pair' or 'per_point', got '" +
                                 residual_blocks + "'");

@@ -52,6 +52,12 @@ struct BundleAdjusterOptions {
   // "auto" or a Ceres linear solver name in lower case: "dense_schur", "sparse_schur",
   // "sparse_normal_cholesky", "dense_qr", "dense_normal_cholesky", "iterative_schur".
   std::string linear_solver = "auto";
+  // "levenberg_marquardt" or "dogleg" (Ceres' trust region strategy). Levenberg-Marquardt damps
+  // every step by mu diag(J^T J): along directions that only a few EMT priors constrain (a
+  // start-up of 80 frames whose tracker came on at its last 2: moving the whole visual structure
+  // onto the samples) it crawled, 110-210 iterations; Powell's dogleg takes the Gauss-Newton
+  // step whenever it fits in the trust region: 7-58 (see SequentialOptions.startup_trust_region).
+  std::string trust_region = "levenberg_marquardt";
   // "per_pair": one residual block per image pair (default, measured faster in
   // bench/bench_solvers.py); "per_point": one block per correspondence (robust loss via Ceres).
   std::string residual_blocks = "per_pair";

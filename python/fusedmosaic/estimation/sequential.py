@@ -128,8 +128,14 @@ SAMPLES_KEPT = 20
 # 101, 81 frames held, 2 tracked: 300 iterations, 7.7 s, cost 1297.20; at 1e-6: 18, 0.5 s,
 # 1297.33, e_M 0.115 -> 0.120 px; SYN 150 frames: 8 -> 6 iterations, e_M 0.1454 -> 0.1453).
 FUNCTION_TOLERANCE = 1e-6
-# Relative std of a start-up plane from which it is not told even in sign (see _bootstrap).
-UNDETERMINED_PLANE_RELATIVE_STD = 1.0
+# Iterations each of the start-up's two initial planes is adjusted before the better one is
+# taken (_initial_plane).
+STARTUP_PROBE_ITERATIONS = 5
+# Relative std of a start-up plane above which the start-up, made to decide, solves on to the
+# offline tolerance to tell an unbounded plane from a finite one (see _bootstrap). Unbounded
+# ones stopped at FUNCTION_TOLERANCE at 643-5500; late trackers' finite ones at 1.0-2.2,
+# where solving on crawled along the valley their scale leaves for 300 iterations (7-8 s).
+UNBOUNDED_CHECK_RELATIVE_STD = 10.0
 
 
 @dataclass
@@ -314,6 +320,17 @@ class SequentialOptions:
     # plane's std there, it waits; else it is solved on to startup_max_iterations from there
     # (e_M 0.0586 -> 0.0561 px; measured before FUNCTION_TOLERANCE, which shortens both).
     startup_trial_iterations: int = 40
+    # Ceres' trust region strategy for the adjustment of a start-up whose frames are not all
+    # tracked ("dogleg" or "levenberg_marquardt"). A late tracker's start-up (80 frames, the
+    # last 2-3 tracked) ties a visual structure that converges in ~5 iterations to a few
+    # samples; Levenberg-Marquardt's damping left it crawling onto them for 110-210 iterations
+    # (2-4 s, holding a live frame), Powell's dogleg took 7-58 to the same cost (live replays of
+    # the tests' late-tracker scene). Fully tracked start-ups keep Levenberg-Marquardt: dogleg
+    # converged faster there too (a scope 5 mm from the plane: 13 iterations against 167, same
+    # e_M), but a tracker garbled by w-first quaternions then ended at a point whose plane std
+    # came out unbounded and the run was refused (Levenberg-Marquardt: std 0.039, taken, with
+    # the tracker's disagreement warned of). The window and ba-emt keep Levenberg-Marquardt.
+    startup_trust_region: str = "dogleg"
     seed: int = 0
 
     @classmethod
@@ -432,6 +449,9 @@ class SequentialMosaicker:
             # its frames are still in the window (every preset has frames_per_cluster >= W)
             raise ValueError("SequentialOptions.frames_per_cluster must be >= window_size - 1, "
                              f"got {o.frames_per_cluster} < {o.window_size} - 1")
+        if o.startup_trust_region not in ("dogleg", "levenberg_marquardt"):
+            raise ValueError("SequentialOptions.startup_trust_region must be 'dogleg' or "
+                             f"'levenberg_marquardt', got {o.startup_trust_region!r}")
         if o.startup_wait_frames < o.bootstrap_frames:
             raise ValueError("SequentialOptions.startup_wait_frames must be >= bootstrap_frames, "
                              f"got {o.startup_wait_frames} < {o.bootstrap_frames}")
@@ -1151,31 +1171,75 @@ class SequentialMosaicker:
         """The start-up's BA+EMT over frames ids with the samples `tracked` (id -> z): the
         adjuster and its summary (a dict). At most `max_iterations` (None:
         startup_max_iterations); `start`: an adjuster of these frames to start from (its poses
-        and plane), else the tracker's poses and the plane of the registered pairs."""
+        and plane), else the tracker's poses and _initial_plane's plane."""
         o = self.options
-        usable = [m for m in self._boot_matches if m.frame_l in tracked and m.frame_m in tracked]
-        plane = estimate_plane(usable, table, self.K) if start is None else start.plane()
+        pairs = [(m.frame_l, m.frame_m, *self._subsample(m)) for m in self._boot_matches]
+        if start is None:
+            plane, initial = self._initial_plane(ids, tracked, table, timing, pairs)
+        else:
+            plane, initial = start.plane(), [start.pose(k) for k in ids]
+        ba = self._startup_adjuster(ids, tracked, timing, pairs, plane, initial,
+                                    max_iterations=(o.startup_max_iterations
+                                                    if max_iterations is None
+                                                    else max_iterations),
+                                    function_tolerance=function_tolerance,
+                                    plane_std=o.startup_max_plane_std > 0)
+        return ba, ba.solve().as_dict()
+
+    def _startup_adjuster(self, ids, tracked, timing, pairs, plane, initial, *,
+                          motion_gate_chi2=None, **options):
+        """A BundleAdjuster of the start-up's frames (ids, from the poses `initial`, with the
+        samples `tracked`), its pairs (frame_l, frame_m, points_l, points_m) and `plane`;
+        `options`: BundleAdjusterOptions fields."""
+        o = self.options
         ba_options = _core.BundleAdjusterOptions(
             sigma_v_px=o.sigma_v_px, loss=o.loss, num_threads=1,
-            function_tolerance=function_tolerance,
-            max_iterations=o.startup_max_iterations if max_iterations is None else max_iterations)
+            trust_region=(o.startup_trust_region if len(tracked) < len(ids)
+                          else "levenberg_marquardt"), **options)
         ba_options.motion_sigma = self._costs.motion_sigma
         ba_options.emt_sigma = self._costs.emt_sigma
-        ba_options.plane_std = o.startup_max_plane_std > 0
-        ba_options.motion_gate_chi2 = o.motion_gate_chi2
+        ba_options.motion_gate_chi2 = (o.motion_gate_chi2 if motion_gate_chi2 is None
+                                       else motion_gate_chi2)
         ba = _core.BundleAdjuster(self.K, ba_options)
-        if start is None:  # (frames without a sample: through the registered pairs from frames
-            # with one)
-            initial = fill_missing_poses(chain_missing_poses(table, self._boot_matches, plane,
-                                                             self.K, fill=False)[ids])
-        else:
-            initial = [start.pose(k) for k in ids]
         for i, k in enumerate(ids):
             ba.add_frame(k, initial[i], tracked.get(k), *timing[k])
-        for m in self._boot_matches:
-            ba.add_pair(m.frame_l, m.frame_m, *self._subsample(m))
+        for pair in pairs:
+            ba.add_pair(*pair)
         ba.set_plane(plane)
-        return ba, ba.solve().as_dict()
+        return ba
+
+    def _initial_plane(self, ids, tracked, table, timing, pairs):
+        """The plane the start-up's adjustment starts from, and its frames' initial poses: the
+        tracker's, frames without a sample chained from them through the registered pairs and
+        the plane of the registered pairs between tracked frames. When some frames are chained,
+        that start and the one from the plane facing the tracked cameras at
+        nominal_plane_distance_mm are each adjusted STARTUP_PROBE_ITERATIONS times and the
+        lower cost's state returned. A tracker that came on at the start-up's last 2-3 frames
+        has 1-2 such pairs, ~1 mm apart: their plane came out tilted or behind the cameras (live
+        replays of the tests' late-tracker scene: the adjustment settled at cost 1e6-5e6, 7-19
+        motion terms released, and was refused, then solved again at the next frame), or 48 mm
+        away where the solution is at 31: 192 iterations along the valley that the scale of a
+        structure tied to 2 samples leaves (the homographies within 0.02 px after 12); the
+        nominal start converged in 4-23 to the ~1300 of the visual noise."""
+        usable = [m for m in self._boot_matches if m.frame_l in tracked and m.frame_m in tracked]
+        planes = [estimate_plane(usable, table, self.K)]
+        samples = np.array([tracked[k] for k in ids if k in tracked])
+        if len(samples) < len(ids):  # (all tracked: nothing is chained through the plane)
+            planes.append(plane_facing(samples, self.options.nominal_plane_distance_mm))
+        best = None
+        for plane in planes:
+            initial = fill_missing_poses(chain_missing_poses(table, self._boot_matches, plane,
+                                                             self.K, fill=False)[ids])
+            if len(planes) == 1:
+                return plane, initial
+            probe = self._startup_adjuster(ids, tracked, timing, pairs, plane, initial,
+                                           max_iterations=STARTUP_PROBE_ITERATIONS,
+                                           function_tolerance=FUNCTION_TOLERANCE,
+                                           motion_gate_chi2=np.inf)
+            cost = probe.solve().final_cost
+            if best is None or cost < best[0]:
+                best = (cost, np.asarray(probe.plane()), [probe.pose(k) for k in ids])
+        return best[1], best[2]
 
     def _std_refusal(self, std: float, pairs: int) -> str:
         """Why a start-up plane of relative std `std` from `pairs` registered pairs is refused."""
@@ -1297,7 +1361,7 @@ class SequentialMosaicker:
             table = table.copy()
             table[worst] = np.nan
         usable = [m for m in usable if m.frame_l in tracked and m.frame_m in tracked]
-        if (limit > 0 and not summary["plane_relative_std"] < UNDETERMINED_PLANE_RELATIVE_STD
+        if (limit > 0 and not summary["plane_relative_std"] < UNBOUNDED_CHECK_RELATIVE_STD
                 and must_decide):
             # Taken or refused below for good: solved on to the offline adjustment's tolerance
             # first. Stopped at FUNCTION_TOLERANCE, a plane the images leave unbounded came out
