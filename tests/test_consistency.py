@@ -320,6 +320,26 @@ def test_run_prints_and_records_the_warnings(base, work, capsys, monkeypatch):
         in printed.err
 
 
+def test_a_refused_startup_names_a_tracker_that_disagrees(work):
+    """Quaternions stored w first, the tracker on from frame 8 of 30: lba-emt's start-up was
+    refused as "unbounded" (or "not in front of frames" when streamed without a gap), with
+    nothing pointing at the tracker; the refusal now says that its samples disagree with the
+    images (7.3 x the prior's noise here) and which conventions to check. A refusal with a
+    plausible tracker does not (test_live's field stop)."""
+    base = work / "gap_base"
+    if not base.exists():
+        simulate_fetoscopy(base, FetoscopyOptions(**OPTIONS, tracker_gap=(0, 8)))
+    data = work / "gap_w_first"
+    if not data.exists():
+        rewrite_tracking(base, data, w_first)
+    with pytest.raises(ValueError, match=r"; its \d+ tracker samples disagree with the images: "
+                       r"the adjusted poses differ from them by .* x the noise the EMT prior "
+                       r"assumes: check that tracking.csv holds tracker_from_sensor .*quaternions "
+                       r"x, y, z, w"):
+        run_lba_emt(read_dataset(data, allow_untracked=True), progress=False)
+    run_lba_emt(read_dataset(base, allow_untracked=True), progress=False)  # (the same, right)
+
+
 def test_tracker_noise_flags(work, capsys):
     from fusedmosaic.cli import main
 

@@ -72,9 +72,12 @@ from fusedmosaic.estimation.bundle import (
     unanchored_frames,
 )
 from fusedmosaic.estimation.consistency import (
+    CONVENTIONS,
+    MAX_NOISE_RATIO,
     add_tracker_agreement,
     check_emt_sigma,
     solver_warning,
+    tracker_agreement,
 )
 from fusedmosaic.estimation.guard import exclusive_call
 from fusedmosaic.estimation.keyframes import KeyframeIndex
@@ -1249,6 +1252,27 @@ class SequentialMosaicker:
                    f"relative standard deviation of {std:.2g}")
                 + f" (startup_max_plane_std {self.options.startup_max_plane_std:g})")
 
+    def _disagreement(self, ba, tracked: dict) -> str:
+        """For a refused start-up: "; its tracker samples disagree ..." when the adjusted poses
+        lie further from the samples than MAX_NOISE_RATIO x the EMT prior's noise (as the run's
+        tracker_agreement check), else "". A tracker in another convention is the likelier cause
+        then than the images: quaternions stored w first made SYN start-ups of 30-40 frames
+        refused as "unbounded" or "not in front of frames" (ratios 6.9-9.3), with nothing to
+        say why."""
+        if not tracked:
+            return ""
+        ids = sorted(tracked)
+        agreement = tracker_agreement(np.array([ba.pose(k) for k in ids]),
+                                      np.array([tracked[k] for k in ids]),
+                                      np.ones(len(ids), bool), None, self._costs.emt_sigma)
+        ratio = agreement.get("noise_ratio", 0.0)
+        if not ratio > MAX_NOISE_RATIO:
+            return ""
+        return (f"; its {len(ids)} tracker samples disagree with the images: the adjusted poses "
+                f"differ from them by {agreement['rotation_rms_deg']:.2f} deg / "
+                f"{agreement['translation_rms_mm']:.2f} mm per axis (median), {ratio:.1f} x the "
+                f"noise the EMT prior assumes: check that {CONVENTIONS}")
+
     def _startup_outlier(self, ba, tracked: dict, seen: set) -> int | None:
         """Among the tracked start-up frames with a registered pair (`seen`: the images can
         contradict their samples, as the window gates only frames with visual evidence), the
@@ -1411,7 +1435,7 @@ class SequentialMosaicker:
                 f"lie within {camera_baseline_mm(checked_poses):.3g} mm of each other" + (
                     "; a camera held still or only turning about its axis gives the images no "
                     "parallax" if baseline_ratio(checked_poses, np.asarray(ba.plane()))
-                    < MIN_BASELINE_RATIO else "") + ")")
+                    < MIN_BASELINE_RATIO else "") + ")" + self._disagreement(ba, tracked))
             return False
         # Nor is a plane the start-up cannot tell (the same 60 frames, 3 pairs after 20 frames:
         # relative std 1.8, depth 4 mm for 30, frames ~1000 px off), unless the sequence ends
@@ -1422,7 +1446,8 @@ class SequentialMosaicker:
         if limit > 0 and not std <= limit and (
                 np.isinf(std) or not must_decide):
             self._startup_refused = (refused_pairs, len(ids))
-            self._startup_problem = self._std_refusal(std, len(usable))
+            self._startup_problem = (self._std_refusal(std, len(usable))
+                                     + self._disagreement(ba, tracked))
             return False
         self.bootstrap_summary = summary
         self._mark_motion_gated(ids, summary["motion_released_ids"])
