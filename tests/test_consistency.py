@@ -334,8 +334,9 @@ def test_a_refused_startup_names_a_tracker_that_disagrees(work):
         rewrite_tracking(base, data, w_first)
     with pytest.raises(ValueError, match=r"; its \d+ tracker samples disagree with the images: "
                        r"the adjusted poses differ from them by .* x the noise the EMT prior "
-                       r"assumes: check that tracking.csv holds tracker_from_sensor .*quaternions "
-                       r"x, y, z, w"):
+                       r"assumes. If the tracker is that noisy, give its noise \(emt_sigma; "
+                       r"--tracker-rot-sigma / --tracker-trans-sigma\); otherwise check that "
+                       r"tracking.csv holds tracker_from_sensor .*quaternions x, y, z, w"):
         run_lba_emt(read_dataset(data, allow_untracked=True), progress=False)
     run_lba_emt(read_dataset(base, allow_untracked=True), progress=False)  # (the same, right)
 

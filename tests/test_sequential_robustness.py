@@ -505,20 +505,30 @@ def test_a_late_tracker_startup_is_tried_on_a_short_iteration_budget(monkeypatch
     assert abs(errors[10] - errors[300]) < 0.01, errors
 
 
-def test_a_forced_late_tracker_startup_converges_at_the_windows_tolerance(tmp_path):
+def test_a_forced_late_tracker_startup_converges_at_the_windows_tolerance(tmp_path,
+                                                                           monkeypatch):
     """A tracker invalid over frames 0-85 of 110 (300x300, the simulated tracker's noise): the
     start-up must decide on its 81 frames, 2 of them tracked. Solved to BundleAdjusterOptions'
     1e-10 it took 241 iterations (4.5 s; at startup_max_iterations 200: stopped there, with a
     warning); to the window steps' FUNCTION_TOLERANCE, 146 (2.8 s), cost 751.43 against
     751.41. Started from the nominal plane (_initial_plane: the lower cost after 5 iterations)
-    Levenberg-Marquardt takes 11, the start-up's dogleg 3 (0.36 s with the probes), cost
-    751.41."""
+    Levenberg-Marquardt takes 11, the start-up's dogleg 3 (after the two probes' 5 each; 0.36
+    s in all), cost 751.41."""
     from fusedmosaic.io import read_dataset
     from fusedmosaic.simulation import simulate_fetoscopy
 
     ds = read_dataset(simulate_fetoscopy(tmp_path / "late", FetoscopyOptions(
         n_frames=110, width=300, height=300, tracker_gap=(0, 85))))
+    used = []
+    adjuster = _core.BundleAdjuster
+
+    def recorded(K, options):
+        used.append(options.trust_region)
+        return adjuster(K, options)
+
+    monkeypatch.setattr(_core, "BundleAdjuster", recorded)
     for trust_region in ("levenberg_marquardt", "dogleg"):
+        used.clear()
         m = SequentialMosaicker(ds.camera, SequentialOptions(startup_max_iterations=200,
                                                              startup_trust_region=trust_region))
         for k in range(len(ds)):
@@ -532,6 +542,30 @@ def test_a_forced_late_tracker_startup_converges_at_the_windows_tolerance(tmp_pa
         assert summary["iterations"] <= (30 if trust_region == "dogleg" else 60), summary
         assert summary["final_cost"] < 751.41 * 1.0001, summary  # (the 1e-10 solution's)
         assert not sequential.live_solver_warnings(m)
+        assert used and set(used) == {trust_region}, used  # (2 probes, then the solve)
+
+
+def test_a_fully_tracked_startup_keeps_levenberg_marquardt(scene, monkeypatch):
+    """startup_trust_region applies to start-ups with frames lacking a tracker sample only."""
+    used = []
+    adjuster = _core.BundleAdjuster
+
+    def recorded(K, options):
+        used.append(options.trust_region)
+        return adjuster(K, options)
+
+    monkeypatch.setattr(_core, "BundleAdjuster", recorded)
+    m = scene.mosaicker()
+    scene.feed(m, range(AT), {})
+    assert m.bootstrap_summary is not None
+    assert used and set(used) == {"levenberg_marquardt"}, used
+    with pytest.raises(ValueError, match=r"startup_trust_region must be 'dogleg' or "
+                       r"'levenberg_marquardt', got 'lm'"):
+        SequentialMosaicker(scene.camera, SequentialOptions(startup_trust_region="lm"))
+    with pytest.raises(ValueError, match=r"trust_region: 'dogleg' needs a factorising linear "
+                       r"solver, not 'iterative_schur'"):
+        _core.BundleAdjusterOptions(trust_region="dogleg", linear_solver="iterative_schur"
+                                    ).validate()
 
 
 # ------------------------------------------------------------------ item 8: threads

@@ -128,7 +128,11 @@ void BundleAdjusterOptions::Validate() const {
   RobustLossFromString(loss);
   CheckPositive(loss_scale_px, "loss_scale_px");
   LinearSolverFromString(linear_solver);
-  TrustRegionFromString(trust_region);
+  if (TrustRegionFromString(trust_region) == ceres::DOGLEG &&
+      LinearSolverFromString(linear_solver) == ceres::ITERATIVE_SCHUR) {
+    throw std::invalid_argument(
+        "trust_region: 'dogleg' needs a factorising linear solver, not 'iterative_schur'");
+  }
   if (residual_blocks != "per_pair" && residual_blocks != "per_point") {
     throw std::invalid_argument("residual_blocks: expected 'per_pair' or 'per_point', got '" +
                                 residual_blocks + "'");

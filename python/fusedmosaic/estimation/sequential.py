@@ -1197,7 +1197,7 @@ class SequentialMosaicker:
         o = self.options
         ba_options = _core.BundleAdjusterOptions(
             sigma_v_px=o.sigma_v_px, loss=o.loss, num_threads=1,
-            trust_region=(o.startup_trust_region if len(tracked) < len(ids)
+            trust_region=(o.startup_trust_region if self._startup_untracked()
                           else "levenberg_marquardt"), **options)
         ba_options.motion_sigma = self._costs.motion_sigma
         ba_options.emt_sigma = self._costs.emt_sigma
@@ -1211,10 +1211,15 @@ class SequentialMosaicker:
         ba.set_plane(plane)
         return ba
 
+    def _startup_untracked(self) -> bool:
+        """Whether a start-up frame came without a tracker sample (a sample gated by the
+        start-up's checks does not count: its frame is tracked)."""
+        return any(p["tracker"] is None for p in self._pending)
+
     def _initial_plane(self, ids, tracked, table, timing, pairs):
         """The plane the start-up's adjustment starts from, and its frames' initial poses: the
         tracker's, frames without a sample chained from them through the registered pairs and
-        the plane of the registered pairs between tracked frames. When some frames are chained,
+        the plane of the registered pairs between tracked frames. When some frames have no sample,
         that start and the one from the plane facing the tracked cameras at
         nominal_plane_distance_mm are each adjusted STARTUP_PROBE_ITERATIONS times and the
         lower cost's state returned. A tracker that came on at the start-up's last 2-3 frames
@@ -1226,22 +1231,29 @@ class SequentialMosaicker:
         nominal start converged in 4-23 to the ~1300 of the visual noise."""
         usable = [m for m in self._boot_matches if m.frame_l in tracked and m.frame_m in tracked]
         planes = [estimate_plane(usable, table, self.K)]
-        samples = np.array([tracked[k] for k in ids if k in tracked])
-        if len(samples) < len(ids):  # (all tracked: nothing is chained through the plane)
-            planes.append(plane_facing(samples, self.options.nominal_plane_distance_mm))
+        if self._startup_untracked():  # (all tracked: nothing is chained through the plane)
+            samples = np.array([tracked[k] for k in ids if k in tracked])
+            with np.errstate(divide="ignore", invalid="ignore"):  # (checked below)
+                nominal = plane_facing(samples, self.options.nominal_plane_distance_mm)
+            if np.isfinite(nominal).all():  # (not through the tracker's origin)
+                planes.append(nominal)
         best = None
         for plane in planes:
             initial = fill_missing_poses(chain_missing_poses(table, self._boot_matches, plane,
                                                              self.K, fill=False)[ids])
+            if best is None:
+                best = (np.inf, plane, initial)  # (taken if no probe succeeds)
             if len(planes) == 1:
-                return plane, initial
+                break
             probe = self._startup_adjuster(ids, tracked, timing, pairs, plane, initial,
                                            max_iterations=STARTUP_PROBE_ITERATIONS,
                                            function_tolerance=FUNCTION_TOLERANCE,
                                            motion_gate_chi2=np.inf)
-            cost = probe.solve().final_cost
-            if best is None or cost < best[0]:
-                best = (cost, np.asarray(probe.plane()), [probe.pose(k) for k in ids])
+            summary = probe.solve()
+            # (a failed evaluation leaves final_cost at -1 and the state at the start)
+            if (summary.termination != "FAILURE" and 0 <= summary.final_cost < best[0]):
+                best = (summary.final_cost, np.asarray(probe.plane()),
+                        [probe.pose(k) for k in ids])
         return best[1], best[2]
 
     def _std_refusal(self, std: float, pairs: int) -> str:
@@ -1268,10 +1280,12 @@ class SequentialMosaicker:
         ratio = agreement.get("noise_ratio", 0.0)
         if not ratio > MAX_NOISE_RATIO:
             return ""
-        return (f"; its {len(ids)} tracker samples disagree with the images: the adjusted poses "
-                f"differ from them by {agreement['rotation_rms_deg']:.2f} deg / "
+        return (f"; its {agreement['frames']} tracker samples disagree with the images: the "
+                f"adjusted poses differ from them by {agreement['rotation_rms_deg']:.2f} deg / "
                 f"{agreement['translation_rms_mm']:.2f} mm per axis (median), {ratio:.1f} x the "
-                f"noise the EMT prior assumes: check that {CONVENTIONS}")
+                "noise the EMT prior assumes. If the tracker is that noisy, give its noise "
+                "(emt_sigma; --tracker-rot-sigma / --tracker-trans-sigma); otherwise check that "
+                f"{CONVENTIONS}")
 
     def _startup_outlier(self, ba, tracked: dict, seen: set) -> int | None:
         """Among the tracked start-up frames with a registered pair (`seen`: the images can
@@ -1370,7 +1384,8 @@ class SequentialMosaicker:
                     if not summary["plane_relative_std"] <= limit:
                         self._startup_refused = (refused_pairs, len(ids))
                         self._startup_problem = self._std_refusal(
-                            summary["plane_relative_std"], len(usable))
+                            summary["plane_relative_std"], len(usable)) + self._disagreement(
+                            ba, tracked)
                         return False
                     ba, summary = self._solve_startup(ids, tracked, table, timing, start=ba)
             else:
