@@ -505,8 +505,22 @@ def test_a_late_tracker_startup_is_tried_on_a_short_iteration_budget(monkeypatch
     assert abs(errors[10] - errors[300]) < 0.01, errors
 
 
+@pytest.fixture
+def trust_regions(monkeypatch):
+    """The trust region of every BundleAdjuster made while the test runs, in order."""
+    used = []
+    adjuster = _core.BundleAdjuster
+
+    def recorded(K, options):
+        used.append(options.trust_region)
+        return adjuster(K, options)
+
+    monkeypatch.setattr(_core, "BundleAdjuster", recorded)
+    return used
+
+
 def test_a_forced_late_tracker_startup_converges_at_the_windows_tolerance(tmp_path,
-                                                                           monkeypatch):
+                                                                           trust_regions):
     """A tracker invalid over frames 0-85 of 110 (300x300, the simulated tracker's noise): the
     start-up must decide on its 81 frames, 2 of them tracked. Solved to BundleAdjusterOptions'
     1e-10 it took 241 iterations (4.5 s; at startup_max_iterations 200: stopped there, with a
@@ -519,14 +533,7 @@ def test_a_forced_late_tracker_startup_converges_at_the_windows_tolerance(tmp_pa
 
     ds = read_dataset(simulate_fetoscopy(tmp_path / "late", FetoscopyOptions(
         n_frames=110, width=300, height=300, tracker_gap=(0, 85))))
-    used = []
-    adjuster = _core.BundleAdjuster
-
-    def recorded(K, options):
-        used.append(options.trust_region)
-        return adjuster(K, options)
-
-    monkeypatch.setattr(_core, "BundleAdjuster", recorded)
+    used = trust_regions
     for trust_region in ("levenberg_marquardt", "dogleg"):
         used.clear()
         m = SequentialMosaicker(ds.camera, SequentialOptions(startup_max_iterations=200,
@@ -545,20 +552,12 @@ def test_a_forced_late_tracker_startup_converges_at_the_windows_tolerance(tmp_pa
         assert used and set(used) == {trust_region}, used  # (2 probes, then the solve)
 
 
-def test_a_fully_tracked_startup_keeps_levenberg_marquardt(scene, monkeypatch):
+def test_a_fully_tracked_startup_keeps_levenberg_marquardt(scene, trust_regions):
     """startup_trust_region applies to start-ups with frames lacking a tracker sample only."""
-    used = []
-    adjuster = _core.BundleAdjuster
-
-    def recorded(K, options):
-        used.append(options.trust_region)
-        return adjuster(K, options)
-
-    monkeypatch.setattr(_core, "BundleAdjuster", recorded)
     m = scene.mosaicker()
     scene.feed(m, range(AT), {})
     assert m.bootstrap_summary is not None
-    assert used and set(used) == {"levenberg_marquardt"}, used
+    assert trust_regions and set(trust_regions) == {"levenberg_marquardt"}, trust_regions
     with pytest.raises(ValueError, match=r"startup_trust_region must be 'dogleg' or "
                        r"'levenberg_marquardt', got 'lm'"):
         SequentialMosaicker(scene.camera, SequentialOptions(startup_trust_region="lm"))
