@@ -977,6 +977,8 @@ class SequentialMosaicker:
         self._boot_feats = [f for f in self._boot_feats if f.frame_id not in ids]
         self._boot_matches = [m for m in self._boot_matches
                               if m.frame_l not in ids and m.frame_m not in ids]
+        # (the chain's homographies too: they grew by one a frame while no tracker came)
+        self._startup_G = {i: G for i, G in self._startup_G.items() if i not in ids}
         status = (f"unplaced: {self._startup_problem}" if self._startup_problem else
                   "unplaced: no registered pair with tracker poses within the start-up's "
                   f"{self.options.startup_wait_frames} frames")
