@@ -1191,20 +1191,18 @@ class SequentialMosaicker:
                                     plane_std=o.startup_max_plane_std > 0)
         return ba, ba.solve().as_dict()
 
-    def _startup_adjuster(self, ids, tracked, timing, pairs, plane, initial, *,
-                          motion_gate_chi2=None, **options):
+    def _startup_adjuster(self, ids, tracked, timing, pairs, plane, initial, **options):
         """A BundleAdjuster of the start-up's frames (ids, from the poses `initial`, with the
         samples `tracked`), its pairs (frame_l, frame_m, points_l, points_m) and `plane`;
-        `options`: BundleAdjusterOptions fields."""
+        `options`: BundleAdjusterOptions fields (motion_gate_chi2: the options' by default)."""
         o = self.options
+        options.setdefault("motion_gate_chi2", o.motion_gate_chi2)
         ba_options = _core.BundleAdjusterOptions(
             sigma_v_px=o.sigma_v_px, loss=o.loss, num_threads=1,
             trust_region=(o.startup_trust_region if self._startup_untracked()
                           else "levenberg_marquardt"), **options)
         ba_options.motion_sigma = self._costs.motion_sigma
         ba_options.emt_sigma = self._costs.emt_sigma
-        ba_options.motion_gate_chi2 = (o.motion_gate_chi2 if motion_gate_chi2 is None
-                                       else motion_gate_chi2)
         ba = _core.BundleAdjuster(self.K, ba_options)
         for i, k in enumerate(ids):
             ba.add_frame(k, initial[i], tracked.get(k), *timing[k])
@@ -1239,14 +1237,12 @@ class SequentialMosaicker:
                 nominal = plane_facing(samples, self.options.nominal_plane_distance_mm)
             if np.isfinite(nominal).all():  # (not through the tracker's origin)
                 planes.append(nominal)
-        best = None
-        for plane in planes:
-            initial = fill_missing_poses(chain_missing_poses(table, self._boot_matches, plane,
-                                                             self.K, fill=False)[ids])
-            if best is None:
-                best = (np.inf, plane, initial)  # (taken if no probe succeeds)
-            if len(planes) == 1:
-                break
+        starts = [(plane, fill_missing_poses(chain_missing_poses(
+            table, self._boot_matches, plane, self.K, fill=False)[ids])) for plane in planes]
+        if len(starts) == 1:
+            return starts[0]
+        best = (np.inf, *starts[0])  # (taken if no probe succeeds)
+        for plane, initial in starts:
             probe = self._startup_adjuster(ids, tracked, timing, pairs, plane, initial,
                                            max_iterations=STARTUP_PROBE_ITERATIONS,
                                            function_tolerance=FUNCTION_TOLERANCE,
