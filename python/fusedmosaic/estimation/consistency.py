@@ -34,6 +34,9 @@ MAX_PLANE_RELATIVE_STD = 0.25
 CONVENTIONS = ("tracking.csv holds tracker_from_sensor (not its inverse) with quaternions x, y, "
                "z, w and translations in mm, and hand_eye.txt holds sensor_from_camera (not its "
                "inverse)")
+# What to do about a tracker that disagrees with the images: {} names how to give its noise.
+TRACKER_NOISE_ADVICE = ("If the tracker is that noisy, give its noise ({}); otherwise check that "
+                        + CONVENTIONS)
 
 
 def default_emt_sigma() -> np.ndarray:
@@ -86,10 +89,10 @@ def tracker_agreement(poses: np.ndarray, tracker_poses: np.ndarray, tracker_vali
             f"{source}: the tracker disagrees with the images: the adjusted camera poses differ "
             f"from the tracker's by {rotation_deg:.2f} deg / {translation_mm:.2f} mm per axis "
             f"(median over {out['frames']} frames), {ratio:.1f} x the noise the EMT prior "
-            f"assumes ({np.degrees(sigma[:3].max()):.2g} deg / {sigma[3:].max():.2g} mm). If "
-            "the tracker is that noisy, give its noise (--tracker-rot-sigma / "
-            f"--tracker-trans-sigma; calibrate measures it); otherwise check that {CONVENTIONS}."
-            " The mosaic follows the images; poses.csv and plane.json are unreliable")
+            f"assumes ({np.degrees(sigma[:3].max()):.2g} deg / {sigma[3:].max():.2g} mm). "
+            + TRACKER_NOISE_ADVICE.format("--tracker-rot-sigma / --tracker-trans-sigma; "
+                                          "calibrate measures it")
+            + ". The mosaic follows the images; poses.csv and plane.json are unreliable")
     if plane is not None and np.isfinite(plane).all() and np.linalg.norm(plane) > 0:
         distance = float(np.median([_core.camera_plane_distance(x, np.asarray(plane, float))
                                     for x in poses[ok]]))

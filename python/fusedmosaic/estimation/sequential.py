@@ -72,8 +72,8 @@ from fusedmosaic.estimation.bundle import (
     unanchored_frames,
 )
 from fusedmosaic.estimation.consistency import (
-    CONVENTIONS,
     MAX_NOISE_RATIO,
+    TRACKER_NOISE_ADVICE,
     add_tracker_agreement,
     check_emt_sigma,
     solver_warning,
@@ -1281,9 +1281,8 @@ class SequentialMosaicker:
         return (f"; its {agreement['frames']} tracker samples disagree with the images: the "
                 f"adjusted poses differ from them by {agreement['rotation_rms_deg']:.2f} deg / "
                 f"{agreement['translation_rms_mm']:.2f} mm per axis (median), {ratio:.1f} x the "
-                "noise the EMT prior assumes. If the tracker is that noisy, give its noise "
-                "(emt_sigma; --tracker-rot-sigma / --tracker-trans-sigma); otherwise check that "
-                f"{CONVENTIONS}")
+                "noise the EMT prior assumes. " + TRACKER_NOISE_ADVICE.format(
+                    "emt_sigma; --tracker-rot-sigma / --tracker-trans-sigma"))
 
     def _startup_outlier(self, ba, tracked: dict, seen: set) -> int | None:
         """Among the tracked start-up frames with a registered pair (`seen`: the images can
