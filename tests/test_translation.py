@@ -571,12 +571,23 @@ def test_kalman_robot_without_robot_file(tmp_path, robot_file):
     assert not (tmp_path / "out").exists()
 
 
-@pytest.mark.parametrize("method", ["ncc", "robot", "kalman-robot"])
+@pytest.mark.parametrize("method", ["robot", "kalman-robot"])
 def test_missing_pixel_size(tmp_path, method):
     data = _tiny(tmp_path, pixel_size=None)
     with pytest.raises(ValueError, match=rf"camera\.yaml: no pixel_size_um; method '{method}'"):
         run_dataset(data, method, tmp_path / "out", progress=False)
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("live", [False, True])
+def test_ncc_needs_no_pixel_size(tmp_path, live):
+    """X_m registers the images alone (a hand-held probe): no robot, no pixel size (it was
+    refused as needing it "to convert robot positions")."""
+    data = _tiny(tmp_path, pixel_size=None, robot=False)
+    run_dataset(data, "ncc", tmp_path / "out", progress=False, live=live)
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["parameters"]["pixel_size_um"] is None
+    assert report["frame_status"] == ["placed"] * 4
 
 
 def test_streaming_without_pixel_size():

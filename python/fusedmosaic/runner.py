@@ -23,7 +23,8 @@ from fusedmosaic.io.output import (
 NEEDS_TRACKING = {"ba-emt", "lba-emt", "emt"}
 NEEDS_CAMERA_MATRIX = {"ba", "ba-emt", "lba-emt", "emt"}
 NEEDS_ROBOT = {"robot", "kalman-robot"}
-NEEDS_PIXEL_SIZE = {"ncc", "robot", "kalman-robot"}
+NEEDS_PIXEL_SIZE = NEEDS_ROBOT  # (ncc registers the images alone: no pixel size needed)
+PCLE_METHODS = {"ncc", "robot", "kalman-robot"}  # translation-only: composed without undistortion
 # Methods whose estimation reads no image: the frames are read once before compositing, so
 # that unreadable ones are known (and left out) before the mosaic is drawn.
 READS_NO_IMAGE = {"robot"}
@@ -330,7 +331,7 @@ def check_compositing_options(blend, canvas, names: dict[str, str] | None = None
     elif isinstance(blend, BlendOptions):  # its blend None: the method's, any is fine
         dataclasses.replace(blend, blend=blend.blend or "linear").validate(names)
         if camera is not None and blend.border_px > 0:
-            _, mask = composing_lens(camera, undistorted=method not in NEEDS_PIXEL_SIZE)
+            _, mask = composing_lens(camera, undistorted=method not in PCLE_METHODS)
             mask = fov_mask_bool(mask, camera.width, camera.height)
             check_border(blend.border_px, edge_distance(mask))
     elif blend is not None:
