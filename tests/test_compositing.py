@@ -166,6 +166,24 @@ def test_png_stream_round_trip(tmp_path):
 # -- canvas limits --------------------------------------------------------------------------------
 
 
+def test_far_frames_are_judged_by_their_shape():
+    """A frame placed 1e10 px away (a pCLE pixel size wrong by 1e9) is a rectangle there, left
+    out for the canvas budget with its reason, not as "non-convex" (OpenCV's float32 collapsed
+    its corners: 29 of 30 robot frames dropped from the mosaic without a warning)."""
+    from fusedmosaic.compositing.canvas import screen_frames
+
+    G = np.repeat(np.eye(3)[None], 3, axis=0)
+    G[1, 0, 2], G[2, :2, 2] = -5.1e10, (-8.4e11, 4.99e11)
+    use, reasons = screen_frames(G, 512, 448)
+    assert use.all() and reasons == {}
+    with pytest.raises(CanvasTooLargeError, match="spread over too large an area"):
+        plan_canvas(G, 512, 448)
+    G[2, 0, 0] = -1.0  # a mirrored frame: still a convex quad, the same area
+    G[1, 2, 0] = -1 / 256  # a corner behind the camera
+    use, reasons = screen_frames(G, 512, 448)
+    assert use.tolist() == [True, False, True], reasons
+
+
 def test_pixel_budget_refused_before_allocating(scene, tmp_path):
     s, frames = scene
     G = s.homographies.copy()

@@ -84,7 +84,9 @@ def screen_frames(homographies: np.ndarray, width: int, height: int,
     reasons = {int(k): "footprint behind the camera" for k in np.flatnonzero(placed & ~use)}
     areas = np.full(len(G), np.nan)
     for k in np.flatnonzero(use):
-        quad = fp[k].astype(np.float32)
+        # about its centre before OpenCV's float32: a frame 1e10 px from the reference (a
+        # pixel size wrong by 1e9) otherwise collapsed to a "non-convex" quad
+        quad = (fp[k] - fp[k].mean(axis=0)).astype(np.float32)
         if not cv2.isContourConvex(quad):
             use[k] = False
             reasons[int(k)] = "non-convex footprint"
