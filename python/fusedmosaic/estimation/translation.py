@@ -479,6 +479,28 @@ class _Anchor:
 _NAN2 = np.full(2, np.nan)
 
 
+def field_boxes(width: int, height: int, radius: float | None
+                ) -> tuple[tuple[slice, slice], tuple[slice, slice]]:
+    """Where pCLE frames are registered, as (rows, cols) slices: the bounding box of a circular
+    field of view of `radius` px centred on the frame (camera.yaml's fov_mask_radius, as
+    Camera.fov_mask), for NCC, and the largest square inside it, for c_match. The paper's
+    frames fill their rectangle, so its central 3/5 template holds tissue only; in a circular
+    field the template is 3/5 of the field's box and lies inside the circle (its corners at
+    0.85 x the radius), and SSIM compares tissue only. Registered on the whole frame, a field
+    of radius 160 in 512x448 frames locked on its fixed black border (shift 0 for a true 40 px:
+    ncc e_M 53 px, kalman-robot 39). The whole frame for both without a radius."""
+    whole = (slice(0, height), slice(0, width))
+    if radius is None:
+        return whole, whole
+    cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
+
+    def box(half: float) -> tuple[slice, slice]:
+        return (slice(max(0, int(np.ceil(cy - half))), min(height, int(np.floor(cy + half)) + 1)),
+                slice(max(0, int(np.ceil(cx - half))), min(width, int(np.floor(cx + half)) + 1)))
+
+    return box(float(radius)), box(float(radius) / np.sqrt(2.0))
+
+
 class RobotPriorMosaicker:
     """Streaming pCLE topology inference (paper 004, Sec. II): one :meth:`add_frame` per frame.
 
@@ -525,14 +547,20 @@ class RobotPriorMosaicker:
         if pixel_size is not None and not (np.isfinite(pixel_size) and pixel_size > 0):
             raise ValueError(f"{source}: pixel_size_um must be a positive number, got {pixel_size}")
         self.pixel_size_um = None if pixel_size is None else float(pixel_size)
+        radius = getattr(camera, "fov_mask_radius", None)
+        self._field = field_boxes(self.width, self.height, radius)
         if estimate != "robot":  # before frame 1 (or a wide-range retry mid-run) finds out
+            rows, cols = self._field[0]
             for name in ("template_fraction", "fallback_template_fraction"):
                 fraction = getattr(self.options, name)
                 problem = None if fraction is None else template_problem(
-                    (self.height, self.width), fraction, f"RobotPriorOptions.{name}")
+                    (rows.stop - rows.start, cols.stop - cols.start), fraction,
+                    f"RobotPriorOptions.{name}")
                 if problem is not None:
-                    raise ValueError(f"{source}: frames of {self.width}x{self.height} px are too "
-                                     f"small to register by NCC: {problem}")
+                    field = ("" if radius is None else
+                             f" (their field of view: fov_mask_radius {radius:g} px)")
+                    raise ValueError(f"{source}: frames of {self.width}x{self.height} px{field} "
+                                     f"are too small to register by NCC: {problem}")
         self.fixed_pattern = None
         if fixed_pattern is not None:
             gain = np.asarray(fixed_pattern, dtype=np.float32)
@@ -785,9 +813,10 @@ class RobotPriorMosaicker:
                 why_no_image = "no textured frame placed before it to register against"
             else:
                 t0 = time.perf_counter()
+                box, square = self._field
                 reg = register_ncc(
-                    self._anchor.image,
-                    gray,
+                    self._anchor.image[box],
+                    gray[box],
                     template_fraction=self.options.template_fraction,
                     max_displacement=self.options.max_displacement_px,
                     pyramid_levels=self.options.pyramid_levels,
@@ -809,7 +838,8 @@ class RobotPriorMosaicker:
                                     "forward and backward directions disagree")
                 if np.isfinite(dx).all():
                     conf["c_match"] = aligned_overlap_ssim(
-                        self._anchor.image, gray, dx, downsample=self.options.ssim_downsample
+                        self._anchor.image[square], gray[square], dx,
+                        downsample=self.options.ssim_downsample,
                     )
                     if self.options.c_match_normalize is not None:
                         slope, level = self.options.c_match_normalize
