@@ -543,3 +543,20 @@ def test_simulate_pcle_writes_a_readable_dataset(tmp_path):
     np.testing.assert_array_equal(events[:, 2], scene.stick_slip)
     positions = np.loadtxt(root / "truth_positions.csv", delimiter=",", skiprows=1)
     np.testing.assert_allclose(positions[:, 2:], scene.positions_um)
+
+
+def test_pcle_circular_field_of_view(tmp_path):
+    """--fov-mask-radius: frames black outside the circle, camera.yaml carries the radius."""
+    from fusedmosaic.io import read_dataset
+    from fusedmosaic.simulation import PcleOptions, generate_pcle, simulate_pcle
+
+    options = PcleOptions(n_frames=3, width=96, height=80, fov_mask_radius=30.0)
+    scene = generate_pcle(options)
+    frame, inside = scene.render(1), scene.fov_mask()
+    assert inside.sum() == pytest.approx(np.pi * 30**2, rel=0.05)
+    assert not frame[~inside].any() and frame[inside].mean() > 20
+    ds = read_dataset(simulate_pcle(tmp_path / "d", options), robot_file="robot.csv")
+    assert ds.camera.fov_mask_radius == pytest.approx(30.0)
+    np.testing.assert_array_equal(ds.camera.fov_mask() > 0, inside)
+    with pytest.raises(ValueError, match="fov_mask_radius: a field of at least 16 px"):
+        PcleOptions(fov_mask_radius=5.0).validate()

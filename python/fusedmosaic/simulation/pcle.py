@@ -88,6 +88,9 @@ class PcleOptions:
     fibre_contrast: float = _opt(0.25, "depth of the honeycomb modulation in good contact")
     noise_floor: float = _opt(0.12, "level of the fibre-bundle noise when contact is lost (0..1)")
     image_noise_sigma: float = _opt(4.0, "std of per-frame Gaussian image noise, gray levels")
+    fov_mask_radius: float = _opt(
+        0.0, "circular field of view, px: black outside, camera.yaml's fov_mask_radius (a fibre "
+        "bundle's raw round image; 0 = the whole frame, as the paper's exported images)")
     seed: int = _opt(0, "seed of every random draw (tissue, fibres, noise)")
 
     def validate(self) -> None:
@@ -128,9 +131,13 @@ class PcleOptions:
                 "noise_floor",
                 "fibre_contrast",
                 "spiral_inner_um",
+                "fov_mask_radius",
             ),
         )
         check_time_offsets(self, "robot_offset_s")
+        if 0 < self.fov_mask_radius < 16:
+            raise ValueError(f"PcleOptions.fov_mask_radius: a field of at least 16 px (or 0: "
+                             f"the whole frame), got {self.fov_mask_radius}")
         if self.trajectory == "spiral" and not self.spiral_inner_um < self.radius_um:
             raise ValueError(
                 f"PcleOptions.spiral_inner_um: must be below radius_um "
@@ -349,7 +356,19 @@ class PcleScene:
         img = 255.0 * (signal + (1.0 - c) * floor)
         if o.image_noise_sigma > 0:
             img += rng.normal(0.0, o.image_noise_sigma, img.shape).astype(np.float32)
+        if o.fov_mask_radius > 0:
+            img[~self.fov_mask()] = 0.0
         return np.clip(img, 0, 255).astype(np.uint8)
+
+    def fov_mask(self) -> np.ndarray:
+        """(H, W) bool: inside the circular field of view (all True without one), as
+        Camera.fov_mask."""
+        o = self.options
+        if o.fov_mask_radius <= 0:
+            return np.ones((o.height, o.width), bool)
+        y, x = np.ogrid[: o.height, : o.width]
+        return (x - (o.width - 1) / 2.0) ** 2 + (y - (o.height - 1) / 2.0) ** 2 <= (
+            o.fov_mask_radius**2)
 
     def frames(self) -> Iterator[np.ndarray]:
         """Render all frames lazily, in order."""
@@ -481,13 +500,15 @@ def simulate_pcle(
 ) -> Path:
     """Generate a pCLE dataset folder (dataset contract of design.md) at ``out``.
 
-    Writes frames/, frames.csv, camera.yaml (size, pixel_size_um), robot.csv, robot_noisy.csv,
-    ground_truth.csv, events.csv, truth_positions.csv and simulation.json (the options used)."""
+    Writes frames/, frames.csv, camera.yaml (size, pixel_size_um[, fov_mask_radius]), robot.csv,
+    robot_noisy.csv, ground_truth.csv, events.csv, truth_positions.csv and simulation.json (the
+    options used)."""
     from fusedmosaic.io import Camera, RobotSamples, write_dataset
 
     scene = generate_pcle(options)
     o = scene.options
-    camera = Camera(o.width, o.height, pixel_size_um=o.pixel_size_um)
+    camera = Camera(o.width, o.height, pixel_size_um=o.pixel_size_um,
+                    fov_mask_radius=o.fov_mask_radius if o.fov_mask_radius > 0 else None)
     info = {"simulator": "pcle", "options": asdict(o), "path_length_um": scene.path_length_um}
     return write_dataset(
         out,
