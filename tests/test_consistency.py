@@ -12,6 +12,7 @@ import shutil
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from fusedmosaic.estimation.bundle import BundleOptions, run_ba_emt, run_emt
 from fusedmosaic.estimation.consistency import (
@@ -23,6 +24,7 @@ from fusedmosaic.estimation.consistency import (
     tracker_agreement,
 )
 from fusedmosaic.estimation.sequential import SequentialOptions, run_lba_emt
+from fusedmosaic.estimation.world import WorldAlignment, poses_from_aligned
 from fusedmosaic.io import read_dataset
 from fusedmosaic.simulation import FetoscopyOptions, simulate_fetoscopy
 
@@ -147,6 +149,30 @@ def test_lba_emt_reports_the_same(base, work):
     assert any("disagrees with the images" in w for w in bad.details["warnings"])
 
 
+def far_origin(row):  # the field generator 300 mm away: every sensor position shifted
+    row["tz"] = repr(float(row["tz"]) + 300.0)
+    return row
+
+
+def test_a_tracker_origin_far_away_is_no_disagreement(base, work):
+    """The check compares in the EMT prior's world (centred on the first tracked camera): with
+    the tracker's origin 300 mm away, a consistent tracker read 3.2 x its noise from lba-emt's
+    poses in the tracker's world (t carries rotation noise x distance) and was reported as
+    disagreeing, where ba-emt said 0.82 (audit)."""
+    data = work / "far_origin"
+    if not data.exists():
+        rewrite_tracking(base, data, far_origin)
+    options = SequentialOptions(bootstrap_frames=12)
+    near = run_lba_emt(read_dataset(base), progress=False, options=options)
+    far = run_lba_emt(read_dataset(data), progress=False, options=options)
+    assert far.details["warnings"] == []
+    # (near: the prior's world is the tracker's, its origin ~30 mm from the cameras; far:
+    # centred on the first camera)
+    assert far.details["tracker_agreement"]["noise_ratio"] == pytest.approx(
+        near.details["tracker_agreement"]["noise_ratio"], rel=0.05)
+    assert far.details["tracker_agreement"]["noise_ratio"] < 1.3
+
+
 def test_solver_stopping_early_is_reported(base):
     r = run_ba_emt(read_dataset(base), progress=False, options=BundleOptions(max_iterations=1))
     assert r.details["solver"]["termination"] == "NO_CONVERGENCE"
@@ -187,6 +213,16 @@ def test_agreement_figures_follow_the_noise():
         a = tracker_agreement(truth, tracker, np.ones(200, bool), plane)
         assert a["noise_ratio"] == pytest.approx(scale, rel=0.15)
         assert (a["warnings"] != []) == (scale > MAX_NOISE_RATIO)
+        # judged in the prior's world, centred on the first camera whatever the tracker's:
+        # origin 500 mm away with axes turned 120 deg, or 800 mm away the other way
+        ratios = []
+        for turn, origin in (([0, 2.1, 0], [400.0, -300.0, 0.0]), ([0, 0, 0], [0, 0, -800.0])):
+            world = WorldAlignment(Rotation.from_rotvec(turn).as_matrix(), np.array(origin))
+            ratios.append(tracker_agreement(
+                poses_from_aligned(truth, world), poses_from_aligned(tracker, world),
+                np.ones(200, bool), None)["noise_ratio"])
+        assert ratios[0] == pytest.approx(ratios[1], rel=1e-6)
+        assert ratios[0] == pytest.approx(scale, rel=0.15)
     empty = tracker_agreement(truth, np.full_like(truth, np.nan), np.zeros(200, bool), plane)
     assert empty == {"frames": 0, "warnings": []}
     # the plane check: a std the images leave unbounded (a start-up's assumed plane), a bound
