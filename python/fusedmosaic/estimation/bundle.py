@@ -32,6 +32,7 @@ from fusedmosaic.estimation.motion import (
 from fusedmosaic.estimation.plane import estimate_plane
 from fusedmosaic.estimation.world import (
     plane_from_aligned,
+    plane_to_aligned,
     poses_from_aligned,
     poses_to_aligned,
     world_alignment,
@@ -456,9 +457,22 @@ def run_ba_emt(dataset, *, progress: bool = True, options: BundleOptions | None 
 
 def run_emt(dataset, *, progress: bool = True, options: BundleOptions | None = None,
             plane: np.ndarray | None = None) -> MethodResult:
-    """EMT baseline: tracker poses + a plane (estimated from EMT-guided pairs unless given)."""
+    """EMT baseline: tracker poses + a plane (estimated from EMT-guided pairs unless given, in
+    the tracker's world). The plane is estimated in the world ba-emt adjusts in (aligned on the
+    first tracked camera when the tracker's origin is far, estimation/world.py): with the
+    origin 800 mm away its fit in the tracker's world put e_M at 81 px, 35 near it."""
     o = options or BundleOptions(pair_selection="emt-guided")
     K = dataset.camera.require_camera_matrix("emt")
+    world = world_alignment(np.where(np.asarray(dataset.pose_valid, bool)[:, None],
+                                     dataset.cam_from_world, np.nan))
+    if world is not None:
+        aligned = replace(dataset, cam_from_world=poses_to_aligned(dataset.cam_from_world,
+                                                                   world))
+        result = run_emt(aligned, progress=progress, options=options,
+                         plane=None if plane is None else plane_to_aligned(plane, world))
+        result.poses = dataset.cam_from_world.copy()
+        result.plane = plane_from_aligned(result.plane, world)
+        return result
     timings: dict[str, float] = {}
     details: dict = {}
     if plane is None:
