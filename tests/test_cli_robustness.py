@@ -814,6 +814,23 @@ def test_out_inside_the_dataset_is_refused(data, computed, capsys, inside):
     assert computed == [] and listing(dataset) == before
 
 
+@pytest.mark.parametrize("out", ["linked/frames", "shared/frames", "shared/frames/sub"])
+def test_out_in_a_symlinked_frames_folder_is_refused(data, tmp_path, computed, capsys, out):
+    """A dataset whose frames/ links to a shared folder: --out DATA/frames resolved outside
+    the dataset and wrote mosaic.png, report.json, ... among the shared frames (audit)."""
+    import shutil
+
+    shutil.copytree(data / "feto" / "frames", tmp_path / "shared" / "frames")
+    linked = tmp_path / "linked"
+    shutil.copytree(data / "feto", linked, ignore=shutil.ignore_patterns("frames"))
+    (linked / "frames").symlink_to(tmp_path / "shared" / "frames")
+    before = listing(tmp_path / "shared")
+    assert run(linked, tmp_path / out) == 2
+    err = capsys.readouterr().err
+    assert "would corrupt the dataset: choose --out outside it" in err
+    assert computed == [] and listing(tmp_path / "shared") == before
+
+
 # --------------------------------------------------------------------------- numpy warnings
 
 
