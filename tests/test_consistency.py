@@ -173,14 +173,12 @@ def test_a_tracker_origin_far_away_is_no_disagreement(base, work):
     assert far.details["tracker_agreement"]["noise_ratio"] < 1.3
 
 
-def test_emt_plane_does_not_depend_on_the_tracker_origin(work):
+def test_emt_plane_does_not_depend_on_the_tracker_origin(syn40, work):
     """The EMT baseline fits its plane in the prior's world too: with the tracker's origin
     800 mm away, its fit in the tracker's world put e_M at 81 px against 35 (audit)."""
     from fusedmosaic.evaluation.metrics import frame_errors, mosaic_error
 
-    near = work / "syn40"
-    if not near.exists():  # (the SYN circle's first 40 frames, as the audit's)
-        simulate_fetoscopy(near, FetoscopyOptions(n_frames=40))
+    near = syn40
     data = work / "far_origin_800"
     if not data.exists():
         rewrite_tracking(near, data, lambda row: {**row, "tx": repr(float(row["tx"]) + 800.0)})
@@ -191,6 +189,36 @@ def test_emt_plane_does_not_depend_on_the_tracker_origin(work):
         e_M.append(mosaic_error(frame_errors(r.homographies, dataset.ground_truth,
                                              *dataset.camera.size)))
     assert e_M[1] == pytest.approx(e_M[0], rel=0.1), e_M
+
+
+@pytest.fixture(scope="module")
+def syn40(work):
+    """The SYN circle's first 40 frames (4 laps: 10 frames a lap), as the audit's."""
+    return simulate_fetoscopy(work / "syn40", FetoscopyOptions(n_frames=40))
+
+
+@pytest.mark.parametrize("laps, stiff", [(6.0, False), (1.6, True)])
+def test_a_motion_prior_stiffer_than_the_motion_is_reported(syn40, work, laps, stiff):
+    """Sigma_p from a recording of another pace (--motion-sigma-from): the 150-frame SYN
+    circle's (37.5 frames a lap) on the 40-frame one (10) made the fusion shrink the motion
+    with no sign but a tracker "disagreeing" (plane 11 mm instead of 30, cameras 9 mm off;
+    audit). Here the REF circles 60 frames at 6 laps (the data's pace) or 1.6."""
+    from fusedmosaic.estimation.consistency import MAX_MOTION_DEPARTURE
+    from fusedmosaic.estimation.motion import motion_sigma_from_recording
+
+    ref = work / f"ref_{laps}"
+    if not ref.exists():
+        simulate_fetoscopy(ref, FetoscopyOptions(n_frames=60, laps=laps, seed=7))
+    sigma = tuple(motion_sigma_from_recording(ref))
+    r = run_ba_emt(read_dataset(syn40), progress=False,
+                   options=BundleOptions(motion_sigma=sigma))
+    scale = r.details["motion_prior_agreement"]["departure_scale"]
+    assert (max(scale) > MAX_MOTION_DEPARTURE) == stiff, scale
+    assert any("too stiff for this motion" in w for w in r.details["warnings"]) == stiff
+    distance = r.details["tracker_agreement"]["plane_distance_mm"]
+    assert (distance < 25.0) == stiff, distance  # truth 30 mm
+    assert "motion_prior_agreement" not in run_ba_emt(read_dataset(syn40),
+                                                       progress=False).details  # (default)
 
 
 def test_solver_stopping_early_is_reported(base):

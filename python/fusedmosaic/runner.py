@@ -670,7 +670,8 @@ def add_streamed_checks(result: methods.MethodResult, dataset, method: str, opti
     from fusedmosaic.estimation.consistency import add_tracker_agreement
 
     add_tracker_agreement(details, result.poses, dataset, result.plane,
-                          getattr(options, "emt_sigma", None))
+                          getattr(options, "emt_sigma", None),
+                          getattr(options, "motion_sigma", None))
 
 
 def check_live_limits(max_frames, duration_s, frame_timeout_s,

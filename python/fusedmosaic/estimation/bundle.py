@@ -434,7 +434,7 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
         # agreement, 0.0 on every axis, read as perfect (e_M 117 px; helper fuzz 32)
         details["tracker_agreement"] = {"skipped": "the adjustment failed"}
     elif use_emt:
-        add_tracker_agreement(details, poses, dataset, plane, o.emt_sigma)
+        add_tracker_agreement(details, poses, dataset, plane, o.emt_sigma, o.motion_sigma)
     status = _status(n, placed, ok, "not connected to frame 0 by registered pairs")
     if use_emt:  # as lba-emt's: placed by C_p alone, however far from their anchors
         tracked = np.asarray(dataset.pose_valid, bool).copy()

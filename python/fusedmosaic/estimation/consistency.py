@@ -32,6 +32,11 @@ PLANE_DISTANCE_RANGE_MM = (1.0, 2000.0)
 # hand-held sequence through a 60 px field stop registered 2 pairs, 5.3, plane 7.8 mm for 29,
 # ba-emt / lba-emt e_M 166 px against the tracker alone's 91. Normal runs: 0.002-0.11.
 MAX_PLANE_RELATIVE_STD = 0.25
+# motion_prior_agreement: above this ratio of the tracker's squared departures from constant
+# velocity (median, per component) to what Sigma_p and Sigma_EMT allow, a warning; from fewer
+# triples of tracked frames, not judged.
+MAX_MOTION_DEPARTURE = 3.0
+MIN_MOTION_TRIPLES = 8
 CONVENTIONS = ("tracking.csv holds tracker_from_sensor (not its inverse) with quaternions x, y, "
                "z, w and translations in mm, and hand_eye.txt holds sensor_from_camera (not its "
                "inverse)")
@@ -142,18 +147,73 @@ def tracker_agreement(poses: np.ndarray, tracker_poses: np.ndarray, tracker_vali
     return out
 
 
+def motion_prior_agreement(samples: np.ndarray, times, motion_sigma, emt_sigma=None, *,
+                           source: str = "tracking.csv") -> dict:
+    """Does Sigma_p allow the motion the tracker saw? The tracker's departures from constant
+    velocity over each triple of consecutive tracked frames (motion.triple_departures, whitened
+    by Sigma_p and the samples' own noise Sigma_EMT, in the prior's world) have a squared median
+    of chi2(1)'s when both are right; per component, their ratio ("departure_scale"). Above
+    MAX_MOTION_DEPARTURE on a component, a warning: a Sigma_p far stiffer than the recording's
+    motion makes the fusion shrink the motion (SYN 40 frames with Sigma_p from a 150-frame SYN
+    recording, 13x slower: plane 11 mm instead of 30, cameras 9 mm off, no other sign) -- or
+    the tracker is noisier than emt_sigma. Returns the figures and "warnings"."""
+    from fusedmosaic.estimation.motion import CHI2_1_MEDIAN, triple_departures
+
+    samples = np.asarray(samples, np.float64)
+    samples = poses_to_aligned(samples, world_alignment(samples))
+    times = np.asarray(times, np.float64)
+    nominal = float(np.median(np.diff(times))) if len(times) > 1 else None
+    sigma = default_emt_sigma() if emt_sigma is None else np.asarray(emt_sigma, np.float64)
+    departure = triple_departures(samples, times, nominal, motion_sigma=motion_sigma,
+                                  emt_sigma=sigma)
+    w = np.array([d[0] for k in range(2, len(samples))
+                  if (d := departure(k - 2, k - 1, k)) is not None]).reshape(-1, 6)
+    out: dict = {"triples": len(w), "warnings": []}
+    if len(w) < MIN_MOTION_TRIPLES:
+        return out
+    scale = np.median(w**2, axis=0) / CHI2_1_MEDIAN
+    out["departure_scale"] = scale.tolist()
+    worst = int(np.argmax(scale))
+    if scale[worst] > MAX_MOTION_DEPARTURE:
+        axis = ("rx", "ry", "rz", "tx", "ty", "tz")[worst]
+        out["warnings"].append(
+            f"{source}: the tracker's motion departs from constant velocity "
+            f"{np.sqrt(scale[worst]):.1f} x as much as the motion prior Sigma_p and the "
+            f"tracker's noise allow (component {axis}, median over {len(w)} triples of "
+            "frames): a Sigma_p too stiff for this motion (--motion-sigma-from a recording "
+            "of another pace or kind) makes the fusion shrink the motion, and poses.csv and "
+            "plane.json come out of scale; estimate it from a recording of this motion, or "
+            "leave the default. Or the tracker is noisier than the EMT prior assumes: give "
+            "its noise (--tracker-rot-sigma / --tracker-trans-sigma; calibrate measures it)")
+    return out
+
+
 def add_tracker_agreement(details: dict, poses: np.ndarray, dataset, plane,
-                          emt_sigma=None) -> None:
+                          emt_sigma=None, motion_sigma=None) -> None:
     """tracker_agreement of a pose method's result on ``dataset`` (its tracking.csv poses) into
     its ``details``: "tracker_agreement", and the warnings first in "warnings". The details'
     "plane_relative_std" (None or NaN: not computed) and pairs.registered judge whether the
-    images observe the plane."""
+    images observe the plane. With a ``motion_sigma`` the user gave (not the paper's default,
+    which is loose), also motion_prior_agreement: "motion_prior_agreement"."""
     std = details.get("plane_relative_std")
+    source = str(dataset.root / "tracking.csv")
     agreement = tracker_agreement(poses, dataset.cam_from_world, dataset.pose_valid, plane,
-                                  emt_sigma, source=str(dataset.root / "tracking.csv"),
+                                  emt_sigma, source=source,
                                   plane_relative_std=None if std is None or np.isnan(std) else std,
                                   registered_pairs=details.get("pairs", {}).get("registered"))
-    details["warnings"] = agreement.pop("warnings") + details.get("warnings", [])
+    warnings = agreement.pop("warnings")
+    if motion_sigma is not None:
+        samples = np.where(np.asarray(dataset.pose_valid, bool)[:, None],
+                           dataset.cam_from_world, np.nan)
+        motion = motion_prior_agreement(samples, dataset.timestamps, motion_sigma, emt_sigma,
+                                        source=source)
+        stiff = motion.pop("warnings")
+        if stiff:  # the likelier cause of a disagreement too: said first, and there
+            warnings = stiff + [w + " (or, first, the motion prior: see the warning before)"
+                                if w.startswith(f"{source}: the tracker disagrees") else w
+                                for w in warnings]
+        details["motion_prior_agreement"] = motion
+    details["warnings"] = warnings + details.get("warnings", [])
     details["tracker_agreement"] = agreement
 
 

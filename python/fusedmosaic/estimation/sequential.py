@@ -1815,7 +1815,8 @@ def run_lba_emt(dataset, *, progress: bool = True,
                                            len(step_times), o.max_iterations,
                                            o.startup_max_iterations)
     if dataset.cam_from_world is not None:
-        add_tracker_agreement(details, poses, dataset, mosaicker.plane, o.emt_sigma)
+        add_tracker_agreement(details, poses, dataset, mosaicker.plane, o.emt_sigma,
+                              o.motion_sigma)
     status = [results[k].status for k in range(n)]
     return MethodResult(G, status, poses=poses, plane=mosaicker.plane, timings=timings,
                         parameters=asdict(o), details=details)
