@@ -40,9 +40,13 @@ MIN_MOTION_TRIPLES = 8
 CONVENTIONS = ("tracking.csv holds tracker_from_sensor (not its inverse) with quaternions x, y, "
                "z, w and translations in mm, and hand_eye.txt holds sensor_from_camera (not its "
                "inverse)")
+# ... and the clocks: video frames timed at a wrong rate (a header's 30 fps for 25) pair the
+# frames with other samples, read as the same disagreement (ba-emt 7.9 x the noise).
+CONVENTIONS_AND_TIMING = (CONVENTIONS + ", and that the frames' times match the tracker's "
+                          "(frames.csv or --fps, --tracker-time-offset)")
 # What to do about a tracker that disagrees with the images: {} names how to give its noise.
 TRACKER_NOISE_ADVICE = ("If the tracker is that noisy, give its noise ({}); otherwise check that "
-                        + CONVENTIONS)
+                        + CONVENTIONS_AND_TIMING)
 
 
 def default_emt_sigma() -> np.ndarray:

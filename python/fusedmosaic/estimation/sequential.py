@@ -72,6 +72,7 @@ from fusedmosaic.estimation.bundle import (
     unanchored_frames,
 )
 from fusedmosaic.estimation.consistency import (
+    CONVENTIONS_AND_TIMING,
     MAX_NOISE_RATIO,
     TRACKER_NOISE_ADVICE,
     add_tracker_agreement,
@@ -139,6 +140,9 @@ STARTUP_PROBE_ITERATIONS = 5
 # ones stopped at FUNCTION_TOLERANCE at 643-5500; late trackers' finite ones at 1.0-2.2,
 # where solving on crawled along the valley their scale leaves for 300 iterations (7-8 s).
 UNBOUNDED_CHECK_RELATIVE_STD = 10.0
+# A start-up plane behind its cameras from at least this many registered pairs showing parallax
+# is blamed on the tracker's poses, not on too few pairs or too short a baseline.
+CONTRADICTING_PAIRS = 20
 
 
 @dataclass
@@ -1440,14 +1444,26 @@ class SequentialMosaicker:
             summary["plane_relative_std"] = np.inf
         if behind:
             self._startup_refused = (refused_pairs, len(ids))
+            parallax = homography_parallax(usable, self.K)
+            if len(usable) >= CONTRADICTING_PAIRS and parallax > MAX_NOMINAL_PARALLAX:
+                # Many pairs with parallax: neither few nor short. (An inverted tracking.csv
+                # on the SYN circle, 271 pairs, centres 28.7 mm apart, was told "too few pairs
+                # or too short a baseline".)
+                why = (f"the images show parallax ({parallax:.2g} of the depth, 90th "
+                       "percentile), so the tracker's poses likely contradict them: check that "
+                       f"{CONVENTIONS_AND_TIMING}")
+            else:
+                why = ("too few pairs or too short a baseline to initialise it (the start-up "
+                       "cameras' centres lie within "
+                       f"{camera_baseline_mm(checked_poses):.3g} mm of each other" + (
+                           "; a camera held still or only turning about its axis gives the "
+                           "images no parallax"
+                           if baseline_ratio(checked_poses, np.asarray(ba.plane()))
+                           < MIN_BASELINE_RATIO else "") + ")")
             self._startup_problem = (
                 f"the plane the start-up estimated from {len(usable)} registered pairs is not "
-                f"in front of frames {behind[:5]}{' ...' if len(behind) > 5 else ''}: too few "
-                "pairs or too short a baseline to initialise it (the start-up cameras' centres "
-                f"lie within {camera_baseline_mm(checked_poses):.3g} mm of each other" + (
-                    "; a camera held still or only turning about its axis gives the images no "
-                    "parallax" if baseline_ratio(checked_poses, np.asarray(ba.plane()))
-                    < MIN_BASELINE_RATIO else "") + ")" + self._disagreement(ba, tracked))
+                f"in front of frames {behind[:5]}{' ...' if len(behind) > 5 else ''}: {why}"
+                + self._disagreement(ba, tracked))
             return False
         # Nor is a plane the start-up cannot tell (the same 60 frames, 3 pairs after 20 frames:
         # relative std 1.8, depth 4 mm for 30, frames ~1000 px off), unless the sequence ends
