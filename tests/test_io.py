@@ -727,8 +727,17 @@ def test_camera_pose_from_one_live_sample():
     got = [camera_pose_from_sample(s.tracker_translations[i], s.tracker_quaternions[i],
                                    s.hand_eye) for i in at]
     np.testing.assert_allclose(got, expected, atol=1e-12)
-    with pytest.raises(ValueError, match="quaternion is zero"):
+    with pytest.raises(ValueError, match="has norm 0, not 1"):
         camera_pose_from_sample([0, 0, 0], [0, 0, 0, 0])
+    # checked as tracking.csv and hand_eye.txt are (a norm of 1000 was normalised, a scaled or
+    # reflected hand-eye taken or refused by scipy's words; audit)
+    with pytest.raises(ValueError, match=r"quaternion \[0.0, 0.0, 0.0, 1000.0\] has norm 1000"):
+        camera_pose_from_sample([1, 2, 3], [0, 0, 0, 1000])
+    for X, why in ((np.diag([2.0, 2, 2, 1]), "norms 2, 2, 2, not 1"),
+                   (np.diag([1.0, 1, -1, 1]), "a reflection")):
+        with pytest.raises(ValueError, match=r"hand-eye \(sensor_from_camera\): not a rigid "
+                           rf"transform: .*{why}"):
+            camera_pose_from_sample([1, 2, 3], [0, 0, 0, 1], X)
     with pytest.raises(ValueError, match="must be finite"):
         camera_pose_from_sample([0, np.nan, 0], [0, 0, 0, 1])
     with pytest.raises(ValueError, match=r"translation \(3,\), quaternion \(4,\)"):

@@ -580,7 +580,9 @@ def camera_pose_from_sample(translation, quaternion, sensor_from_camera=None) ->
     the hand-eye transform sensor_from_camera (4x4, identity if None): what
     ``SequentialMosaicker.add_frame`` takes as ``tracker_pose`` in a live loop, where the sample
     after the frame time is not there yet to interpolate (interpolate_camera_poses does that
-    for recorded samples). Raises ValueError for non-finite values or a zero quaternion."""
+    for recorded samples). Checked as tracking.csv and hand_eye.txt are: ValueError for
+    non-finite values, a quaternion whose norm is not 1 (to QUATERNION_NORM_TOLERANCE: another
+    field order, or a corrupt sample) and a hand-eye that is not a rigid transform."""
     t = np.asarray(translation, dtype=np.float64)
     q = np.asarray(quaternion, dtype=np.float64)
     X = np.eye(4) if sensor_from_camera is None else np.asarray(sensor_from_camera, np.float64)
@@ -589,8 +591,12 @@ def camera_pose_from_sample(translation, quaternion, sensor_from_camera=None) ->
                          f"hand-eye, got {t.shape}, {q.shape}, {X.shape}")
     if not (np.isfinite(t).all() and np.isfinite(q).all() and np.isfinite(X).all()):
         raise ValueError("tracker sample: translation, quaternion and hand-eye must be finite")
-    if np.linalg.norm(q) < 1e-9:
-        raise ValueError("tracker sample: the quaternion is zero (no rotation)")
+    norm = float(np.linalg.norm(q))
+    if not abs(norm - 1.0) <= QUATERNION_NORM_TOLERANCE:
+        raise ValueError(f"tracker sample: quaternion {q.tolist()} has norm {norm:.6g}, not 1 "
+                         f"(tolerance {QUATERNION_NORM_TOLERANCE:g}): x, y, z, w of a rotation")
+    if sensor_from_camera is not None:
+        X = _checked_hand_eye(X, "hand-eye (sensor_from_camera)")
     return _cam_from_world(Rotation.from_quat(q), t, X)[0]
 
 
