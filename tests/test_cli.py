@@ -53,6 +53,18 @@ def test_simulate_black_frames_flag_uses_the_paper_list(tmp_path):
 def test_evaluate_bad_input(datasets, tmp_path, capsys):
     assert main(["evaluate", str(tmp_path), "--truth", str(datasets / "feto")]) == 2
     assert "homographies.csv: file not found" in capsys.readouterr().err
+    # frames of another sequence: how many, not only the first 5 (audit)
+    write_homographies_csv(tmp_path / "homographies.csv", np.arange(40),
+                           np.repeat(np.eye(3)[None], 40, axis=0))
+    assert main(["evaluate", str(tmp_path), "--truth", str(datasets / "feto")]) == 2
+    assert ("(missing 0 frames [], unexpected 28 frames [12, 13, 14, 15, 16, ...])"
+            in capsys.readouterr().err)
+    # a NaN is not an empty field
+    rows = (tmp_path / "homographies.csv").read_text().splitlines()
+    rows[1] = ",".join(["0", "nan", *rows[1].split(",")[2:]])
+    (tmp_path / "homographies.csv").write_text("\n".join(rows) + "\n")
+    assert main(["evaluate", str(tmp_path), "--truth", str(datasets / "feto")]) == 2
+    assert "row 2: h00 empty or NaN; leave all of" in capsys.readouterr().err
 
 
 def test_run_with_motion_sigma_from_an_independent_recording(datasets, tmp_path, capsys):

@@ -973,6 +973,11 @@ def test_keyframe_blocks_shorter_than_the_window_are_refused(scene):
         SequentialMosaicker(scene.camera, SequentialOptions(window_size=5, frames_per_cluster=2))
     for preset in ("syn", "phb", "ex"):
         SequentialMosaicker(scene.camera, SequentialOptions.preset(preset))
+    # (a string failed in arithmetic, naming no option; audit)
+    for name, value in (("window_size", "10"), ("num_new", 2.5), ("frames_per_cluster", 0)):
+        with pytest.raises(ValueError, match=rf"SequentialOptions\.{name} must be an integer "
+                           rf">= 1, got {value!r}"):
+            SequentialMosaicker(scene.camera, SequentialOptions(**{name: value}))
 
 
 # --------------------------------------- the start-up's plane: in front of the cameras, observed

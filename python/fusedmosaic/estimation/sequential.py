@@ -414,7 +414,8 @@ class SequentialMosaicker:
                              f"{type(options).__name__}")
         # Counts: integers within range, checked here (before: some failed only at the first
         # window step, on every frame after it, e.g. max_points_per_pair = 0).
-        for name, low in (("max_points_per_pair", 1), ("bootstrap_frames", 1),
+        for name, low in (("window_size", 1), ("num_new", 1), ("frames_per_cluster", 1),
+                          ("max_points_per_pair", 1), ("bootstrap_frames", 1),
                           ("num_clusters", 0), ("loop_pairs", 0), ("loop_min_separation", 0),
                           ("hold_prior_only_steps", 0), ("hold_unanchored_frames", 0),
                           ("history_steps", 0),

@@ -285,10 +285,15 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
     ids, G_est = read_homographies_csv(est_path)
     truth_ids = dataset.frame_ids
     if not np.array_equal(np.sort(ids), np.sort(truth_ids)):
-        missing = sorted(set(truth_ids.tolist()) - set(ids.tolist()))[:5]
-        extra = sorted(set(ids.tolist()) - set(truth_ids.tolist()))[:5]
+        def listed(frames: set) -> str:  # "3 frames [5, 6, 7]", the first 5 of more, "..."
+            first = ", ".join(map(str, sorted(frames)[:5]))
+            return (f"{len(frames)} frame{'s' if len(frames) != 1 else ''} "
+                    f"[{first}{', ...' if len(frames) > 5 else ''}]")
+
+        missing = set(truth_ids.tolist()) - set(ids.tolist())
+        extra = set(ids.tolist()) - set(truth_ids.tolist())
         raise ValueError(f"{est_path}: frames do not match {truth_root / 'ground_truth.csv'} "
-                         f"(missing {missing}, unexpected {extra})")
+                         f"(missing {listed(missing)}, unexpected {listed(extra)})")
     G_est = G_est[np.argsort(ids)]
     w, h = dataset.camera.width, dataset.camera.height
     G_true, r = truth_in_reference(G_est, dataset.ground_truth)

@@ -62,7 +62,7 @@ class Camera:
     pixel_size_um: float | None = None
     fov_mask_radius: float | None = None
     lens_model: str = "pinhole"
-    source: str = field(default="camera.yaml", compare=False, repr=False)
+    source: str = field(default="Camera", compare=False, repr=False)
 
     def __post_init__(self) -> None:
         for key, value in (("image_width", self.width), ("image_height", self.height)):

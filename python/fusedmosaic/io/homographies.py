@@ -23,7 +23,7 @@ def _read_rows(path: str | Path, columns: list[str], check=None) -> tuple[np.nda
         i = partial[0]
         missing = [c for c, e in zip(columns, empty[i], strict=True) if e]
         raise ValueError(
-            f"{path}: row {rows[i]}: {','.join(missing)} empty; leave all of "
+            f"{path}: row {rows[i]}: {','.join(missing)} empty or NaN; leave all of "
             f"{columns[0]}..{columns[-1]} empty for an unplaced frame, or none"
         )
     infinite = np.flatnonzero(np.isinf(values).any(axis=1))

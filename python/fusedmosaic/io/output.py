@@ -396,7 +396,8 @@ class OutputWriter:
     def write_image(self, name: str, image: np.ndarray) -> Path:
         path = self.path(name)
         if not cv2.imwrite(str(path), image):
-            raise ValueError(f"{name}: cv2.imwrite failed")
+            raise ValueError(f"{self.out_dir / name}: the image could not be written (a full "
+                             f"disk, or no write permission in {path.parent}?)")
         return path
 
     def write_text(self, name: str, text: str) -> Path:

@@ -486,5 +486,6 @@ def write_frames(frames_dir: str | Path, images: Iterable[np.ndarray]) -> int:
                 f"got {image.dtype} {image.shape}"
             )
         if not cv2.imwrite(str(path), image):
-            raise ValueError(f"{path}: cv2.imwrite failed")
+            raise ValueError(f"{path}: the image could not be written (a full disk, or no "
+                             "write permission there?)")
     return count
