@@ -831,6 +831,17 @@ def test_out_in_a_symlinked_frames_folder_is_refused(data, tmp_path, computed, c
     assert computed == [] and listing(tmp_path / "shared") == before
 
 
+def test_a_video_inside_a_recording_yet_to_be_made_is_refused(tmp_path):
+    """live --record REC --video REC/creation.mp4: REC does not exist when it is checked (a
+    first version of the symlinked-frames check skipped missing dataset folders; review)."""
+    from fusedmosaic.runner import check_video_destination
+
+    with pytest.raises(ValueError, match="the video would be written inside the dataset: its "
+                       "path is inside the dataset folder"):
+        check_video_destination(tmp_path / "REC" / "creation.mp4", tmp_path / "OUT",
+                                tmp_path / "REC")
+
+
 # --------------------------------------------------------------------------- numpy warnings
 
 

@@ -241,8 +241,9 @@ def test_an_inverted_tracker_refused_at_startup_is_named(syn40, work):
                        r"\[0, 1, 2, 3, 4\] \.\.\.: the images show parallax \(0\.\d+ of the "
                        r"depth, 90th percentile\), so the tracker's poses likely contradict them: "
                        r"check that tracking\.csv holds tracker_from_sensor \(not its inverse\)"
-                       r".*--tracker-time-offset\)"):
+                       r".*--tracker-time-offset\)") as e:
         run_lba_emt(read_dataset(data), progress=False)
+    assert str(e.value).count("tracker_from_sensor") == 1  # (said once; review)
 
 
 def test_solver_stopping_early_is_reported(base):
@@ -293,8 +294,14 @@ def test_agreement_figures_follow_the_noise():
             ratios.append(tracker_agreement(
                 poses_from_aligned(truth, world), poses_from_aligned(tracker, world),
                 np.ones(200, bool), None)["noise_ratio"])
-        assert ratios[0] == pytest.approx(ratios[1], rel=1e-6)
+        # (the camera nearest the median centre, per axis, may differ between them)
+        assert ratios[0] == pytest.approx(ratios[1], rel=0.03)
         assert ratios[0] == pytest.approx(scale, rel=0.15)
+        # ... whatever the first sample: 2 m off, it centred the world there (ratio ~20)
+        glitch = poses_from_aligned(tracker, world)
+        glitch[0, 3:] += 2000.0
+        a = tracker_agreement(poses_from_aligned(truth, world), glitch, np.ones(200, bool), None)
+        assert a["noise_ratio"] == pytest.approx(scale, rel=0.15)
     empty = tracker_agreement(truth, np.full_like(truth, np.nan), np.zeros(200, bool), plane)
     assert empty == {"frames": 0, "warnings": []}
     # the plane check: a std the images leave unbounded (a start-up's assumed plane), a bound

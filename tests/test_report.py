@@ -222,7 +222,8 @@ def test_video_never_replaces_a_file_no_run_wrote(dataset, tmp_path, capsys):
     clip.write_bytes(b"the user's own clip")
     run = ["run", str(dataset), "--method", "emt", "--no-report", "--out"]
     assert main([*run, str(tmp_path / "a"), "--video", str(dataset_video)]) == 2
-    assert "the video would be written inside the dataset folder" in capsys.readouterr().err
+    assert ("the video would be written inside the dataset: its path is inside the dataset "
+            "folder" in capsys.readouterr().err)
     assert main([*run, str(tmp_path / "a"), "--video", str(clip)]) == 2
     assert (f"{clip}: exists and no earlier run into {tmp_path / 'a'} wrote it"
             in capsys.readouterr().err)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import os
 import re
 import time
 import warnings
@@ -342,16 +341,14 @@ def check_compositing_options(blend, canvas, names: dict[str, str] | None = None
 
 def _in_dataset(path: Path, dataset_root: Path) -> str | None:
     """How `path` lies in the dataset ("is the dataset folder", "is inside ..."), or None:
-    resolved, as given (a symlinked frames/ resolves elsewhere: --out DATA/frames wrote the
-    outputs among the shared frames), and in the frames folder wherever it lies."""
+    resolved (the dataset folder need not exist yet: a live recording's), and in the frames
+    folder wherever it lies (a symlinked frames/ resolves elsewhere: --out DATA/frames wrote
+    the outputs among the shared frames)."""
     root = dataset_root.resolve()
-    if not root.is_dir():
-        return None
-    lexical = Path(os.path.abspath(path)), Path(os.path.abspath(dataset_root))
     frames = dataset_root / "frames"
     if path.resolve() == root:
         return "is the dataset folder"
-    if is_under(path, root) or lexical[1] in lexical[0].parents:
+    if is_under(path, root):
         return f"is inside the dataset folder {dataset_root}"
     if frames.is_dir() and is_under(path, frames, or_equal=True):
         return f"is (inside) the dataset's frames folder {frames} ({frames.resolve()})"
@@ -371,9 +368,10 @@ def check_video_destination(video: Path, out: Path, dataset_root: Path) -> None:
     """The creation video replaces a file only when a run into ``out`` wrote it (its report.json
     names that path), never a file of the user's (a recording, another clip) nor anything in the
     dataset folder: ValueError naming the path, before any work."""
-    if _in_dataset(video, dataset_root) is not None:
-        raise ValueError(f"{video}: the video would be written inside the dataset folder "
-                         f"{dataset_root}; choose a path outside it (e.g. in the output folder)")
+    where = _in_dataset(video, dataset_root)
+    if where is not None:
+        raise ValueError(f"{video}: the video would be written inside the dataset: its path "
+                         f"{where}; choose a path outside it (e.g. in the output folder)")
     if not (video.exists() or video.is_symlink()) or video.is_dir():
         return  # absent; a folder there is refused by the writer
     if not _named_by_earlier_run(video, out, lambda report: (

@@ -199,18 +199,19 @@ class FrameWarper:
         x0, y0, x1, y1 = box
         w, h = x1 - x0, y1 - y0
         channels = image.shape[2]
-        if channels == 1:
-            # Gray frames: the frame and its weight warped apart. OpenCV warps a 2-channel
-            # array on a slower path (400x400: 3.8 ms against 1.5 ms for the two apart) whose
-            # rounding differs from a 1-channel warp's (up to 4.5e-5), and multiband gives
-            # each canvas pixel to the frame whose weight here is the largest of warp_weight's:
-            # pixels no frame owned lost their fine bands (gray pCLE mosaics: 27 % of the
-            # canvas > 10 grey levels off). 3- and 4-channel warps round the weight channel as
-            # a 1-channel one (test_warped_weight_is_warp_weight).
-            data = np.empty((h, w, 2), np.float32)
+        if channels != 3:
+            # Gray (and 4-channel) frames: the frame and its weight warped apart. OpenCV warps
+            # a 2-channel array on a slower path (400x400: 3.8 ms against 1.5 ms for the two
+            # apart) whose rounding differs from a 1-channel warp's (up to 4.5e-5; 5 channels
+            # up to 1.1e-4), and multiband gives each canvas pixel to the frame whose weight
+            # here is the largest of warp_weight's: pixels no frame owned lost their fine
+            # bands (gray pCLE mosaics: 27 % of the canvas > 10 grey levels off). A 4-channel
+            # warp (BGR + weight) rounds the weight as a 1-channel one
+            # (test_warped_weight_is_warp_weight).
+            data = np.empty((h, w, channels + 1), np.float32)
             colour = np.multiply(image, self.colour_weight * np.float32(gain), dtype=np.float32)
-            data[:, :, :1] = _warp(colour, G, x0, y0, w, h)
-            data[:, :, 1:] = _warp(self.weight, G, x0, y0, w, h)
+            data[:, :, :-1] = _warp(colour, G, x0, y0, w, h)
+            data[:, :, -1:] = _warp(self.weight, G, x0, y0, w, h)
             return Patch(x0, y0, data)
         src = np.empty((self.height, self.width, channels + 1), np.float32)
         np.multiply(image, self.colour_weight * np.float32(gain), out=src[:, :, :-1])

@@ -35,7 +35,7 @@ from fusedmosaic.estimation.world import (
     plane_to_aligned,
     poses_from_aligned,
     poses_to_aligned,
-    world_alignment,
+    tracked_world,
 )
 from fusedmosaic.methods import MethodResult
 from fusedmosaic.registration.features import FeatureOptions, extract_features
@@ -337,7 +337,7 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     if options is not None and not options.motion_gate_chi2 > 0:
         raise ValueError("BundleOptions.motion_gate_chi2 must be > 0 (inf: no gate), got "
                          f"{options.motion_gate_chi2!r}")
-    world = world_alignment(dataset.cam_from_world) if use_emt else None
+    world = tracked_world(dataset.cam_from_world, dataset.pose_valid) if use_emt else None
     if world is not None:
         aligned = replace(dataset, cam_from_world=poses_to_aligned(dataset.cam_from_world,
                                                                    world))
@@ -463,8 +463,7 @@ def run_emt(dataset, *, progress: bool = True, options: BundleOptions | None = N
     origin 800 mm away its fit in the tracker's world put e_M at 81 px, 35 near it."""
     o = options or BundleOptions(pair_selection="emt-guided")
     K = dataset.camera.require_camera_matrix("emt")
-    world = world_alignment(np.where(np.asarray(dataset.pose_valid, bool)[:, None],
-                                     dataset.cam_from_world, np.nan))
+    world = tracked_world(dataset.cam_from_world, dataset.pose_valid)
     if world is not None:
         aligned = replace(dataset, cam_from_world=poses_to_aligned(dataset.cam_from_world,
                                                                    world))

@@ -19,7 +19,7 @@ import numpy as np
 
 from fusedmosaic import _core
 from fusedmosaic.estimation.plane import MIN_BASELINE_RATIO, baseline_ratio, camera_baseline_mm
-from fusedmosaic.estimation.world import poses_to_aligned, world_alignment
+from fusedmosaic.estimation.world import poses_to_aligned, tracked_world
 
 # Above this ratio of the tracker-estimate disagreement to the prior's noise, a warning: at
 # twice the assumed noise the prior weighs the tracker 4x too much (~1.3 measured there).
@@ -81,11 +81,11 @@ def tracker_agreement(poses: np.ndarray, tracker_poses: np.ndarray, tracker_vali
     out: dict = {"frames": int(ok.sum()), "warnings": []}
     if not ok.any():
         return out
-    # Compared in the world the EMT prior works in (world.world_alignment: centred on the first
-    # tracked camera when the tracker's origin is far): t of cam_from_world carries the rotation
+    # Compared in the world the EMT prior works in (world.tracked_world: centred on a tracked
+    # camera when the tracker's origin is far): t of cam_from_world carries the rotation
     # noise times the distance from the origin, so with a field generator 300 mm away a
     # consistent tracker read 3.2 x its noise (ba-emt, aligned, 0.82).
-    world = world_alignment(np.where(ok[:, None], tracker_poses, np.nan))
+    world = tracked_world(tracker_poses, ok)
     aligned = poses_to_aligned(poses[ok], world), poses_to_aligned(tracker_poses[ok], world)
     diff = np.empty((int(ok.sum()), 6))
     for i, (x, z) in enumerate(zip(*aligned, strict=True)):
@@ -164,7 +164,7 @@ def motion_prior_agreement(samples: np.ndarray, times, motion_sigma, emt_sigma=N
     from fusedmosaic.estimation.motion import CHI2_1_MEDIAN, triple_departures
 
     samples = np.asarray(samples, np.float64)
-    samples = poses_to_aligned(samples, world_alignment(samples))
+    samples = poses_to_aligned(samples, tracked_world(samples))
     times = np.asarray(times, np.float64)
     nominal = float(np.median(np.diff(times))) if len(times) > 1 else None
     sigma = default_emt_sigma() if emt_sigma is None else np.asarray(emt_sigma, np.float64)

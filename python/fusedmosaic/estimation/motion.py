@@ -14,7 +14,7 @@ import warnings
 import numpy as np
 
 from fusedmosaic import _core
-from fusedmosaic.estimation.world import poses_to_aligned, world_alignment
+from fusedmosaic.estimation.world import poses_to_aligned, tracked_world
 
 # Appendix Eq. 30 (std devs: rad x3, mm x3), the default when no motion data is given.
 PAPER_MOTION_SIGMA = np.array([0.0044, 0.0044, 0.0044, 15.2178, 15.2178, 15.2178])
@@ -309,7 +309,7 @@ MOTION_SIGMA_FLOOR = (1e-4, 0.01)
 def _motion_rms(poses: np.ndarray, frame_ids=None) -> np.ndarray:
     poses = np.asarray(poses, np.float64)
     if poses.ndim == 2 and poses.shape[1:] == (6,):
-        poses = poses_to_aligned(poses, world_alignment(poses))
+        poses = poses_to_aligned(poses, tracked_world(poses))
     r = constant_velocity_residuals(poses, frame_ids)
     return np.sqrt(np.mean(r**2, axis=0))
 

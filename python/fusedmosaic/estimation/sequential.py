@@ -1267,7 +1267,7 @@ class SequentialMosaicker:
                    f"relative standard deviation of {std:.2g}")
                 + f" (startup_max_plane_std {self.options.startup_max_plane_std:g})")
 
-    def _disagreement(self, ba, tracked: dict) -> str:
+    def _disagreement(self, ba, tracked: dict, conventions: bool = True) -> str:
         """For a refused start-up: "; its tracker samples disagree ..." when the adjusted poses
         lie further from the samples than MAX_NOISE_RATIO x the EMT prior's noise (as the run's
         tracker_agreement check), else "". A tracker in another convention is the likelier cause
@@ -1283,11 +1283,13 @@ class SequentialMosaicker:
         ratio = agreement.get("noise_ratio", 0.0)
         if not ratio > MAX_NOISE_RATIO:
             return ""
+        noise = "emt_sigma; --tracker-rot-sigma / --tracker-trans-sigma"
         return (f"; its {agreement['frames']} tracker samples disagree with the images: the "
                 f"adjusted poses differ from them by {agreement['rotation_rms_deg']:.2f} deg / "
                 f"{agreement['translation_rms_mm']:.2f} mm per axis (median), {ratio:.1f} x the "
-                "noise the EMT prior assumes. " + TRACKER_NOISE_ADVICE.format(
-                    "emt_sigma; --tracker-rot-sigma / --tracker-trans-sigma"))
+                "noise the EMT prior assumes. " + (
+                    TRACKER_NOISE_ADVICE.format(noise) if conventions else
+                    f"If the tracker is that noisy, give its noise ({noise})"))
 
     def _startup_outlier(self, ba, tracked: dict, seen: set) -> int | None:
         """Among the tracked start-up frames with a registered pair (`seen`: the images can
@@ -1464,7 +1466,7 @@ class SequentialMosaicker:
             self._startup_problem = (
                 f"the plane the start-up estimated from {len(usable)} registered pairs is not "
                 f"in front of frames {behind[:5]}{' ...' if len(behind) > 5 else ''}: {why}"
-                + self._disagreement(ba, tracked))
+                + self._disagreement(ba, tracked, conventions=CONVENTIONS_AND_TIMING not in why))
             return False
         # Nor is a plane the start-up cannot tell (the same 60 frames, 3 pairs after 20 frames:
         # relative std 1.8, depth 4 mm for 30, frames ~1000 px off), unless the sequence ends

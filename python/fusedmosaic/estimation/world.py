@@ -20,7 +20,8 @@ tracker's frame make that go wrong:
   axis: e_M 56 409 px one way, 87 145 px worst frame the other with frames 3-8 untracked;
   recentred, 0.4 px (worst frame 1 px) for origins 0.2-1 m away along or across the axis.
 
-So the methods work in an aligned world X' = R_a (X - c_a), taken from the first tracked camera:
+So the methods work in an aligned world X' = R_a (X - c_a), taken from a tracked camera (lba-emt:
+the first; offline methods and the checks: the one nearest the median centre, tracked_world):
 c_a its centre when that is more than ``ALIGN_DISTANCE`` from the tracker's origin (else 0), R_a
 its rotation when that is more than ``ALIGN_ANGLE`` from identity (else I). Then
 
@@ -49,6 +50,7 @@ __all__ = [
     "plane_to_aligned",
     "poses_from_aligned",
     "poses_to_aligned",
+    "tracked_world",
     "world_alignment",
 ]
 
@@ -83,6 +85,24 @@ def world_alignment(poses: np.ndarray) -> WorldAlignment | None:
         return None
     return WorldAlignment(R.as_matrix() if rotate else np.eye(3),
                           centre if move else np.zeros(3))
+
+
+def tracked_world(poses: np.ndarray, valid=None) -> WorldAlignment | None:
+    """The aligned world of a whole recording's tracked cameras ((N, 6) cam_from_world, rows
+    NaN or not ``valid`` left out), as the offline methods and the checks take it: from the
+    camera whose centre lies nearest the cameras' median centre, so that one bad sample (the
+    first, say, 2 m off) does not move the world's origin (world_alignment of the first
+    camera: a consistent tracker then read 20 x its noise). None as world_alignment."""
+    p = np.asarray(poses, dtype=np.float64).reshape(-1, 6)
+    ok = np.isfinite(p).all(axis=1)
+    if valid is not None:
+        ok &= np.asarray(valid, bool)
+    if not ok.any():
+        return None
+    tracked = p[ok]
+    centres = -Rotation.from_rotvec(tracked[:, :3]).inv().apply(tracked[:, 3:])
+    nearest = int(np.argmin(np.linalg.norm(centres - np.median(centres, axis=0), axis=1)))
+    return world_alignment(tracked[nearest])
 
 
 def _transform(poses: np.ndarray, right: Rotation, shift: np.ndarray) -> np.ndarray:

@@ -397,7 +397,7 @@ class OutputWriter:
         path = self.path(name)
         if not cv2.imwrite(str(path), image):
             raise ValueError(f"{self.out_dir / name}: the image could not be written (a full "
-                             f"disk, or no write permission in {path.parent}?)")
+                             f"disk, or no write permission in {self.out_dir}?)")
         return path
 
     def write_text(self, name: str, text: str) -> Path:

@@ -363,12 +363,12 @@ class PcleScene:
     def fov_mask(self) -> np.ndarray:
         """(H, W) bool: inside the circular field of view (all True without one), as
         Camera.fov_mask."""
+        from fusedmosaic.io import Camera
+
         o = self.options
         if o.fov_mask_radius <= 0:
             return np.ones((o.height, o.width), bool)
-        y, x = np.ogrid[: o.height, : o.width]
-        return (x - (o.width - 1) / 2.0) ** 2 + (y - (o.height - 1) / 2.0) ** 2 <= (
-            o.fov_mask_radius**2)
+        return Camera(o.width, o.height, fov_mask_radius=o.fov_mask_radius).fov_mask() > 0
 
     def frames(self) -> Iterator[np.ndarray]:
         """Render all frames lazily, in order."""
