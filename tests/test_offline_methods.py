@@ -150,6 +150,29 @@ def test_a_frame_0_without_an_anchor_is_not_the_reference(work):
         assert r["e_M_px_without_dead_reckoned"] < 1.5 < r["e_M_px"]
 
 
+def test_a_first_placed_frame_without_an_anchor_is_not_the_reference():
+    """Frames 0-2 unplaced (a late tracker's start-up handed them out) and frame 3, the first
+    placed, dead-reckoned: it was the reference all the same (a weak 200x200 scene, tracker
+    on at frame 70: e_M 469 px; now 128, in frame 70's grid; audit)."""
+    from types import SimpleNamespace
+
+    from fusedmosaic.methods import MethodResult
+    from fusedmosaic.runner import flag_reference_frame
+
+    n = 8
+    G = np.full((n, 3, 3), np.nan)
+    for k in range(3, n):
+        G[k] = [[1.0, 0.0, 10.0 * (k - 3)], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    status = ["unplaced: no tracker sample"] * 3 + ["dead-reckoned"] * 2 + ["placed"] * 3
+    result = MethodResult(G, status, details={"warnings": []})
+    assert flag_reference_frame(result, SimpleNamespace(frame_ids=np.arange(n))) == 5
+    np.testing.assert_allclose(result.homographies[5], np.eye(3))
+    np.testing.assert_allclose(result.homographies[7][0, 2], 20.0)
+    assert result.details["warnings"][0].startswith(
+        "frame 3 has no anchor (dead-reckoned: placed by the motion prior alone): "
+        "homographies.csv maps the frames to frame 5's pixel grid")
+
+
 def test_a_reference_frame_placed_by_the_tracker_alone_is_warned_of(work):
     """A black frame 0 with a tracker sample stays the reference (documented), every frame
     carrying its tracker-placed offset: now said."""

@@ -252,7 +252,10 @@ def flag_reference_frame(result: methods.MethodResult, dataset) -> int:
     ids = dataset.frame_ids
     G = result.homographies
     status = result.status
-    if status and status[0] == "dead-reckoned":
+    # the first placed frame: frame 0, or after unplaced ones (a late tracker's start-up)
+    placed = np.flatnonzero(np.isfinite(G).all(axis=(1, 2)))
+    first = int(placed[0]) if len(placed) and status else 0
+    if status and status[first] == "dead-reckoned":
         anchored = [k for k, s in enumerate(status) if s in ("placed", "prior-only")
                     and np.isfinite(G[k]).all()]
         if anchored:
@@ -260,9 +263,9 @@ def flag_reference_frame(result: methods.MethodResult, dataset) -> int:
             with np.errstate(invalid="ignore"):  # (unplaced rows stay NaN)
                 result.homographies = rereferenced(G, r)
             _warn_first(result, (
-                f"frame {ids[0]} has no anchor ({status[0]}: placed by the motion prior "
-                f"alone): homographies.csv maps the frames to frame {ids[r]}'s pixel grid, the "
-                f"first frame placed with one, not frame {ids[0]}'s (report.json "
+                f"frame {ids[first]} has no anchor ({status[first]}: placed by the motion "
+                f"prior alone): homographies.csv maps the frames to frame {ids[r]}'s pixel "
+                f"grid, the first frame placed with one, not frame {ids[first]}'s (report.json "
                 "reference_frame; evaluate scores in that grid)"))
             return int(ids[r])
     if (status and status[0] == "prior-only" and result.poses is not None
