@@ -58,8 +58,8 @@ def syn(tmp_path_factory):
     return read_dataset(simulate_fetoscopy(tmp_path_factory.mktemp("igtl") / "syn", options))
 
 
-def _live(syn, tmp_path, sender, *extra):
-    return main(["--quiet", "live", f"127.0.0.1:{sender.port}", "--camera",
+def _live(syn, tmp_path, sender, *extra, quiet=True):
+    return main([*(["--quiet"] if quiet else []), "live", f"127.0.0.1:{sender.port}", "--camera",
                  str(syn.root / "camera.yaml"), "--hand-eye", str(syn.root / "hand_eye.txt"),
                  "--transform", "SensorToTracker", "--record", str(tmp_path / "rec"), "--out",
                  str(tmp_path / "out"), "--no-report", *extra])
@@ -698,7 +698,7 @@ def test_max_frames_records_that_many_and_refusals_count_per_reason(syn, tmp_pat
     received'). Every image sent twice: the repeats are refused under one reason, whatever
     their number (one key per frame before, the frame's number in it), with the first one."""
     sender = Sender(_image_sent_twice(dataset_events(syn, n_frames=40)), speed=0.5)
-    assert _live(syn, tmp_path, sender, "--max-frames", "25") == 0
+    assert _live(syn, tmp_path, sender, "--max-frames", "25", quiet=False) == 0
     sender.join()
     live = json.loads((tmp_path / "out" / "report.json").read_text())["live"]
     assert live["stopped_by"] == "25 frames recorded (--max-frames)"
@@ -711,6 +711,27 @@ def test_max_frames_records_that_many_and_refusals_count_per_reason(syn, tmp_pat
     assert source["frames_refused"] == {why: 24}
     assert source["frames_refused_first"] == {why: 1}  # the second message received
     assert source["frames_after_max_frames"] >= 1
+    # said at the first refusal, and summed up (refused frames went without a word; audit)
+    said = capsys.readouterr()
+    text = said.out + said.err
+    assert text.count(f"received frame 1 refused, neither processed nor recorded: {why}") == 1
+    assert f"24 received frame(s) refused, neither processed nor recorded; 24 x {why}" in text
+
+
+def test_a_tracker_on_another_clock_is_told(syn, tmp_path, capsys):
+    """TRANSFORMs stamped from the tracker's own start, IMAGEs in epoch seconds: no frame gets
+    a pose. Said at the first frame, and the failure names the clocks (it said only that no
+    pair 'could be registered with tracker poses'; audit)."""
+    sender = Sender(dataset_events(syn, n_frames=30, clock_ahead_s=-T0), speed=0.5)
+    assert _live(syn, tmp_path, sender, quiet=False) == 2
+    sender.join()
+    said = capsys.readouterr()
+    text = said.out + said.err
+    assert re.search(r"live session: received frame \d+ is stamped 17\d{8}\.\d{3} s, the "
+                     r"tracker's latest sample \d+\.\d{3} s \(\+17\d{8}\.\d{3} s\): on another "
+                     r"clock\?", text), text
+    assert re.search(r"valid tracker samples are stamped \d+\.\d{3}-\d+\.\d{3} s, the frames "
+                     r"17\d{8}\.\d{3}-17\d{8}\.\d{3} s: on another clock\?", text), text
 
 
 def test_preview_folder_is_created_and_the_free_port_taken_is_told(syn, tmp_path, capsys):

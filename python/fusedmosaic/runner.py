@@ -23,6 +23,9 @@ from fusedmosaic.io.output import (
 NEEDS_TRACKING = {"ba-emt", "lba-emt", "emt"}
 NEEDS_CAMERA_MATRIX = {"ba", "ba-emt", "lba-emt", "emt"}
 NEEDS_ROBOT = {"robot", "kalman-robot"}
+# A live frame stamped this far (s) from the tracker's latest sample, heard within the last
+# second, is on another clock.
+CLOCK_MISMATCH_S = 10.0
 NEEDS_PIXEL_SIZE = NEEDS_ROBOT  # (ncc registers the images alone: no pixel size needed)
 PCLE_METHODS = {"ncc", "robot", "kalman-robot"}  # translation-only: composed without undistortion
 # Methods whose estimation reads no image: the frames are read once before compositing, so
@@ -854,6 +857,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     first_refused: dict[str, int] = {}  # why -> the first such frame (the source's count)
     after_limit = 0  # frames received once max_frames were recorded (not recorded)
     accepting, first, last_time = True, None, -np.inf
+    latest_sample: list[float] = []  # [stamp on the video's clock, time.monotonic() heard]
+    clocks_told = False
 
     def on_frame(frame) -> bool:  # receiver thread: what is recorded and offered to the loop
         nonlocal first, last_time, after_limit
@@ -879,18 +884,61 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                 problem = _refusal_reason(str(exc))
         if problem is not None:
             rejected[problem] = rejected.get(problem, 0) + 1
-            first_refused.setdefault(problem, frame.index)
+            if problem not in first_refused:  # told once per reason, then counted (a stream
+                # changing size was refused frame after frame without a word; audit)
+                first_refused[problem] = frame.index
+                try:  # (the receiver thread: a caller's say, or warnings made errors, must
+                    # not end the stream; the count is in report.json whatever happens)
+                    say(f"live session: received frame {frame.index} refused, neither "
+                        f"processed nor recorded: {problem}; such frames are counted "
+                        "(report.json live frames_refused)")
+                except Exception:  # noqa: BLE001
+                    pass
             return False
         first = image.ndim
         frame.index = recorder.add_frame(image, frame.timestamp)
+        check_clocks(frame)
         return True
+
+    def on_sample(sample) -> None:  # receiver thread
+        recorder.add_sample(sample.timestamp - offset, sample.matrix if sample.valid else None)
+        if sample.valid:
+            latest_sample[:] = [sample.timestamp - offset, time.monotonic()]
+
+    def check_clocks(frame) -> None:
+        """Once: a frame stamped far from the tracker's samples still arriving (within 1 s)
+        is on another clock, and gets no tracker pose (a tracker stamped from its own start,
+        frames in epoch seconds: no word until the start-up failed 'to register pairs')."""
+        nonlocal clocks_told
+        if clocks_told or not latest_sample or time.monotonic() - latest_sample[1] > 1.0:
+            return
+        gap = frame.timestamp - latest_sample[0]
+        if abs(gap) > CLOCK_MISMATCH_S:
+            clocks_told = True
+            try:  # (the receiver thread, as a refusal's note)
+                say(f"live session: received frame {frame.index} is stamped {frame.timestamp:.3f}"
+                    f" s, the tracker's latest sample {latest_sample[0]:.3f} s ({gap:+.3f} s): "
+                    "on another clock? The frames get no tracker pose; --tracker-time-offset S "
+                    "if the tracker's clock runs S ahead of the video's")
+            except Exception:  # noqa: BLE001
+                pass
 
     def refused() -> str:
         return "".join(f"; frames refused: {n} x {why} (first: received frame "
                        f"{first_refused[why]})" for why, n in rejected.items())
 
     def samples_heard(src) -> str:
-        if src is None or src.valid_samples or transform_device is None:
+        if src is None or transform_device is None:
+            return ""
+        span = recorder.valid_sample_span() if recorder is not None else None
+        frames = list(recorder.timestamps) if recorder is not None else []
+        if span is not None and frames and (span[0] > frames[-1] + CLOCK_MISMATCH_S
+                                            or span[1] < frames[0] - CLOCK_MISMATCH_S):
+            return (f"; the {src.valid_samples} valid tracker samples are stamped "
+                    f"{span[0]:.3f}-{span[1]:.3f} s, the frames {frames[0]:.3f}-"
+                    f"{frames[-1]:.3f} s: on another clock? (--tracker-time-offset S if the "
+                    "tracker's clock runs S ahead of the video's)")
+        if src.valid_samples:
             return ""
         heard = ", ".join(sorted(src.ignored_devices)) or "none"
         return (f"; no valid TRANSFORM or POSITION sample of {transform_device} arrived (other "
@@ -907,8 +955,7 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                                    robot=method != "lba-emt")
         with IgtlSource(address, transform_device=transform_device, image_device=image_device,
                         rgb=rgb, orientation_required=method == "lba-emt",
-                        on_frame=on_frame, on_sample=lambda s: recorder.add_sample(
-                            s.timestamp - offset, s.matrix if s.valid else None)) as src:
+                        on_frame=on_frame, on_sample=on_sample) as src:
             try:
                 session = live_session(src, camera, method=method, hand_eye=hand_eye,
                                        options=options,
@@ -981,6 +1028,11 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     if session.no_sample:
         lines.append(f"  tracker {len(session.no_sample)} frame(s) without a usable sample"
                      f"{samples_heard(src)}")
+    if rejected:
+        lines.append(f"  frames  {sum(rejected.values())} received frame(s) refused, neither "
+                     "processed nor recorded" + "".join(
+                         f"; {n} x {why} (first: received frame {first_refused[why]})"
+                         for why, n in rejected.items()))
     if src.corrupted_frames:
         lines.append(f"  frames  {src.corrupted_frames} IMAGE message(s) failed their CRC64 "
                      "(corrupted in transit) and were dropped (report.json live "
