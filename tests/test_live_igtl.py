@@ -734,6 +734,19 @@ def test_a_tracker_on_another_clock_is_told(syn, tmp_path, capsys):
                      r"17\d{8}\.\d{3}-17\d{8}\.\d{3} s: on another clock\?", text), text
 
 
+def test_another_image_device_heard_first_is_named(syn, tmp_path, capsys):
+    """An IMAGE of another device before the video's: the session takes it (the first heard)
+    and refuses its frame; the error now names the video device it ignored and the option."""
+    events = dataset_events(syn, n_frames=10)
+    events.insert(0, (events[0][0] - 0.01, image_message(syn.frames[0][:50, :50], 0.0,
+                                                         "Other")))
+    sender = Sender(events, speed=0.5)
+    assert _live(syn, tmp_path, sender) == 2
+    sender.join()
+    assert ("the session took the IMAGE device Other (the first heard) and ignored Video: "
+            "choose one with --image-device" in capsys.readouterr().err)
+
+
 def test_preview_folder_is_created_and_the_free_port_taken_is_told(syn, tmp_path, capsys):
     """--preview in a folder that does not exist yet: created, as --out is (the PNG was never
     written, only report.json said so); --serve-mosaic 0: the port taken is told when the

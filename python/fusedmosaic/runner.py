@@ -923,9 +923,19 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
             except Exception:  # noqa: BLE001
                 pass
 
+    def other_images() -> str:
+        """With refused frames: the other IMAGE devices heard (one heard first took the
+        session, and the video's frames were ignored without a word; audit)."""
+        others = sorted(d[len("IMAGE "):] for d in (src.ignored_devices if src else ())
+                        if d.startswith("IMAGE "))
+        if not rejected or not others:
+            return ""
+        return (f"; the session took the IMAGE device {src.image_device} (the first heard) and "
+                f"ignored {', '.join(others)}: choose one with --image-device")
+
     def refused() -> str:
         return "".join(f"; frames refused: {n} x {why} (first: received frame "
-                       f"{first_refused[why]})" for why, n in rejected.items())
+                       f"{first_refused[why]})" for why, n in rejected.items()) + other_images()
 
     def samples_heard(src) -> str:
         if src is None or transform_device is None:
@@ -1032,7 +1042,7 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
         lines.append(f"  frames  {sum(rejected.values())} received frame(s) refused, neither "
                      "processed nor recorded" + "".join(
                          f"; {n} x {why} (first: received frame {first_refused[why]})"
-                         for why, n in rejected.items()))
+                         for why, n in rejected.items()) + other_images())
     if src.corrupted_frames:
         lines.append(f"  frames  {src.corrupted_frames} IMAGE message(s) failed their CRC64 "
                      "(corrupted in transit) and were dropped (report.json live "
