@@ -747,6 +747,31 @@ def test_another_image_device_heard_first_is_named(syn, tmp_path, capsys):
             "choose one with --image-device" in capsys.readouterr().err)
 
 
+def test_unstamped_images_end_a_session_only_from_the_start(syn, tmp_path, capsys):
+    """IMAGEs with timestamp 0 (the sender does not stamp them) are refused from the first;
+    one unstamped frame mid-stream is refused and counted as out of time order (it ended the
+    session; audit)."""
+    events = dataset_events(syn, n_frames=20)
+    images = [i for i, (_, m) in enumerate(events) if m[2:7] == b"IMAGE"]
+    t, _ = events[images[10]]
+    events[images[10]] = (t, image_message(syn.frames[10], -T0))  # stamped 0
+    sender = Sender(events, speed=0.5)
+    assert _live(syn, tmp_path, sender) == 0
+    sender.join()
+    live = json.loads((tmp_path / "out" / "report.json").read_text())["live"]
+    assert live["stopped_by"] == "the sender closed the stream"
+    assert live["frames_recorded"] == 19
+    assert live["source"]["frames_refused"] == {
+        "timestamp does not increase (a repeated or earlier timestamp)": 1}
+    events = dataset_events(syn, n_frames=5)
+    first = next(i for i, (_, m) in enumerate(events) if m[2:7] == b"IMAGE")
+    events[first] = (events[first][0], image_message(syn.frames[0], -T0))
+    sender = Sender(events, speed=0.5)
+    assert _live(syn, tmp_path / "b", sender) == 2
+    sender.join()
+    assert "the IMAGE messages of 'Video' carry no timestamp (0)" in capsys.readouterr().err
+
+
 def test_preview_folder_is_created_and_the_free_port_taken_is_told(syn, tmp_path, capsys):
     """--preview in a folder that does not exist yet: created, as --out is (the PNG was never
     written, only report.json said so); --serve-mosaic 0: the port taken is told when the

@@ -390,9 +390,11 @@ class IgtlSource:
         if self.frames_crc_checked and _crc64(body) != crc:
             self.corrupted_frames += 1  # (a lost frame, as a dropped one: the session goes on)
             return
-        if fields["timestamp"] == 0:  # the spec's "unused"
+        if fields["timestamp"] == 0 and self.received == 0:  # the spec's "unused"
             raise ValueError(f"the IMAGE messages of {device!r} carry no timestamp (0): frame "
                              "and tracker times must come from the sender's clock")
+        # (one unstamped frame after stamped ones goes on as a frame at time 0, before the
+        # others: refused as out of time order, and counted; it ended the session)
         message = ImageMessage()
         problem = _unpack(message, fields, body)
         if problem is not None:
