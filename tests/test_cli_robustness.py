@@ -952,3 +952,20 @@ def test_unreadable_frame_is_a_frame_without_visual_content(data, tmp_path, caps
     assert run(root, strict, method, "--stop-on-unreadable") == 2  # bad input
     assert capsys.readouterr().err == f"fusedmosaic: error: {damaged}: cannot read image\n"
     assert not strict.exists()
+
+
+def test_live_outputs_survive_one_ctrl_c():
+    """While a live session's outputs are written, a first SIGINT is told and ignored, a
+    second interrupts (one Ctrl-C lost the whole live result; audit); the handler is restored."""
+    import signal
+
+    from fusedmosaic.runner import _second_interrupt_stops
+
+    before, told = signal.getsignal(signal.SIGINT), []
+    with pytest.raises(KeyboardInterrupt):
+        with _second_interrupt_stops(lambda: told.append("told")):
+            signal.raise_signal(signal.SIGINT)
+            assert told == ["told"]
+            signal.raise_signal(signal.SIGINT)
+            pytest.fail("the second SIGINT did not interrupt")
+    assert told == ["told"] and signal.getsignal(signal.SIGINT) is before

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import re
+import signal
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -678,6 +681,29 @@ def add_streamed_checks(result: methods.MethodResult, dataset, method: str, opti
                           getattr(options, "motion_sigma", None))
 
 
+@contextlib.contextmanager
+def _second_interrupt_stops(tell):
+    """Within the block a first SIGINT calls tell() and is otherwise ignored; a second raises
+    KeyboardInterrupt. Only the main thread can set the handler (elsewhere a no-op)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    heard: list[int] = []
+
+    def handler(signum, frame):
+        heard.append(signum)
+        if len(heard) > 1:
+            raise KeyboardInterrupt
+        tell()
+
+    previous = signal.signal(signal.SIGINT, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler if previous is None
+                      else previous)
+
+
 def check_live_limits(max_frames, duration_s, frame_timeout_s,
                       names: dict[str, str] | None = None) -> None:
     """ValueError unless each limit of a live session is None or a number > 0; `names` maps
@@ -1026,9 +1052,21 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                             method=method)
     if view is not None:
         result.details["live"]["view"] = view.summary()
-    summary = run_dataset(record, method, out, result=result, allow_untracked=True,
-                          progress=progress, blend=blend, canvas=canvas, video=video,
-                          report=report)
+    # The session's estimates exist nowhere else (an offline re-run drops no frame): a first
+    # Ctrl-C while they are written is told and ignored, a second abandons them (one lost the
+    # whole result, 'interrupted' and nothing more; audit).
+    say(f"live session ended ({session.stopped_by}): writing the outputs to {out} (Ctrl-C "
+        "twice abandons them)")
+    try:
+        with _second_interrupt_stops(lambda: say(
+                "live session: still writing the outputs; Ctrl-C again abandons them")):
+            summary = run_dataset(record, method, out, result=result, allow_untracked=True,
+                                  progress=progress, blend=blend, canvas=canvas, video=video,
+                                  report=report)
+    except KeyboardInterrupt:
+        say(f"live session: outputs abandoned; the recording is kept in {record} (fusedmosaic "
+            f"run {record} --method {method} --out {out} --allow-untracked)")
+        raise
     span = recorder.valid_sample_span()
     outside = span is None or timestamps[0] < span[0] or timestamps[-1] > span[1]
     lines = [summary, f"  record  {record}  ({len(timestamps)} frames; re-run offline: "
