@@ -1023,6 +1023,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
             if max_frames is not None:
                 details["frames_after_max_frames"] = after_limit
         if not session.processed:
+            if session.stopped_by.startswith("interrupted"):  # the user's stop, not an input
+                raise KeyboardInterrupt  # error (it ended with exit 2, 'error: ...'; audit)
             raise ValueError(f"live session: no frame was processed ({session.stopped_by})")
         timestamps = list(recorder.timestamps)
         recorder.finish()  # SIGINT / SIGTERM / SIGHUP wait until the recording is in place
@@ -1047,6 +1049,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
         _remove_empty(created)
         if isinstance(exc, (ValueError, OSError)):
             raise ValueError(f"{exc}{refused()}{samples_heard(src)}{note}") from None
+        if note:  # interrupted: where the frames went
+            say(f"live session interrupted{note}")
         raise
     result = session_result(session, timestamps, dropped, source_details=details,
                             method=method)
