@@ -871,6 +871,34 @@ def test_a_stop_signal_while_the_recording_is_finished_keeps_it(syn, tmp_path, m
     assert sorted(p.name for p in tmp_path.iterdir()) == (["out", "rec"] if ignore else ["rec"])
 
 
+@pytest.mark.parametrize("interrupts", [1, 2])
+def test_ctrl_c_while_the_outputs_are_written(syn, tmp_path, monkeypatch, capsys, interrupts):
+    """Once the session ended, a first Ctrl-C is told and ignored while the outputs are
+    written; a second abandons them and names the kept recording (one Ctrl-C lost the whole
+    live result; audit)."""
+    from fusedmosaic import runner
+
+    write = runner.run_dataset
+
+    def interrupted_meanwhile(*args, **kwargs):
+        for _ in range(interrupts):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)  # delivered here
+        return write(*args, **kwargs)
+
+    monkeypatch.setattr(runner, "run_dataset", interrupted_meanwhile)
+    with signal_handler(signal.SIGINT, signal.default_int_handler):
+        sender = Sender(dataset_events(syn, n_frames=15))
+        assert _live(syn, tmp_path, sender, quiet=False) == (0 if interrupts == 1 else 130)
+    sender.join()
+    said = capsys.readouterr().out
+    assert "live session: still writing the outputs; Ctrl-C again abandons them" in said
+    assert (tmp_path / "out" / "homographies.csv").is_file() == (interrupts == 1)
+    assert ("live session: outputs abandoned; the recording is kept in" in said) == (
+        interrupts == 2)
+    assert len(read_dataset(tmp_path / "rec", allow_untracked=True)) == 15
+
+
 _KILLED = """
 import sys, time
 import numpy as np
