@@ -148,6 +148,8 @@ def test_a_frame_0_without_an_anchor_is_not_the_reference(work):
         # evaluate counts them as placed, and scores the others apart
         assert r["dead_reckoned"] == list(range(first))
         assert r["e_M_px_without_dead_reckoned"] < 1.5 < r["e_M_px"]
+        assert r["said"].startswith(f"{method}: placed 40/40 frames ({first} of them "
+                                    "dead-reckoned) -> ")
 
 
 def test_a_first_placed_frame_without_an_anchor_is_not_the_reference():

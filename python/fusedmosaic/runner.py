@@ -618,7 +618,11 @@ WARNING_LINE = "  warning "  # the summary's lines of the checks after the fusio
 def _summary(method: str, G: np.ndarray, out: Path, report_json: dict, outputs: dict,
              report: bool) -> str:
     placed = int(np.isfinite(G).all(axis=(1, 2)).sum())
-    msg = f"{method}: placed {placed}/{len(G)} frames -> {out}"
+    dead = sum(s == "dead-reckoned" for s in report_json.get("frame_status", []))
+    # (dead-reckoned frames have homographies but no anchor: said apart; 'placed 100/100'
+    # then '48 frame(s) left out' read as a contradiction; audit)
+    msg = (f"{method}: placed {placed}/{len(G)} frames"
+           + (f" ({dead} of them dead-reckoned)" if dead else "") + f" -> {out}")
     if "metrics" in report_json:
         e_M = report_json["metrics"]["e_M_px"]
         scored = report_json["metrics"]["frames_scored"]
