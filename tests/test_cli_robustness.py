@@ -955,17 +955,30 @@ def test_unreadable_frame_is_a_frame_without_visual_content(data, tmp_path, caps
 
 
 def test_live_outputs_survive_one_ctrl_c():
-    """While a live session's outputs are written, a first SIGINT is told and ignored, a
-    second interrupts (one Ctrl-C lost the whole live result; audit); the handler is restored."""
+    """Once a live session's loop is over, a first SIGINT is told and ignored, a second
+    interrupts (one Ctrl-C lost the whole live result; audit); the handler is restored, and
+    a SIGINT the process ignores stays ignored."""
     import signal
 
-    from fusedmosaic.runner import _second_interrupt_stops
+    from fusedmosaic.runner import _EndingGuard
 
     before, told = signal.getsignal(signal.SIGINT), []
-    with pytest.raises(KeyboardInterrupt):
-        with _second_interrupt_stops(lambda: told.append("told")):
-            signal.raise_signal(signal.SIGINT)
-            assert told == ["told"]
+    guard = _EndingGuard(lambda: told.append("told"))
+    guard.start()
+    try:
+        signal.raise_signal(signal.SIGINT)
+        assert told == ["told"]
+        with pytest.raises(KeyboardInterrupt):
             signal.raise_signal(signal.SIGINT)
             pytest.fail("the second SIGINT did not interrupt")
+    finally:
+        guard.stop()
     assert told == ["told"] and signal.getsignal(signal.SIGINT) is before
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        guard = _EndingGuard(lambda: told.append("told"))
+        guard.start()
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+        guard.stop()
+    finally:
+        signal.signal(signal.SIGINT, before)

@@ -433,7 +433,10 @@ def _cmd_live(args: argparse.Namespace) -> int:
                        preview=args.preview, serve_mosaic=args.serve_mosaic,
                        view_interval_s=(1.0 if args.view_interval is None
                                         else args.view_interval),
-                       say=lambda text: _say(args, text))
+                       say=lambda text: _say(args, text),
+                       # (what went wrong reaches stderr under --quiet too, as warnings do)
+                       warn=lambda text: print(f"fusedmosaic: warning: {text}",
+                                               file=sys.stderr))
     _say_summary(args, summary)
     return 0
 

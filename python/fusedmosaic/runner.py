@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import re
 import signal
@@ -29,6 +28,9 @@ NEEDS_ROBOT = {"robot", "kalman-robot"}
 # A live frame stamped this far (s) from the tracker's latest sample, heard within the last
 # second, is on another clock.
 CLOCK_MISMATCH_S = 10.0
+ONE_CLOCK = ("on another clock? The frames get no {0} sample near their time: the sender must "
+             "stamp the images and the {0} on one clock (--tracker-time-offset corrects at most "
+             "+-10 s, a calibrated latency)")
 NEEDS_PIXEL_SIZE = NEEDS_ROBOT  # (ncc registers the images alone: no pixel size needed)
 PCLE_METHODS = {"ncc", "robot", "kalman-robot"}  # translation-only: composed without undistortion
 # Methods whose estimation reads no image: the frames are read once before compositing, so
@@ -685,27 +687,38 @@ def add_streamed_checks(result: methods.MethodResult, dataset, method: str, opti
                           getattr(options, "motion_sigma", None))
 
 
-@contextlib.contextmanager
-def _second_interrupt_stops(tell):
-    """Within the block a first SIGINT calls tell() and is otherwise ignored; a second raises
-    KeyboardInterrupt. Only the main thread can set the handler (elsewhere a no-op)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    heard: list[int] = []
+class _EndingGuard:
+    """From start() (a live session's loop over) until stop(): a first SIGINT calls tell()
+    and is otherwise ignored, a second raises KeyboardInterrupt: the session's estimates exist
+    nowhere else (an offline re-run drops no frame), and one Ctrl-C after the sender closed lost
+    them with 'interrupted' and nothing more (audit). Only in the main thread; a SIGINT the
+    process ignores (nohup, a background job) stays ignored."""
 
-    def handler(signum, frame):
-        heard.append(signum)
-        if len(heard) > 1:
+    def __init__(self, tell) -> None:
+        self.tell, self.heard, self.previous, self.active = tell, 0, None, False
+
+    def start(self) -> None:
+        if self.active or threading.current_thread() is not threading.main_thread():
+            return
+        current = signal.getsignal(signal.SIGINT)
+        if current in (signal.SIG_IGN, None):
+            return
+        self.previous, self.active = current, True
+        signal.signal(signal.SIGINT, self._handler)
+
+    def _handler(self, signum, frame) -> None:
+        self.heard += 1
+        if self.heard > 1:
             raise KeyboardInterrupt
-        tell()
+        try:  # (a caller's say, or warnings made errors, must not interrupt instead)
+            self.tell()
+        except Exception:  # noqa: BLE001
+            pass
 
-    previous = signal.signal(signal.SIGINT, handler)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, signal.default_int_handler if previous is None
-                      else previous)
+    def stop(self) -> None:
+        if self.active:
+            signal.signal(signal.SIGINT, self.previous)
+            self.active = False
 
 
 def check_live_limits(max_frames, duration_s, frame_timeout_s,
@@ -800,7 +813,7 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
              video: str | Path | None = None, report: bool = True,
              method: str = "lba-emt", tracker_time_offset: float = 0.0,
              preview: str | Path | None = None, serve_mosaic: str | None = None,
-             view_interval_s: float = 1.0, say=None) -> str:
+             view_interval_s: float = 1.0, say=None, warn=None) -> str:
     """A live session on an OpenIGTLink source (io.igtl: e.g. PLUS Server streaming a tracked
     endoscope), lba-emt, or kalman-robot with a robot streaming the probe position (the
     transform's translation, mm, in the image axes; the camera needs pixel_size_um; recorded
@@ -822,7 +835,9 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     (compositing.live_view), replaced atomically in that file and / or sent as OpenIGTLink IMAGE
     "Mosaic" to every client of a server listening there (e.g. 3D Slicer), at most every
     view_interval_s; report.json "live" "view". say(text): tells the user what they need during
-    the session (the port --serve-mosaic 0 took); None: as a warning. A start that fails
+    the session (the port --serve-mosaic 0 took); None: as a warning. warn(text): what went
+    wrong during it (frames refused, a tracker on another clock); None: say. Progress notes
+    (the session ended, the outputs being written) go to a given say only. A start that fails
     leaves no folder behind. Returns the terminal summary."""
     from fusedmosaic.estimation.live import (
         check_live_method,
@@ -840,8 +855,10 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
         raise ValueError(f"live session: {method} needs the device of the "
                          f"{'tracker' if method == 'lba-emt' else 'robot'} (--transform)")
     offset = check_time_offset(tracker_time_offset)
+    inform = say if say is not None else (lambda text: None)
     if say is None:
         say = lambda text: warnings.warn(text, stacklevel=3)  # noqa: E731
+    warn = say if warn is None else warn
     if not isinstance(camera, Camera):
         camera = read_camera_yaml(camera)
     if method == "lba-emt":
@@ -887,6 +904,7 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     first_refused: dict[str, int] = {}  # why -> the first such frame (the source's count)
     after_limit = 0  # frames received once max_frames were recorded (not recorded)
     accepting, first, last_time = True, None, -np.inf
+    device = "tracker" if method == "lba-emt" else "robot"
     latest_sample: list[float] = []  # [stamp on the video's clock, time.monotonic() heard]
     clocks_told = False
 
@@ -907,6 +925,9 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
             problem = (f"a {'colour' if image.ndim == 3 else 'gray'} image after "
                        f"{'colour' if first == 3 else 'gray'} ones (a recording is one or the "
                        f"other)")
+        elif frame.timestamp == 0:  # (after stamped ones: io.igtl passes it on; accepted
+            # after refused ones, it made every later frame 'a day after' it; review)
+            problem = "no timestamp (0): the sender did not stamp it"
         else:
             try:
                 last_time = check_stream_timestamp(frame.index, frame.timestamp, last_time)
@@ -919,9 +940,9 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                 first_refused[problem] = frame.index
                 try:  # (the receiver thread: a caller's say, or warnings made errors, must
                     # not end the stream; the count is in report.json whatever happens)
-                    say(f"live session: received frame {frame.index} refused, neither "
-                        f"processed nor recorded: {problem}; such frames are counted "
-                        "(report.json live frames_refused)")
+                    warn(f"live session: received frame {frame.index} refused, neither "
+                         f"processed nor recorded: {problem}; such frames are counted "
+                         "(report.json live frames_refused)")
                 except Exception:  # noqa: BLE001
                     pass
             return False
@@ -943,13 +964,12 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
         if clocks_told or not latest_sample or time.monotonic() - latest_sample[1] > 1.0:
             return
         gap = frame.timestamp - latest_sample[0]
-        if abs(gap) > CLOCK_MISMATCH_S:
+        if abs(gap) > CLOCK_MISMATCH_S and method != "ncc":  # (ncc uses no sample)
             clocks_told = True
             try:  # (the receiver thread, as a refusal's note)
-                say(f"live session: received frame {frame.index} is stamped {frame.timestamp:.3f}"
-                    f" s, the tracker's latest sample {latest_sample[0]:.3f} s ({gap:+.3f} s): "
-                    "on another clock? The frames get no tracker pose; --tracker-time-offset S "
-                    "if the tracker's clock runs S ahead of the video's")
+                warn(f"live session: frame {frame.index} (recorded) is stamped "
+                     f"{frame.timestamp:.3f} s, the {device}'s latest sample "
+                     f"{latest_sample[0]:.3f} s ({gap:+.3f} s): {ONE_CLOCK.format(device)}")
             except Exception:  # noqa: BLE001
                 pass
 
@@ -960,8 +980,10 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                         if d.startswith("IMAGE "))
         if not rejected or not others:
             return ""
-        return (f"; the session took the IMAGE device {src.image_device} (the first heard) and "
-                f"ignored {', '.join(others)}: choose one with --image-device")
+        how = "--image-device" if image_device is not None else "the first heard"
+        return (f"; the session took the IMAGE device {src.image_device} ({how}) and ignored "
+                f"{', '.join(others)}" + ("" if image_device is not None
+                                          else ": choose one with --image-device"))
 
     def refused() -> str:
         return "".join(f"; frames refused: {n} x {why} (first: received frame "
@@ -974,107 +996,111 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
         frames = list(recorder.timestamps) if recorder is not None else []
         if span is not None and frames and (span[0] > frames[-1] + CLOCK_MISMATCH_S
                                             or span[1] < frames[0] - CLOCK_MISMATCH_S):
-            return (f"; the {src.valid_samples} valid tracker samples are stamped "
+            return (f"; the {src.valid_samples} valid {device} samples are stamped "
                     f"{span[0]:.3f}-{span[1]:.3f} s, the frames {frames[0]:.3f}-"
-                    f"{frames[-1]:.3f} s: on another clock? (--tracker-time-offset S if the "
-                    "tracker's clock runs S ahead of the video's)")
+                    f"{frames[-1]:.3f} s: {ONE_CLOCK.format(device)}")
         if src.valid_samples:
             return ""
         heard = ", ".join(sorted(src.ignored_devices)) or "none"
         return (f"; no valid TRANSFORM or POSITION sample of {transform_device} arrived (other "
                 f"devices heard: {heard}; see --transform)")
 
+    guard = _EndingGuard(lambda: inform(
+        "live session: ending, writing the outputs; Ctrl-C again abandons them"))
     try:
-        check_output_dir(out, "output folder")
-        if preview is not None or serve_mosaic is not None:  # before connecting
-            view, server = _live_view(camera, method, record, preview, serve_mosaic,
-                                      view_interval_s, say)
-        # (the pCLE methods record the samples as robot positions: ncc's recording re-runs
-        # with kalman-robot when a robot streamed)
-        recorder = DatasetRecorder(record, camera, hand_eye, overwrite=overwrite_record,
-                                   robot=method != "lba-emt")
-        with IgtlSource(address, transform_device=transform_device, image_device=image_device,
-                        rgb=rgb, orientation_required=method == "lba-emt",
-                        on_frame=on_frame, on_sample=on_sample) as src:
-            try:
-                session = live_session(src, camera, method=method, hand_eye=hand_eye,
-                                       options=options,
-                                       max_frames=max_frames, duration_s=duration_s,
-                                       frame_timeout_s=frame_timeout_s,
-                                       tracker_time_offset=offset,
-                                       on_final=on_final if view is not None else None)
-            finally:
-                accepting = False
-                if view is not None:  # the last frames drawn and published, then no more
-                    view.close()
-                if server is not None:
-                    server.close()
-            dropped = [k for k in src.dropped if k not in session.finals]
-            details = {"address": format_address(src.host, src.port),
-                       "image_device": src.image_device,
-                       "transform_device": transform_device,
-                       # the recording's samples are on the video's clock (stamped - offset)
-                       "tracker_time_offset_s": offset,
-                       "frames_received": src.received,
-                       # IMAGE messages failing their CRC64, dropped (None: not checked)
-                       "frames_corrupted": (src.corrupted_frames if src.frames_crc_checked
-                                            else None),
-                       "frames_refused": dict(rejected),
-                       "frames_refused_first": dict(first_refused),
-                       "tracker_samples_valid": src.valid_samples,
-                       "tracker_samples_invalid": dict(src.invalid_samples),
-                       "ignored_devices": sorted(src.ignored_devices)}
-            if max_frames is not None:
-                details["frames_after_max_frames"] = after_limit
-        if not session.processed:
-            if session.stopped_by.startswith("interrupted"):  # the user's stop, not an input
-                raise KeyboardInterrupt  # error (it ended with exit 2, 'error: ...'; audit)
-            raise ValueError(f"live session: no frame was processed ({session.stopped_by})")
-        timestamps = list(recorder.timestamps)
-        recorder.finish()  # SIGINT / SIGTERM / SIGHUP wait until the recording is in place
-    except BaseException as exc:
-        # the recording is the session's safety net: kept whenever it holds a frame (first:
-        # closing the view may take a while)
-        note = ""
-        if recorder is not None and recorder.timestamps:
-            said = recorder.finished  # exc is finish's own error, which says where
-            try:
-                recorder.finish()  # (again: returns at once when done)
-                note = "" if said else (f"; the {recorder.frames_written} frame(s) received "
-                                        f"are recorded in {record}")
-            except ValueError as kept:  # kept all the same: the message says where
-                note = f"; {kept}"
-        elif recorder is not None:
-            recorder.abort()
+        try:
+            check_output_dir(out, "output folder")
+            if preview is not None or serve_mosaic is not None:  # before connecting
+                view, server = _live_view(camera, method, record, preview, serve_mosaic,
+                                          view_interval_s, say)
+            # (the pCLE methods record the samples as robot positions: ncc's recording re-runs
+            # with kalman-robot when a robot streamed)
+            recorder = DatasetRecorder(record, camera, hand_eye, overwrite=overwrite_record,
+                                       robot=method != "lba-emt")
+            with IgtlSource(address, transform_device=transform_device, image_device=image_device,
+                            rgb=rgb, orientation_required=method == "lba-emt",
+                            on_frame=on_frame, on_sample=on_sample) as src:
+                try:
+                    session = live_session(src, camera, method=method, hand_eye=hand_eye,
+                                           options=options,
+                                           max_frames=max_frames, duration_s=duration_s,
+                                           frame_timeout_s=frame_timeout_s,
+                                           tracker_time_offset=offset,
+                                           on_final=on_final if view is not None else None,
+                                           on_loop_end=guard.start)
+                finally:
+                    accepting = False
+                    if view is not None:  # the last frames drawn and published, then no more
+                        view.close()
+                    if server is not None:
+                        server.close()
+                dropped = [k for k in src.dropped if k not in session.finals]
+                details = {"address": format_address(src.host, src.port),
+                           "image_device": src.image_device,
+                           "transform_device": transform_device,
+                           # the recording's samples are on the video's clock (stamped - offset)
+                           "tracker_time_offset_s": offset,
+                           "frames_received": src.received,
+                           # IMAGE messages failing their CRC64, dropped (None: not checked)
+                           "frames_corrupted": (src.corrupted_frames if src.frames_crc_checked
+                                                else None),
+                           "frames_refused": dict(rejected),
+                           "frames_refused_first": dict(first_refused),
+                           "tracker_samples_valid": src.valid_samples,
+                           "tracker_samples_invalid": dict(src.invalid_samples),
+                           "ignored_devices": sorted(src.ignored_devices)}
+                if max_frames is not None:
+                    details["frames_after_max_frames"] = after_limit
+            if not session.processed:
+                if session.stopped_by.startswith("interrupted"):  # the user's stop, not an input
+                    raise KeyboardInterrupt  # error (it ended with exit 2, 'error: ...'; audit)
+                raise ValueError(f"live session: no frame was processed ({session.stopped_by})")
+            timestamps = list(recorder.timestamps)
+            recorder.finish()  # SIGINT / SIGTERM / SIGHUP wait until the recording is in place
+        except BaseException as exc:
+            # the recording is the session's safety net: kept whenever it holds a frame (first:
+            # closing the view may take a while)
+            note = ""
+            if recorder is not None and recorder.timestamps:
+                said = recorder.finished  # exc is finish's own error, which says where
+                try:
+                    recorder.finish()  # (again: returns at once when done)
+                    note = "" if said else (f"; the {recorder.frames_written} frame(s) received "
+                                            f"are recorded in {record}")
+                except ValueError as kept:  # kept all the same: the message says where
+                    note = f"; {kept}"
+            elif recorder is not None:
+                recorder.abort()
+            if view is not None:
+                view.close()
+            if server is not None:
+                server.close()
+            _remove_empty(created)
+            if isinstance(exc, (ValueError, OSError)):
+                raise ValueError(f"{exc}{refused()}{samples_heard(src)}{note}") from None
+            if note and isinstance(exc, KeyboardInterrupt):  # where the frames went
+                inform(f"live session interrupted{note}")
+            raise
+        result = session_result(session, timestamps, dropped, source_details=details,
+                                method=method)
         if view is not None:
-            view.close()
-        if server is not None:
-            server.close()
-        _remove_empty(created)
-        if isinstance(exc, (ValueError, OSError)):
-            raise ValueError(f"{exc}{refused()}{samples_heard(src)}{note}") from None
-        if note:  # interrupted: where the frames went
-            say(f"live session interrupted{note}")
-        raise
-    result = session_result(session, timestamps, dropped, source_details=details,
-                            method=method)
-    if view is not None:
-        result.details["live"]["view"] = view.summary()
-    # The session's estimates exist nowhere else (an offline re-run drops no frame): a first
-    # Ctrl-C while they are written is told and ignored, a second abandons them (one lost the
-    # whole result, 'interrupted' and nothing more; audit).
-    say(f"live session ended ({session.stopped_by}): writing the outputs to {out} (Ctrl-C "
-        "twice abandons them)")
-    try:
-        with _second_interrupt_stops(lambda: say(
-                "live session: still writing the outputs; Ctrl-C again abandons them")):
+            result.details["live"]["view"] = view.summary()
+        inform(f"live session ended ({session.stopped_by}): writing the outputs to {out} "
+               "(Ctrl-C twice abandons them)")
+        writing = time.time()
+        try:
             summary = run_dataset(record, method, out, result=result, allow_untracked=True,
                                   progress=progress, blend=blend, canvas=canvas, video=video,
                                   report=report)
-    except KeyboardInterrupt:
-        say(f"live session: outputs abandoned; the recording is kept in {record} (fusedmosaic "
-            f"run {record} --method {method} --out {out} --allow-untracked)")
-        raise
+        except KeyboardInterrupt:
+            written = Path(out, "homographies.csv")  # (the commit defers a Ctrl-C to its end)
+            inform(f"live session: interrupted once the outputs were in {out}"
+                   if written.is_file() and written.stat().st_mtime >= writing - 1.0 else
+                   f"live session: outputs abandoned; the recording is kept in {record} "
+                   f"(fusedmosaic run {record} --method {method} --out {out} --allow-untracked)")
+            raise
+    finally:
+        guard.stop()
     span = recorder.valid_sample_span()
     outside = span is None or timestamps[0] < span[0] or timestamps[-1] > span[1]
     lines = [summary, f"  record  {record}  ({len(timestamps)} frames; re-run offline: "

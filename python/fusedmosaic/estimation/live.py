@@ -378,7 +378,8 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
                  frame_timeout_s: float = 5.0, max_sample_age_s: float | None = None,
                  on_result: Callable | None = None,
                  tracker_time_offset: float = 0.0,
-                 on_final: Callable | None = None) -> LiveSession:
+                 on_final: Callable | None = None,
+                 on_loop_end: Callable | None = None) -> LiveSession:
     """Runs `method` (lba-emt: the tracker pose at each frame's time; kalman-robot: the robot
     position, the source's translation in mm taken as the probe position in the image axes)
     live on `source` (an io.igtl.IgtlSource, or anything with its next_frame / pose_at /
@@ -393,8 +394,9 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
     frame (provisional for lba-emt); on_final(index, image, result) once a frame's result is
     final (the image is kept until then: a live mosaic view). tracker_time_offset: s, the
     tracker's (robot's) clock ahead of the video's, as calibrate measures it: the frame at time
-    t takes the sample at t + offset. The caller records the frames (the source's on_frame)
-    and writes the outputs."""
+    t takes the sample at t + offset. on_loop_end() is called once no more frames are taken,
+    before lba-emt's last steps (run_igtl's Ctrl-C guard for the outputs starts there). The
+    caller records the frames (the source's on_frame) and writes the outputs."""
     from fusedmosaic.io.igtl import StreamTimeout
 
     check_live_method(method)
@@ -464,6 +466,8 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
                 break
     except KeyboardInterrupt:
         session.stopped_by = "interrupted (Ctrl-C or a stop signal)"
+    if on_loop_end is not None:
+        on_loop_end()
     if session.processed and not warned:  # a short session: said at its end
         _warn_without_samples(source, method, None)
     if session.processed and method == "lba-emt":
