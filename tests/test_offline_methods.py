@@ -173,6 +173,12 @@ def test_a_first_placed_frame_without_an_anchor_is_not_the_reference():
     assert result.details["warnings"][0].startswith(
         "frame 3 has no anchor (dead-reckoned: placed by the motion prior alone): "
         "homographies.csv maps the frames to frame 5's pixel grid")
+    # ... and a first placed frame placed by the priors is named as frame 0 is (review)
+    status[3:5] = ["prior-only"] * 2
+    result = MethodResult(G.copy(), status, poses=np.zeros((n, 6)), details={"warnings": []})
+    assert flag_reference_frame(result, SimpleNamespace(frame_ids=np.arange(n))) == 3
+    assert any(w.startswith("frame 3, the reference of homographies.csv, has no registered "
+                            "pair (prior-only)") for w in result.details["warnings"])
 
 
 def test_a_reference_frame_placed_by_the_tracker_alone_is_warned_of(work):

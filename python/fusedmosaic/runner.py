@@ -276,12 +276,12 @@ def flag_reference_frame(result: methods.MethodResult, dataset) -> int:
                 f"grid, the first frame placed with one, not frame {ids[first]}'s (report.json "
                 "reference_frame; evaluate scores in that grid)"))
             return int(ids[r])
-    if (status and status[0] == "prior-only" and result.poses is not None
+    if (status and status[first] == "prior-only" and result.poses is not None
             and "placed" in status):
-        # (documented: the reference stays frame 0; a black frame 0 with a tracker sample put
-        # every frame 23 px off, 0.10 px from frame 1, without a word; helper fuzz 32)
+        # (documented: the reference stays that frame; a black frame 0 with a tracker sample
+        # put every frame 23 px off, 0.10 px from frame 1, without a word; helper fuzz 32)
         _warn_first(result, (
-            f"frame {ids[0]}, the reference of homographies.csv, has no registered pair "
+            f"frame {ids[first]}, the reference of homographies.csv, has no registered pair "
             "(prior-only): its pose comes from the tracker and the motion prior alone, so every "
             "homography carries its error (the mosaic itself is consistent)"))
     r = reference_frame(G)
