@@ -43,7 +43,10 @@ def base(work):
 
 
 def rewrite_tracking(src, dst, change):
-    """A copy of dataset src whose tracking.csv rows pass through change(row dict)."""
+    """A copy of dataset src whose tracking.csv rows pass through change(row dict); made once
+    per module (dst already there: returned as it is)."""
+    if dst.exists():
+        return dst
     shutil.copytree(src, dst)
     path = dst / "tracking.csv"
     with path.open(newline="") as f:
@@ -138,9 +141,7 @@ def test_noisier_tracker_is_reported_until_its_noise_is_given(work):
 
 
 def test_lba_emt_reports_the_same(base, work):
-    data = work / "w_first"
-    if not data.exists():
-        rewrite_tracking(base, data, w_first)
+    data = rewrite_tracking(base, work / "w_first", w_first)
     options = SequentialOptions(bootstrap_frames=12)  # window steps after the start-up
     good = run_lba_emt(read_dataset(base), progress=False, options=options)
     assert good.details["warnings"] == []
@@ -159,9 +160,7 @@ def test_a_tracker_origin_far_away_is_no_disagreement(base, work):
     the tracker's origin 300 mm away, a consistent tracker read 3.2 x its noise from lba-emt's
     poses in the tracker's world (t carries rotation noise x distance) and was reported as
     disagreeing, where ba-emt said 0.82 (audit)."""
-    data = work / "far_origin"
-    if not data.exists():
-        rewrite_tracking(base, data, far_origin)
+    data = rewrite_tracking(base, work / "far_origin", far_origin)
     options = SequentialOptions(bootstrap_frames=12)
     near = run_lba_emt(read_dataset(base), progress=False, options=options)
     far = run_lba_emt(read_dataset(data), progress=False, options=options)
@@ -178,12 +177,10 @@ def test_emt_plane_does_not_depend_on_the_tracker_origin(syn40, work):
     800 mm away, its fit in the tracker's world put e_M at 81 px against 35 (audit)."""
     from fusedmosaic.evaluation.metrics import frame_errors, mosaic_error
 
-    near = syn40
-    data = work / "far_origin_800"
-    if not data.exists():
-        rewrite_tracking(near, data, lambda row: {**row, "tx": repr(float(row["tx"]) + 800.0)})
+    data = rewrite_tracking(syn40, work / "far_origin_800",
+                            lambda row: {**row, "tx": repr(float(row["tx"]) + 800.0)})
     e_M = []
-    for root in (near, data):
+    for root in (syn40, data):
         dataset = read_dataset(root)
         r = run_emt(dataset, progress=False)
         e_M.append(mosaic_error(frame_errors(r.homographies, dataset.ground_truth,
@@ -234,9 +231,7 @@ def test_an_inverted_tracker_refused_at_startup_is_named(syn40, work):
     warning) leaves lba-emt's start-up plane behind the cameras. From many pairs with parallax
     the refusal names the tracker's conventions and the frames' timing; it said "too few pairs
     or too short a baseline" (271 pairs, centres 28.7 mm apart; audit)."""
-    data = work / "inverted"
-    if not data.exists():
-        rewrite_tracking(syn40, data, inverted)
+    data = rewrite_tracking(syn40, work / "inverted", inverted)
     with pytest.raises(ValueError, match=r"from \d{3} registered pairs is not in front of frames "
                        r"\[0, 1, 2, 3, 4\] \.\.\.: the images show parallax \(0\.\d+ of the "
                        r"depth, 90th percentile\), so the tracker's poses likely contradict them: "
@@ -405,9 +400,7 @@ def test_run_prints_and_records_the_warnings(base, work, capsys, monkeypatch):
     from fusedmosaic.cli import main
     from fusedmosaic.estimation import live as live_module
 
-    data = work / "w_first"
-    if not data.exists():
-        rewrite_tracking(base, data, w_first)
+    data = rewrite_tracking(base, work / "w_first", w_first)
     out = work / "out_w_first"
     assert main(["run", str(data), "--method", "ba-emt", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
@@ -444,9 +437,7 @@ def test_a_refused_startup_names_a_tracker_that_disagrees(work):
     base = work / "gap_base"
     if not base.exists():
         simulate_fetoscopy(base, FetoscopyOptions(**OPTIONS, tracker_gap=(0, 8)))
-    data = work / "gap_w_first"
-    if not data.exists():
-        rewrite_tracking(base, data, w_first)
+    data = rewrite_tracking(base, work / "gap_w_first", w_first)
     with pytest.raises(ValueError, match=r"; its \d+ tracker samples disagree with the images: "
                        r"the adjusted poses differ from them by .* x the noise the EMT prior "
                        r"assumes. If the tracker is that noisy, give its noise \(emt_sigma; "
