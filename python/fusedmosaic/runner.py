@@ -20,17 +20,18 @@ from fusedmosaic.io.output import (
     read_json_object,
     read_manifest,
 )
+from fusedmosaic.io.tracking import MAX_TIME_OFFSET_S
 
 # What each method needs from the dataset beyond frames and camera.yaml.
 NEEDS_TRACKING = {"ba-emt", "lba-emt", "emt"}
 NEEDS_CAMERA_MATRIX = {"ba", "ba-emt", "lba-emt", "emt"}
 NEEDS_ROBOT = {"robot", "kalman-robot"}
-# A live frame stamped this far (s) from the tracker's latest sample, heard within the last
-# second, is on another clock.
-CLOCK_MISMATCH_S = 10.0
+# A live frame stamped further (s) from the tracker's latest sample, heard within the last
+# second, than --tracker-time-offset can correct is on another clock.
+CLOCK_MISMATCH_S = MAX_TIME_OFFSET_S
 ONE_CLOCK = ("on another clock? The frames get no {0} sample near their time: the sender must "
              "stamp the images and the {0} on one clock (--tracker-time-offset corrects at most "
-             "+-10 s, a calibrated latency)")
+             f"+-{MAX_TIME_OFFSET_S:g} s, a calibrated latency)")
 NEEDS_PIXEL_SIZE = NEEDS_ROBOT  # (ncc registers the images alone: no pixel size needed)
 PCLE_METHODS = {"ncc", "robot", "kalman-robot"}  # translation-only: composed without undistortion
 # Methods whose estimation reads no image: the frames are read once before compositing, so
@@ -908,6 +909,14 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     latest_sample: list[float] = []  # [stamp on the video's clock, time.monotonic() heard]
     clocks_told = False
 
+    def warn_from_receiver(text: str) -> None:
+        """warn(text) on the receiver thread: a caller's warn, or warnings made errors, must
+        not end the stream (what it says is counted in report.json whatever happens)."""
+        try:
+            warn(text)
+        except Exception:  # noqa: BLE001
+            pass
+
     def on_frame(frame) -> bool:  # receiver thread: what is recorded and offered to the loop
         nonlocal first, last_time, after_limit
         image = frame.image
@@ -938,13 +947,9 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
             if problem not in first_refused:  # told once per reason, then counted (a stream
                 # changing size was refused frame after frame without a word; audit)
                 first_refused[problem] = frame.index
-                try:  # (the receiver thread: a caller's say, or warnings made errors, must
-                    # not end the stream; the count is in report.json whatever happens)
-                    warn(f"live session: received frame {frame.index} refused, neither "
-                         f"processed nor recorded: {problem}; such frames are counted "
-                         "(report.json live frames_refused)")
-                except Exception:  # noqa: BLE001
-                    pass
+                warn_from_receiver(f"live session: received frame {frame.index} refused, "
+                                   f"neither processed nor recorded: {problem}; such frames are "
+                                   "counted (report.json live frames_refused)")
             return False
         first = image.ndim
         frame.index = recorder.add_frame(image, frame.timestamp)
@@ -966,12 +971,10 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
         gap = frame.timestamp - latest_sample[0]
         if abs(gap) > CLOCK_MISMATCH_S and method != "ncc":  # (ncc uses no sample)
             clocks_told = True
-            try:  # (the receiver thread, as a refusal's note)
-                warn(f"live session: frame {frame.index} (recorded) is stamped "
-                     f"{frame.timestamp:.3f} s, the {device}'s latest sample "
-                     f"{latest_sample[0]:.3f} s ({gap:+.3f} s): {ONE_CLOCK.format(device)}")
-            except Exception:  # noqa: BLE001
-                pass
+            warn_from_receiver(f"live session: frame {frame.index} (recorded) is stamped "
+                               f"{frame.timestamp:.3f} s, the {device}'s latest sample "
+                               f"{latest_sample[0]:.3f} s ({gap:+.3f} s): "
+                               f"{ONE_CLOCK.format(device)}")
 
     def other_images() -> str:
         """With refused frames: the other IMAGE devices heard (one heard first took the
