@@ -458,8 +458,8 @@ def run_ba_emt(dataset, *, progress: bool = True, options: BundleOptions | None 
 def run_emt(dataset, *, progress: bool = True, options: BundleOptions | None = None,
             plane: np.ndarray | None = None) -> MethodResult:
     """EMT baseline: tracker poses + a plane (estimated from EMT-guided pairs unless given, in
-    the tracker's world). The plane is estimated in the world ba-emt adjusts in (aligned on the
-    first tracked camera when the tracker's origin is far, estimation/world.py): with the
+    the tracker's world). The plane is estimated in the world ba-emt adjusts in (world.
+    tracked_world: aligned on a tracked camera when the tracker's origin is far): with the
     origin 800 mm away its fit in the tracker's world put e_M at 81 px, 35 near it."""
     o = options or BundleOptions(pair_selection="emt-guided")
     K = dataset.camera.require_camera_matrix("emt")
