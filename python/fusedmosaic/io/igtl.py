@@ -393,8 +393,8 @@ class IgtlSource:
         if fields["timestamp"] == 0 and self.received == 0:  # the spec's "unused"
             raise ValueError(f"the IMAGE messages of {device!r} carry no timestamp (0): frame "
                              "and tracker times must come from the sender's clock")
-        # (one unstamped frame after stamped ones goes on as a frame at time 0, before the
-        # others: refused as out of time order, and counted; it ended the session)
+        # (one unstamped frame after stamped ones goes on, stamped 0: the caller refuses and
+        # counts it, run_igtl's on_frame as 'no timestamp (0)'; it ended the session)
         message = ImageMessage()
         problem = _unpack(message, fields, body)
         if problem is not None:
