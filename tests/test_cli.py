@@ -122,7 +122,7 @@ def test_run_feature_options(datasets, tmp_path, capsys):
     for extra, message in (
             (["--method", "ncc", "--detector", "orb"],
              "--detector / --max-features / --clahe / --detect-max-side / "
-             "--orb-fast-threshold apply to lba-emt"),
+             "--orb-fast-threshold / --keep-specular apply to lba-emt"),
             (["--method", "lba-emt", "--orb-fast-threshold", "300"],
              "--orb-fast-threshold must be an integer in 1..255 (grey levels), got 300"),
             (["--method", "pairwise", "--max-features", "0"],

@@ -161,8 +161,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if features is not None:
         if args.method not in FEATURE_METHODS:
             raise ValueError(f"--detector / --max-features / --clahe / --detect-max-side / "
-                             f"--orb-fast-threshold apply to {', '.join(FEATURE_METHODS)}, not "
-                             f"{args.method}")
+                             f"--orb-fast-threshold / --keep-specular apply to "
+                             f"{', '.join(FEATURE_METHODS)}, not {args.method}")
         overrides["features"] = features
         if args.method == "pairwise":
             from fusedmosaic.estimation.pairwise import PairwiseOptions
@@ -446,13 +446,15 @@ FEATURE_METHODS = ("lba-emt", "ba-emt", "ba", "emt", "pairwise")
 
 def _feature_options(args: argparse.Namespace):
     """FeatureOptions from --detector/--max-features/--clahe/--detect-max-side/
-    --orb-fast-threshold, or None."""
+    --orb-fast-threshold/--keep-specular, or None."""
     from fusedmosaic.registration.features import FeatureOptions
 
     if (args.detector is None and args.max_features is None and not args.clahe
-            and args.detect_max_side is None and args.orb_fast_threshold is None):
+            and args.detect_max_side is None and args.orb_fast_threshold is None
+            and not args.keep_specular):
         return None
-    options = FeatureOptions(clahe=args.clahe, max_image_side=args.detect_max_side)
+    options = FeatureOptions(clahe=args.clahe, max_image_side=args.detect_max_side,
+                             mask_specular=not args.keep_specular)
     if args.detector is not None:
         options.detector = args.detector
     if args.max_features is not None:
@@ -471,8 +473,8 @@ COMPOSITING_FLAGS = {"blend": "--blend", "border_px": "--border", "bands": "--ba
 
 
 def _blend_options(args: argparse.Namespace):
-    """BlendOptions from --blend/--border/--bands/--gain-compensation (blend None: the method's
-    preference); None when no compositing flag is given."""
+    """BlendOptions from --blend/--border/--bands/--gain-compensation/--keep-specular (blend
+    None: the method's preference); None when no compositing flag is given."""
     from fusedmosaic.compositing import BlendOptions
 
     if args.bands is not None and args.blend != "multiband":
@@ -480,11 +482,12 @@ def _blend_options(args: argparse.Namespace):
         raise ValueError(f"--bands sets the pyramid levels of --blend multiband; it does not "
                          f"apply to {what}")
     if (args.blend is None and not args.border and args.bands is None
-            and not args.gain_compensation):
+            and not args.gain_compensation and not args.keep_specular):
         return None
     return BlendOptions(blend=args.blend, border_px=args.border or 0.0,
                         bands=args.bands if args.bands is not None else BlendOptions.bands,
-                        gain_compensation=args.gain_compensation)
+                        gain_compensation=args.gain_compensation,
+                        mask_specular=False if args.keep_specular else None)
 
 
 def _canvas_options(args: argparse.Namespace):
@@ -1128,6 +1131,11 @@ def _add_feature_flags(parser: argparse.ArgumentParser, title: str) -> None:
                            "detection on HD frames at some cost in accuracy; a frame where "
                            "fewer than 90 percent of the keypoints are found is detected again "
                            "at 5)")
+    feat.add_argument("--keep-specular", action="store_true",
+                      help="keep specular highlights (saturated white spots the scope's light "
+                           "makes on wet tissue, fixed to the camera): by default no keypoint "
+                           "is taken on them and the mosaic shows the tissue other frames see "
+                           "there")
 
 
 def _add_compositing_flags(parser: argparse.ArgumentParser) -> None:

@@ -52,6 +52,9 @@ class MethodResult:
     # from the keypoints), so the mosaic is composed from undistorted frames; False: raw pixels
     # (the translation methods register raw frames by NCC). Same thing without distortion.
     undistorted: bool = True
+    # run's default for BlendOptions.mask_specular: specular highlights (saturated white spots
+    # fixed to the camera) are not pasted into the mosaic; pCLE's confocal frames have none.
+    mask_specular: bool = True
 
 
 def ms_stats(values_ms) -> dict | None:

@@ -495,6 +495,8 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
         blend = BlendOptions(blend)
     elif blend.blend is None:  # options given, blend left to the method
         blend = dataclasses.replace(blend, blend=result.blend)
+    if blend.mask_specular is None:  # the method's choice
+        blend = dataclasses.replace(blend, mask_specular=result.mask_specular)
     canvas = canvas or CanvasOptions()
     t0 = time.perf_counter()
     try:
@@ -534,6 +536,7 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
         "blend": blend.blend,
         "border_px": blend.border_px,
         "gain_compensation": blend.gain_compensation,
+        "mask_specular": bool(blend.mask_specular),
         # frames undistorted first (camera.yaml's distortion_coefficients)
         "lens_undistorted": frames is not dataset.frames,
         "width": plan.width,
@@ -735,10 +738,10 @@ def check_live_limits(max_frames, duration_s, frame_timeout_s,
 
 
 def _live_view(camera, method: str, record: Path, preview, serve_mosaic,
-               interval_s: float, say):
+               interval_s: float, say, blend=None):
     """(LiveMosaicView, IgtlImageServer or None) for run_igtl, checked before connecting; the
     preview's folder is created (as an output folder is); say(text) is told a free port taken
-    (--serve-mosaic 0)."""
+    (--serve-mosaic 0). blend: run_igtl's, for its mask_specular (None: the method's)."""
     from fusedmosaic.compositing.live_view import LiveMosaicView
     from fusedmosaic.io.igtl import IgtlImageServer
     from fusedmosaic.io.output import check_output_dir
@@ -760,8 +763,10 @@ def _live_view(camera, method: str, record: Path, preview, serve_mosaic,
     lens, mask = composing_lens(camera, undistorted=method == "lba-emt")
     server = None if serve_mosaic is None else IgtlImageServer(serve_mosaic)
     try:
+        chosen = None if blend is None or isinstance(blend, str) else blend.mask_specular
         view = LiveMosaicView(camera.width, camera.height, mask=mask, lens=lens,
-                              preview=preview, server=server, interval_s=interval_s)
+                              preview=preview, server=server, interval_s=interval_s,
+                              mask_specular=method == "lba-emt" if chosen is None else chosen)
     except BaseException:
         if server is not None:
             server.close()
@@ -1015,7 +1020,7 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
             check_output_dir(out, "output folder")
             if preview is not None or serve_mosaic is not None:  # before connecting
                 view, server = _live_view(camera, method, record, preview, serve_mosaic,
-                                          view_interval_s, say)
+                                          view_interval_s, say, blend)
             # (the pCLE methods record the samples as robot positions: ncc's recording re-runs
             # with kalman-robot when a robot streamed)
             recorder = DatasetRecorder(record, camera, hand_eye, overwrite=overwrite_record,

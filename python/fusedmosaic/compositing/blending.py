@@ -27,6 +27,11 @@ import numpy as np
 
 BLENDS = ("linear", "multiband", "average", "last")
 COVERED = 1e-3  # total weight below which a canvas pixel counts as empty (background)
+# A highlight pixel's weight, relative to its frame's (BlendOptions.mask_specular): low enough
+# that a frame seeing the tissue there wins (linear: 1 % of white, ~2 grey levels, per frame
+# whose highlight covers it; last: not painted; multiband: not owned), not zero, so a spot no
+# other frame sees is still shown (linear, average, multiband).
+SPECULAR_WEIGHT = 0.01
 
 
 @dataclass
@@ -37,6 +42,12 @@ class BlendOptions:
     border_px: float = 0.0  # seed 000 Sec. 4.2: "thin circular black border in each image"; 0 off
     bands: int = 5  # multiband pyramid levels below full resolution (OpenCV's stitching default)
     gain_compensation: bool = False  # Brown & Lowe (2007) Sec. 6: one gain per frame
+    # Specular highlights (registration.features.specular_mask: saturated white spots fixed to
+    # the camera) weigh SPECULAR_WEIGHT of the frame's weight there, so any other frame showing
+    # the spot paints it; otherwise each frame's highlights leave a white trail along the path.
+    # None: off here, the method's choice in `fusedmosaic run` (on for the pose methods, i.e.
+    # fetoscopy, MethodResult.mask_specular; off for pCLE's); run --keep-specular: False.
+    mask_specular: bool | None = None
 
     def validate(self, names: dict[str, str] | None = None) -> None:
         """ValueError for a bad field; `names` maps fields to what the messages call them
@@ -189,6 +200,22 @@ class FrameWarper:
     def box(self, G: np.ndarray) -> tuple[int, int, int, int] | None:
         return footprint_box(G, self.width, self.height, self.align, self.pad)
 
+    def _weights(self, image: np.ndarray | None
+                 ) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+        """(image, weight (H, W), colour weight (H, W, 1)) of this frame: as given and the fixed
+        weights, or, when the options ask and it has specular highlights, the weights lowered
+        there and the highlights filled with the tissue around them (fill_highlights)."""
+        if image is None or not self.options.mask_specular:
+            return image, self.weight, self.colour_weight
+        from fusedmosaic.registration.features import specular_mask
+
+        spots = specular_mask(image.reshape(image.shape[:2]) if image.shape[2] == 1 else image)
+        if spots is None:
+            return image, self.weight, self.colour_weight
+        factor = np.where(spots > 0, np.float32(SPECULAR_WEIGHT), np.float32(1.0))
+        return (fill_highlights(image, spots, self.mask), self.weight * factor,
+                self.colour_weight * factor[:, :, None])
+
     def warp(self, image: np.ndarray, G: np.ndarray, *, gain: float = 1.0, name=None
              ) -> Patch | None:
         """Patch of `image` placed by G (frame -> reference); None if G is not usable."""
@@ -199,6 +226,7 @@ class FrameWarper:
         x0, y0, x1, y1 = box
         w, h = x1 - x0, y1 - y0
         channels = image.shape[2]
+        image, weight, colour_weight = self._weights(image)
         if channels != 3:
             # Gray (and 4-channel) frames: the frame and its weight warped apart. OpenCV warps
             # a 2-channel array on a slower path (400x400: 3.8 ms against 1.5 ms for the two
@@ -209,22 +237,46 @@ class FrameWarper:
             # warp (BGR + weight) rounds the weight as a 1-channel one
             # (test_warped_weight_is_warp_weight).
             data = np.empty((h, w, channels + 1), np.float32)
-            colour = np.multiply(image, self.colour_weight * np.float32(gain), dtype=np.float32)
+            colour = np.multiply(image, colour_weight * np.float32(gain), dtype=np.float32)
             data[:, :, :-1] = _warp(colour, G, x0, y0, w, h)
-            data[:, :, -1:] = _warp(self.weight, G, x0, y0, w, h)
+            data[:, :, -1:] = _warp(weight, G, x0, y0, w, h)
             return Patch(x0, y0, data)
         src = np.empty((self.height, self.width, channels + 1), np.float32)
-        np.multiply(image, self.colour_weight * np.float32(gain), out=src[:, :, :-1])
-        src[:, :, -1] = self.weight
+        np.multiply(image, colour_weight * np.float32(gain), out=src[:, :, :-1])
+        src[:, :, -1] = weight
         return Patch(x0, y0, _warp(src, G, x0, y0, w, h))
 
-    def warp_weight(self, G: np.ndarray) -> Patch | None:
-        """Only the weight channel (multiband seam selection needs no pixels)."""
+    def warp_weight(self, G: np.ndarray, image: np.ndarray | None = None) -> Patch | None:
+        """Only the weight channel, as `warp` gives it (multiband seam selection): `image`
+        is needed only for mask_specular, whose weights depend on the frame."""
         box = self.box(G)
         if box is None:
             return None
         x0, y0, x1, y1 = box
-        return Patch(x0, y0, _warp(self.weight, G, x0, y0, x1 - x0, y1 - y0))
+        _, weight, _ = self._weights(None if image is None else self._check_image(image, None))
+        return Patch(x0, y0, _warp(weight, G, x0, y0, x1 - x0, y1 - y0))
+
+
+def fill_highlights(image: np.ndarray, spots: np.ndarray, fov: np.ndarray) -> np.ndarray:
+    """A copy of `image` (H, W, C) whose pixels under `spots` (uint8, 255 = highlight) hold the
+    mean of the field of view's other pixels around them (a normalised box filter reaching
+    past the highlights): what the low bands of a multiband blend see there instead of white
+    (it left a glow of ~7 grey levels around each frame's highlights), and what a pixel no
+    other frame shows gets (at SPECULAR_WEIGHT, so only there)."""
+    x, y, w, h = cv2.boundingRect(spots)
+    pad = max(w, h) + 1
+    y0, y1 = max(0, y - pad), min(image.shape[0], y + h + pad)
+    x0, x1 = max(0, x - pad), min(image.shape[1], x + w + pad)
+    inside = spots[y0:y1, x0:x1] > 0
+    valid = (~inside & fov[y0:y1, x0:x1]).astype(np.float32)
+    crop = image[y0:y1, x0:x1].astype(np.float32)
+    size = (2 * pad + 1, 2 * pad + 1)
+    total = cv2.blur(crop * valid[:, :, None], size).reshape(crop.shape)
+    count = cv2.blur(valid, size)[:, :, None]
+    fill = np.divide(total, count, out=np.zeros_like(total), where=count > 1e-6)
+    out = image.copy()
+    out[y0:y1, x0:x1][inside] = np.clip(np.rint(fill[inside]), 0, 255).astype(image.dtype)
+    return out
 
 
 def _warp(src: np.ndarray, G: np.ndarray, x0: int, y0: int, w: int, h: int) -> np.ndarray:

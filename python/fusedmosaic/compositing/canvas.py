@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -214,7 +214,12 @@ class _PatchSource:
         if k in self._cache:
             p = self._cache[k]
             return Patch(p.x0, p.y0, p.data[:, :, -1:])
-        return self.warper.warp_weight(self.G[k])
+        # The frame's own weights (highlights lowered) when the frames can be read twice; a
+        # one-pass iterable is warped without mask_specular (render_mosaic), so the seams
+        # chosen here are those of the patches.
+        image = (self.image(k) if self.warper.options.mask_specular and self._seq is not None
+                 else None)
+        return self.warper.warp_weight(self.G[k], image)
 
 
 def _render_region(x0: int, y0: int, w: int, h: int, ks: Iterable[int], source: _PatchSource,
@@ -317,8 +322,13 @@ def render_mosaic(frames, homographies: np.ndarray, width: int, height: int, *,
 
     frames: a sequence (frames[k], e.g. a FrameSource) or an iterable of (k, image) pairs in
     increasing k (unplaced frames may be left out). mask: (H, W) field of view (uint8 255 or bool).
-    gains: (N,) per-frame gains (see :func:`frame_gains`)."""
+    gains: (N,) per-frame gains (see :func:`frame_gains`). Multiband from a one-pass iterable
+    leaves highlights in (BlendOptions.mask_specular): its seams are chosen before any frame is
+    read."""
     options = as_blend_options(blend)
+    if (options.blend == "multiband" and options.mask_specular
+            and not hasattr(frames, "__getitem__")):
+        options = replace(options, mask_specular=False)
     G = np.asarray(homographies, np.float64)
     plan = plan or plan_canvas(G, width, height, max_pixels=max_pixels)
     if plan.pixels > max_pixels:

@@ -26,6 +26,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from fusedmosaic.compositing.blending import BlendOptions
 from fusedmosaic.compositing.canvas import CanvasTooLargeError
 from fusedmosaic.compositing.incremental import IncrementalCanvas
 
@@ -39,16 +40,19 @@ class LiveMosaicView:
     (lba-emt's homographies hold between undistorted pixels), or None; preview: PNG path or
     None; server: an IgtlImageServer or None (closed by the caller); interval_s: s between
     publications (the last frame is always published by :meth:`close`); scale: canvas pixels
-    per reference pixel; max_pixels: the canvas budget (IncrementalCanvas)."""
+    per reference pixel; max_pixels: the canvas budget (IncrementalCanvas); mask_specular:
+    specular highlights not pasted (BlendOptions.mask_specular)."""
 
     def __init__(self, width: int, height: int, *, mask: np.ndarray | None = None, lens=None,
                  preview: str | Path | None = None, server=None, interval_s: float = 1.0,
-                 scale: float = 1.0, max_pixels: int = 50_000_000) -> None:
+                 scale: float = 1.0, max_pixels: int = 50_000_000,
+                 mask_specular: bool = False) -> None:
         if not (np.isfinite(interval_s) and interval_s >= 0):
             raise ValueError(f"interval_s must be >= 0, got {interval_s}")
         self.check_preview(preview)
-        self.canvas = IncrementalCanvas(width, height, mask=mask, blend="linear", scale=scale,
-                                        max_pixels=max_pixels)
+        self.canvas = IncrementalCanvas(
+            width, height, mask=mask, blend=BlendOptions("linear", mask_specular=mask_specular),
+            scale=scale, max_pixels=max_pixels)
         self.lens = lens
         self.preview = None if preview is None else Path(preview)
         self.server = server

@@ -191,7 +191,7 @@ def _streamed_result(method: str, status: list, finals: dict, plane, details: di
     return MethodResult(G, status, poses=poses, plane=None if plane is None else np.asarray(plane),
                         timings={"processing": processing_s}, parameters=parameters,
                         details=details, blend="linear" if method == "lba-emt" else "average",
-                        undistorted=method == "lba-emt")
+                        undistorted=method == "lba-emt", mask_specular=method == "lba-emt")
 
 
 def _lba_checks(mosaicker) -> dict:

@@ -1155,6 +1155,7 @@ def _run(
         details=details,
         blend="average",
         undistorted=False,  # NCC on the raw frames
+        mask_specular=False,  # confocal frames: bright is fluorescence, not a reflection
     )
 
 

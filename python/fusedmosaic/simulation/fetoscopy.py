@@ -26,6 +26,7 @@ rendered images obey G_k = M_0 M_k⁻¹ = H_0 H_k⁻¹ exactly.
 """
 
 import json
+import numbers
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -105,6 +106,14 @@ class FetoscopyOptions:
     lens_model: str = _opt(
         "pinhole", "lens model of --lens-distortion: 'pinhole' (OpenCV's standard model) or "
         "'fisheye' (OpenCV's fisheye / equidistant model)", choices=LENS_MODELS)
+    specular_lights: int = _opt(
+        0, "light fibres at the scope tip, each mirrored in the wet tissue as a saturated "
+        "specular highlight that moves with the camera (in-vivo fetoscopy); 0 none")
+    specular_sigma_px: float = _opt(
+        5.0, "size of a highlight: its glow's Gaussian sigma, px (its saturated core is ~1.5 "
+        "sigma in radius)")
+    light_offset_mm: float = _opt(
+        1.0, "distance of the light fibres from the optical axis at the tip, mm")
     seed: int = _opt(0, "seed of every random draw (texture, path, noise)")
 
     def validate(self) -> None:
@@ -135,8 +144,16 @@ class FetoscopyOptions:
                 "tracker_margin_s",
                 "radius_mm",
                 "step_px",
+                "light_offset_mm",
             ),
         )
+        if not self.specular_sigma_px > 0:
+            raise ValueError(f"FetoscopyOptions.specular_sigma_px: must be > 0, got "
+                             f"{self.specular_sigma_px}")
+        n = self.specular_lights
+        if isinstance(n, bool) or not isinstance(n, numbers.Integral) or not 0 <= n <= 8:
+            raise ValueError(f"FetoscopyOptions.specular_lights: must be an integer in 0..8, "
+                             f"got {n!r}")
         check_time_offsets(self, "tracker_offset_s")
         check_hand_eye(self)
         if not 0 <= self.distance_variation < 0.9:
@@ -381,23 +398,18 @@ class FetoscopyScene:
         return (x - (w - 1) / 2.0) ** 2 + (y - (h - 1) / 2.0) ** 2 <= self.fov_mask_radius**2
 
     def render(self, k: int, *, noise: bool = True) -> np.ndarray:
-        """Frame k, (H, W, 3) BGR uint8: the texture warped by the true M_k, plus seeded noise
-        (the same for a given seed and k, whatever the order of calls), the FOV mask, and black
-        if k is a black frame."""
+        """Frame k, (H, W, 3) BGR uint8: the texture warped by the true M_k, its specular
+        highlights (specular_light), seeded noise (the same for a given seed and k, whatever
+        the order of calls), the FOV mask, and black if k is a black frame."""
         if not 0 <= k < self.n_frames:
             raise IndexError(f"frame {k} outside 0..{self.n_frames - 1}")
         w, h = self.size
         if k in self.black_frames:
             return np.zeros((h, w, 3), np.uint8)
-        if self.ideal_pixels is None:
-            img = self.pinhole(k)
-        else:  # through the lens: raw sub-pixel -> ideal pixel -> texture, then averaged
-            A = np.linalg.inv(self.frame_from_texture[k])
-            q = self.ideal_pixels @ A[:, :2].T + A[:, 2]
-            uv = (q[..., :2] / q[..., 2:]).astype(np.float32)
-            img = cv2.remap(self.texture, uv[..., 0], uv[..., 1], cv2.INTER_LINEAR,
-                            borderMode=cv2.BORDER_REFLECT)
-            img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+        img = self._base(k)
+        light = self.specular_light(k, img)
+        if light is not None:
+            img = np.clip(img + light[:, :, None], 0, 255).astype(np.uint8)
         sigma = self.options.image_noise_sigma
         if noise and sigma > 0:
             rng = np.random.default_rng([self.options.seed, 1, k])
@@ -406,6 +418,77 @@ class FetoscopyScene:
         if mask is not None:
             img[~mask] = 0
         return img
+
+    def _base(self, k: int) -> np.ndarray:
+        """Frame k's tissue through the lens (if any): no highlights, noise, mask or black."""
+        if self.ideal_pixels is None:
+            return self.pinhole(k)
+        # through the lens: raw sub-pixel -> ideal pixel -> texture, then averaged
+        A = np.linalg.inv(self.frame_from_texture[k])
+        q = self.ideal_pixels @ A[:, :2].T + A[:, 2]
+        uv = (q[..., :2] / q[..., 2:]).astype(np.float32)
+        img = cv2.remap(self.texture, uv[..., 0], uv[..., 1], cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_REFLECT)
+        return cv2.resize(img, self.size, interpolation=cv2.INTER_AREA)
+
+    def highlight_centres(self, k: int) -> np.ndarray:
+        """(L, 2) raw pixels where frame k sees its specular highlights: for each light fibre
+        (specular_lights of them, light_offset_mm from the optical axis, evenly around it) the
+        point of the plane that mirrors it into the camera centre, projected (through the lens,
+        if any). Highlights behind the camera are left out; (0, 2) without lights."""
+        o = self.options
+        if o.specular_lights == 0:
+            return np.zeros((0, 2))
+        R_cw = Rotation.from_rotvec(self.poses[k, :3]).as_matrix()
+        t = self.poses[k, 3:]
+        C = -R_cw.T @ t
+        phi = 2.0 * np.pi * np.arange(o.specular_lights) / o.specular_lights + np.pi / 4.0
+        lights_cam = o.light_offset_mm * np.stack([np.cos(phi), np.sin(phi), 0.0 * phi], 1)
+        lights = C + lights_cam @ R_cw  # world (rows: R_cw.T @ l)
+        norm = float(np.linalg.norm(self.plane))
+        n = self.plane / norm  # the plane: n.X = -1 / |pi|
+
+        def side(X):
+            return X @ n + 1.0 / norm
+
+        mirrored = lights - 2.0 * side(lights)[:, None] * n
+        d = mirrored - C
+        spots = C + (-side(C) / (d @ n))[:, None] * d
+        cam = spots @ R_cw.T + t
+        cam = cam[cam[:, 2] > 1e-9]
+        if len(cam) == 0:
+            return np.zeros((0, 2))
+        dist = self.distortion
+        if dist is None:
+            px = cam[:, :2] / cam[:, 2:] @ self.camera_matrix[:2, :2].T + self.camera_matrix[:2, 2]
+        elif o.lens_model == "fisheye":
+            px = cv2.fisheye.projectPoints(cam[:, None], np.zeros(3), np.zeros(3),
+                                           self.camera_matrix, dist)[0][:, 0]
+        else:
+            px = cv2.projectPoints(cam, np.zeros(3), np.zeros(3), self.camera_matrix,
+                                   dist)[0][:, 0]
+        return np.asarray(px, np.float64)
+
+    def specular_light(self, k: int, image: np.ndarray | None = None) -> np.ndarray | None:
+        """(H, W) float32 grey levels the specular highlights add to every channel of frame k
+        (before saturation), None without lights: a Gaussian glow of specular_sigma_px around
+        each highlight centre, peak 420 grey levels (saturating a core of ~1.5 sigma), scaled
+        by 0.5 + the tissue's grey level / 255 under it, so a core's outline follows the
+        tissue. image: frame k before noise (default: rendered here)."""
+        centres = self.highlight_centres(k)
+        if len(centres) == 0:
+            return None
+        if image is None:
+            image = self._base(k)
+        w, h = self.size
+        y, x = np.mgrid[:h, :w].astype(np.float32)
+        sigma = np.float32(self.options.specular_sigma_px)
+        glow = np.zeros((h, w), np.float32)
+        for cx, cy in centres:
+            glow += np.exp(-((x - np.float32(cx)) ** 2 + (y - np.float32(cy)) ** 2)
+                           / (2 * sigma * sigma))
+        grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY).astype(np.float32)
+        return np.float32(420.0) * glow * (np.float32(0.5) + grey / np.float32(255.0))
 
     def pinhole(self, k: int) -> np.ndarray:
         """Frame k as a pinhole camera sees it: the texture warped by the true M_k, without
