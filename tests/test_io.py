@@ -315,6 +315,29 @@ def test_gap_of_invalid_samples_is_flagged():
     assert ok_loose.all()
 
 
+def test_the_same_dropout_is_judged_the_same_wherever_it_falls():
+    """Two missing samples of a 40 Hz tracker leave 3 spacings between valid ones, exactly the
+    default gap limit: the float timestamps make that interval 0.07500000000000007 s in one
+    place and 0.07499999999999998 s in another, and it is bridged in both (robot files too)."""
+    times = np.arange(200) * 0.025 + 0.0071
+    frames = np.arange(1, 120) * 0.04
+    flagged = []
+    for start in range(10, 180, 3):
+        valid = np.ones(times.size, bool)
+        valid[start:start + 2] = False
+        _, ok = interpolate_camera_poses(_tracking(times, valid), frames)
+        flagged.append(int((~ok).sum()))
+        robot = RobotSamples(np.delete(times, [start, start + 1]),
+                             np.zeros((times.size - 2, 2)))
+        _, ok = interpolate_robot(robot, frames)
+        flagged.append(int((~ok).sum()))
+    assert flagged == [0] * len(flagged)
+    valid = np.ones(times.size, bool)
+    valid[50:53] = False  # three missing: 4 spacings, beyond the limit
+    _, ok = interpolate_camera_poses(_tracking(times, valid), frames)
+    assert 0 < (~ok).sum() <= 3
+
+
 def _circling(times: np.ndarray) -> TrackingSamples:
     """A sensor circling at 10 mm radius, 2 rad/s, turning about a tilting axis."""
     w = 2.0

@@ -479,6 +479,13 @@ def _outside_span(
     return outside
 
 
+def _beyond(spacing, max_gap: float):
+    """spacing > max_gap beyond rounding: a dropout of two samples at 40 Hz spans 3 x 25 ms,
+    which the sums of float timestamps give as 0.07500000000000007 in one place and
+    0.07499999999999998 in another; the same dropout is flagged or not the same everywhere."""
+    return np.asarray(spacing) > max_gap * (1.0 + 1e-9)
+
+
 def interpolate_camera_poses(
     samples: TrackingSamples,
     frame_times,
@@ -523,7 +530,7 @@ def interpolate_camera_poses(
     # Interval [ts[k], ts[k+1]] holding each frame; a frame exactly on a sample is measured.
     k = np.clip(np.searchsorted(ts, frame_times, side="right") - 1, 0, ts.size - 2)
     on_sample = (frame_times == ts[k]) | (frame_times == ts[k + 1])
-    in_gap = (ts[k + 1] - ts[k] > max_gap) & ~on_sample
+    in_gap = _beyond(ts[k + 1] - ts[k], max_gap) & ~on_sample
     valid = ~outside & ~in_gap
 
     cam_from_world = np.full((frame_times.size, 6), np.nan)
@@ -545,7 +552,7 @@ def _cubic(ts: np.ndarray, rotations: Rotation, translations: np.ndarray, t: np.
     """tracker_from_sensor at times t (inside the samples' span, not inside a gap) from splines
     through the samples of each stretch whose spacing stays <= max_gap: a gap (a dropout)
     starts a new spline, so samples across it do not bend the curve on either side."""
-    breaks = np.flatnonzero(np.diff(ts) > max_gap) + 1
+    breaks = np.flatnonzero(_beyond(np.diff(ts), max_gap)) + 1
     last = np.searchsorted(ts, t, side="right") - 1  # the latest sample at or before t
     stretch = np.searchsorted(breaks, last, side="right")
     quats = np.empty((t.size, 4))
@@ -625,6 +632,6 @@ def interpolate_robot(
     if ts.size >= 2:
         k = np.clip(np.searchsorted(ts, frame_times, side="right") - 1, 0, ts.size - 2)
         on_sample = (frame_times == ts[k]) | (frame_times == ts[k + 1])
-        invalid |= (ts[k + 1] - ts[k] > 3.0 * float(np.median(np.diff(ts)))) & ~on_sample
+        invalid |= _beyond(ts[k + 1] - ts[k], 3.0 * float(np.median(np.diff(ts)))) & ~on_sample
     xy[invalid] = np.nan
     return xy, ~invalid
