@@ -225,6 +225,14 @@ def test_black_frames(work):
     # jitter (1 deg, 1 mm ~ 30 px here), but no more than the tracker-only placement does.
     emt = run(data, "emt", work)
     assert e[black].mean() < np.array(emt["e_j_px"])[black].mean()
+    # ... and neither pastes them into the mosaic (they blacked out or darkened the tissue
+    # under them), emt though it places every frame "placed" from the tracker alone
+    for r in (ba_emt, emt):
+        mosaic = r["report"]["mosaic"]
+        assert set(mosaic["skipped_frames"]) == {str(k) for k in PAPER_BLACK_FRAMES}
+        assert set(mosaic["skipped_frames"].values()) == {
+            "no visual content (every pixel <= 12): not composed"}
+        assert mosaic["frames_shown"] == 62 - len(PAPER_BLACK_FRAMES)
 
 
 def test_handheld_ba_emt(work):

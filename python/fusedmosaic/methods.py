@@ -55,6 +55,9 @@ class MethodResult:
     # run's default for BlendOptions.mask_specular: specular highlights (saturated white spots
     # fixed to the camera) are not pasted into the mosaic; pCLE's confocal frames have none.
     mask_specular: bool = True
+    # The method looked at every frame it calls "placed" (False: emt places from the tracker
+    # alone): run checks the others for a black image before pasting them into the mosaic.
+    images_seen: bool = True
 
 
 def ms_stats(values_ms) -> dict | None:

@@ -37,6 +37,9 @@ PCLE_METHODS = {"ncc", "robot", "kalman-robot"}  # translation-only: composed wi
 # Methods whose estimation reads no image: the frames are read once before compositing, so
 # that unreadable ones are known (and left out) before the mosaic is drawn.
 READS_NO_IMAGE = {"robot"}
+# A frame whose every pixel is at or below this grey level shows nothing (not composed): the
+# level below which features.py finds no visual content (FeatureOptions.border_threshold).
+BLANK_LEVEL = 12
 
 
 def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
@@ -487,8 +490,17 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
     # show: their all-zero stand-in would paint a black hole into the mosaic.
     unreadable = np.zeros(len(G), dtype=bool)
     unreadable[list(dataset.frames.unreadable)] = True
-    if (dead | unreadable).any():
-        G = np.where((dead | unreadable)[:, None, None], np.nan, G)
+    # Black frames (no visual content, e.g. the light off: paper 000 Sec. 4.2.3) are placed from
+    # the priors but show nothing: pasted, they blacked out or darkened the tissue under them
+    # (12 black frames of 60: 363k of 694k mosaic pixels > 20 grey levels darker, linear).
+    # Only frames the method placed without looking are read here (it judged the others).
+    blank = np.zeros(len(G), dtype=bool)
+    for k in np.flatnonzero(np.isfinite(G).all(axis=(1, 2)) & ~dead & ~unreadable):
+        if (result.status[k] != "placed" or not result.images_seen) and \
+                np.asarray(frames[k]).max() <= BLANK_LEVEL:
+            blank[k] = True
+    if (dead | unreadable | blank).any():
+        G = np.where((dead | unreadable | blank)[:, None, None], np.nan, G)
     if blend is None:
         blend = BlendOptions(result.blend)
     elif isinstance(blend, str):
@@ -549,7 +561,9 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
             {**plan.skipped, **{int(k): "dead-reckoned (no anchor): not composed"
                                 for k in np.flatnonzero(dead)},
              **{int(k): "image unreadable: not composed"
-                for k in np.flatnonzero(unreadable)}}.items())},
+                for k in np.flatnonzero(unreadable)},
+             **{int(k): f"no visual content (every pixel <= {BLANK_LEVEL}): not composed"
+                for k in np.flatnonzero(blank)}}.items())},
     }
     if gains is not None:
         info["gains"] = gains.tolist()

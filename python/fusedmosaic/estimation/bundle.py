@@ -489,4 +489,5 @@ def run_emt(dataset, *, progress: bool = True, options: BundleOptions | None = N
                                   source=str(dataset.root / "tracking.csv"))
     details["warnings"] = agreement.pop("warnings")
     return MethodResult(G, status, poses=dataset.cam_from_world.copy(), plane=plane,
-                        timings=timings, parameters=asdict(o), details=details)
+                        timings=timings, parameters=asdict(o), details=details,
+                        images_seen=False)
