@@ -655,6 +655,9 @@ def test_frames_of_differing_sizes_streaming():
         ),
         (lambda m, f: m.add_frame(f, -1.0, (0.0, 0.0)), r"frame 1: timestamp -1\.0 does not"),
         (lambda m, f: m.add_frame(f, 1.0, (np.inf, 0.0)), r"frame 1: robot_xy_um is infinite"),
+        # one axis NaN is not a dropout (both NaN is): refused, not taken as "no sample"
+        (lambda m, f: m.add_frame(f, 1.0, (np.nan, 40.0)),
+         r"frame 1: robot_xy_um has one NaN coordinate \(\[nan 40\.\]\); give both"),
         (lambda m, f: m.add_frame(None, 1.0, (0.0, 0.0)), r"frame 1: an image is needed"),
         (lambda m, f: m.add_frame(f[None], 1.0, (0.0, 0.0)), r"frame 1: expected a \(H, W\)"),
     ],

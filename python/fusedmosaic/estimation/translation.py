@@ -705,7 +705,12 @@ class RobotPriorMosaicker:
                 f"frame {index}: robot_xy_um {r} is beyond the {MAX_ROBOT_UM:g} µm bound (1 km), "
                 "not a physical position (a unit mix-up? µm expected)"
             )
-        return r if np.isfinite(r).all() else _NAN2
+        if np.isnan(r).all():
+            return _NAN2  # no sample for this frame
+        if np.isnan(r).any():  # one axis measured, the other not: a caller's bug, not a dropout
+            raise ValueError(f"frame {index}: robot_xy_um has one NaN coordinate ({r}); give "
+                             "both, or None / both NaN when the robot has no sample")
+        return r
 
     # -- the streaming step --------------------------------------------------------------------
 
@@ -718,8 +723,8 @@ class RobotPriorMosaicker:
             image's pixel type; may be None for the ``robot`` estimate (which does not look at
             images).
         timestamp : s, strictly increasing.
-        robot_xy_um : (2,) robot position at the frame time (µm, image axes), or None / NaN when
-            the robot has no sample for this frame.
+        robot_xy_um : (2,) robot position at the frame time (µm, image axes), or None / both
+            NaN when the robot has no sample for this frame.
 
         Raises
         ------
@@ -727,7 +732,7 @@ class RobotPriorMosaicker:
             Naming the frame: a size differing from the camera's, a pixel type differing from
             the first image's, bad pixel values or shapes, a timestamp not after the previous
             one or beyond the bounds (``MAX_TIMESTAMP_S``, ``MAX_FRAME_GAP_S``), a robot
-            position beyond ``MAX_ROBOT_UM``.
+            position beyond ``MAX_ROBOT_UM`` or with one NaN coordinate.
         TypeError
             Naming the frame and the argument: a timestamp or robot position that is not real
             numbers (a string, None, complex).
