@@ -629,3 +629,32 @@ def test_import_with_tracker_time_offset(tmp_path, capsys):
            "spans [-5, -4.88] s, outside every frame's time ([0, 0.12] s): no frame would be " \
            "tracked; check the offset (calibrate measures it)" in err, err
     assert not (tmp_path / "d").exists()
+
+
+def test_a_broken_transform_blocks_only_its_own_import(tmp_path):
+    """A field of another tool whose sample cannot be read (15 numbers) does not block importing
+    the selected transform; selecting it (or its inverse) is refused naming the frame and key."""
+    T = np.tile(np.eye(4), (FN, 1, 1))
+    T[:, :3, 3] = np.array([[k, 2.0, 3.0] for k in range(FN)])
+    path = _small(tmp_path, transforms={"ProbeToTracker": T, "StylusToTracker": T})
+    _edit(path, r"(Seq_Frame0002_StylusToTrackerTransform = .*) 1.0\n", r"\1\n")
+    summary = import_plus_sequence(path, tmp_path / "ds", camera=Camera(FW, FH),
+                                   transform="ProbeToTracker")
+    assert summary.transform == "ProbeToTrackerTransform" and summary.invalid_samples == []
+    for name in ("StylusToTracker", "TrackerToStylus"):
+        _refused(tmp_path, path, r"frame 2 \(Seq_Frame0002_StylusToTrackerTransform\): cannot "
+                 r"parse '.*' as 16 numbers", transform=name)
+
+
+def test_missing_default_transform_names_the_next_step(tmp_path):
+    """The default SensorToTracker absent: the message names the field to import instead."""
+    T = np.tile(np.eye(4), (FN, 1, 1))
+    _refused(tmp_path, _small(tmp_path, transforms={"ProbeToTracker": T}),
+             r"no SensorToTrackerTransform field \(nor its inverse\); transforms present: "
+             r"ProbeToTrackerTransform; import it with --transform ProbeToTracker "
+             r"\(transform='ProbeToTracker' in Python\)$")
+    two = {"ProbeToTracker": T, "StylusToReference": T}
+    _refused(tmp_path, _small(tmp_path, transforms=two),
+             r"transforms present: ProbeToTrackerTransform, StylusToReferenceTransform; name the "
+             r"one to import, e\.g\. --transform ProbeToTracker \(transform='ProbeToTracker' in "
+             r"Python\)$")

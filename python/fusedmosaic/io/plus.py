@@ -115,6 +115,9 @@ class PlusSequence:
     image_ok : (N,) bool, False where ImageStatus is not OK (no image for that frame).
     orientation : the file's UltrasoundImageOrientation (the images are already MF).
     header : the non-frame header fields, as text.
+    transform_errors : field name -> why it cannot be read (its first sample with status OK
+        that is not 16 numbers, left NaN in ``transforms``); :meth:`transform` raises it when
+        that field is the one selected, so a broken field of another tool blocks nothing.
     """
 
     path: Path
@@ -128,6 +131,7 @@ class PlusSequence:
     height: int
     orientation: str = "MF"
     header: dict[str, str] = field(default_factory=dict, repr=False)
+    transform_errors: dict[str, str] = field(default_factory=dict, repr=False)
     _fields: list[dict[str, str]] = field(default_factory=list, repr=False)
 
     def __len__(self) -> int:
@@ -141,10 +145,10 @@ class PlusSequence:
         RIGID_TOLERANCE), last row 0 0 0 1, translation within MAX_TRANSLATION_MM. ValueError
         naming the file (and the frame and field) otherwise."""
         available = ", ".join(self.transforms) or "none"
+        candidates = [
+            n for n in self.transforms if re.search(r"To(Tracker|Reference)Transform\Z", n)
+        ]
         if name is None:
-            candidates = [
-                n for n in self.transforms if re.search(r"To(Tracker|Reference)Transform\Z", n)
-            ]
             if len(candidates) != 1:
                 problem = "several" if candidates else "no"
                 example = (candidates or list(self.transforms) or ["ProbeToTrackerTransform"])[0]
@@ -164,11 +168,19 @@ class PlusSequence:
         if name not in self.transforms:
             source = next((n for n in self.transforms if name in _inverse_names(n)), None)
             if source is None:
+                hint = ""
+                if self.transforms:  # the next step: a field of the file to name
+                    example = (candidates or list(self.transforms))[0].removesuffix("Transform")
+                    hint = (f"; import it with --transform {example}" if len(candidates) == 1
+                            else f"; name the one to import, e.g. --transform {example}")
+                    hint += f" (transform='{example}' in Python)"
                 raise ValueError(
                     f"{self.path}: no {name} field (nor its inverse); transforms present: "
-                    f"{available}"
+                    f"{available}{hint}"
                 )
             inverted = True
+        if source in self.transform_errors:  # selected, and a sample cannot be read
+            raise ValueError(self.transform_errors[source])
         ok = self.transform_status[source].copy()
         matrices = self.transforms[source].copy()
         _check_rigid(self, source, matrices, ok)
@@ -390,7 +402,7 @@ def read_plus_sequence(path: str | Path) -> PlusSequence:
     fields = [frame_fields.get(i, {}) for i in range(n)]
     timestamps = _timestamps(path, fields)
     image_ok = np.array([_status_ok(f.get("ImageStatus")) for f in fields], bool)
-    transforms, status = _transforms(path, fields)
+    transforms, status, transform_errors = _transforms(path, fields)
     return PlusSequence(
         path=path,
         images=images,
@@ -403,6 +415,7 @@ def read_plus_sequence(path: str | Path) -> PlusSequence:
         height=height,
         orientation=orientation,
         header={k: v for k, (v, _) in header.items()},
+        transform_errors=transform_errors,
         _fields=[{name: key for name, (_, _, key) in f.items()} for f in fields],
     )
 
@@ -525,10 +538,13 @@ def _timestamps(path: Path, fields: list[dict]) -> np.ndarray:
     return t
 
 
-def _transforms(path: Path, fields: list[dict]) -> tuple[dict, dict]:
+def _transforms(path: Path, fields: list[dict]) -> tuple[dict, dict, dict]:
+    """(matrices, status, errors) per transform field (PlusSequence's transforms,
+    transform_status and transform_errors). A sample with status OK that is not 16 numbers is
+    recorded in errors (the first per field), not raised: only the field imported matters."""
     n = len(fields)
     names = sorted({name for f in fields for name in f if name.endswith("Transform")})
-    transforms, status = {}, {}
+    transforms, status, errors = {}, {}, {}
     for name in names:
         M = np.full((n, 4, 4), np.nan)
         ok = np.zeros(n, bool)
@@ -543,13 +559,13 @@ def _transforms(path: Path, fields: list[dict]) -> tuple[dict, dict]:
             except ValueError:
                 values = []
             if len(values) != 16:
-                if not ok[i]:  # a sample marked missing may hold anything ("-nan(ind)", "")
-                    continue
-                raise ValueError(f"{path}: frame {i} ({key}): cannot parse {text!r} as 16 "
-                                 "numbers (a row-major 4x4 matrix)")
+                if ok[i]:  # a sample marked missing may hold anything ("-nan(ind)", "")
+                    errors.setdefault(name, f"{path}: frame {i} ({key}): cannot parse "
+                                            f"{text!r} as 16 numbers (a row-major 4x4 matrix)")
+                continue
             M[i] = np.reshape(values, (4, 4))
         transforms[name], status[name] = M, ok
-    return transforms, status
+    return transforms, status, errors
 
 
 # --------------------------------------------------------------------------------------------
