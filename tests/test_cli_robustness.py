@@ -871,6 +871,11 @@ def test_degenerate_rows_and_self_comparison_raise_no_numpy_warning(data, emt_ou
     result = json.loads(text)["results"][0]
     assert result["placed"] == 8 and result["e_j_px"][2] is None
     assert result["placed_at_infinity"] == [2] and result["e_M_px"] is None
+    # evaluation.md says inf, not "–" (no score)
+    assert main(["--quiet", "evaluate", str(out), "--truth", str(data / "feto")]) == 0
+    row = next(line for line in (out / "evaluation.md").read_text().splitlines()
+               if line.startswith("| out |"))
+    assert row.split(" | ")[3:5] == ["inf", "inf"], row
     assert main(["--quiet", "evaluate", str(pcle_out), "--truth", str(data / "pcle"),
                  "--compare", str(pcle_out), "--no-report"]) == 0
     test = json.loads((pcle_out / "evaluation.json").read_text())["wilcoxon"][0]

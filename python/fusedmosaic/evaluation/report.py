@@ -382,7 +382,11 @@ def plot_timing(path: Path, runs: list[RunRecord]) -> None:
 
 
 def _fmt(v, digits: int = 3) -> str:
-    return "–" if v is None or not np.isfinite(v) else f"{v:.{digits}f}"
+    """A figure for the tables: "–" when there is none (None, NaN), "inf" for an infinite
+    one (a frame placed at infinity scores e_j = inf: placed, unusably, not unscored)."""
+    if v is None or np.isnan(v):
+        return "–"
+    return ("inf" if v > 0 else "-inf") if np.isinf(v) else f"{v:.{digits}f}"
 
 
 def write_report(directory: str | Path, runs: list[RunRecord], truth: TruthRecord | None = None,
