@@ -658,3 +658,37 @@ def test_missing_default_transform_names_the_next_step(tmp_path):
              r"transforms present: ProbeToTrackerTransform, StylusToReferenceTransform; name the "
              r"one to import, e\.g\. --transform ProbeToTracker \(transform='ProbeToTracker' in "
              r"Python\)$")
+
+
+def test_import_refuses_what_run_would_refuse(tmp_path):
+    """Frame times in ms or a day's jump, and a transposed camera_matrix, are refused at import
+    (run refused the written dataset), naming the sequence's key / the user's camera.yaml."""
+    path = _small(tmp_path)
+    good = path.read_bytes()
+    for k in range(FN):  # k/25 s written in ms
+        _edit(path, rf"Seq_Frame{k:04d}_Timestamp = .*\n",
+              f"Seq_Frame{k:04d}_Timestamp = {k * 40}\n")
+    _refused(tmp_path, path, r"frames come every 40 s \(median spacing; e\.g\. rows "
+             r"Seq_Frame0000_Timestamp and Seq_Frame0001_Timestamp are 40 s apart\), more than "
+             r"MAX_FRAME_SPACING_S .*\(the sequence's timestamps, which frames\.csv would hold: "
+             r"`run` would refuse the dataset\)")
+    path.write_bytes(good)
+    for k in (2, 3):  # two days' pause
+        _edit(path, rf"Seq_Frame{k:04d}_Timestamp = .*\n",
+              f"Seq_Frame{k:04d}_Timestamp = {172800 + k / 25}\n")
+    _refused(tmp_path, path, r"rec\.mha: row Seq_Frame0002_Timestamp: timestamp 172800\.08 is "
+             r"172800\.040 s after the previous row's, more than MAX_FRAME_GAP_S")
+
+    camera = tmp_path / "camera.yaml"
+
+    def write_camera(K):
+        camera.write_text(f"%YAML:1.0\n---\nimage_width: {FW}\nimage_height: {FH}\n"
+                          f"camera_matrix: [{', '.join(map(str, np.ravel(K)))}]\n")
+
+    K = np.array([[100.0, 0, 3.5], [0, 100.0, 2.5], [0, 0, 1]])
+    write_camera(K.T)
+    _refused(tmp_path, _small(tmp_path), r"camera\.yaml: camera_matrix: last row must be 0 0 1 .*"
+             r"\(the matrix looks transposed\): the pose methods \(ba, ba-emt, lba-emt, emt\) "
+             "would refuse the dataset", names=str(camera), camera=camera)
+    write_camera(2 * K)  # last row 0 0 2: divided by 2, as run takes it
+    import_plus_sequence(_small(tmp_path), tmp_path / "ok", camera=camera)

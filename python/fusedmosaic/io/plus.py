@@ -38,8 +38,9 @@ from scipy.spatial.transform import Rotation
 
 from fusedmosaic.io._table import require_file
 from fusedmosaic.io.calibration import Camera, read_camera_yaml
-from fusedmosaic.io.dataset import created_mode, write_dataset
+from fusedmosaic.io.dataset import _check_frame_times, created_mode, write_dataset
 from fusedmosaic.io.tracking import (
+    MAX_FRAME_SPACING_S,
     MAX_TIMESTAMP_S,
     MAX_TRANSLATION_MM,
     TrackingSamples,
@@ -807,9 +808,9 @@ def import_plus_sequence(
     sensor_from_camera or a path) when given. tracker_time_offset : s, the tracker's clock
     ahead of the video's (calibrate's calibration.json "tracker_time_offset"): tracking.csv's
     timestamps are written shifted by -tracker_time_offset (io.shift_tracking), on the video's
-    clock. Everything is checked before anything is
-    written, and write_dataset writes atomically: a failure leaves no folder (or the previous
-    one, with overwrite).
+    clock. Everything is checked before anything is written, as read_dataset and run would
+    check the dataset (the frame times' spacing, camera_matrix's layout), and write_dataset
+    writes atomically: a failure leaves no folder (or the previous one, with overwrite).
     """
     tracker_time_offset = check_time_offset(tracker_time_offset)
     sequence = read_plus_sequence(path)
@@ -833,6 +834,14 @@ def import_plus_sequence(
             f"{sequence.path}: images are {sequence.width}x{sequence.height} but "
             f"{camera.source} says {camera.width}x{camera.height}"
         )
+    if camera.camera_matrix is not None:  # checked as require_camera_matrix checks it
+        try:
+            camera._checked_camera_matrix(camera.camera_matrix)
+        except ValueError as e:
+            raise ValueError(
+                f"{e}: the pose methods (ba, ba-emt, lba-emt, emt) would refuse the dataset; "
+                "correct it, or leave camera_matrix out for the other methods and calibrate"
+            ) from None
     if transform is not None and (not isinstance(transform, str) or not transform):
         raise ValueError(f"{sequence.path}: transform name must be a non-empty string, got "
                          f"{transform!r}")
@@ -844,6 +853,14 @@ def import_plus_sequence(
     kept = np.flatnonzero(sequence.image_ok)
     if kept.size == 0:
         raise ValueError(f"{sequence.path}: no frame has ImageStatus OK; nothing to import")
+    # frames.csv's times, checked as read_dataset checks them (at most MAX_FRAME_GAP_S apart,
+    # MAX_FRAME_SPACING_S in the median), named by their keys in the sequence
+    keys = np.array([sequence._key(int(i), "Timestamp") for i in kept], dtype=object)
+    try:
+        _check_frame_times(sequence.path, keys, sequence.timestamps[kept], MAX_FRAME_SPACING_S)
+    except ValueError as e:
+        raise ValueError(f"{e} (the sequence's timestamps, which frames.csv would hold: `run` "
+                         "would refuse the dataset)") from None
 
     t = sequence.timestamps
     tracking, invalid, untracked = None, np.empty(0, int), np.empty(0, int)
