@@ -646,6 +646,25 @@ def test_frames_outside_tracker_span(tmp_path):
     assert np.isnan(ds.cam_from_world[3:]).all()
 
 
+def test_frames_among_missing_samples_at_the_ends_are_flagged_as_a_gap(tmp_path):
+    """The tracker's time span is its first to last row, missing ones included: frames before
+    the first valid sample or after the last one, among valid=0 rows (the sensor entering the
+    field late), are flagged as a gap inside is, not refused; beyond every row they are
+    refused, the message saying which span."""
+    times = np.arange(8) / 25.0
+    valid = np.array([False, False, True, True, True, True, True, False])
+    root = _write(tmp_path, 8, tracking=_tracking(times, valid))
+    ds = read_dataset(root)
+    np.testing.assert_array_equal(ds.pose_valid, valid)
+    assert np.isnan(ds.cam_from_world[~valid]).all()
+    _, ok = interpolate_camera_poses(_tracking(times, valid), times[1:])
+    np.testing.assert_array_equal(ok, valid[1:])
+    with pytest.raises(ValueError, match=r"tracking\.csv: 1 frames outside the tracker's time "
+                       r"span \[0, 0\.2\] s \(its first to last sample, missing ones "
+                       r"included\); first offending frame index 5 at t=0\.24 s"):
+        interpolate_camera_poses(_tracking(times[:6], valid[:6]), times[1:7])
+
+
 def test_image_size_differs_from_camera_yaml(tmp_path):
     images = [*_images(2), next(_images(1, size=(W - 4, H)))]
     ds = read_dataset(_write(tmp_path, frames=images, timestamps=[0.0, 0.1, 0.2]))

@@ -692,3 +692,30 @@ def test_import_refuses_what_run_would_refuse(tmp_path):
              "would refuse the dataset", names=str(camera), camera=camera)
     write_camera(2 * K)  # last row 0 0 2: divided by 2, as run takes it
     import_plus_sequence(_small(tmp_path), tmp_path / "ok", camera=camera)
+
+
+def test_missing_samples_at_the_start_and_a_clock_offset(tmp_path, capsys):
+    """A sensor entering the field late (the first samples MISSING): the dataset reads, those
+    frames flagged untracked (run refused it whole). An offset shifting tracking.csv off the
+    last frame: the summary says run needs --allow-untracked, and why."""
+    from fusedmosaic.cli import main
+
+    T = np.tile(np.eye(4), (FN, 1, 1))
+    path = _small(tmp_path, transforms={"ProbeToTracker": T},
+                  status={"ProbeToTracker": [False, True, True, True]})
+    summary = import_plus_sequence(path, tmp_path / "late", camera=Camera(FW, FH),
+                                   transform="ProbeToTracker")
+    assert (summary.invalid_samples, summary.untracked_frames) == ([0], [])
+    np.testing.assert_array_equal(read_dataset(tmp_path / "late").pose_valid,
+                                  [False, True, True, True])
+
+    assert main(["import", str(_small(tmp_path)), str(tmp_path / "shifted"),
+                 "--tracker-time-offset", "0.03"]) == 0
+    assert ("; frames outside the tracker's time span (tracking.csv shifted by -0.03 s, the "
+            "tracker time offset): 3; `fusedmosaic run` refuses the dataset unless "
+            "--allow-untracked, which flags them untracked") in capsys.readouterr().out
+    with pytest.raises(ValueError, match="1 frames outside the tracker's time span"):
+        read_dataset(tmp_path / "shifted")
+    np.testing.assert_array_equal(
+        read_dataset(tmp_path / "shifted", allow_untracked=True).pose_valid,
+        [True, True, True, False])

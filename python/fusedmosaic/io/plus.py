@@ -741,8 +741,11 @@ class ImportSummary:
     sequence has no transform field at all (the video alone: no tracking.csv). frames : images
     written; their frame ids are their indices in the sequence. skipped_frames : sequence indices
     whose ImageStatus is not OK (left out). invalid_samples : sequence indices whose transform
-    status is not OK (tracking.csv rows with valid=0). untracked_frames : written frames outside
-    the OK samples' time span (read_dataset refuses them unless allow_untracked).
+    status is not OK (tracking.csv rows with valid=0; read_dataset flags the frames in a stretch
+    of them untracked, at the ends as inside). untracked_frames : written frames outside the
+    tracker's time span, tracking.csv's first to last row: only with a tracker_time_offset, which
+    shifts the rows off the frames at one end (read_dataset refuses them unless
+    allow_untracked; run: --allow-untracked).
     """
 
     root: Path
@@ -757,6 +760,7 @@ class ImportSummary:
     height: int
     channels: int
     orientation: str
+    tracker_time_offset: float = 0.0
 
     def __str__(self) -> str:
         parts = [f"{self.root}: {self.frames} frames {self.width}x{self.height} "
@@ -774,7 +778,11 @@ class ImportSummary:
         if self.invalid_samples:
             parts.append(f"invalid tracker samples: {_frames_text(self.invalid_samples)}")
         if self.untracked_frames:
-            parts.append(f"frames outside the tracked span: {_frames_text(self.untracked_frames)}")
+            shift = (f" (tracking.csv shifted by {-self.tracker_time_offset:+g} s, the tracker "
+                     "time offset)" if self.tracker_time_offset else "")
+            parts.append(f"frames outside the tracker's time span{shift}: "
+                         f"{_frames_text(self.untracked_frames)}; `fusedmosaic run` refuses the "
+                         "dataset unless --allow-untracked, which flags them untracked")
         return "; ".join(parts)
 
 
@@ -872,10 +880,13 @@ def import_plus_sequence(
         quaternions[ok] = Rotation.from_matrix(selected.matrices[ok, :3, :3]).as_quat()
         tracking = shift_tracking(TrackingSamples(t, translations, quaternions, ok),
                                   tracker_time_offset)
-        t_ok = tracking.timestamps[ok]
-        untracked = kept[(t[kept] < t_ok[0]) | (t[kept] > t_ok[-1])]
+        t_ok, rows = tracking.timestamps[ok], tracking.timestamps
+        # read_dataset refuses frames beyond every row (the offset moves the rows off one end)
+        # and flags those beyond the OK samples among invalid rows
+        untracked = kept[(t[kept] < rows[0]) | (t[kept] > rows[-1])]
         invalid = np.flatnonzero(~ok)
-        if tracker_time_offset and untracked.size == kept.size:  # the offset moved them all
+        off_ok = (t[kept] < t_ok[0]) | (t[kept] > t_ok[-1])
+        if tracker_time_offset and off_ok.all():  # the offset moved them all
             raise ValueError(
                 f"{sequence.path}: {selected.source} shifted by {-tracker_time_offset:+g} s "
                 f"(tracker time offset {tracker_time_offset:g} s) spans "
@@ -913,5 +924,6 @@ def import_plus_sequence(
         height=sequence.height,
         channels=sequence.channels,
         orientation=sequence.orientation,
+        tracker_time_offset=tracker_time_offset,
     )
 

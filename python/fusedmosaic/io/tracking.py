@@ -459,9 +459,11 @@ SHIFTED = " (timestamps shifted by {:+g} s, " + SHIFTED_MARK  # a source read wi
 
 
 def _outside_span(
-    frame_times: np.ndarray, t0: float, t1: float, source: str, what: str, allow_outside: bool
+    frame_times: np.ndarray, t0: float, t1: float, source: str, what: str, allow_outside: bool,
+    span: str = "",
 ) -> np.ndarray:
-    """Boolean mask of frames outside [t0, t1]; raises on the first unless allow_outside."""
+    """Boolean mask of frames outside [t0, t1]; raises on the first unless allow_outside.
+    ``span`` says what the span is, after it in the message (e.g. which samples it counts)."""
     if not np.all(np.isfinite(frame_times)):
         raise ValueError(f"{source}: frame times must be finite")
     outside = (frame_times < t0) | (frame_times > t1)
@@ -471,7 +473,7 @@ def _outside_span(
         i = int(np.flatnonzero(outside)[0])
         raise ValueError(
             f"{source}: {int(outside.sum())} frames outside the {what}'s time span "
-            f"[{_time(t0)}, {_time(t1)}] s; first offending frame index {i} at "
+            f"[{_time(t0)}, {_time(t1)}] s{span}; first offending frame index {i} at "
             f"t={_time(frame_times[i])} s"
             " (fusedmosaic run: --allow-untracked flags such frames instead; without frames.csv "
             "the frame times are frame / fps: --fps, else the video's frame rate, else 25)"
@@ -507,9 +509,12 @@ def interpolate_camera_poses(
     tracker_from_sensor @ sensor_from_camera; returns cam_from_world (N, 6) = [angle-axis, t]
     and valid (N,) bool.
 
-    Frames outside the valid samples' time span raise ValueError, or with ``allow_outside`` are
-    flagged invalid. Frames inside a gap between valid samples longer than ``max_gap`` (default
-    3x the median valid-sample spacing) are flagged invalid. Invalid frames get NaN poses.
+    Frames outside the tracker's time span, its first to last sample (missing ones included:
+    the tracker was running), raise ValueError, or with ``allow_outside`` are flagged invalid.
+    Frames inside a gap between valid samples longer than ``max_gap`` (default 3x the median
+    valid-sample spacing) are flagged invalid, and so are frames before the first valid sample
+    or after the last one among missing samples (a sensor that enters the field after the
+    recording starts): a gap of invalid samples at an end. Invalid frames get NaN poses.
     """
     if method not in ("linear", "cubic"):
         raise ValueError(f"interpolation method must be 'linear' or 'cubic', got {method!r}")
@@ -523,7 +528,11 @@ def interpolate_camera_poses(
     if np.any(np.diff(ts) <= 0):
         raise ValueError(f"{source}: timestamps must be strictly increasing")
     _check_rates(frame_times, ts, source, "tracker")
-    outside = _outside_span(frame_times, ts[0], ts[-1], source, "tracker", allow_outside)
+    rows = samples.timestamps[np.isfinite(samples.timestamps)]
+    outside = _outside_span(frame_times, min(rows.min(), ts[0]), max(rows.max(), ts[-1]),
+                            source, "tracker", allow_outside, span=" (its first to last "
+                            "sample, missing ones included)")
+    unsampled = (frame_times < ts[0]) | (frame_times > ts[-1])  # among missing samples
 
     if max_gap is None:
         max_gap = 3.0 * float(np.median(np.diff(ts)))
@@ -531,7 +540,7 @@ def interpolate_camera_poses(
     k = np.clip(np.searchsorted(ts, frame_times, side="right") - 1, 0, ts.size - 2)
     on_sample = (frame_times == ts[k]) | (frame_times == ts[k + 1])
     in_gap = _beyond(ts[k + 1] - ts[k], max_gap) & ~on_sample
-    valid = ~outside & ~in_gap
+    valid = ~outside & ~in_gap & ~unsampled
 
     cam_from_world = np.full((frame_times.size, 6), np.nan)
     if valid.any():
