@@ -220,6 +220,18 @@ def test_a_video_that_does_not_read_back_is_an_error(data, tmp_path, monkeypatch
     with pytest.raises(OSError, match=r"the video does not read back \(0 of 1 frames"):
         writer.close()
     assert listing(tmp_path) == []
+    # ... nor the folders made for a video in a new folder (they were left empty)
+    video = tmp_path / "new" / "sub" / "v.mp4"
+    assert run(data / "feto", tmp_path / "out", "emt", "--video", str(video)) == 1
+    assert listing(tmp_path) == []
+    monkeypatch.setattr(cv2, "VideoWriter", real)
+    # a video skipped (canvas over the budget) creates no folder either
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the skipped mosaic's warning (test_report's)
+        assert run(data / "feto", tmp_path / "out", "emt", "--video", str(video),
+                   "--max-canvas-pixels", "1000") == 0
+    assert not (tmp_path / "new").exists()
+    shutil.rmtree(tmp_path / "out")
 
 
 # --------------------------------------------------------------------------- 5: Ctrl-C

@@ -140,7 +140,9 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
     if video is not None and not is_under(video, out):
         from fusedmosaic.io.output import check_output_dir
 
-        check_output_dir(Path(video).parent, "video's folder")
+        # nothing created yet: a run that fails, is interrupted or skips the video leaves no
+        # empty folder behind (OutputWriter.external_path creates it and removes it on failure)
+        check_output_dir(Path(video).parent, "video's folder", create_parent=False)
     expects = ["homographies.csv", "mosaic.png", "report.json"]
     if report:
         expects += ["report.md", "plots/"]

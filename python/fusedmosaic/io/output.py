@@ -199,6 +199,7 @@ class OutputWriter:
         self.replaces = list(replaces)
         self._tmp: Path | None = None
         self._external: list[tuple[Path, Path]] = []  # (temp, target) outside OUT
+        self._external_dirs: list[Path] = []  # folders created for them, deepest first
 
     def __enter__(self) -> OutputWriter:
         check_output_dir(self.out_dir)
@@ -251,6 +252,7 @@ class OutputWriter:
     def __exit__(self, exc_type, exc, tb) -> None:
         tmp, self._tmp = self._tmp, None
         external, self._external = self._external, []
+        folders, self._external_dirs = self._external_dirs, []
         with _interrupts_deferred():  # Ctrl-C here would leave a half-moved set or the temp
             try:
                 if exc_type is None:
@@ -259,6 +261,11 @@ class OutputWriter:
                 shutil.rmtree(tmp, ignore_errors=True)
                 for temp, _ in external:
                     temp.unlink(missing_ok=True)
+                for folder in folders:  # created for a file outside OUT that did not land
+                    try:
+                        folder.rmdir()  # only if empty: someone else's file keeps it
+                    except OSError:
+                        pass
 
     def _commit(self, tmp: Path, external: list[tuple[Path, Path]]) -> None:
         moves: list[tuple[Path, Path]] = []  # planned first: fail before moving anything
@@ -374,6 +381,9 @@ class OutputWriter:
             raise RuntimeError("OutputWriter: use it as a context manager (with OutputWriter(…))")
         target = Path(target)
         temp = target.with_name(f".{target.stem}.tmp-{os.getpid()}{target.suffix}")
+        missing = [p for p in (target.parent, *target.parent.parents) if not p.exists()]
+        target.parent.mkdir(parents=True, exist_ok=True)
+        self._external_dirs += missing
         self._external.append((temp, target))
         return temp
 
