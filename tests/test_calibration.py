@@ -356,7 +356,32 @@ def test_wrong_tracker_input_fails_the_hand_eye_but_keeps_the_intrinsics(recordi
         assert read_camera_yaml(out / "camera.yaml").fov_mask_radius == 150.0
         report = json.loads((out / "calibration.json").read_text())
         assert "disagree" in report["hand_eye"]["failed"]
+        # The residuals are named, not the prior noise (it printed '1.00 deg / 1.00 mm'):
+        # measured 16.6 deg / 8.3 mm per axis for wxyz on the default recording.
+        rms = re.search(r"beyond 3 sigma, RMS residuals ([\d.]+) deg / ([\d.]+) mm per axis",
+                        report["hand_eye"]["failed"])
+        assert rms and float(rms[1]) > 3 and float(rms[2]) > 1, report["hand_eye"]["failed"]
         assert not (out / "hand_eye.txt").exists()
+
+
+def test_tracker_covering_part_of_the_recording_named(recording, tmp_path):
+    """A tracker valid only in the recording's first 0.4 s: the still views it does not cover
+    no longer count towards the hand-eye's six (they did, and the fit then failed with 'rotate
+    the scope about at least two different axes'); the message says how much it covers."""
+    s = read_tracking_csv(recording / "tracking.csv")
+    root = tmp_path / "part"
+    shutil.copytree(recording, root)
+    valid = s.valid.copy()
+    valid[20:] = False
+    write_tracking_csv(root / "tracking.csv", TrackingSamples(s.timestamps, s.translations,
+                                                              s.quaternions, valid))
+    error = calibrate_recording(root).hand_eye_error
+    assert re.fullmatch(
+        rf"{re.escape(str(root / 'tracking.csv'))}: the hand-eye needs at least 6 distinct views "
+        r"held still \(or 1.5 s of tracked frames filmed while moving\); this recording has "
+        r"[0-2] still view\(s\) and 0.5 s of frames with a tracker sample \(the tracker covers "
+        r"\d+ of the \d+ views, \[0, 0.3\d*\] s of the frames' \[0, 1.8\d*\] s\): film the board "
+        r"from more angles, pausing at each, with the tracker on throughout", error), error
 
 
 def test_repeated_frames_of_one_view_are_one_view(recording, tmp_path, capsys, monkeypatch):

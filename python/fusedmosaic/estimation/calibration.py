@@ -1090,17 +1090,19 @@ def _still_view_samples(samples, views: _Views, offset: float, K, dist, o):
             np.concatenate(index), np.concatenate(first), used)
 
 
-def _check_hand_eye_groups(source: str, still_views: int, blocks: np.ndarray) -> None:
+def _check_hand_eye_groups(source: str, still_views: int, blocks: np.ndarray,
+                           coverage: str = "") -> None:
     """ValueError unless the hand-eye has MIN_HAND_EYE_GROUPS independent groups of
-    measurements: distinct still views, or BOOTSTRAP_BLOCK_S blocks of tracked frames."""
+    measurements: distinct still views with a tracker sample, or BOOTSTRAP_BLOCK_S blocks of
+    tracked frames; ``coverage`` says how much of the recording the tracker covers."""
     n_blocks = len(np.unique(blocks))
     if max(still_views, n_blocks) < MIN_HAND_EYE_GROUPS:
         raise ValueError(
             f"{source}: the hand-eye needs at least {MIN_HAND_EYE_GROUPS} distinct views held "
             f"still (or {MIN_HAND_EYE_GROUPS * BOOTSTRAP_BLOCK_S:g} s of tracked frames filmed "
             f"while moving); this recording has {still_views} still view(s) and "
-            f"{n_blocks * BOOTSTRAP_BLOCK_S:g} s: film the board from more angles, pausing at "
-            "each")
+            f"{n_blocks * BOOTSTRAP_BLOCK_S:g} s of frames with a tracker sample{coverage}: film "
+            "the board from more angles, pausing at each, with the tracker on throughout")
 
 
 def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np.ndarray,
@@ -1123,9 +1125,19 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
     A, valid = tracker_at(shift)
     _check_tracker_covers(samples, valid, times + shift, source, "views")
     blocks = np.floor((times[valid] - times[valid][0]) / BOOTSTRAP_BLOCK_S)
+    # Only still views the tracker covers count (a tracker on for a part of the recording had
+    # the untracked ones counted, and the fit then failed as 'rotate about two axes').
     still_views = len({int(views.label[g[0]])
-                       for g in still_groups(views.points, views.frames, views.step)})
-    _check_hand_eye_groups(source, still_views, blocks)
+                       for g in still_groups(views.points, views.frames, views.step)
+                       if valid[g].all()})
+    coverage = ""
+    if not valid.all():
+        from fusedmosaic.io.tracking import _time
+
+        coverage = (f" (the tracker covers {int(valid.sum())} of the {valid.size} views, "
+                    f"[{_time(times[valid][0])}, {_time(times[valid][-1])}] s of the frames' "
+                    f"[{_time(times[0])}, {_time(times[-1])}] s)")
+    _check_hand_eye_groups(source, still_views, blocks, coverage)
     bound_hint = ""
     try:
         # All frames, the tracker interpolated at their times: the clock offset (it needs the
@@ -1177,13 +1189,17 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
     outliers = n - int(free.inlier.sum())
     if (outliers > 0.5 * n or free.tracker_sigma[0] > MAX_TRACKER_SIGMA[0]
             or free.tracker_sigma[1] > MAX_TRACKER_SIGMA[1]):
+        # The residuals, not free.tracker_sigma: with most samples beyond 3 sigma that stays
+        # the prior (--rot-sigma / --trans-sigma; it read 1.00 deg / 1.00 mm).
+        rms = [float(np.sqrt(np.mean(r ** 2) / 3)) for r in (free.rotation_residual_deg,
+                                                               free.translation_residual_mm)]
         raise ValueError(
             f"{source}: the tracker and the board disagree: {outliers} of {n} "
-            f"{'tracker samples' if mode == 'still' else 'views'} beyond 3 sigma, noise seen "
-            f"{free.tracker_sigma[0]:.2f} deg / {free.tracker_sigma[1]:.2f} mm per axis (an EM "
-            "tracker: tenths). Check that tracking.csv holds tracker_from_sensor (not its "
-            "inverse) with quaternions x, y, z, w and translations in mm, the board's "
-            f"--square-mm, and the frame times (frames.csv, or --fps without it){bound_hint}")
+            f"{'tracker samples' if mode == 'still' else 'views'} beyond 3 sigma, RMS "
+            f"residuals {rms[0]:.2f} deg / {rms[1]:.2f} mm per axis (an EM tracker: tenths). "
+            "Check that tracking.csv holds tracker_from_sensor (not its inverse) with "
+            "quaternions x, y, z, w and translations in mm, the board's --square-mm, and the "
+            f"frame times (frames.csv, or --fps without it){bound_hint}")
     scale_boot = bootstrap_hand_eye(free, clusters, replicates=BOOTSTRAP_REPLICATES)
     scale_std = max(free.scale_std, scale_boot["scale_std"])
     significant = abs(free.scale - 1) > SCALE_SIGMAS * scale_std
