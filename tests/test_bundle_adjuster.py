@@ -436,3 +436,36 @@ def test_plane_relative_std_with_far_more_visual_than_tracker_information():
            .solve().plane_relative_std for sigma in (1.0, 0.1, 0.01)}
     assert np.isfinite(std[0.01]), std
     assert std[1.0] > std[0.1] > std[0.01] > 0.9 * std[1.0], std
+
+
+def test_the_stub_says_which_fields_are_read_only():
+    """_core.pyi against the bindings: a field the stub declares as a plain attribute is
+    writable at runtime, one it declares as a @property is read-only (results: SolveSummary,
+    WindowStepSummary, SlidingWindow's counts), so a type checker flags what Python would
+    refuse."""
+    import ast
+    from pathlib import Path
+
+    import fusedmosaic
+
+    tree = ast.parse((Path(fusedmosaic.__file__).parent / "_core.pyi").read_text())
+    checked = 0
+    for node in tree.body:
+        if not isinstance(node, ast.ClassDef):
+            continue
+        runtime = getattr(_core, node.name)
+        for item in node.body:
+            if isinstance(item, ast.AnnAssign):
+                name, read_only = item.target.id, False
+            elif isinstance(item, ast.FunctionDef) and any(
+                    isinstance(d, ast.Name) and d.id == "property" for d in item.decorator_list):
+                name, read_only = item.name, True
+            else:
+                continue
+            attribute = vars(runtime).get(name)
+            assert isinstance(attribute, property), f"{node.name}.{name}: not a field at runtime"
+            assert (attribute.fset is None) == read_only, (
+                f"{node.name}.{name}: {'read-only' if attribute.fset is None else 'writable'} "
+                "at runtime, not in the stub")
+            checked += 1
+    assert checked >= 80

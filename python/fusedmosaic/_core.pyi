@@ -6,7 +6,7 @@ the plane ``n.X + d = 0`` seen from the virtual camera at the world origin. All 
 float64 unless stated. Bad input raises ValueError (IndexError for an unknown frame id).
 """
 
-from typing import Any
+from typing import Any, Never
 
 import numpy as np
 import numpy.typing as npt
@@ -240,37 +240,61 @@ class SolveSummary:
     """Result of BundleAdjuster.solve(). Costs are Ceres' 1/2 sum of squared whitened residuals
     (robust-kernel values for the visual term when a loss is set)."""
 
-    iterations: int
-    initial_cost: float
-    final_cost: float
-    visual_cost: float
-    emt_cost: float
-    motion_cost: float
-    solve_time_s: float
-    termination: str
-    """'CONVERGENCE', 'NO_CONVERGENCE', 'FAILURE', ..."""
-    message: str
-    full_report: str
-    linear_solver: str
-    """The linear solver used, lower case ('auto' resolved)."""
-    num_residual_blocks: int
-    num_residuals: int
-    num_parameters: int
-    """All parameters in the problem, constant ones included."""
-    num_free_parameters: int
-    """Optimised (tangent-space) parameters."""
-    num_visual_blocks: int
-    num_emt_blocks: int
-    num_motion_blocks: int
-    gauge_fixed_by_constraints: bool
-    """True when no EMT prior was present and the BAVis gauge (first frame constant, |pi|
-    fixed) was applied."""
-    plane_relative_std: float
-    """sqrt(trace(Cov_pi)) / |pi| at the solution with options.plane_std (pi free, EMT priors,
-    per-pair blocks); NaN otherwise, inf: pi unobservable."""
-    motion_released_ids: list[int]
-    """Frames whose C_p block the motion gate released in this solve
-    (options.motion_gate_chi2); iterations and solve_time_s cover every round."""
+    def __init__(self, *args: Never, **kwargs: Never) -> None:
+        """Not constructible: BundleAdjuster.solve() returns one."""
+
+    @property
+    def iterations(self) -> int: ...
+    @property
+    def initial_cost(self) -> float: ...
+    @property
+    def final_cost(self) -> float: ...
+    @property
+    def visual_cost(self) -> float: ...
+    @property
+    def emt_cost(self) -> float: ...
+    @property
+    def motion_cost(self) -> float: ...
+    @property
+    def solve_time_s(self) -> float: ...
+    @property
+    def termination(self) -> str:
+        """'CONVERGENCE', 'NO_CONVERGENCE', 'FAILURE', ..."""
+    @property
+    def message(self) -> str: ...
+    @property
+    def full_report(self) -> str: ...
+    @property
+    def linear_solver(self) -> str:
+        """The linear solver used, lower case ('auto' resolved)."""
+    @property
+    def num_residual_blocks(self) -> int: ...
+    @property
+    def num_residuals(self) -> int: ...
+    @property
+    def num_parameters(self) -> int:
+        """All parameters in the problem, constant ones included."""
+    @property
+    def num_free_parameters(self) -> int:
+        """Optimised (tangent-space) parameters."""
+    @property
+    def num_visual_blocks(self) -> int: ...
+    @property
+    def num_emt_blocks(self) -> int: ...
+    @property
+    def num_motion_blocks(self) -> int: ...
+    @property
+    def gauge_fixed_by_constraints(self) -> bool:
+        """True when no EMT prior was present and the BAVis gauge (first frame constant, |pi|
+        fixed) was applied."""
+    @property
+    def plane_relative_std(self) -> float:
+        """sqrt(trace(Cov_pi)) / |pi| at the solution with options.plane_std (pi free, EMT priors,
+        per-pair blocks); NaN otherwise, inf: pi unobservable."""
+    @property
+    def motion_released_ids(self) -> list[int]:
+        """Frames whose C_p block the motion gate released in this solve
+        (options.motion_gate_chi2); iterations and solve_time_s cover every round."""
 
     def as_dict(self) -> dict[str, Any]:
         """All fields except full_report, JSON-serialisable."""
@@ -368,44 +392,81 @@ class SlidingWindowOptions:
 class WindowStepSummary:
     """Result of SlidingWindow.step() / redo()."""
 
-    frame_ids: list[int]
-    fixed_ids: list[int]
-    keyframe_ids: list[int]
-    emt_mahalanobis2: list[float]  # per estimated frame, NaN without a tracker sample
-    iterations: int
-    initial_cost: float
-    final_cost: float
-    visual_cost: float
-    emt_cost: float
-    motion_cost: float
-    solve_time_s: float
-    step_time_s: float
-    termination: str
-    num_visual_blocks: int
-    num_correspondences: int
-    num_window_correspondences: int
-    num_keyframe_correspondences: int
-    num_loop_correspondences: int
-    num_fixed_pair_correspondences: int  # in pairs of two fixed cameras: constrain pi only
-    num_residuals: int
-    num_free_parameters: int
-    plane_relative_std: float
-    """sqrt(trace(Cov_pi)) / |pi before the step| from the step's costs; NaN: no visual cost
-    or the gate off; inf: pi unobservable; for a step the gate held, its first solve's value."""
-    plane_held: bool  # pi kept its value from before the step (no visual cost, or the gate)
-    motion_released_ids: list[int]  # estimated cameras whose C_p the motion gate released
-    # in this step or redo
-    preprocessor_time_s: float
-    evaluation_time_s: float
-    linear_solver_time_s: float
-    full_report: str
+    def __init__(self, *args: Never, **kwargs: Never) -> None:
+        """Not constructible: SlidingWindow.step() / redo() return one."""
+
+    @property
+    def frame_ids(self) -> list[int]: ...
+    @property
+    def fixed_ids(self) -> list[int]: ...
+    @property
+    def keyframe_ids(self) -> list[int]: ...
+    @property
+    def emt_mahalanobis2(self) -> list[float]:
+        """Per estimated frame, NaN without a tracker sample."""
+    @property
+    def iterations(self) -> int: ...
+    @property
+    def initial_cost(self) -> float: ...
+    @property
+    def final_cost(self) -> float: ...
+    @property
+    def visual_cost(self) -> float: ...
+    @property
+    def emt_cost(self) -> float: ...
+    @property
+    def motion_cost(self) -> float: ...
+    @property
+    def solve_time_s(self) -> float: ...
+    @property
+    def step_time_s(self) -> float: ...
+    @property
+    def termination(self) -> str: ...
+    @property
+    def num_visual_blocks(self) -> int: ...
+    @property
+    def num_correspondences(self) -> int: ...
+    @property
+    def num_window_correspondences(self) -> int: ...
+    @property
+    def num_keyframe_correspondences(self) -> int: ...
+    @property
+    def num_loop_correspondences(self) -> int: ...
+    @property
+    def num_fixed_pair_correspondences(self) -> int:
+        """In pairs of two fixed cameras: constrain pi only."""
+    @property
+    def num_residuals(self) -> int: ...
+    @property
+    def num_free_parameters(self) -> int: ...
+    @property
+    def plane_relative_std(self) -> float:
+        """sqrt(trace(Cov_pi)) / |pi before the step| from the step's costs; NaN: no visual cost
+        or the gate off; inf: pi unobservable; for a step the gate held, its first solve's value."""
+    @property
+    def plane_held(self) -> bool:
+        """pi kept its value from before the step (no visual cost, or the gate)."""
+    @property
+    def motion_released_ids(self) -> list[int]:
+        """Estimated cameras whose C_p the motion gate released in this step or redo."""
+    @property
+    def preprocessor_time_s(self) -> float: ...
+    @property
+    def evaluation_time_s(self) -> float: ...
+    @property
+    def linear_solver_time_s(self) -> float: ...
+    @property
+    def full_report(self) -> str: ...
 
 class SlidingWindow:
     """Local bundle adjustment over a sliding window with keyframes (LBAVis+EMT, Eqs. 24-27)."""
 
-    num_frames: int
-    num_pairs: int
-    num_correspondences: int
+    @property
+    def num_frames(self) -> int: ...
+    @property
+    def num_pairs(self) -> int: ...
+    @property
+    def num_correspondences(self) -> int: ...
 
     def __init__(
         self, camera_matrix: _ArrayLike, options: SlidingWindowOptions = ...
