@@ -129,6 +129,7 @@ def test_run_writes_mosaic_video_and_report(emt_run, dataset, capsys):
     image = cv2.imread(str(out / "mosaic.png"))
     assert image.shape[:2] == (mosaic["height"], mosaic["width"])
     assert mosaic["video"]["frames"] == SIM.n_frames
+    assert mosaic["video"]["blend"] == "linear"  # multiband needs every frame: said so
     capture = cv2.VideoCapture(str(out / "creation.mp4"))  # plays at the recording's rate
     assert capture.get(cv2.CAP_PROP_FPS) == pytest.approx(SIM.fps) == mosaic["video"]["fps"]
     capture.release()

@@ -1155,8 +1155,10 @@ def _add_compositing_flags(parser: argparse.ArgumentParser) -> None:
     comp.add_argument("--gain-compensation", action="store_true",
                       help="equalise the brightness of overlapping frames (one gain per frame)")
     comp.add_argument("--video", metavar="OUT.mp4",
-                      help="also write a video of the mosaic's sequential creation (at the "
-                           "recording's frame rate)")
+                      help="also write a video of the mosaic's sequential creation: one video "
+                           "frame per frame composed, at the recording's frame rate (real time "
+                           "when every frame is placed); --blend multiband shows as linear "
+                           "there (multiband needs every frame)")
     comp.add_argument("--no-report", action="store_true",
                       help="skip report.md and its plots")
     comp.add_argument("--max-canvas-pixels", type=int, default=None,

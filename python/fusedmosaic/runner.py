@@ -591,7 +591,9 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
         timings["video"] = time.perf_counter() - t0
         outputs["video"] = str(target)
         info["video"] = {"file": str(target), "path": str(target.resolve()), "frames": n,
-                         "fps": fps}
+                         "fps": fps,
+                         # multiband needs every frame: the video shows the growing linear blend
+                         "blend": "linear" if blend.blend == "multiband" else blend.blend}
     return outputs
 
 
