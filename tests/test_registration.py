@@ -14,6 +14,7 @@ from fusedmosaic.registration.features import (
 )
 from fusedmosaic.registration.pair_selection import all_pairs, emt_guided_pairs, window_pairs
 from fusedmosaic.registration.pairs import MatchOptions, degeneracy, match_pair, match_pairs
+from fusedmosaic.simulation import FetoscopyOptions, generate_fetoscopy
 
 SIZE = (320, 300)  # width, height
 
@@ -80,6 +81,35 @@ def test_orb_fast_threshold_and_the_low_contrast_retry(texture):
             (dict(orb_fast_threshold_low=256), "orb_fast_threshold_low must be an integer")):
         with pytest.raises(ValueError, match=message):
             FeatureExtractor(FeatureOptions(detector="orb", **bad))
+
+
+def test_sift_low_contrast_retry_registers_faded_frames():
+    """SIFT's threshold is on absolute contrast: the simulator's frames at 70 % contrast gave
+    1-2 keypoints and no pair registered. A frame with fewer than sift_min_features is detected
+    again at sift_contrast_threshold_low: the pair then registers to the true homography."""
+    s = generate_fetoscopy(FetoscopyOptions(n_frames=150, seed=0))  # ~40 px per frame
+    frames = []
+    for k in (0, 2):
+        image = s.render(k).astype(np.float32)
+        mean = image.mean(axis=(0, 1))
+        frames.append(np.clip(mean + 0.6 * (image - mean), 0, 255).astype(np.uint8))
+    size = s.size
+    no_retry = FeatureExtractor(FeatureOptions(sift_min_features=0))
+    assert max(len(no_retry.extract(f, k)) for k, f in enumerate(frames)) < 20
+    ext = FeatureExtractor(FeatureOptions())
+    f0, f2 = ext.extract(frames[0], 0), ext.extract(frames[1], 2)
+    assert min(len(f0), len(f2)) >= 500
+    res = match_pair(f2, f0, size, MatchOptions())
+    assert res.ok, res.status
+    true = np.linalg.inv(s.homographies[2]) @ s.homographies[0]  # frame 0 -> frame 2
+    err = frame_errors(res.H_lm[None], (true / true[2, 2])[None], *size)[0]
+    assert err < 0.5  # px over the 100x100 grid
+    for bad, message in (
+            (dict(sift_contrast_threshold_low=-0.1), "sift_contrast_threshold_low must be a "
+             r"number in \[0, 1\)"),
+            (dict(sift_min_features=2.5), "sift_min_features must be an integer >= 0")):
+        with pytest.raises(ValueError, match=message):
+            FeatureExtractor(FeatureOptions(**bad))
 
 
 @pytest.mark.parametrize("detector", ["sift", "orb"])

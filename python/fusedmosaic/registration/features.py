@@ -23,6 +23,14 @@ class FeatureOptions:
     # SIFT peak threshold. OpenCV's default is 0.04; the paper used VLFeat SIFT whose default
     # peak threshold is 0, which matters on low-contrast placenta: lower keeps more keypoints.
     sift_contrast_threshold: float = 0.04
+    # A frame where SIFT finds fewer than sift_min_features keypoints at that threshold is
+    # detected again at sift_contrast_threshold_low (if lower). The threshold is on absolute
+    # DoG contrast: the simulator's frames (grey std ~14) give 80-320 keypoints, but the same
+    # frames at 70 % contrast gave 1-2 and lba-emt registered no pair at all (run failed); at
+    # 0.01 they give 1000 (the cap) and register again. Never triggered on the simulator's
+    # default sequences (fewest keypoints 79), so their figures are unchanged.
+    sift_min_features: int = 50
+    sift_contrast_threshold_low: float = 0.01
     # ORB's FAST corner threshold (grey levels): the lower, the more candidate corners ORB
     # scores to keep its max_features best; better keypoints, slower. Measured on this 2-core
     # Xeon, 1000 keypoints kept either way: detection 400x400 SYN 10.6 ms at 5 vs 6.2 ms at 10,
@@ -64,6 +72,15 @@ class FeatureOptions:
             if isinstance(t, bool) or not isinstance(t, int | np.integer) or not 1 <= t <= 255:
                 raise ValueError(f"{name(field_name, field_name)} must be an integer in 1..255 "
                                  f"(grey levels), got {t!r}")
+        for field_name in ("sift_contrast_threshold", "sift_contrast_threshold_low"):
+            t = getattr(self, field_name)
+            if isinstance(t, bool) or not isinstance(t, float | int) or not 0 <= t < 1:
+                raise ValueError(f"{name(field_name, field_name)} must be a number in [0, 1) "
+                                 f"(SIFT's contrastThreshold), got {t!r}")
+        m = self.sift_min_features
+        if isinstance(m, bool) or not isinstance(m, int | np.integer) or m < 0:
+            raise ValueError(f"{name('sift_min_features', 'sift_min_features')} must be an "
+                             f"integer >= 0, got {m!r}")
         side = self.max_image_side
         if side is not None and (isinstance(side, bool) or not isinstance(side, int | np.integer)
                                  or side < 32):
@@ -190,11 +207,12 @@ class FeatureExtractor:
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * m + 1, 2 * m + 1))
         return cv2.erode(mask, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
 
-    def _detector(self, fast_threshold: int | None = None):
+    def _detector(self, fast_threshold: int | None = None, contrast_threshold: float | None = None):
         o = self.options
         if o.detector == "sift":
             return cv2.SIFT_create(nfeatures=o.max_features,
-                                   contrastThreshold=o.sift_contrast_threshold)
+                                   contrastThreshold=contrast_threshold
+                                   or o.sift_contrast_threshold)
         return cv2.ORB_create(nfeatures=o.max_features,
                               fastThreshold=fast_threshold or o.orb_fast_threshold)
 
@@ -242,6 +260,10 @@ class FeatureExtractor:
                 and o.orb_fast_threshold_low < o.orb_fast_threshold):
             keypoints, descriptors = self._detector(o.orb_fast_threshold_low).detectAndCompute(
                 gray, mask)  # low contrast: more candidate corners
+        if (not binary and len(keypoints) < o.sift_min_features
+                and o.sift_contrast_threshold_low < o.sift_contrast_threshold):
+            keypoints, descriptors = self._detector(
+                contrast_threshold=o.sift_contrast_threshold_low).detectAndCompute(gray, mask)
         points = np.array([kp.pt for kp in keypoints], np.float64).reshape(-1, 2)
         if size != full_size:  # pixel centres: x_full + 0.5 = (x_small + 0.5) * W / w
             scale = np.array(full_size, np.float64) / np.array(size, np.float64)
