@@ -357,6 +357,9 @@ def _say_hand_eye(args: argparse.Namespace, he: dict) -> None:
                       f"give recordings of this set-up run/import --tracker-time-offset "
                       f"{offset['applied_s']:.4f})" if offset["applied_s"]
                       else f"(not applied: {offset.get('reason', 'not significant')})"))
+    else:  # the reason was in calibration.json only
+        _say(args, f"tracker time offset {offset['applied_s'] * 1e3:+.1f} ms: not estimated ("
+                   + offset.get("reason", "as given with --time-offset") + ")")
     if "still_views" in he:
         source = (f"{he['still_views']} still views ({he['tracker_samples']} tracker samples "
                   "taken while the board pose held)")

@@ -112,6 +112,9 @@ MIN_NORMAL_SPREAD_DEG = 1.0
 # ~1 deg / 1 mm at worst, paper 000's Sigma_EMT).
 MAX_TRACKER_SIGMA = (5.0, 5.0)
 HUBER_SIGMAS = 3.0
+# RMS of a standard normal within +-3: sqrt(1 - 6 phi(3) / (2 Phi(3) - 1)) (the noise seen from
+# the inliers at HUBER_SIGMAS is divided by it)
+TRUNCATED_RMS = 0.98658
 # Frames whose corners lie within 1 % of the image diagonal (RMS) of an earlier frame's show
 # the same view (a still scope, a pause): one view, not several independent ones.
 REPEATED_VIEW_FRACTION = 0.01
@@ -189,15 +192,23 @@ class CalibrationOptions:
                                  f"{getattr(self, key)!r}")
         if self.max_views < MIN_VIEWS:
             raise ValueError(f"{name('max_views')}: must be >= {MIN_VIEWS}, got {self.max_views}")
+        from fusedmosaic.io.tracking import MAX_TIME_OFFSET_S
+
         if self.time_offset != "auto" and not (
                 isinstance(self.time_offset, (int, float)) and np.isfinite(self.time_offset)
-                and abs(self.time_offset) <= 10.0):
-            raise ValueError(f"{name('time_offset')}: expected 'auto' or seconds within +-10, "
-                             f"got {self.time_offset!r}")
+                and abs(self.time_offset) <= MAX_TIME_OFFSET_S):
+            raise ValueError(f"{name('time_offset')}: expected 'auto' or seconds within "
+                             f"+-{MAX_TIME_OFFSET_S:g}, got {self.time_offset!r}")
         for key in ("square_mm", "rot_sigma_deg", "trans_sigma_mm", "max_time_offset_s"):
             value = getattr(self, key)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"{name(key)}: must be a number > 0, got {value!r}")
+        # run / import / live correct offsets up to MAX_TIME_OFFSET_S: a larger bound could
+        # only find one they refuse (--max-time-offset 20 was accepted).
+        if self.max_time_offset_s > MAX_TIME_OFFSET_S:
+            raise ValueError(f"{name('max_time_offset_s')}: must be at most "
+                             f"{MAX_TIME_OFFSET_S:g} s (the clock offset run, import and live "
+                             f"correct), got {self.max_time_offset_s!r}")
 
     @property
     def coefficients(self) -> int:
@@ -443,8 +454,9 @@ def calibrate_hand_eye(
     linearise: bool = True,
 ) -> HandEyeResult:
     """X = sensor_from_camera and B = tracker_from_board from A_k X C_k = B over views k (module
-    doc). With ``reweight`` the second fit weights by the noise the first one's inliers show,
-    otherwise both by the given noise. With ``fit_scale`` the board's translations are scaled
+    doc). With ``reweight`` the fits after the first weight by the noise the residuals show
+    (HandEyeResult.tracker_sigma, iterated to agree with its inliers' within 5 %), otherwise
+    the one fit by the given noise. With ``fit_scale`` the board's translations are scaled
     by a free factor (HandEyeResult.scale: tracker mm per board mm, 1 when the square size and
     the tracker's unit are right). ``start``: begin from that solution instead of the closed
     form. ``linearise``: keep what bootstrap_hand_eye needs (False: only the fit, e.g. to
@@ -486,20 +498,37 @@ def calibrate_hand_eye(
         r = np.hstack([rot, predicted[:, :3, 3] - A[:, :3, 3]])
         return r if sigma is None else (r / sigma).ravel()
 
-    # The given noise weights the first fit; the noise its inliers show weights the second
-    # (rotation against translation matters, and users rarely know their tracker's).
+    # The given noise weights the first fit; the noise the residuals show weights the next
+    # (rotation against translation matters, and users rarely know their tracker's). Inliers
+    # picked at 3x the given noise bias that low when the real noise is larger (3 deg / 1.5 mm
+    # seen as 1.73 / 1.42 under the default 1 / 1, 0.5 / 3 as 0.48 / 1.60), so the first
+    # reweighting takes the residuals' MAD (robust to up to half outliers, unbiased for
+    # Gaussian noise), the next ones the RMS of the inliers at 3x the current noise, until it
+    # agrees with the weights within 5 % (2-3 fits).
     sigma = np.array([np.deg2rad(rot_sigma_deg)] * 3 + [trans_sigma_mm] * 3)
     p = np.zeros(n_par)
-    for attempt in range(2):
+    for attempt in range(6):
         fit = least_squares(residuals, p, args=(sigma,), method="trf", loss="huber",
                             f_scale=HUBER_SIGMAS, x_scale="jac")
         p = fit.x
         r = residuals(p)
         inlier = np.abs(r / sigma).max(axis=1) <= HUBER_SIGMAS
-        if attempt == 1 or not reweight or inlier.sum() < MIN_HAND_EYE_VIEWS:
+        if attempt == 5 or not reweight or inlier.sum() < MIN_HAND_EYE_VIEWS:
             break
-        seen = np.sqrt(np.mean(r[inlier] ** 2, axis=0))
-        sigma = np.repeat([max(seen[:3].mean(), 1e-9), max(seen[3:].mean(), 1e-12)], 3)
+        if attempt == 0:
+            mad = 1.4826 * np.median(np.abs(r - np.median(r, axis=0)), axis=0)
+            seen = np.array([mad[:3].mean(), mad[3:].mean()])
+        else:
+            # RMS of the inliers, made unbiased for Gaussian noise: the residuals' degrees of
+            # freedom (the fit's parameters taken out) and the 3 sigma cut (TRUNCATED_RMS)
+            rms = np.sqrt(np.sum(r[inlier] ** 2, axis=0) / (inlier.sum() - n_par / 6))
+            seen = np.array([rms[:3].mean(), rms[3:].mean()]) / TRUNCATED_RMS
+            if np.all(np.abs(seen / sigma[[0, 3]] - 1) < 0.05):
+                break
+        # Floors: absolute, and 1e-3 of the other's at a 100 mm lever (noise-free rotations
+        # beside noisy translations weighted 1e8 to 5 left the fit's curvature singular).
+        rot = max(seen[0], 1e-8, 1e-5 * seen[1])
+        sigma = np.repeat([rot, max(seen[1], 1e-6, 0.1 * rot)], 3)
     X, B, scale = unpack(p)
     JtJ = fit.jac.T @ fit.jac
     eig = np.linalg.eigvalsh(JtJ)
@@ -623,6 +652,7 @@ def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeR
 
     if common.sum() < MIN_HAND_EYE_VIEWS:
         return {"estimated": False, "applied_s": 0.0, "at_bound": False,
+                "views": int(common.sum()),
                 "reason": f"fewer than {MIN_HAND_EYE_VIEWS} views tracked at every offset"}
     fine = 0.005
     grid = np.linspace(-max_offset_s, max_offset_s, int(round(2 * max_offset_s / fine)) + 1)
@@ -654,6 +684,22 @@ def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeR
     elif abs(best) > 2 * std:
         out["applied_s"] = float(best)
     return out
+
+
+def _offset_bound_note(samples, times: np.ndarray) -> str:
+    """What the refusals of the clock offset search add: both time spans, the recording's
+    length and the bound that keeps half the views (from the valid samples' span, gaps
+    aside)."""
+    from fusedmosaic.io.tracking import _time
+
+    ts = samples.timestamps[samples.valid]
+    margin = np.sort(np.minimum(times - ts[0], ts[-1] - times))[::-1]
+    # estimate_time_offset looks 4 ms beyond the bound
+    half = np.floor(100 * (margin[max(times.size // 2 - 1, 0)] - 0.004)) / 100
+    return (
+        f"the tracker spans [{_time(ts[0])}, {_time(ts[-1])}] s, the views [{_time(times[0])}, "
+        f"{_time(times[-1])}] s, a {times[-1] - times[0]:.3g} s recording"
+        + (f"; +-{half:g} s keeps half the views" if half > 0 else ""))
 
 
 def _held_cost(A: np.ndarray, C: np.ndarray, he: HandEyeResult) -> float:
@@ -1146,7 +1192,24 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
                                    trans_sigma_mm=o.trans_sigma_mm, fit_scale=True)
         offset = {"estimated": False, "applied_s": shift}
         if o.time_offset == "auto":
-            offset = estimate_time_offset(tracker_at, poses, first, o.max_time_offset_s)
+            # A bound leaving too few views tracked at every offset within it skipped the
+            # estimate (--max-time-offset 4 on a 6.4 s recording; the reason only in
+            # calibration.json) or failed its fits: refused, naming the recording's length.
+            try:
+                offset = estimate_time_offset(tracker_at, poses, first, o.max_time_offset_s)
+                failed = "" if offset["estimated"] else (
+                    f"at least {MIN_HAND_EYE_VIEWS} views tracked at every offset are needed")
+            except ValueError as exc:
+                failed = f"over them {exc}"
+            if failed:
+                bound = o.max_time_offset_s + 0.004  # as estimate_time_offset looks
+                covered = int((tracker_at(-bound)[1] & tracker_at(bound)[1]).sum())
+                note = _offset_bound_note(samples, times)
+                raise ValueError(
+                    f"the clock offset search within +-{o.max_time_offset_s:g} s "
+                    f"(--max-time-offset) covers {covered} of the {times.size} views (those "
+                    f"tracked at every offset within it): {failed}; {note}. Lower "
+                    "--max-time-offset, or give the offset with --time-offset S")
             if offset["at_bound"]:
                 bound_hint = (
                     f"; the clock offset estimate ({1e3 * offset['estimate_s']:+.0f} ms) lies at "
@@ -1186,13 +1249,16 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
         _check_hand_eye_groups(source, 0 if still is None else len(np.unique(still[2])),
                                clusters)
     n = len(A_fit)
-    outliers = n - int(free.inlier.sum())
-    if (outliers > 0.5 * n or free.tracker_sigma[0] > MAX_TRACKER_SIGMA[0]
-            or free.tracker_sigma[1] > MAX_TRACKER_SIGMA[1]):
-        # The residuals, not free.tracker_sigma: with most samples beyond 3 sigma that stays
+
+    def check_agreement(fit: HandEyeResult) -> None:
+        outliers = n - int(fit.inlier.sum())
+        if (outliers <= 0.5 * n and fit.tracker_sigma[0] <= MAX_TRACKER_SIGMA[0]
+                and fit.tracker_sigma[1] <= MAX_TRACKER_SIGMA[1]):
+            return
+        # The residuals, not fit.tracker_sigma: with most samples beyond 3 sigma that stays
         # the prior (--rot-sigma / --trans-sigma; it read 1.00 deg / 1.00 mm).
-        rms = [float(np.sqrt(np.mean(r ** 2) / 3)) for r in (free.rotation_residual_deg,
-                                                               free.translation_residual_mm)]
+        rms = [float(np.sqrt(np.mean(r ** 2) / 3)) for r in (fit.rotation_residual_deg,
+                                                               fit.translation_residual_mm)]
         raise ValueError(
             f"{source}: the tracker and the board disagree: {outliers} of {n} "
             f"{'tracker samples' if mode == 'still' else 'views'} beyond 3 sigma, RMS "
@@ -1200,6 +1266,8 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
             "Check that tracking.csv holds tracker_from_sensor (not its inverse) with "
             "quaternions x, y, z, w and translations in mm, the board's --square-mm, and the "
             f"frame times (frames.csv, or --fps without it){bound_hint}")
+
+    check_agreement(free)
     scale_boot = bootstrap_hand_eye(free, clusters, replicates=BOOTSTRAP_REPLICATES)
     scale_std = max(free.scale_std, scale_boot["scale_std"])
     significant = abs(free.scale - 1) > SCALE_SIGMAS * scale_std
@@ -1223,6 +1291,10 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
                                 fit_scale=significant)
     except ValueError as exc:
         raise ValueError(f"{source}: {exc}") from None
+    # The noise seen follows the residuals (calibrate_hand_eye): a wrong input's too, so the
+    # final fit's is checked as well (quaternions w, x, y, z on a 12-view recording: 3.4 deg /
+    # 5.5 mm seen there, beyond MAX_TRACKER_SIGMA).
+    check_agreement(he)
     boot = bootstrap_hand_eye(he, clusters, replicates=BOOTSTRAP_REPLICATES)
     # What the tracker alone places: board corners through the tracked camera pose (the board
     # in the tracker's mm when a scale was applied).
