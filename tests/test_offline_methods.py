@@ -243,3 +243,16 @@ def test_handheld_ba_emt(work):
     r = run(data, "ba-emt", work)
     assert r["unplaced"] == 0
     assert r["e_M_px"] <= 4.0  # issue: hand-held e_M <= 4 px
+
+
+def test_blank_frames_are_the_same_for_the_mosaic_and_the_live_view():
+    """runner.is_blank decides for compose_outputs and for run_igtl's live view alike: a black
+    frame placed from the priors is not drawn; a frame its method registered ("placed") is not
+    even read."""
+    from fusedmosaic.runner import BLANK_LEVEL, is_blank
+
+    black = np.full((40, 50, 3), BLANK_LEVEL, np.uint8)
+    tissue = black.copy()
+    tissue[20, 25] = BLANK_LEVEL + 1
+    assert is_blank(black, "prior-only") and is_blank(black)
+    assert not is_blank(tissue, "prior-only") and not is_blank(black, "placed")

@@ -99,6 +99,9 @@ def test_sift_low_contrast_retry_registers_faded_frames():
     ext = FeatureExtractor(FeatureOptions())
     f0, f2 = ext.extract(frames[0], 0), ext.extract(frames[1], 2)
     assert min(len(f0), len(f2)) >= 500
+    # 0 (VLFeat's default peak threshold) is a threshold too, not "use the first one"
+    zero = FeatureExtractor(FeatureOptions(sift_contrast_threshold_low=0.0))
+    assert len(zero.extract(frames[0], 0)) >= 500
     res = match_pair(f2, f0, size, MatchOptions())
     assert res.ok, res.status
     true = np.linalg.inv(s.homographies[2]) @ s.homographies[0]  # frame 0 -> frame 2

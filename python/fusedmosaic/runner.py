@@ -463,6 +463,12 @@ def composing_lens(camera, undistorted: bool):
     return lens, (camera.fov_mask() if lens is None else lens.mask)
 
 
+def is_blank(image, status: str | None = None) -> bool:
+    """A frame with no visual content (every pixel <= BLANK_LEVEL): placed, not composed.
+    A frame its method calls "placed" was registered, so has content: not read."""
+    return status != "placed" and bool(np.asarray(image).max() <= BLANK_LEVEL)
+
+
 def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=None, video=None,
                     out: Path, progress: bool, timings: dict[str, float]) -> dict:
     """mosaic.png (one piece, or tile by tile above CanvasOptions.in_memory_pixels), and the
@@ -498,9 +504,8 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
     # Only frames the method placed without looking are read here (it judged the others).
     blank = np.zeros(len(G), dtype=bool)
     for k in np.flatnonzero(np.isfinite(G).all(axis=(1, 2)) & ~dead & ~unreadable):
-        if (result.status[k] != "placed" or not result.images_seen) and \
-                np.asarray(frames[k]).max() <= BLANK_LEVEL:
-            blank[k] = True
+        if not (result.images_seen and result.status[k] == "placed"):
+            blank[k] = is_blank(frames[k])
     if (dead | unreadable | blank).any():
         G = np.where((dead | unreadable | blank)[:, None, None], np.nan, G)
     if blend is None:
@@ -921,7 +926,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
 
     def on_final(index, image, r) -> None:  # given to the session only with a view
         if (image is not None and np.isfinite(r.homography).all()
-                and r.status != "dead-reckoned"):  # as compose_outputs: not drawn
+                and r.status != "dead-reckoned"  # as compose_outputs: not drawn
+                and not is_blank(image, r.status)):
             view.add(image, r.homography)
 
     rejected: dict[str, int] = {}  # why -> frames refused

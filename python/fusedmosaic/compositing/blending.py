@@ -32,6 +32,9 @@ COVERED = 1e-3  # total weight below which a canvas pixel counts as empty (backg
 # whose highlight covers it; last: not painted; multiband: not owned), not zero, so a spot no
 # other frame sees is still shown (linear, average, multiband).
 SPECULAR_WEIGHT = 0.01
+# ... and at least this, so the spot counts as covered (COVERED) even near its frame's edge,
+# where the feathering weight is small: a spot no other frame sees is no hole in the mosaic.
+SPECULAR_FLOOR = 2 * COVERED
 
 
 @dataclass
@@ -200,11 +203,12 @@ class FrameWarper:
     def box(self, G: np.ndarray) -> tuple[int, int, int, int] | None:
         return footprint_box(G, self.width, self.height, self.align, self.pad)
 
-    def _weights(self, image: np.ndarray | None
+    def _weights(self, image: np.ndarray | None, fill: bool = True
                  ) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
         """(image, weight (H, W), colour weight (H, W, 1)) of this frame: as given and the fixed
         weights, or, when the options ask and it has specular highlights, the weights lowered
-        there and the highlights filled with the tissue around them (fill_highlights)."""
+        there (to SPECULAR_WEIGHT of theirs, at least SPECULAR_FLOOR inside the field of view)
+        and, with `fill`, the highlights filled with the tissue around them (fill_highlights)."""
         if image is None or not self.options.mask_specular:
             return image, self.weight, self.colour_weight
         from fusedmosaic.registration.features import specular_mask
@@ -212,9 +216,15 @@ class FrameWarper:
         spots = specular_mask(image.reshape(image.shape[:2]) if image.shape[2] == 1 else image)
         if spots is None:
             return image, self.weight, self.colour_weight
-        factor = np.where(spots > 0, np.float32(SPECULAR_WEIGHT), np.float32(1.0))
-        return (fill_highlights(image, spots, self.mask), self.weight * factor,
-                self.colour_weight * factor[:, :, None])
+        x, y, w, h = cv2.boundingRect(spots)
+        box = (slice(y, y + h), slice(x, x + w))
+        on = (spots[box] > 0) & self.mask[box]
+        weight, colour_weight = self.weight.copy(), self.colour_weight.copy()
+        lowered = np.maximum(weight[box] * np.float32(SPECULAR_WEIGHT), np.float32(SPECULAR_FLOOR))
+        weight[box][on] = lowered[on]
+        colour_weight[box][on] = np.where(self.colour_weight[box][on] > 0, lowered[on, None], 0)
+        return (fill_highlights(image, spots, self.mask) if fill else image, weight,
+                colour_weight)
 
     def warp(self, image: np.ndarray, G: np.ndarray, *, gain: float = 1.0, name=None
              ) -> Patch | None:
@@ -253,7 +263,8 @@ class FrameWarper:
         if box is None:
             return None
         x0, y0, x1, y1 = box
-        _, weight, _ = self._weights(None if image is None else self._check_image(image, None))
+        image = None if image is None else self._check_image(image, None)
+        _, weight, _ = self._weights(image, fill=False)
         return Patch(x0, y0, _warp(weight, G, x0, y0, x1 - x0, y1 - y0))
 
 
@@ -263,19 +274,21 @@ def fill_highlights(image: np.ndarray, spots: np.ndarray, fov: np.ndarray) -> np
     past the highlights): what the low bands of a multiband blend see there instead of white
     (it left a glow of ~7 grey levels around each frame's highlights), and what a pixel no
     other frame shows gets (at SPECULAR_WEIGHT, so only there)."""
-    x, y, w, h = cv2.boundingRect(spots)
-    pad = max(w, h) + 1
-    y0, y1 = max(0, y - pad), min(image.shape[0], y + h + pad)
-    x0, x1 = max(0, x - pad), min(image.shape[1], x + w + pad)
-    inside = spots[y0:y1, x0:x1] > 0
-    valid = (~inside & fov[y0:y1, x0:x1]).astype(np.float32)
-    crop = image[y0:y1, x0:x1].astype(np.float32)
-    size = (2 * pad + 1, 2 * pad + 1)
-    total = cv2.blur(crop * valid[:, :, None], size).reshape(crop.shape)
-    count = cv2.blur(valid, size)[:, :, None]
-    fill = np.divide(total, count, out=np.zeros_like(total), where=count > 1e-6)
     out = image.copy()
-    out[y0:y1, x0:x1][inside] = np.clip(np.rint(fill[inside]), 0, 255).astype(image.dtype)
+    contours, _ = cv2.findContours(spots, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    for contour in contours:  # each highlight in its own box, padded by its size
+        x, y, w, h = cv2.boundingRect(contour)
+        pad = max(w, h) + 1
+        y0, y1 = max(0, y - pad), min(image.shape[0], y + h + pad)
+        x0, x1 = max(0, x - pad), min(image.shape[1], x + w + pad)
+        inside = spots[y0:y1, x0:x1] > 0
+        valid = (~inside & fov[y0:y1, x0:x1]).astype(np.float32)
+        crop = image[y0:y1, x0:x1].astype(np.float32)
+        size = (2 * pad + 1, 2 * pad + 1)
+        total = cv2.blur(crop * valid[:, :, None], size).reshape(crop.shape)
+        count = cv2.blur(valid, size)[:, :, None]
+        fill = np.divide(total, count, out=np.zeros_like(total), where=count > 1e-6)
+        out[y0:y1, x0:x1][inside] = np.clip(np.rint(fill[inside]), 0, 255).astype(image.dtype)
     return out
 
 
@@ -309,10 +322,13 @@ def accumulate(acc: np.ndarray, x0: int, y0: int, patch: Patch, blend: str) -> b
     if blend == "last":
         src = patch.data[inside]
         w = src[:, :, -1]
-        covered = (w >= 0.5).view(np.uint8)
+        dst = acc[region]  # a view: cv2.copyTo writes into acc (numpy's masked copy is 5x slower)
+        # A frame covers its pixels of weight >= 0.5; below (a footprint's edge, a specular
+        # highlight at SPECULAR_WEIGHT) only pixels still empty, so a spot no other frame shows
+        # is no hole (and is painted over by any later frame seeing it).
+        covered = ((w >= 0.5) | ((w > COVERED) & (dst[:, :, -1] == 0))).view(np.uint8)
         value = src / np.maximum(w, np.float32(1e-6))[:, :, None]
         value[:, :, -1] = 1.0
-        dst = acc[region]  # a view: cv2.copyTo writes into acc (numpy's masked copy is 5x slower)
         cv2.copyTo(value, covered, dst)
     else:
         acc[region] += patch.data[inside]

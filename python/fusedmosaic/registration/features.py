@@ -53,7 +53,11 @@ class FeatureOptions:
     # precise as the shrunk image's pixels.
     max_image_side: int | None = None
     # No keypoints on specular highlights (saturated white spots fixed to the camera, and their
-    # glow: specular_mask); a frame without such pixels is unaffected.
+    # glow: specular_mask); a frame without such pixels is unaffected. Judged on the grey image
+    # the keypoints are detected in (after undistortion): grey >= 235, which only near-white
+    # pixels reach (a saturated red channel alone gives ~76); the compositor judges the colour
+    # frame, every channel >= 235, so a warm near-white spot (B 200, G 255, R 255: grey 249) is
+    # kept from keypoints but pasted.
     mask_specular: bool = True
 
     def validate(self, names: dict[str, str] | None = None) -> None:
@@ -211,8 +215,8 @@ class FeatureExtractor:
         o = self.options
         if o.detector == "sift":
             return cv2.SIFT_create(nfeatures=o.max_features,
-                                   contrastThreshold=contrast_threshold
-                                   or o.sift_contrast_threshold)
+                                   contrastThreshold=o.sift_contrast_threshold
+                                   if contrast_threshold is None else contrast_threshold)
         return cv2.ORB_create(nfeatures=o.max_features,
                               fastThreshold=fast_threshold or o.orb_fast_threshold)
 
