@@ -170,6 +170,24 @@ def test_time_offset_search_bound_checked(recording, tmp_path, capsys):
             in capsys.readouterr().out)
 
 
+def test_large_clock_offset_found_without_the_hand_eye(recording, tmp_path):
+    """A tracker 0.4 s late (within the default bound): the coarse scan held the hand-eye
+    fitted at offset 0 and missed it (the tracker and the board then disagreed, 20.6 deg /
+    6.9 mm RMS; on the 6.4 s default recording 0.6 s was found at -53 ms); it now matches how
+    far the scope turns between views by the board and by the tracker, which needs no
+    hand-eye: measured 399.4 ms, hand-eye 0.32 deg / 0.19 mm off (0.6 and 0.7 s on the default
+    recording with --max-time-offset 1: 600.0 and 700.0 ms, 0.21 deg / 0.08 mm). Stated: within
+    2 ms, the hand-eye within 0.5 deg / 0.5 mm."""
+    root = _variant(recording, tmp_path / "late", shift_s=0.4)
+    result = calibrate_recording(root)
+    assert result.hand_eye_error is None, result.hand_eye_error
+    offset = result.report["hand_eye"]["tracker_time_offset"]
+    assert abs(offset["applied_s"] - 0.4) < 0.002, offset
+    rotation, translation = _hand_eye_errors(result.hand_eye,
+                                             read_hand_eye(root / "truth_hand_eye.txt"))
+    assert rotation < 0.5 and translation < 0.5
+
+
 def test_corner_order_is_the_board_frame():
     """Detected corners come in the simulator's board order (x along a row, dark square outside
     corner 0), also in the image turned by a half turn (the same physical corners, in order)."""
@@ -383,6 +401,11 @@ def test_wrong_tracker_input_fails_the_hand_eye_but_keeps_the_intrinsics(recordi
         rms = re.search(r"beyond 3 sigma, RMS residuals ([\d.]+) deg / ([\d.]+) mm per axis",
                         report["hand_eye"]["failed"])
         assert rms and float(rms[1]) > 3 and float(rms[2]) > 1, report["hand_eye"]["failed"]
+        # and, as any fit failing after an estimated clock offset, that estimate
+        assert re.search(r"; the clock offset was estimated at [+-]\d+ \+- [\d.]+ ms \(within "
+                         r"\+-0.5 s\): if the clocks differ by more or that is wrong, give the "
+                         r"offset with --time-offset S \(or raise --max-time-offset\)$",
+                         report["hand_eye"]["failed"]), report["hand_eye"]["failed"]
         assert not (out / "hand_eye.txt").exists()
 
 

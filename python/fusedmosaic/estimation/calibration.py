@@ -624,13 +624,14 @@ def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeR
     at t: the d whose hand-eye fit leaves the smallest cost, over the views the tracker covers
     at every d in [-max_offset_s, max_offset_s] and with the noise of the first fit held (so the
     costs compare; the board's scale free as in ``first``). The range is scanned in 5 ms steps
-    with ``first``'s hand-eye held (no fit: cheap over any range), the fit's cost is then
-    compared in 5 ms steps around the scan's best (widened while the best lies at its edge)
-    and minimised by a bounded search; the standard error from the cost's curvature
-    (cost = chi^2 / 2). Applied only when it is determined (the scope moved while filmed: error
-    < 10 ms) and differs from 0 by more than two standard errors; an estimate at the bound is
-    flagged ("at_bound": the clocks may differ by more). `tracker_at(d)` -> (tracker_from_sensor
-    of the views it covers, mask)."""
+    comparing the angles the scope turns between consecutive views by the board and by the
+    tracker (no hand-eye: cheap over any range; the hand-eye refitted at the scan's best when
+    that is not 0), the fit's cost is then compared in 5 ms steps around the scan's best
+    (widened while the best lies at its edge) and minimised by a bounded search; the standard
+    error from the cost's curvature (cost = chi^2 / 2). Applied only when it is determined (the
+    scope moved while filmed: error < 10 ms) and differs from 0 by more than two standard
+    errors; an estimate at the bound is flagged ("at_bound": the clocks may differ by more).
+    `tracker_at(d)` -> (tracker_from_sensor of the views it covers, mask)."""
     from scipy.optimize import minimize_scalar
 
     h = 0.002  # curvature step; the views must be covered there too
@@ -656,8 +657,21 @@ def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeR
                 "reason": f"fewer than {MIN_HAND_EYE_VIEWS} views tracked at every offset"}
     fine = 0.005
     grid = np.linspace(-max_offset_s, max_offset_s, int(round(2 * max_offset_s / fine)) + 1)
-    held = [_held_cost(tracked(d), C, first) for d in grid]
-    i = int(np.argmin(held))
+    # The coarse scan compares how far the scope turns between consecutive views, by the board
+    # and by the tracker: angle(A_k^-1 A_k+1) = angle(C_k C_k+1^-1) whatever the hand-eye, so
+    # it needs none (holding the one fitted at offset 0 found -53 ms for clocks 0.6 s apart).
+    turned = _rotation_angles(C[:-1, :3, :3] @ np.swapaxes(C[1:, :3, :3], 1, 2))
+
+    def mismatch(d: float) -> float:
+        R = tracked(d)[:, :3, :3]
+        return float(np.sum((_rotation_angles(np.swapaxes(R[:-1], 1, 2) @ R[1:]) - turned) ** 2))
+
+    i = int(np.argmin([mismatch(d) for d in grid]))
+    if abs(grid[i]) > 2 * fine:  # the fits below start from a hand-eye fitted there
+        first = calibrate_hand_eye(tracked(grid[i]), C, rot_sigma_deg=sigma[0],
+                                   trans_sigma_mm=sigma[1], fit_scale=fit_scale,
+                                   linearise=False)
+        sigma = first.tracker_sigma
     costs: dict[int, float] = {}
     lo, hi = max(i - 3, 0), min(i + 3, grid.size - 1)
     while True:
@@ -702,15 +716,9 @@ def _offset_bound_note(samples, times: np.ndarray) -> str:
         + (f"; +-{half:g} s keeps half the views" if half > 0 else ""))
 
 
-def _held_cost(A: np.ndarray, C: np.ndarray, he: HandEyeResult) -> float:
-    """calibrate_hand_eye's cost (0.5 * sum of Huber(residual / sigma)^2) of the views (A, C)
-    under the hand-eye ``he`` as it is (no fit)."""
-    sigma = np.repeat(np.deg2rad(he.tracker_sigma[0]), 3).tolist() + [he.tracker_sigma[1]] * 3
-    predicted = he.tracker_from_board @ _scaled(np.linalg.inv(C), he.scale) @ np.linalg.inv(
-        he.sensor_from_camera)
-    rot = Rotation.from_matrix((np.linalg.inv(A) @ predicted)[:, :3, :3]).as_rotvec()
-    z = (np.hstack([rot, predicted[:, :3, 3] - A[:, :3, 3]]) / sigma / HUBER_SIGMAS) ** 2
-    return float(0.5 * HUBER_SIGMAS ** 2 * np.sum(np.where(z <= 1, z, 2 * np.sqrt(z) - 1)))
+def _rotation_angles(R: np.ndarray) -> np.ndarray:
+    """Angles (rad) of rotation matrices (N, 3, 3), from their traces."""
+    return np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1) / 2, -1.0, 1.0))
 
 
 def _hand_eye_from_motions(A: np.ndarray, C: np.ndarray, max_views: int = 60,
@@ -1210,6 +1218,14 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
                     f"(--max-time-offset) covers {covered} of the {times.size} views (those "
                     f"tracked at every offset within it): {failed}; {note}. Lower "
                     "--max-time-offset, or give the offset with --time-offset S")
+            # A fit failing after an estimated offset may be the offset's fault: the coarse
+            # scan holds the hand-eye fitted at 0, so clocks >= ~0.6 s apart were estimated
+            # wrongly (0.6 s: -53 +- 1 ms) and the tracker and the board then disagreed.
+            bound_hint = (
+                f"; the clock offset was estimated at {1e3 * offset['estimate_s']:+.0f} +- "
+                f"{1e3 * offset['std_s']:.1f} ms (within +-{o.max_time_offset_s:g} s): if the "
+                "clocks differ by more or that is wrong, give the offset with --time-offset S "
+                "(or raise --max-time-offset)")
             if offset["at_bound"]:
                 bound_hint = (
                     f"; the clock offset estimate ({1e3 * offset['estimate_s']:+.0f} ms) lies at "
@@ -1223,11 +1239,10 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
                         f"{1e3 * offset['std_s']:.1f} ms) lies at +-{o.max_time_offset_s:g} s "
                         "and the fit still improves beyond it; raise --max-time-offset (e.g. "
                         f"{2 * o.max_time_offset_s:g}) or give the offset with --time-offset S")
-        if offset["applied_s"] != shift:
+        if offset["applied_s"] != shift:  # from the closed form: the fit at 0 may be far off
             A, valid = tracker_at(offset["applied_s"])
             first = calibrate_hand_eye(A, poses[valid], rot_sigma_deg=first.tracker_sigma[0],
-                                       trans_sigma_mm=first.tracker_sigma[1], fit_scale=True,
-                                       start=first)
+                                       trans_sigma_mm=first.tracker_sigma[1], fit_scale=True)
         still = _still_view_samples(samples, views, offset["applied_s"], K, dist, o)
         mode = "still"
         if still is None or len(np.unique(still[2])) < MIN_STILL_VIEWS:
@@ -1290,7 +1305,7 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
                                 trans_sigma_mm=free.tracker_sigma[1], start=free,
                                 fit_scale=significant)
     except ValueError as exc:
-        raise ValueError(f"{source}: {exc}") from None
+        raise ValueError(f"{source}: {exc}{bound_hint}") from None
     # The noise seen follows the residuals (calibrate_hand_eye): a wrong input's too, so the
     # final fit's is checked as well (quaternions w, x, y, z on a 12-view recording: 3.4 deg /
     # 5.5 mm seen there, beyond MAX_TRACKER_SIGMA).
