@@ -39,13 +39,17 @@ def pinhole_mosaic(options: FetoscopyOptions, G_true: np.ndarray):
     return render_mosaic(frames, G_true, *scene.size)
 
 
-def measure(data: Path, out: Path, truth) -> dict:
+def measure(data: Path, out: Path, truth, options: dict | None = None, blend=None,
+            extra=None) -> dict:
+    """METHODS run on `data` (options: method -> its options, blend: run_dataset's), scored
+    against the truth and `truth` (a RenderedMosaic); extra(mosaic, origin) -> more figures."""
     row = {}
     for method in METHODS:
         target = out / method
         shutil.rmtree(target, ignore_errors=True)
         t0 = time.perf_counter()
-        run_dataset(data, method, target, progress=False)
+        run_dataset(data, method, target, progress=False,
+                    options=None if options is None else options[method], blend=blend)
         elapsed = time.perf_counter() - t0
         ev = evaluate_output(target, data)
         report = json.loads((target / "report.json").read_text())
@@ -58,6 +62,8 @@ def measure(data: Path, out: Path, truth) -> dict:
                                   (truth.plan.x0, truth.plan.y0), truth.covered)
             entry["mosaic_difference"] = d["mean_abs_difference"]
             entry["mosaic_compared_fraction"] = d["compared_fraction"]
+            if extra is not None:
+                entry.update(extra(mosaic, report["mosaic"]["origin_reference_px"]))
         if method == "lba-emt":
             entry["frame_ms_median"] = (report.get("latency_ms") or {}).get("median")
         row[method] = entry
