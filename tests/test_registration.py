@@ -98,10 +98,10 @@ def test_sift_low_contrast_retry_registers_faded_frames():
     assert max(len(no_retry.extract(f, k)) for k, f in enumerate(frames)) < 20
     ext = FeatureExtractor(FeatureOptions())
     f0, f2 = ext.extract(frames[0], 0), ext.extract(frames[1], 2)
-    assert min(len(f0), len(f2)) >= 500
+    assert min(len(f0), len(f2)) == 200  # the retry keeps the strongest 4 x sift_min_features
     # 0 (VLFeat's default peak threshold) is a threshold too, not "use the first one"
     zero = FeatureExtractor(FeatureOptions(sift_contrast_threshold_low=0.0))
-    assert len(zero.extract(frames[0], 0)) >= 500
+    assert len(zero.extract(frames[0], 0)) == 200
     res = match_pair(f2, f0, size, MatchOptions())
     assert res.ok, res.status
     true = np.linalg.inv(s.homographies[2]) @ s.homographies[0]  # frame 0 -> frame 2

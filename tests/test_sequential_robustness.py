@@ -494,7 +494,7 @@ def test_a_late_tracker_startup_is_tried_on_a_short_iteration_budget(monkeypatch
         solves.clear()
         m = SequentialMosaicker(scene.camera, SequentialOptions(
             startup_trial_iterations=trial, startup_max_plane_std=0.1,
-            startup_trust_region="levenberg_marquardt"))
+            startup_trust_region="levenberg_marquardt", features=FEW))
         results = {}
         for k in range(n):
             m.add_frame(scene.frames[k], scene.timestamps[k], tracker[k])
