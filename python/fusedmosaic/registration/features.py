@@ -220,7 +220,8 @@ class FeatureExtractor:
                   max_features: int | None = None):
         o = self.options
         if o.detector == "sift":
-            return cv2.SIFT_create(nfeatures=max_features or o.max_features,
+            return cv2.SIFT_create(nfeatures=o.max_features if max_features is None
+                                   else max_features,
                                    contrastThreshold=o.sift_contrast_threshold
                                    if contrast_threshold is None else contrast_threshold)
         return cv2.ORB_create(nfeatures=o.max_features,
