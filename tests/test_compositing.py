@@ -19,6 +19,7 @@ from fusedmosaic.compositing import (
     write_creation_video,
     write_mosaic_png,
 )
+from fusedmosaic.compositing.blending import thumbnail
 from fusedmosaic.simulation import FetoscopyOptions, generate_fetoscopy
 
 SIZE = 200
@@ -296,6 +297,36 @@ def test_gain_compensation_equalises_brightness(scene):
                           gains=gains)
     ref = (texture_crop(s, plain.plan) * 0.7 * np.mean(corrected)).clip(0, 255)
     assert psnr(fixed.image, ref, plain.covered) > psnr(plain.image, ref, plain.covered) + 3.0
+
+
+def test_gain_compensation_leaves_highlights_out():
+    """Two frames of the same smooth texture 96 px apart (a multiple of the thumbnails' 8, so
+    their thumbnails sample the same texture), a white spot in the second's overlap: kept, it
+    makes that frame look brighter and darkens it; masked (mask_specular, as the blend's),
+    the overlaps compare the points valid in both and the gains are those without the spot."""
+    rng = np.random.default_rng(0)
+    texture = cv2.GaussianBlur(rng.normal(120, 40, (SIZE, SIZE + 96)), (0, 0), 6)
+    texture = np.clip(texture, 0, 255).astype(np.uint8)
+    frames = [cv2.cvtColor(texture[:, x:x + SIZE], cv2.COLOR_GRAY2BGR) for x in (0, 96)]
+    spotted = frames[1].copy()
+    cv2.circle(spotted, (40, 100), 10, (255, 255, 255), -1)
+    G = np.stack([np.eye(3), np.array([[1.0, 0, 96], [0, 1, 0], [0, 0, 1]])])
+
+    def gains(pair, mask_specular):
+        return frame_gains(pair, G, SIZE, SIZE, mask_specular=mask_specular)
+
+    np.testing.assert_allclose(gains(frames, False), 1.0, atol=1e-9)
+    kept = gains([frames[0], spotted], False)
+    assert kept[0] - kept[1] > 0.01  # measured 0.022: the spotted frame darkened
+    np.testing.assert_allclose(gains([frames[0], spotted], True), 1.0, atol=1e-9)
+    # a frame without highlights: the same thumbnail, so the same gains, whether masked or not
+    np.testing.assert_array_equal(gains(frames, True), gains(frames, False))
+    thumb = thumbnail(spotted, mask_specular=True)
+    assert np.isnan(thumb[12, 5]) and np.isfinite(thumb[12, 15])  # spot at (40, 100) / 8
+    np.testing.assert_array_equal(thumb[np.isfinite(thumb)],
+                                  thumbnail(spotted)[np.isfinite(thumb)])
+    np.testing.assert_array_equal(thumbnail(frames[1], mask_specular=True),
+                                  thumbnail(frames[1]))
 
 
 def test_compose_mosaic_takes_index_image_pairs(scene):

@@ -534,7 +534,7 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
     gains = None
     if blend.gain_compensation:
         gains = frame_gains(frames, G, cam.width, cam.height, mask=mask, use=plan.use,
-                            progress=progress)
+                            progress=progress, mask_specular=blend.mask_specular)
         timings["gain_compensation"] = time.perf_counter() - t0
         t0 = time.perf_counter()
     tiled = plan.pixels > canvas.in_memory_pixels

@@ -460,10 +460,13 @@ def compensate_gains(thumbnails: dict[int, np.ndarray], G: np.ndarray, width: in
     e = 1/2 sum_ij N_ij ((g_i I_ij - g_j I_ji)^2 / sigma_N^2 + (1 - g_i)^2 / sigma_g^2),
     with I_ij the mean intensity of frame i where it overlaps frame j, N_ij the overlap size.
 
-    thumbnails: frame -> (h, w) float32 grey image at any reduced size (bilinear sampled);
-    G: (N, 3, 3) frame -> reference (full-resolution pixels). Pairs: each frame with its
-    `neighbours` nearest frame centres; overlaps sampled on a samples x samples grid, at least
-    `margin` px inside both fields of view (a thumbnail pixel near the edge mixes in black).
+    thumbnails: frame -> (h, w) float32 grey image at any reduced size (bilinear sampled),
+    NaN where the frame is not to be compared (thumbnail(mask_specular=True): its specular
+    highlights); G: (N, 3, 3) frame -> reference (full-resolution pixels). Pairs: each frame
+    with its `neighbours` nearest frame centres; overlaps sampled on a samples x samples grid,
+    at least `margin` px inside both fields of view (a thumbnail pixel near the edge mixes in
+    black) and valid in both thumbnails (a sample next to a NaN pixel is NaN): I_ij and I_ji
+    average the same points, N_ij counts them.
     Returns (N,) gains, 1 for frames without thumbnail or overlap."""
     from scipy import sparse
     from scipy.sparse.linalg import spsolve
@@ -511,11 +514,18 @@ def compensate_gains(thumbnails: dict[int, np.ndarray], G: np.ndarray, width: in
         if ok.any():
             pji = np.rint(pj[ok]).astype(int)
             ok[ok] = fov[pji[:, 1], pji[:, 0]]
-        count = int(ok.sum())
+        if int(ok.sum()) < 4:
+            continue
+        s_ij = sample(thumbnails[i], grid[ok])
+        s_ji = sample(thumbnails[j], pj[ok])
+        valid = np.isfinite(s_ij) & np.isfinite(s_ji)
+        if not valid.all():  # highlights (NaN) in either frame: the points valid in both
+            s_ij, s_ji = s_ij[valid], s_ji[valid]
+        count = len(s_ij)
         if count < 4:
             continue
-        I_ij = float(sample(thumbnails[i], grid[ok]).mean())
-        I_ji = float(sample(thumbnails[j], pj[ok]).mean())
+        I_ij = float(s_ij.mean())
+        I_ji = float(s_ji.mean())
         N = count / len(grid)
         # both orders of the pair, as in Brown & Lowe's double sum
         for p, q, Ip, Iq in ((i, j, I_ij, I_ji), (j, i, I_ji, I_ij)):
@@ -535,9 +545,24 @@ def compensate_gains(thumbnails: dict[int, np.ndarray], G: np.ndarray, width: in
     return gains
 
 
-def thumbnail(image: np.ndarray, scale: int = 8) -> np.ndarray:
-    """Grey float32 thumbnail (1/scale per side) used by :func:`compensate_gains`."""
+def thumbnail(image: np.ndarray, scale: int = 8, *, mask_specular: bool = False) -> np.ndarray:
+    """Grey float32 thumbnail (1/scale per side) used by :func:`compensate_gains`.
+
+    mask_specular (BlendOptions.mask_specular): thumbnail pixels whose area holds any pixel of
+    a specular highlight (registration.features.specular_mask, its glow included) are NaN,
+    left out of the overlap means. A highlight moves with the camera, so it made its frame look
+    brighter than the frames overlapping it, which darkened it. A frame without highlights
+    gives the same thumbnail either way."""
     grey = image if image.ndim == 2 else cv2.cvtColor(image[:, :, :3], cv2.COLOR_BGR2GRAY)
     h, w = grey.shape
-    return cv2.resize(grey, (max(1, w // scale), max(1, h // scale)),
-                      interpolation=cv2.INTER_AREA).astype(np.float32)
+    size = (max(1, w // scale), max(1, h // scale))
+    small = cv2.resize(grey, size, interpolation=cv2.INTER_AREA).astype(np.float32)
+    if mask_specular:
+        from fusedmosaic.registration.features import specular_mask
+
+        spots = specular_mask(image, gray=grey)
+        if spots is not None:
+            touched = cv2.resize((spots > 0).astype(np.float32), size,
+                                 interpolation=cv2.INTER_AREA) > 0
+            small[touched] = np.nan
+    return small

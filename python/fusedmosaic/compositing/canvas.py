@@ -398,16 +398,18 @@ def write_mosaic_png(path: str | Path, frames: Sequence, homographies: np.ndarra
 
 def frame_gains(frames: Sequence, homographies: np.ndarray, width: int, height: int, *,
                 mask: np.ndarray | None = None, use: np.ndarray | None = None,
-                progress: bool = False) -> np.ndarray:
+                progress: bool = False, mask_specular: bool | None = False) -> np.ndarray:
     """Gain compensation (Brown & Lowe 2007, Sec. 6): reads every used frame once at 1/8 size and
-    returns (N,) gains equalising the mean intensity of overlapping frames."""
+    returns (N,) gains equalising the mean intensity of overlapping frames. mask_specular: the
+    blend's (BlendOptions.mask_specular; None: off): the frames' specular highlights are left
+    out of the overlaps compared (thumbnail)."""
     G = np.asarray(homographies, np.float64)
     use = usable_frames(G, width, height) if use is None else use
     thumbs = {}
     from tqdm import tqdm
 
     for k in tqdm(np.flatnonzero(use), desc="gains", disable=not progress, leave=False):
-        thumbs[int(k)] = thumbnail(frames[int(k)])
+        thumbs[int(k)] = thumbnail(frames[int(k)], mask_specular=bool(mask_specular))
     return compensate_gains(thumbs, G, width, height, mask)
 
 
