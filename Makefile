@@ -51,7 +51,11 @@ bench: install
 	$(PY) bench/run_all.py $(BENCH_ARGS)
 
 # Developer loop: editable install with an incremental C++ build in build/dev.
+# Into the Python given (an active virtual environment, or e.g. PYTHON=.venv/bin/python after
+# make venv: Debian's own python3 is externally managed); no build isolation, so the build
+# requirements are installed first.
 dev: deps
+	$(PYTHON) -m pip install -q "scikit-build-core>=0.10" "pybind11>=2.12"
 	$(PYTHON) -m pip install --no-build-isolation -e ".[test]" -C build-dir=build/dev
 
 clean:

@@ -9,8 +9,10 @@ they constrain it, so the per-axis difference estimate - tracker, divided by emt
 RMS near 1 for a tracker as noisy as assumed, and grows with the disagreement. Measured on the
 simulator (median over frames of the larger of the rotation and translation ratios; SYN and
 hand-held sequences, ba-emt): 0.7-0.8 at the assumed noise, 1.3 / 1.9 / 2.6 / 3.9 at 2 / 3 / 4 / 6
-times it; quaternions stored w first 4.1-8.4, hand_eye.txt inverted 2.9. Translations in metres
-agree (everything shrinks by 1000) but put the plane ~0.1 mm from the cameras.
+times it; quaternions stored w first 4-16 (8.4 on the SYN circle, ba-emt and lba-emt alike);
+hand_eye.txt inverted ~4 for a 60 deg / 20 mm hand-eye, but ~1 for the simulator's default
+4 deg / 6 mm one, which this check cannot tell from noise (README). Translations in metres agree
+(everything shrinks by 1000) but put the plane ~0.1 mm from the cameras.
 """
 
 from __future__ import annotations
