@@ -207,6 +207,21 @@ def sequential_budgets_line(seq: dict | None) -> str | None:
     )
 
 
+def written_at(path: Path) -> datetime:
+    """When `path` was written: its last commit's time when it is committed unchanged (a
+    checkout sets every file's mtime to the checkout's), else its mtime."""
+    try:
+        changed = subprocess.run(["git", "status", "--porcelain", "--", str(path)], cwd=REPO,
+                                 capture_output=True, text=True, check=True).stdout.strip()
+        stamp = subprocess.run(["git", "log", "-1", "--format=%ct", "--", str(path)], cwd=REPO,
+                               capture_output=True, text=True, check=True).stdout.strip()
+        if not changed and stamp:
+            return datetime.fromtimestamp(int(stamp), timezone.utc)
+    except (OSError, subprocess.CalledProcessError, ValueError):
+        pass
+    return datetime.fromtimestamp(path.stat().st_mtime, timezone.utc)
+
+
 def summary_markdown(results: Path, run: dict | None) -> tuple[str, str, dict]:
     """(summary.md text, README section text, headline dict) from the JSON in `results`."""
     t1 = load(results, "table1.json")
@@ -656,7 +671,7 @@ def summary_markdown(results: Path, run: dict | None) -> tuple[str, str, dict]:
         p = results / f"{name}.json"
         if p.is_file():
             md = p.with_suffix(".md")
-            stamp = datetime.fromtimestamp(p.stat().st_mtime, timezone.utc)
+            stamp = written_at(p)
             others.append(
                 f"- bench_{name}.py -> [{p.name}]({p.name})"
                 + (f", [{md.name}]({md.name})" if md.is_file() else "")
