@@ -1033,8 +1033,9 @@ def build_parser() -> argparse.ArgumentParser:
     bench = sub.add_parser(
         "bench", parents=[quiet],
         help="measure this machine against the live budgets (simulated data, ~30 s)",
-        description="Measures design.md's budgets on this machine with simulated data: the "
-                    "lba-emt window step (median <= 5 ms, p95 <= 15 ms) and frames/s (>= 25) at "
+        description="Measures the live budgets (README, Performance) on this machine with "
+                    "simulated data: the lba-emt window step (median <= 5 ms, p95 <= 15 ms) "
+                    "and frames/s (>= 25) at "
                     "400x400, kalman-robot frames/s at 512x448 (>= 100), and with --offline "
                     "the ba-emt optimisation over 150 frames (<= 1 s); accuracy against the "
                     "simulator's truth beside them.")

@@ -355,7 +355,7 @@ def write_json(path: str | Path, result: dict) -> Path:
 
 def format_benchmark(result: dict) -> str:
     """The checks as a table, then the accuracy beside them and the machine."""
-    rows = [("budget (design.md)", "measured", "limit", ""), ("---", "---", "---", "---")]
+    rows = [("budget (README, Performance)", "measured", "limit", ""), ("---", "---", "---", "---")]
     for c in result["checks"]:
         rows.append((_LABELS[c["name"]], f"{c['measured']:.3g}", c["budget"],
                      "ok" if c["ok"] else "MISSED"))
