@@ -121,14 +121,11 @@ def test_robot_returning_after_a_drifting_dropout_is_not_gated_and_corrects_the_
     assert r.c_img >= 0.5  # a trusted registration: the gate would look at this frame
     assert _gated(out) == []
     assert r.status == "placed" and r.c_rob > 0.0
-    # Corrected: 300 -> 9 px measured at the return. Not to 0 there: Eq. 17 compares the speed
-    # of the robot's 41-frame displacement with the image's one-frame one (c_sp ~ 0), so Eq. 18
-    # gives the robot c_rob ~ 1 - c_img ~ 0.13, and Eqs. 7-10 keep a few % of the drift. This
-    # perfect robot's error does not accumulate (no drift measured, robot_noise_split), so its
-    # offset is filtered and the rest is taken back over the next frames (it was kept for good,
-    # 18 px, when every robot sample re-anchored the robot at X_f).
-    assert err[RETURN] < 25.0, err[RETURN:]
-    assert err[RETURN + 1:].max() < 0.5, err[RETURN:]
+    # Corrected: 300 -> 18 px measured, and it stays so. Not to 0: Eq. 17 compares the speed of
+    # the robot's 41-frame displacement with the image's one-frame one (c_sp ~ 0), so Eq. 18
+    # gives the robot c_rob ~ 1 - c_img ~ 0.13, and Eqs. 7-10 keep ~6 % of the drift.
+    assert err[RETURN:].max() < 25.0, err[RETURN:]
+    assert np.ptp(err[RETURN:]) < 0.5  # the robot is used again frame by frame, no new drift
 
 
 @pytest.mark.parametrize(
@@ -231,9 +228,8 @@ def test_an_untrusted_registration_far_from_the_robot_is_left_out(tmp_path_facto
     stuck tissue; the Eq. 9-10 weighing (sigma_img^2 = 1 / 0.11 against sigma_rob^2 = 1.6^2)
     let each such registration pull the frame ~7 px off the robot, for good in the chain.
     Image gating leaves them out. 256x224 px, 60 frames, seed 0: X_f 7.6 px mean without
-    stick-slip, 40.3 with (robot alone 2.2 and 8.8); then 2.6 and 12.5 (later 14.4); with the
-    robot offset filtered (robot_noise_split) 2.3 and 8.7. Tolerance: within 2x the robot
-    alone."""
+    stick-slip, 40.3 with (robot alone 2.2 and 8.8); now 2.6 and 12.5. Tolerance: within 2x
+    the robot alone."""
     root = simulate_pcle(tmp_path_factory.mktemp("pcle") / "third", PcleOptions(
         width=256, height=224, n_frames=60, robot_rate_hz=10.0 / 3.0, stick_slip=stick_slip))
     pcle = read_dataset(root)
@@ -252,20 +248,20 @@ def test_an_untrusted_registration_far_from_the_robot_is_left_out(tmp_path_facto
     assert batch.details["image_gated"] == gated
 
 
+@pytest.mark.xfail(strict=True, reason=(
+    "known limitation: Eq. 4 re-anchors the robot at X_f on every sample, reading a sparse "
+    "robot's bounded interpolation error as drift (X_f 14.7 / 15.0 px vs the robot alone's "
+    "11.5 / 13.2); a filtered robot offset fixed this case (212c674) but froze the offset after "
+    "the warm-up and followed slowly drifting robots and offset steps (2-8x worse), reverted"))
 @pytest.mark.parametrize("trajectory", ["circle", "spiral"])
 def test_a_sparse_robot_through_stick_slip_is_not_worse_than_the_robot_alone(
         tmp_path_factory, trajectory):
     """A robot sampled at a third of the frame rate, interpolated to the frames (as `run` reads
-    robot.csv), with stick-slip: 256x224 px, 120 frames, seed 0. The interpolation error is a
-    position error, bounded and exact at the samples, not a drift: summed over a sample period
-    the robot-minus-image discrepancy does not grow (robot_noise_split measures no drift), so
-    the robot's offset to X_f is filtered instead of being re-anchored at X_f on every sample.
-    Re-anchored, each trusted registration of a frame between two stuck ones (the tissue
-    sticking again after a slip, c_img ~0.6, 20 px from the lagging robot) was partly fused and
-    kept for good once the robot placed the rest of the event: X_f 14.7 px mean (circle) and
-    15.0 (spiral) against the robot alone's 11.5 and 13.2; now 11.4 and 12.9. Tolerance: the
-    robot alone's mean within 5 % (the fusion no worse than the better of its inputs; the
-    image chain is 185 / 140 px off)."""
+    robot.csv), with stick-slip: 256x224 px, 120 frames, seed 0. Each trusted registration of a
+    frame between two stuck ones (the tissue sticking again after a slip, c_img ~0.6, 20 px from
+    the lagging robot) is partly fused and kept for good once the robot places the rest of the
+    event. Tolerance: the robot alone's mean within 5 % (the fusion no worse than the better of
+    its inputs; the image chain is 185 / 140 px off)."""
     root = simulate_pcle(tmp_path_factory.mktemp("pcle") / "sparse", PcleOptions(
         trajectory=trajectory, width=256, height=224, n_frames=120, robot_rate_hz=10.0 / 3.0))
     pcle = read_dataset(root)
@@ -273,32 +269,6 @@ def test_a_sparse_robot_through_stick_slip_is_not_worse_than_the_robot_alone(
     out = _feed(m, pcle, range(len(pcle)), pcle.robot_xy_um)
     err, robot = _errors(out, pcle), _errors(out, pcle, "position_robot")
     assert err.mean() <= 1.05 * robot.mean(), (err.mean(), robot.mean())
-    # measured as a position error: no drift, half the per-step variance each sample's own
-    sigma = m.sigma_robot0
-    assert m.robot_noise_split(sigma) == pytest.approx((0.0, sigma**2 / 2))
-
-
-def test_a_drifting_robot_keeps_the_papers_relative_steps(tmp_path_factory):
-    """robot_noisy.csv (velocity noise integrated: a drift) is measured as such: the whole
-    per-step variance is drift (q = sigma_r0^2), the robot is re-anchored at X_f on every
-    sample as in the paper (Eq. 4), and X_f is the same as without the offset model."""
-    root = simulate_pcle(tmp_path_factory.mktemp("pcle") / "noisy", PcleOptions(
-        width=256, height=224, n_frames=60, robot_rate_hz=10.0 / 3.0))
-    pcle = read_dataset(root, robot_file="robot_noisy.csv")
-    m = RobotPriorMosaicker(pcle.camera)
-    out = {k: m.add_frame(pcle.frames[k], pcle.timestamps[k], pcle.robot_xy_um[k])
-           for k in range(len(pcle))}
-    sigma = m.sigma_robot0
-    assert m.robot_noise_split(sigma) == (sigma**2, 0.0)
-    paper = RobotPriorMosaicker(pcle.camera, translation.RobotPriorOptions(robot_drift_span=None))
-    same = _feed(paper, pcle, range(len(pcle)), pcle.robot_xy_um)
-    np.testing.assert_allclose(_errors(out, pcle), _errors(same, pcle), atol=1e-6)
-
-
-@pytest.mark.parametrize("span", [1, 2.5, True])
-def test_bad_drift_span_is_refused(span):
-    with pytest.raises(ValueError, match="robot_drift_span must be an integer >= 2 or None"):
-        translation.RobotPriorOptions(robot_drift_span=span)
 
 
 def test_bad_image_gate_is_refused():

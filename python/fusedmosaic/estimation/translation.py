@@ -92,29 +92,6 @@ sampled more slowly than the frames, interpolated: its interpolation error) did 
 registration locked on the fibre pattern (contact loss) or on stuck tissue (stick-slip) pulled
 its frame several pixels off for good. Never before ``sigma_r0`` is known.
 
-Robot offset (not in the paper). Eq. 4 adds the robot's displacement since its last sample to
-that sample's X_f: the robot is re-anchored at X_f on every sample, so its error is taken as a
-drift that accumulates from step to step (V_r integrated, as robot_noisy.csv's). A robot whose
-error does not accumulate (a position error: the commanded path, or a robot sampled more slowly
-than the frames, linearly interpolated to them, exact at its samples and up to a few px off
-between them) lost its absolute positions that way: each fused step kept its share of the
-robot's interpolation error, and a trusted registration between two stuck frames of a
-stick-slip event (c_img ~0.6, 20 px from the lagging robot) was partly fused and kept for good
-once the robot placed the rest of the event (256x224 px, robot at a third of the frame rate,
-seed 0: X_f 14.7 px mean, the robot alone 11.5). So the robot is read as ``X_r(i) = X(i) + b(i)
-+ e(i)``, the offset ``b`` a random walk of variance ``q`` per step (the drift) and ``e`` the
-sample's own noise of variance ``s2``, with ``sigma_r0^2 = q + 2 s2`` (the per-step scale
-estimated above). Eq. 4's prior is ``X_r(i) - b`` with variance ``P_b + q + s2`` (Eq. 9's
-``sigma_r0^2``), and each robot sample updates ``b`` by ``X_r(i) - X_f(i)`` with the scalar
-Kalman gain ``(P_b + q) / (P_b + q + s2)``. ``q`` is measured (``robot_noise_split``): a drift
-makes the robot-minus-image discrepancy grow over every span of consecutive robot
-displacements, a bounded error does not over a span of whole sample periods; the least growth
-per frame over 2 to ``robot_drift_span`` displacements, beyond the image's own ``sigma_i0^2``
-(Eq. 10 at c_img = 1: the filter's model of the image chain's growth), is the drift. A drifting
-robot (``q = sigma_r0^2``, ``s2 = 0``) gives gain 1, the paper's re-anchoring; so does every
-frame until the split is measured, and ``adaptive_robot_sigma=False``. A gated robot sample
-leaves ``b`` alone; a rebase sets it to the measured offset.
-
 Origin. Frame 0 is the reference (0, 0). When frame 0 is blank, X_m starts at the first
 textured frame, put at frame 0's position; when the robot has no sample at frame 0, X_r starts
 at its first sample the same way, and X_f, when frame 0 is blank and has no robot sample, at
@@ -224,14 +201,6 @@ class RobotPriorOptions:
     # had no weight (seed 1, 60 frames: X_f 38.6 px mean vs 10.4 with a sample every frame).
     # Longer spans (a re-acquisition after a dropout) hold the image chain's drift.
     robot_sigma_max_span: int = 4
-    # Robot offset (module docstring, "Robot offset"): the robot-minus-image discrepancy summed
-    # over 2 to this many consecutive robot displacements, against a single one's, tells how
-    # much of the robot's error accumulates (a drift: the paper's relative steps, Eq. 4) and how
-    # much does not (a position error: a robot sampled more slowly than the frames and
-    # interpolated between its samples). 4, as robot_sigma_max_span: the slowest robot whose
-    # samples feed sigma_r0 (one every 4th frame) has a whole sample period within the spans.
-    # None: the paper's relative steps always.
-    robot_drift_span: int | None = 4
     # Forward/backward consistency and wide-range retry of register_ncc (ncc.py): the two
     # directions must agree within this (px; below the probe's 3.5 µm optical resolution,
     # Sec. III-B), else the 2/5 template retries over +-3/10 of the frame. None = no check.
@@ -354,13 +323,6 @@ class RobotPriorOptions:
                 "RobotPriorOptions.robot_sigma_max_span must be an integer >= 1, got "
                 f"{self.robot_sigma_max_span!r}"
             )
-        if self.robot_drift_span is not None and not (
-                isinstance(self.robot_drift_span, int | np.integer)
-                and not isinstance(self.robot_drift_span, bool) and self.robot_drift_span >= 2):
-            raise ValueError(
-                "RobotPriorOptions.robot_drift_span must be an integer >= 2 or None, got "
-                f"{self.robot_drift_span!r}"
-            )
         if self.robot_sigma_min_frames > self.robot_sigma_window:
             raise ValueError(
                 "RobotPriorOptions.robot_sigma_min_frames must not exceed robot_sigma_window, "
@@ -428,11 +390,6 @@ def translation_homography(position) -> np.ndarray:
     return G
 
 
-def _robust_scale(values: np.ndarray) -> float:
-    """1.4826 x the median absolute value: a normal standard deviation, robust to outliers."""
-    return 1.4826 * float(np.median(values))
-
-
 def _pixel_family(dtype: np.dtype):
     """What RobotPriorMosaicker requires every frame to share: floats of any width, else the
     integer type itself (either byte order)."""
@@ -460,9 +417,7 @@ class FrameResult:
     ncc_score : mean forward/backward peak NCC (NaN without a registration).
     position_image, position_robot, position_fused : (2,) X_m, X_r, X_f where computed (NaN
         otherwise): the fused estimate also reports X_m and X_r for comparison.
-    sigma_robot0 : px, the sigma_r0 of Eq. 9 used at this frame (NaN outside the fused estimate):
-        the online per-step estimate, or with a robot error measured as not (all) drift the
-        prior's ``sqrt(P_b + q + s2)`` (module docstring, "Robot offset").
+    sigma_robot0 : px, the sigma_r0 of Eq. 9 used at this frame (NaN outside the fused estimate).
     displacement_image, displacement_robot : (2,) px, the dX of Eq. 5 and the V_r T_s of Eq. 4
         handed to the filter (relative to the previous placed position; NaN when missing).
     timings : seconds per stage: ``ncc`` (forward + backward), ``ssim`` (c_match), ``filter``
@@ -643,16 +598,7 @@ class RobotPriorMosaicker:
         # X_f's: frame 0, or when frame 0 is blank and has no robot sample the first frame that
         # is textured or has one.
         self._fused_origin: int | None = None
-        # (robot µm, X_r - b): the robot's last sample and where it puts the frame in the mosaic,
-        # b the filtered robot offset (module docstring, "Robot offset"); the next robot
-        # displacement is taken from it. With the paper's relative steps (a drifting robot) the
-        # second is the sample frame's X_f.
-        self._robot_anchor: tuple[np.ndarray, np.ndarray] | None = None
-        # (robot µm, X_f, frame): the same sample with its frame's X_f itself, for the robot-minus-
-        # image displacements (_innovations); and the variance of the offset b (px^2).
-        self._robot_sample: tuple[np.ndarray, np.ndarray, int] | None = None
-        self._offset_var = 0.0
-        self._split_cache: tuple | None = None  # robot_noise_split's last (key, value)
+        self._robot_anchor: tuple[np.ndarray, np.ndarray] | None = None  # (robot µm, X_f)
         # Frames placed from the image alone, for want of a robot sample, since the robot anchor:
         # the robot displacement spans that many more image steps than the image displacement.
         self._steps_without_robot = 0
@@ -660,10 +606,7 @@ class RobotPriorMosaicker:
         # Registrations left "unjudged" in a row (_robot_glitch); once robot_gate_rebase, the
         # warm-up exception is over for the sequence (kept at that count).
         self._unjudged_in_a_row = 0
-        # (first frame, last frame, robot minus image displacement (2,) px) over the frames
-        # between two robot samples, of the last robot_sigma_window trusted frames.
-        self._innovations: deque[tuple[int, int, np.ndarray]] = deque(
-            maxlen=self.options.robot_sigma_window)
+        self._innovations: deque[np.ndarray] = deque(maxlen=self.options.robot_sigma_window)
         self._kf = RobotKalmanFilter(self.options.kalman) if self.estimate == "fused" else None
 
     @property
@@ -696,54 +639,8 @@ class RobotPriorMosaicker:
             return float("inf")
         if not o.adaptive_robot_sigma or len(self._innovations) < o.robot_sigma_min_frames:
             return o.kalman.sigma_robot0
-        d = np.abs(np.concatenate([v for _, _, v in self._innovations]))
-        return max(_robust_scale(d), o.robot_sigma_floor_px)
-
-    def robot_noise_split(self, sigma_r: float) -> tuple[float, float]:
-        """(q, s2): the robot's per-step error variance sigma_r^2 split into the drift q, which
-        accumulates from step to step, and the noise s2 of each sample's position, which does
-        not: sigma_r^2 = q + 2 s2 (module docstring, "Robot offset"). Measured by how the
-        robot-minus-image discrepancy grows when 2 to robot_drift_span consecutive robot
-        displacements are summed: a drift grows over every span, a bounded position error (a
-        robot sampled more slowly than the frames, interpolated: exact at its samples) does not
-        over a span of whole sample periods; so the least growth per frame, beyond the image's
-        own sigma_i0^2 (Eq. 10 at c_img = 1), is the drift. The paper's relative model
-        (q = sigma_r^2, s2 = 0) until that is measured, with a fixed sigma_r0
-        (adaptive_robot_sigma False) or robot_drift_span None."""
-        o = self.options
-        var = sigma_r**2
-        span = o.robot_drift_span
-        records = self._innovations
-        if (span is None or not o.adaptive_robot_sigma or not np.isfinite(var)
-                or len(records) < o.robot_sigma_min_frames):
-            return var, 0.0
-        key = (len(records), records[-1][1] if records else None, var)
-        if self._split_cache is not None and self._split_cache[0] == key:
-            return self._split_cache[1]
-        starts = np.array([a for a, _, _ in records])
-        ends = np.array([b for _, b, _ in records])
-        values = np.array([v for _, _, v in records])  # (n, 2)
-        single = float(np.mean(ends - starts))  # frames per displacement
-        # breaks[j]: records j-1 and j are not consecutive (a frame between them left out)
-        breaks = np.concatenate([[0], np.cumsum(starts[1:] != ends[:-1])])
-        totals = np.concatenate([np.zeros((1, 2)), np.cumsum(values, axis=0)])
-        growth = []
-        for m in range(2, min(span, len(records)) + 1):
-            last = np.arange(m - 1, len(records))
-            first = last - m + 1
-            whole = breaks[last] == breaks[first]  # m consecutive records
-            if np.count_nonzero(whole) < o.robot_sigma_min_frames:
-                continue
-            sums = (totals[last + 1] - totals[first])[whole]
-            extra = max(float(np.mean(ends[last[whole]] - starts[first[whole]])) - single, 1.0)
-            growth.append((_robust_scale(np.abs(sums)) ** 2 - var) / extra)
-        if growth:
-            drift = float(np.clip((min(growth) - o.kalman.sigma_image0**2) * single, 0.0, var))
-            split = (drift, (var - drift) / 2.0)
-        else:
-            split = (var, 0.0)
-        self._split_cache = (key, split)
-        return split
+        d = np.abs(np.concatenate(self._innovations))
+        return max(1.4826 * float(np.median(d)), o.robot_sigma_floor_px)
 
     # -- input checks --------------------------------------------------------------------------
 
@@ -876,7 +773,7 @@ class RobotPriorMosaicker:
     # innovations deque is appended to); the filter, changed in place, by its snapshot (a
     # deepcopy took ~0.5 ms, 5 % of a 512x448 frame).
     _STATE = ("_count", "_last_timestamp", "_anchor", "_robot_origin_um", "_image_origin",
-              "_robot_origin", "_fused_origin", "_robot_anchor", "_robot_sample", "_offset_var",
+              "_robot_origin", "_fused_origin", "_robot_anchor",
               "_steps_without_robot", "_gated_in_a_row", "_unjudged_in_a_row", "_innovations")
 
     def _state(self) -> dict:
@@ -900,8 +797,7 @@ class RobotPriorMosaicker:
         timings = dict.fromkeys(STAGES, 0.0)
         nan = float("nan")
         conf = dict.fromkeys(CONFIDENCES, nan)
-        score, sigma_r, sigma_used = nan, nan, nan
-        drift, position_var = np.inf, 0.0  # the robot offset's model (robot_noise_split)
+        score, sigma_r = nan, nan
         dx_img_f, dx_rob_f = _NAN2, _NAN2
         robot_gated = image_gated = False
 
@@ -1015,13 +911,8 @@ class RobotPriorMosaicker:
                 status = f"unplaced: no image registration ({why_no_image}) and {no_robot}"
             else:
                 sigma_r = self.sigma_robot0
-                drift, position_var = self.robot_noise_split(sigma_r)
-                # the prior X_r(i) - b (Eq. 4 from the filtered offset): its variance is the
-                # offset's, the drift since and the sample's own noise (Eq. 9's sigma_r0^2; with
-                # the paper's relative steps, drift = sigma_r0^2 and the others 0)
-                sigma_used = np.sqrt(self._offset_var + drift + position_var)
-                if sigma_used != kf.options.sigma_robot0:
-                    kf.options = replace(kf.options, sigma_robot0=sigma_used)
+                if sigma_r != kf.options.sigma_robot0:
+                    kf.options = replace(kf.options, sigma_robot0=sigma_r)
                 c_match = conf["c_match"] if image_ok else 0.0
                 verdict = None
                 if image_ok and robot_ok:
@@ -1046,7 +937,7 @@ class RobotPriorMosaicker:
                     # anchor would keep its error for good; KalmanOptions.sigma_robot0, the
                     # paper's fixed filter, weighs the two by c_img and c_rob instead.
                     kf.restore(saved)
-                    sigma_r = sigma_used = self.options.kalman.sigma_robot0
+                    sigma_r = self.options.kalman.sigma_robot0
                     kf.options = replace(kf.options, sigma_robot0=sigma_r)
                     step = kf.update(dx_img_f, dx_rob_used, c_match)
                 if before is not None and self._image_outlier(step, dx_img_f, dx_rob_used):
@@ -1065,9 +956,7 @@ class RobotPriorMosaicker:
                     and self._steps_without_robot < self.options.robot_sigma_max_span
                     and step.c_img >= self.options.robot_sigma_c_img
                 ):
-                    r_um, r_xf, r_index = self._robot_sample
-                    step_rob = r_xf + (robot - r_um) / self.pixel_size_um - previous
-                    self._innovations.append((r_index, i, step_rob - dx_img_f))
+                    self._innovations.append(dx_rob_f - dx_img_f)
             timings["filter"] = time.perf_counter() - t0
 
         placed = bool(np.isfinite(position).all())
@@ -1085,7 +974,7 @@ class RobotPriorMosaicker:
             # likely moved its origin than glitched.
             self._gated_in_a_row = self._gated_in_a_row + 1 if robot_gated else 0
             if not robot_gated or self._gated_in_a_row >= self.options.robot_gate_rebase:
-                self._move_robot_anchor(robot, x_f, i, robot_gated, drift, position_var)
+                self._robot_anchor = (robot.copy(), x_f.copy())
                 self._steps_without_robot = 0
                 self._gated_in_a_row = 0
         elif self.estimate == "fused" and placed and self._robot_anchor is not None:
@@ -1107,7 +996,7 @@ class RobotPriorMosaicker:
             position_image=np.array(x_m, dtype=np.float64),
             position_robot=np.array(x_r, dtype=np.float64),
             position_fused=np.array(x_f, dtype=np.float64),
-            sigma_robot0=float(sigma_used),
+            sigma_robot0=float(sigma_r),
             displacement_image=np.array(dx_img_f),
             displacement_robot=np.array(dx_rob_f),
             timings=timings,
@@ -1116,26 +1005,6 @@ class RobotPriorMosaicker:
             image_gated=image_gated,
             **conf,
         )
-
-    def _move_robot_anchor(self, robot, x_f, i: int, rebase: bool, drift: float,
-                           position_var: float) -> None:
-        """The robot sample of frame i becomes the anchor of the next robot displacement. The
-        offset b = X_r - X_f is a random walk (variance drift per step) seen through samples of
-        noise position_var: a scalar Kalman update of the offset by X_r(i) - X_f(i) with gain g
-        (module docstring, "Robot offset"). g = 1 (no position noise, the paper's relative
-        steps): the anchor is the frame's X_f. A first anchor or a rebase takes the offset as
-        measured."""
-        self._robot_sample = (robot.copy(), x_f.copy(), i)
-        if self._robot_anchor is None or rebase or not position_var > 0.0:
-            self._robot_anchor = (robot.copy(), x_f.copy())
-            self._offset_var = position_var if np.isfinite(position_var) else 0.0
-            return
-        r_um, r_xf = self._robot_anchor
-        prior = r_xf + (robot - r_um) / self.pixel_size_um  # X_r(i) - b
-        predicted = self._offset_var + drift
-        gain = predicted / (predicted + position_var)
-        self._robot_anchor = (robot.copy(), gain * x_f + (1.0 - gain) * prior)
-        self._offset_var = (1.0 - gain) * predicted
 
     def _image_outlier(self, step, dx_image, dx_robot) -> bool:
         """True when the registration of `step` (a filter update with both displacements) is
