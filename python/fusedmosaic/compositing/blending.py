@@ -545,6 +545,13 @@ def compensate_gains(thumbnails: dict[int, np.ndarray], G: np.ndarray, width: in
     return gains
 
 
+# Highlights are small: the simulator's (3 lights, sigma 8 px, 240 px frames) cover 3.5-4 % of a
+# thumbnail with their glow. A frame whose "highlights" would blank more than this fraction is
+# over-exposed tissue (every channel >= 235 in patches), the frame gain compensation is for: its
+# thumbnail is kept whole (a review: grey tissue x 1.7, 100 % masked, kept its gain of 1).
+MAX_HIGHLIGHT_FRACTION = 0.5
+
+
 def thumbnail(image: np.ndarray, scale: int = 8, *, mask_specular: bool = False) -> np.ndarray:
     """Grey float32 thumbnail (1/scale per side) used by :func:`compensate_gains`.
 
@@ -552,7 +559,8 @@ def thumbnail(image: np.ndarray, scale: int = 8, *, mask_specular: bool = False)
     a specular highlight (registration.features.specular_mask, its glow included) are NaN,
     left out of the overlap means. A highlight moves with the camera, so it made its frame look
     brighter than the frames overlapping it, which darkened it. A frame without highlights
-    gives the same thumbnail either way."""
+    gives the same thumbnail either way, and so does an over-exposed one (more than
+    MAX_HIGHLIGHT_FRACTION of it masked)."""
     grey = image if image.ndim == 2 else cv2.cvtColor(image[:, :, :3], cv2.COLOR_BGR2GRAY)
     h, w = grey.shape
     size = (max(1, w // scale), max(1, h // scale))
@@ -564,5 +572,6 @@ def thumbnail(image: np.ndarray, scale: int = 8, *, mask_specular: bool = False)
         if spots is not None:
             touched = cv2.resize((spots > 0).astype(np.float32), size,
                                  interpolation=cv2.INTER_AREA) > 0
-            small[touched] = np.nan
+            if touched.mean() <= MAX_HIGHLIGHT_FRACTION:
+                small[touched] = np.nan
     return small
