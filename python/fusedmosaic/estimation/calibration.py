@@ -718,21 +718,6 @@ def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeR
            "std_curvature_s": std, "views": int(common.sum()), "applied_s": 0.0,
            "at_bound": bool(at_bound), "search_bound_s": float(max_offset_s)}
     if np.isfinite(std):
-        # The fit at the estimate, linearised (Jacobian of the weighted residuals in the
-        # hand-eye's parameters), with one more column: the residuals' derivative in the offset
-        # (central differences, the hand-eye held).
-        he = calibrate_hand_eye(tracked(best), C, rot_sigma_deg=sigma[0],
-                                trans_sigma_mm=sigma[1], reweight=False, fit_scale=fit_scale,
-                                start=first)
-        J, r, huber = he.linearisation
-        weight = np.repeat([np.deg2rad(sigma[0]), sigma[1]], 3)
-        Cinv = np.linalg.inv(C)
-
-        def weighted(d: float) -> np.ndarray:
-            A = tracked(d)
-            return (_tracker_residuals(A, np.linalg.inv(A), Cinv, he.sensor_from_camera,
-                                       he.tracker_from_board, he.scale) / weight).ravel()
-
         t = times[common]
         blocks = np.floor((t - t[0]) / BOOTSTRAP_BLOCK_S)
         g = int(np.unique(blocks).size)
@@ -743,6 +728,21 @@ def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeR
                        bootstrap_note=f"not computed: {g} block(s) of {BOOTSTRAP_BLOCK_S:g} s "
                                       f"(needs {MIN_HAND_EYE_GROUPS})")
         else:
+            # The fit at the estimate, linearised (Jacobian of the weighted residuals in the
+            # hand-eye's parameters), with one more column: the residuals' derivative in the
+            # offset (central differences, the hand-eye held).
+            he = calibrate_hand_eye(tracked(best), C, rot_sigma_deg=sigma[0],
+                                    trans_sigma_mm=sigma[1], reweight=False,
+                                    fit_scale=fit_scale, start=first)
+            J, r, huber = he.linearisation
+            weight = np.repeat([np.deg2rad(sigma[0]), sigma[1]], 3)
+            Cinv = np.linalg.inv(C)
+
+            def weighted(d: float) -> np.ndarray:
+                A = tracked(d)
+                return (_tracker_residuals(A, np.linalg.inv(A), Cinv, he.sensor_from_camera,
+                                           he.tracker_from_board, he.scale) / weight).ravel()
+
             dr = (weighted(best + h) - weighted(best - h)) / (2 * h)
             cov, g, kept = _linearised_bootstrap(np.column_stack([J, dr]), r, huber, blocks,
                                                  BOOTSTRAP_REPLICATES, 0)
