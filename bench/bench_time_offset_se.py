@@ -31,12 +31,10 @@ from _common import fmt, load_average, md_table, run_note, write_results
 from scipy.spatial.transform import Rotation
 
 from fusedmosaic.estimation.calibration import (
-    BoardDetections,
     CalibrationOptions,
     calibrate_detections,
 )
 from fusedmosaic.io import TrackingSamples
-from fusedmosaic.io.calibration import project_points
 from fusedmosaic.simulation import CheckerboardOptions, generate_checkerboard
 
 CONFIGS = {
@@ -55,22 +53,6 @@ CORNER_NOISE_PX = 0.05
 Z95 = 1.959964
 
 
-def detections(scene, rng) -> BoardDetections:
-    """The corners of every frame that shows the whole board, projected through the true camera
-    with CORNER_NOISE_PX Gaussian noise."""
-    o = scene.options
-    obj = scene.board_points()
-    points, frames = [], []
-    for k, T in enumerate(scene.cam_from_board):
-        uv = project_points(obj, scene.camera_matrix, scene.distortion, o.lens_model,
-                            Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3])
-        if uv.min() >= 2 and uv[:, 0].max() <= o.width - 3 and uv[:, 1].max() <= o.height - 3:
-            points.append(uv + rng.normal(0.0, CORNER_NOISE_PX, uv.shape))
-            frames.append(k)
-    frames = np.array(frames)
-    return BoardDetections(points, frames, frames, scene.timestamps[frames], (o.width, o.height))
-
-
 def measure(seed: int, changes: dict) -> dict:
     truth = float(np.random.default_rng(1000 + seed).uniform(-MAX_TRUE_OFFSET_S,
                                                                MAX_TRUE_OFFSET_S))
@@ -80,7 +62,8 @@ def measure(seed: int, changes: dict) -> dict:
     tracking = TrackingSamples(scene.tracker_timestamps, T[:, :3, 3].copy(),
                                Rotation.from_matrix(T[:, :3, :3]).as_quat())
     t0 = time.perf_counter()
-    result = calibrate_detections(detections(scene, np.random.default_rng(seed)),
+    result = calibrate_detections(scene.projected_detections(CORNER_NOISE_PX,
+                                                            np.random.default_rng(seed)),
                                   CalibrationOptions(), tracking=tracking)
     elapsed = time.perf_counter() - t0
     he = result.report["hand_eye"]

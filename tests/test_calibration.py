@@ -15,7 +15,6 @@ from scipy.spatial.transform import Rotation
 from fusedmosaic.cli import main
 from fusedmosaic.estimation import calibration
 from fusedmosaic.estimation.calibration import (
-    BoardDetections,
     CalibrationOptions,
     _canonical_order,
     calibrate_detections,
@@ -32,7 +31,6 @@ from fusedmosaic.io import (
     read_tracking_csv,
     write_tracking_csv,
 )
-from fusedmosaic.io.calibration import project_points
 from fusedmosaic.simulation import (
     CheckerboardOptions,
     generate_checkerboard,
@@ -610,22 +608,6 @@ def test_output_folder_holding_a_users_files(recording, tmp_path, capsys, monkey
     assert (out / "notes.txt").read_text() == "mine\n"
 
 
-def _projected_detections(scene, noise_px: float, rng) -> BoardDetections:
-    """The board corners of every frame that shows the whole board, projected through the true
-    camera with Gaussian noise (the board search's ~0.05 px), without rendering."""
-    o = scene.options
-    obj = scene.board_points()
-    points, frames = [], []
-    for k, T in enumerate(scene.cam_from_board):
-        uv = project_points(obj, scene.camera_matrix, scene.distortion, o.lens_model,
-                            Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3])
-        if uv.min() >= 2 and uv[:, 0].max() <= o.width - 3 and uv[:, 1].max() <= o.height - 3:
-            points.append(uv + rng.normal(0.0, noise_px, uv.shape))
-            frames.append(k)
-    frames = np.array(frames)
-    return BoardDetections(points, frames, frames, scene.timestamps[frames], (o.width, o.height))
-
-
 def _calibrated_from_projected_corners(o: CheckerboardOptions, options: CalibrationOptions):
     """(scene, calibrate_detections' result) for the simulator's recording o: its board corners
     projected with 0.05 px noise (seeded by o.seed) and its tracker samples."""
@@ -633,7 +615,7 @@ def _calibrated_from_projected_corners(o: CheckerboardOptions, options: Calibrat
     T = scene.tracker_from_sensor
     tracking = TrackingSamples(scene.tracker_timestamps, T[:, :3, 3].copy(),
                                Rotation.from_matrix(T[:, :3, :3]).as_quat())
-    detections = _projected_detections(scene, 0.05, np.random.default_rng(o.seed))
+    detections = scene.projected_detections(0.05, np.random.default_rng(o.seed))
     return scene, calibrate_detections(detections, options, tracking=tracking)
 
 
@@ -673,14 +655,14 @@ def test_parallel_views_refused_with_their_spread():
     The default views (tilts up to 35 deg) spread ~20 deg and calibrate."""
     o = CheckerboardOptions(n_views=8, frames_per_view=2, width=320, height=320, tilt_deg=0.0)
     scene = generate_checkerboard(o)
-    detections = _projected_detections(scene, 0.05, np.random.default_rng(0))
+    detections = scene.projected_detections(0.05, np.random.default_rng(0))
     with pytest.raises(ValueError, match=r"the recording: the board faces the camera at nearly "
                        r"the same angle in all \d+ views \(their board normals spread 0.0\d deg "
                        r"RMS about their mean; at least 1 deg is needed\): parallel views do not "
                        r"determine the focal length. Film the board from more, different angles"):
         calibrate_detections(detections, CalibrationOptions())
     o = CheckerboardOptions(n_views=8, frames_per_view=2, width=320, height=320)
-    detections = _projected_detections(generate_checkerboard(o), 0.05, np.random.default_rng(0))
+    detections = generate_checkerboard(o).projected_detections(0.05, np.random.default_rng(0))
     result = calibrate_detections(detections, CalibrationOptions())
     assert result.report["board_normal_spread_deg"] > 10
 

@@ -177,6 +177,27 @@ class CheckerboardScene:
         j, i = np.mgrid[0:o.board_rows, 0:o.board_cols]
         return np.stack([i.ravel(), j.ravel(), np.zeros(i.size)], 1) * o.square_mm
 
+    def projected_detections(self, noise_px: float, rng: np.random.Generator):
+        """The board corners of every frame that shows the whole board (2 px inside the image),
+        projected through the true camera with Gaussian noise of noise_px (the board search's
+        is ~0.05 px), as estimation.calibration.BoardDetections: calibration without
+        rendering and searching the frames."""
+        from fusedmosaic.estimation.calibration import BoardDetections
+
+        o = self.options
+        obj = self.board_points()
+        points, frames = [], []
+        for k, T in enumerate(self.cam_from_board):
+            uv = project_points(obj, self.camera_matrix, self.distortion, o.lens_model,
+                                Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3])
+            if (uv.min() >= 2 and uv[:, 0].max() <= o.width - 3
+                    and uv[:, 1].max() <= o.height - 3):
+                points.append(uv + rng.normal(0.0, noise_px, uv.shape))
+                frames.append(k)
+        frames = np.array(frames)
+        return BoardDetections(points, frames, frames, self.timestamps[frames],
+                               (o.width, o.height))
+
     def frames(self) -> Iterator[np.ndarray]:
         """The frames, (H, W) gray uint8, rendered one at a time."""
         o = self.options
