@@ -202,3 +202,97 @@ def test_a_highlight_no_other_frame_sees_is_no_hole(blend):
                            blend=BlendOptions(blend, mask_specular=True))
     assert (plain.covered & ~masked.covered).sum() == 0
     assert masked.image[60, 14].max() < 200  # not the white spot: the tissue around
+
+
+def _count_specular_masks(monkeypatch) -> list:
+    """Spies on registration.features.specular_mask (the compositor imports it when called):
+    the list of the images it was called with."""
+    import fusedmosaic.registration.features as features
+
+    calls, found = [], features.specular_mask
+
+    def spy(image, **kw):
+        calls.append(image)
+        return found(image, **kw)
+
+    monkeypatch.setattr(features, "specular_mask", spy)
+    return calls
+
+
+def test_specular_masks_keep_each_frames_mask():
+    """SpecularMasks gives specular_mask's own mask, kept packed (bounding box, 1 bit per
+    pixel) within its byte budget; over budget it finds the mask again."""
+    from fusedmosaic.compositing import SpecularMasks
+
+    lit, plain = scenes("handheld", 1)
+    masks = SpecularMasks()
+    lit_frames = [lit.render(k) for k in range(0, lit.n_frames, 4)]
+    for k, image in enumerate(lit_frames):
+        for _ in range(2):  # found, then kept
+            found = masks.get(k, image)
+            expected = specular_mask(image)
+            assert (found is None) == (expected is None)
+            if expected is not None:
+                np.testing.assert_array_equal(found, expected)
+    assert masks.get(99, plain.render(0)) is None and masks.get(99, plain.render(0)) is None
+    assert len(masks) == len(lit_frames) + 1
+    assert 0 < masks.nbytes <= len(lit_frames) * SIZE * SIZE / 8
+    none_kept = SpecularMasks(max_bytes=0)
+    np.testing.assert_array_equal(none_kept.get(0, lit_frames[1]), specular_mask(lit_frames[1]))
+    assert none_kept.nbytes == 0
+
+
+@pytest.mark.parametrize("blend", ["linear", "multiband"])
+def test_gains_and_mosaic_find_each_frames_highlights_once(monkeypatch, tmp_path, blend):
+    """With gain compensation the thumbnails and the warper need every frame's highlights:
+    found once per frame (a shared SpecularMasks), not once for the gains and again for the
+    mosaic (multiband: again for its seams), and the same mosaic as finding them each time."""
+    from fusedmosaic.compositing import SpecularMasks, write_mosaic_png
+    from fusedmosaic.compositing.canvas import CanvasOptions
+
+    lit, _ = scenes("handheld", 1)
+    frames = [lit.render(k) for k in range(12)]
+    G, fov = lit.homographies[:12], lit.fov_mask()
+    options = BlendOptions(blend, mask_specular=True, gain_compensation=True)
+    kept_none = SpecularMasks(max_bytes=0)  # found every time they are needed, as before
+    gains = frame_gains(frames, G, SIZE, SIZE, mask=fov, mask_specular=True,
+                        highlights=kept_none)
+    expected = render_mosaic(frames, G, SIZE, SIZE, mask=fov, blend=options, gains=gains,
+                             highlights=kept_none)
+
+    calls = _count_specular_masks(monkeypatch)
+    masks = SpecularMasks()
+    shared_gains = frame_gains(frames, G, SIZE, SIZE, mask=fov, mask_specular=True,
+                               highlights=masks)
+    mosaic = render_mosaic(frames, G, SIZE, SIZE, mask=fov, blend=options, gains=shared_gains,
+                           highlights=masks)
+    assert len(calls) == len(frames)
+    np.testing.assert_array_equal(shared_gains, gains)
+    np.testing.assert_array_equal(mosaic.image, expected.image)
+    # tile by tile (frames warped again for neighbouring tiles): still once per frame
+    canvas = CanvasOptions(tile_size=64, cache_mb=0.0)
+    paths = tmp_path / "each_time.png", tmp_path / "tiled.png"
+    write_mosaic_png(paths[0], frames, G, SIZE, SIZE, mask=fov, blend=options, gains=gains,
+                     canvas=canvas, highlights=kept_none)
+    calls.clear()
+    write_mosaic_png(paths[1], frames, G, SIZE, SIZE, mask=fov, blend=options, gains=gains,
+                     canvas=canvas)
+    assert len(calls) == len(frames)
+    np.testing.assert_array_equal(*(cv2.imread(str(path)) for path in paths))
+
+
+def test_run_with_gain_compensation_finds_each_frames_highlights_once(monkeypatch, tmp_path):
+    """`fusedmosaic run --gain-compensation`: each shown frame's highlights are found once for
+    the gains and the mosaic together (the colour frames; emt's plane estimation finds them
+    in its grey frames, apart)."""
+    data, out = tmp_path / "data", tmp_path / "out"
+    assert main(["--quiet", "simulate", "fetoscopy", str(data), "--motion", "handheld",
+                 "--n-frames", "12", "--width", "160", "--height", "160",
+                 "--specular-lights", "3", "--seed", "1"]) == 0
+    calls = _count_specular_masks(monkeypatch)
+    assert main(["--quiet", "run", str(data), "--method", "emt", "--gain-compensation",
+                 "--no-report", "--out", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["mosaic"]["mask_specular"] is True
+    colour = [image for image in calls if image.ndim == 3]
+    assert len(colour) == report["mosaic"]["frames_shown"] == 12

@@ -481,6 +481,7 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
         BlendOptions,
         CanvasOptions,
         CanvasTooLargeError,
+        SpecularMasks,
         frame_gains,
         plan_canvas,
         render_mosaic,
@@ -532,22 +533,29 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
             info["video"] = {"file": None, "skipped": str(exc)}
         return {"mosaic": info, "plan": None, "video": None}
     gains = None
+    # Each frame's specular highlights found once for the gains and the mosaic, not twice
+    # (SpecularMasks: ~0.5 kB per simulated frame with highlights, at most 64 MB, freed below).
+    highlights = (SpecularMasks() if blend.mask_specular and blend.gain_compensation
+                  else None)
     if blend.gain_compensation:
         gains = frame_gains(frames, G, cam.width, cam.height, mask=mask, use=plan.use,
-                            progress=progress, mask_specular=blend.mask_specular)
+                            progress=progress, mask_specular=blend.mask_specular,
+                            highlights=highlights)
         timings["gain_compensation"] = time.perf_counter() - t0
         t0 = time.perf_counter()
     tiled = plan.pixels > canvas.in_memory_pixels
     if tiled:
         _, covered = write_mosaic_png(w.path("mosaic.png"), frames, G, cam.width,
                                       cam.height, mask=mask, blend=blend, canvas=canvas,
-                                      gains=gains, plan=plan, progress=progress)
+                                      gains=gains, plan=plan, progress=progress,
+                                      highlights=highlights)
     else:
         rendered = render_mosaic(frames, G, cam.width, cam.height, mask=mask,
                                  blend=blend, max_pixels=canvas.max_pixels, gains=gains,
-                                 plan=plan, progress=progress)
+                                 plan=plan, progress=progress, highlights=highlights)
         w.write_image("mosaic.png", rendered.image)
         covered = float(rendered.covered.mean())
+    highlights = None  # (not shared with the video's incremental canvas)
     timings["compose_mosaic"] = time.perf_counter() - t0
     ids = dataset.frame_ids
     info = {

@@ -1,7 +1,13 @@
 """Placing frames on a mosaic canvas: blending (linear + border, multi-band, average, last, gain
 compensation), one-piece and tiled rendering, a live incremental canvas, and creation videos."""
 
-from fusedmosaic.compositing.blending import BLENDS, BlendOptions, FrameWarper, compensate_gains
+from fusedmosaic.compositing.blending import (
+    BLENDS,
+    BlendOptions,
+    FrameWarper,
+    SpecularMasks,
+    compensate_gains,
+)
 from fusedmosaic.compositing.canvas import (
     CanvasOptions,
     CanvasPlan,
@@ -31,6 +37,7 @@ __all__ = [
     "MosaicVideoWriter",
     "PngStreamWriter",
     "RenderedMosaic",
+    "SpecularMasks",
     "canvas_bounds",
     "compensate_gains",
     "compose_mosaic",

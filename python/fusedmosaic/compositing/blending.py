@@ -35,6 +35,12 @@ SPECULAR_WEIGHT = 0.01
 # ... and at least this, so the spot counts as covered (COVERED) even near its frame's edge,
 # where the feathering weight is small: a spot no other frame sees is no hole in the mosaic.
 SPECULAR_FLOOR = 2 * COVERED
+# SpecularMasks keeps at most this many bytes of masks (1 bit per pixel of each mask's bounding
+# box): the simulator's 3 lights took 0.46 kB per frame (hand-held runs, 60 frames of 400x400:
+# 27.5 kB, 40 of 720x576: 18.4 kB; a full-size uint8 mask is 160 / 415 kB), a mask covering a
+# whole 720x576 frame would take 52 kB: 64 MB hold ~140 000 such runs' frames, ~1 250 of the
+# worst case; the frames beyond are found again (as before SpecularMasks).
+SPECULAR_CACHE_BYTES = 64 * 2**20
 
 
 @dataclass
@@ -94,6 +100,56 @@ class Patch:
     @property
     def nbytes(self) -> int:
         return self.data.nbytes
+
+
+class SpecularMasks:
+    """The specular highlight masks (registration.features.specular_mask) of one run's frames,
+    by frame index, each found once and shared by whoever needs it: frame_gains' thumbnails,
+    then the warper's weights (render_mosaic / write_mosaic_png: multiband's seams and its
+    patches, tiles warping a frame again). A key must stand for the same image every time.
+
+    Each mask is kept as its bounding box, 1 bit per pixel (a frame without highlights: None),
+    up to max_bytes in all; beyond, masks are found again when asked (the same masks, at the
+    cost of one specular_mask each: 400x400 ~0.4 ms, 720x576 ~0.8 ms)."""
+
+    def __init__(self, max_bytes: int = SPECULAR_CACHE_BYTES) -> None:
+        self.max_bytes = int(max_bytes)
+        self.nbytes = 0  # bytes of packed masks held
+        self._masks: dict[int, tuple] = {}  # key -> (shape, box or None, packed bits)
+
+    def __len__(self) -> int:
+        return len(self._masks)
+
+    def get(self, key: int, image: np.ndarray, gray: np.ndarray | None = None
+            ) -> np.ndarray | None:
+        """specular_mask(image, gray=gray) of the frame `key` (uint8 (H, W), 255 on the
+        highlights, or None), found on its first call."""
+        key = int(key)
+        shape = image.shape[:2]
+        entry = self._masks.get(key)
+        if entry is not None and entry[0] == shape:
+            return None if entry[1] is None else _unpack_mask(*entry)
+        from fusedmosaic.registration.features import specular_mask
+
+        spots = specular_mask(image, gray=gray)
+        if entry is None:  # (a key seen at another size is not replaced)
+            if spots is None:
+                self._masks[key] = (shape, None, None)
+            else:
+                x, y, w, h = cv2.boundingRect(spots)
+                bits = np.packbits(spots[y:y + h, x:x + w] > 0)
+                if self.nbytes + bits.nbytes <= self.max_bytes:
+                    self._masks[key] = (shape, (x, y, w, h), bits)
+                    self.nbytes += bits.nbytes
+        return spots
+
+
+def _unpack_mask(shape: tuple[int, int], box: tuple[int, int, int, int], bits: np.ndarray
+                 ) -> np.ndarray:
+    x, y, w, h = box
+    spots = np.zeros(shape, np.uint8)
+    spots[y:y + h, x:x + w] = np.unpackbits(bits, count=w * h).reshape(h, w) * np.uint8(255)
+    return spots
 
 
 def fov_mask_bool(mask: np.ndarray | None, width: int, height: int) -> np.ndarray:
@@ -158,11 +214,15 @@ class FrameWarper:
     """Warps frames (image, frame -> reference homography) into patches with blending weights.
 
     The weights depend only on the frame size, the field-of-view mask and the blend, so they are
-    computed once; `warp` costs one perspective warp of the frame's footprint box."""
+    computed once; `warp` costs one perspective warp of the frame's footprint box.
+    highlights: the run's SpecularMasks (options.mask_specular), looked up by the `name` given
+    to warp / warp_weight (the frame's index); None: each frame's mask found when warped."""
 
     def __init__(self, width: int, height: int, mask: np.ndarray | None = None,
-                 options: BlendOptions | str | None = None) -> None:
+                 options: BlendOptions | str | None = None, *,
+                 highlights: SpecularMasks | None = None) -> None:
         self.options = as_blend_options(options)
+        self.highlights = highlights
         self.width, self.height = int(width), int(height)
         self.mask = fov_mask_bool(mask, self.width, self.height)
         if not self.mask.any():
@@ -203,7 +263,7 @@ class FrameWarper:
     def box(self, G: np.ndarray) -> tuple[int, int, int, int] | None:
         return footprint_box(G, self.width, self.height, self.align, self.pad)
 
-    def _weights(self, image: np.ndarray | None, fill: bool = True
+    def _weights(self, image: np.ndarray | None, fill: bool = True, name=None
                  ) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
         """(image, weight (H, W), colour weight (H, W, 1)) of this frame: as given and the fixed
         weights, or, when the options ask and it has specular highlights, the weights lowered
@@ -211,9 +271,13 @@ class FrameWarper:
         and, with `fill`, the highlights filled with the tissue around them (fill_highlights)."""
         if image is None or not self.options.mask_specular:
             return image, self.weight, self.colour_weight
-        from fusedmosaic.registration.features import specular_mask
+        flat = image.reshape(image.shape[:2]) if image.shape[2] == 1 else image
+        if self.highlights is not None and name is not None:
+            spots = self.highlights.get(name, flat)
+        else:
+            from fusedmosaic.registration.features import specular_mask
 
-        spots = specular_mask(image.reshape(image.shape[:2]) if image.shape[2] == 1 else image)
+            spots = specular_mask(flat)
         if spots is None:
             return image, self.weight, self.colour_weight
         x, y, w, h = cv2.boundingRect(spots)
@@ -236,7 +300,7 @@ class FrameWarper:
         x0, y0, x1, y1 = box
         w, h = x1 - x0, y1 - y0
         channels = image.shape[2]
-        image, weight, colour_weight = self._weights(image)
+        image, weight, colour_weight = self._weights(image, name=name)
         if channels != 3:
             # Gray (and 4-channel) frames: the frame and its weight warped apart. OpenCV warps
             # a 2-channel array on a slower path (400x400: 3.8 ms against 1.5 ms for the two
@@ -256,15 +320,16 @@ class FrameWarper:
         src[:, :, -1] = weight
         return Patch(x0, y0, _warp(src, G, x0, y0, w, h))
 
-    def warp_weight(self, G: np.ndarray, image: np.ndarray | None = None) -> Patch | None:
+    def warp_weight(self, G: np.ndarray, image: np.ndarray | None = None, *, name=None
+                    ) -> Patch | None:
         """Only the weight channel, as `warp` gives it (multiband seam selection): `image`
         is needed only for mask_specular, whose weights depend on the frame."""
         box = self.box(G)
         if box is None:
             return None
         x0, y0, x1, y1 = box
-        image = None if image is None else self._check_image(image, None)
-        _, weight, _ = self._weights(image, fill=False)
+        image = None if image is None else self._check_image(image, name)
+        _, weight, _ = self._weights(image, fill=False, name=name)
         return Patch(x0, y0, _warp(weight, G, x0, y0, x1 - x0, y1 - y0))
 
 
@@ -552,7 +617,8 @@ def compensate_gains(thumbnails: dict[int, np.ndarray], G: np.ndarray, width: in
 MAX_HIGHLIGHT_FRACTION = 0.5
 
 
-def thumbnail(image: np.ndarray, scale: int = 8, *, mask_specular: bool = False) -> np.ndarray:
+def thumbnail(image: np.ndarray, scale: int = 8, *, mask_specular: bool = False,
+              highlights: SpecularMasks | None = None, key: int | None = None) -> np.ndarray:
     """Grey float32 thumbnail (1/scale per side) used by :func:`compensate_gains`.
 
     mask_specular (BlendOptions.mask_specular): thumbnail pixels whose area holds any pixel of
@@ -560,15 +626,19 @@ def thumbnail(image: np.ndarray, scale: int = 8, *, mask_specular: bool = False)
     left out of the overlap means. A highlight moves with the camera, so it made its frame look
     brighter than the frames overlapping it, which darkened it. A frame without highlights
     gives the same thumbnail either way, and so does an over-exposed one (more than
-    MAX_HIGHLIGHT_FRACTION of it masked)."""
+    MAX_HIGHLIGHT_FRACTION of it masked). highlights: the run's SpecularMasks, which keeps
+    the mask of frame `key` for the warper (None, or no key: found here alone)."""
     grey = image if image.ndim == 2 else cv2.cvtColor(image[:, :, :3], cv2.COLOR_BGR2GRAY)
     h, w = grey.shape
     size = (max(1, w // scale), max(1, h // scale))
     small = cv2.resize(grey, size, interpolation=cv2.INTER_AREA).astype(np.float32)
     if mask_specular:
-        from fusedmosaic.registration.features import specular_mask
+        if highlights is not None and key is not None:
+            spots = highlights.get(key, image, gray=grey)
+        else:
+            from fusedmosaic.registration.features import specular_mask
 
-        spots = specular_mask(image, gray=grey)
+            spots = specular_mask(image, gray=grey)
         if spots is not None:
             touched = cv2.resize((spots > 0).astype(np.float32), size,
                                  interpolation=cv2.INTER_AREA) > 0

@@ -20,6 +20,7 @@ from fusedmosaic.compositing.blending import (
     FrameWarper,
     MultibandRegion,
     Patch,
+    SpecularMasks,
     _overlap,
     accumulate,
     as_blend_options,
@@ -219,7 +220,7 @@ class _PatchSource:
         # chosen here are those of the patches.
         image = (self.image(k) if self.warper.options.mask_specular and self._seq is not None
                  else None)
-        return self.warper.warp_weight(self.G[k], image)
+        return self.warper.warp_weight(self.G[k], image, name=k)
 
 
 def _render_region(x0: int, y0: int, w: int, h: int, ks: Iterable[int], source: _PatchSource,
@@ -316,7 +317,8 @@ def _progress_bar(progress: bool, total: int, desc: str):
 def render_mosaic(frames, homographies: np.ndarray, width: int, height: int, *,
                   mask: np.ndarray | None = None, blend: str | BlendOptions = "linear",
                   max_pixels: int = MAX_CANVAS_PIXELS, gains: np.ndarray | None = None,
-                  plan: CanvasPlan | None = None, progress: bool = False) -> RenderedMosaic:
+                  plan: CanvasPlan | None = None, progress: bool = False,
+                  highlights: SpecularMasks | None = None) -> RenderedMosaic:
     """Renders the whole mosaic in one piece (memory ~ 16 bytes per canvas pixel, more for
     multiband).
 
@@ -324,17 +326,21 @@ def render_mosaic(frames, homographies: np.ndarray, width: int, height: int, *,
     increasing k (unplaced frames may be left out). mask: (H, W) field of view (uint8 255 or bool).
     gains: (N,) per-frame gains (see :func:`frame_gains`). Multiband from a one-pass iterable
     leaves highlights in (BlendOptions.mask_specular): its seams are chosen before any frame is
-    read."""
+    read. highlights: the specular masks frame_gains found (the same SpecularMasks), so each
+    frame's is found once; None: found here (multiband: once for its seams and patches)."""
     options = as_blend_options(blend)
     if (options.blend == "multiband" and options.mask_specular
             and not hasattr(frames, "__getitem__")):
         options = replace(options, mask_specular=False)
+    if highlights is None and options.mask_specular and options.blend == "multiband":
+        highlights = SpecularMasks()
     G = np.asarray(homographies, np.float64)
     plan = plan or plan_canvas(G, width, height, max_pixels=max_pixels)
     if plan.pixels > max_pixels:
         raise CanvasTooLargeError(f"mosaic canvas of {plan.width} x {plan.height} pixels exceeds "
                                   f"the budget of {max_pixels} pixels")
-    warper = FrameWarper(width, height, mask, options)
+    warper = FrameWarper(width, height, mask, options,
+                         highlights=highlights if options.mask_specular else None)
     source = _PatchSource(frames, G, warper, gains, cache_bytes=0)
     ks = np.flatnonzero(plan.use)
     with _progress_bar(progress, len(ks), "mosaic") as bar:
@@ -349,13 +355,15 @@ def write_mosaic_png(path: str | Path, frames: Sequence, homographies: np.ndarra
                      height: int, *, mask: np.ndarray | None = None,
                      blend: str | BlendOptions = "linear", canvas: CanvasOptions | None = None,
                      gains: np.ndarray | None = None, plan: CanvasPlan | None = None,
-                     progress: bool = False) -> tuple[CanvasPlan, float]:
+                     progress: bool = False, highlights: SpecularMasks | None = None
+                     ) -> tuple[CanvasPlan, float]:
     """Renders the mosaic tile by tile and streams it into a PNG at `path`; memory is bounded by
     one band of tiles (tile_size rows x canvas width x C bytes) plus one tile's accumulator and
     the patch cache, whatever the canvas size (up to canvas.max_pixels).
 
     frames: a sequence (frames[k]); frames overlapping several tiles are read and warped again
-    unless still in the cache. Returns (plan, fraction of covered pixels)."""
+    unless still in the cache; each frame's specular mask is found once (highlights: those
+    frame_gains found, else a new SpecularMasks). Returns (plan, fraction of covered pixels)."""
     from fusedmosaic.compositing.png import PngStreamWriter
 
     options = as_blend_options(blend)
@@ -364,7 +372,10 @@ def write_mosaic_png(path: str | Path, frames: Sequence, homographies: np.ndarra
     G = np.asarray(homographies, np.float64)
     plan = plan or plan_canvas(G, width, height, max_pixels=canvas.max_pixels,
                                absurd_area_factor=canvas.absurd_area_factor)
-    warper = FrameWarper(width, height, mask, options)
+    if highlights is None and options.mask_specular:
+        highlights = SpecularMasks()
+    warper = FrameWarper(width, height, mask, options,
+                         highlights=highlights if options.mask_specular else None)
     source = _PatchSource(frames, G, warper, gains, int(canvas.cache_mb * 2**20))
     ks = np.flatnonzero(plan.use)
     first = np.asarray(frames[int(ks[0])])
@@ -398,18 +409,21 @@ def write_mosaic_png(path: str | Path, frames: Sequence, homographies: np.ndarra
 
 def frame_gains(frames: Sequence, homographies: np.ndarray, width: int, height: int, *,
                 mask: np.ndarray | None = None, use: np.ndarray | None = None,
-                progress: bool = False, mask_specular: bool | None = False) -> np.ndarray:
+                progress: bool = False, mask_specular: bool | None = False,
+                highlights: SpecularMasks | None = None) -> np.ndarray:
     """Gain compensation (Brown & Lowe 2007, Sec. 6): reads every used frame once at 1/8 size and
     returns (N,) gains equalising the mean intensity of overlapping frames. mask_specular: the
     blend's (BlendOptions.mask_specular; None: off): the frames' specular highlights are left
-    out of the overlaps compared (thumbnail)."""
+    out of the overlaps compared (thumbnail). highlights: a SpecularMasks to keep the masks
+    found in, for the renderer (render_mosaic / write_mosaic_png) to reuse."""
     G = np.asarray(homographies, np.float64)
     use = usable_frames(G, width, height) if use is None else use
     thumbs = {}
     from tqdm import tqdm
 
     for k in tqdm(np.flatnonzero(use), desc="gains", disable=not progress, leave=False):
-        thumbs[int(k)] = thumbnail(frames[int(k)], mask_specular=bool(mask_specular))
+        thumbs[int(k)] = thumbnail(frames[int(k)], mask_specular=bool(mask_specular),
+                                   highlights=highlights, key=int(k))
     return compensate_gains(thumbs, G, width, height, mask)
 
 

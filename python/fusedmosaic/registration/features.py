@@ -28,7 +28,8 @@ class FeatureOptions:
     # DoG contrast: the simulator's frames (grey std ~14) give 80-320 keypoints, but the same
     # frames at 70 % contrast gave 1-2 and lba-emt registered no pair at all (run failed); at
     # 0.01 they give 1000 (the cap) and register again. Never triggered on the simulator's
-    # default sequences (fewest keypoints 79), so their figures are unchanged.
+    # default sequences (fewest keypoints 79), so their figures are unchanged. A featureless
+    # frame (noise alone: structure_to_noise < SIFT_RETRY_MIN_STRUCTURE) is not detected again.
     sift_min_features: int = 50
     sift_contrast_threshold_low: float = 0.01
     # ORB's FAST corner threshold (grey levels): the lower, the more candidate corners ORB
@@ -100,6 +101,61 @@ C_INT_MAX = 2**31 - 1  # OpenCV's detectors take nfeatures as a C int
 # small frame (200-300 px, often under 50) made brute-force matching ~5x slower (a test file of
 # such runs: 39 s without the retry, 182 s with 1000 keypoints).
 SIFT_RETRY_FEATURES_PER_MIN = 4
+
+# ... and is skipped on a featureless frame, pure noise or a black frame with sensor noise,
+# where it doubled detection (400x400: 42 -> 97 ms) only to find noise: 0-200 keypoints that
+# match nothing. Told apart by structure_to_noise (the DoG energy at SIFT's first scales over
+# what the frame's own noise alone gives there), measured on 400x400 and 720x576 frames:
+# white noise at grey levels 14, 40, 128 and sigma 0.5 to 32 (grey or colour, with or without
+# a circular field of view) gave 0.99-1.01; three simulated sequences (syn, 2 x hand-held)
+# faded to 1.0 ... 0.1 of their contrast (sensor noise sigma 2 added after fading, or the
+# noisy frame faded) gave 1.71-13.9, and 2.97 the least of the frames whose pair (k, k + 2)
+# the retry registered (syn faded to 0.2 with noise, 720x576: 35 inliers, none without it);
+# below that, 1.71-2.92, pairs registered with neither. 1.5 lies between: half again the
+# noise's own level, half the least helped texture's.
+SIFT_RETRY_MIN_STRUCTURE = 1.5
+# The band: SIFT's base scale and the next in its octave (sigma 1.6 * 2^(1/3)), px of the
+# image it detects in; small kernels (4 sigma each side), so a field-of-view mask's margin
+# (mask_margin_px) keeps the black border, which would count as structure, out of all but
+# their tails (noise in a circular field of view: 1.00-1.01).
+_DOG_SIGMAS = (1.6, 1.6 * 2 ** (1 / 3))
+_DOG_KSIZES = tuple(2 * int(np.ceil(4 * sigma)) + 1 for sigma in _DOG_SIGMAS)
+
+
+def _white_noise_dog_gain() -> float:
+    """std of the DoG band of white noise of std 1: the 2-D kernel's L2 norm (0.0511)."""
+    a, b = (cv2.getGaussianKernel(k, sigma, cv2.CV_64F).ravel()
+            for k, sigma in zip(_DOG_KSIZES, _DOG_SIGMAS, strict=True))
+    a = np.pad(a, (len(b) - len(a)) // 2)
+    # sum((a a^T - b b^T)^2) = (a.a)^2 + (b.b)^2 - 2 (a.b)^2
+    return float(np.sqrt((a @ a) ** 2 + (b @ b) ** 2 - 2 * (a @ b) ** 2))
+
+
+_WHITE_NOISE_DOG_GAIN = _white_noise_dog_gain()
+_SECOND_DIFFERENCE = np.array([1, -2, 1], np.float32)
+
+
+def structure_to_noise(gray: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """How much more a uint8 grey frame varies at SIFT's first scales than its noise alone
+    would: the std of its difference of Gaussians (sigma 1.6 and 1.6 * 2^(1/3)) over that of
+    white noise with the frame's noise std, which Immerkaer's estimator gives (J. Immerkaer,
+    "Fast noise variance estimation", CVIU 1996: the mean absolute response to the 3x3 second
+    difference [1 -2 1] x [1 -2 1], x sqrt(pi / 2) / 6). Both inside mask (uint8, non-zero:
+    in; None: the whole frame). ~1 for noise alone whatever its level, far more for texture,
+    whose DoG response adds to the noise's (SIFT_RETRY_MIN_STRUCTURE); 0 for a frame with no
+    variation or an empty mask, inf for one without noise but with structure. ~1.5 ms on a
+    400x400 frame."""
+    if mask is not None and cv2.countNonZero(mask) == 0:
+        return 0.0
+    g = np.asarray(gray, np.float32)
+    dog = cv2.GaussianBlur(g, (_DOG_KSIZES[0],) * 2, _DOG_SIGMAS[0])
+    dog -= cv2.GaussianBlur(g, (_DOG_KSIZES[1],) * 2, _DOG_SIGMAS[1])
+    structure = float(cv2.meanStdDev(dog, mask=mask)[1][0, 0])
+    second = cv2.sepFilter2D(g, cv2.CV_32F, _SECOND_DIFFERENCE, _SECOND_DIFFERENCE)
+    noise = np.sqrt(np.pi / 2) / 6 * cv2.mean(np.abs(second), mask=mask)[0]
+    if noise <= 0:
+        return np.inf if structure > 0 else 0.0
+    return structure / (noise * _WHITE_NOISE_DOG_GAIN)
 
 
 @dataclass
@@ -272,7 +328,8 @@ class FeatureExtractor:
             keypoints, descriptors = self._detector(o.orb_fast_threshold_low).detectAndCompute(
                 gray, mask)  # low contrast: more candidate corners
         if (not binary and len(keypoints) < o.sift_min_features
-                and o.sift_contrast_threshold_low < o.sift_contrast_threshold):
+                and o.sift_contrast_threshold_low < o.sift_contrast_threshold
+                and structure_to_noise(gray, mask) >= SIFT_RETRY_MIN_STRUCTURE):
             keypoints, descriptors = self._detector(
                 contrast_threshold=o.sift_contrast_threshold_low,
                 max_features=min(o.max_features, SIFT_RETRY_FEATURES_PER_MIN * max(
