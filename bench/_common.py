@@ -1,11 +1,13 @@
 """Shared pieces of the issue-7 benchmarks (bench_table1, bench_latency, bench_peers, bench_cpp,
 run_all): the paper's figures, the simulated sequences, machine facts, statistics, JSON output and
-the problem logs replayed by the C++ solver benchmark (bench/cpp/solver_bench.cc).
+the problem logs replayed by the C++ solver benchmark (bench/cpp/solver_bench.cc); and for every
+bench script, the shared command-line options (bench_args) and a run's start and end (BenchRun).
 
 Scripts in bench/ import this as `_common` (python puts the script's folder on sys.path)."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import tempfile
@@ -190,12 +192,72 @@ def work_folder(work: Path | None):
     return Path(tmp.name), tmp
 
 
-def finish_run(result: dict, out: Path, t_start: float, tmp=None) -> dict:
-    """Common end of a bench script: runtime, end load, JSON out, temp work dir removed."""
+_OPTIONS = {  # the shared options of bench_args: name -> add_argument keywords from the value
+    "quick": lambda text: {"action": "store_true", "help": text},
+    "seeds": lambda default: {"type": int, "default": default},
+    "frames": lambda default: {"type": int, "default": default},
+    "out": lambda default: {"type": Path, "default": default},
+    "work": lambda text: {"type": Path, "default": None, "help": None if text is True else text},
+}
+
+
+def add_options(ap: argparse.ArgumentParser, **options) -> argparse.ArgumentParser:
+    """Adds the shared options named, in the order given: quick=HELP (--quick, a flag), seeds=N
+    and frames=N (int, default N), out=PATH (--out, a Path, default PATH), work=True or HELP
+    (--work, a Path, default None: a temporary folder, see BenchRun)."""
+    for name, value in options.items():
+        ap.add_argument(f"--{name}", **_OPTIONS[name](value))
+    return ap
+
+
+def bench_args(doc: str, **options) -> argparse.ArgumentParser:
+    """A parser described by doc's first paragraph with the shared options named (add_options);
+    a script adds its own to it (and more shared ones after those with add_options)."""
+    return add_options(argparse.ArgumentParser(description=doc.split("\n\n")[0]), **options)
+
+
+class BenchRun:
+    """A bench script's run from its start: the clock (t_start), the load average (load_start)
+    and, unless folder=False, the work folder (work): `work` if given, else a temporary one that
+    cleanup(), write_results() and finish() remove."""
+
+    def __init__(self, work: Path | None = None, folder: bool = True):
+        self.t_start = time.perf_counter()
+        self.load_start = load_average()
+        self.work, self._tmp = work_folder(work) if folder else (None, None)
+
+    def cleanup(self) -> None:
+        if self._tmp is not None:
+            self._tmp.cleanup()
+            self._tmp = None
+
+    def write_results(self, out: Path, markdown, **fields) -> dict:
+        """write_results with this run's start, then cleanup()."""
+        res = write_results(out, markdown, self.t_start, self.load_start, **fields)
+        self.cleanup()
+        return res
+
+    def finish(self, result: dict, out: Path, markdown=None) -> dict:
+        """finish_run with this run's start, then cleanup()."""
+        finish_run(result, out, self.t_start, markdown=markdown)
+        self.cleanup()
+        return result
+
+
+def write_outputs(out: Path, res: dict, markdown=None, note: str = "") -> None:
+    """res as JSON to `out` and, through markdown(res) if given, to its .md twin; says so."""
+    write_json(out, res)
+    if markdown is not None:
+        Path(out).with_suffix(".md").write_text(markdown(res))
+    print(f"wrote {out}{note}")
+
+
+def finish_run(result: dict, out: Path, t_start: float, tmp=None, markdown=None) -> dict:
+    """Common end of a bench script: runtime, end load, JSON (and markdown(result) beside it)
+    out, temp work dir removed."""
     result["runtime_s"] = time.perf_counter() - t_start
     result["machine"]["load_average_end"] = load_average()
-    write_json(out, result)
-    print(f"wrote {out} ({result['runtime_s']:.0f} s)")
+    write_outputs(out, result, markdown, f" ({result['runtime_s']:.0f} s)")
     if tmp is not None:
         tmp.cleanup()
     return result
@@ -208,9 +270,7 @@ def write_results(out: Path, markdown, t_start: float, load_start: list[float],
     `out` (JSON) and, through markdown(result), to its .md twin. Returns the result."""
     res = {"machine": machine_info(), **fields, "load_average_start": load_start,
            "load_average_end": load_average(), "runtime_s": time.perf_counter() - t_start}
-    write_json(out, res)
-    Path(out).with_suffix(".md").write_text(markdown(res))
-    print(f"wrote {out}")
+    write_outputs(out, res, markdown)
     return res
 
 

@@ -9,20 +9,11 @@ seeds, EM-tracker noise levels and numbers of views; with the time calibration t
 
 from __future__ import annotations
 
-import argparse
 import time
 from pathlib import Path
 
 import numpy as np
-from _common import (
-    fmt,
-    load_average,
-    md_table,
-    ratio,
-    run_note,
-    work_folder,
-    write_results,
-)
+from _common import BenchRun, bench_args, fmt, md_table, ratio, run_note
 from scipy.spatial.transform import Rotation
 
 from fusedmosaic.estimation.calibration import calibrate_recording, camera_model_difference
@@ -89,19 +80,14 @@ def measure(root: Path) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--seeds", type=int, default=5)
-    ap.add_argument("--out", type=Path, default=Path("bench/results/calibration.json"))
-    ap.add_argument("--work", type=Path, default=None)
-    args = ap.parse_args()
-    t_bench = time.perf_counter()
-    load_start = load_average()
-    work, tmp = work_folder(args.work)
+    args = bench_args(__doc__, seeds=5, out=Path("bench/results/calibration.json"),
+                      work=True).parse_args()
+    bench = BenchRun(args.work)
     configs = []
     for label, changes in CONFIGS.items():
         runs = []
         for seed in range(args.seeds):
-            root = work / f"board_{len(configs)}_{seed}"
+            root = bench.work / f"board_{len(configs)}_{seed}"
             simulate_checkerboard(root, CheckerboardOptions(seed=seed, **changes),
                                   overwrite=True)
             run = measure(root)
@@ -122,10 +108,7 @@ def main() -> None:
             median[f"{q}_true_over_reported"] = float(np.sqrt(np.mean(true ** 2)) / told.mean())
         configs.append({"configuration": label, "options": changes, "runs": runs,
                         "median": median})
-    write_results(args.out, markdown, t_bench, load_start, seeds=args.seeds,
-                  configurations=configs)
-    if tmp is not None:
-        tmp.cleanup()
+    bench.write_results(args.out, markdown, seeds=args.seeds, configurations=configs)
 
 
 def markdown(res: dict) -> str:

@@ -20,12 +20,10 @@ Writes the JSON and a markdown table beside it (detect_scale.md).
 
 from __future__ import annotations
 
-import argparse
-import time
 from pathlib import Path
 
 import numpy as np
-from _common import fmt, load_average, md_table, run_note, write_results
+from _common import BenchRun, bench_args, fmt, md_table, run_note
 from bench_sequential import make_scene, stream, throughput
 
 from fusedmosaic.estimation.sequential import SequentialOptions
@@ -44,12 +42,9 @@ PAIR_CONFIGS = {  # label -> (preset, loop_pairs)
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--frames", type=int, default=250)
-    ap.add_argument("--out", type=Path, default=Path("bench/results/detect_scale.json"))
-    args = ap.parse_args()
-    t_bench = time.perf_counter()
-    load_start = load_average()
+    args = bench_args(__doc__, frames=250,
+                      out=Path("bench/results/detect_scale.json")).parse_args()
+    bench = BenchRun(folder=False)
     rows = []
     for size in SIZES:
         scene, camera, poses, valid = make_scene(args.frames, size)
@@ -68,8 +63,8 @@ def main() -> None:
         row = measure(scene, camera, poses, valid, args.frames, PAIRS_SIZE, PAIRS_SIDE, options)
         pair_rows.append({"configuration": label, "preset": preset, "loop_pairs": loops,
                           **row})
-    write_results(args.out, markdown, t_bench, load_start, frames=args.frames, detector="orb",
-                  rows=rows, pair_rows=pair_rows)
+    bench.write_results(args.out, markdown, frames=args.frames, detector="orb", rows=rows,
+                        pair_rows=pair_rows)
 
 
 def measure(scene, camera, poses, valid, frames, size, side, options) -> dict:

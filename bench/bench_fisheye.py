@@ -17,13 +17,12 @@ through OpenCV's fisheye model (k1..k4 = LENS), from calibration to mosaic, in o
 
 from __future__ import annotations
 
-import argparse
 import shutil
 import time
 from pathlib import Path
 
 import numpy as np
-from _common import fmt, load_average, md_table, run_note, work_folder, write_results
+from _common import BenchRun, bench_args, fmt, md_table, run_note
 from bench_lens import METHODS, case_medians, measure, pinhole_mosaic
 
 from fusedmosaic.estimation.calibration import (
@@ -90,15 +89,10 @@ def with_camera(source: Path, target: Path, camera: Camera | None) -> Path:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--seeds", type=int, default=3)
-    ap.add_argument("--frames", type=int, default=152)
-    ap.add_argument("--out", type=Path, default=Path("bench/results/fisheye.json"))
-    ap.add_argument("--work", type=Path, default=None)
-    args = ap.parse_args()
-    t_bench = time.perf_counter()
-    load_start = load_average()
-    work, tmp = work_folder(args.work)
+    args = bench_args(__doc__, seeds=3, frames=152, out=Path("bench/results/fisheye.json"),
+                      work=True).parse_args()
+    bench = BenchRun(args.work)
+    work = bench.work
     runs = []
     for seed in range(args.seeds):
         print(f"seed {seed}: calibration", flush=True)
@@ -122,10 +116,8 @@ def main() -> None:
         "calibration": {m: {k: float(np.median([r["calibration"][m][k] for r in runs]))
                             for k in runs[0]["calibration"][m]} for m in MODELS},
         **case_medians(runs, CASES)}
-    write_results(args.out, markdown, t_bench, load_start, seeds=args.seeds, frames=args.frames,
-                  lens=LENS, focal_px=FOCAL_FACTOR * SIZE, runs=runs, median=median)
-    if tmp is not None:
-        tmp.cleanup()
+    bench.write_results(args.out, markdown, seeds=args.seeds, frames=args.frames, lens=LENS,
+                        focal_px=FOCAL_FACTOR * SIZE, runs=runs, median=median)
 
 
 def markdown(res: dict) -> str:

@@ -14,19 +14,15 @@ any method that freezes frame 0 after the start-up can know about it); and e_M o
 
 from __future__ import annotations
 
-import argparse
-import time
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
-from _common import FRAMES_PER_LAP, RESULTS, fmt, md_table, run_note, work_folder, write_results
+from _common import FRAMES_PER_LAP, RESULTS, BenchRun, bench_args, fmt, md_table, run_note
 
 from fusedmosaic import _core
 from fusedmosaic.estimation.bundle import run_ba_emt
 from fusedmosaic.estimation.sequential import SequentialOptions, run_lba_emt
 from fusedmosaic.evaluation import frame_errors, mosaic_error
-from fusedmosaic.evaluation.benchmark import load_average
 from fusedmosaic.io import read_dataset, read_poses_csv
 from fusedmosaic.simulation import FetoscopyOptions, simulate_fetoscopy
 
@@ -84,17 +80,12 @@ def markdown(res: dict) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--seeds", type=int, default=4)
-    parser.add_argument("--work", type=Path, default=None)
-    parser.add_argument("--out", type=Path, default=RESULTS / "frame0.json")
-    args = parser.parse_args()
-    t0, load_start = time.perf_counter(), load_average()
-    work, tmp = work_folder(args.work)
+    args = bench_args(__doc__, seeds=4, work=True, out=RESULTS / "frame0.json").parse_args()
+    bench = BenchRun(args.work)
     start = SequentialOptions().bootstrap_frames
     rows = []
     for seed in range(args.seeds):
-        root = work / f"syn152_{seed}"
+        root = bench.work / f"syn152_{seed}"
         simulate_fetoscopy(root, FetoscopyOptions(n_frames=152, laps=152 / FRAMES_PER_LAP,
                                                   seed=seed), overwrite=True)
         ds = read_dataset(root)
@@ -108,10 +99,7 @@ def main() -> None:
             f"{k} {row[k]['frame0_rot_deg']:.3f} / {row[k]['frame0_trans_mm']:.3f}"
             for k in ("lba-emt", "ba-emt", "ba-emt first 40")), flush=True)
         rows.append(row)
-    write_results(args.out, markdown, t0, load_start, seeds=args.seeds, start_frames=start,
-                  rows=rows)
-    if tmp is not None:
-        tmp.cleanup()
+    bench.write_results(args.out, markdown, seeds=args.seeds, start_frames=start, rows=rows)
 
 
 if __name__ == "__main__":

@@ -20,7 +20,6 @@ fed one by one, as a live loop would:
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from pathlib import Path
@@ -29,13 +28,13 @@ import numpy as np
 from _common import (
     DEFAULT_WORK,
     RESULTS,
+    BenchRun,
     WindowRecorder,
+    bench_args,
     dist,
     ensure_dataset,
-    finish_run,
     machine_info,
     sequences,
-    work_folder,
 )
 
 
@@ -159,18 +158,14 @@ def kalman_latency(root: Path) -> dict:
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="60-frame fetoscopy, short pCLE paths")
-    ap.add_argument(
-        "--work",
-        type=Path,
-        default=None,
-        help=f"datasets and saved problems (run_all uses {DEFAULT_WORK})",
-    )
-    ap.add_argument("--out", type=Path, default=RESULTS / "latency.json")
-    args = ap.parse_args(argv)
-    t_start = time.perf_counter()
-    args.work, tmp = work_folder(args.work)
+    args = bench_args(
+        __doc__,
+        quick="60-frame fetoscopy, short pCLE paths",
+        work=f"datasets and saved problems (run_all uses {DEFAULT_WORK})",
+        out=RESULTS / "latency.json",
+    ).parse_args(argv)
+    bench = BenchRun(args.work)
+    args.work = bench.work
     from dataclasses import replace
 
     from fusedmosaic.simulation import PcleOptions, simulate_pcle
@@ -212,7 +207,7 @@ def main(argv=None) -> dict:
             f"{kf['p99']:.4f} ms",
             flush=True,
         )
-    return finish_run(res, args.out, t_start, tmp)
+    return bench.finish(res, args.out)
 
 
 if __name__ == "__main__":

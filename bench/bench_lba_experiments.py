@@ -28,11 +28,9 @@ simulator (issue 4, item 5). The suite runs short versions (tests/test_sequentia
 
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
 import sys
-import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -41,12 +39,12 @@ import numpy as np
 from _common import (
     FRAMES_PER_LAP,
     RESULTS,
-    finish_run,
+    BenchRun,
+    bench_args,
     fmt,
     machine_info,
     md_table,
     ratio,
-    work_folder,
 )
 
 from fusedmosaic import _core
@@ -291,13 +289,10 @@ def markdown(res: dict) -> str:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--seeds", type=int, default=4)
-    p.add_argument("--quick", action="store_true", help="1 seed, 60 frames (smoke run)")
-    p.add_argument("--out", type=Path, default=RESULTS / "lba_experiments.json")
-    args = p.parse_args()
-    t_start = time.perf_counter()
-    work, tmp = work_folder(None)
+    args = bench_args(__doc__.splitlines()[0], seeds=4, quick="1 seed, 60 frames (smoke run)",
+                      out=RESULTS / "lba_experiments.json").parse_args()
+    bench = BenchRun()
+    work = bench.work
     n = 60 if args.quick else 152
     seeds = 1 if args.quick else args.seeds
     res: dict = {"machine": machine_info(), "command": " ".join(sys.argv)}
@@ -318,8 +313,7 @@ def main() -> None:
         res["drift_summary"][label] = mean
     res["emt_noise"] = emt_noise(work)
     res["black"] = black_frames(work, 62, args.out.parent)
-    finish_run(res, args.out, t_start, tmp)
-    args.out.with_suffix(".md").write_text(markdown(res))
+    bench.finish(res, args.out, markdown)
     print(args.out.with_suffix(".md").read_text())
 
 

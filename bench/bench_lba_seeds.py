@@ -18,12 +18,11 @@ Writes the JSON and a markdown table beside it (lba_seeds.md).
 
 from __future__ import annotations
 
-import argparse
 import time
 from pathlib import Path
 
 import numpy as np
-from _common import fmt, machine_info, md_table, work_folder, write_json
+from _common import BenchRun, add_options, bench_args, fmt, machine_info, md_table, write_outputs
 from bench_lba_experiments import errors, reference_averaged_error, syn
 
 from fusedmosaic.estimation.bundle import run_ba_emt
@@ -36,20 +35,16 @@ FRAMES = 152
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--seeds", type=int, default=20)
+    ap = bench_args(__doc__, seeds=20)
     ap.add_argument("--bootstrap", default="40,60,80",
                     help="start-up lengths (frames), the first is the default's")
-    ap.add_argument("--work", type=Path, default=None)
-    ap.add_argument("--out", type=Path, default=Path("bench/results/lba_seeds.json"))
-    args = ap.parse_args()
+    args = add_options(ap, work=True, out=Path("bench/results/lba_seeds.json")).parse_args()
     boots = [int(b) for b in args.bootstrap.split(",")]
-    t0 = time.perf_counter()
+    bench = BenchRun(args.work)
     rows = []
-    work, tmp = work_folder(args.work)
     try:
         for seed in range(args.seeds):
-            root = work / f"syn{FRAMES}_{seed}"
+            root = bench.work / f"syn{FRAMES}_{seed}"
             simulate_fetoscopy(root, syn(FRAMES, seed), overwrite=True)
             ds = read_dataset(root)
             ba = run_ba_emt(ds, progress=False)
@@ -63,8 +58,7 @@ def main() -> None:
             rows.append(row)
             print(seed, {k: round(v, 3) for k, v in row.items()}, flush=True)
     finally:
-        if tmp is not None:
-            tmp.cleanup()
+        bench.cleanup()
     summary = {}
     for b in boots:
         r = np.array([row[f"lba-emt {b}"] / row["ba-emt"] for row in rows])
@@ -84,11 +78,9 @@ def main() -> None:
             "fraction_within_1_25": float(np.mean(ra <= 1.25)),
             "seed_0_ratio": float(ra[0])}
     res = {"machine": machine_info(), "frames": FRAMES, "seeds": args.seeds,
-           "bootstrap_frames": boots, "runtime_s": time.perf_counter() - t0, "rows": rows,
-           "summary": {str(b): s for b, s in summary.items()}}
-    write_json(args.out, res)
-    args.out.with_suffix(".md").write_text(markdown(res))
-    print(f"wrote {args.out}")
+           "bootstrap_frames": boots, "runtime_s": time.perf_counter() - bench.t_start,
+           "rows": rows, "summary": {str(b): s for b, s in summary.items()}}
+    write_outputs(args.out, res, markdown)
 
 
 def markdown(res: dict) -> str:

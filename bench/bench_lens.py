@@ -10,7 +10,6 @@ homographies, and the per-frame time of lba-emt (the undistortion is one remap p
 
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
 import time
@@ -18,7 +17,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from _common import fmt, load_average, md_table, run_note, work_folder, write_results
+from _common import BenchRun, bench_args, fmt, md_table, run_note
 
 from fusedmosaic.compositing import render_mosaic
 from fusedmosaic.evaluation import evaluate_output, mosaic_difference
@@ -82,15 +81,10 @@ def case_medians(runs: list[dict], cases) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--seeds", type=int, default=3)
-    ap.add_argument("--frames", type=int, default=152)
-    ap.add_argument("--out", type=Path, default=Path("bench/results/lens.json"))
-    ap.add_argument("--work", type=Path, default=None)
-    args = ap.parse_args()
-    t_bench = time.perf_counter()
-    load_start = load_average()
-    work, tmp = work_folder(args.work)
+    args = bench_args(__doc__, seeds=3, frames=152, out=Path("bench/results/lens.json"),
+                      work=True).parse_args()
+    bench = BenchRun(args.work)
+    work = bench.work
     runs = []
     for seed in range(args.seeds):
         run = {"seed": seed}
@@ -108,10 +102,8 @@ def main() -> None:
             run[case] = measure(data, work / f"out_{seed}_{case.replace(' ', '_')}", truth)
         runs.append(run)
     median = case_medians(runs, CASES)
-    write_results(args.out, markdown, t_bench, load_start, seeds=args.seeds, frames=args.frames,
-                  lens=LENS, runs=runs, median=median)
-    if tmp is not None:
-        tmp.cleanup()
+    bench.write_results(args.out, markdown, seeds=args.seeds, frames=args.frames, lens=LENS,
+                        runs=runs, median=median)
 
 
 def markdown(res: dict) -> str:

@@ -19,16 +19,14 @@ Writes the JSON and a markdown table beside it (live.md).
 
 from __future__ import annotations
 
-import argparse
 import json
 import subprocess
 import sys
-import time
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
-from _common import fmt, load_average, md_table, run_note, work_folder, write_results
+from _common import BenchRun, bench_args, fmt, md_table, run_note
 from bench_sequential import FRAMES_PER_LAP
 
 from fusedmosaic.estimation.live import replay_live
@@ -48,15 +46,11 @@ CONFIGS = {  # label -> (frame size, detector, detection max side)
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--frames", type=int, default=300)
-    ap.add_argument("--work", type=Path, default=None)
-    ap.add_argument("--out", type=Path, default=Path("bench/results/live.json"))
-    args = ap.parse_args()
-    t_bench = time.perf_counter()
-    load_start = load_average()
+    args = bench_args(__doc__, frames=300, work=True,
+                      out=Path("bench/results/live.json")).parse_args()
+    bench = BenchRun(args.work)
     rows = []
-    work, tmp = work_folder(args.work)
+    work = bench.work
     try:
         for label, (size, detector, side) in CONFIGS.items():
             root = simulate_fetoscopy(work / label.split()[0], FetoscopyOptions(
@@ -96,9 +90,8 @@ def main() -> None:
                             "kalman-robot (live)", ds, streamed,
                             mean_um(SimpleNamespace(homographies=G)), mean_um(offline), "µm"))
     finally:
-        if tmp is not None:
-            tmp.cleanup()
-    write_results(args.out, markdown, t_bench, load_start, frames=args.frames, rows=rows)
+        bench.cleanup()
+    bench.write_results(args.out, markdown, frames=args.frames, rows=rows)
 
 
 # The sender: tests/_igtl_sender.py in another process (its own interpreter and GIL, as PLUS

@@ -37,11 +37,11 @@ import numpy as np
 from _common import (
     DEFAULT_WORK,
     RESULTS,
+    BenchRun,
+    bench_args,
     ensure_dataset,
-    finish_run,
     machine_info,
     sequences,
-    work_folder,
 )
 
 RATIO = 0.75
@@ -302,12 +302,12 @@ def opencv_stitcher(data: Path, timeout_s: float) -> dict:
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="60-frame sequences")
-    ap.add_argument(
-        "--work", type=Path, default=None, help=f"datasets (run_all uses {DEFAULT_WORK})"
+    ap = bench_args(
+        __doc__,
+        quick="60-frame sequences",
+        work=f"datasets (run_all uses {DEFAULT_WORK})",
+        out=RESULTS / "peers.json",
     )
-    ap.add_argument("--out", type=Path, default=RESULTS / "peers.json")
     ap.add_argument(
         "--stitcher-timeout",
         type=float,
@@ -324,8 +324,8 @@ def main(argv=None) -> dict:
     if args.stitch_child:
         stitch_child(*args.stitch_child)
         return {}
-    t_start = time.perf_counter()
-    args.work, tmp = work_folder(args.work)
+    bench = BenchRun(args.work)
+    args.work = bench.work
     res: dict = {
         "benchmark": "peers on the same frames (bench/bench_peers.py)",
         "quick": args.quick,
@@ -354,7 +354,7 @@ def main(argv=None) -> dict:
                 f"{'' if r.get('success', True) else '  ' + r['status']}",
                 flush=True,
             )
-    return finish_run(res, args.out, t_start, tmp)
+    return bench.finish(res, args.out)
 
 
 if __name__ == "__main__":

@@ -20,12 +20,11 @@ Writes the JSON and a markdown table beside it (plane_gate.md).
 
 from __future__ import annotations
 
-import argparse
 import time
 from pathlib import Path
 
 import numpy as np
-from _common import RESULTS, finish_run, fmt, machine_info
+from _common import RESULTS, bench_args, finish_run, fmt, machine_info
 
 from fusedmosaic.estimation.bundle import predicted_homographies
 from fusedmosaic.estimation.sequential import SequentialMosaicker, SequentialOptions
@@ -105,7 +104,7 @@ def markdown(result: dict) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = bench_args(__doc__)
     ap.add_argument("--frames", type=int, nargs="+", default=[300, 3000],
                     help="weak-texture sequence lengths (the first also at 400 px)")
     ap.add_argument("--out", type=Path, default=RESULTS / "plane_gate.json")
@@ -121,8 +120,7 @@ def main() -> None:
               f"{r['depth_min_mm']:.1f}-{r['depth_max_mm']:.1f} held {r['steps_held_by_gate']}"
               f" step {r['step_ms_median']:.2f} ms", flush=True)
         result["runs"].append(r)
-    finish_run(result, args.out, t_start)
-    args.out.with_suffix(".md").write_text(markdown(result))
+    finish_run(result, args.out, t_start, markdown=markdown)
 
 
 if __name__ == "__main__":

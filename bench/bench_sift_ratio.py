@@ -12,12 +12,10 @@ the closing notes.
 
 from __future__ import annotations
 
-import argparse
-import time
 from pathlib import Path
 
 import numpy as np
-from _common import RESULTS, finish_run, fmt, machine_info, md_table, work_folder
+from _common import RESULTS, BenchRun, add_options, bench_args, fmt, machine_info, md_table
 from bench_lba_experiments import errors, syn
 
 from fusedmosaic.estimation.bundle import BundleOptions, run_ba_emt
@@ -88,23 +86,18 @@ def markdown(res: dict) -> str:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--seeds", type=int, default=12)
+    p = bench_args(__doc__.splitlines()[0], seeds=12)
     p.add_argument("--ratios", type=float, nargs="+", default=[0.8, 0.6])
-    p.add_argument("--frames", type=int, default=152)
     default_out = RESULTS / "sift_ratio.json"
-    p.add_argument("--out", type=Path, default=default_out)
-    args = p.parse_args()
-    t_start = time.perf_counter()
-    work, tmp = work_folder(None)
+    args = add_options(p, frames=152, out=default_out).parse_args()
+    bench = BenchRun()
     res: dict = {"machine": machine_info(), "command": "python bench/bench_sift_ratio.py "
                  f"--seeds {args.seeds} --ratios {' '.join(map(str, args.ratios))} "
                  f"--frames {args.frames}"
                  + ("" if args.out == default_out else f" --out {args.out}"), "frames": args.frames}
-    res["seeds"] = measure(work, args.seeds, args.ratios, args.frames)
+    res["seeds"] = measure(bench.work, args.seeds, args.ratios, args.frames)
     res["summary"] = summary(res["seeds"], args.ratios)
-    finish_run(res, args.out, t_start, tmp)
-    args.out.with_suffix(".md").write_text(markdown(res))
+    bench.finish(res, args.out, markdown)
     print(args.out.with_suffix(".md").read_text())
 
 

@@ -16,12 +16,10 @@ motion's to within RANSAC's threshold).
 
 from __future__ import annotations
 
-import argparse
-import time
 from pathlib import Path
 
 import numpy as np
-from _common import fmt, load_average, md_table, run_note, work_folder, write_results
+from _common import BenchRun, bench_args, fmt, md_table, run_note
 from bench_lens import METHODS, case_medians
 from bench_lens import measure as bench_measure
 
@@ -79,14 +77,10 @@ def whitened(mosaic: np.ndarray, origin, truth) -> float:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--seeds", type=int, default=2)
-    ap.add_argument("--out", type=Path, default=Path("bench/results/specular.json"))
-    ap.add_argument("--work", type=Path, default=None)
-    args = ap.parse_args()
-    t_bench = time.perf_counter()
-    load_start = load_average()
-    work, tmp = work_folder(args.work)
+    args = bench_args(__doc__, seeds=2, out=Path("bench/results/specular.json"),
+                      work=True).parse_args()
+    bench = BenchRun(args.work)
+    work = bench.work
     runs = []
     for seed in range(args.seeds):
         run = {"seed": seed}
@@ -105,10 +99,8 @@ def main() -> None:
                     truth, keep=variant == "kept")
         runs.append(run)
     median = {name: case_medians([r[name] for r in runs], VARIANTS) for name in SEQUENCES}
-    write_results(args.out, markdown, t_bench, load_start, seeds=args.seeds, lights=LIGHTS,
-                  sequences=SEQUENCES, runs=runs, median=median)
-    if tmp is not None:
-        tmp.cleanup()
+    bench.write_results(args.out, markdown, seeds=args.seeds, lights=LIGHTS, sequences=SEQUENCES,
+                        runs=runs, median=median)
 
 
 def markdown(res: dict) -> str:

@@ -24,7 +24,6 @@ The BA problems of the SYN runs are saved (work/problems/) for the C++ replay (b
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -37,13 +36,13 @@ from _common import (
     PAPER_NAMES,
     PAPER_TABLE1,
     RESULTS,
+    BenchRun,
+    bench_args,
     ensure_dataset,
-    finish_run,
     machine_info,
     ratio,
     record_bundle_problems,
     sequences,
-    work_folder,
 )
 
 # (row name, method, options factory (base sequence -> options or None))
@@ -219,21 +218,18 @@ def table1(rows_by_seq: dict) -> dict:
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="60-frame sequences (smoke run)")
-    ap.add_argument(
-        "--work",
-        type=Path,
-        default=None,
-        help=f"datasets and saved problems (default: a temporary folder; run_all "
+    ap = bench_args(
+        __doc__,
+        quick="60-frame sequences (smoke run)",
+        work=f"datasets and saved problems (default: a temporary folder; run_all "
         f"uses {DEFAULT_WORK})",
+        out=RESULTS / "table1.json",
     )
-    ap.add_argument("--out", type=Path, default=RESULTS / "table1.json")
     ap.add_argument("--sequences", nargs="*", default=None, help="subset, e.g. syn handheld")
     ap.add_argument("--methods", nargs="*", default=None, help="subset of row names")
     args = ap.parse_args(argv)
-    t_start = time.perf_counter()
-    args.work, tmp = work_folder(args.work)
+    bench = BenchRun(args.work)
+    args.work = bench.work
     problems = args.work / "problems"
     machine = machine_info()
     rows_by_seq: dict[str, dict] = {}
@@ -283,7 +279,7 @@ def main(argv=None) -> dict:
             f"{s}/{n}": r["e_j_px"] for s, rows in rows_by_seq.items() for n, r in rows.items()
         },
     }
-    return finish_run(result, args.out, t_start, tmp)
+    return bench.finish(result, args.out)
 
 
 if __name__ == "__main__":

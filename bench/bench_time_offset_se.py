@@ -21,13 +21,12 @@ figure beside the block bootstrap's, both are scored.
 
 from __future__ import annotations
 
-import argparse
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
-from _common import fmt, load_average, md_table, run_note, write_results
+from _common import BenchRun, add_options, bench_args, fmt, md_table, run_note
 from scipy.spatial.transform import Rotation
 
 from fusedmosaic.estimation.calibration import (
@@ -94,15 +93,12 @@ def score(errors: np.ndarray, stds: np.ndarray) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--seeds", type=int, default=20)
+    ap = bench_args(__doc__, seeds=20)
     ap.add_argument("--configs", type=int, nargs="+", default=list(range(len(CONFIGS))),
                     help="indices into CONFIGS")
     ap.add_argument("--jobs", type=int, default=1, help="processes (seeds run in parallel)")
-    ap.add_argument("--out", type=Path, default=Path("bench/results/time_offset_se.json"))
-    args = ap.parse_args()
-    t_bench = time.perf_counter()
-    load_start = load_average()
+    args = add_options(ap, out=Path("bench/results/time_offset_se.json")).parse_args()
+    bench = BenchRun(folder=False)
     labels = list(CONFIGS)
     tasks = [(c, seed) for c in args.configs for seed in range(args.seeds)]
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
@@ -133,9 +129,9 @@ def main() -> None:
         configs.append({"configuration": label, "options": changes, "runs": runs,
                         "summary": summary})
         print(f"{label}: {summary}", flush=True)
-    write_results(args.out, markdown, t_bench, load_start, seeds=args.seeds, jobs=args.jobs,
-                  max_true_offset_s=MAX_TRUE_OFFSET_S, corner_noise_px=CORNER_NOISE_PX,
-                  configurations=configs)
+    bench.write_results(args.out, markdown, seeds=args.seeds, jobs=args.jobs,
+                        max_true_offset_s=MAX_TRUE_OFFSET_S, corner_noise_px=CORNER_NOISE_PX,
+                        configurations=configs)
 
 
 def markdown(res: dict) -> str:

@@ -81,7 +81,7 @@ def stage_command(
             "--frames 200 --sift-frames 60 --solver-frames 100 --repeats 1".split() if quick else []
         ),
         "compositing": ["--out", str(results / "compositing.json")]
-        + ("--frames 200 --render-frames 150 --passes 1".split() if quick else []),
+        + ("--frames 200 --render-frames 150 --repeats 1".split() if quick else []),
         "offline": ["--out", str(results / "offline.json")] + (["--frames", "40"] if quick else []),
         "lba_experiments": ["--out", str(results / "lba_experiments.json")]
         + (["--quick"] if quick else []),
