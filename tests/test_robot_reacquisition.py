@@ -271,56 +271,6 @@ def test_a_sparse_robot_through_stick_slip_is_not_worse_than_the_robot_alone(
     assert err.mean() <= 1.05 * robot.mean(), (err.mean(), robot.mean())
 
 
-JUMP_UM = 400.0  # 10 x the scan's 40 µm/frame, within the robot gate's 20 sigma_r0 of a noisy robot
-
-
-@pytest.fixture(scope="module")
-def contact_scan(tmp_path_factory):
-    """The simulator's default scan (512x448 px of 1 µm, 40 µm/frame on a 500 µm circle),
-    contact loss and stick-slip, 60 frames, seed 0."""
-    return _scan(tmp_path_factory)
-
-
-@pytest.mark.parametrize("lasting", [True, False], ids=["lasting-offset", "single-sample"])
-def test_a_robot_jump_on_an_untrusted_frame_is_gated(contact_scan, lasting):
-    """A +400 µm robot jump (from frame k on, or at frame k only) where the registration is not
-    trusted (c_img < 0.5 undisturbed; the contact loss: it is missing or image-gated). The robot
-    gate had no trusted registration to compare it with: the jump placed the frame and, the
-    chain being relative, stayed in X_f (k = 9; lasting: X_f 335.8 px mean, 400 from frame 9 on,
-    vs 7.1 undisturbed, X_m 64.0, the robot alone 335.6; single: frame 9 400 px off). Robot
-    motion gating judges it against the robot's own constant-speed prediction, which places the
-    frame: now 8.8 and 7.2 px mean, at most 3.2 and 2.7 px from the undisturbed run. Tolerance:
-    every frame within 5 px of the undisturbed run, the one-frame error of a constant-speed
-    prediction on this circle (40^2 / 500 = 3.2 px) plus margin."""
-    pcle = contact_scan
-    base = _run(pcle, pcle.robot_xy_um)
-    k = next(k for k in sorted(base) if k >= 3 and base[k].c_img < 0.5)
-    robot = pcle.robot_xy_um.copy()
-    robot[k:k + 1 if not lasting else None, 0] += JUMP_UM
-    out = _run(pcle, robot)
-    err, undisturbed = _errors(out, pcle), _errors(base, pcle)
-    assert np.abs(err - undisturbed).max() < 5.0, (k, (err - undisturbed).round(1))
-    # gated at k (a lasting offset until the rebase), the robot's prediction placed the frame
-    assert _gated(out) == ([k, k + 1, k + 2] if lasting else [k])
-    assert out[k].status == "prior-only" and out[k].c_rob > 0.0
-    assert out[k].displacement_robot[0] > JUMP_UM - 50.0  # the rejected displacement
-
-
-@pytest.mark.parametrize("robot_file", ["robot.csv", "robot_noisy.csv"])
-def test_robot_motion_gating_leaves_the_simulated_robots_alone(contact_scan, robot_file):
-    """Through the contact loss and stick-slip (the slip release is the tissue catching up
-    with the probe: a jump of the image, not of the robot), the perfect and the noisy robot
-    (30 % velocity noise) stay within 25 px of their constant-speed prediction, far inside
-    the 224 px bound: nothing is gated, and the runs are those without the motion gate."""
-    pcle = read_dataset(contact_scan.root, robot_file=robot_file)
-    out = _run(pcle, pcle.robot_xy_um)
-    assert _gated(out) == []
-    off = translation.RobotPriorOptions(robot_motion_gate=False)
-    m = RobotPriorMosaicker(pcle.camera, off)
-    reference = _feed(m, pcle, range(len(pcle)), pcle.robot_xy_um)
-    np.testing.assert_array_equal(_table(out), _table(reference))
-
-
 def test_bad_image_gate_is_refused():
     with pytest.raises(ValueError, match="image_gate_sigmas must be a finite number > 0"):
         translation.RobotPriorOptions(image_gate_sigmas=0.0)

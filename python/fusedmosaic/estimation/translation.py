@@ -82,26 +82,6 @@ such registrations in a row (a robot disagreeing with every frame, e.g. in the w
 they are believed over the robot, as ``robot_gate_rebase`` gated frames in a row make the robot
 believed over them: the robot is judged (gated) from then on.
 
-Robot motion gating (not in the paper). The robot gate needs a trusted registration to compare
-with: a robot jump (a +400 µm offset at 1 µm/px, ten times the scan's 40 µm/frame) starting on
-a frame whose registration is untrusted (a contact loss, stick-slip) or missing went into X_f,
-and as the chain is relative it stayed there. Such a frame is judged against the robot's own
-motion instead: a robot sample departing from the robot's constant-speed prediction (the speed
-between its last two accepted samples, extrapolated from the robot anchor) by more than the
-robot gate's bound (``robot_gate_sigmas x sigma_r0``, ``robot_gate_fraction`` of the frame, per
-frame without a robot sample) is gated (``robot_motion_gate``), unless a registration agrees
-with the robot within that bound (a real fast motion the image saw too). The prediction then
-stands in for the sample as the filter's robot displacement (so the image gate still judges an
-untrusted registration against it); the sample's offset from it is kept, and at the next gated
-frames the samples minus that offset stand in (a lasting offset: the robot's steps after the
-jump are good). The gated frames count towards ``robot_gate_rebase`` as the robot gate's do, and
-at the rebase the robot anchor is placed where the samples minus the offset put it rather than
-at X_f, which the image may have placed during the run of gated frames. Not while the robot's
-speed is unknown (its first two samples, after ``robot_sigma_max_span`` frames without a sample:
-a re-acquisition after a dropout, whose speed is stale). A jump below the bound on such a frame
-still passes (up to 224 px at 512x448): the robot's departures from its prediction are at most
-25 px on the simulator's scans, but a raster scan's turn or a change of speed are real ones.
-
 Image gating (not in the paper), the converse: a registration the filter does not trust
 (``c_img < robot_sigma_c_img``) that differs from the robot displacement by more than
 ``image_gate_sigmas`` of the robot's standard deviations (``sigma_r0 / sqrt(c_rob)``, Eq. 9,
@@ -266,23 +246,6 @@ class RobotPriorOptions:
     # return passed after 22 missing frames at 512x448 px of 1 µm, the robot anchor moved to it
     # and the rebase locked the offset in (4529 px off to the end of a 110-frame scan).
     robot_gate_max_span: int = 4
-    # Robot motion gating (module docstring), not in the paper: on a frame where no registration
-    # agrees with the robot (failed, blank, inconsistent, unjudged, or disagreeing: e.g. an
-    # untrusted one in a contact loss or stick-slip), a robot sample that departs from the
-    # robot's own constant-speed prediction by more than the robot gate's bound is a glitch
-    # too, and the prediction stands in for it. No new threshold: the robot moves smoothly
-    # whatever the tissue does (a slip release is the tissue catching up with the probe, seen by
-    # the image, not a robot jump); the one-frame departure of the simulator's robots from
-    # their constant-speed prediction is at most 3.2 px (circle) and 13.5 px (spiral, the
-    # lines' ends) for robot.csv, 24.8 px for robot_noisy.csv (30 % velocity noise), seeds 0-4,
-    # against a bound of >= 224 px at 512x448. Before, a +400 µm robot jump starting on an
-    # untrusted frame (c_img < 0.5) was never gated and stayed in X_f for good. Seed 0, the
-    # jump from each such frame on in turn, X_f mean (worst run) in px: circle robot.csv
-    # 185 (355) -> 11.5 (12.7), undisturbed 10.7; robot_noisy.csv 181 (343) -> 38.9 (50.4),
-    # undisturbed 37.8; spiral robot.csv 203 (376) -> 12.3 (21.0), undisturbed 9.5 (X_m 64.1
-    # and 34.7). On that frame alone: circle 55.3 (347) -> 10.7 (10.7). Undisturbed runs are
-    # unchanged (bench_pcle_cases.py, seeds 0-4: the same figures). False: only the robot gate.
-    robot_motion_gate: bool = True
     # Image gating (module docstring), not in the paper: a registration the filter does not
     # trust (c_img < robot_sigma_c_img) whose displacement differs from the robot's by more
     # than image_gate_sigmas x the robot's standard deviation sigma_r0 / sqrt(c_rob) (Eq. 9) on
@@ -460,9 +423,8 @@ class FrameResult:
     timings : seconds per stage: ``ncc`` (forward + backward), ``ssim`` (c_match), ``filter``
         (confidences + Eqs. 4-8), ``total`` (the whole call).
     robot_gated : True when the robot sample was left out as a glitch (module docstring): the
-        frame follows the image (``c_rob = 0``, ``c_sp`` NaN), or, when no registration could
-        judge the sample (robot motion gating), the robot's own prediction stands in for it
-        (``c_rob`` as usual); ``displacement_robot`` is the rejected robot displacement.
+        frame follows the image (``c_rob = 0``, ``c_sp`` NaN); ``displacement_robot`` is the
+        rejected robot displacement.
     image_gated : True when the registration was left out by the image gate (module docstring,
         "Image gating"): the robot places the frame (``prior-only``, ``c_img = 0``);
         ``displacement_image`` is the rejected registration.
@@ -637,15 +599,6 @@ class RobotPriorMosaicker:
         # is textured or has one.
         self._fused_origin: int | None = None
         self._robot_anchor: tuple[np.ndarray, np.ndarray] | None = None  # (robot µm, X_f)
-        # The robot anchor's frame, the robot's speed (µm/frame) between its last two accepted
-        # samples (None: unknown, or they were too far apart), and its last sample (frame, µm)
-        # gated or not: the robot motion gate's constant-speed prediction (_robot_jump).
-        self._robot_anchor_index: int | None = None
-        self._robot_speed_um: np.ndarray | None = None
-        self._robot_last_sample: tuple[int, np.ndarray] | None = None
-        # µm: the offset of the robot's samples from its prediction, estimated at the first
-        # frame of a run of gated ones the motion gate judged (None outside such a run).
-        self._robot_offset_um: np.ndarray | None = None
         # Frames placed from the image alone, for want of a robot sample, since the robot anchor:
         # the robot displacement spans that many more image steps than the image displacement.
         self._steps_without_robot = 0
@@ -820,8 +773,7 @@ class RobotPriorMosaicker:
     # innovations deque is appended to); the filter, changed in place, by its snapshot (a
     # deepcopy took ~0.5 ms, 5 % of a 512x448 frame).
     _STATE = ("_count", "_last_timestamp", "_anchor", "_robot_origin_um", "_image_origin",
-              "_robot_origin", "_fused_origin", "_robot_anchor", "_robot_anchor_index",
-              "_robot_speed_um", "_robot_last_sample", "_robot_offset_um",
+              "_robot_origin", "_fused_origin", "_robot_anchor",
               "_steps_without_robot", "_gated_in_a_row", "_unjudged_in_a_row", "_innovations")
 
     def _state(self) -> dict:
@@ -973,17 +925,10 @@ class RobotPriorMosaicker:
                 elif not self._streak_judged():
                     self._unjudged_in_a_row = 0
                 dx_rob_used = _NAN2 if robot_gated else dx_rob_f
-                if robot_ok and not robot_gated:
-                    predicted = self._robot_jump(i, robot, sigma_r, dx_img_f, dx_rob_f)
-                    if predicted is not None:  # a glitch nothing corroborates: the robot's
-                        robot_gated = True     # own prediction stands in for it
-                        r_um, r_xf = self._robot_anchor
-                        dx_rob_used = r_xf + (predicted - r_um) / self.pixel_size_um - previous
-                prior_ok = bool(np.isfinite(dx_rob_used).all())
-                unknown = (image_ok and prior_ok and np.isinf(sigma_r)
+                unknown = (image_ok and robot_ok and not robot_gated and np.isinf(sigma_r)
                            and np.isfinite(self.options.kalman.sigma_robot0))
                 saved = kf.snapshot() if unknown else None
-                before = kf.snapshot() if image_ok and prior_ok else None
+                before = kf.snapshot() if image_ok and robot_ok and not robot_gated else None
                 step = kf.update(dx_img_f, dx_rob_used, c_match)
                 if unknown and step.c_img < self.options.robot_sigma_c_img:
                     # sigma_r0 not measured yet and the image not trusted at this frame (a
@@ -1029,16 +974,7 @@ class RobotPriorMosaicker:
             # likely moved its origin than glitched.
             self._gated_in_a_row = self._gated_in_a_row + 1 if robot_gated else 0
             if not robot_gated or self._gated_in_a_row >= self.options.robot_gate_rebase:
-                self._robot_speed_um = self._robot_speed(i, robot, rebase=robot_gated)
-                anchor_xf = x_f.copy()
-                if robot_gated and self._robot_offset_um is not None:
-                    # A rebase after the motion gate measured the offset: the anchor goes where
-                    # the robot's samples minus the offset put it, not to X_f (_robot_jump).
-                    r_um, r_xf = self._robot_anchor
-                    anchor_xf = r_xf + (robot - self._robot_offset_um - r_um) / self.pixel_size_um
-                self._robot_anchor = (robot.copy(), anchor_xf)
-                self._robot_anchor_index = i
-                self._robot_offset_um = None
+                self._robot_anchor = (robot.copy(), x_f.copy())
                 self._steps_without_robot = 0
                 self._gated_in_a_row = 0
         elif self.estimate == "fused" and placed and self._robot_anchor is not None:
@@ -1046,8 +982,6 @@ class RobotPriorMosaicker:
             # drift the next robot displacement spans. (An unplaced frame is no step: the next
             # registration spans it, against the same anchor.)
             self._steps_without_robot += 1
-        if self.estimate == "fused" and np.isfinite(robot).all():
-            self._robot_last_sample = (i, robot.copy())
         self._count += 1
         self._last_timestamp = t
         timings["total"] = time.perf_counter() - t_start
@@ -1071,68 +1005,6 @@ class RobotPriorMosaicker:
             image_gated=image_gated,
             **conf,
         )
-
-    def _gate_bound(self, sigma_r: float) -> float:
-        """px per axis: the robot gate's bound, max(robot_gate_sigmas x sigma_r0, the floor),
-        allowed once per frame the robot displacement spans (_robot_glitch)."""
-        bound = self._gate_floor_px  # sigma_r0 not known yet (inf): the floor alone
-        if np.isfinite(sigma_r):
-            bound = max(self.options.robot_gate_sigmas * sigma_r, bound)
-        return bound * min(1 + self._steps_without_robot, self.options.robot_gate_max_span)
-
-    def _robot_speed(self, i: int, robot: np.ndarray, *, rebase: bool) -> np.ndarray | None:
-        """µm/frame: the robot's speed when frame i's sample becomes the robot anchor. Accepted,
-        from the previous anchor, if at most robot_sigma_max_span frames back (else unknown:
-        a re-acquisition after a dropout, the robot's speed then is not known). At a rebase
-        (the sample was gated robot_gate_rebase times in a row), from the sample just before,
-        gated too: both after the jump, so a lasting offset keeps the speed it had, and a
-        change of speed is followed from then on."""
-        if rebase:
-            if self._robot_last_sample is None:
-                return None
-            k, r = self._robot_last_sample
-        else:
-            if self._robot_anchor is None or self._robot_anchor_index is None:
-                return None
-            k, r = self._robot_anchor_index, self._robot_anchor[0]
-        span = i - k
-        if not 0 < span <= self.options.robot_sigma_max_span:
-            return None
-        return (robot - r) / span
-
-    def _robot_jump(self, i: int, robot: np.ndarray, sigma_r: float, dx_image,
-                    dx_robot) -> np.ndarray | None:
-        """Robot motion gating (module docstring): where the robot is taken to be at frame i
-        (µm) when its sample departs from the robot's constant-speed prediction (from the robot
-        anchor) by more than the robot gate's bound (_gate_bound) and no registration
-        corroborates the sample (none, or one disagreeing with the robot displacement beyond
-        that bound), else None. Only while the robot's speed is known and no re-acquisition is
-        under way (fewer than robot_sigma_max_span frames without a sample since the anchor: a
-        dropout's robot displacement spans the image chain's drift and a stale speed).
-
-        Where: the prediction at the first such frame of a run of gated ones, whose sample's
-        offset from it is kept (_robot_offset_um); at the next ones, the sample minus that
-        offset while it stays within the bound of the prediction (a lasting offset, e.g. a
-        re-homed robot: its steps after the jump are good, and the constant speed ignores the
-        path's curvature: on the simulator's 500 µm circle it drifted 3, 9, 19 px over the 3
-        frames to the rebase, the sample minus the offset 3, 3, 3 px)."""
-        if (not self.options.robot_motion_gate or self._robot_speed_um is None
-                or self._robot_anchor is None
-                or self._steps_without_robot >= self.options.robot_sigma_max_span):
-            return None
-        bound = self._gate_bound(sigma_r)
-        predicted = self._robot_anchor[0] + self._robot_speed_um * (i - self._robot_anchor_index)
-        if not np.abs(robot - predicted).max() / self.pixel_size_um > bound:
-            return None
-        if np.isfinite(dx_image).all() and not np.abs(dx_robot - dx_image).max() > bound:
-            return None  # a registration moved with the robot: a real fast motion
-        if self._robot_offset_um is None:
-            self._robot_offset_um = robot - predicted
-            return predicted
-        shifted = robot - self._robot_offset_um
-        if np.abs(shifted - predicted).max() / self.pixel_size_um > bound:
-            return predicted  # not the same offset: the prediction alone
-        return shifted
 
     def _image_outlier(self, step, dx_image, dx_robot) -> bool:
         """True when the registration of `step` (a filter update with both displacements) is
@@ -1187,7 +1059,10 @@ class RobotPriorMosaicker:
         without a cap, would let a gross glitch at the robot's return through, and the anchor
         would move to it for good. Gated frames do not widen it: a lasting offset keeps being
         gated until the rebase, whatever its size."""
-        bound = self._gate_bound(sigma_r)
+        bound = self._gate_floor_px  # sigma_r0 not known yet (inf): the floor alone
+        if np.isfinite(sigma_r):
+            bound = max(self.options.robot_gate_sigmas * sigma_r, bound)
+        bound *= min(1 + self._steps_without_robot, self.options.robot_gate_max_span)
         if not np.abs(dx_robot - dx_image).max() > bound:  # also False for bound = inf
             return None
         trial = copy.deepcopy(kf).update(dx_image, _NAN2, c_match)
