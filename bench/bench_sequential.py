@@ -209,6 +209,10 @@ def throughput(run: dict, lo: int | None = None) -> dict:
     """Frames/s from add_frame wall time over all frames and after `lo` (steady state)."""
     lat, cpu = run["latency_s"], run["cpu_s"]
     lo = run["bootstrap"] + 10 if lo is None else lo
+    if len(lat) <= lo:  # (numpy's empty-slice warnings and a division by zero otherwise)
+        raise SystemExit(f"{len(lat)} frames streamed: no steady state, which starts at frame "
+                         f"{lo} (the start-up's {run['bootstrap']} frames + 10); give more "
+                         "--frames")
     stages = {s: float(np.mean(v[lo:]) * 1e3) for s, v in run["stages"].items()}
     return {
         "frames": len(lat),
