@@ -144,6 +144,17 @@ class SpecularMasks:
         return spots
 
 
+def highlights_of(image: np.ndarray, highlights: SpecularMasks | None = None,
+                  key: int | None = None, gray: np.ndarray | None = None) -> np.ndarray | None:
+    """specular_mask(image, gray=gray), through the run's SpecularMasks when it has one and the
+    frame's key (found once per frame), else found here."""
+    if highlights is not None and key is not None:
+        return highlights.get(key, image, gray)
+    from fusedmosaic.registration.features import specular_mask
+
+    return specular_mask(image, gray=gray)
+
+
 def _unpack_mask(shape: tuple[int, int], box: tuple[int, int, int, int], bits: np.ndarray
                  ) -> np.ndarray:
     x, y, w, h = box
@@ -272,12 +283,7 @@ class FrameWarper:
         if image is None or not self.options.mask_specular:
             return image, self.weight, self.colour_weight
         flat = image.reshape(image.shape[:2]) if image.shape[2] == 1 else image
-        if self.highlights is not None and name is not None:
-            spots = self.highlights.get(name, flat)
-        else:
-            from fusedmosaic.registration.features import specular_mask
-
-            spots = specular_mask(flat)
+        spots = highlights_of(flat, self.highlights, name)
         if spots is None:
             return image, self.weight, self.colour_weight
         x, y, w, h = cv2.boundingRect(spots)
@@ -633,12 +639,7 @@ def thumbnail(image: np.ndarray, scale: int = 8, *, mask_specular: bool = False,
     size = (max(1, w // scale), max(1, h // scale))
     small = cv2.resize(grey, size, interpolation=cv2.INTER_AREA).astype(np.float32)
     if mask_specular:
-        if highlights is not None and key is not None:
-            spots = highlights.get(key, image, gray=grey)
-        else:
-            from fusedmosaic.registration.features import specular_mask
-
-            spots = specular_mask(image, gray=grey)
+        spots = highlights_of(image, highlights, key, gray=grey)
         if spots is not None:
             touched = cv2.resize((spots > 0).astype(np.float32), size,
                                  interpolation=cv2.INTER_AREA) > 0
