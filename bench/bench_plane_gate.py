@@ -21,10 +21,9 @@ Writes the JSON and a markdown table beside it (plane_gate.md).
 from __future__ import annotations
 
 import time
-from pathlib import Path
 
 import numpy as np
-from _common import RESULTS, bench_args, finish_run, fmt, machine_info
+from _common import RESULTS, BenchRun, add_options, bench_args, fmt, machine_info
 
 from fusedmosaic.estimation.bundle import predicted_homographies
 from fusedmosaic.estimation.sequential import SequentialMosaicker, SequentialOptions
@@ -107,9 +106,8 @@ def main() -> None:
     ap = bench_args(__doc__)
     ap.add_argument("--frames", type=int, nargs="+", default=[300, 3000],
                     help="weak-texture sequence lengths (the first also at 400 px)")
-    ap.add_argument("--out", type=Path, default=RESULTS / "plane_gate.json")
-    args = ap.parse_args()
-    t_start = time.perf_counter()
+    args = add_options(ap, out=RESULTS / "plane_gate.json").parse_args()
+    bench = BenchRun(folder=False)
     result = {"machine": machine_info(), "runs": []}
     configs = [(n, 200, limit) for n in args.frames for limit in (0.0, 0.02)]
     configs += [(args.frames[0], 400, limit) for limit in (0.0, 0.02)]
@@ -120,7 +118,7 @@ def main() -> None:
               f"{r['depth_min_mm']:.1f}-{r['depth_max_mm']:.1f} held {r['steps_held_by_gate']}"
               f" step {r['step_ms_median']:.2f} ms", flush=True)
         result["runs"].append(r)
-    finish_run(result, args.out, t_start, markdown=markdown)
+    bench.finish(result, args.out, markdown)
 
 
 if __name__ == "__main__":
