@@ -431,7 +431,14 @@ def test_a_streamed_chain_without_frame0_warns_as_the_offline_run(pcle, tmp_path
     expected = ("frame 0 is blank (a constant image) and robot.csv has no sample at frame 0: "
                 "the fused chain starts at frame 1, put at frame 0's position")
     assert [w for w in reports["offline"]["warnings"] if expected in w], reports["offline"]
-    assert reports["live"]["warnings"] == reports["offline"]["warnings"]
+    # the same warnings, the frames without a robot sample for their own reason (the replay
+    # takes the newest sample up to max_sample_age_s old, offline interpolates)
+    assert reports["live"]["warnings"][0] == reports["offline"]["warnings"][0]
+    for report in reports.values():
+        assert report["frames_without_robot_sample"] == [0]
+        assert report["warnings"][1].startswith("1 of 14 frames have no robot sample in "
+                                                "robot.csv ("), report["warnings"]
+    assert len(reports["live"]["warnings"]) == len(reports["offline"]["warnings"]) == 2
     assert reports["live"]["reference_frame"] == reports["offline"]["reference_frame"] == 0
     np.testing.assert_allclose(positions["live"], positions["offline"], atol=1.0)
 
@@ -450,7 +457,11 @@ def test_a_session_without_frame0_warns_as_the_offline_run(pcle, tmp_path):
     assert result.details["warnings"] == [
         "frame 0 is blank (a constant image) and the robot stream has no sample at frame 0: the "
         "fused chain starts at frame 1, put at frame 0's position, so every frame is offset by "
-        "the (unknown) motion between frames 0 and 1; the mosaic itself is consistent"]
+        "the (unknown) motion between frames 0 and 1; the mosaic itself is consistent",
+        "14 of 14 frames have no robot sample in the robot stream (none at the frame or recent "
+        "enough before it; frames 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, ... (4 more)): kalman-robot "
+        "placed them by the NCC registrations alone, whose drift the robot does not correct "
+        "there (report.json frames_without_robot_sample)"]
 
 
 def test_a_streamed_run_reports_a_plane_the_images_barely_observe(tmp_path):

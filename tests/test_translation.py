@@ -281,8 +281,9 @@ def test_robot_estimate_needs_no_images_and_flags_missing_samples(small):
     robot[:2] = np.nan  # no sample at frame 0: the first one (frame 2) is the origin
     m = RobotPriorMosaicker(dataset.camera, estimate="robot")
     out = [m.add_frame(None, dataset.timestamps[k], robot[k]) for k in range(len(dataset))]
-    assert out[0].status == "placed"  # the reference
-    assert out[1].status == "unplaced: no robot sample at this frame"
+    for k in (0, 1):  # frame 0 too: X_r has no position for it (it was put at frame 2's)
+        assert out[k].status == "unplaced: no robot sample at this frame"
+        assert np.isnan(out[k].homography).all()
     assert m.origin_frames == {"image": None, "robot": 2, "fused": None}
     np.testing.assert_array_equal(out[2].position, [0.0, 0.0])
     np.testing.assert_allclose(
@@ -308,28 +309,53 @@ def _without_frame0(small, tmp_path, what):
     return read_dataset(root, allow_untracked=True)
 
 
-@pytest.mark.parametrize("what", ["image", "robot"])
-def test_a_chain_without_frame0_starts_at_the_first_usable_frame_and_warns(small, tmp_path,
-                                                                           what):
-    """A black frame 0 (ncc) or no robot sample at frame 0 (robot): every other frame was left
-    unplaced, exit 0, no warning (a fuzz finding: the mosaic was frame 0 alone). Now the first
-    textured frame (robot sample) is put at frame 0's position and the chain goes on from it: the
-    positions are offset by the motion between the two, the mosaic consistent; a warning says
-    so. Tolerance: positions relative to frame 1 within 0.5 px of the truth's (clean scan)."""
-    dataset = _without_frame0(small, tmp_path, what)
-    run = run_ncc if what == "image" else run_robot
-    result = run(dataset, progress=False)
+def test_a_chain_without_frame0_starts_at_the_first_usable_frame_and_warns(small, tmp_path):
+    """A black frame 0 (ncc): every other frame was left unplaced, exit 0, no warning (a fuzz
+    finding: the mosaic was frame 0 alone). Now the first textured frame is put at frame 0's
+    position and the chain goes on from it: the positions are offset by the motion between the
+    two, the mosaic consistent (the black frame 0 is not composed); a warning says so.
+    Tolerance: positions relative to frame 1 within 0.5 px of the truth's (clean scan)."""
+    dataset = _without_frame0(small, tmp_path, "image")
+    result = run_ncc(dataset, progress=False)
     assert all(not s.startswith("unplaced") for s in result.status), result.status
     (warning,) = result.details["warnings"]
-    expected = ("frame 0 is blank (a constant image): the NCC chain starts at frame 1" if
-                what == "image" else "robot.csv has no sample at frame 0: the robot positions "
-                "start at frame 1")
-    assert warning.startswith(expected), warning
+    assert warning.startswith("frame 0 is blank (a constant image): the NCC chain starts at "
+                              "frame 1"), warning
     assert "offset by the (unknown) motion between frames 0 and 1" in warning
     position = result.homographies[:, :2, 2]
     truth = dataset.ground_truth[:, :2, 2]
     np.testing.assert_array_equal(position[1], [0.0, 0.0])
     np.testing.assert_allclose(position[1:] - position[1], truth[1:] - truth[1], atol=0.5)
+
+
+def test_robot_without_a_sample_at_frame0_leaves_it_out(small, tmp_path):
+    """X_r with robot.csv starting after frame 0: frame 0 (textured) was put at identity, where
+    the first frame with a sample was put too, and both were drawn there (a review: tissue 840
+    µm apart blended into one ghost, 'the mosaic itself is consistent' said). Now frame 0 is
+    unplaced like every frame before the first sample, which is the reference: run's report
+    names it and warns; the mosaic holds frames 1.. only. Tolerance: positions relative to
+    frame 1 within 0.5 px of the truth's (clean scan)."""
+    dataset = _without_frame0(small, tmp_path, "robot")
+    result = run_robot(dataset, progress=False)
+    assert result.status[0] == "unplaced: no robot sample at this frame"
+    assert all(s == "prior-only" for s in result.status[1:]), result.status
+    assert result.details["warnings"] == [
+        "1 of 14 frames have no robot sample in robot.csv (outside its time span, or in a gap "
+        "longer than 3x its median spacing; frame 0): they are unplaced (report.json "
+        "frames_without_robot_sample)"]
+    assert result.details["frames_without_robot_sample"] == [0]
+    position = result.homographies[:, :2, 2]
+    truth = dataset.ground_truth[:, :2, 2]
+    assert np.isnan(position[0]).all()
+    np.testing.assert_array_equal(position[1], [0.0, 0.0])
+    np.testing.assert_allclose(position[1:] - position[1], truth[1:] - truth[1], atol=0.5)
+    out = tmp_path / "out"
+    run_dataset(dataset.root, "robot", out, progress=False, allow_untracked=True)
+    report = json.loads((out / "report.json").read_text())
+    assert report["reference_frame"] == 1 and report["mosaic"]["frames_shown"] == len(dataset) - 1
+    assert any(w.startswith("frame 0 was not placed (unplaced: no robot sample at this frame): "
+                            "homographies.csv maps the frames to frame 1's pixel grid")
+               for w in report["warnings"]), report["warnings"]
 
 
 def _robot_scaled(small, tmp_path, factor):
@@ -374,15 +400,20 @@ def test_kalman_robot_without_frame0_image_and_robot_starts_at_frame1_and_warns(
     """A black frame 0 without a robot sample: kalman-robot placed frame 0 alone (both of its
     anchors need a placed frame, textured or with a robot sample), exit 0, no warning, every
     other frame "unplaced: ... and no robot sample" though it had one (sim60: placed 1 of 60).
-    Now frame 1 is put at frame 0's position, as ncc and robot do, with the warning. Tolerance:
-    positions relative to frame 1 within 0.5 px of the truth's (clean scan)."""
+    Now frame 1 is put at frame 0's position, as ncc does, with the warning (and frame 0's
+    missing sample listed). Tolerance: positions relative to frame 1 within 0.5 px of the
+    truth's (clean scan)."""
     dataset = _without_frame0(small, tmp_path, "both")
     result = run_kalman_robot(dataset, progress=False)
     assert all(not s.startswith("unplaced") for s in result.status), result.status
     assert result.details["warnings"] == [
         "frame 0 is blank (a constant image) and robot.csv has no sample at frame 0: the fused "
         "chain starts at frame 1, put at frame 0's position, so every frame is offset by the "
-        "(unknown) motion between frames 0 and 1; the mosaic itself is consistent"]
+        "(unknown) motion between frames 0 and 1; the mosaic itself is consistent",
+        "1 of 14 frames have no robot sample in robot.csv (outside its time span, or in a gap "
+        "longer than 3x its median spacing; frame 0): kalman-robot placed them by the NCC "
+        "registrations alone, whose drift the robot does not correct there (report.json "
+        "frames_without_robot_sample)"]
     position = result.homographies[:, :2, 2]
     truth = dataset.ground_truth[:, :2, 2]
     np.testing.assert_array_equal(position[1], [0.0, 0.0])
@@ -608,6 +639,54 @@ def test_ncc_needs_no_pixel_size(tmp_path, live):
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert report["parameters"]["pixel_size_um"] is None
     assert report["frame_status"] == ["placed"] * 4
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("width", 256.7, r"width must be a positive whole number of pixels, got 256\.7"),
+    ("height", True, r"height must be a positive whole number of pixels, got True"),
+    ("pixel_size_um", "1.0", r"pixel_size_um must be a positive number, got '1\.0'"),
+])
+def test_streaming_camera_fields_checked(field, value, message):
+    """A camera object (not io.Camera, which checks its own fields) with a fractional size or a
+    pixel size given as text: the width was cut to 256, the text failed inside NumPy with a
+    TypeError naming no field (review). Now a ValueError naming the field."""
+    from types import SimpleNamespace
+
+    camera = SimpleNamespace(width=256, height=224, pixel_size_um=1.0)
+    setattr(camera, field, value)
+    with pytest.raises(ValueError, match=rf"^camera: {message}$"):
+        RobotPriorMosaicker(camera)
+
+
+def test_frames_without_robot_sample_listed_and_warned(small, tmp_path):
+    """robot.csv with a gap (its samples from frame 3's time to frame 10's removed): kalman-robot
+    placed the frames inside it by the images alone without a word, every frame 'placed'
+    (review: a 2 s gap, e_M 55 px against 7.1). Now report.json lists them
+    (frames_without_robot_sample) and a warning says how they were placed; the robot method
+    lists the same frames, unplaced."""
+    import shutil
+
+    root = shutil.copytree(small, tmp_path / "gap")
+    t = read_dataset(small).timestamps
+    lines = (root / "robot.csv").read_text().splitlines()
+    kept = [line for line in lines[1:] if not t[3] <= float(line.split(",")[0]) <= t[10]]
+    (root / "robot.csv").write_text("\n".join([lines[0], *kept]) + "\n")
+    dataset = read_dataset(root)
+    expected = [int(i) for i, xy in zip(dataset.frame_ids, dataset.robot_xy_um, strict=True)
+                if not np.isfinite(xy).all()]
+    assert len(expected) >= 5, expected  # the gap holds frames
+    for method in ("kalman-robot", "robot"):
+        out = tmp_path / method
+        run_dataset(root, method, out, progress=False)
+        report = json.loads((out / "report.json").read_text())
+        assert report["frames_without_robot_sample"] == expected
+        how = ("kalman-robot placed them by the NCC registrations alone" if method ==
+               "kalman-robot" else "they are unplaced")
+        n = len(expected)
+        assert any(w.startswith(f"{n} of {len(dataset)} frames have no robot sample in "
+                                "robot.csv (outside its time span, or in a gap longer than 3x "
+                                f"its median spacing; frames {expected[0]}, ") and how in w
+                   for w in report["warnings"]), report["warnings"]
 
 
 def test_streaming_without_pixel_size():

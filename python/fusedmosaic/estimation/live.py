@@ -161,8 +161,9 @@ def replay_live(dataset, method: str, *, options=None, progress: bool = True,
         details.update(_lba_checks(stream.mosaicker))
     if method in TRANSLATION_ESTIMATES:  # a chain starting after frame 0 warns as offline
         ids = [int(dataset.frame_ids[k]) for k in processed]
-        details.update(_translation_checks(method, stream.mosaicker.origin_frames, ids,
-                                           [finals[k] for k in processed], dataset.robot_file))
+        details.update(_translation_checks(
+            method, stream.mosaicker.origin_frames, ids, [finals[k] for k in processed],
+            dataset.robot_file, details["live"]["frames_without_sample"], stream.max_age))
     return _streamed_result(method, status, finals, getattr(stream.mosaicker, "plane", None),
                             details, measured, {"live": True, **stream.parameters})
 
@@ -206,18 +207,29 @@ def _lba_checks(mosaicker) -> dict:
 
 
 def _translation_checks(method: str, origin_frames: dict, ids: list, results: list,
-                        robot_name: str) -> dict:
+                        robot_name: str, no_sample: list, max_age: float | None) -> dict:
     """A streamed pCLE method's report.json entries that the offline run gives: the warnings
     when its chain starts after frame 0 (frame 0 blank, no robot sample at it) or never
-    (translation.origin_warnings) and, with images, ncc_inconsistent (with ncc's warning when
-    most registrations disagree); ids / results: the id / FrameResult of each frame given to
-    the mosaicker, in order."""
-    from fusedmosaic.estimation.translation import add_inconsistency, origin_warnings
+    (translation.origin_warnings), with images ncc_inconsistent (with ncc's warning when most
+    registrations disagree), with a robot the frames without a sample (``no_sample``: their
+    ids; none within ``max_age`` s before the frame, None: the source's bound) and their
+    warning; ids / results: the id /
+    FrameResult of each frame given to the mosaicker, in order."""
+    from fusedmosaic.estimation.translation import (
+        add_frames_without_robot_sample,
+        add_inconsistency,
+        origin_warnings,
+    )
 
     estimate = TRANSLATION_ESTIMATES[method]
     checks = {"warnings": origin_warnings(origin_frames, ids, len(ids), estimate, robot_name)}
     if estimate != "robot":
         add_inconsistency(checks, results, ids, estimate)
+    if estimate != "image":
+        add_frames_without_robot_sample(
+            checks, no_sample, len(ids), estimate, robot_name,
+            "none at the frame or recent enough before it" if max_age is None else
+            f"none at or up to {1e3 * max_age:.0f} ms before the frame")
     return checks
 
 
@@ -552,7 +564,8 @@ def session_result(session: LiveSession, timestamps, dropped: list[int], *,
             and session.processed:
         details.update(_translation_checks(
             method, session.origin_frames, [int(k) for k in session.processed],
-            [session.finals[k] for k in session.processed], "the robot stream"))
+            [session.finals[k] for k in session.processed], "the robot stream",
+            [int(k) for k in session.no_sample], None))
     return _streamed_result(method, status, session.finals, session.plane, details,
                             float(sum(session.processing.values())),
                             {"live": "openigtlink", **session.parameters})

@@ -93,11 +93,12 @@ registration locked on the fibre pattern (contact loss) or on stuck tissue (stic
 its frame several pixels off for good. Never before ``sigma_r0`` is known.
 
 Origin. Frame 0 is the reference (0, 0). When frame 0 is blank, X_m starts at the first
-textured frame, put at frame 0's position; when the robot has no sample at frame 0, X_r starts
-at its first sample the same way, and X_f, when frame 0 is blank and has no robot sample, at
-the first frame that is textured or has one (``RobotPriorMosaicker.origin_frames``; the batch
-methods warn): every position then carries the unknown motion between the two frames, the mosaic is
-consistent.
+textured frame, put at frame 0's position, and X_f, when frame 0 is blank and has no robot
+sample, at the first frame that is textured or has one (``RobotPriorMosaicker.origin_frames``;
+the batch methods warn): every position then carries the unknown motion between the two frames,
+the mosaic is consistent. When the robot has no sample at frame 0, X_r leaves it unplaced like
+every frame before the first sample, which becomes the reference (0, 0) (frame 0, textured, was
+drawn at that frame's position over it).
 
 Input checks (streaming): timestamps are real numbers in seconds, below ``MAX_TIMESTAMP_S`` and
 at most ``MAX_FRAME_GAP_S`` after the previous frame (a larger value is a unit mix-up: ms, µs or
@@ -380,6 +381,12 @@ class RobotPriorOptions:
                 )
 
 
+def _real(value) -> bool:
+    """A real number (int, float or NumPy's; not a bool or a string)."""
+    return isinstance(value, int | float | np.integer | np.floating) and not isinstance(value,
+                                                                                       bool)
+
+
 def translation_homography(position) -> np.ndarray:
     """(3, 3) frame -> reference translation by ``position`` (px); all-NaN if it is not finite."""
     p = np.asarray(position, dtype=np.float64)
@@ -536,9 +543,17 @@ class RobotPriorMosaicker:
                 f"options must be a RobotPriorOptions, got {type(self.options).__name__}"
             )
         self.estimate = estimate
-        self.width, self.height = int(camera.width), int(camera.height)
         pixel_size = getattr(camera, "pixel_size_um", None)
         source = getattr(camera, "source", "camera")
+        for name in ("width", "height"):  # (256.7 was cut to 256; review)
+            value = getattr(camera, name, None)
+            if not (_real(value) and float(value).is_integer() and value > 0):
+                raise ValueError(f"{source}: {name} must be a positive whole number of pixels, "
+                                 f"got {value!r}")
+        self.width, self.height = int(camera.width), int(camera.height)
+        if pixel_size is not None and not _real(pixel_size):  # ("1.0": a TypeError from numpy)
+            raise ValueError(f"{source}: pixel_size_um must be a positive number, got "
+                             f"{pixel_size!r}")
         if estimate != "image" and pixel_size is None:
             raise ValueError(
                 f"{source}: no pixel_size_um; the {estimate!r} estimate "
@@ -617,11 +632,12 @@ class RobotPriorMosaicker:
     @property
     def origin_frames(self) -> dict:
         """{"image": k, "robot": k, "fused": k}: the frame whose X_m (X_r, X_f) is the origin
-        (0, 0), None before there is one. Frame 0 normally; when frame 0 is blank (has no robot
-        sample) nothing places frame 0's image (robot position), so the first textured frame
-        (robot sample) is put at frame 0's position: X_m (X_r) are then relative to that frame, a
-        consistent mosaic offset by the unknown motion between the two (reported by the batch
-        methods as a warning). X_f needs either: it starts after frame 0 only when frame 0 is
+        (0, 0), None before there is one. Frame 0 normally; when frame 0 is blank nothing places
+        its image, so the first textured frame is put at frame 0's position: X_m is then
+        relative to that frame, a consistent mosaic offset by the unknown motion between the two
+        (reported by the batch methods as a warning). X_r: the first frame with a robot sample;
+        the frames before it, frame 0 included, are unplaced (it is the reference of the
+        homographies). X_f needs either: it starts after frame 0 only when frame 0 is
         blank and has no robot sample, at the first frame that is textured or has one (only with
         ``estimate="fused"``)."""
         return {"image": self._image_origin, "robot": self._robot_origin,
@@ -868,7 +884,12 @@ class RobotPriorMosaicker:
         # The chosen estimate.
         textured = gray is not None and not blank
         usable = textured or bool(np.isfinite(robot).all())  # something X_f can start from
-        if i == 0:
+        if i == 0 and self.estimate == "robot" and not np.isfinite(x_r).all():
+            # X_r has no position for it: put at the origin it was drawn over the first frame
+            # with a robot sample, put there too (a ghost of tissue 840 µm away; review). Left
+            # unplaced as the frames up to that one: it is the reference (runner warns).
+            position, status = _NAN2, "unplaced: no robot sample at this frame"
+        elif i == 0:
             position, status = np.zeros(2), "placed"  # the reference defines the origin
             if self.estimate == "fused" and usable:
                 self._fused_origin = 0
@@ -1143,6 +1164,11 @@ def _run(
     }
     if estimate != "robot":
         add_inconsistency(details, results, dataset.frame_ids, estimate)
+    if estimate != "image":
+        add_frames_without_robot_sample(
+            details, dataset.frame_ids[~np.isfinite(robot).all(axis=1)].tolist(), n, estimate,
+            dataset.robot_file, "outside its time span, or in a gap longer than 3x its median "
+            "spacing")
     if estimate == "fused":  # robot and images both seen: do they move alike?
         add_robot_agreement(details, str(dataset.root / dataset.robot_file),
                             mosaicker.pixel_size_um, dataset.frame_times)
@@ -1190,6 +1216,26 @@ def add_inconsistency(details: dict, results: list, ids, estimate: str) -> None:
             "report.json ncc_inconsistent)")
 
 
+def add_frames_without_robot_sample(details: dict, missing: list[int], n: int, estimate: str,
+                                    source: str, why: str) -> None:
+    """details["frames_without_robot_sample"]: ``missing``, the IDs of the frames (of ``n``) that
+    had no robot position in ``source`` (``why``: e.g. outside the robot file's time span with
+    --allow-untracked, or in a gap of its samples), and a warning when there are any: X_f
+    placed them by the NCC registrations alone, X_r left them unplaced. (Before, a
+    kalman-robot run over a 2 s gap in robot.csv said nothing: every frame 'placed', e_M 55 px
+    against 7.1; review.)"""
+    details["frames_without_robot_sample"] = [int(k) for k in missing]
+    if missing:
+        listed = ", ".join(map(str, missing[:10])) + (
+            f", ... ({len(missing) - 10} more)" if len(missing) > 10 else "")
+        how = ("kalman-robot placed them by the NCC registrations alone, whose drift the robot "
+               "does not correct there" if estimate == "fused" else "they are unplaced")
+        details["warnings"].append(
+            f"{len(missing)} of {n} frames have no robot sample in {source} ({why}; "
+            f"frame{'s' if len(missing) > 1 else ''} {listed}): {how} (report.json "
+            "frames_without_robot_sample)")
+
+
 def _origin_warnings(dataset, mosaicker: RobotPriorMosaicker, estimate: str) -> list[str]:
     """origin_warnings of a batch run: the mosaicker was given every frame of `dataset`."""
     return origin_warnings(mosaicker.origin_frames, dataset.frame_ids, len(dataset), estimate,
@@ -1210,15 +1256,19 @@ def origin_warnings(origin_frames: dict, ids, n: int, estimate: str,
         k = origin_frames[source]
         what = (f"frame {first} is blank (a constant image)" if source == "image" else
                 f"{robot_name} has no sample at frame {first}")
-        if k is None and n > 1:
-            none = "no frame is textured" if source == "image" else "no frame has a robot sample"
-            warnings.append(f"{what} and {none}: only frame {first}, the reference, is placed")
-        elif k is not None and k > 0:
-            chain = "the NCC chain starts" if source == "image" else "the robot positions start"
+        if k is None and source == "robot":
+            warnings.append(f"{robot_name} has no sample at any of the {n} frame(s): none is "
+                            "placed")
+        elif k is None and n > 1:
+            warnings.append(f"{what} and no frame is textured: only frame {first}, the "
+                            "reference, is placed")
+        elif k is not None and k > 0 and source == "image":
+            # (X_r leaves the frames before its first sample unplaced, frame 0 included: that
+            # frame is the reference, which runner.flag_reference_frame warns of)
             warnings.append(
-                f"{what}: {chain} at frame {int(ids[k])}, put at frame {first}'s position, so "
-                f"every frame is offset by the (unknown) motion between frames {first} and "
-                f"{int(ids[k])}; the mosaic itself is consistent")
+                f"{what}: the NCC chain starts at frame {int(ids[k])}, put at frame {first}'s "
+                f"position, so every frame is offset by the (unknown) motion between frames "
+                f"{first} and {int(ids[k])}; the mosaic itself is consistent")
     if estimate == "fused":  # needs frame 0 textured or with a robot sample
         k = origin_frames["fused"]
         what = (f"frame {first} is blank (a constant image) and {robot_name} has no "
