@@ -971,6 +971,27 @@ def test_unreadable_frame_is_a_frame_without_visual_content(data, tmp_path, caps
     assert not strict.exists()
 
 
+def test_pairwise_starts_its_chain_after_an_unreadable_frame0(data, tmp_path, capsys):
+    """pairwise with frame 0 damaged: the chain from frame 0 broke at once, every frame was
+    unplaced and the run failed with "no placed frame to compose a mosaic from", naming neither
+    the file nor the cause (review). Now the chain starts at frame 1, the reference, frame 0
+    unplaced; warnings name the damaged file and the new start."""
+    root = tmp_path / "feto"
+    shutil.copytree(data / "feto", root)
+    damaged = sorted((root / "frames").glob("*.png"))[0]
+    damaged.write_bytes(b"")
+    out = tmp_path / "out"
+    assert run(root, out, "pairwise") == 0
+    err = capsys.readouterr().err
+    assert f"1 of 8 frames could not be read (frames 0; first: {damaged}: cannot read" in err
+    assert ("warning: the pairwise chain starts at frame 1, the first frame whose image can be "
+            "read and has features: the 1 frame(s) before it are unplaced") in err
+    report = json.loads((out / "report.json").read_text())
+    assert report["frame_status"][0] == "unplaced: its image cannot be read"
+    assert report["frame_status"][1:] == ["placed"] * 7, report["frame_status"]
+    assert report["reference_frame"] == 1 and report["mosaic"]["frames_shown"] == 7
+
+
 def test_live_outputs_survive_one_ctrl_c():
     """Once a live session's loop is over, a first SIGINT is told and ignored, a second
     interrupts (one Ctrl-C lost the whole live result; audit); the handler is restored, and

@@ -186,7 +186,7 @@ def _register(f_l: Features, f_m: Features, image_size: tuple[int, int], o: Matc
               predicted: np.ndarray | None) -> PairMatch:
     out = PairMatch(f_l.frame_id, f_m.frame_id, "ok", guided=predicted is not None)
     if len(f_m) < o.min_inliers or len(f_l) < o.min_inliers:
-        out.status = f"too few features ({len(f_m)}, {len(f_l)})"
+        out.status = f"too few features ({len(f_l)}, {len(f_m)})"  # in the pair's order (l, m)
         return out
     if predicted is None:
         pm, pl = _ratio_matches(f_m, f_l, o.ratio, o.binary_matcher)
