@@ -816,3 +816,16 @@ def test_a_homography_far_from_the_reference_is_not_singular(tmp_path):
     write_homographies_csv(tmp_path / "bad.csv", [0, 1], np.stack([far, line]))
     with pytest.raises(ValueError, match=r"bad.csv: row 3 \(frame 1\): singular homography"):
         read_homographies_csv(tmp_path / "bad.csv")
+
+
+def test_an_absurd_value_in_homographies_csv_is_out_of_range(tmp_path):
+    """h12 = 1e300 (a corrupted file): NumPy warned 'overflow encountered in multiply' and the
+    row was then called singular (review). Now one error naming the row and the value."""
+    from fusedmosaic.io import read_homographies_csv, write_homographies_csv
+
+    H = np.stack([np.eye(3), np.eye(3)])
+    H[1, 1, 2] = 1e300
+    write_homographies_csv(tmp_path / "h.csv", [0, 1], H)
+    with pytest.raises(ValueError, match=r"h\.csv: row 3: value 1e\+300 out of range "
+                                         r"\(\|value\| > 1e\+100\)$"):
+        read_homographies_csv(tmp_path / "h.csv")

@@ -10,6 +10,9 @@ from fusedmosaic.io._table import format_float, read_table, write_table
 
 HOMOGRAPHY_COLUMNS = [f"h{r}{c}" for r in range(3) for c in range(3)]
 POSE_COLUMNS = ["rx", "ry", "rz", "tx", "ty", "tz"]
+# Larger values are refused as corrupt: no placement (px, mm, rad) comes near, and their
+# squares overflow.
+MAX_ABS_VALUE = 1e100
 
 
 def _read_rows(path: str | Path, columns: list[str], check=None) -> tuple[np.ndarray, np.ndarray]:
@@ -29,6 +32,12 @@ def _read_rows(path: str | Path, columns: list[str], check=None) -> tuple[np.nda
     infinite = np.flatnonzero(np.isinf(values).any(axis=1))
     if infinite.size:
         raise ValueError(f"{path}: row {rows[infinite[0]]}: infinite value")
+    huge = np.flatnonzero((np.abs(np.nan_to_num(values)) > MAX_ABS_VALUE).any(axis=1))
+    if huge.size:  # (1e300 overflowed NumPy with a warning, then read as 'singular'; review)
+        i = huge[0]
+        v = values[i][np.abs(np.nan_to_num(values[i])) > MAX_ABS_VALUE][0]
+        raise ValueError(f"{path}: row {rows[i]}: value {v:g} out of range (|value| > "
+                         f"{MAX_ABS_VALUE:g})")
     _, first = np.unique(frame_ids, return_index=True)
     if first.size != frame_ids.size:
         i = np.setdiff1d(np.arange(frame_ids.size), first)[0]
