@@ -205,7 +205,8 @@ def test_frames_of_the_wrong_size_are_refused_with_the_reason(syn, tmp_path, cap
     assert code == 2
     err = capsys.readouterr().err
     assert stopped in err
-    assert "frames refused: 5 x a uint8 100x120 image, expected uint8 300x300 (camera.yaml)" in err
+    assert ("frames refused: 5 x a 120x100 image, camera.yaml says 300x300 (width x height)"
+            in err)
     assert not list(tmp_path.iterdir())
 
 

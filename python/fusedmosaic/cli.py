@@ -436,6 +436,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
                        preview=args.preview, serve_mosaic=args.serve_mosaic,
                        view_interval_s=(1.0 if args.view_interval is None
                                         else args.view_interval),
+                       bit_depth=args.bit_depth,
                        say=lambda text: _say(args, text),
                        # (what went wrong reaches stderr under --quiet too, as warnings do)
                        warn=lambda text: print(f"fusedmosaic: warning: {text}",
@@ -974,6 +975,11 @@ def build_parser() -> argparse.ArgumentParser:
                       help="IMAGE device of the video (default: the first one heard)")
     live.add_argument("--bgr", action="store_true",
                       help="colour images are sent BGR (default RGB, as PLUS sends them)")
+    live.add_argument("--bit-depth", type=int, metavar="B",
+                      help="16-bit frames hold B-bit data (8..16, e.g. 12 for a 12-bit sensor): "
+                           "mosaicked in 8 bits as v * 255 / (2^B - 1), one scale for the "
+                           "session (default: the bits the first frame's largest value needs; "
+                           "values above are clipped, with a warning); recorded as received")
     live.add_argument("--record", required=True, metavar="DATA",
                       help="dataset folder the session is recorded into (new or empty)")
     live.add_argument("--overwrite-record", action="store_true",

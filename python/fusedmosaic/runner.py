@@ -48,7 +48,8 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
                 progress: bool = True, blend=None, options=None, canvas=None,
                 video: str | Path | None = None, report: bool = True, live: bool = False,
                 result: methods.MethodResult | None = None,
-                tracker_time_offset: float = 0.0, stop_on_unreadable: bool = False) -> str:
+                tracker_time_offset: float = 0.0, stop_on_unreadable: bool = False,
+                frame_bits: int | None = None) -> str:
     """Runs `method` on a dataset folder and writes the output contract into `out`.
 
     blend: a blend name ("linear", "multiband", "average", "last") or a
@@ -74,6 +75,10 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
         visual content (read as all zero: the pose methods place it from the tracker and
         motion priors, the translation methods from the robot, or leave it unplaced), flagged
         in report.json "unreadable_frames" and a warning, and left out of the mosaic.
+    frame_bits: 16-bit frames are converted to 8 bits as data of this bit depth (a live
+        session's scale, run_igtl: its recording composed as the session saw it) instead of the
+        one sampled over the sequence; frames above it are clipped without a warning (the
+        session told of them).
     Returns a short summary for the terminal."""
     from fusedmosaic.evaluation.provenance import dataset_fingerprint
     from fusedmosaic.io import read_dataset
@@ -113,6 +118,9 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
                            strict_tracking=method in NEEDS_TRACKING,
                            strict_robot=method in NEEDS_ROBOT,
                            blank_unreadable=not stop_on_unreadable)
+    if frame_bits is not None:
+        dataset.frames.set_bits_in_use(frame_bits, "that the live session used",
+                                       clipped_told=True)
     if dataset.ignored:
         warnings.warn(f"{'; '.join(dataset.ignored.values())} -- left out: method {method!r} "
                       f"does not use {'it' if len(dataset.ignored) == 1 else 'them'}",
@@ -842,6 +850,90 @@ def _refusal_reason(message: str) -> str:
     return reason
 
 
+def _pixels(image: np.ndarray) -> str:
+    """'8-bit' / '16-bit' for a live frame's pixel type."""
+    return f"{image.dtype.itemsize * 8}-bit"
+
+
+def _live_image_problem(image: np.ndarray, camera, first: tuple | None) -> str | None:
+    """Why a received frame (io.igtl: alpha dropped) is refused, None if it is not: its pixel
+    type, layout, size against camera.yaml's, or its kind (gray / colour, 8 / 16-bit) against
+    the first frame accepted, `first` (ndim, dtype): a recording is all one kind. Nothing that
+    changes from frame to frame (report.json counts frames per reason)."""
+    if image.dtype not in (np.uint8, np.uint16):
+        return f"a {image.dtype} image, expected 8- or 16-bit unsigned pixels (uint8, uint16)"
+    if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] != 3):
+        return (f"an image of shape {'x'.join(map(str, image.shape))}, expected a gray (rows x "
+                "columns) or colour (rows x columns x 3, or 4 with alpha) image")
+    if image.shape[:2] != (camera.height, camera.width):
+        return (f"a {image.shape[1]}x{image.shape[0]} image, camera.yaml says "
+                f"{camera.width}x{camera.height} (width x height)")
+    if first is None:
+        return None
+    ndim, dtype = first
+    if image.ndim != ndim:
+        return (f"a {'colour' if image.ndim == 3 else 'gray'} image after "
+                f"{'colour' if ndim == 3 else 'gray'} ones (a recording is one or the other)")
+    if image.dtype != dtype:
+        return (f"a {_pixels(image)} image after {_pixels(np.empty(0, dtype))} ones (a "
+                "recording is all 8-bit or all 16-bit)")
+    return None
+
+
+def check_bit_depth(bits, name: str = "bit depth (--bit-depth)") -> int | None:
+    """None, or the bit depth in use a live session's 16-bit frames are taken as: an integer
+    8..16 (ValueError otherwise)."""
+    if bits is None:
+        return None
+    if isinstance(bits, bool) or not isinstance(bits, (int, np.integer)) or not 8 <= bits <= 16:
+        raise ValueError(f"{name}: must be an integer in 8..16 (the bits the 16-bit frames' "
+                         f"data uses, e.g. 12 for a 12-bit sensor), got {bits!r}")
+    return int(bits)
+
+
+class _LiveScale:
+    """A live session's 16-bit frames in 8 bits with ONE scale for the whole session (as
+    offline, io.video.FrameSource: no flicker, the registrations see one contrast): v ->
+    round(v * 255 / (2^b - 1)), b the bit depth given (--bit-depth), else the smallest in 8..16
+    holding the first accepted 16-bit frame's largest value (a stream cannot be sampled ahead).
+    A later frame above 2^b - 1 is clipped to 255, told once (warn), counted (`clipped`)."""
+
+    def __init__(self, bits: int | None) -> None:
+        self.bits, self.given = bits, bits is not None
+        self.chosen_by = "--bit-depth" if self.given else None
+        self.clipped = 0  # 16-bit frames with values above the range (clipped)
+        self.converted = 0  # 16-bit frames converted
+
+    def convert(self, image: np.ndarray, received: int, recorded: int, warn) -> np.ndarray:
+        from fusedmosaic.io.video import bits_holding, to_8_bits
+
+        peak = int(image.max())
+        if self.bits is None:
+            self.bits = bits_holding(peak)
+            self.chosen_by = f"the first 16-bit frame, received frame {received}"
+        self.converted += 1
+        full = (1 << self.bits) - 1
+        if peak > full:
+            self.clipped += 1
+            if self.clipped == 1:
+                how = "given by --bit-depth" if self.given else f"taken from {self.chosen_by}"
+                warn(f"live session: received frame {received} (recorded as frame {recorded}) "
+                     f"has 16-bit values up to {peak}, above the {self.bits}-bit range "
+                     f"(0-{full}) {how}: clipped to 255 in the live mosaic (one "
+                     "scale for the session; the recording keeps the frames as received); "
+                     "further such frames are clipped without a warning (report.json live "
+                     f"frames_clipped). Give --bit-depth {bits_holding(peak)} (the bits the "
+                     "sensor's data uses, 16 at most) to scale the session to it")
+        return to_8_bits(image, self.bits)
+
+    def details(self) -> dict:
+        """report.json live "source": the scale of the 16-bit frames (none: {})."""
+        if not self.converted:
+            return {}
+        return {"frame_bits_in_use": self.bits, "frame_bits_chosen_by": self.chosen_by,
+                "frames_clipped": self.clipped}
+
+
 def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
              transform_device: str | None, image_device: str | None = None, hand_eye=None,
              rgb: bool = True, options=None, max_frames: int | None = None,
@@ -850,7 +942,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
              video: str | Path | None = None, report: bool = True,
              method: str = "lba-emt", tracker_time_offset: float = 0.0,
              preview: str | Path | None = None, serve_mosaic: str | None = None,
-             view_interval_s: float = 1.0, say=None, warn=None) -> str:
+             view_interval_s: float = 1.0, say=None, warn=None,
+             bit_depth: int | None = None) -> str:
     """A live session on an OpenIGTLink source (io.igtl: e.g. PLUS Server streaming a tracked
     endoscope), lba-emt, or kalman-robot with a robot streaming the probe position (the
     transform's translation, mm, in the image axes; the camera needs pixel_size_um; recorded
@@ -875,7 +968,13 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     the session (the port --serve-mosaic 0 took); None: as a warning. warn(text): what went
     wrong during it (frames refused, a tracker on another clock); None: say. Progress notes
     (the session ended, the outputs being written) go to a given say only. A start that fails
-    leaves no folder behind. Returns the terminal summary."""
+    leaves no folder behind. Frames are 8- or 16-bit, gray or colour (an alpha channel is
+    dropped), all alike (a frame of another kind than the first accepted is refused, as one of
+    another size than camera.yaml's). 16-bit frames are recorded as received (16-bit PNG) and
+    mosaicked in 8 bits with one scale for the session (_LiveScale): as data of bit_depth bits
+    (8..16; e.g. 12 for a 12-bit sensor), by default of the bits the first 16-bit frame's
+    largest value needs; values above are clipped (told once); report.json "frame_bits_in_use"
+    and live "source". Returns the terminal summary."""
     from fusedmosaic.estimation.live import (
         check_live_method,
         live_session,
@@ -909,6 +1008,7 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     if hand_eye is not None:
         hand_eye = hand_eye_matrix(hand_eye)
     check_live_limits(max_frames, duration_s, frame_timeout_s)
+    scale = _LiveScale(check_bit_depth(bit_depth))
     if not (isinstance(view_interval_s, (int, float)) and np.isfinite(view_interval_s)
             and view_interval_s >= 0):  # with or without a view
         raise ValueError(f"view interval (--view-interval): must be >= 0 s, got "
@@ -941,7 +1041,7 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     rejected: dict[str, int] = {}  # why -> frames refused
     first_refused: dict[str, int] = {}  # why -> the first such frame (the source's count)
     after_limit = 0  # frames received once max_frames were recorded (not recorded)
-    accepting, first, last_time = True, None, -np.inf
+    accepting, first, last_time = True, None, -np.inf  # first: (ndim, dtype) of the first frame
     device = "tracker" if method == "lba-emt" else "robot"
     latest_sample: list[float] = []  # [stamp on the video's clock, time.monotonic() heard]
     clocks_told = False
@@ -957,24 +1057,17 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     def on_frame(frame) -> bool:  # receiver thread: what is recorded and offered to the loop
         nonlocal first, last_time, after_limit
         image = frame.image
-        problem = None
         if not accepting:
             return False
         if max_frames is not None and len(recorder.timestamps) >= max_frames:
             after_limit += 1
             return False
-        if image.dtype != np.uint8 or image.shape[:2] != (camera.height, camera.width) or (
-                image.ndim == 3 and image.shape[2] != 3):
-            problem = (f"a {image.dtype} {'x'.join(map(str, image.shape))} image, expected "
-                       f"uint8 {camera.height}x{camera.width} (camera.yaml), gray or colour")
-        elif first is not None and image.ndim != first:
-            problem = (f"a {'colour' if image.ndim == 3 else 'gray'} image after "
-                       f"{'colour' if first == 3 else 'gray'} ones (a recording is one or the "
-                       f"other)")
-        elif frame.timestamp == 0:  # (after stamped ones: io.igtl passes it on; accepted
-            # after refused ones, it made every later frame 'a day after' it; review)
+        # pixel type, layout, size, kind against the first frame's
+        problem = _live_image_problem(image, camera, first)
+        if problem is None and frame.timestamp == 0:  # (after stamped ones: io.igtl passes
+            # it on; accepted after refused ones, it made every later frame 'a day after' it)
             problem = "no timestamp (0): the sender did not stamp it"
-        else:
+        elif problem is None:
             try:
                 last_time = check_stream_timestamp(frame.index, frame.timestamp, last_time)
             except ValueError as exc:
@@ -988,8 +1081,15 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                                    f"neither processed nor recorded: {problem}; such frames are "
                                    "counted (report.json live frames_refused)")
             return False
-        first = image.ndim
-        frame.index = recorder.add_frame(image, frame.timestamp)
+        if first is None and scale.given and image.dtype == np.uint8:
+            warn_from_receiver(f"live session: --bit-depth {scale.bits} applies to 16-bit "
+                               f"frames; received frame {frame.index} is 8-bit: the frames are "
+                               "taken as they are")
+        first = (image.ndim, image.dtype)
+        received = frame.index
+        frame.index = recorder.add_frame(image, frame.timestamp)  # as received (16-bit PNG)
+        if image.dtype == np.uint16:  # the session mosaics 8 bits, on one scale
+            frame.image = scale.convert(image, received, frame.index, warn_from_receiver)
         check_clocks(frame)
         return True
 
@@ -1086,6 +1186,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                                                 else None),
                            "frames_refused": dict(rejected),
                            "frames_refused_first": dict(first_refused),
+                           # 16-bit frames: the session's 8-bit scale, frames clipped by it
+                           **scale.details(),
                            "tracker_samples_valid": src.valid_samples,
                            "tracker_samples_invalid": dict(src.invalid_samples),
                            "ignored_devices": sorted(src.ignored_devices)}
@@ -1131,7 +1233,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
         try:
             summary = run_dataset(record, method, out, result=result, allow_untracked=True,
                                   progress=progress, blend=blend, canvas=canvas, video=video,
-                                  report=report)
+                                  report=report,
+                                  frame_bits=scale.bits if scale.converted else None)
         except KeyboardInterrupt:
             written = Path(out, "homographies.csv")  # (the commit defers a Ctrl-C to its end)
             inform(f"live session: interrupted once the outputs were in {out}"
@@ -1155,6 +1258,11 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                      "processed nor recorded" + "".join(
                          f"; {n} x {why} (first: received frame {first_refused[why]})"
                          for why, n in rejected.items()) + other_images())
+    if scale.converted:
+        lines.append(f"  frames  16-bit, mosaicked as {scale.bits}-bit data (from "
+                     f"{scale.chosen_by}; report.json frame_bits_in_use)"
+                     + (f"; {scale.clipped} frame(s) above it clipped (--bit-depth sets it)"
+                        if scale.clipped else ""))
     if src.corrupted_frames:
         lines.append(f"  frames  {src.corrupted_frames} IMAGE message(s) failed their CRC64 "
                      "(corrupted in transit) and were dropped (report.json live "

@@ -128,7 +128,8 @@ def inverse_device_name(name: str, where: str = "OpenIGTLink") -> str:
 
 @dataclass
 class LiveFrame:
-    """A received frame: image (H, W) or (H, W, 3) BGR uint8 as sent (checked by the caller),
+    """A received frame: image (H, W) or (H, W, 3) BGR (alpha dropped), uint8 or uint16 as
+    sent (checked by the caller; run_igtl records it so and mosaics 16-bit ones in 8 bits),
     timestamp (s, the sender's), arrival (time.perf_counter() at receipt), index (0-based count
     of frames received from the device; on_frame may renumber it, e.g. to the recording's frame
     id, and `dropped` lists these numbers)."""

@@ -5,9 +5,9 @@ that is a readable dataset at every moment, so that a session killed outright (S
 cut of the process, a crash) loses at most the frame being written:
 
 - camera.yaml and hand_eye.txt are written when the recording starts;
-- frames are written as PNG (fast, level 1) by a background thread (a live loop does not wait
-  for the disk), each under a hidden name renamed once complete, and only then is its row
-  appended to frames.csv;
+- frames are written as received (8- or 16-bit PNG: an offline re-run reads what the sender
+  sent; fast, level 1) by a background thread (a live loop does not wait for the disk), each
+  under a hidden name renamed once complete, and only then is its row appended to frames.csv;
 - every tracker sample is appended to tracking.csv as it arrives (at the tracker's own rate;
   samples the sender flagged or that are not rigid as valid=0), or for a robot its valid
   positions to robot.csv (µm);
