@@ -37,7 +37,9 @@ readable is read and checked before the board search):
      frame times by cubic splines (io.tracking, method "cubic"; the frames filmed while moving
      carry it); its standard error the larger of the cost's curvature's and a bootstrap over
      0.25 s blocks of frames (neighbouring frames' errors correlate: at 10 Hz the curvature's
-     said 2.4-3x too little).
+     said 2.4-3x too little). With still views alone (the board lost to motion blur during the
+     moves) the offset shows only at the rests' edges, where the interpolant decides: the
+     standard error is then at least the distance to the linear interpolation's estimate.
    - The final fit uses the views held still (runs of frames whose corners move < 1 px), each
      paired with every raw tracker sample taken while it was filmed: no sample interpolated
      across a motion (a 10 Hz tracker's interpolation erred by 1-3 mm), each counted once, the
@@ -129,6 +131,14 @@ MIN_STILL_VIEWS = 6  # fewer distinct still views: the hand-eye from all frames,
 MIN_HAND_EYE_GROUPS = 6
 BOOTSTRAP_REPLICATES = 400
 BOOTSTRAP_BLOCK_S = 0.25  # without still views, the bootstrap resamples blocks of frames
+# The clock offset shows where the pose changes while filmed: when the frames filmed while moving
+# would determine it to no better than this standard error (filmed_motion_std), the recording is
+# taken as still views alone and estimate_time_offset also weighs the interpolant's shape.
+# Measured on the simulator (20 views, corners projected; 40 Hz and 10 Hz at 0.9 deg / 0.25 mm,
+# 10 Hz at 0.1 / 0.03): every move filmed, 0.18-0.40 ms; the board kept through one or two of
+# the 19 moves (3-6 moving frames), 0.46-2.3 ms; still views alone, inf. 2 ms: about one move
+# filmed at the simulator's pace (its moves turn 43 deg and travel 20 mm (medians) in 0.16 s).
+MAX_FILMED_MOTION_STD_S = 0.002
 # The board's scale against the tracker's (tracker mm per board mm) refused when off by more
 # than this and by more than SCALE_SIGMAS standard errors: a wrong --square-mm, a board
 # printed scaled, or a tracker not in mm.
@@ -628,7 +638,8 @@ def _linearised_bootstrap(J: np.ndarray, r: np.ndarray, huber: np.ndarray, clust
 
 
 def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeResult,
-                         max_offset_s: float, times: np.ndarray) -> dict:
+                         max_offset_s: float, times: np.ndarray, *,
+                         still: np.ndarray | None = None) -> dict:
     """The offset d (s) such that the tracker sample interpolated at t + d belongs to the frame
     at t: the d whose hand-eye fit leaves the smallest cost, over the views the tracker covers
     at every d in [-max_offset_s, max_offset_s] and with the noise of the first fit held (so the
@@ -650,10 +661,24 @@ def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeR
     the frames: 20 / 20, 0.77 against 6 / 20, 2.94). At 10 Hz the errors share a bias (-0.6
     ms; +0.5 at the other phase): the splines' error along the simulator's motions, which the
     standard error covers but does not remove.
+    Still views alone (the board found only while the scope rests, e.g. lost to motion blur
+    during the moves; ``still`` (N,) marks the views held still, filmed_motion_std) show the
+    offset only where the tracker interpolated across a rest's edge runs into a move: there the
+    interpolant's shape decides, which neither figure above sees. The estimate is then also
+    made with linear interpolation and the standard error is at least the distance between the
+    two ("std_interpolation_s"). Measured (bench_time_offset_se, the board lost while moving,
+    0.9 deg / 0.25 mm, 20 seeds, true offsets within +-80 ms): at 10 Hz 18 / 20 within 1.96
+    std_s, RMS error / median std 1.26 (without the term 4 / 20, 2.43; the clocks agreeing it
+    applied +6.4 to +7.1 ms, now not); at 40 Hz 13 / 20, 2.53 (5 / 20, 3.88): still too small
+    there, where the cubic and the linear estimates err alike by 4-11 ms on a quarter of the
+    seeds, a cost sharply curved at the wrong place (not flat), which neither a leave-one-block-
+    out jackknife (z up to 4.7) nor a profile of the cost caught. The report says so
+    ("interpolation_note").
     Applied only when it is determined (the scope moved while filmed: error < 10 ms) and
     differs from 0 by more than two standard errors; an estimate at the bound is flagged
-    ("at_bound": the clocks may differ by more). `tracker_at(d)` -> (tracker_from_sensor of the
-    views it covers, mask)."""
+    ("at_bound": the clocks may differ by more). `tracker_at(d, method)` -> (tracker_from_sensor
+    of the views it covers, mask), interpolated by io.tracking's ``method`` ("cubic" or
+    "linear")."""
     from scipy.optimize import minimize_scalar
 
     times = np.asarray(times, np.float64).reshape(-1)
@@ -668,14 +693,14 @@ def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeR
     fit_scale = first.scale_std > 0
     C = cam_from_board[common]
 
-    def tracked(d: float) -> np.ndarray:
-        A, ok = tracker_at(d)
+    def tracked(d: float, method: str = "cubic") -> np.ndarray:
+        A, ok = tracker_at(d, method)
         return A[common[ok]]
 
-    def cost(d: float) -> float:
-        return calibrate_hand_eye(tracked(d), C, rot_sigma_deg=sigma[0], trans_sigma_mm=sigma[1],
-                                  reweight=False, fit_scale=fit_scale, start=first,
-                                  linearise=False).cost
+    def cost(d: float, method: str = "cubic") -> float:
+        return calibrate_hand_eye(tracked(d, method), C, rot_sigma_deg=sigma[0],
+                                  trans_sigma_mm=sigma[1], reweight=False, fit_scale=fit_scale,
+                                  start=first, linearise=False).cost
 
     if common.sum() < MIN_HAND_EYE_VIEWS:
         return {"estimated": False, "applied_s": 0.0, "at_bound": False,
@@ -698,18 +723,25 @@ def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeR
                                    trans_sigma_mm=sigma[1], fit_scale=fit_scale,
                                    linearise=False)
         sigma = first.tracker_sigma
-    costs: dict[int, float] = {}
-    lo, hi = max(i - 3, 0), min(i + 3, grid.size - 1)
-    while True:
-        for k in range(lo, hi + 1):
-            if k not in costs:
-                costs[k] = cost(grid[k])
-        i = min(costs, key=costs.get)
-        if (i > lo or lo == 0) and (i < hi or hi == grid.size - 1):
-            break
-        lo, hi = max(min(lo, i - 2), 0), min(max(hi, i + 2), grid.size - 1)
-    lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
-    search = minimize_scalar(cost, bounds=(lo, hi), method="bounded", options={"xatol": 1e-4})
+
+    def minimise(i: int, method: str = "cubic"):
+        # The cost in 5 ms steps from grid[i], widened while the least lies at the edge, then
+        # a bounded search between that least's neighbours.
+        costs: dict[int, float] = {}
+        lo, hi = max(i - 3, 0), min(i + 3, grid.size - 1)
+        while True:
+            for k in range(lo, hi + 1):
+                if k not in costs:
+                    costs[k] = cost(grid[k], method)
+            i = min(costs, key=costs.get)
+            if (i > lo or lo == 0) and (i < hi or hi == grid.size - 1):
+                break
+            lo, hi = max(min(lo, i - 2), 0), min(max(hi, i + 2), grid.size - 1)
+        lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+        return minimize_scalar(cost, bounds=(lo, hi), args=(method,), method="bounded",
+                               options={"xatol": 1e-4})
+
+    search = minimise(i)
     best = float(search.x)
     curvature = (cost(best + h) + cost(best - h) - 2 * search.fun) / h ** 2
     std = float(1 / np.sqrt(curvature)) if curvature > 0 else float("inf")
@@ -717,6 +749,22 @@ def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeR
     out = {"estimated": True, "estimate_s": float(best), "std_s": std,
            "std_curvature_s": std, "views": int(common.sum()), "applied_s": 0.0,
            "at_bound": bool(at_bound), "search_bound_s": float(max_offset_s)}
+    motion_std, moving = filmed_motion_std(C, times[common], first.sensor_from_camera, sigma,
+                                           None if still is None else still[common])
+    out.update(std_filmed_motion_s=motion_std, frames_moving=moving)
+    spread = 0.0
+    if not motion_std <= MAX_FILMED_MOTION_STD_S and np.isfinite(std):
+        linear = float(minimise(int(np.argmin(np.abs(grid - best))), "linear").x)
+        spread = abs(linear - best)
+        out.update(estimate_linear_s=linear, std_interpolation_s=spread,
+                   interpolation_note=(
+                       "still views: the frames filmed while moving do not determine the "
+                       "offset, which shows only where the tracker interpolated across a "
+                       "rest's edge runs into a move; the standard error is at least the "
+                       "distance between the cubic and the linear interpolation's estimates, "
+                       "and may still understate the error (simulator, 40 Hz: errors up to "
+                       "11 ms against 1.2-7.5 ms). To measure the offset, film a few seconds "
+                       "of slow continuous motion over the board (the whole board in view)"))
     if np.isfinite(std):
         t = times[common]
         blocks = np.floor((t - t[0]) / BOOTSTRAP_BLOCK_S)
@@ -752,6 +800,8 @@ def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeR
                        bootstrap_replicates_left_out=BOOTSTRAP_REPLICATES - kept,
                        bootstrap_seed=0)
             std = out["std_s"]
+    if spread > std:
+        std = out["std_s"] = spread
     if not np.isfinite(std) or std > 0.01:
         out["reason"] = "not determined: the scope must move while filmed"
     elif at_bound:
@@ -759,6 +809,39 @@ def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeR
     elif abs(best) > 2 * std:
         out["applied_s"] = float(best)
     return out
+
+
+def filmed_motion_std(cam_from_board: np.ndarray, times: np.ndarray,
+                      sensor_from_camera: np.ndarray, tracker_sigma: tuple[float, float],
+                      still: np.ndarray | None = None) -> tuple[float, int]:
+    """The standard error (s) of the tracker clock offset that the frames filmed while moving
+    would give, and how many such frames there are: a shift d of the tracker's clock moves
+    the frame's tracked pose by its velocity times d, so a frame informs the offset with its
+    squared speed over the tracker noise ``tracker_sigma`` (deg, mm per axis): (rotation rate
+    / sigma_deg)^2 + (sensor speed / sigma_mm)^2, the speeds from the board poses
+    ``cam_from_board`` (N, 4, 4) at ``times`` (s) through ``sensor_from_camera`` (no tracker
+    sample, so no spline or noise enters). A frame's speed is the smaller of those to its
+    neighbours (within 1.5 median frame spacings; none at a gap), so a frame at rest beside a
+    move counts 0; frames ``still`` (N,) (held still: still_groups) count 0 whatever their
+    corners' noise. 1 / sqrt(the summed information): inf when no frame was filmed moving. The
+    frames' errors taken as independent, the tracker as following the motion exactly: a floor
+    on what estimate_time_offset can reach."""
+    P = np.linalg.inv(cam_from_board) @ np.linalg.inv(sensor_from_camera)  # board_from_sensor
+    if len(P) < 2:
+        return float("inf"), 0
+    dt = np.diff(np.asarray(times, np.float64))
+    near = (dt > 0) & (dt <= 1.5 * np.median(dt[dt > 0])) if (dt > 0).any() else dt > 0
+    turn = _rotation_angles(np.swapaxes(P[:-1, :3, :3], 1, 2) @ P[1:, :3, :3])
+    step = np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1)
+    speed2 = np.zeros(dt.size)
+    speed2[near] = ((turn[near] / np.deg2rad(tracker_sigma[0])) ** 2
+                    + (step[near] / tracker_sigma[1]) ** 2) / dt[near] ** 2
+    per_frame = np.minimum(np.r_[0.0, speed2], np.r_[speed2, 0.0])
+    if still is not None:
+        per_frame[np.asarray(still, bool)] = 0.0
+    info = float(per_frame.sum())
+    return float(1.0 / np.sqrt(info) if info > 0 else np.inf), int(np.sum(per_frame > 0))
+
 
 
 def _offset_bound_note(samples, times: np.ndarray) -> str:
@@ -1241,10 +1324,10 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
 
     times, poses = views.times, views.poses
 
-    def tracker_at(delta: float) -> tuple[np.ndarray, np.ndarray]:
+    def tracker_at(delta: float, method: str = "cubic") -> tuple[np.ndarray, np.ndarray]:
         # interpolate_camera_poses with no hand-eye gives sensor_from_tracker as [r, t].
         pose, ok = interpolate_camera_poses(samples, times + delta, None, allow_outside=True,
-                                            source=source, method="cubic")
+                                            source=source, method=method)
         return _tracker_from_sensor(pose[ok]), ok
 
     shift = 0.0 if o.time_offset == "auto" else float(o.time_offset)
@@ -1253,9 +1336,11 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
     blocks = np.floor((times[valid] - times[valid][0]) / BOOTSTRAP_BLOCK_S)
     # Only still views the tracker covers count (a tracker on for a part of the recording had
     # the untracked ones counted, and the fit then failed as 'rotate about two axes').
-    still_views = len({int(views.label[g[0]])
-                       for g in still_groups(views.points, views.frames, views.step)
-                       if valid[g].all()})
+    groups = still_groups(views.points, views.frames, views.step)
+    still_views = len({int(views.label[g[0]]) for g in groups if valid[g].all()})
+    held = np.zeros(times.size, bool)  # views held still: they show no clock offset
+    for g in groups:
+        held[g] = True
     coverage = ""
     if not valid.all():
         from fusedmosaic.io.tracking import _time
@@ -1277,7 +1362,7 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
             # calibration.json) or failed its fits: refused, naming the recording's length.
             try:
                 offset = estimate_time_offset(tracker_at, poses, first, o.max_time_offset_s,
-                                              times)
+                                              times, still=held)
                 failed = "" if offset["estimated"] else (
                     f"at least {MIN_HAND_EYE_VIEWS} views tracked at every offset are needed")
             except ValueError as exc:
