@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import difflib
 import numbers
 import re
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,6 +34,18 @@ K_LAYOUT_TOLERANCE = 1e-6
 # under 0.006 degrees, i.e. a unit error (e.g. fx in µm or nm), not an endoscope.
 MAX_FOCAL_IMAGE_SIZES = 1e4
 _KEYS = "image_width, image_height[, camera_matrix, ...]"  # named in parse errors
+# The keys read_camera_yaml reads (write_camera_yaml writes only these).
+CAMERA_KEYS = ("image_width", "image_height", "camera_matrix", "distortion_coefficients",
+               "distortion_model", "fisheye_model", "pixel_size_um", "fov_mask_radius")
+# Keys that calibration tools write beside those and camera.yaml does not use: left unread
+# without a word. OpenCV's calibration sample and tutorial (samples/cpp/calibration.cpp,
+# camera_calibration.cpp), ROS camera_info (camera_calibration_parsers).
+FOREIGN_CAMERA_KEYS = frozenset({
+    "calibration_time", "calibration_Time", "nframes", "nr_of_frames", "board_width",
+    "board_height", "square_size", "aspectRatio", "fix_aspect_ratio", "flags",
+    "avg_reprojection_error", "per_view_reprojection_errors", "extrinsic_parameters",
+    "image_points", "grid_points", "camera_name", "rectification_matrix", "projection_matrix",
+})
 
 
 @dataclass(eq=False)
@@ -435,11 +449,43 @@ def read_camera_yaml(path: str | Path) -> Camera:
     if not opened:
         raise ValueError(f"{path}: cannot parse as OpenCV FileStorage {fmt} with {_KEYS}")
     try:
-        return _read_camera(fs, path)
+        keys = list(fs.root().keys())
+        if not set(keys) & (set(CAMERA_KEYS) | FOREIGN_CAMERA_KEYS):
+            # OpenCV reads almost any text as a map ("this is : not : yaml [" is the key
+            # "this is"): with none of camera.yaml's keys, it is not one
+            shown = ", ".join(repr(k) for k in keys[:3]) + (", ..." if len(keys) > 3 else "")
+            raise ValueError(
+                f"{path}: cannot parse as OpenCV FileStorage {fmt} with {_KEYS}: none of "
+                f"camera.yaml's keys in it (read {shown or 'nothing'} as "
+                f"{'a key' if len(keys) == 1 else 'keys'})"
+                + ("; expected e.g. '%YAML:1.0' then 'image_width: 640' and 'image_height: 480' "
+                   "on lines of their own" if fmt == "YAML" else ""))
+        unknown = [k for k in dict.fromkeys(keys)
+                   if k not in CAMERA_KEYS and k not in FOREIGN_CAMERA_KEYS]
+        camera = _read_camera(fs, path, unknown)
     except (cv2.error, SystemError) as e:
         raise ValueError(f"{path}: cannot read ({_reason(e)})") from None
     finally:
         fs.release()
+    if unknown:  # after reading: a file refused for a missing key is refused, not warned about
+        warnings.warn(_unknown_keys_message(path, unknown), stacklevel=2)
+    return camera
+
+
+def _close_key(key: str) -> str | None:
+    """The camera.yaml key that ``key`` is likely a misspelling of, or None."""
+    match = difflib.get_close_matches(key, CAMERA_KEYS, n=1, cutoff=0.7)
+    return match[0] if match else None
+
+
+def _unknown_keys_message(path: Path, unknown: list[str]) -> str:
+    """Names camera.yaml's unknown keys (ignored), each with the known key it may misspell."""
+    named = []
+    for key in unknown:
+        close = _close_key(key)
+        named.append(f"{key!r}" + (f" (did you mean {close!r}?)" if close else ""))
+    return (f"{path}: unknown key{'s' if len(unknown) > 1 else ''} {', '.join(named)} ignored; "
+            f"camera.yaml's keys are {', '.join(CAMERA_KEYS)}")
 
 
 def _yaml_without_tabs(text: str, path: Path) -> str:
@@ -525,7 +571,9 @@ def _where(error: Exception) -> str:
     return f" ({_reason(error)})"
 
 
-def _read_camera(fs: cv2.FileStorage, path: Path) -> Camera:
+def _read_camera(fs: cv2.FileStorage, path: Path, unknown: Sequence[str] = ()) -> Camera:
+    """The Camera in ``fs``; ``unknown`` (its keys camera.yaml does not know) name a likely
+    misspelling when a required key is missing."""
     keys = list(fs.root().keys())
     repeated = sorted({k for k in keys if keys.count(k) > 1})
     if repeated:  # OpenCV would silently keep the first value of each
@@ -536,7 +584,9 @@ def _read_camera(fs: cv2.FileStorage, path: Path) -> Camera:
         node = fs.getNode(key)
         if node.empty() or node.isNone():
             if required:
-                raise ValueError(f"{path}: missing key {key!r}")
+                misspelt = [k for k in unknown if _close_key(k) == key]
+                hint = f" ({misspelt[0]!r} is not a camera.yaml key: misspelt?)" if misspelt else ""
+                raise ValueError(f"{path}: missing key {key!r}{hint}")
             return None
         if not (node.isInt() or node.isReal()):
             raise ValueError(f"{path}: {key}: expected a number")

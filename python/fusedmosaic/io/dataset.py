@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import shutil
 import tempfile
 import warnings
@@ -116,7 +117,8 @@ def read_dataset(
     """Read and check a dataset folder. Images are not loaded (only the first, to check its size).
 
     Row i of frames.csv (``frame,timestamp``, both strictly increasing) describes the i-th image
-    in name order; without frames.csv, frame ids are 0..N-1.
+    in name order; without frames.csv, frame ids are 0..N-1, or for frame files numbered with
+    gaps (missing files) their numbers from the first one's (see read_frame_times).
 
     fps : frame rate giving the timestamps when frames.csv is absent (timestamp = frame / fps);
         None: the video's own frame rate (FrameSource.frame_rate), else DEFAULT_FPS. A dataset
@@ -267,21 +269,109 @@ def check_fps(fps, what: str = "fps") -> float:
     return float(fps)
 
 
+_NUMBERED_NAME = re.compile(r"^(\D*)(\d+)(\D*)$")  # one digit run: frame_000010.png
+
+
+@dataclass(frozen=True, eq=False)
+class FileNumbers:
+    """The numbers of frame files named with one number each (``000010.png``,
+    ``frame_10.png``: the same text around it in every name) that count frames (consecutive
+    files mostly one apart, the median step 1), in name order; a step over 1 is a gap, files
+    missing. Names without such numbers (img_a.png, timestamps) have none (FileNumbers.of:
+    None).
+
+    A dataset without frames.csv whose files have gaps is timed by the numbers
+    (read_frame_times); with frames.csv, its frame ids must skip what the files skip
+    (check_frame_ids)."""
+
+    folder: Path
+    names: tuple[str, ...]
+    numbers: np.ndarray  # (N,) int64, strictly increasing
+    gaps: tuple[int, ...]  # i: files missing between names[i - 1] and names[i]
+
+    @classmethod
+    def of(cls, frames: FrameSource) -> FileNumbers | None:
+        paths = frames.paths
+        if paths is None or len(paths) < 2 or any(p.suffix.lower() != ".png" for p in paths):
+            return None
+        parts = [_NUMBERED_NAME.match(p.name[:-4]) for p in paths]  # (*.png, any case)
+        if not all(parts) or len({(m.group(1), m.group(3)) for m in parts}) != 1:
+            return None
+        numbers = [int(m.group(2)) for m in parts]
+        if max(numbers) >= 2**53:  # not frame numbers (and not exact as floats)
+            return None
+        numbers = np.array(numbers, dtype=np.int64)
+        steps = np.diff(numbers)
+        if np.any(steps <= 0) or np.median(steps) != 1:  # f01.png and f1.png; timestamps
+            return None
+        gaps = tuple(int(i) + 1 for i in np.flatnonzero(steps > 1))
+        return cls(paths[0].parent, tuple(p.name for p in paths), numbers, gaps)
+
+    @property
+    def missing(self) -> int:
+        """The number of files missing in the gaps."""
+        return int(sum(self.numbers[i] - self.numbers[i - 1] - 1 for i in self.gaps))
+
+    def _name(self, number: int, like: str) -> str:
+        """The file name ``number`` would have, written as ``like``."""
+        m = _NUMBERED_NAME.match(like[:-4])
+        digits = m.group(2)
+        width = len(digits) if digits.startswith("0") or len(digits) > len(str(number)) else 0
+        return f"{m.group(1)}{number:0{width}d}{m.group(3)}{like[-4:]}"
+
+    def describe_gaps(self, limit: int = 3) -> str:
+        """E.g. "000010.png missing between 000009.png and 000011.png"."""
+        texts = []
+        for i in self.gaps[:limit]:
+            before, after = self.names[i - 1], self.names[i]
+            a, b = int(self.numbers[i - 1]) + 1, int(self.numbers[i]) - 1
+            missing = (self._name(a, before) if a == b else
+                       f"{self._name(a, before)}-{self._name(b, before)} ({b - a + 1} files)")
+            texts.append(f"{missing} missing between {before} and {after}")
+        more = len(self.gaps) - limit
+        if more > 0:
+            texts.append(f"and {more} more gap{'s' if more > 1 else ''} ({self.missing} files "
+                         "missing in all)")
+        return "; ".join(texts)
+
+    def check_frame_ids(self, path: Path, rows: np.ndarray, ids: np.ndarray) -> None:
+        """frames.csv's rows pair with the files by position: with files missing, its frame
+        ids must step as the files' numbers do (else a frame file and a row went missing at
+        different places, and every row after pairs with the wrong image); ValueError naming
+        frames.csv's row and the file otherwise."""
+        expected = ids[0] + (self.numbers - self.numbers[0])
+        wrong = np.flatnonzero(ids != expected)
+        if not wrong.size:
+            return
+        i = int(wrong[0])
+        raise ValueError(
+            f"{path}: row {rows[i]}: frame {ids[i]} goes with {self.folder / self.names[i]} "
+            "(the rows go with the frame files in name order), but after frame "
+            f"{ids[i - 1]} ({self.names[i - 1]}) that file's number makes it frame "
+            f"{expected[i]}: the file numbers and frames.csv's frame ids do not skip the same "
+            f"frames ({self.folder}: {self.describe_gaps()}): a frame file or a row of "
+            "frames.csv is missing; restore it, or remove the missing frame's row (or file)")
+
+
 def read_frame_times(root: Path, frames: FrameSource, fps: float | None = None, *,
                      max_spacing: float | None = None) -> tuple[np.ndarray, np.ndarray, str]:
     """(frame ids, timestamps s, where they come from) of the images ``frames`` of the dataset
     or recording folder ``root``: from frames.csv (``frame,timestamp``, both strictly
-    increasing, one row per image), else ids 0..N-1 at timestamp = id / rate, the rate being
+    increasing, one row per image), else ids 0..N-1 (for frame files numbered with gaps,
+    FileNumbers, their numbers less the first one's, with a warning naming the missing files)
+    at timestamp = id / rate, the rate being
     ``fps`` if given, else the video's (frames.frame_rate), else DEFAULT_FPS; a video whose
     own stamps leave its nominal rate (variable frame rate; FrameSource.presentation_times) is
     timed by its stamps unless ``fps`` is given. ValueError naming
-    frames.csv when it is malformed, or when ``fps`` is given as well (it would be ignored).
+    frames.csv when it is malformed, or when ``fps`` is given as well (it would be ignored), or
+    when the frame files have gaps its frame ids do not have (FileNumbers.check_frame_ids).
 
     The times are seconds, checked as the streaming mosaickers check theirs
     (io.tracking.check_stream_timestamp): |t| <= MAX_TIMESTAMP_S and consecutive frames at most
     MAX_FRAME_GAP_S apart; with ``max_spacing`` (s; read_dataset: MAX_FRAME_SPACING_S) also at
     most that far apart in the median, which a video's times in milliseconds exceed."""
     path = root / "frames.csv"
+    numbered = FileNumbers.of(frames)
     if path.exists():
         if fps is not None:
             raise ValueError(f"{path}: gives the frame times; the frame rate given ({fps:g} fps) "
@@ -290,8 +380,13 @@ def read_frame_times(root: Path, frames: FrameSource, fps: float | None = None, 
         if rows.size != len(frames):
             what = ("images" if frames.video is None
                     else f"frames in {frames.video.name} (as {frames.counted_by} counts them)")
-            raise ValueError(f"{path}: {rows.size} rows but the dataset has {len(frames)} {what}")
+            gaps = "" if numbered is None or not numbered.gaps else (
+                f" ({numbered.folder}: {numbered.describe_gaps()})")
+            raise ValueError(f"{path}: {rows.size} rows but the dataset has {len(frames)} "
+                             f"{what}{gaps}")
         check_increasing(path, rows, table["frame"], "frame")
+        if numbered is not None and numbered.gaps:
+            numbered.check_frame_ids(path, rows, table["frame"])
         check_increasing(path, rows, table["timestamp"], "timestamp")
         _check_frame_times(path, rows, table["timestamp"], max_spacing)
         return table["frame"], table["timestamp"], "frames.csv"
@@ -311,11 +406,29 @@ def read_frame_times(root: Path, frames: FrameSource, fps: float | None = None, 
         source = "the default: " + ("no frame rate in " + video if video else "PNG frames")
     frame_ids = np.arange(len(frames), dtype=np.int64)
     described = f"frame / {rate:.6g} fps ({source}; no frames.csv)"
+    if numbered is not None and numbered.gaps:  # missing files: the numbers time the frames
+        frame_ids = numbered.numbers - numbered.numbers[0]
+        first = numbered.numbers[0]
+        number = "number" + (f" - {first}" if first else "")
+        described = (f"frame / {rate:.6g} fps ({source}; no frames.csv; frame = file {number}, "
+                     f"{numbered.missing} missing)")
+        gap = int(np.diff(frame_ids).max()) / rate
+        if gap > MAX_FRAME_GAP_S:
+            raise ValueError(f"{numbered.folder}: {numbered.describe_gaps()}: no frames.csv, so "
+                             f"the frames are timed by their numbers, which puts frames "
+                             f"{_time(gap)} s apart, more than MAX_FRAME_GAP_S "
+                             f"({MAX_FRAME_GAP_S:g} s): give frames.csv with their times")
+        warnings.warn(
+            f"{numbered.folder}: {numbered.describe_gaps()}: no frames.csv, so the frames are "
+            f"numbered and timed by their file numbers (frame id = file {number}, timestamp = "
+            f"id / {rate:.6g} fps): the frames after a gap keep their own times, and the "
+            "missing frames are left out; give frames.csv if the file numbers are not frame "
+            "numbers", stacklevel=2)
     if len(frames) > 1:
         step = 1.0 / rate
         bound, name = min((MAX_FRAME_GAP_S, "MAX_FRAME_GAP_S"),
                           (max_spacing or math.inf, "MAX_FRAME_SPACING_S"))
-        last = (len(frames) - 1) / rate
+        last = int(frame_ids[-1]) / rate
         if step > bound or abs(last) > MAX_TIMESTAMP_S:
             raise ValueError(
                 f"{root}: the frame times {described} put frames {_time(step)} s apart, up to "
@@ -391,12 +504,34 @@ def _check_frame_times(path: Path, rows: np.ndarray, times: np.ndarray,
 
 
 def _align_ground_truth(path: Path, frame_ids: np.ndarray) -> np.ndarray:
+    """ground_truth.csv's homographies in the order of ``frame_ids``. Rows for frames not in
+    the dataset (e.g. frames removed from it) are left out with a warning naming them (the
+    truth is for scoring only: the frames present are scored), and when they include the
+    truth's reference (frames before the dataset's first) the truth is re-referenced to the
+    dataset's first frame, as the output is; a frame without a row is a ValueError."""
     truth_ids, H = read_homographies_csv(path)
     unknown = np.setdiff1d(truth_ids, frame_ids)
     if unknown.size:
-        raise ValueError(
-            f"{path}: frame {unknown[0]} is not in the dataset ({unknown.size} unknown frame ids)"
-        )
+        shown = ", ".join(map(str, unknown[:5])) + (", ..." if unknown.size > 5 else "")
+        keep = np.isin(truth_ids, frame_ids)
+        truth_ids, H = truth_ids[keep], H[keep]
+        rebased = ""
+        first = np.flatnonzero(truth_ids == frame_ids[0])
+        if unknown[0] < frame_ids[0] and first.size and np.isfinite(H[first[0]]).all():
+            # the truth's reference (its first frame) is gone: the dataset's first frame is
+            # the reference of its output, so of its truth too
+            with np.errstate(divide="ignore", invalid="ignore"):
+                try:
+                    H = np.linalg.inv(H[first[0]]) @ H
+                    H /= H[:, 2:3, 2:3]
+                    rebased = (f"; the truth is taken relative to frame {frame_ids[0]}, the "
+                               "dataset's first")
+                except np.linalg.LinAlgError:  # a singular truth: scored as it is
+                    pass
+        rows = "1 row for a frame" if unknown.size == 1 else f"{unknown.size} rows for frames"
+        warnings.warn(
+            f"{path}: {rows} not in the dataset ignored (frame{'s' if unknown.size > 1 else ''} "
+            f"{shown}): only the dataset's frames are scored{rebased}", stacklevel=3)
     missing = np.setdiff1d(frame_ids, truth_ids)
     if missing.size:
         raise ValueError(
