@@ -512,3 +512,13 @@ def test_a_streamed_run_reports_a_startup_that_did_not_converge(tmp_path):
                          options=SequentialOptions(startup_max_iterations=100))
     assert any(w.startswith("the start-up adjustment stopped at its iteration limit (100)")
                for w in result.details["warnings"]), result.details.get("warnings")
+
+
+def test_a_frame_dropped_before_the_first_processed_one_says_so():
+    """A frame dropped before the session processed any (a newer one had arrived: a loaded
+    machine at the start) was 'dropped (live: arrived while frame ? was being processed)'."""
+    from fusedmosaic.estimation.live import LiveSession, session_result
+
+    result = session_result(LiveSession(), [0.0, 0.1], [0], source_details={}, method="ncc")
+    assert result.status[0] == ("unplaced: dropped (live: a newer frame had arrived when the "
+                                "session took one)")

@@ -95,30 +95,38 @@ def test_16_bit_frames_are_mosaicked_as_their_8_bit_equivalent(pcle, tmp_path, f
     assert rec.frames.bits_in_use == bits
 
 
-@pytest.mark.parametrize("bit_depth", [None, 12])
-def test_a_later_frame_above_the_session_scale_is_clipped_with_one_warning(pcle, tmp_path,
-                                                                           capsys, bit_depth):
-    """The scale is the first frame's (10 bits: v * 4) and kept: the later, brighter frames
-    (v * 16: 12 bits) are clipped, one warning naming the first of them and the fix
-    (--bit-depth 12), counted in report.json; the outputs are composed on the session's scale
-    too (no second warning). With --bit-depth 12 nothing is clipped."""
+@pytest.mark.parametrize("bit_depth", [None, 10, 12])
+def test_a_later_frame_above_the_session_scale(pcle, tmp_path, capsys, bit_depth):
+    """The first frames dim (10 bits: v * 4), the later ones brighter (v * 16: 12 bits). The
+    scale taken from the first frame is raised at frame 5, one warning naming it and
+    --bit-depth (a dim first frame, kept, clipped the rest of the session; review); --bit-depth
+    10 keeps 10 bits and clips the later frames, told once; --bit-depth 12 nothing to say. The
+    final outputs are composed on the recording's sampled scale (12 bits) in every case."""
     events = _stream(pcle, lambda k, im: im.astype(np.uint16) * (4 if k < 5 else 16))
     extra = [] if bit_depth is None else ["--bit-depth", str(bit_depth)]
     assert _live(pcle, tmp_path, events, *extra) == 0
     err = capsys.readouterr().err
     report = _report(tmp_path)
     source = report["live"]["source"]
+    assert report["frame_bits_in_use"] == 12  # the outputs: the recording's scale
     if bit_depth is None:
         assert err.count("warning:") == 1, err
         assert ("received frame 5 (recorded as frame 5) has 16-bit values up to 4080, above the "
-                "10-bit range (0-1023) taken from the first 16-bit frame, received frame 0: "
-                "clipped to 255") in err
-        assert "Give --bit-depth 12" in err
-        assert source["frames_clipped"] == N - 5 and report["frame_bits_in_use"] == 10
+                "10-bit range (0-1023) taken from the first 16-bit frame, received frame 0: the "
+                "live scale is raised to 12 bits from this frame on") in err
+        assert source["frame_bits_raised"] == [{"received_frame": 5, "bits": 12}]
+        assert source["frames_clipped"] == 0 and source["frame_bits_in_use"] == 12
         assert source["frame_bits_chosen_by"] == "the first 16-bit frame, received frame 0"
+    elif bit_depth == 10:
+        assert err.count("warning:") == 1, err
+        assert ("received frame 5 (recorded as frame 5) has 16-bit values up to 4080, above the "
+                "10-bit range (0-1023) given by --bit-depth: clipped to 255") in err
+        assert "Give --bit-depth 12" in err
+        assert source["frames_clipped"] == N - 5 and source["frame_bits_raised"] == []
+        assert source["frame_bits_in_use"] == 10
     else:
         assert "warning:" not in err, err
-        assert source["frames_clipped"] == 0 and report["frame_bits_in_use"] == 12
+        assert source["frames_clipped"] == 0 and source["frame_bits_in_use"] == 12
         assert source["frame_bits_chosen_by"] == "--bit-depth"
     assert report["live"]["frames_recorded"] == N and source["frames_refused"] == {}
     # the recording keeps every frame as received: an offline re-run takes its own scale

@@ -48,8 +48,7 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
                 progress: bool = True, blend=None, options=None, canvas=None,
                 video: str | Path | None = None, report: bool = True, live: bool = False,
                 result: methods.MethodResult | None = None,
-                tracker_time_offset: float = 0.0, stop_on_unreadable: bool = False,
-                frame_bits: int | None = None) -> str:
+                tracker_time_offset: float = 0.0, stop_on_unreadable: bool = False) -> str:
     """Runs `method` on a dataset folder and writes the output contract into `out`.
 
     blend: a blend name ("linear", "multiband", "average", "last") or a
@@ -75,10 +74,6 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
         visual content (read as all zero: the pose methods place it from the tracker and
         motion priors, the translation methods from the robot, or leave it unplaced), flagged
         in report.json "unreadable_frames" and a warning, and left out of the mosaic.
-    frame_bits: 16-bit frames are converted to 8 bits as data of this bit depth (a live
-        session's scale, run_igtl: its recording composed as the session saw it) instead of the
-        one sampled over the sequence; frames above it are clipped without a warning (the
-        session told of them).
     Returns a short summary for the terminal."""
     from fusedmosaic.evaluation.provenance import dataset_fingerprint
     from fusedmosaic.io import read_dataset
@@ -118,9 +113,6 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
                            strict_tracking=method in NEEDS_TRACKING,
                            strict_robot=method in NEEDS_ROBOT,
                            blank_unreadable=not stop_on_unreadable)
-    if frame_bits is not None:
-        dataset.frames.set_bits_in_use(frame_bits, "that the live session used",
-                                       clipped_told=True)
     if dataset.ignored:
         warnings.warn(f"{'; '.join(dataset.ignored.values())} -- left out: method {method!r} "
                       f"does not use {'it' if len(dataset.ignored) == 1 else 'them'}",
@@ -892,16 +884,20 @@ def check_bit_depth(bits, name: str = "bit depth (--bit-depth)") -> int | None:
 
 
 class _LiveScale:
-    """A live session's 16-bit frames in 8 bits with ONE scale for the whole session (as
-    offline, io.video.FrameSource: no flicker, the registrations see one contrast): v ->
-    round(v * 255 / (2^b - 1)), b the bit depth given (--bit-depth), else the smallest in 8..16
-    holding the first accepted 16-bit frame's largest value (a stream cannot be sampled ahead).
-    A later frame above 2^b - 1 is clipped to 255, told once (warn), counted (`clipped`)."""
+    """A live session's 16-bit frames in 8 bits on one scale (as offline, io.video.FrameSource:
+    no flicker, the registrations see one contrast): v -> round(v * 255 / (2^b - 1)), b the bit
+    depth given (--bit-depth; a frame above 2^b - 1 is clipped to 255, told once, counted in
+    `clipped`), else the smallest in 8..16 holding the largest value seen so far: a stream
+    cannot be sampled ahead, so b starts from the first 16-bit frame and is raised, told once,
+    when a frame exceeds it (a dim first frame, the probe not yet in contact, took 8 bits and
+    clipped 19 of 20 12-bit frames for the whole session; review). NCC is insensitive to the
+    step in contrast; the final outputs are composed on the recording's sampled scale."""
 
     def __init__(self, bits: int | None) -> None:
         self.bits, self.given = bits, bits is not None
         self.chosen_by = "--bit-depth" if self.given else None
-        self.clipped = 0  # 16-bit frames with values above the range (clipped)
+        self.clipped = 0  # 16-bit frames with values above the range (clipped; --bit-depth)
+        self.raised: list[tuple[int, int]] = []  # (received frame, bits) where b was raised
         self.converted = 0  # 16-bit frames converted
 
     def convert(self, image: np.ndarray, received: int, recorded: int, warn) -> np.ndarray:
@@ -913,17 +909,27 @@ class _LiveScale:
             self.chosen_by = f"the first 16-bit frame, received frame {received}"
         self.converted += 1
         full = (1 << self.bits) - 1
-        if peak > full:
+        if peak > full and not self.given:
+            if not self.raised:
+                warn(f"live session: received frame {received} (recorded as frame {recorded}) "
+                     f"has 16-bit values up to {peak}, above the {self.bits}-bit range (0-"
+                     f"{full}) taken from {self.chosen_by}: the live scale is raised to "
+                     f"{bits_holding(peak)} bits from this frame on (the frames before look "
+                     "brighter in the live view; the final outputs are composed on one scale "
+                     "sampled over the recording; further raises are counted, report.json live "
+                     "frame_bits_raised). Give --bit-depth B (the bits the sensor's data uses) "
+                     "to fix the scale from the start")
+            self.bits = bits_holding(peak)
+            self.raised.append((received, self.bits))
+        elif peak > full:
             self.clipped += 1
             if self.clipped == 1:
-                how = "given by --bit-depth" if self.given else f"taken from {self.chosen_by}"
                 warn(f"live session: received frame {received} (recorded as frame {recorded}) "
                      f"has 16-bit values up to {peak}, above the {self.bits}-bit range "
-                     f"(0-{full}) {how}: clipped to 255 in the live mosaic (one "
-                     "scale for the session; the recording keeps the frames as received); "
-                     "further such frames are clipped without a warning (report.json live "
-                     f"frames_clipped). Give --bit-depth {bits_holding(peak)} (the bits the "
-                     "sensor's data uses, 16 at most) to scale the session to it")
+                     f"(0-{full}) given by --bit-depth: clipped to 255 in the live mosaic (the "
+                     "recording keeps the frames as received); further such frames are clipped "
+                     "without a warning (report.json live frames_clipped). Give --bit-depth "
+                     f"{bits_holding(peak)} (the bits the sensor's data uses, 16 at most)")
         return to_8_bits(image, self.bits)
 
     def details(self) -> dict:
@@ -931,6 +937,7 @@ class _LiveScale:
         if not self.converted:
             return {}
         return {"frame_bits_in_use": self.bits, "frame_bits_chosen_by": self.chosen_by,
+                "frame_bits_raised": [{"received_frame": k, "bits": b} for k, b in self.raised],
                 "frames_clipped": self.clipped}
 
 
@@ -971,10 +978,11 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     leaves no folder behind. Frames are 8- or 16-bit, gray or colour (an alpha channel is
     dropped), all alike (a frame of another kind than the first accepted is refused, as one of
     another size than camera.yaml's). 16-bit frames are recorded as received (16-bit PNG) and
-    mosaicked in 8 bits with one scale for the session (_LiveScale): as data of bit_depth bits
-    (8..16; e.g. 12 for a 12-bit sensor), by default of the bits the first 16-bit frame's
-    largest value needs; values above are clipped (told once); report.json "frame_bits_in_use"
-    and live "source". Returns the terminal summary."""
+    mosaicked live in 8 bits (_LiveScale): as data of bit_depth bits (8..16; e.g. 12 for a
+    12-bit sensor; values above clipped, told once), by default of the bits the largest value
+    so far needs (raised when a frame exceeds it, told once); report.json live "source". The
+    final outputs are composed as offline, on the recording's sampled scale
+    ("frame_bits_in_use"). Returns the terminal summary."""
     from fusedmosaic.estimation.live import (
         check_live_method,
         live_session,
@@ -1233,8 +1241,7 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
         try:
             summary = run_dataset(record, method, out, result=result, allow_untracked=True,
                                   progress=progress, blend=blend, canvas=canvas, video=video,
-                                  report=report,
-                                  frame_bits=scale.bits if scale.converted else None)
+                                  report=report)
         except KeyboardInterrupt:
             written = Path(out, "homographies.csv")  # (the commit defers a Ctrl-C to its end)
             inform(f"live session: interrupted once the outputs were in {out}"
@@ -1259,8 +1266,10 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                          f"; {n} x {why} (first: received frame {first_refused[why]})"
                          for why, n in rejected.items()) + other_images())
     if scale.converted:
-        lines.append(f"  frames  16-bit, mosaicked as {scale.bits}-bit data (from "
-                     f"{scale.chosen_by}; report.json frame_bits_in_use)"
+        lines.append(f"  frames  16-bit, mosaicked live as {scale.bits}-bit data (from "
+                     f"{scale.chosen_by}"
+                     + (f", raised {len(scale.raised)} time(s)" if scale.raised else "")
+                     + "; report.json live source)"
                      + (f"; {scale.clipped} frame(s) above it clipped (--bit-depth sets it)"
                         if scale.clipped else ""))
     if src.corrupted_frames:

@@ -361,6 +361,8 @@ SESSION_ENDED = "unplaced: not processed (the session ended before its turn; rec
 # A session hearing frames but no valid sample of its tracker (robot) device this long says so.
 NO_SAMPLE_WARNING_S = 3.0
 DROPPED_LIVE = "unplaced: dropped (live: arrived while frame {busy} was being processed)"
+# (a frame before the first processed one: "while frame ? was being processed" was said)
+DROPPED_FIRST = "unplaced: dropped (live: a newer frame had arrived when the session took one)"
 
 
 @dataclass
@@ -549,7 +551,8 @@ def session_result(session: LiveSession, timestamps, dropped: list[int], *,
             busy_at[k] = a
     for k in dropped:
         if k < n:
-            status[k] = DROPPED_LIVE.format(busy=busy_at.get(k, "?"))
+            status[k] = (DROPPED_LIVE.format(busy=busy_at[k]) if k in busy_at else
+                         DROPPED_FIRST)
     details = {"live": {
         "source": source_details, "stopped_by": session.stopped_by,
         "frames_recorded": n, "frames_processed": len(session.processed),

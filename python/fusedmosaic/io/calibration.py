@@ -45,6 +45,7 @@ FOREIGN_CAMERA_KEYS = frozenset({
     "board_height", "square_size", "aspectRatio", "fix_aspect_ratio", "flags",
     "avg_reprojection_error", "per_view_reprojection_errors", "extrinsic_parameters",
     "image_points", "grid_points", "camera_name", "rectification_matrix", "projection_matrix",
+    "marker_size", "dictionary",  # (the ChArUco-era tutorial)
 })
 
 

@@ -167,7 +167,8 @@ def read_dataset(
     _read_robot(dataset, allow_untracked, robot_time_offset, lenient=not strict_robot)
     truth_path = root / "ground_truth.csv"
     if truth_path.exists():
-        dataset.ground_truth = _align_ground_truth(truth_path, frame_ids)
+        dataset.ground_truth = _align_ground_truth(truth_path, frame_ids,
+                                                   explicit=frame_times == "frames.csv")
     return dataset
 
 
@@ -336,21 +337,23 @@ class FileNumbers:
 
     def check_frame_ids(self, path: Path, rows: np.ndarray, ids: np.ndarray) -> None:
         """frames.csv's rows pair with the files by position: with files missing, its frame
-        ids must step as the files' numbers do (else a frame file and a row went missing at
-        different places, and every row after pairs with the wrong image); ValueError naming
-        frames.csv's row and the file otherwise."""
+        ids that do not step as the files' numbers do may mean a frame file and a row went
+        missing at different places (every row after pairs with the wrong image), or nothing
+        (ids renumbered, a counter of its own): a warning naming frames.csv's row and the file
+        (a review found such valid datasets refused)."""
         expected = ids[0] + (self.numbers - self.numbers[0])
         wrong = np.flatnonzero(ids != expected)
         if not wrong.size:
             return
         i = int(wrong[0])
-        raise ValueError(
+        warnings.warn(
             f"{path}: row {rows[i]}: frame {ids[i]} goes with {self.folder / self.names[i]} "
             "(the rows go with the frame files in name order), but after frame "
-            f"{ids[i - 1]} ({self.names[i - 1]}) that file's number makes it frame "
+            f"{ids[i - 1]} ({self.names[i - 1]}) that file's number would make it frame "
             f"{expected[i]}: the file numbers and frames.csv's frame ids do not skip the same "
-            f"frames ({self.folder}: {self.describe_gaps()}): a frame file or a row of "
-            "frames.csv is missing; restore it, or remove the missing frame's row (or file)")
+            f"frames ({self.folder}: {self.describe_gaps()}); if a frame file or a row of "
+            "frames.csv is missing, every later row is paired with the wrong image",
+            stacklevel=3)
 
 
 def read_frame_times(root: Path, frames: FrameSource, fps: float | None = None, *,
@@ -503,14 +506,23 @@ def _check_frame_times(path: Path, rows: np.ndarray, times: np.ndarray,
             f"10-60 frames/s; {ms}?")
 
 
-def _align_ground_truth(path: Path, frame_ids: np.ndarray) -> np.ndarray:
-    """ground_truth.csv's homographies in the order of ``frame_ids``. Rows for frames not in
-    the dataset (e.g. frames removed from it) are left out with a warning naming them (the
-    truth is for scoring only: the frames present are scored), and when they include the
-    truth's reference (frames before the dataset's first) the truth is re-referenced to the
-    dataset's first frame, as the output is; a frame without a row is a ValueError."""
+def _align_ground_truth(path: Path, frame_ids: np.ndarray, *, explicit: bool) -> np.ndarray:
+    """ground_truth.csv's homographies in the order of ``frame_ids``. With ``explicit`` ids
+    (frames.csv's), rows for frames not in the dataset (e.g. frames removed from it) are left
+    out with a warning naming them (the truth is for scoring only: the frames present are
+    scored), and when they include the truth's reference (frames before the dataset's first)
+    the truth is re-referenced to the dataset's first frame, as the output is. Without (ids by
+    position, or by file number less the first one's) such rows are a ValueError: the ids may
+    have shifted (a first file removed made every frame scored against its neighbour's truth,
+    e_M 251 px for 0.06; review). A frame without a row is a ValueError."""
     truth_ids, H = read_homographies_csv(path)
     unknown = np.setdiff1d(truth_ids, frame_ids)
+    if unknown.size and not explicit:
+        raise ValueError(
+            f"{path}: frame {unknown[0]} is not in the dataset ({unknown.size} unknown frame "
+            "ids): without frames.csv the frames are numbered by position (or, numbered files "
+            "with gaps, by their numbers less the first one's), so a removed frame shifts the "
+            "ids; give frames.csv with the ids ground_truth.csv uses")
     if unknown.size:
         shown = ", ".join(map(str, unknown[:5])) + (", ..." if unknown.size > 5 else "")
         keep = np.isin(truth_ids, frame_ids)

@@ -112,8 +112,7 @@ class FrameSource(Sequence):
     the frames' contrast (dim data stays dim, as it would in 8 bits). A frame with values above
     2^b - 1 (possible only outside the sample) is clipped to 255, with a warning naming it (once
     per source). ``bits_in_use`` holds b once a 16-bit frame was read (None before, and for
-    8-bit frames). `set_bits_in_use` fixes b instead (a live session's scale, kept for its
-    recording's outputs). Other pixel types (float, 32-bit, signed) are refused.
+    8-bit frames). Other pixel types (float, 32-bit, signed) are refused.
 
     Thread-safe: a video is decoded sequentially under a lock (seek + decode are one step), seeking
     only for jumps backwards or more than ``VIDEO_READ_AHEAD`` frames ahead.
@@ -143,8 +142,6 @@ class FrameSource(Sequence):
         self._depth_lock = threading.Lock()  # guards bits_in_use (taken without self._lock)
         self.bits_in_use: int | None = None  # 16-bit frames: the bit depth in use (see above)
         self._clipped = False  # a 16-bit frame exceeded 2^bits_in_use - 1 (warned once)
-        # what chose bits_in_use, for the clipping warning (set_bits_in_use: another choice)
-        self._bits_chosen_by = f"that {DEPTH_SAMPLE_FRAMES} frames spread over the sequence use"
         self.frame_rate: float | None = None
         self._seek_limit: int | None = None  # frames from here on are reached by decoding
         self._times: np.ndarray | None = None  # presentation times (ms) from a decoding pass
@@ -416,18 +413,6 @@ class FrameSource(Sequence):
             )
         return image
 
-    def set_bits_in_use(self, bits: int, chosen_by: str, *, clipped_told: bool = False) -> None:
-        """16-bit frames are converted with the bit depth `bits` (8..16) instead of the one
-        sampled over the sequence: a live session's scale, so that its recording's frames are
-        composed as the session saw them. chosen_by: what chose it, for the warning on a frame
-        above its range ("that the live session used"); clipped_told:
-        such a frame was already told of (no warning)."""
-        if not (isinstance(bits, (int, np.integer)) and 8 <= bits <= 16):
-            raise ValueError(f"bit depth in use: must be an integer in 8..16, got {bits!r}")
-        with self._depth_lock:
-            self.bits_in_use, self._bits_chosen_by = int(bits), chosen_by
-            self._clipped = self._clipped or clipped_told
-
     def _to_8_bits(self, image: np.ndarray, name) -> np.ndarray:
         """A 16-bit frame on the dataset's 8-bit scale (see the class docstring)."""
         if self.bits_in_use is None:
@@ -440,7 +425,7 @@ class FrameSource(Sequence):
             self._clipped = True
             warnings.warn(
                 f"{name}: 16-bit values up to {peak}, above the {self.bits_in_use}-bit range "
-                f"(0-{full}) {self._bits_chosen_by}: "
+                f"(0-{full}) that {DEPTH_SAMPLE_FRAMES} frames spread over the sequence use: "
                 f"clipped to 255 when converted to 8 bits (one scale for all frames; further "
                 "frames above the range are clipped without a warning)", stacklevel=4)
         return to_8_bits(image, self.bits_in_use)
