@@ -1085,3 +1085,56 @@ def test_images_without_timestamps_end_the_session_with_the_reason():
                                              r"timestamp \(0\)"):
             source.next_frame(2.0)
     sender.join()
+
+
+def _undecodable(image: np.ndarray, t: float) -> bytes:
+    """An IMAGE whose header's size is image's but whose body holds a quarter of its pixels
+    (CRC recomputed, as a buggy sender would)."""
+    good = image_message(image, t)
+    small = image_message(image[: image.shape[0] // 2, : image.shape[1] // 2], t)
+    body = good[58:58 + 72] + small[58 + 72:]
+    return _with_crc(good[:42] + len(body).to_bytes(8, "big") + good[50:58] + body)
+
+
+def test_an_undecodable_image_is_dropped_and_counted():
+    """One IMAGE that cannot be decoded mid-stream ended the session (every later frame lost;
+    review): now it is dropped and counted per reason, the frames after it arrive. Images that
+    never decode (the first UNDECODABLE_LIMIT) still end it, naming why."""
+    from fusedmosaic.io import igtl
+
+    images = [np.full((8, 8), 10 * (k + 1), np.uint8) for k in range(3)]
+    events = [(0.0, image_message(images[0], 0.0)), (0.04, _undecodable(images[1], 0.04)),
+              (0.08, image_message(images[2], 0.08))]
+    sender = Sender(events, delay=0.1)
+    seen = []
+    with IgtlSource(f":{sender.port}", transform_device="SensorToTracker") as source:
+        while (frame := source.next_frame(2.0)) is not None:
+            seen.append(int(frame.image.reshape(-1)[0]))
+    sender.join()
+    assert 30 in seen and 20 not in seen, seen
+    assert source.received == 2 and sum(source.undecodable_frames.values()) == 1
+    (why,) = source.undecodable_frames
+    assert "cannot reshape" in why, why
+    bad = [(0.04 * k, _undecodable(images[0], 0.04 * k)) for k in range(igtl.UNDECODABLE_LIMIT)]
+    sender = Sender(bad, delay=0.1)
+    with IgtlSource(f":{sender.port}", transform_device="SensorToTracker") as source:
+        with pytest.raises(ValueError, match=rf"the IMAGE messages of 'Video' cannot be decoded "
+                                             rf"\(the first {igtl.UNDECODABLE_LIMIT}, none "
+                                             r"decoded\): .*cannot reshape"):
+            while source.next_frame(2.0) is not None:
+                pass
+    sender.join()
+
+
+def test_a_sender_dying_after_a_header_is_a_cut_not_a_close():
+    """Only a message's header arrived, then the socket closed: it was told as 'the sender
+    closed the stream' and the lost frame never mentioned (review)."""
+    message = image_message(np.zeros((8, 8), np.uint8), 0.0)
+    sender = Sender([(0.0, message[:58])], delay=0.1)
+    with IgtlSource(f":{sender.port}", transform_device="SensorToTracker") as source:
+        with pytest.raises(ValueError, match=r"the connection closed inside a message "
+                                             r"\(after the header of a message of type "
+                                             r"IMAGE, none of its \d+ body bytes\)$"):
+            while source.next_frame(2.0) is not None:
+                pass
+    sender.join()

@@ -1192,6 +1192,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                            # IMAGE messages failing their CRC64, dropped (None: not checked)
                            "frames_corrupted": (src.corrupted_frames if src.frames_crc_checked
                                                 else None),
+                           # IMAGE messages that could not be decoded, dropped (why -> count)
+                           "frames_undecodable": dict(src.undecodable_frames),
                            "frames_refused": dict(rejected),
                            "frames_refused_first": dict(first_refused),
                            # 16-bit frames: the session's 8-bit scale, frames clipped by it
@@ -1258,7 +1260,7 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                       f"{'ba-emt' if method == 'lba-emt' else method} --out OUT2"
                       f"{' --allow-untracked' if outside else ''})"]
     if session.no_sample:
-        lines.append(f"  tracker {len(session.no_sample)} frame(s) without a usable sample"
+        lines.append(f"  {device:<7} {len(session.no_sample)} frame(s) without a usable sample"
                      f"{samples_heard(src)}")
     if rejected:
         lines.append(f"  frames  {sum(rejected.values())} received frame(s) refused, neither "
@@ -1276,4 +1278,9 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
         lines.append(f"  frames  {src.corrupted_frames} IMAGE message(s) failed their CRC64 "
                      "(corrupted in transit) and were dropped (report.json live "
                      "frames_corrupted)")
+    if src.undecodable_frames:
+        lines.append(f"  frames  {sum(src.undecodable_frames.values())} IMAGE message(s) could "
+                     "not be decoded and were dropped (" + "; ".join(
+                         f"{n} x {why}" for why, n in src.undecodable_frames.items())
+                     + "; report.json live frames_undecodable)")
     return "\n".join(lines)

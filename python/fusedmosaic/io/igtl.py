@@ -26,7 +26,10 @@ reconnect.
   is there (1.4 ms per 400x400 RGB frame; crcmod builds it wherever a C compiler is, as
   .ci/run's machine has); its pure-Python CRC (66 ms a frame) would hold up the receiving
   thread, so frames then go unchecked (``frames_crc_checked`` False). An IMAGE that cannot be
-  decoded ends the session, naming the device and why.
+  decoded (e.g. a body shorter than its header's size says) is dropped and counted per reason
+  (``undecodable_frames``; one ended the session and lost every later frame); when the first
+  UNDECODABLE_LIMIT IMAGEs all fail, none decoded, the session ends naming the device and why
+  (the sender's images are not readable at all).
 - Other message types (e.g. TDATA, QTDATA, QTRANS) are not read; their devices are listed in
   ``ignored_devices`` with "(type not read)", as the other devices heard are.
 - A transform device named ``BToA`` answers a request for ``AToB`` (inverted).
@@ -68,6 +71,9 @@ DEFAULT_PORT = 18944  # the OpenIGTLink port (PLUS Server's default)
 # A message body above this is a corrupt header (an 8K RGB frame is 100 MB), not a frame to buffer.
 MAX_BODY_BYTES = 512 * 2**20
 _BACKWARDS = "timestamp not after the previous sample"
+# The first IMAGE messages failing to decode, none decoded, that end a session (the sender's
+# images are not readable); fewer, or after a decoded one, are dropped and counted.
+UNDECODABLE_LIMIT = 10
 _READ = ("IMAGE", "TRANSFORM", "POSITION")
 _HISTORY = 128  # tracker samples kept for pose_at (3 s at 40 Hz)
 
@@ -185,6 +191,7 @@ class IgtlSource:
         self._synchronous, self._pose_calls = False, 0
         self.dropped: list[int] = []  # indices of frames replaced in the slot before being taken
         self.corrupted_frames = 0  # IMAGE messages of the image device failing their CRC64
+        self.undecodable_frames: dict[str, int] = {}  # why -> IMAGE messages not decoded
         self.frames_crc_checked = _crc64_is_fast()
         self.invalid_samples: dict[str, int] = {}  # problem -> count
         self._last_sample_time: float | None = None
@@ -341,6 +348,12 @@ class IgtlSource:
                                      f"message of {fields['body_size']} bytes (more than "
                                      f"{MAX_BODY_BYTES} bytes)")
                 body = self._recv_exact(fields["body_size"])
+                if body is None and fields["body_size"] and not self._stop:
+                    # (a sender dying right after a header was told as a normal close)
+                    raise ConnectionError(
+                        f"the connection closed inside a message (after the header of a "
+                        f"message of type {fields['message_type']}, none of its "
+                        f"{fields['body_size']} body bytes)")
                 if body is None:
                     break
                 kind, device = fields["message_type"], fields["device_name"]
@@ -399,7 +412,12 @@ class IgtlSource:
         message = ImageMessage()
         problem = _unpack(message, fields, body)
         if problem is not None:
-            raise ValueError(f"the IMAGE message of {device!r} cannot be decoded: {problem}")
+            failed = sum(self.undecodable_frames.values()) + 1
+            if self.received == 0 and failed >= UNDECODABLE_LIMIT:
+                raise ValueError(f"the IMAGE messages of {device!r} cannot be decoded (the "
+                                 f"first {failed}, none decoded): {problem}")
+            self.undecodable_frames[problem] = self.undecodable_frames.get(problem, 0) + 1
+            return  # (a lost frame, as a corrupted one: the session goes on)
         image = _frame_image(message.image, self.rgb)
         frame = LiveFrame(image, float(fields["timestamp"]), time.perf_counter(), self.received)
         self.received += 1
