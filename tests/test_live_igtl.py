@@ -221,21 +221,27 @@ def test_stream_cut_inside_a_message(syn, tmp_path, capsys):
 
 
 def test_invalid_tracker_samples_are_skipped_not_fatal(syn, tmp_path):
-    """A sample that is not a rigid transform (a corrupt message) or goes back in time is not
-    used or recorded; the session goes on."""
+    """A sample that is not a rigid transform (a corrupt message), goes back in time or is
+    stamped an hour ahead (a glitch: it was taken, and every later sample then went 'back in
+    time', the rest of the session untracked; review) is not used or recorded; the session
+    goes on."""
+    from fusedmosaic.io.igtl import STAMP_JUMP
+
     events = dataset_events(syn, n_frames=45)
     bad = np.eye(4)
     bad[:3, :3] *= 2.0  # scaled: not a rotation
     mid = len(events) // 2
     t = events[mid][0]
     events[mid:mid] = [(t, transform_message(bad, t + 1e-4)),  # after the previous sample
-                       (t, transform_message(np.eye(4), t - 1.0))]  # back in time
+                       (t, transform_message(np.eye(4), t - 1.0)),  # back in time
+                       (t, transform_message(np.eye(4), t + 3600.0))]  # an hour ahead
     sender = Sender(events)
     assert _live(syn, tmp_path, sender) == 0
     sender.join()
     live = json.loads((tmp_path / "out" / "report.json").read_text())["live"]
     assert live["source"]["tracker_samples_invalid"] == {
-        "not rigid: scaled": 1, "timestamp not after the previous sample": 1}
+        "not rigid: scaled": 1, "timestamp not after the previous sample": 1, STAMP_JUMP: 1}
+    assert live["frames_without_sample"] == []
     rec = read_dataset(tmp_path / "rec", allow_untracked=True)
     # the non-rigid sample is recorded as a missing one (valid=0: the dropout stays visible
     # offline), the one going back in time is not recorded (tracking.csv is in time order)
@@ -1138,3 +1144,45 @@ def test_a_sender_dying_after_a_header_is_a_cut_not_a_close():
             while source.next_frame(2.0) is not None:
                 pass
     sender.join()
+
+
+def test_stamp_jumps_refuse_a_glitch_and_follow_a_new_clock():
+    """StampJumps (frames in run_igtl, samples in IgtlSource): a stamp more than
+    MAX_STAMP_LEAD_S ahead of the time since the last accepted one arrived is refused, and the
+    stream goes on from the last accepted one; STAMP_JUMP_CONFIRM such stamps in a row,
+    consistent among themselves, are a clock jump: the last is accepted."""
+    from fusedmosaic.io.igtl import STAMP_JUMP, STAMP_JUMP_CONFIRM, StampJumps
+
+    jumps = StampJumps()
+    assert jumps.check(100.0, 0.0) is None
+    jumps.accepted(100.0, 0.0)
+    assert jumps.check(3700.04, 0.04) == STAMP_JUMP  # an hour ahead, 40 ms later: a glitch
+    assert jumps.check(100.08, 0.08) is None  # the stream goes on
+    jumps.accepted(100.08, 0.08)
+    assert jumps.check(100.08 + 9.0, 0.12) is None  # 9 s ahead: within the bound
+    jumps.accepted(100.08 + 9.0, 0.12)
+    for k in range(1, STAMP_JUMP_CONFIRM):  # the clock jumps an hour and stays there
+        assert jumps.check(3709.0 + 0.04 * k, 0.12 + 0.04 * k) == STAMP_JUMP
+    k = STAMP_JUMP_CONFIRM
+    assert jumps.check(3709.0 + 0.04 * k, 0.12 + 0.04 * k) is None
+    assert jumps.jumps == [pytest.approx(3709.0 + 0.04 * k - 109.08 - 0.04 * k)]
+
+
+def test_a_frame_stamped_an_hour_ahead_is_refused_alone(syn, tmp_path):
+    """One frame stamped an hour ahead mid-stream was accepted and recorded, and every later
+    frame refused as not increasing (24 of 40; review): now that frame alone is refused,
+    counted, and the rest recorded."""
+    from fusedmosaic.io.igtl import STAMP_JUMP
+
+    events = dataset_events(syn, n_frames=30)
+    images = [i for i, (_, m) in enumerate(events) if m[2:7] == b"IMAGE"]
+    i = images[15]
+    t = events[i][0]
+    events[i] = (t, image_message(syn.frames[15], t + 3600.0))
+    sender = Sender(events)
+    assert _live(syn, tmp_path, sender) == 0
+    sender.join()
+    live = json.loads((tmp_path / "out" / "report.json").read_text())["live"]
+    assert live["source"]["frames_refused"] == {STAMP_JUMP: 1}
+    assert live["source"]["frames_refused_first"] == {STAMP_JUMP: 15}
+    assert live["frames_recorded"] == 29

@@ -990,7 +990,7 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
         takes_samples,
     )
     from fusedmosaic.io.calibration import Camera, read_camera_yaml
-    from fusedmosaic.io.igtl import IgtlSource, format_address
+    from fusedmosaic.io.igtl import STAMP_JUMP_CONFIRM, IgtlSource, StampJumps, format_address
     from fusedmosaic.io.recorder import DatasetRecorder
     from fusedmosaic.io.tracking import check_stream_timestamp, check_time_offset, hand_eye_matrix
 
@@ -1050,6 +1050,7 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     first_refused: dict[str, int] = {}  # why -> the first such frame (the source's count)
     after_limit = 0  # frames received once max_frames were recorded (not recorded)
     accepting, first, last_time = True, None, -np.inf  # first: (ndim, dtype) of the first frame
+    frame_jumps = StampJumps()  # frames stamped far ahead of the stream: refused as glitches
     device = "tracker" if method == "lba-emt" else "robot"
     latest_sample: list[float] = []  # [stamp on the video's clock, time.monotonic() heard]
     clocks_told = False
@@ -1077,7 +1078,19 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
             problem = "no timestamp (0): the sender did not stamp it"
         elif problem is None:
             try:
-                last_time = check_stream_timestamp(frame.index, frame.timestamp, last_time)
+                t = check_stream_timestamp(frame.index, frame.timestamp, last_time)
+                jumped = len(frame_jumps.jumps)
+                problem = frame_jumps.check(t, frame.arrival)
+                if problem is None:
+                    last_time = t
+                    frame_jumps.accepted(t, frame.arrival)
+                    if len(frame_jumps.jumps) > jumped:
+                        warn_from_receiver(
+                            f"live session: the sender's frame stamps jumped "
+                            f"{frame_jumps.jumps[-1]:.3g} s ahead of the stream at received "
+                            f"frame {frame.index}, {STAMP_JUMP_CONFIRM} frames in a row: taken "
+                            "as its clock from there (the frames before it in the jump were "
+                            "refused)")
             except ValueError as exc:
                 problem = _refusal_reason(str(exc))
         if problem is not None:

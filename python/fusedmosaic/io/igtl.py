@@ -76,6 +76,48 @@ _BACKWARDS = "timestamp not after the previous sample"
 UNDECODABLE_LIMIT = 10
 _READ = ("IMAGE", "TRANSFORM", "POSITION")
 _HISTORY = 128  # tracker samples kept for pose_at (3 s at 40 Hz)
+# A stamp further ahead of the stream than this (its step from the last accepted one beyond the
+# time between their arrivals) is a glitch, refused: one frame or sample stamped an hour ahead
+# was accepted and every later one refused as going back in time (review). STAMP_JUMP_CONFIRM
+# such stamps in a row, consistent among themselves, are the sender's clock jumping: the last
+# is accepted and the stream goes on from it.
+MAX_STAMP_LEAD_S = 10.0
+STAMP_JUMP_CONFIRM = 3
+STAMP_JUMP = (f"a timestamp jumping ahead of the stream (more than {MAX_STAMP_LEAD_S:g} s beyond "
+              "the time since the last accepted one arrived: a glitch in the sender's stamp?)")
+
+
+class StampJumps:
+    """Refuses stamps that jump ahead of a stream (MAX_STAMP_LEAD_S); after STAMP_JUMP_CONFIRM
+    in a row consistent with each other, takes the jump as the sender's new clock. `check`
+    before accepting a stamp later than the last accepted one, `accepted` after."""
+
+    def __init__(self) -> None:
+        self.last: tuple[float, float] | None = None  # (stamp, arrival) last accepted
+        self.pending: list[tuple[float, float]] = []  # jumped ones in a row
+        self.jumps: list[float] = []  # the clock jumps taken (s)
+
+    def check(self, stamp: float, arrival: float) -> str | None:
+        """None: accept (a jump of the clock taken: `jumps` grows), else the refusal."""
+        if self.last is None:
+            return None
+        lead = (stamp - self.last[0]) - (arrival - self.last[1])
+        if lead <= MAX_STAMP_LEAD_S:
+            self.pending.clear()
+            return None
+        if self.pending:
+            ps, pa = self.pending[-1]
+            if not (stamp > ps and (stamp - ps) - (arrival - pa) <= MAX_STAMP_LEAD_S):
+                self.pending.clear()
+        self.pending.append((stamp, arrival))
+        if len(self.pending) < STAMP_JUMP_CONFIRM:
+            return STAMP_JUMP
+        self.pending.clear()
+        self.jumps.append(lead)
+        return None
+
+    def accepted(self, stamp: float, arrival: float) -> None:
+        self.last = (stamp, arrival)
 
 
 def _split_address(address: str, what: str) -> tuple[str, str | None]:
@@ -195,6 +237,7 @@ class IgtlSource:
         self.frames_crc_checked = _crc64_is_fast()
         self.invalid_samples: dict[str, int] = {}  # problem -> count
         self._last_sample_time: float | None = None
+        self._sample_jumps = StampJumps()  # samples stamped far ahead of the stream
         self.ignored_devices: set[str] = set()
         self.samples: deque[TrackerSample] = deque(maxlen=_HISTORY)
         self._slot: LiveFrame | None = None
@@ -456,14 +499,21 @@ class IgtlSource:
         if problem is None and device == self._inverse_device:
             matrix = np.linalg.inv(matrix)
         sample = TrackerSample(float(fields["timestamp"]), matrix, problem is None, problem)
-        # (one going back in time, or without a time, is not recorded: tracking.csv is in order)
+        # (one going back in time, jumping ahead of the stream, or without a time, is not
+        # recorded: tracking.csv is in order)
         unrecorded = fields["timestamp"] == 0
+        arrival = time.perf_counter()
         with self._cond:
             if self._last_sample_time is not None and sample.timestamp <= self._last_sample_time:
                 sample.valid, sample.problem = False, sample.problem or _BACKWARDS
                 unrecorded = True
+            elif not unrecorded and (jump := self._sample_jumps.check(sample.timestamp,
+                                                                      arrival)) is not None:
+                sample.valid, sample.problem = False, jump
+                unrecorded = True
             elif not unrecorded:
                 self._last_sample_time = sample.timestamp
+                self._sample_jumps.accepted(sample.timestamp, arrival)
             if not sample.valid:
                 self.invalid_samples[sample.problem] = self.invalid_samples.get(
                     sample.problem, 0) + 1
