@@ -829,3 +829,15 @@ def test_an_absurd_value_in_homographies_csv_is_out_of_range(tmp_path):
     with pytest.raises(ValueError, match=r"h\.csv: row 3: value 1e\+300 out of range "
                                          r"\(\|value\| > 1e\+100\)$"):
         read_homographies_csv(tmp_path / "h.csv")
+
+
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_a_dataset_folder_named_like_an_existing_file_is_refused_as_a_file(tmp_path, overwrite):
+    """live --record (write_dataset, import, simulate) naming an existing file was refused as
+    'exists and is not empty' (review): now it says it is a file, with or without overwrite,
+    and the file is left alone."""
+    (tmp_path / "ds").write_text("notes")
+    with pytest.raises(ValueError, match=r"ds: exists and is a file, not a folder \(name a new "
+                                         r"folder for the dataset\)$"):
+        _write(tmp_path, 2, overwrite=overwrite)
+    assert (tmp_path / "ds").read_text() == "notes"

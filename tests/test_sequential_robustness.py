@@ -1084,3 +1084,19 @@ def test_startup_checks_ignore_frames_without_a_registered_pair(scene):
             first = k
     m.flush()
     assert first is not None and first <= 10
+
+
+def test_one_frame_in_the_start_up_at_the_end_is_named_as_such():
+    """A stream ending with a single frame in the start-up (a live session stopped after one
+    processed frame) was refused as 'no pair among the first 1 frames could be registered
+    with tracker poses', blaming tracking and registration (review)."""
+    from fusedmosaic.estimation.sequential import SequentialMosaicker
+    from fusedmosaic.io import Camera
+
+    camera = Camera(64, 48, camera_matrix=np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]]))
+    m = SequentialMosaicker(camera)
+    m.add_frame(np.zeros((48, 64), np.uint8), 0.0, np.zeros(6))
+    with pytest.raises(ValueError, match=r"^the sequence ended with 1 frame in the start-up: the "
+                                         r"plane needs a registered pair, at least 2 frames with "
+                                         r"tracker poses$"):
+        m.flush()

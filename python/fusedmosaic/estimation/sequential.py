@@ -996,6 +996,10 @@ class SequentialMosaicker:
         self._finalized = []
         if self._pending:
             if self._plane is None:
+                if len(self._pending) < 2:  # (a pair was blamed on tracking; review)
+                    raise ValueError(
+                        "the sequence ended with 1 frame in the start-up: the plane needs a "
+                        "registered pair, at least 2 frames with tracker poses")
                 if not self._bootstrap(final_step=True):
                     raise ValueError(self._startup_problem or (
                         f"no pair among the first {len(self._pending)} frames could be "

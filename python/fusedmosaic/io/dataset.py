@@ -640,7 +640,10 @@ def staging_folder(root: Path, overwrite: bool,
     dataset in, for _replace_dir to rename into place; with a folder's usual mode (mkdtemp
     makes it 0700, which the renamed dataset would keep). ValueError otherwise (`hint` says
     how to replace)."""
-    if root.exists() and (not root.is_dir() or any(root.iterdir())):
+    if root.exists() and not root.is_dir():  # (was 'exists and is not empty'; review)
+        raise ValueError(f"{root}: exists and is a file, not a folder (name a new folder for "
+                         "the dataset)")
+    if root.exists() and any(root.iterdir()):
         if not overwrite:
             raise ValueError(f"{root}: exists and is not empty ({hint})")
         check_replaceable_dataset(root)
