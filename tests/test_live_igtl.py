@@ -1016,6 +1016,18 @@ def test_a_recording_that_cannot_be_written_further_keeps_its_frames(tmp_path, m
     assert sorted(p.name for p in tmp_path.iterdir()) == ["rec"]
 
 
+def _first_pixels(events) -> tuple[list[int], IgtlSource]:
+    """The first pixel of each frame an IgtlSource offers from the sent `events`, and the
+    source (closed) for its counters."""
+    sender = Sender(events, delay=0.1)
+    seen = []
+    with IgtlSource(f":{sender.port}", transform_device="SensorToTracker") as source:
+        while (frame := source.next_frame(2.0)) is not None:
+            seen.append(int(frame.image.reshape(-1)[0]))
+    sender.join()
+    return seen, source
+
+
 def _with_crc(message: bytes) -> bytes:
     """The message with its header's CRC64 computed again over its (edited) body."""
     import crcmod
@@ -1073,12 +1085,7 @@ def test_an_image_failing_its_crc_is_dropped_and_counted():
     corrupted[-1] ^= 0x01
     events = [(0.0, image_message(images[0], 0.0)), (0.04, bytes(corrupted)),
               (0.08, image_message(images[2], 0.08))]
-    sender = Sender(events, delay=0.1)
-    seen = []
-    with IgtlSource(f":{sender.port}", transform_device="SensorToTracker") as source:
-        while (frame := source.next_frame(2.0)) is not None:
-            seen.append(int(frame.image.reshape(-1)[0]))
-    sender.join()
+    seen, source = _first_pixels(events)
     assert 30 in seen and 20 not in seen, seen  # (frame 10 may be replaced before taken)
     assert source.corrupted_frames == 1 and source.received == 2
 
@@ -1111,12 +1118,7 @@ def test_an_undecodable_image_is_dropped_and_counted():
     images = [np.full((8, 8), 10 * (k + 1), np.uint8) for k in range(3)]
     events = [(0.0, image_message(images[0], 0.0)), (0.04, _undecodable(images[1], 0.04)),
               (0.08, image_message(images[2], 0.08))]
-    sender = Sender(events, delay=0.1)
-    seen = []
-    with IgtlSource(f":{sender.port}", transform_device="SensorToTracker") as source:
-        while (frame := source.next_frame(2.0)) is not None:
-            seen.append(int(frame.image.reshape(-1)[0]))
-    sender.join()
+    seen, source = _first_pixels(events)
     assert 30 in seen and 20 not in seen, seen
     assert source.received == 2 and sum(source.undecodable_frames.values()) == 1
     (why,) = source.undecodable_frames

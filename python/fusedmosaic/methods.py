@@ -69,6 +69,14 @@ def ms_stats(values_ms) -> dict | None:
             "max": float(values_ms.max())}
 
 
+def listed_ids(ids, shown: int = 10) -> str:
+    """The first ``shown`` frame ids, comma-separated, then ", ... (N more)": how the methods'
+    warnings name a set of frames."""
+    ids = [int(k) for k in ids]
+    more = f", ... ({len(ids) - shown} more)" if len(ids) > shown else ""
+    return ", ".join(map(str, ids[:shown])) + more
+
+
 def available() -> list[str]:
     """Registered names, best first (the demo runs the first)."""
     return list(REGISTRY)

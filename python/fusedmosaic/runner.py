@@ -239,10 +239,9 @@ def flag_unreadable_frames(result: methods.MethodResult, dataset) -> dict[str, s
         if result.status[k].startswith("unplaced"):
             result.status[k] = UNREADABLE_STATUS
     placed = sum(not result.status[k].startswith("unplaced") for k in found)
-    listed = ", ".join(str(int(ids[k])) for k in list(found)[:10])
-    more = f", ... ({len(found) - 10} more)" if len(found) > 10 else ""
+    listed = methods.listed_ids(ids[k] for k in found)
     _warn_first(result, (
-        f"{len(found)} of {len(ids)} frames could not be read (frames {listed}{more}; first: "
+        f"{len(found)} of {len(ids)} frames could not be read (frames {listed}; first: "
         f"{next(iter(found.values()))}): taken as frames without visual content, {placed} "
         "placed from the priors, left out of the mosaic (report.json unreadable_frames)"))
     return {str(int(ids[k])): message for k, message in found.items()}
@@ -842,9 +841,9 @@ def _refusal_reason(message: str) -> str:
     return reason
 
 
-def _pixels(image: np.ndarray) -> str:
+def _pixels(dtype) -> str:
     """'8-bit' / '16-bit' for a live frame's pixel type."""
-    return f"{image.dtype.itemsize * 8}-bit"
+    return f"{np.dtype(dtype).itemsize * 8}-bit"
 
 
 def _live_image_problem(image: np.ndarray, camera, first: tuple | None) -> str | None:
@@ -867,7 +866,7 @@ def _live_image_problem(image: np.ndarray, camera, first: tuple | None) -> str |
         return (f"a {'colour' if image.ndim == 3 else 'gray'} image after "
                 f"{'colour' if ndim == 3 else 'gray'} ones (a recording is one or the other)")
     if image.dtype != dtype:
-        return (f"a {_pixels(image)} image after {_pixels(np.empty(0, dtype))} ones (a "
+        return (f"a {_pixels(image.dtype)} image after {_pixels(dtype)} ones (a "
                 "recording is all 8-bit or all 16-bit)")
     return None
 

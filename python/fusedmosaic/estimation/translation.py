@@ -133,7 +133,7 @@ from fusedmosaic.io.tracking import (  # noqa: F401  (MAX_FRAME_GAP_S, MAX_TIMES
     MAX_TIMESTAMP_S,
     check_stream_timestamp,
 )
-from fusedmosaic.methods import MethodResult, ms_stats
+from fusedmosaic.methods import MethodResult, listed_ids, ms_stats
 from fusedmosaic.registration.ncc import (
     aligned_overlap_ssim,
     fixed_pattern_gain,
@@ -1206,8 +1206,7 @@ def add_inconsistency(details: dict, results: list, ids, estimate: str) -> None:
     bad = [int(ids[r.index]) for r in made if not r.ncc_consistent]
     details["ncc_inconsistent"] = bad
     if estimate == "image" and made and len(bad) > MAX_INCONSISTENT_FRACTION * len(made):
-        listed = ", ".join(map(str, bad[:10])) + (f", ... ({len(bad) - 10} more)"
-                                                  if len(bad) > 10 else "")
+        listed = listed_ids(bad)
         details["warnings"].append(
             f"{len(bad)} of {len(made)} NCC registrations have forward and backward directions "
             f"that disagree even after the wide-range retry (frames {listed}): consecutive "
@@ -1226,8 +1225,7 @@ def add_frames_without_robot_sample(details: dict, missing: list[int], n: int, e
     against 7.1; review.)"""
     details["frames_without_robot_sample"] = [int(k) for k in missing]
     if missing:
-        listed = ", ".join(map(str, missing[:10])) + (
-            f", ... ({len(missing) - 10} more)" if len(missing) > 10 else "")
+        listed = listed_ids(missing)
         how = ("kalman-robot placed them by the NCC registrations alone, whose drift the robot "
                "does not correct there" if estimate == "fused" else "they are unplaced")
         details["warnings"].append(
