@@ -263,3 +263,29 @@ def test_camera_yaml_keys_of_calibration_tools_silent(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         read_camera_yaml(path)
+
+
+def test_dataset_warnings_kept_in_report_json(tmp_path):
+    """What reading the dataset warned of (a gap in the numbered files, an unknown camera.yaml
+    key) qualifies the results: report.json's warnings keep it, and the terminal summary does not
+    repeat what was shown as it happened."""
+    import json
+
+    from fusedmosaic.runner import run_dataset
+    from fusedmosaic.simulation import FetoscopyOptions, simulate_fetoscopy
+
+    root = simulate_fetoscopy(tmp_path / "d", FetoscopyOptions(n_frames=8, laps=8 / 37.5,
+                                                                width=160, height=160))
+    for name in ("frames.csv", "ground_truth.csv", "frames/000003.png"):
+        (root / name).unlink()
+    camera = root / "camera.yaml"
+    camera.write_text(camera.read_text() + "pixel_sise_um: 2\n")
+    with pytest.warns(UserWarning) as heard:
+        summary = run_dataset(root, "emt", tmp_path / "out", report=False, progress=False)
+    texts = [str(w.message) for w in heard]
+    gap = next(t for t in texts if "000003.png missing between 000002.png and 000004.png" in t)
+    key = next(t for t in texts if "unknown key 'pixel_sise_um' (did you mean 'pixel_size_um'" in t)
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert gap in report["warnings"] and key in report["warnings"]
+    assert len(report["warnings"]) == len(set(report["warnings"]))
+    assert "missing between" not in summary and "pixel_sise_um" not in summary

@@ -104,123 +104,128 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
     # live replay uses the raw samples (frames without a recent one are listed, not refused);
     # a method that does not use the tracker / robot is not refused for their files: an
     # unusable one is left out with a warning (dataset.ignored says why)
-    dataset = read_dataset(dataset_root, fps=fps, robot_file=robot_file,
-                           allow_untracked=allow_untracked or live,
-                           tracker_time_offset=(0.0 if method in NEEDS_ROBOT
-                                                else tracker_time_offset),
-                           robot_time_offset=(tracker_time_offset if method in NEEDS_ROBOT
-                                              else 0.0),
-                           strict_tracking=method in NEEDS_TRACKING,
-                           strict_robot=method in NEEDS_ROBOT,
-                           blank_unreadable=not stop_on_unreadable)
-    if dataset.ignored:
-        warnings.warn(f"{'; '.join(dataset.ignored.values())} -- left out: method {method!r} "
-                      f"does not use {'it' if len(dataset.ignored) == 1 else 'them'}",
-                      stacklevel=2)
-    if method in NEEDS_TRACKING and result is None:  # a live session may have had none
-        dataset.require_tracking(method)
-        if not dataset.pose_valid.any():  # --allow-untracked: every frame flagged
-            from fusedmosaic.io.tracking import no_overlap_message
+    with HeardWarnings() as heard:  # for report.json (and not repeated by the summary)
+        dataset = read_dataset(dataset_root, fps=fps, robot_file=robot_file,
+                               allow_untracked=allow_untracked or live,
+                               tracker_time_offset=(0.0 if method in NEEDS_ROBOT
+                                                    else tracker_time_offset),
+                               robot_time_offset=(tracker_time_offset if method in NEEDS_ROBOT
+                                                  else 0.0),
+                               strict_tracking=method in NEEDS_TRACKING,
+                               strict_robot=method in NEEDS_ROBOT,
+                               blank_unreadable=not stop_on_unreadable)
+        if dataset.ignored:
+            warnings.warn(f"{'; '.join(dataset.ignored.values())} -- left out: method {method!r} "
+                          f"does not use {'it' if len(dataset.ignored) == 1 else 'them'}",
+                          stacklevel=2)
+        if method in NEEDS_TRACKING and result is None:  # a live session may have had none
+            dataset.require_tracking(method)
+            if not dataset.pose_valid.any():  # --allow-untracked: every frame flagged
+                from fusedmosaic.io.tracking import no_overlap_message
 
-            ts = dataset.tracking.timestamps[dataset.tracking.valid]
-            raise ValueError(no_overlap_message(str(dataset.root / "tracking.csv"), "tracker",
-                                                dataset.timestamps, ts[0], ts[-1]))
-    if method in NEEDS_CAMERA_MATRIX:
-        dataset.camera.require_camera_matrix(method)
-    check_compositing_options(blend, canvas, camera=dataset.camera, method=method)  # the border
-    if method in NEEDS_ROBOT and result is None:
-        dataset.require_robot(method)
-    if method in NEEDS_PIXEL_SIZE:
-        dataset.require_pixel_size(method)
-    timings["read_dataset"] = time.perf_counter() - t0
+                ts = dataset.tracking.timestamps[dataset.tracking.valid]
+                raise ValueError(no_overlap_message(str(dataset.root / "tracking.csv"), "tracker",
+                                                    dataset.timestamps, ts[0], ts[-1]))
+        if method in NEEDS_CAMERA_MATRIX:
+            dataset.camera.require_camera_matrix(method)
+        check_compositing_options(blend, canvas, camera=dataset.camera, method=method)  # the border
+        if method in NEEDS_ROBOT and result is None:
+            dataset.require_robot(method)
+        if method in NEEDS_PIXEL_SIZE:
+            dataset.require_pixel_size(method)
+        timings["read_dataset"] = time.perf_counter() - t0
 
-    # OUT (and the video's folder) are checked before the computation; the outputs are
-    # collected in a temporary folder and replace OUT's previous run at the end: the files that
-    # run recorded (and evaluations of it), never files fusedmosaic did not write.
-    if video is not None and not is_under(video, out):
-        from fusedmosaic.io.output import check_output_dir
+        # OUT (and the video's folder) are checked before the computation; the outputs are
+        # collected in a temporary folder and replace OUT's previous run at the end: the files that
+        # run recorded (and evaluations of it), never files fusedmosaic did not write.
+        if video is not None and not is_under(video, out):
+            from fusedmosaic.io.output import check_output_dir
 
-        # nothing created yet: a run that fails, is interrupted or skips the video leaves no
-        # empty folder behind (OutputWriter.external_path creates it and removes it on failure)
-        check_output_dir(Path(video).parent, "video's folder", create_parent=False)
-    expects = ["homographies.csv", "mosaic.png", "report.json"]
-    if report:
-        expects += ["report.md", "plots/"]
-    if video is not None and is_under(video, out):
-        expects.append(Path(video).resolve().relative_to(out.resolve()).as_posix())
-    older = older_run_outputs(out)
-    # a file of a run's name that no fusedmosaic run wrote is the user's: refused, not replaced
-    with OutputWriter(out, record="run", stale_after_run=True, new_run=True, expects=expects,
-                      replaces=older, foreign="refuse",
-                      older=[*RUN_FILES, "plots/"] if older else []) as w:
-        w.check_ours(*(f for f in RUN_FILES if report or f != "report.md"))
-        result = run_method(dataset, progress=progress, options=options)
-        add_streamed_checks(result, dataset, method, options)
-        if method in READS_NO_IMAGE and not stop_on_unreadable:
-            for k in range(len(dataset.frames)):
-                dataset.frames[k]
-        unreadable = flag_unreadable_frames(result, dataset)
-        flag_dead_reckoned_frames(result, dataset)
-        reference = flag_reference_frame(result, dataset)
-        timings.update(result.timings)
-        G = result.homographies
-        placed = np.isfinite(G).all(axis=(1, 2))
-
-        report_json = {
-            "method": method,
-            "paper_name": methods.REGISTRY[method][1],
-            "dataset": str(Path(dataset_root).resolve()),
-            "dataset_fingerprint": dataset_fingerprint(dataset),
-            "frames": len(G),
-            "placed": int(placed.sum()),
-            # the frame whose pixel grid homographies.csv maps to: frame 0 unless unplaced
-            "reference_frame": reference,
-            "parameters": result.parameters,
-            "frame_times": dataset.frame_times,
-            "tracker_time_offset_s": float(tracker_time_offset),
-            "timings_s": timings,
-            "frame_status": result.status,
-            **result.details,
-        }
-        if dataset.ignored:  # files present but not usable, left out (the method does not use them)
-            report_json["inputs_ignored"] = dict(dataset.ignored)
-        if unreadable:
-            report_json["unreadable_frames"] = unreadable
-        if dataset.frames.bits_in_use is not None:  # 16-bit frames, converted with one scale
-            report_json["frame_bits_in_use"] = dataset.frames.bits_in_use
-        if dataset.ground_truth is not None:
-            from fusedmosaic.evaluation import drift_ratio, frame_errors, mosaic_error
-            from fusedmosaic.evaluation.metrics import truth_in_reference
-
-            errors = frame_errors(G, truth_in_reference(G, dataset.ground_truth)[0],
-                                  dataset.camera.width, dataset.camera.height)
-            report_json["metrics"] = {
-                "e_M_px": mosaic_error(errors), "drift_ratio": drift_ratio(errors),
-                "max_e_j_px": float(np.nanmax(errors)) if np.isfinite(errors).any() else None,
-                "frames_scored": int((~np.isnan(errors)).sum())}  # placed, with ground truth
-        w.write_homographies(dataset.frame_ids, G)
-        if result.poses is not None:
-            w.write_poses(dataset.frame_ids, result.poses)
-        if result.plane is not None:
-            from fusedmosaic import _core
-
-            plane = np.asarray(result.plane, float)
-            dist = [None if not np.isfinite(p).all() else _core.camera_plane_distance(p, plane)
-                    for p in (result.poses if result.poses is not None else [])]
-            w.write_json("plane.json", {"plane": plane.tolist(),
-                                        "normal": (plane / np.linalg.norm(plane)).tolist(),
-                                        "distance_mm": float(1.0 / np.linalg.norm(plane)),
-                                        "camera_plane_distance_mm": dist})
-        outputs = compose_outputs(w, dataset, result, G, blend=blend, canvas=canvas, video=video,
-                                  out=out, progress=progress, timings=timings)
-        report_json["mosaic"] = outputs["mosaic"]
+            # nothing created yet: a run that fails, is interrupted or skips the video leaves no
+            # empty folder behind (OutputWriter.external_path creates it and removes it on failure)
+            check_output_dir(Path(video).parent, "video's folder", create_parent=False)
+        expects = ["homographies.csv", "mosaic.png", "report.json"]
         if report:
-            t0 = time.perf_counter()
-            write_run_report(w, dataset, method, result, G, outputs, timings)
-            timings["report"] = time.perf_counter() - t0
-        report_json["outputs"] = sorted({*w.written(), "report.json"})
-        w.write_json("report.json", report_json)
-    return _summary(method, G, out, report_json, outputs, report)
+            expects += ["report.md", "plots/"]
+        if video is not None and is_under(video, out):
+            expects.append(Path(video).resolve().relative_to(out.resolve()).as_posix())
+        older = older_run_outputs(out)
+        # a file of a run's name that no fusedmosaic run wrote is the user's: refused, not replaced
+        with OutputWriter(out, record="run", stale_after_run=True, new_run=True, expects=expects,
+                          replaces=older, foreign="refuse",
+                          older=[*RUN_FILES, "plots/"] if older else []) as w:
+            w.check_ours(*(f for f in RUN_FILES if report or f != "report.md"))
+            result = run_method(dataset, progress=progress, options=options)
+            add_streamed_checks(result, dataset, method, options)
+            if method in READS_NO_IMAGE and not stop_on_unreadable:
+                for k in range(len(dataset.frames)):
+                    dataset.frames[k]
+            unreadable = flag_unreadable_frames(result, dataset)
+            flag_dead_reckoned_frames(result, dataset)
+            reference = flag_reference_frame(result, dataset)
+            timings.update(result.timings)
+            G = result.homographies
+            placed = np.isfinite(G).all(axis=(1, 2))
+
+            report_json = {
+                "method": method,
+                "paper_name": methods.REGISTRY[method][1],
+                "dataset": str(Path(dataset_root).resolve()),
+                "dataset_fingerprint": dataset_fingerprint(dataset),
+                "frames": len(G),
+                "placed": int(placed.sum()),
+                # the frame whose pixel grid homographies.csv maps to: frame 0 unless unplaced
+                "reference_frame": reference,
+                "parameters": result.parameters,
+                "frame_times": dataset.frame_times,
+                "tracker_time_offset_s": float(tracker_time_offset),
+                "timings_s": timings,
+                "frame_status": result.status,
+                **result.details,
+            }
+            if dataset.ignored:  # files present but not usable, left out (the method does not
+                # use them)
+                report_json["inputs_ignored"] = dict(dataset.ignored)
+            if unreadable:
+                report_json["unreadable_frames"] = unreadable
+            if dataset.frames.bits_in_use is not None:  # 16-bit frames, converted with one scale
+                report_json["frame_bits_in_use"] = dataset.frames.bits_in_use
+            if dataset.ground_truth is not None:
+                from fusedmosaic.evaluation import drift_ratio, frame_errors, mosaic_error
+                from fusedmosaic.evaluation.metrics import truth_in_reference
+
+                errors = frame_errors(G, truth_in_reference(G, dataset.ground_truth)[0],
+                                      dataset.camera.width, dataset.camera.height)
+                report_json["metrics"] = {
+                    "e_M_px": mosaic_error(errors), "drift_ratio": drift_ratio(errors),
+                    "max_e_j_px": float(np.nanmax(errors)) if np.isfinite(errors).any() else None,
+                    "frames_scored": int((~np.isnan(errors)).sum())}  # placed, with ground truth
+            w.write_homographies(dataset.frame_ids, G)
+            if result.poses is not None:
+                w.write_poses(dataset.frame_ids, result.poses)
+            if result.plane is not None:
+                from fusedmosaic import _core
+
+                plane = np.asarray(result.plane, float)
+                dist = [None if not np.isfinite(p).all() else _core.camera_plane_distance(p, plane)
+                        for p in (result.poses if result.poses is not None else [])]
+                w.write_json("plane.json", {"plane": plane.tolist(),
+                                            "normal": (plane / np.linalg.norm(plane)).tolist(),
+                                            "distance_mm": float(1.0 / np.linalg.norm(plane)),
+                                            "camera_plane_distance_mm": dist})
+            outputs = compose_outputs(w, dataset, result, G, blend=blend, canvas=canvas,
+                                      video=video, out=out, progress=progress, timings=timings)
+            report_json["mosaic"] = outputs["mosaic"]
+            heard.add_to(result.details)  # reading the dataset, the method, the compositing
+            if result.details.get("warnings"):
+                report_json["warnings"] = result.details["warnings"]
+            if report:
+                t0 = time.perf_counter()
+                write_run_report(w, dataset, method, result, G, outputs, timings)
+                timings["report"] = time.perf_counter() - t0
+            report_json["outputs"] = sorted({*w.written(), "report.json"})
+            w.write_json("report.json", report_json)
+    return _summary(method, G, out, report_json, outputs, report, shown=heard.texts)
 
 
 UNREADABLE_STATUS = "unplaced: its image cannot be read"
@@ -652,7 +657,9 @@ WARNING_LINE = "  warning "  # the summary's lines of the checks after the fusio
 
 
 def _summary(method: str, G: np.ndarray, out: Path, report_json: dict, outputs: dict,
-             report: bool) -> str:
+             report: bool, shown: list[str] = ()) -> str:
+    """The terminal's summary of a run; report.json's warnings among its lines, but for those in
+    `shown` (already shown as Python warnings while the run went on)."""
     placed = int(np.isfinite(G).all(axis=(1, 2)).sum())
     dead = sum(s == "dead-reckoned" for s in report_json.get("frame_status", []))
     # (dead-reckoned frames have homographies but no anchor: said apart; 'placed 100/100'
@@ -695,8 +702,42 @@ def _summary(method: str, G: np.ndarray, out: Path, report_json: dict, outputs: 
                          f"{live['frames_processed']} processed; stopped: {live['stopped_by']}")
     if outputs["video"] is not None:
         lines.append(f"  video   {outputs['video']}")
-    lines += [f"{WARNING_LINE}{text}" for text in report_json.get("warnings", [])]
+    lines += [f"{WARNING_LINE}{text}" for text in report_json.get("warnings", [])
+              if text not in shown]
     return "\n".join(lines)
+
+
+class HeardWarnings:
+    """While entered, records the text of each UserWarning shown (each is still shown as
+    before), for report.json: what a warning says about the inputs or their processing (a
+    dataset numbered around a gap, 16-bit frames clipped, a camera.yaml key not known, a
+    tracker file left out) qualifies the results, so it is kept with them, not only on a
+    terminal. A warning that the filters make an error or ignore is not shown, so not
+    recorded. Restores warnings.showwarning (and the filters) on exit."""
+
+    def __init__(self):
+        self.texts: list[str] = []
+        self._state = warnings.catch_warnings()
+
+    def __enter__(self) -> HeardWarnings:
+        self._state.__enter__()
+        show = warnings.showwarning
+
+        def record(message, category, filename, lineno, file=None, line=None):
+            if issubclass(category, UserWarning) and str(message) not in self.texts:
+                self.texts.append(str(message))
+            show(message, category, filename, lineno, file, line)
+
+        warnings.showwarning = record
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._state.__exit__(*exc)
+
+    def add_to(self, details: dict) -> None:
+        """The warnings heard so far at the head of details["warnings"] (those it has not)."""
+        known = details.get("warnings", [])
+        details["warnings"] = [t for t in self.texts if t not in known] + known
 
 
 def add_streamed_checks(result: methods.MethodResult, dataset, method: str, options) -> None:
