@@ -1188,3 +1188,36 @@ def test_a_frame_stamped_an_hour_ahead_is_refused_alone(syn, tmp_path):
     assert live["source"]["frames_refused"] == {STAMP_JUMP: 1}
     assert live["source"]["frames_refused_first"] == {STAMP_JUMP: 15}
     assert live["frames_recorded"] == 29
+
+
+def test_sender_clock_jump_taken_and_reported(syn, tmp_path, capsys):
+    """The sender's clock jumping an hour ahead mid-session, frames and tracker alike: the
+    first STAMP_JUMP_CONFIRM - 1 of each after it are refused as glitches, then the jump is
+    taken; both jumps are warned of (the samples' was taken silently) and kept in report.json:
+    live source frame_clock_jumps_s / sample_clock_jumps_s and warnings."""
+    from fusedmosaic.io.igtl import STAMP_JUMP, STAMP_JUMP_CONFIRM
+
+    times = np.asarray(syn.timestamps)[:40]
+    jump_at = float(times[20])
+    ahead = lambda t: t + (3600.0 if t >= jump_at else 0.0)  # noqa: E731
+    tr = syn.tracking
+    events = [(float(t), 1, image_message(syn.frames[k], ahead(float(t))))
+              for k, t in enumerate(times)]
+    events += [(float(t), 2, transform_message(
+        tracker_matrix(tr.translations[i], tr.quaternions[i]), ahead(float(t))))
+        for i, t in enumerate(tr.timestamps) if tr.valid[i] and t <= times[-1]]
+    events.sort(key=lambda e: (e[0], e[1]))
+    sender = Sender([(t, m) for t, _, m in events])
+    assert _live(syn, tmp_path, sender) == 0
+    sender.join()
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    source = report["live"]["source"]
+    assert source["frames_refused"] == {STAMP_JUMP: STAMP_JUMP_CONFIRM - 1}
+    assert source["tracker_samples_invalid"] == {STAMP_JUMP: STAMP_JUMP_CONFIRM - 1}
+    assert source["frame_clock_jumps_s"] == [pytest.approx(3600.0, abs=0.5)]
+    assert source["sample_clock_jumps_s"] == [pytest.approx(3600.0, abs=0.5)]
+    said = [w for w in report["warnings"] if "jumped" in w]
+    assert len(said) == 2 and "frame stamps jumped" in said[0] + said[1]
+    assert "tracker stamps jumped ahead of the stream 1 time(s) (by 3.6e+03 s)" in said[0] + said[1]
+    err = capsys.readouterr().err
+    assert all(text in err for text in said)

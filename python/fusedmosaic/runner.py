@@ -48,7 +48,8 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
                 progress: bool = True, blend=None, options=None, canvas=None,
                 video: str | Path | None = None, report: bool = True, live: bool = False,
                 result: methods.MethodResult | None = None,
-                tracker_time_offset: float = 0.0, stop_on_unreadable: bool = False) -> str:
+                tracker_time_offset: float = 0.0, stop_on_unreadable: bool = False,
+                shown_warnings=()) -> str:
     """Runs `method` on a dataset folder and writes the output contract into `out`.
 
     blend: a blend name ("linear", "multiband", "average", "last") or a
@@ -74,6 +75,8 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
         visual content (read as all zero: the pose methods place it from the tracker and
         motion priors, the translation methods from the robot, or leave it unplaced), flagged
         in report.json "unreadable_frames" and a warning, and left out of the mosaic.
+    shown_warnings: texts of the result's warnings already shown (a live session's): in
+        report.json, not repeated by the summary.
     Returns a short summary for the terminal."""
     from fusedmosaic.evaluation.provenance import dataset_fingerprint
     from fusedmosaic.io import read_dataset
@@ -225,7 +228,8 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
                 timings["report"] = time.perf_counter() - t0
             report_json["outputs"] = sorted({*w.written(), "report.json"})
             w.write_json("report.json", report_json)
-    return _summary(method, G, out, report_json, outputs, report, shown=heard.texts)
+    return _summary(method, G, out, report_json, outputs, report,
+                    shown=[*shown_warnings, *heard.texts])
 
 
 UNREADABLE_STATUS = "unplaced: its image cannot be read"
@@ -736,8 +740,15 @@ class HeardWarnings:
 
     def add_to(self, details: dict) -> None:
         """The warnings heard so far at the head of details["warnings"] (those it has not)."""
-        known = details.get("warnings", [])
-        details["warnings"] = [t for t in self.texts if t not in known] + known
+        add_warnings(details, self.texts)
+
+
+def add_warnings(details: dict, texts) -> None:
+    """`texts` at the head of details["warnings"], but those it has (once each)."""
+    known = details.get("warnings", [])
+    new = [t for t in dict.fromkeys(texts) if t not in known]
+    if new:
+        details["warnings"] = new + known
 
 
 def add_streamed_checks(result: methods.MethodResult, dataset, method: str, options) -> None:
@@ -1042,7 +1053,14 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     inform = say if say is not None else (lambda text: None)
     if say is None:
         say = lambda text: warnings.warn(text, stacklevel=3)  # noqa: E731
-    warn = say if warn is None else warn
+    tell = say if warn is None else warn
+    told: list[str] = []  # what went wrong during the session: report.json warnings too
+
+    def warn(text: str) -> None:
+        if text not in told:
+            told.append(text)
+        tell(text)
+
     if not isinstance(camera, Camera):
         camera = read_camera_yaml(camera)
     if method == "lba-emt":
@@ -1222,13 +1240,14 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                             rgb=rgb, orientation_required=method == "lba-emt",
                             on_frame=on_frame, on_sample=on_sample) as src:
                 try:
-                    session = live_session(src, camera, method=method, hand_eye=hand_eye,
-                                           options=options,
-                                           max_frames=max_frames, duration_s=duration_s,
-                                           frame_timeout_s=frame_timeout_s,
-                                           tracker_time_offset=offset,
-                                           on_final=on_final if view is not None else None,
-                                           on_loop_end=guard.start)
+                    with HeardWarnings() as heard:  # the estimation's, for report.json
+                        session = live_session(src, camera, method=method, hand_eye=hand_eye,
+                                               options=options,
+                                               max_frames=max_frames, duration_s=duration_s,
+                                               frame_timeout_s=frame_timeout_s,
+                                               tracker_time_offset=offset,
+                                               on_final=on_final if view is not None else None,
+                                               on_loop_end=guard.start)
                 finally:
                     accepting = False
                     if view is not None:  # the last frames drawn and published, then no more
@@ -1253,6 +1272,9 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                            **scale.details(),
                            "tracker_samples_valid": src.valid_samples,
                            "tracker_samples_invalid": dict(src.invalid_samples),
+                           # the sender's clock jumping ahead (s), taken (io.igtl.StampJumps)
+                           "frame_clock_jumps_s": list(frame_jumps.jumps),
+                           "sample_clock_jumps_s": src.sample_clock_jumps,
                            "ignored_devices": sorted(src.ignored_devices)}
                 if max_frames is not None:
                     details["frames_after_max_frames"] = after_limit
@@ -1286,8 +1308,16 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
             if note and isinstance(exc, KeyboardInterrupt):  # where the frames went
                 inform(f"live session interrupted{note}")
             raise
+        if jumps := details["sample_clock_jumps_s"]:
+            warn(f"live session: the sender's {device} stamps jumped ahead of the stream "
+                 f"{len(jumps)} time(s) (by {', '.join(f'{j:.3g}' for j in jumps[:5])} s), "
+                 f"{STAMP_JUMP_CONFIRM} samples in a row each time: taken as its clock from "
+                 "there (the samples before it in a jump were refused, report.json live "
+                 "tracker_samples_invalid); the frames are paired with the samples by their "
+                 "stamps, so check that the frames' stamps jumped alike")
         result = session_result(session, timestamps, dropped, source_details=details,
                                 method=method)
+        add_warnings(result.details, [*told, *heard.texts])
         if view is not None:
             result.details["live"]["view"] = view.summary()
         inform(f"live session ended ({session.stopped_by}): writing the outputs to {out} "
@@ -1296,7 +1326,7 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
         try:
             summary = run_dataset(record, method, out, result=result, allow_untracked=True,
                                   progress=progress, blend=blend, canvas=canvas, video=video,
-                                  report=report)
+                                  report=report, shown_warnings=[*told, *heard.texts])
         except KeyboardInterrupt:
             written = Path(out, "homographies.csv")  # (the commit defers a Ctrl-C to its end)
             inform(f"live session: interrupted once the outputs were in {out}"

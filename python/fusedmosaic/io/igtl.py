@@ -256,6 +256,12 @@ class IgtlSource:
                                         daemon=True)
         self._thread.start()
 
+    @property
+    def sample_clock_jumps(self) -> list[float]:
+        """The jumps (s) of the samples' clock taken (StampJumps: STAMP_JUMP_CONFIRM samples
+        in a row stamped consistently far ahead of the stream; those before were refused)."""
+        return list(self._sample_jumps.jumps)
+
     # ------------------------------------------------------------------ consumer side
     def next_frame(self, timeout_s: float) -> LiveFrame | None:
         """The newest frame not yet taken, waiting up to timeout_s; None when the stream has
