@@ -10,6 +10,7 @@ from fusedmosaic.evaluation import frame_errors
 from fusedmosaic.registration.features import (
     FeatureExtractor,
     FeatureOptions,
+    Features,
     fov_mask_from_image,
 )
 from fusedmosaic.registration.pair_selection import all_pairs, emt_guided_pairs, window_pairs
@@ -81,6 +82,46 @@ def test_orb_fast_threshold_and_the_low_contrast_retry(texture):
             (dict(orb_fast_threshold_low=256), "orb_fast_threshold_low must be an integer")):
         with pytest.raises(ValueError, match=message):
             FeatureExtractor(FeatureOptions(detector="orb", **bad))
+
+
+@pytest.mark.parametrize("bad, message", [
+    (dict(clahe=True, clahe_tiles=0), r"clahe_tiles must be an integer in 1\.\.1024"),
+    (dict(clahe_tiles=2.5), "clahe_tiles must be an integer"),
+    (dict(clahe_clip_limit=float("nan")), "clahe_clip_limit must be a finite number >= 0"),
+    (dict(clahe_clip_limit=-1.0), "clahe_clip_limit must be a finite number >= 0"),
+    (dict(mask_margin_px=-3), "mask_margin_px must be an integer in 0..10000"),
+    (dict(border_threshold=300), "border_threshold must be an integer in 0..255")])
+def test_feature_options_refused_before_any_frame(bad, message):
+    """clahe_tiles=0 was accepted and the first add_frame killed the interpreter (SIGFPE in
+    OpenCV's CLAHE); other bad values failed inside OpenCV (review)."""
+    from fusedmosaic.estimation.sequential import SequentialMosaicker, SequentialOptions
+    from fusedmosaic.io import Camera
+
+    with pytest.raises(ValueError, match=message):
+        SequentialMosaicker(Camera(64, 64, np.array([[60.0, 0, 32], [0, 60, 32], [0, 0, 1]])),
+                            SequentialOptions(features=FeatureOptions(**bad)))
+
+
+@pytest.mark.parametrize("bad, message", [
+    (dict(min_inliers=3), r"min_inliers: expected an integer >= 4, got 3"),
+    (dict(ratio=1.5), r"ratio: expected a value in \(0, 1\], got 1\.5"),
+    (dict(ransac_threshold_px=-1.0), r"ransac_threshold_px: expected pixels > 0"),
+    (dict(ransac_confidence=1.0), r"ransac_confidence: expected a value in \(0, 1\)"),
+    (dict(max_scale_change=0.5), r"max_scale_change: expected a factor >= 1"),
+    (dict(num_threads=0), r"num_threads: expected an integer >= 1"),
+    (dict(binary_matcher="flann"), r"binary_matcher: expected one of \('exact', 'lsh'\)")])
+def test_match_options_refused(bad, message):
+    """min_inliers=3 failed in findHomography on whichever pair had exactly 3 matches, a
+    random frame of a live loop (review): refused when built, and when set afterwards, by the
+    first match."""
+    with pytest.raises(ValueError, match=message):
+        MatchOptions(**bad)
+    options = MatchOptions()
+    for name, value in bad.items():
+        setattr(options, name, value)
+    feats = Features(0, np.zeros((0, 2)), np.zeros((0, 128), np.float32), binary=False)
+    with pytest.raises(ValueError, match=message):
+        match_pair(feats, feats, SIZE, options)
 
 
 def test_sift_low_contrast_retry_registers_faded_frames():

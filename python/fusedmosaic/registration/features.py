@@ -86,6 +86,17 @@ class FeatureOptions:
         if isinstance(m, bool) or not isinstance(m, int | np.integer) or m < 0:
             raise ValueError(f"{name('sift_min_features', 'sift_min_features')} must be an "
                              f"integer >= 0, got {m!r}")
+        for field_name, low, high, unit in (("clahe_tiles", 1, 1024, "tiles per side"),
+                                            ("mask_margin_px", 0, 10_000, "pixels"),
+                                            ("border_threshold", 0, 255, "grey levels")):
+            v = getattr(self, field_name)
+            if isinstance(v, bool) or not isinstance(v, int | np.integer) or not low <= v <= high:
+                raise ValueError(f"{name(field_name, field_name)} must be an integer in "
+                                 f"{low}..{high} ({unit}), got {v!r}")
+        c = self.clahe_clip_limit
+        if isinstance(c, bool) or not isinstance(c, float | int) or not 0 <= c < np.inf:
+            raise ValueError(f"{name('clahe_clip_limit', 'clahe_clip_limit')} must be a finite "
+                             f"number >= 0 (CLAHE's clipLimit; 0: not clipped), got {c!r}")
         side = self.max_image_side
         if side is not None and (isinstance(side, bool) or not isinstance(side, int | np.integer)
                                  or side < 32):

@@ -59,6 +59,37 @@ class MatchOptions:
     guided_sift: bool = False
     guided_sift_ratio: float = 0.5
 
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """ValueError naming a bad field (min_inliers below 4 failed in OpenCV's
+        findHomography on the first pair with that few matches, mid-stream; review)."""
+        def number(name: str, ok, expected: str) -> None:
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | float | np.integer | np.floating) \
+                    or not np.isfinite(v) or not ok(v):
+                raise ValueError(f"{name}: expected {expected}, got {v!r}")
+
+        def integer(name: str, low: int) -> None:
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < low:
+                raise ValueError(f"{name}: expected an integer >= {low}, got {v!r}")
+
+        for name in ("ratio", "guided_ratio", "guided_sift_ratio"):
+            number(name, lambda v: 0 < v <= 1, "a value in (0, 1]")
+        number("ransac_threshold_px", lambda v: v > 0, "pixels > 0")
+        number("ransac_confidence", lambda v: 0 < v < 1, "a value in (0, 1)")
+        number("min_inlier_ratio", lambda v: 0 <= v <= 1, "a value in [0, 1]")
+        number("max_scale_change", lambda v: v >= 1, "a factor >= 1")
+        number("guided_radius_px", lambda v: v >= 0, "pixels >= 0 (0: no guided search)")
+        integer("ransac_max_iters", 1)
+        integer("min_inliers", 4)  # a homography needs 4 correspondences
+        integer("num_threads", 1)
+        if self.binary_matcher not in BINARY_MATCHERS:
+            raise ValueError(f"binary_matcher: expected one of {BINARY_MATCHERS}, got "
+                             f"{self.binary_matcher!r}")
+
 
 @dataclass
 class PairMatch:
@@ -166,15 +197,7 @@ def match_pair(f_l: Features, f_m: Features, image_size: tuple[int, int],
     binary descriptors with the exact matcher, float ones with guided_sift; otherwise ignored);
     if that search does not register the pair, it is matched exhaustively."""
     o = options or MatchOptions()
-    if o.binary_matcher not in BINARY_MATCHERS:
-        raise ValueError(f"binary_matcher: expected one of {BINARY_MATCHERS}, got "
-                         f"{o.binary_matcher!r}")
-    if not (np.isfinite(o.guided_radius_px) and o.guided_radius_px >= 0):
-        raise ValueError(f"guided_radius_px: expected pixels >= 0 (0: no guided search), got "
-                         f"{o.guided_radius_px!r}")
-    for name in ("guided_ratio", "guided_sift_ratio"):
-        if not 0 < getattr(o, name) <= 1:
-            raise ValueError(f"{name}: expected a value in (0, 1], got {getattr(o, name)!r}")
+    o.validate()  # (fields set after construction)
     if predicted is not None and guided_search(f_m, o) and np.isfinite(predicted).all():
         out = _register(f_l, f_m, image_size, o, predicted)
         if out.ok:
