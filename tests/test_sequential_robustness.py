@@ -884,6 +884,7 @@ def test_startup_waiting_for_the_tracker_is_bounded(scene):
         assert len(m._pending) <= 10 and len(m._boot_feats) <= 10
         assert len(m._startup_G) <= 10  # (the chain's homographies grew by one a frame)
     assert sorted(final) == list(range(8))
+    assert m.reference_frame is None  # no frame placed yet
     for f in final.values():
         assert f.final and np.isnan(f.homography).all()
         assert f.status == ("unplaced: no registered pair with tracker poses within the "
@@ -896,6 +897,9 @@ def test_startup_waiting_for_the_tracker_is_bounded(scene):
     # frame 18 alone has a tracker pose: still waiting, frame 8 goes too; 19 makes the pair
     assert final[8].status.startswith("unplaced: no registered pair")
     assert all(final[k].status in ("placed", "prior-only") for k in range(9, N))
+    # frame 0 unplaced: the homographies map to the first placed frame's grid, and say so
+    assert m.reference_frame == 9
+    np.testing.assert_allclose(final[9].homography, np.eye(3), atol=1e-12)
     with pytest.raises(ValueError, match=r"startup_wait_frames must be >= bootstrap_frames"):
         SequentialMosaicker(scene.camera,
                             SequentialOptions(bootstrap_frames=8, startup_wait_frames=7))

@@ -355,7 +355,8 @@ class FrameResult:
     ``flush()`` once it is final).
 
     frame_id: 0-based count of accepted frames. timestamp: s, as given. homography: (3, 3)
-    frame -> reference (frame 0's pixel grid), NaN when unplaced. pose: (6,) cam_from_world
+    frame -> reference (frame 0's pixel grid; the first placed frame's when frame 0 is
+    unplaced: SequentialMosaicker.reference_frame), NaN when unplaced. pose: (6,) cam_from_world
     [angle-axis rad, t mm] in the tracker's world (NaN when unknown). status: "placed" (final,
     with visual evidence), "prior-only" (final, from the tracker and motion priors alone: no
     registered pair), "dead-reckoned" (final, with no anchor at all: neither a tracker sample
@@ -527,6 +528,7 @@ class SequentialMosaicker:
         self._samples: dict[int, np.ndarray] = {}
         self._motion_history: deque = deque(maxlen=200)
         self._reference_pose: np.ndarray | None = None
+        self._reference_id: int | None = None  # the frame whose pose it is
         self._plane: np.ndarray | None = None
         # Provisional placements in the start-up, until its adjustment gives self._plane: start-up
         # frame -> reference homographies chained through each frame's best registered pair
@@ -564,6 +566,14 @@ class SequentialMosaicker:
     def frame_count(self) -> int:
         """Frames accepted since the last :meth:`reset`: the id the next frame will get."""
         return self._next_id
+
+    @property
+    def reference_frame(self) -> int | None:
+        """The id of the frame whose pixel grid the final homographies map to: frame 0, or
+        when frame 0 was handed out unplaced (e.g. a tracker that came on late: the start-up
+        cannot wait for it beyond its bound) the first frame placed; None before a frame is
+        final and placed."""
+        return self._reference_id
 
     @property
     def plane(self) -> np.ndarray | None:
@@ -698,7 +708,8 @@ class SequentialMosaicker:
                                    "reset() to start a new mosaic") from exc
             raise
 
-    _SAVED = ("_next_id", "_last_timestamp", "_trusted", "_reference_pose", "_plane",
+    _SAVED = ("_next_id", "_last_timestamp", "_trusted", "_reference_pose", "_reference_id",
+              "_plane",
               "_startup_G", "_startup_plane", "_startup_problem", "_startup_refused",
               "num_steps", "_finalized", "_boot_feats", "_boot_matches", "_loop_feats",
               "_loop_centroids", "_loop_G", "_pair_H", "_recent_G", "_poses", "pair_counts",
@@ -1639,7 +1650,8 @@ class SequentialMosaicker:
                     k in gated or p["dropped"], p["timings"], self.plane,
                     tracker_dropped=p["dropped"]))
                 continue
-            self._reference_pose = reference
+            if self._reference_pose is None:
+                self._reference_pose, self._reference_id = reference, k
             centroid = self._centroid(G)
             forget += self.keyframes.add(k, centroid)
             dead_reckoned = anchored is not None and k not in anchored

@@ -604,6 +604,7 @@ class RobotPriorMosaicker:
         self._count = 0
         self._last_timestamp = -np.inf
         self._pixel_type: np.dtype | None = None  # the first image's, which every image keeps
+        self._intensity: tuple[float, float] | None = None  # _common_scale's (offset, factor)
         self._anchor: _Anchor | None = None
         self._robot_origin_um = _NAN2  # robot position at frame 0
         # The frames whose X_m / X_r are the origin (0, 0): frame 0, or when frame 0 is blank
@@ -664,8 +665,8 @@ class RobotPriorMosaicker:
         # the pixel type checked before a colour image is converted (before: BGR bool / complex
         # / object arrays were cast to grey silently, or failed inside the conversion)
         if not isinstance(image, np.ndarray):
-            raise ValueError(f"frame {index}: image must be a numpy array, got "
-                             f"{type(image).__name__}")
+            raise TypeError(f"frame {index}: image must be a numpy array, got "
+                            f"{type(image).__name__}")
         if image.dtype.kind not in "uif":
             raise ValueError(f"frame {index}: unsupported pixel type {image.dtype}")
         if (self._pixel_type is not None and self.estimate != "robot"
@@ -692,6 +693,20 @@ class RobotPriorMosaicker:
             if not np.isfinite(image).all():
                 raise ValueError(f"frame {index}: image contains NaN or infinite pixels")
         return image
+
+    def _common_scale(self, gray: np.ndarray) -> np.ndarray:
+        """A frame not of uint8 (float, or integers wider than 8 bits) on one intensity scale
+        for the sequence, set by its first textured such frame: (v - that frame's minimum) *
+        255 / its range. NCC and the SSIM of c_match (on the overlap's own range) do not depend
+        on an affine map of the intensities that all frames share, but their float32
+        arithmetic does: frames on a pedestal of 1e5 placed twice as far off, frames scaled by
+        1e12 failed with c_match NaN, by 1e-12 every one fell back to the robot (review)."""
+        if self._intensity is None:
+            low, high = float(gray.min()), float(gray.max())
+            self._intensity = (low, 255.0 / (high - low))  # (textured: high > low)
+        low, factor = self._intensity
+        out = (gray.astype(np.float64) - low) * factor
+        return out.astype(np.float32)
 
     def _prepare_timestamp(self, timestamp, index: int) -> float:
         return check_stream_timestamp(index, timestamp, self._last_timestamp)
@@ -737,7 +752,8 @@ class RobotPriorMosaicker:
         ----------
         image : (H, W) uint8/float gray or (H, W, 3) BGR, the camera's size and the first
             image's pixel type; may be None for the ``robot`` estimate (which does not look at
-            images).
+            images). Float or wider integer pixels may have any offset and scale: they are
+            mapped onto one scale, the first textured frame's range to 0-255.
         timestamp : s, strictly increasing.
         robot_xy_um : (2,) robot position at the frame time (µm, image axes), or None / both
             NaN when the robot has no sample for this frame.
@@ -790,7 +806,8 @@ class RobotPriorMosaicker:
     # deepcopy took ~0.5 ms, 5 % of a 512x448 frame).
     _STATE = ("_count", "_last_timestamp", "_anchor", "_robot_origin_um", "_image_origin",
               "_robot_origin", "_fused_origin", "_robot_anchor",
-              "_steps_without_robot", "_gated_in_a_row", "_unjudged_in_a_row", "_innovations")
+              "_steps_without_robot", "_gated_in_a_row", "_unjudged_in_a_row", "_innovations",
+              "_intensity")
 
     def _state(self) -> dict:
         state = {name: copy.copy(getattr(self, name)) for name in self._STATE}
@@ -810,6 +827,8 @@ class RobotPriorMosaicker:
         blank = gray is not None and float(np.ptp(gray)) == 0.0  # before any flat-field
         if gray is not None and self.fixed_pattern is not None:
             gray = flat_field(gray, self.fixed_pattern)
+        if gray is not None and gray.dtype != np.uint8 and not blank:
+            gray = self._common_scale(gray)
         timings = dict.fromkeys(STAGES, 0.0)
         nan = float("nan")
         conf = dict.fromkeys(CONFIDENCES, nan)
