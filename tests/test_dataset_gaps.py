@@ -89,6 +89,31 @@ def test_gap_from_the_first_file_number(tmp_path):
     np.testing.assert_array_equal(ds.frame_ids, [0, 1, 3, 4, 5])
 
 
+def test_files_numbered_in_steps_taken_as_consecutive_with_a_warning(tmp_path):
+    """Files numbered 0, 5, 10, ... (every 5th frame, named by its number): consecutive
+    frames at the frame rate, as before, but no longer without a word (the tracker would be
+    paired with frames 5x too close in time)."""
+    root = _dataset(tmp_path / "d", n=4, frames_csv=False)
+    frames = root / "frames"
+    for k in reversed(range(4)):
+        (frames / f"{k:06d}.png").rename(frames / f"frame_{5 * k:06d}.png")
+    with pytest.warns(UserWarning, match=r"frames: the frame files are numbered in steps of 5 "
+                                         r"\(frame_000000\.png, frame_000005\.png, \.\.\.\): "
+                                         r"no frames\.csv, so they are taken as consecutive "
+                                         r"frames, timed frame / 25 fps .*or --fps 5$"):
+        ds = read_dataset(root)
+    np.testing.assert_array_equal(ds.frame_ids, np.arange(4))
+    np.testing.assert_allclose(ds.timestamps, np.arange(4) / 25.0)
+    write_dataset(tmp_path / "e", camera=Camera(W, H), frames=[ds.frames[k] for k in range(4)],
+                  timestamps=np.arange(4) / 5.0)  # with frames.csv: its times, no warning
+    for k in reversed(range(4)):
+        (tmp_path / "e" / "frames" / f"{k:06d}.png").rename(
+            tmp_path / "e" / "frames" / f"{5 * k:06d}.png")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        np.testing.assert_allclose(read_dataset(tmp_path / "e").timestamps, np.arange(4) / 5.0)
+
+
 def test_timestamp_named_files_are_not_frame_numbers(tmp_path):
     root = _dataset(tmp_path / "d", n=4, frames_csv=False)
     frames = root / "frames"

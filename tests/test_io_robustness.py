@@ -4,6 +4,7 @@ key or row/column and the problem; video frame sources are safe to read from sev
 from __future__ import annotations
 
 import json
+import re
 import struct
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -750,3 +751,54 @@ def test_video_header_counting_too_few_frames_is_not_trusted(tmp_path):
     with pytest.raises(ValueError, match=r"frames\.csv: 11 rows but the dataset has 12 frames "
                                          r"in video\.avi \(as its header counts them\)"):
         read_dataset(root)
+
+
+@pytest.mark.parametrize("defect, message", [
+    ("shear", "columns are not orthogonal"), ("scale", r"have norms 2, 2, 2, not 1 \(scaled\)"),
+    ("reflection", "a reflection"), ("last row", "the last row is 1 2 3 4, not 0 0 0 1")])
+def test_interpolate_camera_poses_checks_the_hand_eye(defect, message):
+    """A sheared hand-eye was projected onto a rotation silently (poses 0.26 rad off), a
+    reflection failed inside SciPy (review): refused as camera_pose_from_sample refuses it."""
+    from fusedmosaic.io.tracking import TrackingSamples, interpolate_camera_poses
+
+    X = np.eye(4)
+    if defect == "shear":
+        X[0, 1] = 0.5
+    elif defect == "scale":
+        X[:3, :3] *= 2
+    elif defect == "reflection":
+        X[2, 2] = -1
+    else:
+        X[3] = [1, 2, 3, 4]
+    samples = TrackingSamples(np.arange(5) * 0.025, np.zeros((5, 3)),
+                              np.tile([0.0, 0.0, 0.0, 1.0], (5, 1)))
+    with pytest.raises(ValueError, match=rf"hand-eye \(sensor_from_camera\): not a rigid "
+                                         rf"transform: .*{message}"):
+        interpolate_camera_poses(samples, [0.03, 0.05], X)
+
+
+def test_non_finite_samples_refused():
+    """A NaN robot sample was interpolated into frames marked valid, and written to a robot.csv
+    the reader refuses; a NaN tracker timestamp failed in SciPy (review)."""
+    from fusedmosaic.io.tracking import RobotSamples, TrackingSamples
+
+    with pytest.raises(ValueError, match=r"RobotSamples\.xy_um: sample 1 is not finite "
+                                         r"\(\[nan nan\]\); leave a missing sample out"):
+        RobotSamples([0.0, 0.1, 0.2], [[0, 0], [np.nan, np.nan], [2, 2]])
+    with pytest.raises(ValueError, match=r"RobotSamples\.timestamps: sample 2 is not finite"):
+        RobotSamples([0.0, 0.1, np.inf], np.zeros((3, 2)))
+    q = np.tile([0.0, 0.0, 0.0, 1.0], (3, 1))
+    with pytest.raises(ValueError, match=r"TrackingSamples\.timestamps: sample 1 is valid but "
+                                         r"its timestamp is nan"):
+        TrackingSamples([0.0, np.nan, 0.2], np.zeros((3, 3)), q)
+    TrackingSamples([0.0, np.nan, 0.2], np.zeros((3, 3)), q, [True, False, True])  # missing
+
+
+@pytest.mark.parametrize("where", ["missing folder", "a folder"])
+def test_write_camera_yaml_names_the_path(tmp_path, where):
+    """OpenCV said 'Emitter is not available' (review)."""
+    from fusedmosaic.io import Camera, write_camera_yaml
+
+    path = tmp_path / "none" / "camera.yaml" if where == "missing folder" else tmp_path
+    with pytest.raises(OSError, match=re.escape(str(path))):
+        write_camera_yaml(path, Camera(32, 24))

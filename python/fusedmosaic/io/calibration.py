@@ -665,8 +665,14 @@ def _read_camera(fs: cv2.FileStorage, path: Path, unknown: Sequence[str] = ()) -
 
 
 def write_camera_yaml(path: str | Path, camera: Camera) -> None:
-    """Write ``camera`` as OpenCV FileStorage YAML (readable by cv2 and read_camera_yaml)."""
+    """Write ``camera`` as OpenCV FileStorage YAML (readable by cv2 and read_camera_yaml).
+    OSError naming ``path`` when it cannot be written (OpenCV said only 'Emitter is not
+    available')."""
+    with open(path, "w"):  # the OSError of a missing folder, a directory, no permission
+        pass
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    if not fs.isOpened():
+        raise OSError(f"{path}: cannot be opened for writing")
     try:
         fs.write("image_width", int(camera.width))
         fs.write("image_height", int(camera.height))

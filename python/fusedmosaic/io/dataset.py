@@ -273,6 +273,21 @@ def check_fps(fps, what: str = "fps") -> float:
 _NUMBERED_NAME = re.compile(r"^(\D*)(\d+)(\D*)$")  # one digit run: frame_000010.png
 
 
+def _file_numbers(frames: FrameSource) -> np.ndarray | None:
+    """The numbers of PNG frame files named with one number each and the same text around it
+    (in name order), else None."""
+    paths = frames.paths
+    if paths is None or len(paths) < 2 or any(p.suffix.lower() != ".png" for p in paths):
+        return None
+    parts = [_NUMBERED_NAME.match(p.name[:-4]) for p in paths]  # (*.png, any case)
+    if not all(parts) or len({(m.group(1), m.group(3)) for m in parts}) != 1:
+        return None
+    numbers = [int(m.group(2)) for m in parts]
+    if max(numbers) >= 2**53:  # not frame numbers (and not exact as floats)
+        return None
+    return np.array(numbers, dtype=np.int64)
+
+
 @dataclass(frozen=True, eq=False)
 class FileNumbers:
     """The numbers of frame files named with one number each (``000010.png``,
@@ -292,21 +307,26 @@ class FileNumbers:
 
     @classmethod
     def of(cls, frames: FrameSource) -> FileNumbers | None:
-        paths = frames.paths
-        if paths is None or len(paths) < 2 or any(p.suffix.lower() != ".png" for p in paths):
+        numbers = _file_numbers(frames)
+        if numbers is None:
             return None
-        parts = [_NUMBERED_NAME.match(p.name[:-4]) for p in paths]  # (*.png, any case)
-        if not all(parts) or len({(m.group(1), m.group(3)) for m in parts}) != 1:
-            return None
-        numbers = [int(m.group(2)) for m in parts]
-        if max(numbers) >= 2**53:  # not frame numbers (and not exact as floats)
-            return None
-        numbers = np.array(numbers, dtype=np.int64)
         steps = np.diff(numbers)
         if np.any(steps <= 0) or np.median(steps) != 1:  # f01.png and f1.png; timestamps
             return None
         gaps = tuple(int(i) + 1 for i in np.flatnonzero(steps > 1))
+        paths = frames.paths
         return cls(paths[0].parent, tuple(p.name for p in paths), numbers, gaps)
+
+    @staticmethod
+    def regular_step(frames: FrameSource) -> int | None:
+        """K when the frame files are numbered in steps of K > 1 throughout (000000.png,
+        000005.png, ...: e.g. every K-th frame of a video, named by its frame number), else
+        None."""
+        numbers = _file_numbers(frames)
+        if numbers is None:
+            return None
+        steps = np.unique(np.diff(numbers))
+        return int(steps[0]) if steps.size == 1 and steps[0] > 1 else None
 
     @property
     def missing(self) -> int:
@@ -427,6 +447,14 @@ def read_frame_times(root: Path, frames: FrameSource, fps: float | None = None, 
             f"id / {rate:.6g} fps): the frames after a gap keep their own times, and the "
             "missing frames are left out; give frames.csv if the file numbers are not frame "
             "numbers", stacklevel=2)
+    if numbered is None and (k := FileNumbers.regular_step(frames)) is not None:
+        names = [p.name for p in frames.paths[:2]]
+        warnings.warn(
+            f"{frames.paths[0].parent}: the frame files are numbered in steps of {k} "
+            f"({names[0]}, {names[1]}, ...): no frames.csv, so they are taken as consecutive "
+            f"frames, timed {described}; if the numbers are the video's frame numbers (every "
+            f"{k}th frame kept), give frames.csv with their times, or --fps {rate / k:.6g}",
+            stacklevel=2)
     if len(frames) > 1:
         step = 1.0 / rate
         bound, name = min((MAX_FRAME_GAP_S, "MAX_FRAME_GAP_S"),

@@ -126,6 +126,10 @@ class TrackingSamples:
             raise ValueError(
                 f"TrackingSamples.translations: sample {bad[0]} is valid but not finite"
             )
+        bad = np.flatnonzero(self.valid & ~np.isfinite(self.timestamps))
+        if bad.size:  # (it failed in SciPy: 'zero norm quaternions'; review)
+            raise ValueError(f"TrackingSamples.timestamps: sample {bad[0]} is valid but its "
+                             f"timestamp is {self.timestamps[bad[0]]}")
 
     def __len__(self) -> int:
         return self.timestamps.size
@@ -146,6 +150,12 @@ class RobotSamples:
                 f"RobotSamples.xy_um: expected shape ({self.timestamps.size}, 2), "
                 f"got {self.xy_um.shape}"
             )
+        # as robot.csv refuses them (a NaN sample was interpolated into frames marked valid)
+        for name, values in (("timestamps", self.timestamps), ("xy_um", self.xy_um)):
+            bad = np.flatnonzero(~np.isfinite(values.reshape(len(self.timestamps), -1)).all(1))
+            if bad.size:
+                raise ValueError(f"RobotSamples.{name}: sample {bad[0]} is not finite "
+                                 f"({values[bad[0]]}); leave a missing sample out")
 
     def __len__(self) -> int:
         return self.timestamps.size
@@ -522,6 +532,8 @@ def interpolate_camera_poses(
     X = np.eye(4) if sensor_from_camera is None else np.asarray(sensor_from_camera, np.float64)
     if X.shape != (4, 4):
         raise ValueError(f"sensor_from_camera must be 4x4, got {X.shape}")
+    if sensor_from_camera is not None:  # (a sheared one was projected: poses 0.26 rad off)
+        X = _checked_hand_eye(X, "hand-eye (sensor_from_camera)")
     ts = samples.timestamps[samples.valid]
     if ts.size < 2:
         raise ValueError(f"{source}: {ts.size} valid samples; interpolation needs at least 2")
