@@ -521,6 +521,27 @@ def test_output_writer_commit_is_all_or_nothing(tmp_path):
     assert listing(out) == ["homographies.csv", "report.json"] and no_temp(tmp_path)
 
 
+def test_a_failed_calibrate_or_writer_leaves_no_folder_it_created(data, tmp_path, capsys):
+    """Review A #4: calibrate's up-front check created --out's parents and a calibration that
+    then failed left them (np2/sub after `calibrate ... --out np2/sub/scope`); OutputWriter
+    left the parents it made for OUT when the block failed. Folders that existed before stay."""
+    assert main(["--quiet", "calibrate", str(data / "feto"), "--board", "9x6", "--square-mm",
+                 "2", "--out", str(tmp_path / "np2" / "sub" / "scope")]) == 2
+    assert "the 9x6 board" in capsys.readouterr().err
+    assert listing(tmp_path) == []
+    (tmp_path / "pre").mkdir()
+    with pytest.raises(KeyboardInterrupt), OutputWriter(tmp_path / "pre" / "a" / "b" / "out",
+                                                        record="run") as w:
+        w.write_text("report.json", "{}")
+        raise KeyboardInterrupt
+    assert listing(tmp_path) == ["pre"]
+    # (a folder someone else filled meanwhile is kept, with its parents)
+    with pytest.raises(ValueError, match="failed"), OutputWriter(tmp_path / "pre" / "a" / "out"):
+        (tmp_path / "pre" / "a" / "theirs.txt").write_text("x")
+        raise ValueError("failed")
+    assert listing(tmp_path) == ["pre", "pre/a", "pre/a/theirs.txt"]
+
+
 # --------------------------------------------------------------------------- 9, 10: evaluate
 
 
@@ -629,16 +650,71 @@ def test_evaluate_json_keeps_the_users_md_and_plots(data, emt_out, tmp_path, cap
     assert listing(res) == [MANIFEST, "summary.json"] and no_temp(tmp_path)
 
 
-def test_evaluate_json_of_an_older_version_counts_as_ours(data, emt_out, tmp_path, capsys):
-    res = tmp_path / "res"
-    res.mkdir()
-    (res / "e.json").write_text(json.dumps({"results": []}))  # an older evaluation, no manifest
-    (res / "e.md").write_text("old report")
+def _older_evaluation(data, emt_out, res: Path) -> None:
+    """res/e.json, e.md and e_plots/ as an older version left them (no manifest)."""
+    assert main(["--quiet", "evaluate", str(emt_out), "--truth", str(data / "feto"), "--json",
+                 str(res / "e.json"), "--no-report"]) == 0
+    (res / MANIFEST).unlink()
+    (res / "e.md").write_text("# fusedmosaic evaluation\n\nold report\n")
     (res / "e_plots").mkdir()
     (res / "e_plots" / "old.png").write_text("x")
+
+
+def test_evaluate_json_of_an_older_version_counts_as_ours(data, emt_out, tmp_path, capsys):
+    res = tmp_path / "res"
+    _older_evaluation(data, emt_out, res)
     assert main(["--quiet", "evaluate", str(emt_out), "--truth", str(data / "feto"), "--json",
                  str(res / "e.json")]) == 0
-    assert (res / "e.md").read_text() != "old report" and not (res / "e_plots/old.png").exists()
+    assert "old report" not in (res / "e.md").read_text()
+    assert not (res / "e_plots/old.png").exists()
+
+
+@pytest.mark.parametrize("mine", [
+    {"results": []}, {"results": [{"output": "a", "e_M_px": 1.0}]}, {"results": ["x"]}])
+def test_evaluate_json_with_a_results_list_of_the_users_is_kept(data, emt_out, tmp_path, capsys,
+                                                                mine):
+    """Review A #2: any NAME.json with a "results" list was taken for an older version's
+    evaluation, and NAME.json, NAME.md and NAME_plots/ were replaced. Only results entries
+    carrying evaluate_output's keys are ours, and NAME.md only if it starts with the report's
+    title line."""
+    res = tmp_path / "res"
+    res.mkdir()
+    (res / "e.json").write_text(json.dumps(mine))
+    (res / "e.md").write_text("mine")
+    argv = ["--quiet", "evaluate", str(emt_out), "--truth", str(data / "feto"), "--json",
+            str(res / "e.json")]
+    for extra in ([], ["--no-report"]):
+        assert main([*argv, *extra]) == 2
+        assert capsys.readouterr().err == (
+            f"fusedmosaic: error: --json {res / 'e.json'}: exists and is not an evaluation "
+            "fusedmosaic wrote; choose another --json name, or move that file\n")
+    assert json.loads((res / "e.json").read_text()) == mine
+    assert listing(res) == ["e.json", "e.md"] and (res / "e.md").read_text() == "mine"
+
+
+def test_evaluate_json_of_an_older_version_keeps_a_users_md_and_plots(data, emt_out, tmp_path,
+                                                                      capsys):
+    """Review A #2: beside an older version's NAME.json, a NAME.md that does not start with
+    the report's title line, or a NAME_plots/ holding other than PNG files, is the user's."""
+    res = tmp_path / "res"
+    _older_evaluation(data, emt_out, res)
+    (res / "e.md").write_text("my notes on the evaluation\n")
+    (res / "e_plots" / "notes.txt").write_text("mine")
+    argv = ["--quiet", "evaluate", str(emt_out), "--truth", str(data / "feto"), "--json",
+            str(res / "e.json")]
+    assert main(argv) == 2
+    assert capsys.readouterr().err == (
+        f"fusedmosaic: error: --json {res / 'e.json'}: the report would replace {res / 'e.md'}, "
+        "which no fusedmosaic evaluation wrote; choose another --json name, move that file, or "
+        "pass --no-report\n")
+    (res / "e.md").unlink()
+    assert main(argv) == 2
+    assert f"the report's plots would go into {res / 'e_plots'}, a folder no " in (
+        capsys.readouterr().err)
+    (res / "e.md").write_text("my notes on the evaluation\n")
+    assert main([*argv, "--no-report"]) == 0  # the JSON is replaced, the user's files stay
+    assert (res / "e.md").read_text() == "my notes on the evaluation\n"
+    assert sorted(p.name for p in (res / "e_plots").iterdir()) == ["notes.txt", "old.png"]
 
 
 def test_outputs_are_staged_inside_an_existing_folder(data, emt_out, tmp_path, monkeypatch,
@@ -745,8 +821,9 @@ def test_evaluate_refuses_or_warns_about_another_dataset(data, emt_out, tmp_path
     assert run(data / "pcle", pcle, "robot") == 0
     report = json.loads((pcle / "report.json").read_text())
     assert report["dataset_fingerprint"]["frames"] == 8
-    assert set(report["dataset_fingerprint"]["sha256"]) == {"camera.yaml", "frames.csv",
-                                                            "ground_truth.csv"}
+    assert set(report["dataset_fingerprint"]["sha256"]) == {
+        "camera.yaml", "frames.csv", "ground_truth.csv",
+        "pixels of the first, middle and last frame"}
     # the fetoscopy truth also has 8 frames, but of another size: refused (e_j's grid of points
     # is the truth's frame), nothing written
     assert main(["--quiet", "evaluate", str(pcle), "--truth", str(data / "feto"),
@@ -771,6 +848,52 @@ def test_evaluate_refuses_or_warns_about_another_dataset(data, emt_out, tmp_path
     assert "dataset_warning" not in json.loads((pcle / "evaluation.json").read_text())["results"][0]
 
 
+def test_evaluate_positions_tests_the_sampled_frames_and_refuses_more_than_there_are(
+        data, tmp_path, capsys):
+    """Review A #5: with --positions N the Wilcoxon test ran on all frames while the statistics
+    were over the N evenly spaced ones (seed 004 tests those); an N above the frame count was
+    reduced to the frame count without a word."""
+    from fusedmosaic.evaluation.metrics import compare_position_errors, evenly_spaced
+
+    truth = data / "pcle"
+    ids, G = read_homographies_csv(truth / "ground_truth.csv")
+    exact, shifted = tmp_path / "exact", tmp_path / "shifted"
+    exact.mkdir()
+    shifted.mkdir()
+    write_homographies_csv(exact / "homographies.csv", ids, G)
+    moved = G.copy()
+    moved[:, 0, 2] += np.arange(len(ids)) + 1.0  # frame k off by k + 1 px
+    write_homographies_csv(shifted / "homographies.csv", ids, moved)
+    argv = ["evaluate", str(exact), "--truth", str(truth), "--compare", str(shifted),
+            "--no-report"]
+    assert main([*argv, "--positions", "3"]) == 0
+    out = capsys.readouterr().out
+    report = json.loads((exact / "evaluation.json").read_text())
+    test = report["wilcoxon"][0]
+    assert test["n"] == 3 and test["frames"] == "positions" and test["positions"] == 3
+    sampled = evenly_spaced(8, 3)
+    assert sampled.tolist() == [0, 4, 7]
+    a, b = (np.array(r["position_errors_um"], float)[sampled] for r in report["results"])
+    assert test["p_value"] == compare_position_errors(a, b)["p_value"]
+    assert report["results"][1]["position_sampled_frames"] == ids[sampled].tolist()
+    assert "Wilcoxon signed-rank exact vs shifted at the 3 evenly spaced frames: p = " in out
+    assert "(n = 3)" in out
+    assert main(argv) == 0  # without --positions: every frame
+    test = json.loads((exact / "evaluation.json").read_text())["wilcoxon"][0]
+    assert test["n"] == 8 and test["frames"] == "all" and "positions" not in test
+    # more positions than frames: refused (statistics over 8 frames would pass for 13)
+    (exact / "evaluation.json").unlink()
+    assert main([*argv, "--positions", "13"]) == 2
+    assert capsys.readouterr().err == (
+        f"fusedmosaic: error: {truth}: 8 frames, fewer than the 13 evenly spaced frames asked "
+        "for (positions_n, --positions); give at most 8\n")
+    assert not (exact / "evaluation.json").exists()
+    assert main([*argv, "--positions", "8"]) == 0
+    with pytest.raises(ValueError, match=r"^9 evenly spaced frames of a sequence of 8: at most "
+                                         r"8$"):
+        evenly_spaced(8, 9)
+
+
 def test_a_run_without_ground_truth_matches_its_dataset(data, tmp_path, capsys):
     """Review 4 #12: a run on a copy with the ground truth held out is the same dataset."""
     nogt = tmp_path / "nogt"
@@ -785,6 +908,41 @@ def test_a_run_without_ground_truth_matches_its_dataset(data, tmp_path, capsys):
     assert main(["--quiet", "evaluate", str(tmp_path / "o"), "--truth", str(data / "feto"),
                  "--no-report"]) == 0
     assert "differs from it (camera.yaml)" in capsys.readouterr().err
+
+
+def test_evaluate_warns_about_other_frames_behind_the_same_files(data, tmp_path, capsys):
+    """Review A #3: a run on a dataset without ground_truth.csv (an imported recording), scored
+    against another recording with the same camera.yaml and frame times, was not warned about:
+    only the files were compared, never the frames. The warning is in evaluation.md too."""
+    held_out = tmp_path / "held_out"
+    shutil.copytree(data / "pcle", held_out)
+    (held_out / "ground_truth.csv").unlink()
+    out = tmp_path / "o"
+    assert run(held_out, out, "robot") == 0
+    other = tmp_path / "other"
+    assert main(["--quiet", "simulate", "pcle", str(other), "--n-frames", "8", "--width", "128",
+                 "--height", "112", "--trajectory", "spiral"]) == 0
+    for name in ("camera.yaml", "frames.csv"):  # the files alone cannot tell them apart
+        assert (other / name).read_bytes() == (held_out / name).read_bytes()
+    res = tmp_path / "res"
+    assert main(["--quiet", "evaluate", str(out), "--truth", str(other), "--json",
+                 str(res / "e.json")]) == 0
+    warning = (f"{out / 'report.json'} records the dataset {held_out.resolve()}, but {other} "
+               "differs from it (pixels of the first, middle and last frame): the scores may "
+               "compare the output with another dataset's ground truth")
+    assert capsys.readouterr().err == f"fusedmosaic: warning: {warning}\n"
+    assert json.loads((res / "e.json").read_text())["results"][0]["dataset_warning"] == warning
+    assert f"**Warning:** {warning}" in (res / "e.md").read_text().split("## ")[0]
+    # the right dataset (frames read the same way as by the run) and an older version's
+    # fingerprint, which has no frame pixels: no warning
+    assert main(["--quiet", "evaluate", str(out), "--truth", str(data / "pcle"), "--json",
+                 str(res / "e.json")]) == 0
+    assert capsys.readouterr().err == "" and "Warning" not in (res / "e.md").read_text()
+    report = json.loads((out / "report.json").read_text())
+    del report["dataset_fingerprint"]["sha256"]["pixels of the first, middle and last frame"]
+    (out / "report.json").write_text(json.dumps(report))
+    assert main(["--quiet", "evaluate", str(out), "--truth", str(other), "--no-report"]) == 0
+    assert capsys.readouterr().err == ""
 
 
 # --------------------------------------------------------------------------- 16, 18, 20: run

@@ -1221,3 +1221,32 @@ def test_sender_clock_jump_taken_and_reported(syn, tmp_path, capsys):
     assert "tracker stamps jumped ahead of the stream 1 time(s) (by 3.6e+03 s)" in said[0] + said[1]
     err = capsys.readouterr().err
     assert all(text in err for text in said)
+
+
+def test_sender_clock_set_back_is_named(syn, tmp_path):
+    """The sender's clock set back an hour mid-session: the frames and samples after it cannot
+    be recorded after the earlier ones (refused, as before), and the session says why instead
+    of 'timestamp does not increase' frame after frame: warnings naming the step, report.json
+    live source frame_clock_steps_back_s / sample_clock_steps_back_s."""
+    times = np.asarray(syn.timestamps)[:30]
+    back_at = float(times[20])
+    stamp = lambda t: t - (3600.0 if t >= back_at else 0.0)  # noqa: E731
+    tr = syn.tracking
+    events = [(float(t), 1, image_message(syn.frames[k], stamp(float(t))))
+              for k, t in enumerate(times)]
+    events += [(float(t), 2, transform_message(
+        tracker_matrix(tr.translations[i], tr.quaternions[i]), stamp(float(t))))
+        for i, t in enumerate(tr.timestamps) if tr.valid[i] and t <= times[-1]]
+    events.sort(key=lambda e: (e[0], e[1]))
+    sender = Sender([(t, m) for t, _, m in events])
+    assert _live(syn, tmp_path, sender) == 0
+    sender.join()
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    source = report["live"]["source"]
+    assert report["live"]["frames_recorded"] == 20
+    assert source["frame_clock_steps_back_s"] == [pytest.approx(3600.0, abs=0.5)]
+    assert source["sample_clock_steps_back_s"] == [pytest.approx(3600.0, abs=0.5)]
+    said = " ".join(report["warnings"])
+    assert ("the sender's frame stamps stepped 3.6e+03 s back at received frame 20 (3 frames "
+            "in a row): its clock was set back?") in said
+    assert "the sender's tracker stamps stepped back 1 time(s) (by 3.6e+03 s)" in said

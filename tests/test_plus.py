@@ -385,6 +385,33 @@ def test_bad_data(tmp_path):
     _refused(tmp_path, zipped, "decompressed image data is more than 144 bytes")
 
 
+def test_data_on_the_element_data_file_line_is_named_and_cut_short(tmp_path):
+    """Review A #6: with the line break after `ElementDataFile = LOCAL` missing, the data
+    follows on that line: it was diagnosed as "LIST or a pattern" (the pixels held a '%') or
+    a data file not found, with the whole line of binary data quoted."""
+    path = _small(tmp_path)
+    data = path.read_bytes()
+    end = data.index(b"\n", data.index(b"ElementDataFile"))
+    big = (np.arange(5000) % 256).astype(np.uint8).tobytes().replace(b"\n", b"%")
+    for tail in (data[end + 1:], big):
+        path.write_bytes(data[:end] + tail)
+        with pytest.raises(ValueError) as info:
+            import_plus_sequence(path, tmp_path / "out", camera=Camera(FW, FH))
+        message = str(info.value)
+        assert message.startswith(f"{path}: line ") and (
+            ": the ElementDataFile line is not terminated: the image data follows LOCAL on the "
+            "same line ('LOCAL\\x00\\x01") in message, message
+        assert "LIST" not in message and "not found" not in message
+        assert len(message) < len(str(path)) + 400  # (was the whole line of data)
+        assert not (tmp_path / "out").exists()
+    # binary data where a file name goes: not LOCAL or a file name
+    mhd = _small(tmp_path, ".mhd")
+    data = mhd.read_bytes()
+    mhd.write_bytes(data.replace(b"ElementDataFile = rec.raw", b"ElementDataFile = \x01%" + big))
+    _refused(tmp_path, mhd, r"line \d+: ElementDataFile '\\x01%\\x00\\x01.*'\.\.\. \(\d+ "
+             r"characters\) is not LOCAL or a file name \(binary data: the line is not "
+             r"terminated, or the header is damaged\)$")
+
 def test_bad_transforms_camera_and_hand_eye(tmp_path):
     path = _small(tmp_path)
     _refused(tmp_path, path, "no ProbeToTrackerTransform field \\(nor its inverse\\); transforms "
@@ -434,6 +461,33 @@ def test_auto_transform_message_reads_right_for_the_cli_and_python(tmp_path, cap
     assert main(["import", str(path), str(tmp_path / "cli"), "--transform", "auto"]) == 2
     assert "e.g. --transform SensorToTracker (transform=" in capsys.readouterr().err
     assert not (tmp_path / "cli").exists()
+
+
+def test_a_failed_import_leaves_no_folder_it_created(tmp_path, monkeypatch, capsys):
+    """Review A #4: the up-front check created OUT's parents (and write_dataset creates them
+    while writing), and a failed import left them: newp/a after `import bad.mha newp/a/b`.
+    Folders that existed before stay."""
+    import fusedmosaic.io.dataset as dataset_module
+    from fusedmosaic.cli import main
+
+    path = _small(tmp_path)
+    good = path.read_bytes()
+    path.write_bytes(good[:-10])
+    before = sorted(p.name for p in tmp_path.iterdir())
+    assert main(["import", str(path), str(tmp_path / "newp" / "a" / "b")]) == 2
+    assert "image data is 182 bytes but" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # no newp/
+    # a failure while the frames are written (write_dataset has made the parents by then)
+    path.write_bytes(good)
+    (tmp_path / "pre").mkdir()
+
+    def failing(folder, frames):
+        raise ValueError(f"{folder}: disk full")
+
+    monkeypatch.setattr(dataset_module, "write_frames", failing)
+    assert main(["import", str(path), str(tmp_path / "pre" / "x" / "y")]) == 2
+    assert "disk full" in capsys.readouterr().err
+    assert (tmp_path / "pre").is_dir() and not list((tmp_path / "pre").iterdir())
 
 
 def test_video_without_transform_fields_is_imported_without_tracking(tmp_path, capsys):

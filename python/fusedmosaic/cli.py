@@ -47,11 +47,12 @@ def _dataclass_from_args(cls: type, args: argparse.Namespace):
 
 def _check_dataset_target(out: str, overwrite: bool) -> None:
     """The dataset folder simulate / import write: absent or empty, or with --overwrite an
-    earlier dataset; checked before any work, with the messages naming the flag."""
+    earlier dataset; checked before any work, with the messages naming the flag. Creates
+    nothing (write_dataset creates the folder and its parents)."""
     from fusedmosaic.io.dataset import check_replaceable_dataset
     from fusedmosaic.io.output import check_output_dir
 
-    target = check_output_dir(out, "dataset folder")
+    target = check_output_dir(out, "dataset folder", create_parent=False)
     if target.is_dir() and any(target.iterdir()):
         if not overwrite:
             raise ValueError(f"{target}: exists and is not empty (choose another folder, or pass "
@@ -60,10 +61,13 @@ def _check_dataset_target(out: str, overwrite: bool) -> None:
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
+    from fusedmosaic.io.output import created_folders_removed_on_failure
+
     t0 = time.perf_counter()
     _check_dataset_target(args.out, args.overwrite)
     try:
-        out = _simulate(args)
+        with created_folders_removed_on_failure(args.out):  # (Ctrl-C, a full disk)
+            out = _simulate(args)
     except ValueError as exc:  # "FetoscopyOptions.n_frames: ..." -> "--n-frames: ..."
         raise ValueError(re.sub(r"\b(?:FetoscopyOptions|PcleOptions|CheckerboardOptions)\.(\w+)",
                                 lambda m: "--" + m.group(1).replace("_", "-"), str(exc))) from None
@@ -273,16 +277,19 @@ def _loop_pairs(args: argparse.Namespace) -> dict:
 
 
 def _cmd_import(args: argparse.Namespace) -> int:
+    from fusedmosaic.io.output import created_folders_removed_on_failure
     from fusedmosaic.io.plus import import_plus_sequence
     from fusedmosaic.io.tracking import check_time_offset
 
     args.tracker_time_offset = args.tracker_time_offset or 0.0  # (None: not given)
     check_time_offset(args.tracker_time_offset, "--tracker-time-offset")
     _check_dataset_target(args.out, args.overwrite)
-    summary = import_plus_sequence(
-        args.sequence, args.out, camera=args.camera, hand_eye=args.hand_eye,
-        transform=None if args.transform == "auto" else args.transform,
-        overwrite=args.overwrite, tracker_time_offset=args.tracker_time_offset)
+    # a failure leaves no folder (import_plus_sequence's promise), its parents included
+    with created_folders_removed_on_failure(args.out):
+        summary = import_plus_sequence(
+            args.sequence, args.out, camera=args.camera, hand_eye=args.hand_eye,
+            transform=None if args.transform == "auto" else args.transform,
+            overwrite=args.overwrite, tracker_time_offset=args.tracker_time_offset)
     _say(args, f"imported {summary}")
     return 0
 
@@ -295,7 +302,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         write_calibration,
     )
     from fusedmosaic.io.dataset import check_fps
-    from fusedmosaic.io.output import check_output_dir
+    from fusedmosaic.io.output import check_output_dir, created_folders_removed_on_failure
     from fusedmosaic.runner import check_out_outside_dataset
 
     if args.fps is not None:
@@ -317,12 +324,15 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         "max_views": "--max-views",
         "rot_sigma_deg": "--tracker-rot-sigma", "trans_sigma_mm": "--tracker-trans-sigma",
         "time_offset": "--time-offset", "max_time_offset_s": "--max-time-offset"})
-    check_output_dir(args.out)
+    # nothing created before the work: a failed calibration leaves no folder behind (a failed
+    # hand-eye, below, keeps the intrinsics written)
+    check_output_dir(args.out, create_parent=False)
     check_out_outside_dataset(Path(args.out), Path(args.recording))
     check_calibration_output(args.out)  # a user's own camera.yaml there: refused before work
-    result = calibrate_recording(args.recording, options, fps=args.fps,
-                                 progress=not args.quiet)
-    written = write_calibration(args.out, result)
+    with created_folders_removed_on_failure(args.out):
+        result = calibrate_recording(args.recording, options, fps=args.fps,
+                                     progress=not args.quiet)
+        written = write_calibration(args.out, result)
     r = result.report
     intr = r["intrinsics"]
     K = result.camera.camera_matrix
@@ -532,7 +542,7 @@ def _format_table(results: list[dict]) -> str:
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from fusedmosaic.evaluation import compare_position_errors, evaluate_output
-    from fusedmosaic.evaluation.metrics import check_positions_n
+    from fusedmosaic.evaluation.metrics import check_positions_n, evenly_spaced
     from fusedmosaic.io.output import OutputWriter, check_output_dir, is_under
 
     if args.positions is not None:
@@ -560,16 +570,25 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     plots = md_path.stem + "_plots"
     older = _check_report_destination(json_path, plots, report=not args.no_report)
     results = [evaluate_output(o, args.truth, positions_n=args.positions) for o in outs]
+    # (shown on the terminal, and in evaluation.md beside the scores they put in doubt)
+    notes = [f"**Warning:** {r['dataset_warning']}" for r in results if "dataset_warning" in r]
     for r in results:
         if "dataset_warning" in r:
             print(f"fusedmosaic: warning: {r['dataset_warning']}", file=sys.stderr)
     report: dict = {"results": results}
     if len(results) > 1 and "position_errors_um" in results[0]:
-        base = np.array([np.nan if e is None else e for e in results[0]["position_errors_um"]])
+        # with --positions, on the frames its statistics are over, as seed 004 (Sec. IV-B)
+        # tests its n = 13 / 25 evenly spaced images; else on every frame
+        frames = (slice(None) if args.positions is None
+                  else evenly_spaced(len(results[0]["position_errors_um"]), args.positions))
+        sample = ({"frames": "all"} if args.positions is None
+                  else {"frames": "positions", "positions": args.positions})
+        base = np.array([np.nan if e is None else e
+                         for e in results[0]["position_errors_um"]])[frames]
         report["wilcoxon"] = []
         for r in results[1:]:
-            other = np.array([np.nan if e is None else e for e in r["position_errors_um"]])
-            pair = {"a": results[0]["output"], "b": r["output"]}
+            other = np.array([np.nan if e is None else e for e in r["position_errors_um"]])[frames]
+            pair = {"a": results[0]["output"], "b": r["output"], **sample}
             both = int((np.isfinite(base) & np.isfinite(other)).sum())
             if both < 2:  # this pair has no test; the others still do
                 pair.update(n=both, statistic=None, p_value=None, note=(
@@ -581,7 +600,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     loaded = None if args.no_report else _load_for_report(outs, args.truth)
     _say(args, _format_table(results))
     for w in report.get("wilcoxon", []):
-        _say(args, f"Wilcoxon signed-rank {Path(w['a']).name} vs {Path(w['b']).name}: "
+        over = "" if w["frames"] == "all" else f" at the {w['positions']} evenly spaced frames"
+        _say(args, f"Wilcoxon signed-rank {Path(w['a']).name} vs {Path(w['b']).name}{over}: "
                    + (w["note"] if w["p_value"] is None else
                       f"p = {w['p_value']:.3g} (n = {w['n']})"))
     # json, .md and plots replace the previous evaluation of that name as one set, or not at
@@ -594,11 +614,11 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                       replaces=older) as w:
         w.write_json(json_path.name, report)  # strict JSON: NaN / inf as null
         if loaded is not None:
-            from fusedmosaic.evaluation.report import write_report
+            from fusedmosaic.evaluation.report import EVALUATION_TITLE, write_report
 
             runs, truth = loaded
             write_report(w.path(md_path.name).parent, runs, truth, name=md_path.name,
-                         title="fusedmosaic evaluation", plots_dir=plots)
+                         title=EVALUATION_TITLE, plots_dir=plots, notes=notes)
     _say(args, f"wrote {json_path}")
     if loaded is not None:
         _say(args, f"wrote {md_path} (plots in {md_path.parent / plots})")
@@ -624,11 +644,14 @@ def _demo_dataset_options(data: Path) -> dict:
 
 def _check_report_destination(json_path: Path, plots: str, *, report: bool) -> list[str]:
     """NAME.json, and NAME.md and NAME_plots/ beside it, are replaced only when a fusedmosaic
-    evaluation wrote them: recorded in the folder's manifest, or (older versions) NAME.json is
-    an evaluation (a "results" list). Otherwise they are the user's: NAME.json is an error; the
-    report's files are an error when there is a report to write, and left alone without.
+    evaluation wrote them: recorded in the folder's manifest, or (older versions, no record)
+    NAME.json is an evaluation, and then NAME.md if it starts with the report's title line and
+    NAME_plots/ if it holds only PNG files. Otherwise they are the user's: NAME.json is an
+    error; the report's files are an error when there is a report to write, and left alone
+    without.
 
-    Returns the older version's names for OutputWriter(replaces=...)."""
+    Returns the older version's names for OutputWriter(replaces=...): replaced, or removed when
+    not written again (--no-report), so only what is surely ours."""
     from fusedmosaic.io.output import read_json_object, read_manifest
 
     md_path = json_path.with_suffix(".md")
@@ -640,8 +663,14 @@ def _check_report_destination(json_path: Path, plots: str, *, report: bool) -> l
             previous = read_json_object(json_path)
         except (OSError, ValueError):
             previous = {}
-        if isinstance(previous.get("results"), list):
-            older = [md_path.name, plots + "/"]
+        if _is_evaluation(previous):
+            plots_dir = json_path.parent / plots
+            if _is_evaluation_report(md_path):
+                older.append(md_path.name)
+            if plots_dir.is_dir() and not plots_dir.is_symlink() and all(
+                    p.is_file() and not p.is_symlink() and p.suffix.lower() == ".png"
+                    for p in plots_dir.iterdir()):
+                older.append(plots + "/")
         elif json_path.exists() or json_path.is_symlink():
             raise ValueError(f"--json {json_path}: exists and is not an evaluation fusedmosaic "
                              "wrote; choose another --json name, or move that file")
@@ -658,6 +687,31 @@ def _check_report_destination(json_path: Path, plots: str, *, report: bool) -> l
                          "a folder no fusedmosaic evaluation wrote; choose another --json name, "
                          "move that folder, or pass --no-report")
     return older
+
+
+def _is_evaluation(obj: dict) -> bool:
+    """An evaluation JSON as `evaluate` writes it: a non-empty "results" list of results of
+    evaluate_output (with the keys every version wrote). {"results": [...]} alone is a common
+    layout of a user's own files."""
+    from fusedmosaic.evaluation.metrics import RESULT_KEYS
+
+    results = obj.get("results")
+    return (isinstance(results, list) and len(results) > 0
+            and all(isinstance(r, dict) and all(k in r for k in RESULT_KEYS) for r in results))
+
+
+def _is_evaluation_report(md_path: Path) -> bool:
+    """NAME.md starts with the line write_report writes first for `evaluate` (its title)."""
+    from fusedmosaic.evaluation.report import EVALUATION_TITLE
+
+    if not md_path.is_file() or md_path.is_symlink():
+        return False
+    try:
+        with md_path.open("rb") as f:
+            first = f.readline(200)
+    except OSError:
+        return False
+    return first.rstrip(b"\r\n") == f"# {EVALUATION_TITLE}".encode()
 
 
 def _load_for_report(outs: list[Path], truth_root):
@@ -1018,8 +1072,10 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--compare", nargs="*",
                     help="more output folders (translation methods: Wilcoxon signed-rank vs "
                          "the first)")
-    ev.add_argument("--positions", type=int, default=None,
-                    help="also report position errors at N evenly spaced frames (seed 004)")
+    ev.add_argument("--positions", type=int, default=None, metavar="N",
+                    help="also report position errors at N evenly spaced frames (seed 004; at "
+                         "most the sequence's frame count), and run --compare's Wilcoxon test "
+                         "on those N frames instead of all")
     ev.add_argument("--json", help="JSON path (default OUT/evaluation.json); the report goes "
                                    "beside it (evaluation.md, evaluation_plots/)")
     ev.add_argument("--no-report", action="store_true", help="skip the .md report and plots")

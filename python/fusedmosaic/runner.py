@@ -17,8 +17,10 @@ from fusedmosaic.io.dataset import check_fps
 from fusedmosaic.io.output import (
     OutputWriter,
     is_under,
+    missing_folders,
     read_json_object,
     read_manifest,
+    remove_created_folders,
 )
 from fusedmosaic.io.tracking import MAX_TIME_OFFSET_S
 
@@ -859,26 +861,6 @@ def _live_view(camera, method: str, record: Path, preview, serve_mosaic,
     return view, server
 
 
-def _missing_folders(*paths: Path) -> list[Path]:
-    """The folders on the way to `paths` (themselves included) that do not exist yet, deepest
-    first: what a failed start removes again (run_igtl leaves nothing behind)."""
-    missing: dict[Path, None] = {}
-    for path in paths:
-        for folder in (path, *path.parents):
-            if folder.exists() or folder.is_symlink():
-                break
-            missing[folder] = None
-    return sorted(missing, key=lambda f: len(f.parts), reverse=True)
-
-
-def _remove_empty(folders: list[Path]) -> None:
-    for folder in folders:  # deepest first; a folder that holds anything stays
-        try:
-            folder.rmdir()
-        except OSError:
-            pass
-
-
 def _refusal_reason(message: str) -> str:
     """A refused frame's problem without what changes from frame to frame (its number, its
     timestamps), so that report.json counts frames per reason (bounded however long the
@@ -1095,7 +1077,9 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     check_compositing_options(blend, canvas, camera=camera, method=method)
     from fusedmosaic.io.output import check_output_dir
 
-    created = _missing_folders(out, record, *(() if preview is None else (Path(preview),)))
+    # what a failed start removes again (run_igtl leaves nothing behind)
+    created = [folder for path in (out, record, *(() if preview is None else (Path(preview),)))
+               for folder in missing_folders(path)]
     view, server, recorder, src = None, None, None, None
 
     def on_final(index, image, r) -> None:  # given to the session only with a view
@@ -1151,6 +1135,15 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                             "refused)")
             except ValueError as exc:
                 problem = _refusal_reason(str(exc))
+                if "does not increase" in problem and (
+                        back := frame_jumps.behind(float(frame.timestamp), frame.arrival)):
+                    warn_from_receiver(
+                        f"live session: the sender's frame stamps stepped {back:.3g} s back at "
+                        f"received frame {frame.index - STAMP_JUMP_CONFIRM + 1} "
+                        f"({STAMP_JUMP_CONFIRM} frames in a row): its clock was set back? A "
+                        "recording is in time order, so every frame stamped before the last "
+                        "one recorded is refused: end the session and start a new one (another "
+                        "--record) to go on")
         if problem is not None:
             rejected[problem] = rejected.get(problem, 0) + 1
             if problem not in first_refused:  # told once per reason, then counted (a stream
@@ -1275,6 +1268,9 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                            # the sender's clock jumping ahead (s), taken (io.igtl.StampJumps)
                            "frame_clock_jumps_s": list(frame_jumps.jumps),
                            "sample_clock_jumps_s": src.sample_clock_jumps,
+                           # ... and stepping back (s): the frames / samples after it refused
+                           "frame_clock_steps_back_s": list(frame_jumps.steps_back),
+                           "sample_clock_steps_back_s": src.sample_clock_steps_back,
                            "ignored_devices": sorted(src.ignored_devices)}
                 if max_frames is not None:
                     details["frames_after_max_frames"] = after_limit
@@ -1302,7 +1298,7 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                 view.close()
             if server is not None:
                 server.close()
-            _remove_empty(created)
+            remove_created_folders(created)
             if isinstance(exc, (ValueError, OSError)):
                 raise ValueError(f"{exc}{refused()}{samples_heard(src)}{note}") from None
             if note and isinstance(exc, KeyboardInterrupt):  # where the frames went
@@ -1315,6 +1311,11 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                  "there (the samples before it in a jump were refused, report.json live "
                  "tracker_samples_invalid); the frames are paired with the samples by their "
                  "stamps, so check that the frames' stamps jumped alike")
+        if steps := details["sample_clock_steps_back_s"]:
+            warn(f"live session: the sender's {device} stamps stepped back {len(steps)} "
+                 f"time(s) (by {', '.join(f'{b:.3g}' for b in steps[:5])} s): the samples "
+                 "after a step are refused as going back in time (report.json live "
+                 "tracker_samples_invalid)")
         result = session_result(session, timestamps, dropped, source_details=details,
                                 method=method)
         add_warnings(result.details, [*told, *heard.texts])

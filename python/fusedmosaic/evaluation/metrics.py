@@ -190,8 +190,12 @@ def _json_stats(s: PositionStats) -> dict:
 
 
 def evenly_spaced(n_frames: int, n: int) -> np.ndarray:
-    """n frame indices evenly spaced along the sequence (seed 004 picks 13 / 25 such frames)."""
-    return np.unique(np.round(np.linspace(0, n_frames - 1, n)).astype(int))
+    """n frame indices evenly spaced along the sequence, the first and last included (seed 004
+    picks 13 / 25 such frames); n distinct ones, so n must be at most n_frames (ValueError)."""
+    if n > n_frames:  # (rounding would repeat indices: fewer than n frames, silently)
+        raise ValueError(f"{n} evenly spaced frames of a sequence of {n_frames}: at most "
+                         f"{n_frames}")
+    return np.round(np.linspace(0, n_frames - 1, n)).astype(int)
 
 
 def position_stats(errors_um: np.ndarray, frames: np.ndarray | None = None) -> PositionStats:
@@ -250,6 +254,11 @@ def check_positions_n(positions_n, what: str = "positions") -> None:
                          f"got {positions_n!r}")
 
 
+# Keys of evaluate_output's result that every version wrote: how `evaluate` recognises an
+# evaluation JSON of an older version (no manifest record) as its own, not a user's file.
+RESULT_KEYS = ("output", "truth", "frames", "e_M_px", "e_j_px")
+
+
 def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
                     positions_n: int | None = None) -> dict:
     """Scores an output folder's homographies.csv against a dataset's ground_truth.csv.
@@ -259,7 +268,8 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
     quarter of the sequence has no placed frame (then "drift_ratio_note" says why). A frame
     placed at infinity keeps e_j inf (it counts against e_M).
 
-    positions_n: also the position statistics at that many evenly spaced frames (>= 1).
+    positions_n: also the position statistics at that many evenly spaced frames (>= 1, at most
+    the sequence's frames: ValueError otherwise; "position_sampled_frames" names them).
     When the output's report.json records another dataset than `truth_root`, the result's
     "dataset_warning" says so; frames of another size are refused (see evaluation.provenance)."""
     from fusedmosaic.evaluation.provenance import check_frame_size, dataset_mismatch
@@ -339,12 +349,19 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
         raise ValueError(f"{truth_root / 'camera.yaml'}: no pixel_size_um, so no position "
                          f"errors in µm at {positions_n} evenly spaced frames (a pCLE "
                          "measure): leave out positions_n (--positions)")
+    if positions_n is not None and positions_n > len(errors):
+        # refused, not reduced: statistics over fewer frames than asked for would be taken for
+        # a table over positions_n (seed 004's 13 / 25 images)
+        raise ValueError(f"{truth_root}: {len(errors)} frames, fewer than the {positions_n} "
+                         "evenly spaced frames asked for (positions_n, --positions); give at "
+                         f"most {len(errors)}")
     if dataset.camera.pixel_size_um:
         err_um = position_errors_um(G_est, G_true, w, h,
                                     dataset.camera.pixel_size_um)
         result["position_errors_um"] = [None if not np.isfinite(e) else float(e) for e in err_um]
         result["position_all_um"] = _json_stats(position_stats(err_um))
         if positions_n:
-            result["position_sampled_um"] = _json_stats(
-                position_stats(err_um, evenly_spaced(len(err_um), positions_n)))
+            sampled = evenly_spaced(len(err_um), positions_n)
+            result["position_sampled_um"] = _json_stats(position_stats(err_um, sampled))
+            result["position_sampled_frames"] = [int(k) for k in truth_ids[sampled]]
     return result

@@ -8,8 +8,14 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
-# Small files that tell datasets apart; the frames themselves are summarised by count and size.
+import numpy as np
+
+# Small files that tell datasets apart; the frames themselves are summarised by count and size,
+# and by the pixels of a few (FINGERPRINT_FRAMES): two recordings with the same camera.yaml and
+# regular frame times (and a run's dataset without ground_truth.csv) differ only there.
 FINGERPRINT_FILES = ("camera.yaml", "frames.csv", "ground_truth.csv")
+# (its key in "sha256", which the warnings name)
+FINGERPRINT_FRAMES = "pixels of the first, middle and last frame"
 
 
 def _sha256(path: Path) -> str:
@@ -22,16 +28,38 @@ def _sha256(path: Path) -> str:
 
 def dataset_fingerprint(dataset) -> dict:
     """{frames, width, height, sha256: {file: first 16 hex digits}} of a read Dataset; files of
-    FINGERPRINT_FILES that are absent are left out."""
+    FINGERPRINT_FILES that are absent are left out; sha256[FINGERPRINT_FRAMES]: the pixels of
+    the first, middle and last frame as decoded (a copy with the frames re-encoded, or the
+    same recording imported again, matches)."""
     root = Path(dataset.root)
+    sha256 = {name: _sha256(root / name) for name in FINGERPRINT_FILES if (root / name).is_file()}
+    sha256[FINGERPRINT_FRAMES] = _frame_pixels_sha256(dataset.frames)
     return {
         "frames": int(len(dataset.frame_ids)),
         "width": int(dataset.camera.width),
         "height": int(dataset.camera.height),
-        "sha256": {
-            name: _sha256(root / name) for name in FINGERPRINT_FILES if (root / name).is_file()
-        },
+        "sha256": sha256,
     }
+
+
+def _frame_pixels_sha256(frames) -> str:
+    """First 16 hex digits of the SHA-256 of the first, middle and last frame's pixels (their
+    shape and bytes). A frame that cannot be read counts as "unreadable": `run` reads it as a
+    blank frame (its default) where `evaluate` gets an error, and both must agree."""
+    digest = hashlib.sha256()
+    n = len(frames)
+    for k in sorted({0, n // 2, n - 1}):
+        try:
+            image = frames[k]
+        except ValueError:
+            image = None
+        if image is None or k in getattr(frames, "unreadable", {}):
+            digest.update(b"unreadable")
+            continue
+        image = np.ascontiguousarray(image)
+        digest.update(f"{image.shape} {image.dtype}".encode())
+        digest.update(image.tobytes())
+    return digest.hexdigest()[:16]
 
 
 def dataset_mismatch(report: dict, dataset, report_path: str | Path) -> str | None:
@@ -47,7 +75,7 @@ def dataset_mismatch(report: dict, dataset, report_path: str | Path) -> str | No
         differ = [key for key in ("frames", "width", "height") if recorded.get(key) != now[key]]
         old_files = recorded.get("sha256") if isinstance(recorded.get("sha256"), dict) else {}
         # Only files both sides have: a run on a copy without ground_truth.csv (held out) is
-        # still the same dataset.
+        # still the same dataset; and older versions recorded no FINGERPRINT_FRAMES.
         differ += [
             name
             for name in sorted(set(old_files) & set(now["sha256"]))

@@ -25,6 +25,7 @@ from fusedmosaic.io._table import require_file
 from fusedmosaic.io.output import read_json_object, read_plane_json
 
 PLOTS_DIR = "plots"
+EVALUATION_TITLE = "fusedmosaic evaluation"  # `evaluate`'s report: its first line is "# " + it
 # Methods in green first, then colours that differ from the tracker (blue) and the truth (red).
 COLOURS = ["tab:green", "tab:orange", "tab:purple", "tab:brown", "tab:olive", "tab:cyan",
            "tab:pink", "tab:gray"]

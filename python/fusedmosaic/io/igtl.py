@@ -96,6 +96,8 @@ class StampJumps:
         self.last: tuple[float, float] | None = None  # (stamp, arrival) last accepted
         self.pending: list[tuple[float, float]] = []  # jumped ones in a row
         self.jumps: list[float] = []  # the clock jumps taken (s)
+        self._back: list[tuple[float, float]] = []  # stamped far behind, in a row
+        self.steps_back: list[float] = []  # the clock's steps back seen (s)
 
     def check(self, stamp: float, arrival: float) -> str | None:
         """None: accept (a jump of the clock taken: `jumps` grows), else the refusal."""
@@ -118,6 +120,30 @@ class StampJumps:
 
     def accepted(self, stamp: float, arrival: float) -> None:
         self.last = (stamp, arrival)
+        self._back.clear()
+
+    def behind(self, stamp: float, arrival: float) -> float | None:
+        """For a stamp refused as not after the last accepted one: the step back (s) of the
+        sender's clock when it is the STAMP_JUMP_CONFIRM-th in a row more than MAX_STAMP_LEAD_S
+        behind the stream and consistent with the ones before (added to `steps_back`: told
+        once per step); else None. Such stamps cannot be taken (a recording is in time order):
+        a clock set back ended a session with 'timestamp does not increase' frame after frame
+        and nothing said why (review)."""
+        if self.last is None:
+            return None
+        lag = (self.last[0] - stamp) + (arrival - self.last[1])
+        if lag <= MAX_STAMP_LEAD_S:
+            self._back.clear()
+            return None
+        if self._back:
+            ps, pa = self._back[-1]
+            if not (stamp > ps and abs((stamp - ps) - (arrival - pa)) <= MAX_STAMP_LEAD_S):
+                self._back.clear()
+        self._back.append((stamp, arrival))
+        if len(self._back) != STAMP_JUMP_CONFIRM:
+            return None
+        self.steps_back.append(lag)
+        return lag
 
 
 def _split_address(address: str, what: str) -> tuple[str, str | None]:
@@ -261,6 +287,12 @@ class IgtlSource:
         """The jumps (s) of the samples' clock taken (StampJumps: STAMP_JUMP_CONFIRM samples
         in a row stamped consistently far ahead of the stream; those before were refused)."""
         return list(self._sample_jumps.jumps)
+
+    @property
+    def sample_clock_steps_back(self) -> list[float]:
+        """The steps back (s) of the samples' clock seen (StampJumps.behind): every sample
+        after one is refused as going back in time."""
+        return list(self._sample_jumps.steps_back)
 
     # ------------------------------------------------------------------ consumer side
     def next_frame(self, timeout_s: float) -> LiveFrame | None:
@@ -513,6 +545,7 @@ class IgtlSource:
             if self._last_sample_time is not None and sample.timestamp <= self._last_sample_time:
                 sample.valid, sample.problem = False, sample.problem or _BACKWARDS
                 unrecorded = True
+                self._sample_jumps.behind(sample.timestamp, arrival)  # (steps_back)
             elif not unrecorded and (jump := self._sample_jumps.check(sample.timestamp,
                                                                       arrival)) is not None:
                 sample.valid, sample.problem = False, jump

@@ -41,13 +41,16 @@ def check_output_dir(
     """Checks, before any work, that ``out_dir`` can be created or written: it is a folder or
     does not exist, and no part of its path is a file. An existing folder must be writable
     (OutputWriter stages inside it); a missing one is created later, so its parent must be
-    writable (staged there). The parent is created if missing; with create_parent=False nothing
-    is created and the nearest existing ancestor is probed instead.
+    writable (staged there). The parent is created if missing (and removed again if the check
+    then fails); it stays when the caller's work fails later, so a command that may fail checks
+    with create_parent=False, which creates nothing and probes the nearest existing ancestor,
+    and lets the writer create the folders (OutputWriter, created_folders_removed_on_failure).
 
     Raises ValueError naming the path and the problem. Returns ``out_dir`` as a Path."""
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ValueError(f"{out}: exists and is not a folder (the {what} must be a folder)")
+    created: list[Path] = []  # parents made here: removed again if the probe fails
     if out.is_dir():
         directory, why = out, ""
     else:
@@ -55,9 +58,11 @@ def check_output_dir(
         if not existing.is_dir():  # a file where a folder should be
             raise ValueError(f"{out}: cannot create the {what}: {existing} is a file")
         if create_parent:
+            created = missing_folders(out.parent)
             try:
                 out.parent.mkdir(parents=True, exist_ok=True)
             except OSError as exc:
+                remove_created_folders(created)
                 raise ValueError(
                     f"{out}: cannot create the {what}'s parent folder {out.parent}: "
                     f"{_describe(exc)}"
@@ -71,10 +76,42 @@ def check_output_dir(
         # take new files (/proc, /sys): strerror's "No such file or directory" would mislead
         reason = ("the file system there takes no new files" if exc.errno == errno.ENOENT
                   and directory.is_dir() else _describe(exc))
+        remove_created_folders(created)
         raise ValueError(f"{out}: cannot write in {directory}{why}: {reason}") from None
     os.close(fd)
     os.unlink(probe)
     return out
+
+
+def missing_folders(path: str | Path) -> list[Path]:
+    """``path`` and its ancestors that do not exist yet, deepest first: the folders that
+    creating ``path`` creates (for remove_created_folders when the command then fails)."""
+    path = Path(path)
+    return [p for p in (path, *path.parents) if not (p.exists() or p.is_symlink())]
+
+
+def remove_created_folders(folders: Iterable[Path]) -> None:
+    """Removes the folders of missing_folders() that are empty, deepest first: what a failed
+    command created on the way to its output. A folder holding anything (someone else's file)
+    is kept, and so are its parents; a folder that existed before is never in the list."""
+    for folder in sorted(folders, key=lambda p: len(p.absolute().parts), reverse=True):
+        try:
+            folder.rmdir()
+        except OSError:  # not empty, or already gone
+            pass
+
+
+@contextlib.contextmanager
+def created_folders_removed_on_failure(path: str | Path) -> Iterator[None]:
+    """The folders on the way to ``path`` (itself included) that do not exist on entering are
+    removed again, when empty, if the block raises (Ctrl-C included): a command that fails
+    leaves no empty folder it made, as its outputs are all or nothing."""
+    created = missing_folders(path)
+    try:
+        yield
+    except BaseException:
+        remove_created_folders(created)
+        raise
 
 
 def read_json_object(path: str | Path) -> dict:
@@ -200,19 +237,25 @@ class OutputWriter:
         self._tmp: Path | None = None
         self._external: list[tuple[Path, Path]] = []  # (temp, target) outside OUT
         self._external_dirs: list[Path] = []  # folders created for them, deepest first
+        self._created: list[Path] = []  # OUT and its parents, when missing: removed on failure
 
     def __enter__(self) -> OutputWriter:
-        check_output_dir(self.out_dir)
-        for name in self.expects:  # a user's folder named like one of our files (or reverse)
-            self._check_kind(self.out_dir / name.rstrip("/"), name.endswith("/"))
-            if not name.endswith("/"):
-                self._check_ours(PurePath(name))
-        if self.out_dir.is_dir():
-            where, prefix = self.out_dir, TEMP_TAG
-        else:
-            where, prefix = self.out_dir.parent, f".{self.out_dir.name}{TEMP_TAG}"
-        _remove_stale_temps(where, prefix)
-        self._tmp = Path(tempfile.mkdtemp(prefix=f"{prefix}{os.getpid()}-", dir=where))
+        self._created = missing_folders(self.out_dir)
+        try:
+            check_output_dir(self.out_dir)  # (creates OUT's parent)
+            for name in self.expects:  # a user's folder named like one of our files (or reverse)
+                self._check_kind(self.out_dir / name.rstrip("/"), name.endswith("/"))
+                if not name.endswith("/"):
+                    self._check_ours(PurePath(name))
+            if self.out_dir.is_dir():
+                where, prefix = self.out_dir, TEMP_TAG
+            else:
+                where, prefix = self.out_dir.parent, f".{self.out_dir.name}{TEMP_TAG}"
+            _remove_stale_temps(where, prefix)
+            self._tmp = Path(tempfile.mkdtemp(prefix=f"{prefix}{os.getpid()}-", dir=where))
+        except BaseException:
+            remove_created_folders(self._created)
+            raise
         return self
 
     @staticmethod
@@ -253,19 +296,20 @@ class OutputWriter:
         tmp, self._tmp = self._tmp, None
         external, self._external = self._external, []
         folders, self._external_dirs = self._external_dirs, []
+        created, self._created = self._created, []
         with _interrupts_deferred():  # Ctrl-C here would leave a half-moved set or the temp
+            committed = False
             try:
                 if exc_type is None:
                     self._commit(tmp, external)
+                    committed = True
             finally:
                 shutil.rmtree(tmp, ignore_errors=True)
                 for temp, _ in external:
                     temp.unlink(missing_ok=True)
-                for folder in folders:  # created for a file outside OUT that did not land
-                    try:
-                        folder.rmdir()  # only if empty: someone else's file keeps it
-                    except OSError:
-                        pass
+                # created for a file outside OUT that did not land, and (on failure) OUT's
+                # parents that __enter__ created: only if empty, someone else's file keeps them
+                remove_created_folders([*folders, *([] if committed else created)])
 
     def _commit(self, tmp: Path, external: list[tuple[Path, Path]]) -> None:
         moves: list[tuple[Path, Path]] = []  # planned first: fail before moving anything
@@ -381,7 +425,7 @@ class OutputWriter:
             raise RuntimeError("OutputWriter: use it as a context manager (with OutputWriter(…))")
         target = Path(target)
         temp = target.with_name(f".{target.stem}.tmp-{os.getpid()}{target.suffix}")
-        missing = [p for p in (target.parent, *target.parent.parents) if not p.exists()]
+        missing = missing_folders(target.parent)
         target.parent.mkdir(parents=True, exist_ok=True)
         self._external_dirs += missing
         self._external.append((temp, target))

@@ -268,6 +268,9 @@ def _read_header(path: Path) -> tuple[dict[str, tuple[str, int]], dict[int, dict
                 continue
             key, eq, value = text.partition("=")
             key, value = key.strip(), value.strip()
+            if eq and key.lower() == "elementdatafile":  # before the length check: binary
+                # data on this line is a missing line break, not a line before ElementDataFile
+                _check_data_file_value(path, line_number, value, len(raw) >= _MAX_HEADER_LINE)
             if not eq or not key or not key.isprintable() or len(raw) >= _MAX_HEADER_LINE:
                 raise ValueError(
                     f"{path}: line {line_number} is not a 'Key = Value' header line: "
@@ -292,6 +295,33 @@ def _read_header(path: Path) -> tuple[dict[str, tuple[str, int]], dict[int, dict
             header[key] = (value, line_number)
             if key == "ElementDataFile":
                 return header, frames, f.tell()
+
+
+def _check_data_file_value(path: Path, line_number: int, value: str, too_long: bool) -> None:
+    """ValueError when ElementDataFile's value holds binary data (control characters, or a
+    line too long to be text): the image data was put on the header's last line, without the
+    line break that ends it (a header edited or damaged by hand). PLUS's own value is LOCAL or
+    a file name, which have none (a name in the Windows code page read as latin-1 may hold
+    U+0080-U+009F, so only the C0 controls and DEL count)."""
+    binary = too_long or any(ord(c) < 32 or ord(c) == 127 for c in value)
+    rest = value[5:]
+    if value[:5].upper() == "LOCAL" and rest and (binary or not " " < rest[0] <= "~"):
+        raise ValueError(
+            f"{path}: line {line_number}: the ElementDataFile line is not terminated: the image "
+            f"data follows LOCAL on the same line ({_cut(value)}); it must start after the line "
+            "break that ends 'ElementDataFile = LOCAL' (a header edited or damaged by hand?)")
+    if binary:
+        raise ValueError(
+            f"{path}: line {line_number}: ElementDataFile {_cut(value)} is not LOCAL or a file "
+            "name (binary data: the line is not terminated, or the header is damaged)")
+
+
+def _cut(value: str, limit: int = 40) -> str:
+    """A header value quoted for a message, cut to `limit` characters (it may be megabytes of
+    binary data)."""
+    if len(value) <= limit:
+        return repr(value)
+    return f"{value[:limit]!r}... ({len(value)} characters)"
 
 
 def _header_text(raw: bytes) -> str:
@@ -452,12 +482,13 @@ def _read_pixels(path: Path, header, header_end: int, shape: tuple[int, ...],
         data_path, offset = path, header_end
     else:
         if data_file.upper().startswith("LIST") or "%" in data_file:
-            raise ValueError(f"{path}: ElementDataFile {data_file!r}: one data file per slice "
-                             "(LIST or a pattern) is not supported; expected LOCAL or one file")
+            raise ValueError(f"{path}: ElementDataFile {_cut(data_file)}: one data file per "
+                             "slice (LIST or a pattern) is not supported; expected LOCAL or one "
+                             "file")
         data_path, offset = path.parent / data_file, 0
         if not data_path.is_file():
-            raise ValueError(f"{path}: line {line}: ElementDataFile {data_file!r}: {data_path} "
-                             "not found")
+            raise ValueError(f"{path}: line {line}: ElementDataFile {_cut(data_file)}: "
+                             f"{data_path} not found")
     size = data_path.stat().st_size
     if "HeaderSize" in header and data_file != "LOCAL":  # bytes to skip in the data file
         skip = _integer(path, "HeaderSize", header["HeaderSize"][0])
