@@ -509,3 +509,24 @@ def test_no_tracker_agreement_after_a_failed_adjustment(base, monkeypatch):
     r = run_ba_emt(read_dataset(base), progress=False)
     assert r.details["tracker_agreement"] == {"skipped": "the adjustment failed"}
     assert r.details["warnings"][0] == "the adjustment failed: Ceres FAILURE: forced"
+
+
+def test_a_plane_out_of_range_blames_the_unit_before_the_registrations():
+    """A tracker in metres on a short sequence: the plane 0.03 mm away, its relative standard
+    deviation 12 over 253 registered pairs: the warning blamed too few registrations (a small
+    field of view, weak texture) and never named the unit (review). The unit first, the
+    uncertainty beside it."""
+    from fusedmosaic.estimation.consistency import tracker_agreement
+
+    n = 10
+    poses = np.zeros((n, 6))
+    poses[:, 3] = -0.001 * np.arange(n)  # centres 1 µm apart along x, looking along +z
+    plane = np.array([0.0, 0.0, -1.0 / 0.03])  # z = 0.03 mm (n.X + d = 0, pi = n / d)
+    out = tracker_agreement(poses, poses, np.ones(n, bool), plane, plane_relative_std=12.0,
+                            registered_pairs=253)
+    assert out["plane_distance_mm"] == pytest.approx(0.03)
+    assert len(out["warnings"]) == 1, out["warnings"]
+    assert ("the plane lies 0.03 mm from the cameras (median), outside the 1-2000 mm an "
+            "endoscope views a surface from: check that the tracker's translations are in mm "
+            "(metres?)") in out["warnings"][0]
+    assert "its relative standard deviation is 12" in out["warnings"][0]

@@ -314,3 +314,25 @@ def test_dataset_warnings_kept_in_report_json(tmp_path):
     assert gap in report["warnings"] and key in report["warnings"]
     assert len(report["warnings"]) == len(set(report["warnings"]))
     assert "missing between" not in summary and "pixel_sise_um" not in summary
+
+
+def test_pairwise_statuses_name_frame_ids_across_a_gap(tmp_path):
+    """Frames 5 and 6 removed (files and frames.csv rows), frame 7 black: report.json's statuses
+    named positions ('pair (4, 5)', 'chain broken at frame 5') where homographies.csv and the
+    warning name ids 4 and 7 (review)."""
+    from fusedmosaic.estimation.pairwise import run_pairwise
+    from fusedmosaic.simulation import FetoscopyOptions, simulate_fetoscopy
+
+    root = simulate_fetoscopy(tmp_path / "d", FetoscopyOptions(n_frames=12, laps=12 / 37.5,
+                                                                width=160, height=160))
+    for k in (5, 6):
+        (root / "frames" / f"{k:06d}.png").unlink()
+        _drop_row(root / "frames.csv", k)
+        _drop_row(root / "ground_truth.csv", k)
+    cv2.imwrite(str(root / "frames" / "000007.png"), np.zeros((160, 160, 3), np.uint8))
+    ds = read_dataset(root)
+    result = run_pairwise(ds, progress=False)
+    status = dict(zip(ds.frame_ids.tolist(), result.status, strict=True))
+    assert status[7].startswith("unplaced: pair (4, 7) not registered: too few features")
+    assert status[8] == status[11] == "unplaced: chain broken at frame 7"
+    assert any("breaks at frame 7: pair (4, 7)" in w for w in result.details["warnings"])

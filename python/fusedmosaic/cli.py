@@ -1032,8 +1032,9 @@ def build_parser() -> argparse.ArgumentParser:
     live.add_argument("--bit-depth", type=int, metavar="B",
                       help="16-bit frames hold B-bit data (8..16, e.g. 12 for a 12-bit sensor): "
                            "mosaicked in 8 bits as v * 255 / (2^B - 1), one scale for the "
-                           "session (default: the bits the first frame's largest value needs; "
-                           "values above are clipped, with a warning); recorded as received")
+                           "session (default: the bits the largest value so far needs, raised "
+                           "when a frame exceeds it, told once; given, values above are "
+                           "clipped, told once); recorded as received")
     live.add_argument("--record", required=True, metavar="DATA",
                       help="dataset folder the session is recorded into (new or empty)")
     live.add_argument("--overwrite-record", action="store_true",
@@ -1121,8 +1122,8 @@ def _add_tracker_time_offset_flag(parser: argparse.ArgumentParser, effect: str) 
     """--tracker-time-offset S (checked by io.tracking.check_time_offset in the command)."""
     parser.add_argument("--tracker-time-offset", type=float, default=None, metavar="S",
                         help="seconds the tracker's clock is ahead of the video's (calibrate "
-                             f"measures it: calibration.json tracker_time_offset): {effect} "
-                             "(default 0)")
+                             "measures it: calibration.json hand_eye.tracker_time_offset."
+                             f"applied_s): {effect} (default 0)")
 
 
 def _add_tracked_camera_flags(parser: argparse.ArgumentParser, *, transform: str,

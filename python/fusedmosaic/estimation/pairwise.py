@@ -66,7 +66,8 @@ def run_pairwise(dataset, *, progress: bool = True,
     start = next((k for k in range(n) if k not in unreadable
                   and len(feats[k]) >= o.matching.min_inliers), 0)
     if n > 1 and not any(m.ok for m in matches):
-        first = unreadable.get(0) or f"pair (0, 1): {matches[0].status}"
+        first = unreadable.get(0) or (f"pair ({int(ids[0])}, {int(ids[1])}): "
+                                      f"{matches[0].status}")
         raise ValueError(f"{dataset.root}: no consecutive pair of frames could be registered "
                          f"(first failure: {first})")
     t0 = time.perf_counter()
@@ -82,10 +83,12 @@ def run_pairwise(dataset, *, progress: bool = True,
     for k in range(start, n - 1):
         m = matches[k]
         if broken is None and not m.ok:
-            broken = k + 1
-            status.append(f"unplaced: pair ({k}, {k + 1}) not registered: {m.status}")
+            broken = k + 1  # (the statuses name frame ids, as homographies.csv: a dataset
+            # with files missing named positions, 'pair (9, 10)' for frames 9 and 12; review)
+            status.append(f"unplaced: pair ({int(ids[k])}, {int(ids[k + 1])}) not registered: "
+                          f"{m.status}")
         elif broken is not None:
-            status.append(f"unplaced: chain broken at frame {broken}")
+            status.append(f"unplaced: chain broken at frame {int(ids[broken])}")
         else:
             status.append("placed")
     ok = [m for m in matches if m.ok]
