@@ -486,6 +486,30 @@ def test_a_failed_registration_is_not_counted_as_disagreeing_directions(small, t
     assert [fused.status[k] for k in range(2, 11, 2)] == ["prior-only"] * 5
 
 
+def test_statuses_name_frame_ids_across_a_gap(small, tmp_path):
+    """Frame 1 removed (file and rows): the statuses named the anchor by its position ('against
+    frame 2' for frame 3), not by the frame id homographies.csv uses (review)."""
+    import shutil
+
+    import cv2
+
+    root = shutil.copytree(small, tmp_path / "gap")
+    (root / "frames" / "000001.png").unlink()
+    for name in ("frames.csv", "ground_truth.csv"):
+        path = root / name
+        path.write_text("".join(line for line in path.read_text().splitlines(keepends=True)
+                                if not line.startswith("1,")))
+    path = root / "frames" / "000004.png"
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    image[30:130, 30:162] = np.iinfo(image.dtype).max  # a featureless template
+    cv2.imwrite(str(path), image)
+    ds = read_dataset(root)
+    assert ds.frame_ids[:4].tolist() == [0, 2, 3, 4]
+    result = run_ncc(ds, progress=False)
+    assert result.status[3] == ("unplaced: NCC registration against frame 3 failed "
+                                "(featureless template)"), result.status
+
+
 def test_a_run_without_any_textured_frame_warns(small, tmp_path):
     import shutil
 

@@ -116,6 +116,7 @@ from __future__ import annotations
 
 import copy
 import numbers
+import re
 import threading
 import time
 from collections import deque
@@ -1134,6 +1135,9 @@ def frame_columns(results: list) -> dict:
     }
 
 
+_ANCHOR_FRAME = re.compile(r"against frame (\d+)")  # (RobotPriorMosaicker's statuses)
+
+
 def _run(
     dataset, estimate: str, *, progress: bool, options: RobotPriorOptions | None
 ) -> MethodResult:
@@ -1197,9 +1201,14 @@ def _run(
         "robot_file": dataset.robot_file if estimate != "image" else None,
         **asdict(options),
     }
+    # the streaming statuses count frames ("against frame 9"); report.json names frame ids
+    # (a dataset with files missing: frame 9 was id 12)
+    ids = dataset.frame_ids
+    status = [_ANCHOR_FRAME.sub(lambda m: f"against frame {int(ids[int(m.group(1))])}", text)
+              for text in column("status")]
     return MethodResult(
         homographies=G,
-        status=column("status"),
+        status=status,
         timings=timings,
         parameters=parameters,
         details=details,
