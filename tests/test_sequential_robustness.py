@@ -1104,3 +1104,47 @@ def test_one_frame_in_the_start_up_at_the_end_is_named_as_such():
                                          r"plane needs a registered pair, at least 2 frames with "
                                          r"tracker poses$"):
         m.flush()
+
+
+def test_a_startup_refused_at_its_bound_is_retried_every_few_frames(tmp_path, monkeypatch):
+    """tracking.csv inverted: the start-up's plane is behind its cameras at every attempt. At
+    startup_wait_frames it was solved again at every frame (4-8 s an attempt over 80 frames:
+    an inverted hand-eye on 150 frames of 240 px took 5.6 min; review); now once every
+    STARTUP_RETRY_FRACTION of the bound's frames, still refused with the tracker named."""
+    from scipy.spatial.transform import Rotation
+
+    from fusedmosaic.io import (
+        TrackingSamples,
+        read_dataset,
+        read_tracking_csv,
+        write_tracking_csv,
+    )
+    from fusedmosaic.simulation import simulate_fetoscopy
+
+    root = simulate_fetoscopy(tmp_path / "d", FetoscopyOptions(n_frames=60, width=200,
+                                                                height=200, laps=60 / 37.5))
+    s = read_tracking_csv(root / "tracking.csv")
+    inverse = Rotation.from_quat(s.quaternions).inv()
+    write_tracking_csv(root / "tracking.csv", TrackingSamples(
+        s.timestamps, -inverse.apply(s.translations), inverse.as_quat(), s.valid))
+    ds = read_dataset(root)
+    attempts = []
+    solve = SequentialMosaicker._solve_startup
+
+    def recorded(self, *args, **kwargs):
+        attempts.append(self._next_id)
+        return solve(self, *args, **kwargs)
+
+    monkeypatch.setattr(SequentialMosaicker, "_solve_startup", recorded)
+    wait = 24
+    m = SequentialMosaicker(ds.camera, SequentialOptions(bootstrap_frames=8,
+                                                         startup_wait_frames=wait))
+    for k in range(len(ds)):
+        m.add_frame(ds.frames[k], float(ds.timestamps[k]), ds.cam_from_world[k])
+    assert m.plane is None
+    assert "not in front of frames" in m._startup_problem
+    assert "the tracker's poses likely contradict them" in m._startup_problem
+    at_bound = sorted({k for k in attempts if k > wait})
+    step = round(sequential.STARTUP_RETRY_FRACTION * wait)  # 3
+    assert at_bound and np.diff([wait, *at_bound]).min() >= step, attempts
+    assert len(at_bound) <= (len(ds) - wait) // step + 1, attempts  # was one every frame: 36

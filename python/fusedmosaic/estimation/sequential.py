@@ -143,6 +143,11 @@ UNBOUNDED_CHECK_RELATIVE_STD = 10.0
 # A start-up plane behind its cameras from at least this many registered pairs showing parallax
 # is blamed on the tracker's poses, not on too few pairs or too short a baseline.
 CONTRADICTING_PAIRS = 20
+# A start-up refused while it holds startup_wait_frames frames is tried again once this
+# fraction of them came since (new tracked pairs, a quarter more, still try at once): every
+# frame then hands its oldest out unplaced, so a start-up accepted k frames later places k
+# frames fewer, at most 9 of 80.
+STARTUP_RETRY_FRACTION = 0.125
 
 
 @dataclass
@@ -537,7 +542,7 @@ class SequentialMosaicker:
         self._startup_G: dict[int, np.ndarray] = {}
         self._startup_plane: np.ndarray | None = None
         self._startup_problem: str | None = None  # why the last start-up adjustment was refused
-        self._startup_refused = (0, 0)  # its registered pairs with tracker poses, frames
+        self._startup_refused = (0, 0, 0)  # its registered pairs with tracker poses, frames
         # Frames finalised without an anchor: no tracker sample used and no registered pair
         # leading to an anchored camera (e.g. black frames in a tracker dropout, and the visual
         # chain after them). Kept while the window or the keyframe reservoir may hold them;
@@ -841,7 +846,7 @@ class SequentialMosaicker:
         start-up every pending sample still kept was accepted by the current reference (a
         re-anchoring drops the others), so those are the old reference's."""
         old = {p["id"] for p in self._pending if p["tracker"] is not None}
-        self._startup_refused = (0, 0)  # (its pairs counted with the old samples)
+        self._startup_refused = (0, 0, 0)  # (its pairs counted with the old samples)
         pending = []
         for p in self._pending:
             if p["id"] in old and p["tracker"] is not None:
@@ -1324,11 +1329,22 @@ class SequentialMosaicker:
     def _startup_due(self) -> bool:
         """Whether to try the start-up adjustment (again): its plane was not refused yet, or
         since then its registered pairs with tracker poses grew by a quarter (at least one) or
-        its frames by a quarter, or it holds startup_wait_frames frames. A weakly textured
-        scene's start-up was solved again at every frame while it waited (up to ~46 ms a frame
-        at 60 frames of 200 px), though only new pairs see the plane much better."""
-        pairs, frames = self._startup_refused
-        if not pairs or len(self._pending) >= min(self.options.startup_wait_frames, 1.25 * frames):
+        its frames by a quarter; holding startup_wait_frames frames, once
+        STARTUP_RETRY_FRACTION of them came since the refusal. A weakly textured scene's
+        start-up was solved again at every frame while it waited (up to ~46 ms a frame at 60
+        frames of 200 px), though only new pairs see the plane much better. At the bound the
+        plane's uncertainty is no longer refused (it must decide): a refusal there is a plane
+        behind the cameras (the tracker contradicting the images: an inverted hand-eye), which
+        one more frame does not change, and each attempt over 80 frames and ~1500 pairs took
+        4-8 s: tried at every frame, 150 frames of 240 px took 5.6 min (review)."""
+        pairs, frames, refused_at = self._startup_refused
+        wait = self.options.startup_wait_frames
+        if not pairs:
+            return True
+        if len(self._pending) >= wait:
+            if self._next_id - refused_at >= max(1, round(STARTUP_RETRY_FRACTION * wait)):
+                return True
+        elif len(self._pending) >= 1.25 * frames:
             return True
         tracked = {p["id"] for p in self._pending if p["tracker"] is not None}
         usable = sum(m.frame_l in tracked and m.frame_m in tracked for m in self._boot_matches)
@@ -1340,7 +1356,7 @@ class SequentialMosaicker:
         when the plane it gives is not in front of every start-up camera."""
         t0 = time.perf_counter()
         self._startup_problem = None
-        self._startup_refused = (0, 0)
+        self._startup_refused = (0, 0, 0)
         tracked, table = self._pending_tracker_poses()
         usable = [m for m in self._boot_matches if m.frame_l in tracked and m.frame_m in tracked]
         if not usable:
@@ -1401,7 +1417,7 @@ class SequentialMosaicker:
                 trial = False  # (once)
                 if summary["termination"] == "NO_CONVERGENCE":
                     if not summary["plane_relative_std"] <= limit:
-                        self._startup_refused = (refused_pairs, len(ids))
+                        self._startup_refused = (refused_pairs, len(ids), self._next_id)
                         self._startup_problem = self._std_refusal(
                             summary["plane_relative_std"], len(usable)) + self._disagreement(
                             ba, tracked)
@@ -1461,7 +1477,7 @@ class SequentialMosaicker:
             # but not measured: the run's plane check says so unless the window measures it
             summary["plane_relative_std"] = np.inf
         if behind:
-            self._startup_refused = (refused_pairs, len(ids))
+            self._startup_refused = (refused_pairs, len(ids), self._next_id)
             parallax = homography_parallax(usable, self.K)
             if len(usable) >= CONTRADICTING_PAIRS and parallax > MAX_NOMINAL_PARALLAX:
                 # Many pairs with parallax: neither few nor short. (An inverted tracking.csv
@@ -1491,7 +1507,7 @@ class SequentialMosaicker:
         # run crashed): refused as a plane behind the cameras is.
         if limit > 0 and not std <= limit and (
                 np.isinf(std) or not must_decide):
-            self._startup_refused = (refused_pairs, len(ids))
+            self._startup_refused = (refused_pairs, len(ids), self._next_id)
             self._startup_problem = (self._std_refusal(std, len(usable))
                                      + self._disagreement(ba, tracked))
             return False
