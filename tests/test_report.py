@@ -236,3 +236,21 @@ def test_video_never_replaces_a_file_no_run_wrote(dataset, tmp_path, capsys):
         assert cv2.VideoCapture(str(mine)).get(cv2.CAP_PROP_FRAME_COUNT) == SIM.n_frames
     assert main([*run, str(tmp_path / "c"), "--video", str(mine)]) == 2  # another OUT's video
     assert "exists and no earlier run into" in capsys.readouterr().err
+
+
+def test_run_report_lists_every_frame_left_out_of_the_mosaic(tmp_path):
+    """Black frames placed from the tracker are left out of the mosaic (report.json
+    mosaic.skipped_frames, the summary's 'N frame(s) left out'), but report.md listed only the
+    canvas's own screening and said nothing of them (review)."""
+    from fusedmosaic.runner import run_dataset
+    from fusedmosaic.simulation import FetoscopyOptions, simulate_fetoscopy
+
+    root = simulate_fetoscopy(tmp_path / "d", FetoscopyOptions(
+        n_frames=12, laps=12 / 37.5, width=160, height=160, black_frames=[5, 6]))
+    run_dataset(root, "emt", tmp_path / "out", progress=False)
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert sorted(report["mosaic"]["skipped_frames"]) == ["5", "6"]
+    md = (tmp_path / "out" / "report.md").read_text()
+    assert "## Frames left out of the mosaic (emt)" in md
+    for k in (5, 6):
+        assert f"- frame {k}: {report['mosaic']['skipped_frames'][str(k)]}" in md

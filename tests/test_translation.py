@@ -886,3 +886,25 @@ def test_flat_field_masks_dark_pixels_and_keeps_blank_frames_blank(small_scene):
     m.add_frame(frames[0], 0.0)
     blank = m.add_frame(np.full_like(frames[0], 200), 0.1)
     assert blank.status.startswith("unplaced") and "blank" in blank.status
+
+
+def test_ncc_jump_across_blank_frames_is_warned(tmp_path):
+    """Frames 20-22 of 60 black: ncc registered frame 23 against frame 19, ~160 px on, with
+    directions disagreeing (score 0.1), placed it on frame 19 and every later frame with it
+    (e_M 151 -> 250 px) without a word: the 25 % threshold of inconsistent registrations was
+    far off (review). Such a registration across frames without one is warned of by name."""
+    import cv2
+
+    from fusedmosaic.simulation import PcleOptions, simulate_pcle
+
+    root = simulate_pcle(tmp_path / "p", PcleOptions(n_frames=60, width=256, height=224))
+    for k in (20, 21, 22):
+        path = root / "frames" / f"{k:06d}.png"
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(path), np.zeros_like(image))
+    result = run_ncc(read_dataset(root), progress=False)
+    assert 23 in result.details["ncc_inconsistent"]
+    assert any(w.startswith("NCC registered frame 23 against frame 19 across frames without a "
+                            "registration (blank or failed), with forward and backward "
+                            "directions that disagree: X_m likely jumped there")
+               for w in result.details["warnings"]), result.details["warnings"]

@@ -630,7 +630,6 @@ def write_run_report(w, dataset, method: str, result, G: np.ndarray, outputs: di
         write_report,
     )
 
-    ids = dataset.frame_ids
     plan, mosaic = outputs["plan"], outputs["mosaic"]
     if plan is None:
         note = f"Mosaic not written: {mosaic['skipped']}"
@@ -643,8 +642,11 @@ def write_run_report(w, dataset, method: str, result, G: np.ndarray, outputs: di
                     plane_history=plane_history_per_frame(result.details.get("plane_history"),
                                                           len(G)),
                     timings=dict(timings),
-                    skipped={} if plan is None else {int(ids[k]): why
-                                                    for k, why in plan.skipped.items()},
+                    # every frame left out (black, dead-reckoned, unreadable ones too, as
+                    # report.json lists them; the canvas's own screening alone left report.md
+                    # silent on 4 black frames; review)
+                    skipped={} if plan is None else {int(k): why for k, why in
+                                                    mosaic["skipped_frames"].items()},
                     output=".")
     directory = w.path("report.md").parent
     video = outputs.get("video")

@@ -440,6 +440,9 @@ class FrameResult:
         the wide-range retry, ``RobotPriorOptions.max_disagreement_px``); None without one, or
         when it failed (a featureless template: no displacement, status ``unplaced`` or
         ``prior-only``).
+    registered_against : the index of the frame it was registered against (the last placed
+        textured one: ``index - 1`` unless blank or failed frames came between), None without
+        a registration.
     """
 
     index: int
@@ -464,6 +467,7 @@ class FrameResult:
     robot_gated: bool = False
     ncc_consistent: bool | None = None
     image_gated: bool = False
+    registered_against: int | None = None
 
     @property
     def placed(self) -> bool:
@@ -847,6 +851,7 @@ class RobotPriorMosaicker:
         # Image registration against the anchor (frame i-1 unless it was blank or failed).
         dx, why_no_image = _NAN2, None
         inconsistent, consistent = False, None
+        against = None
         if i > 0 and self.estimate != "robot":
             if blank:
                 why_no_image = "blank frame (constant image)"
@@ -855,6 +860,7 @@ class RobotPriorMosaicker:
             else:
                 t0 = time.perf_counter()
                 box, square = self._field
+                against = self._anchor.index
                 reg = register_ncc(
                     self._anchor.image[box],
                     gray[box],
@@ -1044,6 +1050,7 @@ class RobotPriorMosaicker:
             robot_gated=robot_gated,
             ncc_consistent=consistent,
             image_gated=image_gated,
+            registered_against=against,
             **conf,
         )
 
@@ -1233,6 +1240,21 @@ def add_inconsistency(details: dict, results: list, ids, estimate: str) -> None:
     made = [r for r in results if r.ncc_consistent is not None]
     bad = [int(ids[r.index]) for r in made if not r.ncc_consistent]
     details["ncc_inconsistent"] = bad
+    # X_m across frames without a registration (blank, failed): an inconsistent one there is
+    # a jump of the whole chain after it (3 blank frames of 60: frame 23 put on frame 19, 158
+    # px off, every later frame with it, e_M 151 -> 250 px, without a word; review)
+    bridged = [r for r in made if not r.ncc_consistent and r.registered_against is not None
+               and r.registered_against < r.index - 1]
+    if estimate == "image" and bridged:
+        details["warnings"].append(
+            "NCC registered " + "; ".join(
+                f"frame {int(ids[r.index])} against frame {int(ids[r.registered_against])}"
+                for r in bridged[:5]) + (f" and {len(bridged) - 5} more" if len(bridged) > 5
+                                         else "")
+            + " across frames without a registration (blank or failed), with forward and "
+            "backward directions that disagree: X_m likely jumped there, and every frame after "
+            "carries the jump (kalman-robot places such frames by the robot; report.json "
+            "ncc_inconsistent)")
     if estimate == "image" and made and len(bad) > MAX_INCONSISTENT_FRACTION * len(made):
         listed = listed_ids(bad)
         details["warnings"].append(
