@@ -522,3 +522,27 @@ def test_a_frame_dropped_before_the_first_processed_one_says_so():
     result = session_result(LiveSession(), [0.0, 0.1], [0], source_details={}, method="ncc")
     assert result.status[0] == ("unplaced: dropped (live: a newer frame had arrived when the "
                                 "session took one)")
+
+
+def test_streamed_pcle_statuses_name_the_recorded_anchor(monkeypatch):
+    """The mosaicker counts the frames it is given; a live run drops frames, so its 'against
+    frame N' named the N-th processed frame, another frame of the recording: named by the
+    recorded frame's id now (by its index in a live recording)."""
+    from types import SimpleNamespace
+
+    import fusedmosaic.estimation.translation as translation
+    from fusedmosaic.estimation.live import _streamed_result
+
+    monkeypatch.setattr(translation, "frame_columns", lambda results: {})  # (not the point)
+    finals = {k: SimpleNamespace(index=count, status=status, homography=np.eye(3))
+              for k, count, status in (
+                  (0, 0, "placed"), (3, 1, "placed"),
+                  (7, 2, "unplaced: NCC registration against frame 1 failed (featureless "
+                         "template)"))}
+    out = _streamed_result("ncc", ["dropped"] * 8, finals, None, {}, 0.0, {})
+    assert out.status[7] == ("unplaced: NCC registration against frame 3 failed (featureless "
+                             "template)")
+    out = _streamed_result("ncc", ["dropped"] * 8, finals, None, {}, 0.0, {},
+                           ids=np.arange(8) * 10)
+    assert out.status[7].startswith("unplaced: NCC registration against frame 30 failed")
+    assert out.status[3] == "placed" and out.status[1] == "dropped"

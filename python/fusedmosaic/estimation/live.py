@@ -165,15 +165,16 @@ def replay_live(dataset, method: str, *, options=None, progress: bool = True,
             method, stream.mosaicker.origin_frames, ids, [finals[k] for k in processed],
             dataset.robot_file, details["live"]["frames_without_sample"], stream.max_age))
     return _streamed_result(method, status, finals, getattr(stream.mosaicker, "plane", None),
-                            details, measured, {"live": True, **stream.parameters})
+                            details, measured, {"live": True, **stream.parameters},
+                            ids=dataset.frame_ids)
 
 
 def _streamed_result(method: str, status: list, finals: dict, plane, details: dict,
-                     processing_s: float, parameters: dict) -> MethodResult:
+                     processing_s: float, parameters: dict, ids=None) -> MethodResult:
     """The MethodResult of a streamed run over len(status) frames: the final homography, pose
     and status of each frame in `finals` (index -> FrameResult), `status` for the others; for
     lba-emt also details["plane_history"], per frame the plane of the step that made it
-    final."""
+    final. ids: the frames' ids (None: their indices, a live recording's)."""
     n = len(status)
     G = np.full((n, 3, 3), np.nan)
     poses = np.full((n, 6), np.nan) if method == "lba-emt" else None
@@ -186,9 +187,19 @@ def _streamed_result(method: str, status: list, finals: dict, plane, details: di
                                     else np.asarray(finals[k].plane).tolist() for k in range(n)]
     else:  # kalman-robot: what the offline run reports (translation._run), None / NaN where
         # a frame was not processed; runner.add_streamed_checks compares X_m and X_r
-        from fusedmosaic.estimation.translation import frame_columns
+        from fusedmosaic.estimation.translation import frame_columns, name_anchor
 
         details.update(frame_columns([finals.get(k) for k in range(n)]))
+        # the mosaicker counts the frames it was given, not the dropped ones: its "against
+        # frame N" named the N-th processed frame, another one of the recording
+        recorded = {r.index: k for k, r in finals.items()}
+
+        def id_of(count: int) -> int:
+            k = recorded[count]  # (the anchor was processed, so final)
+            return int(k if ids is None else ids[k])
+
+        for k, r in finals.items():
+            status[k] = name_anchor(r.status, id_of)
     return MethodResult(G, status, poses=poses, plane=None if plane is None else np.asarray(plane),
                         timings={"processing": processing_s}, parameters=parameters,
                         details=details, blend="linear" if method == "lba-emt" else "average",

@@ -1145,6 +1145,13 @@ def frame_columns(results: list) -> dict:
 _ANCHOR_FRAME = re.compile(r"against frame (\d+)")  # (RobotPriorMosaicker's statuses)
 
 
+def name_anchor(status: str, id_of) -> str:
+    """A RobotPriorMosaicker status with the frame it registered against ("against frame
+    N", N its count of frames added) named by ``id_of(N)``: the frame's id in a dataset, or
+    in a live session's recording (which holds the dropped frames too)."""
+    return _ANCHOR_FRAME.sub(lambda m: f"against frame {id_of(int(m.group(1)))}", status)
+
+
 def _run(
     dataset, estimate: str, *, progress: bool, options: RobotPriorOptions | None
 ) -> MethodResult:
@@ -1211,8 +1218,7 @@ def _run(
     # the streaming statuses count frames ("against frame 9"); report.json names frame ids
     # (a dataset with files missing: frame 9 was id 12)
     ids = dataset.frame_ids
-    status = [_ANCHOR_FRAME.sub(lambda m: f"against frame {int(ids[int(m.group(1))])}", text)
-              for text in column("status")]
+    status = [name_anchor(text, lambda count: int(ids[count])) for text in column("status")]
     return MethodResult(
         homographies=G,
         status=status,
