@@ -59,20 +59,23 @@ def tracker_matrix(translation, quaternion) -> np.ndarray:
 
 def dataset_events(ds, *, n_frames: int | None = None, device: str = "SensorToTracker",
                    invert: bool = False, clock_ahead_s: float = 0.0,
-                 position: bool = False) -> list[tuple[float, bytes]]:
+                   position: bool = False, stamp=None) -> list[tuple[float, bytes]]:
     """(time, message) for a dataset's frames and valid tracker samples (at the tracker's own
     rate, up to the last frame), images before the transforms of the same time; the
     transforms are stamped clock_ahead_s later than sent (a tracker whose clock is ahead);
-    position: samples as POSITION messages (28 bytes) instead of TRANSFORMs."""
+    position: samples as POSITION messages (28 bytes) instead of TRANSFORMs; stamp(t): the
+    stamp of every message sent at t (the sender's clock, e.g. jumping; default t)."""
+    stamp = (lambda t: t) if stamp is None else stamp
     pose_message = position_message if position else transform_message
     times = np.asarray(ds.timestamps)[:n_frames]
     tr = ds.tracking
-    events = [(float(t), 1, image_message(ds.frames[k], float(t))) for k, t in enumerate(times)]
+    events = [(float(t), 1, image_message(ds.frames[k], stamp(float(t))))
+              for k, t in enumerate(times)]
     for i, t in enumerate(tr.timestamps):
         if tr.valid[i] and t <= times[-1]:
             M = tracker_matrix(tr.translations[i], tr.quaternions[i])
             events.append((float(t), 2, pose_message(np.linalg.inv(M) if invert else M,
-                                                     float(t) + clock_ahead_s, device)))
+                                                     stamp(float(t)) + clock_ahead_s, device)))
     events.sort(key=lambda e: (e[0], e[1]))
     return [(t, m) for t, _, m in events]
 

@@ -1197,17 +1197,9 @@ def test_sender_clock_jump_taken_and_reported(syn, tmp_path, capsys):
     live source frame_clock_jumps_s / sample_clock_jumps_s and warnings."""
     from fusedmosaic.io.igtl import STAMP_JUMP, STAMP_JUMP_CONFIRM
 
-    times = np.asarray(syn.timestamps)[:40]
-    jump_at = float(times[20])
-    ahead = lambda t: t + (3600.0 if t >= jump_at else 0.0)  # noqa: E731
-    tr = syn.tracking
-    events = [(float(t), 1, image_message(syn.frames[k], ahead(float(t))))
-              for k, t in enumerate(times)]
-    events += [(float(t), 2, transform_message(
-        tracker_matrix(tr.translations[i], tr.quaternions[i]), ahead(float(t))))
-        for i, t in enumerate(tr.timestamps) if tr.valid[i] and t <= times[-1]]
-    events.sort(key=lambda e: (e[0], e[1]))
-    sender = Sender([(t, m) for t, _, m in events])
+    jump_at = float(syn.timestamps[20])
+    sender = Sender(dataset_events(syn, n_frames=40,
+                                   stamp=lambda t: t + (3600.0 if t >= jump_at else 0.0)))
     assert _live(syn, tmp_path, sender) == 0
     sender.join()
     report = json.loads((tmp_path / "out" / "report.json").read_text())
@@ -1228,17 +1220,9 @@ def test_sender_clock_set_back_is_named(syn, tmp_path):
     be recorded after the earlier ones (refused, as before), and the session says why instead
     of 'timestamp does not increase' frame after frame: warnings naming the step, report.json
     live source frame_clock_steps_back_s / sample_clock_steps_back_s."""
-    times = np.asarray(syn.timestamps)[:30]
-    back_at = float(times[20])
-    stamp = lambda t: t - (3600.0 if t >= back_at else 0.0)  # noqa: E731
-    tr = syn.tracking
-    events = [(float(t), 1, image_message(syn.frames[k], stamp(float(t))))
-              for k, t in enumerate(times)]
-    events += [(float(t), 2, transform_message(
-        tracker_matrix(tr.translations[i], tr.quaternions[i]), stamp(float(t))))
-        for i, t in enumerate(tr.timestamps) if tr.valid[i] and t <= times[-1]]
-    events.sort(key=lambda e: (e[0], e[1]))
-    sender = Sender([(t, m) for t, _, m in events])
+    back_at = float(syn.timestamps[20])
+    sender = Sender(dataset_events(syn, n_frames=30,
+                                   stamp=lambda t: t - (3600.0 if t >= back_at else 0.0)))
     assert _live(syn, tmp_path, sender) == 0
     sender.join()
     report = json.loads((tmp_path / "out" / "report.json").read_text())
