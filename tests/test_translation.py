@@ -358,12 +358,22 @@ def test_robot_without_a_sample_at_frame0_leaves_it_out(small, tmp_path):
                for w in report["warnings"]), report["warnings"]
 
 
-def _robot_scaled(small, tmp_path, factor):
+def _renumber(root, first: int) -> None:
+    """frames.csv and ground_truth.csv of dataset ``root`` with frame IDs from ``first`` on."""
+    for name in ("frames.csv", "ground_truth.csv"):
+        header, *rows = (root / name).read_text().splitlines()
+        rows = [",".join([str(int(r.split(",")[0]) + first), *r.split(",")[1:]]) for r in rows]
+        (root / name).write_text("\n".join([header, *rows]) + "\n")
+
+
+def _robot_scaled(small, tmp_path, factor, first_id=0):
     """A copy of the clean scan whose robot.csv positions are `factor` times the true ones (a
-    robot in the wrong units)."""
+    robot in the wrong units), its frames numbered from ``first_id``."""
     import shutil
 
     root = shutil.copytree(small, tmp_path / f"robot_x{factor:g}")
+    if first_id:
+        _renumber(root, first_id)
     lines = (root / "robot.csv").read_text().splitlines()
     assert lines[0].split(",")[:3] == ["timestamp", "x", "y"], lines[0]
     rows = []
@@ -384,9 +394,11 @@ def test_a_robot_in_the_wrong_units_does_not_take_over_the_run(small, tmp_path):
     believed (frames 1-3 placed by the robot); now a registration whose frames visibly overlap
     (c_match >= warmup_overlap_c_match) is believed from frame 1: the robot is gated, the
     images place every frame and the units warning is there."""
-    result = run_kalman_robot(_robot_scaled(small, tmp_path, 10.0), progress=False)
+    result = run_kalman_robot(_robot_scaled(small, tmp_path, 10.0, first_id=100),
+                              progress=False)
     assert result.status[1:] == ["placed"] * (len(result.status) - 1), result.status
-    assert result.details["robot_gated"][:3] == [1, 2, 3]  # then re-anchored, gated again
+    # frames 101-103 (by ID, as report.json's other frame lists: they were positions, 1-3)
+    assert result.details["robot_gated"][:3] == [101, 102, 103]  # then re-anchored, gated again
     (warning,) = [w for w in result.details["warnings"] if "robot's steps" in w]
     assert "robot.csv: the robot's steps are 10 x the image registrations'" in warning, warning
     # the images' steps from frame 0 on

@@ -189,7 +189,8 @@ def _streamed_result(method: str, status: list, finals: dict, plane, details: di
         # a frame was not processed; runner.add_streamed_checks compares X_m and X_r
         from fusedmosaic.estimation.translation import frame_columns, name_anchor
 
-        details.update(frame_columns([finals.get(k) for k in range(n)]))
+        details.update(frame_columns([finals.get(k) for k in range(n)],
+                                     np.arange(n) if ids is None else ids))
         # the mosaicker counts the frames it was given, not the dropped ones: its "against
         # frame N" named the N-th processed frame, another one of the recording
         recorded = {r.index: k for k, r in finals.items()}

@@ -1124,11 +1124,12 @@ class RobotPriorMosaicker:
 # -- batch methods (`fusedmosaic run --method ncc|robot|kalman-robot`) ---------------------------
 
 
-def frame_columns(results: list) -> dict:
+def frame_columns(results: list, ids) -> dict:
     """report.json's per-frame "confidences", "trajectories_px" (X_m, X_r, X_f), "robot_gated"
-    and "image_gated" (frame indices: the robot sample, the registration left out) of a run's
-    FrameResults, one per frame, None for a frame not processed (a live run's dropped frames:
-    confidences None, positions NaN)."""
+    and "image_gated" (the IDs of the frames whose robot sample, whose registration was left
+    out, as every other frame list of report.json names them) of a run's FrameResults, one per
+    frame with ``ids`` its frame IDs, None for a frame not processed (a live run's dropped
+    frames: confidences None, positions NaN)."""
     return {
         "confidences": {name: [None if r is None else float(getattr(r, name)) for r in results]
                         for name in CONFIDENCES},
@@ -1137,8 +1138,10 @@ def frame_columns(results: list) -> dict:
                            for r in results])
             for key, field in (("X_m", "position_image"), ("X_r", "position_robot"),
                                ("X_f", "position_fused"))},
-        "robot_gated": [k for k, r in enumerate(results) if r is not None and r.robot_gated],
-        "image_gated": [k for k, r in enumerate(results) if r is not None and r.image_gated],
+        "robot_gated": [int(ids[k]) for k, r in enumerate(results)
+                        if r is not None and r.robot_gated],
+        "image_gated": [int(ids[k]) for k, r in enumerate(results)
+                        if r is not None and r.image_gated],
     }
 
 
@@ -1193,7 +1196,7 @@ def _run(
 
     details = {
         "estimate": symbol,
-        **frame_columns(results),
+        **frame_columns(results, dataset.frame_ids),
         "ncc_score": column("ncc_score"),
         "sigma_robot0_px": column("sigma_robot0"),
         "per_frame_ms": ms_stats(per_frame * 1e3),
