@@ -313,6 +313,9 @@ def test_dataset_warnings_kept_in_report_json(tmp_path):
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert gap in report["warnings"] and key in report["warnings"]
     assert len(report["warnings"]) == len(set(report["warnings"]))
+    # frame_status is one per frame in the dataset's order; frame_ids names them
+    assert report["frame_ids"] == [0, 1, 2, 4, 5, 6, 7]
+    assert len(report["frame_status"]) == len(report["frame_ids"])
     assert "missing between" not in summary and "pixel_sise_um" not in summary
 
 

@@ -185,6 +185,9 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
                 "frame_times": dataset.frame_times,
                 "tracker_time_offset_s": float(tracker_time_offset),
                 "timings_s": timings,
+                # the per-frame lists (frame_status, confidences, ...) are in frames.csv's
+                # order; frame_ids names their frames (the other lists of frames hold IDs)
+                "frame_ids": [int(i) for i in dataset.frame_ids],
                 "frame_status": result.status,
                 **result.details,
             }
