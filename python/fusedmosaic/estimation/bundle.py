@@ -14,6 +14,7 @@ from collections import deque
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 from tqdm import tqdm
 
 from fusedmosaic import _core
@@ -153,14 +154,27 @@ def predicted_homographies(poses: np.ndarray, plane: np.ndarray, K: np.ndarray) 
 
 
 def fill_missing_poses(poses: np.ndarray) -> np.ndarray:
-    """Initial values for frames without a tracker sample: nearest valid neighbours, linearly."""
-    out = poses.copy()
-    valid = np.isfinite(poses).all(axis=1)
+    """Initial values for frames without a tracker sample (NaN rows of the (N, 6) poses, angle-
+    axis then translation): between the nearest valid neighbours the rotation by slerp, the
+    translation linearly; before the first and after the last valid one, that one's pose.
+    (Angle-axis vectors interpolated linearly across a rotation of pi, [3.1, 0, 0] to
+    [-3.1, 0, 0], 0.08 rad apart, gave the identity, ~180 deg off.)"""
+    out = np.array(poses, np.float64)
+    valid = np.isfinite(out).all(axis=1)
     if valid.all():
         return out
     idx = np.flatnonzero(valid)
-    for j in range(6):
-        out[~valid, j] = np.interp(np.flatnonzero(~valid), idx, poses[idx, j])
+    if idx.size == 0:
+        raise ValueError("fill_missing_poses: no valid pose (every row has a NaN or inf) to "
+                         "fill the others from")
+    missing = np.flatnonzero(~valid)
+    for j in range(3, 6):
+        out[missing, j] = np.interp(missing, idx, out[idx, j])
+    if idx.size == 1:
+        out[missing, :3] = out[idx[0], :3]
+    else:
+        slerp = Slerp(idx, Rotation.from_rotvec(out[idx, :3]))
+        out[missing, :3] = slerp(np.clip(missing, idx[0], idx[-1])).as_rotvec()
     return out
 
 
@@ -337,6 +351,16 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     if options is not None and not options.motion_gate_chi2 > 0:
         raise ValueError("BundleOptions.motion_gate_chi2 must be > 0 (inf: no gate), got "
                          f"{options.motion_gate_chi2!r}")
+    if options is not None:  # the solver's options too, before minutes of matching
+        pairings = ("all", "window") + (("emt-guided",) if use_emt else ())
+        if options.pair_selection not in pairings:
+            raise ValueError(f"BundleOptions.pair_selection must be 'all', 'window' or "
+                             f"'emt-guided', got {options.pair_selection!r} (emt-guided needs "
+                             "the EMT)")
+        try:
+            _adjuster(K, options, use_emt)
+        except ValueError as error:
+            raise ValueError(f"BundleOptions.{error}") from None
     world = tracked_world(dataset.cam_from_world, dataset.pose_valid) if use_emt else None
     if world is not None:
         aligned = replace(dataset, cam_from_world=poses_to_aligned(dataset.cam_from_world,
