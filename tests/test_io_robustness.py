@@ -214,12 +214,72 @@ def test_truncated_video_is_read_as_far_as_it_decodes(tmp_path):
     root.mkdir()
     (root / "video.avi").write_bytes(data[: len(data) * 6 // 10])
     with pytest.warns(UserWarning, match=r"video\.avi: its header counts 12 frames but \d+ "
-                                         r"decode \(.*or a truncated file\): the \d+ are read"):
+                                         r"decode \(a truncated file, or .*\): the \d+ are read"):
         frames = FrameSource.open(root)
     assert 0 < len(frames) < 12 and frames.counted_by == "decoding"
     n = len(frames) - 1  # the last one may be cut inside: decoded, in part
     for k in (n - 1, 0, n // 2, *range(n)):
         np.testing.assert_array_equal(frames[k], expected[k])
+
+
+def _damage(path: Path, n: int, at: float, frames: int) -> None:
+    """Zero about ``frames`` frames' worth of bytes of an n-frame video, from fraction ``at``
+    of the file on (bytes lost in the middle)."""
+    data = bytearray(path.read_bytes())
+    start, size = int(len(data) * at), len(data) // n * frames
+    data[start : start + size] = bytes(size)
+    path.write_bytes(bytes(data))
+
+
+def test_video_damaged_in_the_middle_is_refused(tmp_path):
+    """Two frames' bytes zeroed 30 % into an AVI whose header count is confirmed at its end:
+    the decoder passed the damaged frames without a failed grab, so every later frame was read
+    as the one 2 after it (its number, time and tracker sample another frame's; 60 kB in a
+    60-frame SYN AVI: e_M 155 px instead of 0.26, 'placed 60/60', review). Refused now, naming
+    the file and both counts."""
+    root = tmp_path / "ds"
+    root.mkdir()
+    _write_video(root / "video.avi", 30)
+    _damage(root / "video.avi", 30, 0.3, 2)
+    with pytest.raises(ValueError, match=r"video\.avi: its header counts 30 frames and its last "
+                                         r"frame is there, but decoding it from the start gives "
+                                         r"(2[0-9]): \d+ frames? (is|are) damaged and passed "
+                                         r"without an error by the decoder, so every frame after "
+                                         r"would be read under another frame's number"):
+        FrameSource.open(root)
+
+
+def test_video_cut_or_damaged_warned_as_either(tmp_path):
+    """Damage nearer the end: the header's last frame no longer decodes either, so the frames
+    are counted by decoding, with a warning that said 'a count estimated from the duration, as
+    Matroska's, or a truncated file' of an AVI (whose count is exact): nothing tells a file cut
+    short from one damaged in the middle there, and the warning says what the latter means."""
+    root = tmp_path / "ds"
+    root.mkdir()
+    _write_video(root / "video.avi", 12)
+    _damage(root / "video.avi", 12, 0.5, 2)
+    with pytest.warns(UserWarning, match=r"video\.avi: its header counts 12 frames but \d+ decode "
+                                         r"\(a truncated file, or frames damaged in the middle, "
+                                         r"which the decoder passes without a word: every frame "
+                                         r"after them is then read under an earlier frame's "
+                                         r"number"):
+        FrameSource.open(root)
+
+
+@pytest.mark.parametrize("content, message", [
+    (b"", r"video\.mp4: cannot open video \(an empty file\)"),
+    (b"not a video at all" * 100, r"video\.mp4: cannot open video \(not a video this OpenCV's "
+                                  r"FFmpeg reads, or a recording that stopped before it was "
+                                  r"finished: an MP4 / MOV without its index"),
+], ids=["empty", "not a video"])
+def test_video_that_cannot_be_opened_says_what_it_may_be(tmp_path, content, message):
+    """'cannot open video' alone, for an empty file and for a recording stopped before its MP4
+    index was written alike (review)."""
+    root = tmp_path / "ds"
+    root.mkdir()
+    (root / "video.mp4").write_bytes(content)
+    with pytest.raises(ValueError, match=message):
+        FrameSource.open(root)
 
 
 # ------------------------------------------------------------------------------ frames

@@ -23,6 +23,8 @@ DEPTH_SAMPLE_FRAMES = 8
 # Counting a video's frames by decoding, this many undecodable frames in a row are taken as
 # damage inside the file (the frames after them still count); more, as its end.
 MAX_UNDECODABLE_RUN = 25
+# Containers whose frame count OpenCV estimates from the duration and the nominal rate
+ESTIMATED_COUNT_SUFFIXES = frozenset({".mkv", ".mka", ".webm"})
 # FFmpeg's codes of 16-bit grey pixels (gray16le, gray16be; e.g. FFV1 video), as OpenCV reports
 # them in CAP_PROP_CODEC_PIXEL_FORMAT
 GREY16_PIXEL_FORMATS = (ord("Y") | ord("1") << 8 | 16 << 24, 16 | ord("1") << 16 | ord("Y") << 24)
@@ -170,16 +172,30 @@ class FrameSource(Sequence):
                 if beyond or not last:
                     self.close()
                     capture, self._length = self._open_capture(), 0
+                else:
+                    self._check_decodes_in_order()
             if self._length <= 0:
                 times = _decode_times(capture)
                 self._length, self._times = len(times), np.array(times, dtype=np.float64)
                 self.counted_by = "decoding"
                 self.close()
                 if 0 < self._length < header:
+                    # (no sign tells a file cut short from one damaged in the middle when the
+                    # stamps are counted, as an AVI's: both decode fewer frames than it counts)
+                    why = ("a count estimated from the duration, as Matroska's, or a truncated "
+                           "file" if self.video.suffix.lower() in ESTIMATED_COUNT_SUFFIXES else
+                           "a truncated file, or frames damaged in the middle, which the "
+                           "decoder passes without a word: every frame after them is then read "
+                           "under an earlier frame's number, time and tracker or robot sample; "
+                           "check that the file was only cut short")
                     warnings.warn(
                         f"{self.video}: its header counts {header} frames but {self._length} "
-                        "decode (a count estimated from the duration, as Matroska's, or a "
-                        f"truncated file): the {self._length} are read", stacklevel=2)
+                        f"decode ({why}): the {self._length} are read", stacklevel=2)
+        if self._length <= 0 and self.video is not None and header > 0:
+            raise ValueError(
+                f"{self.video}: its header counts {header} frames ({_codec(self.video)}) but "
+                "none decodes: a codec this OpenCV's FFmpeg cannot decode, or a damaged file; "
+                "re-encode it (e.g. H.264, MJPG or FFV1) or give the frames as frames/*.png")
         if self._length <= 0:
             raise ValueError(
                 f"{self.paths[0].parent if self.paths is not None else self.video}: no frames"
@@ -268,12 +284,50 @@ class FrameSource(Sequence):
             self._next = 0
             if not self._capture.isOpened():
                 self._capture = None
-                raise ValueError(f"{self.video}: cannot open video")
+                size = self.video.stat().st_size if self.video.is_file() else None
+                raise ValueError(
+                    f"{self.video}: cannot open video"
+                    + (" (an empty file)" if size == 0 else
+                       " (not a video this OpenCV's FFmpeg reads, or a recording that stopped "
+                       "before it was finished: an MP4 / MOV without its index, 'moov atom "
+                       "not found')" if size else ""))
             if int(self._capture.get(cv2.CAP_PROP_CODEC_PIXEL_FORMAT)) in GREY16_PIXEL_FORMATS:
                 # OpenCV's BGR conversion keeps a 16-bit grey video's high byte only (12-bit
                 # data comes out as 0-15): its 16-bit frames take the PNGs' conversion instead
                 self._capture.set(cv2.CAP_PROP_CONVERT_RGB, 0)
         return self._capture
+
+    def _check_decodes_in_order(self) -> None:
+        """A video whose header's count is confirmed at its end is decoded once from the start
+        (its presentation times kept): the decoder passes frames damaged in the middle without
+        a failed grab (an AVI or Matroska with bytes lost), so fewer frames decode than the
+        header counts, and every frame after the damage would be read as another (a seek lands
+        on the same wrong frames): its number, time and tracker sample another frame's (60 kB
+        lost in a 60-frame AVI: frames 30-55 showed frames 34-59, e_M 155 px instead of 0.26,
+        without a word). Refused, naming where the stamps show the loss when they do."""
+        capture = cv2.VideoCapture(str(self.video))  # its own: the reads' stays where it is
+        try:
+            times = _decode_times(capture)
+        finally:
+            capture.release()
+        if len(times) >= self._length:
+            self._times = np.array(times, dtype=np.float64)  # (presentation_times')
+            return
+        where, lost = "", self._length - len(times)
+        t = np.array(times)
+        if self.frame_rate is not None and t.size > 1:
+            jumps = np.flatnonzero(np.diff(t) > 1.5e3 / self.frame_rate)
+            if jumps.size:
+                k = int(jumps[0])
+                where = (f"; its stamps jump from {t[k]:.6g} to {t[k + 1]:.6g} ms after the "
+                         f"{k + 1}th decoded frame")
+        raise ValueError(
+            f"{self.video}: its header counts {self._length} frames and its last frame is "
+            f"there, but decoding it from the start gives {len(times)}: "
+            f"{lost} {'frame is' if lost == 1 else 'frames are'} damaged and passed without "
+            f"an error by the decoder{where}, so every frame after would be read under another "
+            "frame's number (its time, its tracker or robot sample); repair the file, or give "
+            "the frames that decode as frames/*.png with frames.csv")
 
     def _probe_end(self, capture: cv2.VideoCapture, count: int) -> tuple[bool, bool]:
         """(frame count-1 decodes, frame count decodes too); the capture's position is then
@@ -473,6 +527,17 @@ def _decode_times(capture: cv2.VideoCapture, limit: int | None = None) -> list[f
             if run > MAX_UNDECODABLE_RUN:
                 break
     return times
+
+
+def _codec(video: Path) -> str:
+    """'codec AV01': the four-character code of the video's stream, for messages."""
+    capture = cv2.VideoCapture(str(video))
+    try:
+        code = int(capture.get(cv2.CAP_PROP_FOURCC))
+    finally:
+        capture.release()
+    text = "".join(chr((code >> 8 * k) & 0xFF) for k in range(4))
+    return f"codec {text.strip()}" if code > 0 and text.isprintable() else "codec unknown"
 
 
 def _bits(dtype) -> str:
