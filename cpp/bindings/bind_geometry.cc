@@ -6,11 +6,13 @@
 
 #include <cmath>
 #include <optional>
+#include <string>
 
 #include "bindings/bind.h"
 #include "fusedmosaic/geometry/homography.h"
 #include "fusedmosaic/geometry/plane.h"
 #include "fusedmosaic/geometry/pose.h"
+#include "fusedmosaic/residuals/pose_prior.h"  // Vector6d
 
 namespace py = pybind11;
 using namespace pybind11::literals;
@@ -18,32 +20,37 @@ using namespace pybind11::literals;
 namespace fusedmosaic::bindings {
 namespace {
 
-using Vec = Eigen::Ref<const Eigen::VectorXd>;
-using Mat = Eigen::Ref<const RowMatrixXd>;
-
-void CheckPlane(const Vec& plane) {
-  CheckSize(plane, kPlaneSize, "plane");
-  if (plane.norm() < 1e-12) {
-    throw std::invalid_argument(
-        "plane: pi = n/d must be non-zero (a plane through the virtual camera is degenerate)");
+// Throws when the camera centre is on the plane: H = R - t pi^T is then singular (transfers
+// through it map every point to one line, or to infinity).
+void CheckInvertible(const Eigen::Matrix3d& H, const std::string& what) {
+  const double det = H.determinant();
+  if (!std::isfinite(det) || std::abs(det) < 1e-12 * std::pow(H.norm(), 3)) {
+    throw std::invalid_argument(what +
+                                ": induced homography is singular (camera centre on the plane)");
   }
 }
 
-Eigen::Matrix3d CheckedInverse(const Eigen::Matrix3d& H, const char* what) {
-  const double det = H.determinant();
-  if (!std::isfinite(det) || std::abs(det) < 1e-12 * std::pow(H.norm(), 3)) {
-    throw std::invalid_argument(std::string(what) +
-                                ": induced homography is singular (camera centre on the plane)");
-  }
+Eigen::Matrix3d CheckedInverse(const Eigen::Matrix3d& H, const std::string& what) {
+  CheckInvertible(H, what);
   return H.inverse();
 }
 
-Eigen::Matrix3d Induced(const Vec& pose, const Vec& plane, const char* name) {
-  CheckSize(pose, kPoseSize, name);
-  return InducedHomography(pose.data(), plane.data());
+Eigen::Matrix3d Induced(const DoubleArray& pose, const Eigen::Vector3d& plane, const char* name) {
+  const Vector6d x = ToVector(pose, kPoseSize, name);
+  return InducedHomography(x.data(), plane.data());
 }
 
-Eigen::Matrix3d MaybePixels(const Eigen::Matrix3d& H, const std::optional<RowMatrixXd>& K) {
+// H_l H_m^-1 (Eq. 13). Camera l on the plane is refused as camera m is: H_l singular gave a
+// rank-2 transfer, inf / NaN once normalised, instead of an error.
+Eigen::Matrix3d Transfer(const DoubleArray& cam_l_from_world, const DoubleArray& cam_m_from_world,
+                         const Eigen::Vector3d& plane) {
+  const Eigen::Matrix3d Hl = Induced(cam_l_from_world, plane, "cam_l_from_world");
+  const Eigen::Matrix3d Hm = Induced(cam_m_from_world, plane, "cam_m_from_world");
+  CheckInvertible(Hl, "cam_l_from_world");
+  return Hl * CheckedInverse(Hm, "cam_m_from_world");
+}
+
+Eigen::Matrix3d MaybePixels(const Eigen::Matrix3d& H, const std::optional<DoubleArray>& K) {
   if (!K) return H;
   return ToPixels<double>(H, CheckCameraMatrix(*K));
 }
@@ -53,18 +60,17 @@ Eigen::Matrix3d MaybePixels(const Eigen::Matrix3d& H, const std::optional<RowMat
 void BindGeometry(py::module_& m) {
   m.def(
       "rotation_from_angle_axis",
-      [](const Vec& angle_axis) -> Eigen::Matrix3d {
-        CheckSize(angle_axis, 3, "angle_axis");
-        return RotationFromAngleAxis(angle_axis.data());
+      [](const DoubleArray& angle_axis) -> Eigen::Matrix3d {
+        const Eigen::Vector3d r = ToVector(angle_axis, 3, "angle_axis");
+        return RotationFromAngleAxis(r.data());
       },
       "angle_axis"_a,
       "Rotation matrix R = exp([r]_x).\n\nangle_axis : (3,) float64, radians\nReturns (3, 3).");
 
   m.def(
       "angle_axis_from_rotation",
-      [](const Mat& rotation) -> Eigen::Vector3d {
-        CheckShape(rotation, 3, 3, "rotation");
-        const Eigen::Matrix3d R = rotation;
+      [](const DoubleArray& rotation) -> Eigen::Vector3d {
+        const Eigen::Matrix3d R = ToMatrix(rotation, 3, 3, "rotation");
         if ((R.transpose() * R - Eigen::Matrix3d::Identity()).norm() > 1e-6 ||
             R.determinant() < 0) {
           throw std::invalid_argument("rotation: not a rotation matrix (R^T R != I or det < 0)");
@@ -75,11 +81,11 @@ void BindGeometry(py::module_& m) {
 
   m.def(
       "compose_poses",
-      [](const Vec& c_from_b, const Vec& b_from_a) -> Eigen::VectorXd {
-        CheckSize(c_from_b, kPoseSize, "c_from_b");
-        CheckSize(b_from_a, kPoseSize, "b_from_a");
-        const auto out = RigidTransform<double>::FromPose(c_from_b.data()) *
-                         RigidTransform<double>::FromPose(b_from_a.data());
+      [](const DoubleArray& c_from_b, const DoubleArray& b_from_a) -> Eigen::VectorXd {
+        const Vector6d cb = ToVector(c_from_b, kPoseSize, "c_from_b");
+        const Vector6d ba = ToVector(b_from_a, kPoseSize, "b_from_a");
+        const auto out = RigidTransform<double>::FromPose(cb.data()) *
+                         RigidTransform<double>::FromPose(ba.data());
         Eigen::VectorXd pose(kPoseSize);
         out.ToPose(pose.data());
         return pose;
@@ -89,29 +95,29 @@ void BindGeometry(py::module_& m) {
 
   m.def(
       "invert_pose",
-      [](const Vec& b_from_a) -> Eigen::VectorXd {
-        CheckSize(b_from_a, kPoseSize, "b_from_a");
+      [](const DoubleArray& b_from_a) -> Eigen::VectorXd {
+        const Vector6d ba = ToVector(b_from_a, kPoseSize, "b_from_a");
         Eigen::VectorXd pose(kPoseSize);
-        RigidTransform<double>::FromPose(b_from_a.data()).Inverse().ToPose(pose.data());
+        RigidTransform<double>::FromPose(ba.data()).Inverse().ToPose(pose.data());
         return pose;
       },
       "b_from_a"_a, "a_from_b for a 6-vector pose [r, t].\n\nReturns (6,).");
 
   m.def(
       "camera_plane_distance",
-      [](const Vec& cam_from_world, const Vec& plane) {
-        CheckSize(cam_from_world, kPoseSize, "cam_from_world");
-        CheckPlane(plane);
-        return CameraPlaneDistance(cam_from_world.data(), plane.data());
+      [](const DoubleArray& cam_from_world, const DoubleArray& plane) {
+        const Vector6d x = ToVector(cam_from_world, kPoseSize, "cam_from_world");
+        const Eigen::Vector3d pi = ToPlane(plane);
+        return CameraPlaneDistance(x.data(), pi.data());
       },
       "cam_from_world"_a, "plane"_a, "Distance from the camera centre to the plane (mm).");
 
   m.def(
       "induced_homography",
-      [](const Vec& cam_from_world, const Vec& plane,
-         const std::optional<RowMatrixXd>& camera_matrix) -> Eigen::Matrix3d {
-        CheckPlane(plane);
-        return MaybePixels(Induced(cam_from_world, plane, "cam_from_world"), camera_matrix);
+      [](const DoubleArray& cam_from_world, const DoubleArray& plane,
+         const std::optional<DoubleArray>& camera_matrix) -> Eigen::Matrix3d {
+        const Eigen::Vector3d pi = ToPlane(plane);
+        return MaybePixels(Induced(cam_from_world, pi, "cam_from_world"), camera_matrix);
       },
       "cam_from_world"_a, "plane"_a, "camera_matrix"_a = py::none(),
       "H_k = K (R - t pi^T) K^-1 (Eq. 5): virtual-camera pixels -> frame-k pixels.\n\n"
@@ -120,30 +126,28 @@ void BindGeometry(py::module_& m) {
 
   m.def(
       "transfer_homography",
-      [](const Vec& cam_l_from_world, const Vec& cam_m_from_world, const Vec& plane,
-         const std::optional<RowMatrixXd>& camera_matrix) -> Eigen::Matrix3d {
-        CheckPlane(plane);
-        const Eigen::Matrix3d Hl = Induced(cam_l_from_world, plane, "cam_l_from_world");
-        const Eigen::Matrix3d Hm = Induced(cam_m_from_world, plane, "cam_m_from_world");
+      [](const DoubleArray& cam_l_from_world, const DoubleArray& cam_m_from_world,
+         const DoubleArray& plane,
+         const std::optional<DoubleArray>& camera_matrix) -> Eigen::Matrix3d {
+        const Eigen::Vector3d pi = ToPlane(plane);
         return NormalizeHomography<double>(
-            MaybePixels(Hl * CheckedInverse(Hm, "cam_m_from_world"), camera_matrix));
+            MaybePixels(Transfer(cam_l_from_world, cam_m_from_world, pi), camera_matrix));
       },
       "cam_l_from_world"_a, "cam_m_from_world"_a, "plane"_a, "camera_matrix"_a = py::none(),
       "H_l H_m^-1 (Eq. 13): frame-m points -> frame-l points, normalised to H[2,2] = 1.");
 
   m.def(
       "transfer_points",
-      [](const Mat& points, const Vec& cam_l_from_world, const Vec& cam_m_from_world,
-         const Vec& plane, const std::optional<RowMatrixXd>& camera_matrix) -> RowMatrixXd {
-        CheckShape(points, -1, 2, "points");
-        CheckPlane(plane);
-        const Eigen::Matrix3d Hl = Induced(cam_l_from_world, plane, "cam_l_from_world");
-        const Eigen::Matrix3d Hm = Induced(cam_m_from_world, plane, "cam_m_from_world");
+      [](const DoubleArray& points, const DoubleArray& cam_l_from_world,
+         const DoubleArray& cam_m_from_world, const DoubleArray& plane,
+         const std::optional<DoubleArray>& camera_matrix) -> RowMatrixXd {
+        const auto p = ToMatrix(points, -1, 2, "points");
+        const Eigen::Vector3d pi = ToPlane(plane);
         const Eigen::Matrix3d H =
-            MaybePixels(Hl * CheckedInverse(Hm, "cam_m_from_world"), camera_matrix);
-        RowMatrixXd out(points.rows(), 2);
-        for (Eigen::Index i = 0; i < points.rows(); ++i) {
-          out.row(i) = ApplyHomography<double>(H, points.row(i).transpose()).transpose();
+            MaybePixels(Transfer(cam_l_from_world, cam_m_from_world, pi), camera_matrix);
+        RowMatrixXd out(p.rows(), 2);
+        for (Eigen::Index i = 0; i < p.rows(); ++i) {
+          out.row(i) = ApplyHomography<double>(H, p.row(i).transpose()).transpose();
         }
         return out;
       },
@@ -154,10 +158,11 @@ void BindGeometry(py::module_& m) {
 
   m.def(
       "frame_to_reference",
-      [](const Mat& cams_from_world, const Vec& plane, const Mat& camera_matrix,
-         int reference) -> py::array_t<double> {
-        CheckShape(cams_from_world, -1, kPoseSize, "cams_from_world");
-        CheckPlane(plane);
+      [](const DoubleArray& cams_from_world_array, const DoubleArray& plane_array,
+         const DoubleArray& camera_matrix, int reference) -> py::array_t<double> {
+        const auto cams_from_world =
+            ToMatrix(cams_from_world_array, -1, kPoseSize, "cams_from_world");
+        const Eigen::Vector3d plane = ToPlane(plane_array);
         const Eigen::Matrix3d K = CheckCameraMatrix(camera_matrix);
         const Eigen::Index n = cams_from_world.rows();
         if (reference < 0 || reference >= n) {
@@ -171,8 +176,9 @@ void BindGeometry(py::module_& m) {
         for (Eigen::Index k = 0; k < n; ++k) {
           const Eigen::VectorXd pose = cams_from_world.row(k).transpose();
           const Eigen::Matrix3d Hk = InducedHomography(pose.data(), plane.data());
-          const Eigen::Matrix3d G = NormalizeHomography<double>(
-              ToPixels<double>(H0 * CheckedInverse(Hk, "cams_from_world"), K));
+          // The row named: one degenerate pose fails the whole table.
+          const Eigen::Matrix3d G = NormalizeHomography<double>(ToPixels<double>(
+              H0 * CheckedInverse(Hk, "cams_from_world[" + std::to_string(k) + "]"), K));
           for (int i = 0; i < 3; ++i)
             for (int j = 0; j < 3; ++j) view(k, i, j) = G(i, j);
         }

@@ -8,6 +8,8 @@
 #include <optional>
 #include <sstream>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "bindings/bind.h"
 #include "fusedmosaic/problem/bundle_adjuster.h"
@@ -18,17 +20,10 @@ using namespace pybind11::literals;
 namespace fusedmosaic::bindings {
 namespace {
 
-using Vec = Eigen::Ref<const Eigen::VectorXd>;
-using Mat = Eigen::Ref<const RowMatrixXd>;
+Vector6d ToPose(const DoubleArray& v, const char* name) { return ToVector(v, kPoseSize, name); }
 
-Vector6d ToPose(const Vec& v, const char* name) {
-  CheckSize(v, kPoseSize, name);
-  return v;
-}
-
-BundleAdjuster::Points ToPoints(const Mat& points, const char* name) {
-  CheckShape(points, -1, 2, name);
-  return points;
+BundleAdjuster::Points ToPoints(const DoubleArray& points, const char* name) {
+  return ToMatrix(points, -1, 2, name);
 }
 
 // Field names of BundleAdjusterOptions, in declaration order (repr and keyword construction).
@@ -109,13 +104,15 @@ void BindProblem(py::module_& m) {
                      "sigma_v, pixels (paper Sec. 4.2: 1 px).")
       .def_property(
           "emt_sigma", [](const BundleAdjusterOptions& o) { return Eigen::VectorXd(o.emt_sigma); },
-          [](BundleAdjusterOptions& o, const Vec& v) { o.emt_sigma = ToPose(v, "emt_sigma"); },
+          [](BundleAdjusterOptions& o, const DoubleArray& v) {
+            o.emt_sigma = ToPose(v, "emt_sigma");
+          },
           "(6,) float64 EMT prior standard deviations [rad x3, mm x3] (appendix Eq. 30). "
           "Returns a copy: assign the whole array.")
       .def_property(
           "motion_sigma",
           [](const BundleAdjusterOptions& o) { return Eigen::VectorXd(o.motion_sigma); },
-          [](BundleAdjusterOptions& o, const Vec& v) {
+          [](BundleAdjusterOptions& o, const DoubleArray& v) {
             o.motion_sigma = ToPose(v, "motion_sigma");
           },
           "(6,) float64 constant-velocity prior standard deviations [rad x3, mm x3] "
@@ -166,8 +163,11 @@ void BindProblem(py::module_& m) {
   py::class_<SolveSummary>(m, "SolveSummary",
                            "Result of BundleAdjuster.solve(). Costs follow Ceres' convention "
                            "(1/2 sum of squared whitened residuals).")
-      .def_readonly("iterations", &SolveSummary::iterations)
-      .def_readonly("initial_cost", &SolveSummary::initial_cost)
+      .def_readonly("iterations", &SolveSummary::iterations,
+                    "Ceres iterations (its iteration 0, the starting evaluation, not counted),\n"
+                    "summed over the motion gate's runs; each run at most max_iterations")
+      .def_readonly("initial_cost", &SolveSummary::initial_cost,
+                    "NaN (as the other costs) where the solve could not evaluate it (FAILURE)")
       .def_readonly("final_cost", &SolveSummary::final_cost)
       .def_readonly("visual_cost", &SolveSummary::visual_cost)
       .def_readonly("emt_cost", &SolveSummary::emt_cost)
@@ -207,21 +207,22 @@ void BindProblem(py::module_& m) {
       "Bundle adjustment of frame poses and the plane: BAVis (use_emt=False) and BAVis+EMT\n"
       "(seed 000, Eq. 17). Owns the parameters, keyed by frame id. Without EMT priors the gauge\n"
       "is fixed by holding the first (lowest-id) frame constant and |plane| fixed. Calls from\n"
-      "other threads wait while solve() runs.")
-      .def(py::init([](const Mat& camera_matrix, const BundleAdjusterOptions& options) {
+      "other threads wait while solve() runs (with the GIL released: only the caller waits).")
+      .def(py::init([](const DoubleArray& camera_matrix, const BundleAdjusterOptions& options) {
              return std::make_unique<BundleAdjuster>(CheckCameraMatrix(camera_matrix), options);
            }),
            "camera_matrix"_a, "options"_a = BundleAdjusterOptions(),
            "camera_matrix : (3, 3) float64 K\noptions : BundleAdjusterOptions")
       .def(
           "add_frame",
-          [](BundleAdjuster& self, int frame_id, const Vec& cam_from_world,
-             const std::optional<Eigen::VectorXd>& emt_measurement, double motion_ratio,
+          [](BundleAdjuster& self, int frame_id, const DoubleArray& cam_from_world,
+             const std::optional<DoubleArray>& emt_measurement, double motion_ratio,
              double motion_sigma_scale) {
+            const Vector6d x = ToPose(cam_from_world, "cam_from_world");
             std::optional<Vector6d> z;
             if (emt_measurement) z = ToPose(*emt_measurement, "emt_measurement");
-            self.AddFrame(frame_id, ToPose(cam_from_world, "cam_from_world"), z, motion_ratio,
-                          motion_sigma_scale);
+            py::gil_scoped_release release;
+            self.AddFrame(frame_id, x, z, motion_ratio, motion_sigma_scale);
           },
           "frame_id"_a, "cam_from_world"_a, "emt_measurement"_a = py::none(),
           "motion_ratio"_a = 1.0, "motion_sigma_scale"_a = 1.0,
@@ -233,37 +234,48 @@ void BindProblem(py::module_& m) {
           "    estimation.motion.motion_timing)")
       .def(
           "add_pair",
-          [](BundleAdjuster& self, int frame_l, int frame_m, const Mat& points_l,
-             const Mat& points_m) {
-            self.AddPair(frame_l, frame_m, ToPoints(points_l, "points_l"),
-                         ToPoints(points_m, "points_m"));
+          [](BundleAdjuster& self, int frame_l, int frame_m, const DoubleArray& points_l,
+             const DoubleArray& points_m) {
+            const BundleAdjuster::Points pl = ToPoints(points_l, "points_l");
+            const BundleAdjuster::Points pm = ToPoints(points_m, "points_m");
+            py::gil_scoped_release release;
+            self.AddPair(frame_l, frame_m, pl, pm);
           },
           "frame_l"_a, "frame_m"_a, "points_l"_a, "points_m"_a,
           "Adds the correspondences of a pair; the residual transfers frame m -> frame l.\n\n"
           "points_l, points_m : (N, 2) float64 pixels, N >= 1, row i corresponds to row i")
       .def(
           "set_plane",
-          [](BundleAdjuster& self, const Vec& plane) {
-            CheckSize(plane, kPlaneSize, "plane");
-            self.SetPlane(plane);
+          [](BundleAdjuster& self, const DoubleArray& plane) {
+            const Eigen::Vector3d pi = ToPlane(plane);
+            py::gil_scoped_release release;
+            self.SetPlane(pi);
           },
           "plane"_a, "Sets the plane.\n\nplane : (3,) float64 pi = n / d, non-zero")
       .def(
           "set_pose",
-          [](BundleAdjuster& self, int frame_id, const Vec& pose) {
-            self.SetPose(frame_id, ToPose(pose, "pose"));
+          [](BundleAdjuster& self, int frame_id, const DoubleArray& pose) {
+            const Vector6d x = ToPose(pose, "pose");
+            py::gil_scoped_release release;
+            self.SetPose(frame_id, x);
           },
           "frame_id"_a, "pose"_a, "Sets a frame's pose.\n\npose : (6,) float64 cam_from_world")
       .def("set_constant_frame", &BundleAdjuster::SetConstantFrame, "frame_id"_a,
-           "constant"_a = true, "Holds a frame's pose constant (or frees it again).")
+           "constant"_a = true, py::call_guard<py::gil_scoped_release>(),
+           "Holds a frame's pose constant (or frees it again).")
       .def("set_constant_plane", &BundleAdjuster::SetConstantPlane, "constant"_a = true,
+           py::call_guard<py::gil_scoped_release>(),
            "Holds the plane constant during solve() (or frees it again).")
       .def("solve", &BundleAdjuster::Solve, py::call_guard<py::gil_scoped_release>(),
            "Runs Ceres (GIL released) and returns a SolveSummary; poses and plane are updated.")
       .def(
           "poses",
           [](const BundleAdjuster& self) {
-            const auto poses = self.Poses();
+            std::vector<std::pair<int, Vector6d>> poses;
+            {
+              py::gil_scoped_release release;
+              poses = self.Poses();
+            }
             const auto n = static_cast<py::ssize_t>(poses.size());
             py::array_t<int64_t> id_array(n);
             py::array_t<double> pose_array({n, py::ssize_t{kPoseSize}});
@@ -278,16 +290,19 @@ void BindProblem(py::module_& m) {
           "Returns (ids (N,) int64 ascending, poses (N, 6) float64 cam_from_world).")
       .def(
           "pose", [](const BundleAdjuster& self, int frame_id) { return self.GetPose(frame_id); },
-          "frame_id"_a, "Pose of one frame, (6,) float64. IndexError for an unknown id.")
-      .def("plane", &BundleAdjuster::Plane, "The plane pi = n / d, (3,) float64.")
+          "frame_id"_a, py::call_guard<py::gil_scoped_release>(),
+          "Pose of one frame, (6,) float64. IndexError for an unknown id.")
+      .def("plane", &BundleAdjuster::Plane, py::call_guard<py::gil_scoped_release>(),
+           "The plane pi = n / d, (3,) float64. ValueError before set_plane.")
       .def_property_readonly(
           "options", [](const BundleAdjuster& self) { return self.options(); },
           "A copy of the options (fixed at construction).")
       .def_property_readonly("camera_matrix",
                              [](const BundleAdjuster& self) { return self.camera_matrix(); })
-      .def_property_readonly("num_frames", &BundleAdjuster::NumFrames)
-      .def_property_readonly("num_pairs", &BundleAdjuster::NumPairs)
-      .def_property_readonly("num_correspondences", &BundleAdjuster::NumCorrespondences);
+      .def_property_readonly("num_frames", Released(&BundleAdjuster::NumFrames))
+      .def_property_readonly("num_pairs", Released(&BundleAdjuster::NumPairs))
+      .def_property_readonly("num_correspondences",
+                             Released(&BundleAdjuster::NumCorrespondences));
 }
 
 }  // namespace fusedmosaic::bindings

@@ -4,6 +4,7 @@
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
+#include <cmath>
 #include <memory>
 #include <string>
 #include <vector>
@@ -12,15 +13,13 @@
 #include "fusedmosaic/residuals/constant_velocity.h"
 #include "fusedmosaic/residuals/pose_prior.h"
 #include "fusedmosaic/residuals/visual_transfer.h"
+#include "fusedmosaic/util/format.h"
 
 namespace py = pybind11;
 using namespace pybind11::literals;
 
 namespace fusedmosaic::bindings {
 namespace {
-
-using Vec = Eigen::Ref<const Eigen::VectorXd>;
-using Mat = Eigen::Ref<const RowMatrixXd>;
 
 // Evaluates cost at the given parameter blocks; returns (residuals, (jacobian per block, ...)),
 // each Jacobian (num_residuals, block_size), row-major as Ceres lays it out.
@@ -48,13 +47,12 @@ py::tuple Evaluate(const ceres::CostFunction& cost, const std::vector<const doub
   return py::make_tuple(residuals, jac);
 }
 
-Vector6d CheckedPose(const Vec& v, const char* name) {
-  CheckSize(v, kPoseSize, name);
-  return v;
+Vector6d CheckedPose(const DoubleArray& v, const char* name) {
+  return ToVector(v, kPoseSize, name);
 }
 
-Vector6d CheckedSigma(const Vec& v, const char* name) {
-  CheckSize(v, kPoseSize, name);
+Vector6d CheckedSigma(const DoubleArray& a, const char* name) {
+  const Vector6d v = ToVector(a, kPoseSize, name);
   for (int i = 0; i < kPoseSize; ++i) {
     if (!(v[i] > 0)) {
       throw std::invalid_argument(std::string(name) + "[" + std::to_string(i) +
@@ -72,20 +70,28 @@ void BindResiduals(py::module_& m) {
 
   m.def(
       "evaluate_visual_transfer",
-      [](const Vec& cam_l_from_world, const Vec& cam_m_from_world, const Vec& plane,
-         const Mat& points_l, const Mat& points_m, const Mat& camera_matrix, double sigma_v_px,
-         const std::string& loss, double loss_scale_px, const std::string& jacobians,
-         const std::string& fixed_cameras, bool condense) {
+      [](const DoubleArray& cam_l_from_world, const DoubleArray& cam_m_from_world,
+         const DoubleArray& plane, const DoubleArray& points_l_array,
+         const DoubleArray& points_m_array, const DoubleArray& camera_matrix,
+         double sigma_v_px, const std::string& loss, double loss_scale_px,
+         const std::string& jacobians, const std::string& fixed_cameras, bool condense) {
         const Vector6d pose_l = CheckedPose(cam_l_from_world, "cam_l_from_world");
         const Vector6d pose_m = CheckedPose(cam_m_from_world, "cam_m_from_world");
-        CheckSize(plane, kPlaneSize, "plane");
-        CheckShape(points_l, -1, 2, "points_l");
-        CheckShape(points_m, points_l.rows(), 2, "points_m");
+        // As everywhere else (set_plane, the geometry functions): pi = 0 was evaluated to
+        // residuals of 0 (points at infinity), sigma_v_px = inf too.
+        const Eigen::Vector3d pi = ToPlane(plane);
+        const auto points_l = ToMatrix(points_l_array, -1, 2, "points_l");
+        const auto points_m = ToMatrix(points_m_array, points_l.rows(), 2, "points_m");
         if (points_l.rows() < 1) throw std::invalid_argument("points_l: needs at least 1 row");
-        if (!(sigma_v_px > 0)) throw std::invalid_argument("sigma_v_px: must be > 0");
-        if (!(loss_scale_px > 0)) throw std::invalid_argument("loss_scale_px: must be > 0");
+        if (!(std::isfinite(sigma_v_px) && sigma_v_px > 0)) {
+          throw std::invalid_argument("sigma_v_px: must be > 0 and finite, got " +
+                                      FormatDouble(sigma_v_px));
+        }
+        if (!(std::isfinite(loss_scale_px) && loss_scale_px > 0)) {
+          throw std::invalid_argument("loss_scale_px: must be > 0 and finite, got " +
+                                      FormatDouble(loss_scale_px));
+        }
         const Eigen::Matrix3d K = CheckCameraMatrix(camera_matrix);
-        const Eigen::Vector3d pi = plane;
         if (jacobians != "analytic" && jacobians != "autodiff" && jacobians != "none") {
           throw std::invalid_argument(
               "jacobians: expected 'analytic', 'autodiff' or 'none', got '" + jacobians + "'");
@@ -131,7 +137,8 @@ void BindResiduals(py::module_& m) {
 
   m.def(
       "evaluate_pose_prior",
-      [](const Vec& cam_from_world, const Vec& measurement, const Vec& sigma) {
+      [](const DoubleArray& cam_from_world, const DoubleArray& measurement,
+         const DoubleArray& sigma) {
         const Vector6d x = CheckedPose(cam_from_world, "cam_from_world");
         std::unique_ptr<ceres::CostFunction> cost(PosePriorCostFunctor::Create(
             CheckedPose(measurement, "measurement"), CheckedSigma(sigma, "sigma")));
@@ -145,8 +152,8 @@ void BindResiduals(py::module_& m) {
 
   m.def(
       "evaluate_constant_velocity",
-      [](const Vec& cam_km2_from_world, const Vec& cam_km1_from_world, const Vec& cam_k_from_world,
-         const Vec& sigma, double ratio) {
+      [](const DoubleArray& cam_km2_from_world, const DoubleArray& cam_km1_from_world,
+         const DoubleArray& cam_k_from_world, const DoubleArray& sigma, double ratio) {
         const Vector6d x2 = CheckedPose(cam_km2_from_world, "cam_km2_from_world");
         const Vector6d x1 = CheckedPose(cam_km1_from_world, "cam_km1_from_world");
         const Vector6d x0 = CheckedPose(cam_k_from_world, "cam_k_from_world");

@@ -16,15 +16,13 @@ using namespace pybind11::literals;
 namespace fusedmosaic::bindings {
 namespace {
 
-std::optional<Vector6d> OptionalPose(const std::optional<Eigen::VectorXd>& v, const char* name) {
+std::optional<Vector6d> OptionalPose(const std::optional<DoubleArray>& v, const char* name) {
   if (!v) return std::nullopt;
-  CheckSize(*v, kPoseSize, name);
-  return Vector6d(*v);
+  return Vector6d(ToVector(*v, kPoseSize, name));
 }
 
-SlidingWindow::Points Points(const Eigen::Ref<const RowMatrixXd>& p, const char* name) {
-  CheckShape(p, -1, 2, name);
-  return p;
+SlidingWindow::Points Points(const DoubleArray& p, const char* name) {
+  return ToMatrix(p, -1, 2, name);
 }
 
 }  // namespace
@@ -61,7 +59,9 @@ void BindSlidingWindow(py::module_& m) {
       .def_readonly("fixed_ids", &WindowStepSummary::fixed_ids)
       .def_readonly("keyframe_ids", &WindowStepSummary::keyframe_ids)
       .def_readonly("emt_mahalanobis2", &WindowStepSummary::emt_mahalanobis2)
-      .def_readonly("iterations", &WindowStepSummary::iterations)
+      .def_readonly("iterations", &WindowStepSummary::iterations,
+                    "Ceres iterations as SolveSummary's, summed over the step's runs (motion\n"
+                    "gate rounds, the plane gate's second solve)")
       .def_readonly("initial_cost", &WindowStepSummary::initial_cost)
       .def_readonly("final_cost", &WindowStepSummary::final_cost)
       .def_readonly("visual_cost", &WindowStepSummary::visual_cost)
@@ -100,21 +100,22 @@ void BindSlidingWindow(py::module_& m) {
       m, "SlidingWindow",
       "Local bundle adjustment over a sliding window with keyframes (LBAVis+EMT, Eqs. 24-27).\n"
       "Frames are added in increasing id order; step() estimates the pending ones and the plane\n"
-      "with the window and the given keyframes fixed, then fixes them.")
-      .def(py::init([](const Eigen::Ref<const RowMatrixXd>& camera_matrix,
-                       const SlidingWindowOptions& options) {
-             CheckShape(camera_matrix, 3, 3, "camera_matrix");
-             return std::make_unique<SlidingWindow>(Eigen::Matrix3d(camera_matrix), options);
+      "with the window and the given keyframes fixed, then fixes them. Calls from other threads\n"
+      "wait while step() or redo() runs (with the GIL released: only the caller waits).")
+      .def(py::init([](const DoubleArray& camera_matrix, const SlidingWindowOptions& options) {
+             return std::make_unique<SlidingWindow>(
+                 Eigen::Matrix3d(ToMatrix(camera_matrix, 3, 3, "camera_matrix")), options);
            }),
            "camera_matrix"_a, "options"_a = SlidingWindowOptions())
       .def(
           "add_frame",
-          [](SlidingWindow& self, int frame_id, const std::optional<Eigen::VectorXd>& initial,
-             const std::optional<Eigen::VectorXd>& emt_measurement, bool fixed,
+          [](SlidingWindow& self, int frame_id, const std::optional<DoubleArray>& initial,
+             const std::optional<DoubleArray>& emt_measurement, bool fixed,
              double motion_ratio, double motion_sigma_scale) {
-            self.AddFrame(frame_id, OptionalPose(initial, "initial"),
-                          OptionalPose(emt_measurement, "emt_measurement"), fixed, motion_ratio,
-                          motion_sigma_scale);
+            const std::optional<Vector6d> x = OptionalPose(initial, "initial");
+            const std::optional<Vector6d> z = OptionalPose(emt_measurement, "emt_measurement");
+            py::gil_scoped_release release;
+            self.AddFrame(frame_id, x, z, fixed, motion_ratio, motion_sigma_scale);
           },
           "frame_id"_a, "initial"_a = py::none(), "emt_measurement"_a = py::none(),
           "fixed"_a = false, "motion_ratio"_a = 1.0, "motion_sigma_scale"_a = 1.0,
@@ -123,26 +124,29 @@ void BindSlidingWindow(py::module_& m) {
           "motion_ratio, motion_sigma_scale : timing of the constant-velocity prior linking this\n"
           "    camera to the two preceding ones (1, 1: evenly spaced; 0, inf: no prior across a\n"
           "    long gap, the camera starting at the preceding one; see BundleAdjuster)")
-      .def("set_emt_sigma_scale", &SlidingWindow::SetEmtSigmaScale, "frame_id"_a, "scale"_a)
+      .def("set_emt_sigma_scale", &SlidingWindow::SetEmtSigmaScale, "frame_id"_a, "scale"_a,
+           py::call_guard<py::gil_scoped_release>())
       .def("set_motion_timing", &SlidingWindow::SetMotionTiming, "frame_id"_a,
-           "motion_ratio"_a, "motion_sigma_scale"_a,
+           "motion_ratio"_a, "motion_sigma_scale"_a, py::call_guard<py::gil_scoped_release>(),
            "The timing of a frame's constant-velocity prior (as add_frame's), from the next "
            "step or redo that estimates it on.")
       .def(
           "add_pair",
-          [](SlidingWindow& self, int frame_l, int frame_m,
-             const Eigen::Ref<const RowMatrixXd>& points_l,
-             const Eigen::Ref<const RowMatrixXd>& points_m) {
-            self.AddPair(frame_l, frame_m, Points(points_l, "points_l"),
-                         Points(points_m, "points_m"));
+          [](SlidingWindow& self, int frame_l, int frame_m, const DoubleArray& points_l,
+             const DoubleArray& points_m) {
+            const SlidingWindow::Points pl = Points(points_l, "points_l");
+            const SlidingWindow::Points pm = Points(points_m, "points_m");
+            py::gil_scoped_release release;
+            self.AddPair(frame_l, frame_m, pl, pm);
           },
           "frame_l"_a, "frame_m"_a, "points_l"_a, "points_m"_a,
           "points_l, points_m : (N, 2) float64 pixels; transfer m -> l")
       .def(
           "set_plane",
-          [](SlidingWindow& self, const Eigen::Ref<const Eigen::VectorXd>& plane) {
-            CheckSize(plane, kPlaneSize, "plane");
-            self.SetPlane(plane);
+          [](SlidingWindow& self, const DoubleArray& plane) {
+            const Eigen::Vector3d pi = ToPlane(plane);
+            py::gil_scoped_release release;
+            self.SetPlane(pi);
           },
           "plane"_a)
       .def("step", &SlidingWindow::Step, "keyframe_ids"_a = std::vector<int>{},
@@ -150,16 +154,23 @@ void BindSlidingWindow(py::module_& m) {
            "Estimates the pending frames and the plane (GIL released); hold_plane: pi kept.")
       .def("redo", &SlidingWindow::Redo, "frame_ids"_a, "keyframe_ids"_a = std::vector<int>{},
            "hold_plane"_a = false, py::call_guard<py::gil_scoped_release>(),
-           "Re-estimates the given last frames (e.g. after gating a tracker sample).")
+           "Re-estimates the last frames (GIL released), e.g. after gating a tracker sample:\n"
+           "frame_ids, distinct, must hold every frame from the first of them on (the last\n"
+           "step's, and any added since), with no pending frame before them; ValueError else.")
       .def("forget", &SlidingWindow::Forget, "frame_ids"_a,
+           py::call_guard<py::gil_scoped_release>(),
            "Drops fixed frames outside the window and their pairs.")
-      .def("pose", &SlidingWindow::GetPose, "frame_id"_a)
-      .def("plane", &SlidingWindow::Plane)
-      .def("pending_ids", &SlidingWindow::PendingIds)
-      .def("window_ids", &SlidingWindow::WindowIds)
-      .def_property_readonly("num_frames", &SlidingWindow::NumFrames)
-      .def_property_readonly("num_pairs", &SlidingWindow::NumPairs)
-      .def_property_readonly("num_correspondences", &SlidingWindow::NumCorrespondences);
+      .def("pose", &SlidingWindow::GetPose, "frame_id"_a,
+           py::call_guard<py::gil_scoped_release>(),
+           "(6,) cam_from_world; ValueError for a pending frame without a pose yet (no\n"
+           "initial pose: it gets one at its step).")
+      .def("plane", &SlidingWindow::Plane, py::call_guard<py::gil_scoped_release>(),
+           "(3,) pi = n / d; ValueError before set_plane.")
+      .def("pending_ids", &SlidingWindow::PendingIds, py::call_guard<py::gil_scoped_release>())
+      .def("window_ids", &SlidingWindow::WindowIds, py::call_guard<py::gil_scoped_release>())
+      .def_property_readonly("num_frames", Released(&SlidingWindow::NumFrames))
+      .def_property_readonly("num_pairs", Released(&SlidingWindow::NumPairs))
+      .def_property_readonly("num_correspondences", Released(&SlidingWindow::NumCorrespondences));
 }
 
 }  // namespace fusedmosaic::bindings

@@ -3,7 +3,9 @@
 Conventions (seed 000, Sec. 3): a pose is ``[rx, ry, rz, tx, ty, tz]``, angle-axis (rad) and
 translation (mm) of cam_from_world (X_cam = R X_world + t); the plane is ``pi = n / d`` (1/mm),
 the plane ``n.X + d = 0`` seen from the virtual camera at the world origin. All arrays are
-float64 unless stated. Bad input raises ValueError (IndexError for an unknown frame id).
+float64 unless stated. Bad input raises ValueError (IndexError for an unknown frame id). A
+(6,) pose or (3,) plane may also be given as a (6, 1) column or (1, 6) row; any other shape is
+refused naming the argument and the shape got. pi = 0 (the plane at infinity) is refused.
 """
 
 from typing import Any, Never
@@ -14,6 +16,8 @@ import numpy.typing as npt
 __version__: str
 
 _Array = npt.NDArray[np.float64]
+_IntArray = npt.NDArray[np.int32]
+_Float32Array = npt.NDArray[np.float32]
 _ArrayLike = npt.ArrayLike
 
 # ---------------------------------------------------------------- geometry (bind_geometry.cc)
@@ -129,13 +133,15 @@ def evaluate_visual_transfer(
 
 def match_hamming(
     query: _ArrayLike, train: _ArrayLike, ratio: float = 0.8
-) -> tuple[_Array, _Array, _Array]:
+) -> tuple[_IntArray, _IntArray, _IntArray]:
     """Exact Hamming nearest neighbours of binary descriptors, ratio test, one-to-one.
 
-    query : (Nq, B) uint8, train : (Nt, B) uint8 (ORB: B = 32); ratio in (0, 1].
-    Returns (query_idx, train_idx, distance) of the kept matches, ascending query order: a query
-    is kept if its nearest train descriptor is nearer than ratio x the second nearest, and of the
-    queries kept for one train descriptor only the nearest (the first on a tie). The matches of
+    query : (Nq, B) uint8, train : (Nt, B) uint8 (ORB: B = 32; another dtype: ValueError, not
+    a cast); ratio in (0, 1]. Row counts and B above 2**31 - 1: ValueError.
+    Returns (query_idx, train_idx, distance), int32, of the kept matches, ascending query
+    order: a query is kept if its nearest train descriptor is nearer than ratio x the second
+    nearest, and of the queries kept for one train descriptor only the nearest (the first on a
+    tie). The matches of
     cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(k=2) with these filters, counted with popcount.
     """
 
@@ -147,11 +153,32 @@ def match_hamming_guided(
     radius: float,
     ratio: float = 0.8,
     max_distance: int = -1,
-) -> tuple[_Array, _Array, _Array]:
+) -> tuple[_IntArray, _IntArray, _IntArray]:
     """match_hamming restricted to train keypoints within `radius` px of each query's predicted
     position query_xy (Nq, 2) in the train image (non-finite: not matched); train_xy (Nt, 2).
     The ratio test compares the two nearest candidates in the radius; a single candidate is
-    kept if its distance <= max_distance bits (-1: never). Same output as match_hamming.
+    kept if its distance <= max_distance bits, or, with max_distance < 0 (default), if it
+    passes the ratio test against the nearest of all the other train descriptors (what the
+    exhaustive match_hamming tests it against). Same input rules and output as match_hamming.
+    """
+
+def match_l2_guided(
+    query: _ArrayLike,
+    query_xy: _ArrayLike,
+    train: _ArrayLike,
+    train_xy: _ArrayLike,
+    radius: float,
+    ratio: float = 0.8,
+    max_distance: float = -1.0,
+) -> tuple[_IntArray, _IntArray, _Float32Array]:
+    """match_hamming_guided for float descriptors (SIFT) under the Euclidean distance.
+
+    query : (Nq, D), train : (Nt, D), converted to float32; query_xy, train_xy, radius, ratio
+    and max_distance (< 0: the ratio test against all other train rows) as in
+    match_hamming_guided, distances in descriptor units. The ratio test compares Euclidean
+    distances (as cv2.BFMatcher(cv2.NORM_L2)'s). Returns (query_idx, train_idx, distance):
+    int32, int32, float32, ascending query order. A descriptor with a non-finite element
+    matches nothing.
     """
 
 def evaluate_pose_prior(
@@ -238,13 +265,16 @@ class BundleAdjusterOptions:
 
 class SolveSummary:
     """Result of BundleAdjuster.solve(). Costs are Ceres' 1/2 sum of squared whitened residuals
-    (robust-kernel values for the visual term when a loss is set)."""
+    (robust-kernel values for the visual term when a loss is set); NaN where they could not be
+    evaluated (a FAILURE termination, e.g. a camera centre on the plane)."""
 
     def __init__(self, *args: Never, **kwargs: Never) -> None:
         """Not constructible: BundleAdjuster.solve() returns one."""
 
     @property
-    def iterations(self) -> int: ...
+    def iterations(self) -> int:
+        """Ceres iterations (not counting its iteration 0, the evaluation at the start): at
+        most max_iterations per run, summed over the motion gate's runs."""
     @property
     def initial_cost(self) -> float: ...
     @property
@@ -303,7 +333,8 @@ class BundleAdjuster:
     """Bundle adjustment of frame poses and the plane: BAVis (use_emt=False) and BAVis+EMT
     (seed 000, Eq. 17). Owns the parameters, keyed by frame id. Without EMT priors the gauge
     is fixed by holding the first (lowest-id) frame constant and |plane| fixed. Calls from
-    other threads wait while solve() runs.
+    other threads wait while solve() runs; they release the GIL as they wait, so only the
+    calling thread does.
     """
 
     def __init__(self, camera_matrix: _ArrayLike, options: BundleAdjusterOptions = ...) -> None:
@@ -390,7 +421,8 @@ class SlidingWindowOptions:
     ) -> None: ...
 
 class WindowStepSummary:
-    """Result of SlidingWindow.step() / redo()."""
+    """Result of SlidingWindow.step() / redo(). Costs as SolveSummary's (NaN where they could
+    not be evaluated)."""
 
     def __init__(self, *args: Never, **kwargs: Never) -> None:
         """Not constructible: SlidingWindow.step() / redo() return one."""
@@ -405,7 +437,9 @@ class WindowStepSummary:
     def emt_mahalanobis2(self) -> list[float]:
         """Per estimated frame, NaN without a tracker sample."""
     @property
-    def iterations(self) -> int: ...
+    def iterations(self) -> int:
+        """Ceres iterations as SolveSummary's (iteration 0 not counted), summed over the
+        step's runs (motion gate rounds, the plane gate's second solve)."""
     @property
     def initial_cost(self) -> float: ...
     @property
@@ -459,7 +493,8 @@ class WindowStepSummary:
     def full_report(self) -> str: ...
 
 class SlidingWindow:
-    """Local bundle adjustment over a sliding window with keyframes (LBAVis+EMT, Eqs. 24-27)."""
+    """Local bundle adjustment over a sliding window with keyframes (LBAVis+EMT, Eqs. 24-27).
+    Calls from other threads wait while step() or redo() runs (GIL released: only they wait)."""
 
     @property
     def num_frames(self) -> int: ...
@@ -501,7 +536,7 @@ class SlidingWindow:
         """points_l, points_m : (N, 2) pixels; transfer m -> l."""
 
     def set_plane(self, plane: _ArrayLike) -> None:
-        """plane : (3,) pi = n / d."""
+        """plane : (3,) pi = n / d, non-zero."""
 
     def step(self, keyframe_ids: list[int] = ..., hold_plane: bool = False) -> WindowStepSummary:
         """Estimates the pending frames and the plane (GIL released), then fixes them;
@@ -509,12 +544,17 @@ class SlidingWindow:
 
     def redo(self, frame_ids: list[int], keyframe_ids: list[int] = ...,
              hold_plane: bool = False) -> WindowStepSummary:
-        """Re-estimates the given last frames (after set_emt_sigma_scale)."""
+        """Re-estimates the last frames (after set_emt_sigma_scale). frame_ids, distinct, must
+        hold every frame from the first of them on (the last step's frames, and any added since,
+        pending), with no pending frame before them; ValueError otherwise."""
 
     def forget(self, frame_ids: list[int]) -> None:
         """Drops fixed frames outside the window, with their pairs."""
 
-    def pose(self, frame_id: int) -> _Array: ...
-    def plane(self) -> _Array: ...
+    def pose(self, frame_id: int) -> _Array:
+        """(6,) cam_from_world; IndexError for an unknown id, ValueError for a pending frame
+        added without an initial pose (it gets one at its step)."""
+    def plane(self) -> _Array:
+        """(3,) pi = n / d; ValueError before set_plane."""
     def pending_ids(self) -> list[int]: ...
     def window_ids(self) -> list[int]: ...

@@ -16,6 +16,7 @@
 
 #include "fusedmosaic/problem/motion_gate.h"
 #include "fusedmosaic/problem/plane_observability.h"
+#include "fusedmosaic/util/format.h"
 
 namespace fusedmosaic {
 namespace {
@@ -64,7 +65,7 @@ ceres::TrustRegionStrategyType TrustRegionFromString(const std::string& name) {
 void CheckPositive(double value, const char* name) {
   if (!(std::isfinite(value) && value > 0)) {
     throw std::invalid_argument(std::string(name) + ": must be finite and > 0, got " +
-                                std::to_string(value));
+                                FormatDouble(value));
   }
 }
 
@@ -73,7 +74,7 @@ void CheckSigma(const Vector6d& sigma, const char* name) {
     if (!(std::isfinite(sigma[i]) && sigma[i] > 0)) {
       throw std::invalid_argument(std::string(name) + "[" + std::to_string(i) +
                                   "]: standard deviations must be finite and > 0, got " +
-                                  std::to_string(sigma[i]));
+                                  FormatDouble(sigma[i]));
     }
   }
 }
@@ -96,7 +97,10 @@ double EvaluateCost(ceres::Problem& problem, const std::vector<ceres::ResidualBl
   options.apply_loss_function = true;
   options.num_threads = num_threads;
   double cost = 0.0;
-  problem.Evaluate(options, &cost, nullptr, nullptr, nullptr);
+  // A failed evaluation (a camera on the plane) is no cost of 0.
+  if (!problem.Evaluate(options, &cost, nullptr, nullptr, nullptr)) {
+    return std::numeric_limits<double>::quiet_NaN();
+  }
   return cost;
 }
 
@@ -117,13 +121,19 @@ ceres::Solver::Options SolverOptionsFor(const BundleAdjusterOptions& options,
   return so;
 }
 
+int CeresIterations(const ceres::Solver::Summary& summary) {
+  return std::max(0, static_cast<int>(summary.iterations.size()) - 1);
+}
+
+double CeresCost(double cost) { return cost < 0 ? std::numeric_limits<double>::quiet_NaN() : cost; }
+
 void BundleAdjusterOptions::Validate() const {
   CheckPositive(sigma_v_px, "sigma_v_px");
   CheckSigma(emt_sigma, "emt_sigma");
   CheckSigma(motion_sigma, "motion_sigma");
   if (!(motion_gate_chi2 > 0)) {  // inf allowed: no gate
     throw std::invalid_argument("motion_gate_chi2: must be > 0 (inf: no gate), got " +
-                                std::to_string(motion_gate_chi2));
+                                FormatDouble(motion_gate_chi2));
   }
   RobustLossFromString(loss);
   CheckPositive(loss_scale_px, "loss_scale_px");
@@ -227,7 +237,7 @@ void BundleAdjuster::SetPlane(const Eigen::Vector3d& plane) {
   CheckFinite(plane.data(), kPlaneSize, "plane");
   if (!(plane.norm() > 1e-12)) {
     throw std::invalid_argument(
-        "plane: pi = n/d must be non-zero (a plane through the virtual camera is degenerate)");
+        "plane: pi = n/d must be non-zero (pi = 0 is the plane at infinity)");
   }
   std::copy(plane.data(), plane.data() + kPlaneSize, plane_.begin());
   plane_set_ = true;
@@ -417,8 +427,8 @@ SolveSummary BundleAdjuster::Solve() {
 
   ceres::Solver::Summary summary;
   ceres::Solve(solver_options, &problem, &summary);
-  out.initial_cost = summary.initial_cost;
-  int iterations = summary.num_successful_steps + summary.num_unsuccessful_steps;
+  out.initial_cost = CeresCost(summary.initial_cost);
+  int iterations = CeresIterations(summary);
   double solve_time_s = summary.total_time_in_seconds;
   // The motion gate (motion_gate.h), in rounds, each followed by a solve; for this solve only.
   int releases_left =
@@ -431,12 +441,12 @@ SolveSummary BundleAdjuster::Solve() {
     out.motion_released_ids.insert(out.motion_released_ids.end(), released.begin(),
                                    released.end());
     ceres::Solve(solver_options, &problem, &summary);
-    iterations += summary.num_successful_steps + summary.num_unsuccessful_steps;
+    iterations += CeresIterations(summary);
     solve_time_s += summary.total_time_in_seconds;
   }
 
   out.iterations = iterations;
-  out.final_cost = summary.final_cost;
+  out.final_cost = CeresCost(summary.final_cost);
   out.visual_cost = EvaluateCost(problem, visual_blocks, options_.num_threads);
   out.emt_cost = EvaluateCost(problem, emt_blocks, options_.num_threads);
   out.motion_cost = EvaluateCost(problem, motion.blocks, options_.num_threads);

@@ -30,8 +30,8 @@
 #include <Eigen/Core>
 #include <array>
 #include <map>
-#include <mutex>
 #include <limits>
+#include <mutex>
 #include <optional>
 #include <string>
 #include <utility>
@@ -97,12 +97,21 @@ struct BundleAdjusterOptions {
 ceres::Solver::Options SolverOptionsFor(const BundleAdjusterOptions& options,
                                         ceres::LinearSolverType linear_solver);
 
+// The iterations of a solve: Ceres' summary lists iteration 0 (the evaluation at the start) in
+// `iterations` and counts it as a successful step, so both counts exceeded max_num_iterations
+// by one. Both summaries report this count, summed over a step's or solve's Ceres runs.
+int CeresIterations(const ceres::Solver::Summary& summary);
+// A cost of Ceres' summary, NaN where Ceres left its -1 "not computed" (a solve that failed to
+// evaluate its residuals): costs are >= 0, and -1 read as a perfect fit.
+double CeresCost(double cost);
+
 struct SolveSummary {
-  int iterations = 0;  // successful + unsuccessful steps
-  double initial_cost = 0.0;
+  int iterations = 0;  // Ceres iterations (CeresIterations), at most max_iterations per round
+  double initial_cost = 0.0;  // NaN when the solve could not evaluate it (FAILURE)
   double final_cost = 0.0;
   // Per-term costs at the solution (Ceres convention: 1/2 sum of squared whitened residuals,
-  // robust-kernel values for the visual term when a loss is set).
+  // robust-kernel values for the visual term when a loss is set); NaN for a term that cannot be
+  // evaluated there (a camera centre on the plane).
   double visual_cost = 0.0;
   double emt_cost = 0.0;
   double motion_cost = 0.0;

@@ -18,6 +18,7 @@
 #include "fusedmosaic/residuals/constant_velocity.h"
 #include "fusedmosaic/residuals/pose_prior.h"
 #include "fusedmosaic/residuals/visual_transfer.h"
+#include "fusedmosaic/util/format.h"
 
 namespace fusedmosaic {
 namespace {
@@ -72,7 +73,7 @@ void SlidingWindowOptions::Validate() const {
   }
   if (!(plane_max_relative_std >= 0.0) || !std::isfinite(plane_max_relative_std)) {
     throw std::invalid_argument("plane_max_relative_std: must be finite and >= 0, got " +
-                                std::to_string(plane_max_relative_std));
+                                FormatDouble(plane_max_relative_std));
   }
   costs.Validate();
   WindowLinearSolver(costs.linear_solver);
@@ -138,7 +139,7 @@ void SlidingWindow::AddFrame(int frame_id, const std::optional<Pose>& initial,
 void SlidingWindow::SetEmtSigmaScale(int frame_id, double scale) {
   std::lock_guard<std::mutex> lock(mutex_);
   if (!(std::isfinite(scale) && scale >= 1.0)) {
-    throw std::invalid_argument("scale: must be finite and >= 1, got " + std::to_string(scale));
+    throw std::invalid_argument("scale: must be finite and >= 1, got " + FormatDouble(scale));
   }
   FindFrame(frame_id, "set_emt_sigma_scale").emt_sigma_scale = scale;
 }
@@ -180,8 +181,9 @@ void SlidingWindow::AddPair(int frame_l, int frame_m, const Points& points_l,
 
 void SlidingWindow::SetPlane(const Eigen::Vector3d& plane) {
   std::lock_guard<std::mutex> lock(mutex_);
-  if (!plane.allFinite() || plane.norm() < 1e-12) {
-    throw std::invalid_argument("plane: must be finite and non-zero");
+  if (!plane.allFinite() || !(plane.norm() > 1e-12)) {
+    throw std::invalid_argument("plane: must be finite and non-zero (pi = 0 is the plane at "
+                                "infinity)");
   }
   Eigen::Map<Eigen::Vector3d>(plane_.data()) = plane;
   plane_set_ = true;
@@ -239,12 +241,42 @@ WindowStepSummary SlidingWindow::Redo(const std::vector<int>& frame_ids,
                                       const std::vector<int>& keyframe_ids, bool hold_plane) {
   std::lock_guard<std::mutex> lock(mutex_);
   if (frame_ids.empty()) throw std::invalid_argument("redo: frame_ids is empty");
-  for (int id : frame_ids) {
-    Frame& f = FindFrame(id, "redo");
+  std::vector<int> ids = frame_ids;
+  std::sort(ids.begin(), ids.end());
+  for (size_t i = 0; i < ids.size(); ++i) {
+    FindFrame(ids[i], "redo");
+    if (i > 0 && ids[i] == ids[i - 1]) {
+      // (each would add its frame's C_EMT and C_p blocks again)
+      throw std::invalid_argument("redo: frame " + std::to_string(ids[i]) +
+                                  " appears more than once in frame_ids");
+    }
+  }
+  // The redone frames must be the last ones, as in the step they redo: the window is the fixed
+  // cameras before them, and their C_p terms link them to their predecessors. A frame after
+  // them left out would join the window as a camera of the past; a pending one before them
+  // (never estimated: its pose unset) would be held constant as their predecessor, and then be
+  // estimated after them. The caller's redo of a step's held frames also re-estimates the
+  // frames added since (pending): every frame from the first redone one on.
+  for (auto it = frames_.find(ids.front()); it != frames_.end(); ++it) {
+    if (!std::binary_search(ids.begin(), ids.end(), it->first)) {
+      throw std::invalid_argument("redo: frame_ids must be the last frames, but frame " +
+                                  std::to_string(it->first) + " after frame " +
+                                  std::to_string(ids.front()) + " is not among them");
+    }
+  }
+  for (auto it = frames_.begin(); it->first != ids.front(); ++it) {
+    if (!it->second.fixed) {
+      throw std::invalid_argument("redo: frame " + std::to_string(it->first) +
+                                  " before frame_ids is still pending (step it first)");
+    }
+  }
+  if (!plane_set_) throw std::invalid_argument("redo: set_plane must be called first");
+  for (int id : ids) {
+    Frame& f = frames_.at(id);
     if (f.emt_measurement) Eigen::Map<Pose>(f.pose.data()) = *f.emt_measurement;
     f.fixed = false;
   }
-  return Solve(frame_ids, keyframe_ids, hold_plane);
+  return Solve(ids, keyframe_ids, hold_plane);
 }
 
 WindowStepSummary SlidingWindow::Solve(std::vector<int> free_ids,
@@ -415,11 +447,11 @@ WindowStepSummary SlidingWindow::SolveStep(const std::vector<int>& free_ids,
     ceres::Solver::Summary summary;
     ceres::Solve(so, &problem, &summary);
     if (first) {
-      out.initial_cost = summary.initial_cost;
+      out.initial_cost = CeresCost(summary.initial_cost);
       out.iterations = 0;
     }
-    out.iterations += static_cast<int>(summary.iterations.size()) - 1;
-    out.final_cost = summary.final_cost;
+    out.iterations += CeresIterations(summary);
+    out.final_cost = CeresCost(summary.final_cost);
     out.solve_time_s += summary.total_time_in_seconds;
     out.preprocessor_time_s += summary.preprocessor_time_in_seconds;
     out.evaluation_time_s +=
@@ -471,7 +503,10 @@ WindowStepSummary SlidingWindow::SolveStep(const std::vector<int>& free_ids,
     ceres::Problem::EvaluateOptions eo;
     eo.residual_blocks = ids;
     double cost = 0.0;
-    problem.Evaluate(eo, &cost, nullptr, nullptr, nullptr);
+    // A failed evaluation (a camera on the plane) is no cost of 0.
+    if (!problem.Evaluate(eo, &cost, nullptr, nullptr, nullptr)) {
+      return std::numeric_limits<double>::quiet_NaN();
+    }
     return cost;
   };
   out.visual_cost = term_cost(visual_blocks);
@@ -511,11 +546,19 @@ void SlidingWindow::Forget(const std::vector<int>& frame_ids) {
 
 SlidingWindow::Pose SlidingWindow::GetPose(int frame_id) const {
   std::lock_guard<std::mutex> lock(mutex_);
-  return ToVector(FindFrame(frame_id, "pose").pose);
+  const Frame& f = FindFrame(frame_id, "pose");
+  // A pending frame added without an initial pose has none until its step (zeros, not a pose).
+  if (!f.has_initial) {
+    throw std::invalid_argument("pose: frame " + std::to_string(frame_id) +
+                                " is pending without a pose yet (no initial pose; its step "
+                                "gives it one)");
+  }
+  return ToVector(f.pose);
 }
 
 Eigen::Vector3d SlidingWindow::Plane() const {
   std::lock_guard<std::mutex> lock(mutex_);
+  if (!plane_set_) throw std::invalid_argument("plane: not set (call set_plane first)");
   return Eigen::Map<const Eigen::Vector3d>(plane_.data());
 }
 

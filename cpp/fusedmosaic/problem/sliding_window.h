@@ -70,7 +70,8 @@ struct WindowStepSummary {
   // Per estimated camera: (z - x)^T Sigma_EMT^-1 (z - x) at the solution with the nominal
   // Sigma_EMT, NaN without a measurement. Used by the caller to gate gross tracker outliers.
   std::vector<double> emt_mahalanobis2;
-  int iterations = 0;
+  int iterations = 0;  // Ceres iterations (CeresIterations), summed over the step's runs
+  // Costs as SolveSummary's: NaN where they could not be evaluated (a FAILURE termination).
   double initial_cost = 0.0;
   double final_cost = 0.0;
   double visual_cost = 0.0;
@@ -142,12 +143,17 @@ class SlidingWindow {
   // with neither a tracker sample nor a visual link to an anchored camera).
   WindowStepSummary Step(const std::vector<int>& keyframe_ids, bool hold_plane = false);
   // Re-runs the last step's problem after SetEmtSigmaScale (gating) and refixes its cameras.
+  // frame_ids must be distinct and hold every frame from the first of them on (the last step's
+  // cameras, and any added since), with no pending frame before them: std::invalid_argument
+  // otherwise, with nothing changed.
   WindowStepSummary Redo(const std::vector<int>& frame_ids, const std::vector<int>& keyframe_ids,
                          bool hold_plane = false);
 
   // Drops fixed cameras outside the current window, with their pairs.
   void Forget(const std::vector<int>& frame_ids);
 
+  // Throw std::invalid_argument for a pending camera added without an initial pose (it has none
+  // until its step) and before SetPlane.
   Pose GetPose(int frame_id) const;
   Eigen::Vector3d Plane() const;
   std::vector<int> PendingIds() const;

@@ -1,4 +1,5 @@
 #include "fusedmosaic/registration/descriptor_match.h"
+#include "fusedmosaic/util/format.h"
 
 #include <algorithm>
 #include <cmath>
@@ -266,20 +267,22 @@ void CheckArguments(int length, double ratio, const char* unit) {
                                 " per descriptor, got " + std::to_string(length));
   }
   if (!(ratio > 0.0 && ratio <= 1.0)) {
-    throw std::invalid_argument("ratio: expected a value in (0, 1], got " + std::to_string(ratio));
+    throw std::invalid_argument("ratio: expected a value in (0, 1], got " + FormatDouble(ratio));
   }
 }
 
 void CheckRadius(double radius) {
   if (!(radius > 0.0 && std::isfinite(radius))) {
     throw std::invalid_argument("radius: expected a positive finite number of pixels, got " +
-                                std::to_string(radius));
+                                FormatDouble(radius));
   }
 }
 
-// Ratio test (best < factor * second; a query with a single candidate and no second: kept if
-// best <= max_distance, never when max_distance < 0), then one query per train row, the nearest (the
-// first in query order on a tie); ascending query order. Distances in the metric's units.
+// Ratio test (best < factor * second), then one query per train row, the nearest (the first in
+// query order on a tie); ascending query order. Distances in the metric's units. A query whose
+// search found a single candidate and no second is kept if best <= max_distance; with
+// max_distance < 0 the guided search (Search::lone_against_all) has already filled in `second`
+// from all the other train rows, so only a train set of one row leaves it unset: never kept.
 template <typename Metric, typename T = typename Metric::Element,
           typename D = typename Metric::Distance>
 Matches<D> Select(const Search<T>& s, double factor, D max_distance) {

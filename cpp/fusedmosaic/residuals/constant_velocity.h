@@ -24,6 +24,7 @@
 
 #include "fusedmosaic/geometry/pose.h"
 #include "fusedmosaic/residuals/pose_prior.h"
+#include "fusedmosaic/util/format.h"
 
 namespace fusedmosaic {
 
@@ -91,8 +92,8 @@ inline void CheckMotionTiming(double ratio, double sigma_scale, const char* what
   if (!(std::isfinite(ratio) && ratio >= 0 && !std::isnan(sigma_scale) && sigma_scale > 0)) {
     throw std::invalid_argument(std::string(what) +
                                 ": motion_ratio must be finite and >= 0 and motion_sigma_scale "
-                                "> 0 (inf: no motion prior), got " + std::to_string(ratio) +
-                                " and " + std::to_string(sigma_scale));
+                                "> 0 (inf: no motion prior), got " + FormatDouble(ratio) +
+                                " and " + FormatDouble(sigma_scale));
   }
 }
 

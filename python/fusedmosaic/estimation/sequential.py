@@ -1046,7 +1046,10 @@ class SequentialMosaicker:
             self._times.get(k))
         if pose is None:
             return []
-        centre = self._centroid(self._to_reference(pose))
+        try:
+            centre = self._centroid(self._to_reference(pose))
+        except ValueError:  # the plane through the reference camera or this one: no prediction
+            return []
         ids = np.array([i for i in self._loop_feats if k - i >= o.loop_min_separation], int)
         if len(ids) == 0:
             return []
@@ -1140,11 +1143,11 @@ class SequentialMosaicker:
         recent = {f.frame_id for _, f in self._recent}
         older = [f.frame_id for f in self._boot_feats
                  if f.frame_id not in recent and f.frame_id in tracked]
-        G = np.array([_core.transfer_homography(tracker_pose, tracked[i], plane, self.K)
+        G = np.array([_transfer_or_nan(tracker_pose, tracked[i], plane, self.K)
                       for i in older]).reshape(-1, 3, 3)
         polys = footprint_polygons(G, *self.size, self._fov_radius)
-        # poly None: the provisional plane puts the footprint behind the camera; no prediction,
-        # so the frame is tried
+        # poly None: the provisional plane puts the footprint behind the camera (or a camera on
+        # it); no prediction, so the frame is tried
         skip = {i for i, poly in zip(older, polys, strict=True) if poly is not None
                 and overlap_fraction(self._own_footprint, poly) < o.startup_min_overlap}
         return [f for f in self._boot_feats if f.frame_id not in skip]
@@ -1743,9 +1746,19 @@ class SequentialMosaicker:
             return FrameResult(k, timestamp, nan, np.full(6, np.nan),
                                "unplaced: waiting for the first window step", False,
                                timings=timings)
-        G = _core.transfer_homography(reference, pose, plane, self.K)
+        # (NaN: the plane passes through either camera, which transfer_homography refuses)
+        G = _transfer_or_nan(reference, pose, plane, self.K)
         return FrameResult(k, timestamp, G, poses_from_aligned(pose, self._world),
                            "provisional", False, timings=timings)
+
+
+def _transfer_or_nan(cam_l, cam_m, plane, K) -> np.ndarray:
+    """transfer_homography, NaN where the plane passes through either camera centre (a
+    prediction that has none; the homography was inf / NaN there for camera l)."""
+    try:
+        return _core.transfer_homography(cam_l, cam_m, plane, K)
+    except ValueError:
+        return np.full((3, 3), np.nan)
 
 
 def _plane_gate_details(steps: list[tuple[float, bool]]) -> dict:
