@@ -1276,7 +1276,7 @@ class SequentialMosaicker:
                                            function_tolerance=FUNCTION_TOLERANCE,
                                            motion_gate_chi2=np.inf)
             summary = probe.solve()
-            # (a failed evaluation leaves final_cost at -1 and the state at the start)
+            # (a failed evaluation reports final_cost NaN and leaves the state at the start)
             if (summary.termination != "FAILURE" and 0 <= summary.final_cost < best[0]):
                 best = (summary.final_cost, np.asarray(probe.plane()),
                         [probe.pose(k) for k in ids])
