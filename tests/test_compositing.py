@@ -167,6 +167,30 @@ def test_png_stream_round_trip(tmp_path):
 # -- canvas limits --------------------------------------------------------------------------------
 
 
+def test_a_stray_frame_is_left_out_not_the_mosaic(scene, tmp_path):
+    """One frame of 30 placed 50 000 px off (a robot or tracker glitch) made the canvas exceed
+    its budget, and mosaic.png and the video were not written at all (review), where the live
+    canvas leaves such a frame out as a stray. Now it is left out with its reason; the mosaic
+    of the others is the one without it, pixel for pixel."""
+    s, frames = scene
+    G = s.homographies.copy()
+    G[12, :2, 2] += [50_000.0, 0.0]
+    plan = plan_canvas(G, SIZE, SIZE, max_pixels=10_000_000)
+    assert plan.use.sum() == 29 and not plan.use[12]
+    assert plan.skipped[12].startswith("stray: lands 4.8") and "a placement glitch?" in \
+        plan.skipped[12], plan.skipped
+    without = np.delete(G, 12, axis=0)
+    expected = plan_canvas(without, SIZE, SIZE)
+    assert (plan.x0, plan.y0, plan.x1, plan.y1) == (expected.x0, expected.y0, expected.x1,
+                                                    expected.y1)
+    image = render_mosaic(frames, G, SIZE, SIZE, max_pixels=10_000_000).image
+    np.testing.assert_array_equal(
+        image, render_mosaic([f for k, f in enumerate(frames) if k != 12], without, SIZE,
+                             SIZE).image)
+    # within the budget a far frame is kept (as the live canvas keeps it)
+    assert plan_canvas(G, SIZE, SIZE, max_pixels=20_000_000).use.all()
+
+
 def test_far_frames_are_judged_by_their_shape():
     """A frame placed 1e10 px away (a pCLE pixel size wrong by 1e9) is a rectangle there, left
     out for the canvas budget with its reason, not as "non-convex" (OpenCV's float32 collapsed
@@ -188,8 +212,11 @@ def test_far_frames_are_judged_by_their_shape():
 def test_pixel_budget_refused_before_allocating(scene, tmp_path):
     s, frames = scene
     G = s.homographies.copy()
-    G[5, :2, 2] += [40_000.0, 30_000.0]  # a frame placed far away: a 40k x 30k canvas
-    with pytest.raises(CanvasTooLargeError, match=r"exceeds the budget of 1000000 pixels"):
+    # 5 of the 30 frames placed far away (too many to be strays): a 40k x 30k canvas
+    G[5:10, :2, 2] += [40_000.0, 30_000.0]
+    with pytest.raises(CanvasTooLargeError, match=r"exceeds the budget of 1000000 pixels \(1\.0 "
+                                                  r"Mpixel\); the frames lie in 2 groups far "
+                                                  r"apart \(25 frames from 0, 5 frames from 5"):
         plan_canvas(G, SIZE, SIZE, max_pixels=1_000_000)
     with pytest.raises(CanvasTooLargeError, match=r"40\d+ x 30\d+ pixels .* --max-canvas-pixels"):
         render_mosaic(frames, G, SIZE, SIZE, max_pixels=10_000_000)
@@ -388,3 +415,30 @@ def test_creation_video(scene, tmp_path):
         video.add(frames[0], np.eye(3))
         raise RuntimeError("interrupted")
     assert not list(tmp_path.glob("*broken*")) and not list(tmp_path.glob(".broken*"))
+
+
+def test_run_writes_the_mosaic_without_a_stray_frame_and_warns(tmp_path):
+    """A robot glitch putting one pCLE frame 3e5 px off: run wrote neither mosaic.png nor the
+    video (a 1.4 Gpixel canvas over the budget; review). Now both are written without that
+    frame, which is named in a warning and in report.json mosaic.skipped_frames."""
+    import json
+
+    from fusedmosaic.runner import run_dataset
+    from fusedmosaic.simulation import PcleOptions, simulate_pcle
+
+    root = simulate_pcle(tmp_path / "d", PcleOptions(width=128, height=112, n_frames=30,
+                                                     robot_rate_hz=100.0))
+    header, *rows = (root / "robot.csv").read_text().splitlines()
+    for i, row in enumerate(rows):  # the two samples around frame 15 (t = 1.5 s)
+        t, x, *rest = row.split(",")
+        if abs(float(t) - 1.5) < 0.01:
+            rows[i] = ",".join([t, str(float(x) + 3e5), *rest])
+    (root / "robot.csv").write_text("\n".join([header, *rows]) + "\n")
+    with pytest.warns(UserWarning, match=r"frame\(s\) 15 left out of mosaic\.png and the video: "
+                                         r"each lands far from all the other frames"):
+        run_dataset(root, "robot", tmp_path / "out", progress=False, report=False,
+                    video=tmp_path / "out" / "c.mp4",
+                    canvas=CanvasOptions(max_pixels=20_000_000))
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert list(report["mosaic"]["skipped_frames"]) == ["15"]
+    assert report["mosaic"]["width"] < 2000 and report["mosaic"]["video"]["frames"] == 29

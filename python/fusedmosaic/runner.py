@@ -344,7 +344,7 @@ def playback_rate(timestamps: np.ndarray) -> float:
     steps = np.diff(np.asarray(timestamps, float))
     if steps.size == 0 or not np.median(steps) > 0:
         return 25.0
-    return float(np.clip(1.0 / np.median(steps), 1.0, 60.0))
+    return float(f"{np.clip(1.0 / np.median(steps), 1.0, 60.0):.6g}")  # 25, not 24.99999999999998
 
 
 def check_compositing_options(blend, canvas, names: dict[str, str] | None = None,
@@ -545,6 +545,15 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
         if video is not None:
             info["video"] = {"file": None, "skipped": str(exc)}
         return {"mosaic": info, "plan": None, "video": None}
+    strays = [k for k, why in sorted(plan.skipped.items()) if why.startswith("stray")]
+    if strays:
+        warnings.warn(
+            f"{out}: frame(s) {methods.listed_ids(dataset.frame_ids[strays])} left out of "
+            f"mosaic.png{' and the video' if video is not None else ''}: each lands far from "
+            "all the other "
+            "frames, and the canvas with it would exceed --max-canvas-pixels (a placement "
+            "glitch?); homographies.csv has it as estimated (report.json mosaic.skipped_frames)",
+            stacklevel=3)
     gains = None
     # Each frame's specular highlights found once for the gains and the mosaic, not twice
     # (SpecularMasks: ~0.5 kB per simulated frame with highlights, at most 64 MB, freed below).

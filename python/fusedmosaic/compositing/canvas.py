@@ -31,6 +31,11 @@ from fusedmosaic.compositing.blending import (
 
 MAX_CANVAS_PIXELS = 64_000_000  # one-piece canvases above this are refused (compose_mosaic)
 ABSURD_AREA_FACTOR = 20.0  # issue 6: a footprint > 20x the median area is left out
+# A canvas over its budget: frames landing more than this many median footprint diagonals from
+# the main group of frames are strays (a placement glitch), as IncrementalCanvas's
+# stray_diagonals; they are left out when they are at most STRAY_MAX_FRACTION of the frames.
+STRAY_DIAGONALS = 10.0
+STRAY_MAX_FRACTION = 0.1
 
 
 class CanvasTooLargeError(ValueError):
@@ -159,14 +164,62 @@ def plan_canvas(homographies: np.ndarray, width: int, height: int, *,
     use, reasons = screen_frames(G, width, height, absurd_area_factor)
     x0, y0, x1, y1 = canvas_bounds(G, width, height, use)
     plan = CanvasPlan(x0, y0, x1, y1, use, reasons)
-    if plan.pixels > max_pixels:
-        raise CanvasTooLargeError(
-            f"mosaic canvas of {plan.width} x {plan.height} pixels "
-            f"({plan.pixels / 1e6:.1f} Mpixel, reference x {x0}..{x1}, y {y0}..{y1}) exceeds the "
-            f"budget of {max_pixels} pixels ({max_pixels / 1e6:.1f} Mpixel); the frames are "
-            "spread over too large an area: check the homographies, or raise the budget "
-            "(CanvasOptions.max_pixels, fusedmosaic run --max-canvas-pixels)")
-    return plan
+    if plan.pixels <= max_pixels:
+        return plan
+    # Over the budget: a few frames far from all the others (a robot or tracker glitch placing
+    # one frame 3e5 px off lost the whole mosaic and video, where the live canvas leaves such a
+    # frame out) are left out as strays, when the rest then fits.
+    groups = _proximity_groups(G, width, height, use)
+    main = max(groups, key=len)
+    strays = np.setdiff1d(np.flatnonzero(use), main)
+    if 0 < strays.size <= STRAY_MAX_FRACTION * use.sum():
+        kept = use.copy()
+        kept[strays] = False
+        bounds = canvas_bounds(G, width, height, kept)
+        if (bounds[2] - bounds[0]) * (bounds[3] - bounds[1]) <= max_pixels:
+            centres = footprints(G[main], width, height).mean(axis=1)
+            for k in strays:
+                centre = footprints(G[k : k + 1], width, height)[0].mean(axis=0)
+                distance = np.linalg.norm(centres - centre, axis=1).min()
+                reasons[int(k)] = (
+                    f"stray: lands {distance:.3g} px from the other frames (more than "
+                    f"{STRAY_DIAGONALS:g} footprint diagonals from any), which would grow the "
+                    f"canvas to {plan.width} x {plan.height} pixels, above the budget of "
+                    f"{max_pixels}: a placement glitch?")
+            return CanvasPlan(*bounds, kept, reasons)
+    far = ""
+    if len(groups) > 1:
+        listed = ", ".join(f"{len(g)} frame{'s' if len(g) > 1 else ''} from {g[0]}"
+                           for g in sorted(groups, key=len, reverse=True)[:4])
+        far = (f"; the frames lie in {len(groups)} groups far apart ({listed}"
+               f"{', ...' if len(groups) > 4 else ''}: frame positions)")
+    raise CanvasTooLargeError(
+        f"mosaic canvas of {plan.width} x {plan.height} pixels "
+        f"({plan.pixels / 1e6:.1f} Mpixel, reference x {x0}..{x1}, y {y0}..{y1}) exceeds the "
+        f"budget of {max_pixels} pixels ({max_pixels / 1e6:.1f} Mpixel){far}; the frames are "
+        "spread over too large an area: check the homographies, or raise the budget "
+        "(CanvasOptions.max_pixels, fusedmosaic run --max-canvas-pixels)")
+
+
+def _proximity_groups(G: np.ndarray, width: int, height: int,
+                      use: np.ndarray) -> list[np.ndarray]:
+    """The used frames in groups linked by footprint centres within STRAY_DIAGONALS + 1 median
+    footprint diagonals of each other (frame positions, each group in increasing order)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    idx = np.flatnonzero(use)
+    fp = footprints(G[idx], width, height)
+    centres = fp.mean(axis=1)
+    diagonal = float(np.median(np.maximum(np.linalg.norm(fp[:, 2] - fp[:, 0], axis=1),
+                                          np.linalg.norm(fp[:, 3] - fp[:, 1], axis=1))))
+    pairs = cKDTree(centres).query_pairs((STRAY_DIAGONALS + 1) * diagonal, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
+                       shape=(idx.size, idx.size)) if len(pairs) else \
+        coo_matrix((idx.size, idx.size))
+    _, labels = connected_components(graph, directed=False)
+    return [idx[labels == label] for label in np.unique(labels)]
 
 
 # ------------------------------------------------------------------------------------------
