@@ -194,9 +194,9 @@ def test_a_folder_given_for_a_file_is_named_a_folder(data, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("option, message", [
-    (["--laps", "1e9"], "PcleOptions: the path is 3.14e+12 µm long (--radius-um x --laps); at "
+    (["--laps", "1e9"], "the path is 3.14e+12 µm long (--radius-um x --laps); at "
                         "most 1e+07 µm"),
-    (["--speed-um-per-frame", "1e12"], "PcleOptions: the frames span up to 7e+12 µm "
+    (["--speed-um-per-frame", "1e12"], "the frames span up to 7e+12 µm "
                                        "(--radius-um x --laps, and --n-frames x "
                                        "--speed-um-per-frame beyond the path): a texture of"),
     (["--cell-size-um", "1e-9"], "--cell-size-um: must be at least a pixel (1.0 µm), got 1e-09"),

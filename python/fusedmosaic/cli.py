@@ -60,17 +60,31 @@ def _check_dataset_target(out: str, overwrite: bool) -> None:
         check_replaceable_dataset(target)  # not the cwd, a parent of it, or a non-dataset
 
 
+_OPTION_CLASSES = r"(?:FetoscopyOptions|PcleOptions|CheckerboardOptions)"
+
+
+def _option_flags(message: str, renamed: dict[str, str] | None = None) -> str:
+    """A simulator's message in the command's words: "FetoscopyOptions.n_frames" ->
+    "--n-frames" (or ``renamed[field]``), and a bare "PcleOptions: " dropped."""
+    renamed = renamed or {}
+    message = re.sub(rf"\b{_OPTION_CLASSES}\.(\w+)",
+                     lambda m: renamed.get(m.group(1), "--" + m.group(1).replace("_", "-")),
+                     message)
+    return re.sub(rf"\b{_OPTION_CLASSES}: ", "", message)
+
+
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from fusedmosaic.io.output import created_folders_removed_on_failure
 
     t0 = time.perf_counter()
     _check_dataset_target(args.out, args.overwrite)
     try:
+        options = _simulation_options(args)
+        options.validate()  # before anything is computed or created
         with created_folders_removed_on_failure(args.out):  # (Ctrl-C, a full disk)
-            out = _simulate(args)
+            out = _simulate(args, options)
     except ValueError as exc:  # "FetoscopyOptions.n_frames: ..." -> "--n-frames: ..."
-        raise ValueError(re.sub(r"\b(?:FetoscopyOptions|PcleOptions|CheckerboardOptions)\.(\w+)",
-                                lambda m: "--" + m.group(1).replace("_", "-"), str(exc))) from None
+        raise ValueError(_option_flags(str(exc))) from None
     size = sum(p.stat().st_size for p in Path(out).rglob("*") if p.is_file())
     _say(args, f"wrote {args.kind} dataset to {out} ({size / 1e6:.1f} MB) "
                f"in {time.perf_counter() - t0:.1f} s")
@@ -102,22 +116,31 @@ def _warn_low_overlap(root: Path) -> None:
               f"{len(c) / SYN_FRAMES_PER_LAP:.2f} for {len(c)} frames)", file=sys.stderr)
 
 
-def _simulate(args: argparse.Namespace) -> Path:
+def _simulation_options(args: argparse.Namespace):
+    """The simulator's options from the flags (not validated yet)."""
     from fusedmosaic import simulation
 
     if args.kind == "fetoscopy":
         options = _dataclass_from_args(simulation.FetoscopyOptions, args)
         if options.black_frames == []:  # bare --black-frames: the paper's list (Sec. 4.2.3)
-            options.black_frames = list(simulation.PAPER_BLACK_FRAMES)
-        out = simulation.simulate_fetoscopy(args.out, options, overwrite=args.overwrite)
-    elif args.kind == "pcle":
-        out = simulation.simulate_pcle(args.out, _dataclass_from_args(simulation.PcleOptions, args),
-                                       overwrite=args.overwrite)
-    else:
-        out = simulation.simulate_checkerboard(
-            args.out, _dataclass_from_args(simulation.CheckerboardOptions, args),
-            overwrite=args.overwrite)
-    return Path(out)
+            paper = simulation.PAPER_BLACK_FRAMES
+            if options.n_frames <= max(paper):
+                raise ValueError(f"--black-frames: the paper's list ({', '.join(map(str, paper))}"
+                                 f"; Sec. 4.2.3) needs --n-frames >= {max(paper) + 1}, got "
+                                 f"{options.n_frames}; or list the frames to black out")
+            options.black_frames = list(paper)
+        return options
+    if args.kind == "pcle":
+        return _dataclass_from_args(simulation.PcleOptions, args)
+    return _dataclass_from_args(simulation.CheckerboardOptions, args)
+
+
+def _simulate(args: argparse.Namespace, options) -> Path:
+    from fusedmosaic import simulation
+
+    write = {"fetoscopy": simulation.simulate_fetoscopy, "pcle": simulation.simulate_pcle,
+             "checkerboard": simulation.simulate_checkerboard}[args.kind]
+    return Path(write(args.out, options, overwrite=args.overwrite))
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -733,6 +756,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     if args.frames < 2:  # a mosaic needs two frames (lba-emt registers a pair to start)
         raise ValueError(f"--frames must be >= 2, got {args.frames}")
+    try:  # the simulator's bounds (frame count, tracker samples) before anything is made
+        _demo_options(args).validate()
+    except ValueError as exc:
+        raise ValueError(_option_flags(str(exc), {"n_frames": "--frames"})) from None
     if (Path(args.out) / "camera.yaml").is_file() or (Path(args.out) / "frames").is_dir():
         raise ValueError(f"{args.out}: is a dataset folder; writing the demo there would corrupt "
                          "it: choose --out outside it")
@@ -744,6 +771,46 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         if made and root.is_dir() and not any(root.iterdir()):
             root.rmdir()
         raise
+
+
+def _demo_asked(args: argparse.Namespace) -> dict:
+    """The FetoscopyOptions fields the demo sets."""
+    from fusedmosaic import simulation
+
+    asked = {"n_frames": args.frames, "motion": args.motion}
+    if args.motion == "syn":
+        # the SYN pace whatever the length (150 frames: the paper's 4 laps); at 4 laps, 12
+        # frames were 120 degrees apart and no method could place them (ba-emt 277 px)
+        asked["laps"] = args.frames / simulation.fetoscopy.SYN_FRAMES_PER_LAP
+    return asked
+
+
+def _demo_options(args: argparse.Namespace):
+    from fusedmosaic import simulation
+
+    return simulation.FetoscopyOptions(**_demo_asked(args))
+
+
+# Below this many frames the drift ratio's quarters hold under 10 frames each, at errors of
+# ~0.1 px: their ratio is noise, not drift.
+DEMO_DRIFT_MIN_FRAMES = 40
+
+
+def _demo_summary(method: str, result: dict, seconds: float) -> list[str]:
+    """What the demo says of its result: the figures (the drift ratio flagged as noise on a
+    short sequence), what they mean, and "Look at:" (the files follow)."""
+    n = result["frames"]
+    short = ""
+    if n < DEMO_DRIFT_MIN_FRAMES:
+        short = (f" (not meaningful below about {DEMO_DRIFT_MIN_FRAMES} frames: its quarters "
+                 f"hold {max(n // 4, 1)} of the {n})")
+    return [f"[demo] {method}: {result['placed']}/{n} frames placed, e_M = "
+            f"{_measure(result['e_M_px'], 3)} px, drift ratio "
+            f"{_measure(result['drift_ratio'], 2)}{short}; {seconds:.0f} s in all.",
+            "[demo] e_M: mean error of the frames' placement against the simulator's truth, in "
+            "frame-0 pixels; drift ratio: mean error over the last "
+            "quarter of the frames / over the first (about 1: the error does not grow).",
+            "[demo] Look at:"]
 
 
 def _demo_into(args: argparse.Namespace, root: Path) -> int:
@@ -759,11 +826,7 @@ def _demo_into(args: argparse.Namespace, root: Path) -> int:
     earlier = None
     if data.is_symlink() or (data.exists() and not (data.is_dir() and not any(data.iterdir()))):
         earlier = _demo_dataset_options(data)
-    asked = {"n_frames": args.frames, "motion": args.motion}
-    if args.motion == "syn":
-        # the SYN pace whatever the length (150 frames: the paper's 4 laps); at 4 laps, 12
-        # frames were 120 degrees apart and no method could place them (ba-emt 277 px)
-        asked["laps"] = args.frames / simulation.fetoscopy.SYN_FRAMES_PER_LAP
+    asked = _demo_asked(args)
     if earlier is not None and all(earlier.get(k) == v for k, v in asked.items()):
         _say(args, f"[demo] reusing the simulated sequence in {data}")
     else:
@@ -799,10 +862,8 @@ def _demo_into(args: argparse.Namespace, root: Path) -> int:
         w.write_image("mosaic_seams.png", seams)
         w.write_json("evaluation.json", result)
     _say(args, _format_table([result]))
-    _say(args, f"[demo] {method}: {result['placed']}/{result['frames']} frames placed, "
-               f"e_M = {_measure(result['e_M_px'], 3)} px, drift ratio "
-               f"{_measure(result['drift_ratio'], 2)}; "
-               f"{time.perf_counter() - t0:.0f} s in all. Look at:")
+    for line in _demo_summary(method, result, time.perf_counter() - t0):
+        _say(args, line)
     for name, what in (("report.md", "report: accuracy per frame, poses vs tracker vs truth, "
                                      "plane, timing (plots in plots/)"),
                        ("mosaic.png", "mosaic, multi-band blending"),
@@ -1106,8 +1167,12 @@ def build_parser() -> argparse.ArgumentParser:
                        help="SYN frames streamed through lba-emt (>= 60; default 300)")
     bench.add_argument("--detector", choices=("orb", "sift"), default="orb",
                        help="lba-emt's feature detector (default orb, the live choice)")
+    # (benchmark.max_pcle_frames, without importing the evaluation package for the parser)
+    most = simulation.pcle.max_n_frames(simulation.PcleOptions())
     bench.add_argument("--pcle-frames", type=int, default=200,
-                       help="pCLE frames streamed through kalman-robot (>= 10; default 200)")
+                       help=f"pCLE frames streamed through kalman-robot (10..{most}: the "
+                            "simulated circle, then a straight run-out that the "
+                            "tissue texture bounds; default 200)")
     bench.add_argument("--offline", action="store_true",
                        help="also time ba-emt over 150 frames (~10 s more)")
     bench.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")

@@ -45,13 +45,30 @@ SYN_SIZE = (400, 400)  # the sequential budget's frame size
 SYN_FRAMES_PER_LAP = 37  # paper 000 Sec. 4.2: 152 frames, 4 laps
 OFFLINE_FRAMES = 150  # design.md: BA+EMT over ~150 frames
 STEADY_AFTER_STARTUP = 10  # frames after the start-up adjustment excluded from the steady part
+MIN_PCLE_FRAMES = 10
+
+
+def _bench_pcle_options(frames: int, seed: int = 0):
+    """The pCLE simulation measure_pcle streams."""
+    from fusedmosaic.simulation.pcle import PcleOptions
+
+    return PcleOptions(n_frames=frames, seed=seed)
+
+
+def max_pcle_frames() -> int:
+    """The most pCLE frames the bench's simulation takes (its texture bound: past the circle
+    the probe goes straight on)."""
+    from fusedmosaic.simulation.pcle import max_n_frames
+
+    return max_n_frames(_bench_pcle_options(MIN_PCLE_FRAMES))
 
 
 @dataclass
 class BenchOptions:
     """What ``fusedmosaic bench`` measures. frames: SYN frames streamed (the steady part starts
     ``STEADY_AFTER_STARTUP`` frames after the start-up adjustment's 40, so at least 60);
-    detector: "orb" (the live choice) or "sift"; pcle_frames: pCLE frames (>= 10); offline:
+    detector: "orb" (the live choice) or "sift"; pcle_frames: pCLE frames (MIN_PCLE_FRAMES ..
+    max_pcle_frames()); offline:
     also time BA+EMT over 150 frames (~10 s more: features and matching of the 150
     frames, then the optimisation); seed: the simulations' seed."""
 
@@ -62,18 +79,32 @@ class BenchOptions:
     seed: int = 0
 
     def check(self) -> None:
+        """Raise ValueError naming the first bad field (the CLI names it as its flag), before
+        anything is measured: the simulations' own bounds included."""
         from fusedmosaic.estimation.sequential import SequentialOptions
+        from fusedmosaic.simulation._options import MAX_FRAMES
 
         least = SequentialOptions().bootstrap_frames + 2 * STEADY_AFTER_STARTUP
         if not isinstance(self.frames, int) or self.frames < least:
             raise ValueError(f"frames: must be >= {least} (the start-up adjustment takes the "
                              f"first {least - 2 * STEADY_AFTER_STARTUP}), got {self.frames}")
+        if self.frames > MAX_FRAMES:
+            raise ValueError(f"frames: at most {MAX_FRAMES} (the simulator's bound), got "
+                             f"{self.frames}")
         if self.detector not in ("orb", "sift"):
             raise ValueError(f"detector: must be 'orb' or 'sift', got {self.detector!r}")
-        if not isinstance(self.pcle_frames, int) or self.pcle_frames < 10:
-            raise ValueError(f"pcle_frames: must be >= 10, got {self.pcle_frames}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"seed: must be an integer >= 0, got {self.seed}")
+        if not isinstance(self.pcle_frames, int) or self.pcle_frames < MIN_PCLE_FRAMES:
+            raise ValueError(f"pcle_frames: must be >= {MIN_PCLE_FRAMES}, got "
+                             f"{self.pcle_frames}")
+        try:
+            _bench_pcle_options(self.pcle_frames, self.seed).validate()
+        except ValueError:
+            raise ValueError(
+                f"pcle_frames: at most {max_pcle_frames()} (the simulated circle, then a "
+                f"straight run-out the tissue texture bounds), got {self.pcle_frames}"
+            ) from None
 
 
 def machine_info() -> dict:
@@ -193,10 +224,10 @@ def measure_pcle(frames: int, seed: int = 0) -> dict:
     from fusedmosaic.evaluation.metrics import position_errors_um
     from fusedmosaic.io import Camera
     from fusedmosaic.io.tracking import RobotSamples, interpolate_robot
-    from fusedmosaic.simulation.pcle import PcleOptions, generate_pcle
+    from fusedmosaic.simulation.pcle import generate_pcle
 
     t0 = time.perf_counter()
-    scene = generate_pcle(PcleOptions(n_frames=frames, seed=seed))
+    scene = generate_pcle(_bench_pcle_options(frames, seed))
     setup_s = time.perf_counter() - t0
     o = scene.options
     robot, robot_valid = interpolate_robot(

@@ -9,13 +9,31 @@ from dataclasses import field, fields
 
 import numpy as np
 
-from fusedmosaic.io.tracking import MAX_TIME_OFFSET_S, MAX_TIMESTAMP_S
+from fusedmosaic.io.tracking import (
+    MAX_FRAME_SPACING_S,
+    MAX_SAMPLE_TO_FRAME_SPACING,
+    MAX_TIME_OFFSET_S,
+    MAX_TIMESTAMP_S,
+)
 
 # Tracker / robot samples of one simulated recording (a 40 Hz tracker over 70 hours): more is a
 # rate, margin or frame rate off by orders of magnitude, not a recording.
 MAX_SAMPLES = 10_000_000
+# Frames of one simulated sequence: over an hour of video at 25 frames/s (tens of GB of PNGs at
+# 400x400; the papers' sequences have ~100-300 frames). Checked before anything is computed.
+MAX_FRAMES = 100_000
+# Tracker / robot samples per frame beyond which the rate, not the frame count, is taken for
+# the cause of too many samples (a 40 Hz tracker at 25 frames/s takes 1.6).
+_SAMPLES_PER_FRAME_IS_THE_RATE = 1000.0
 # mm, |sensor_from_camera translation|: a sensor mounted on the scope, not across the room.
 MAX_HAND_EYE_OFFSET_MM = 1000.0
+# The smallest circular field of view (radius, px) a simulator renders (0: none).
+MIN_FOV_RADIUS_PX = 16.0
+# Standard deviations of Gaussian noise no draw of a simulation reaches (P(|z| > 10) ~ 1e-23,
+# against at most 3e7 draws): the bound on where noisy tracker / robot positions can land.
+NOISE_REACH_SIGMAS = 10.0
+# deg, rotation noise std of a simulated tracker: beyond half a turn its orientation is random.
+MAX_ROTATION_SIGMA_DEG = 180.0
 
 
 def option(default, help_text: str, choices: tuple | None = None):
@@ -83,6 +101,121 @@ def check_time_offsets(options, *names: str) -> None:
                              f"+-{MAX_TIME_OFFSET_S:g} s, got {value}")
 
 
+def most_changed(options, *names: str) -> str:
+    """Of the numeric fields ``names``, the one furthest (by ratio) from its default: what an
+    error about a product of them names first, as its likely cause. Ties: the first."""
+    defaults = {f.name: f.default for f in fields(options)}
+
+    def deviation(name: str) -> float:
+        value, default = abs(getattr(options, name)), abs(defaults[name])
+        if value == default:
+            return 0.0
+        if value == 0 or default == 0:
+            return math.inf
+        return abs(math.log(value / default))
+
+    return max(names, key=deviation)
+
+
+def check_fov_radius(options, auto: bool = False) -> None:
+    """fov_mask_radius: 0 (none) or at least MIN_FOV_RADIUS_PX; with ``auto`` also -1 (the
+    simulator's own choice)."""
+    r = options.fov_mask_radius
+    if (0 < r < MIN_FOV_RADIUS_PX) or (r < 0 and not (auto and r == -1)):
+        choices = "0: the whole frame, -1: auto" if auto else "0: the whole frame"
+        raise ValueError(f"{type(options).__name__}.fov_mask_radius: a field of at least "
+                         f"{MIN_FOV_RADIUS_PX:g} px ({choices}), got {r}")
+
+
+def check_frame_count(options, n_frames, frames_name: str) -> None:
+    """At most MAX_FRAMES frames; ``frames_name`` names the option(s) that set the count."""
+    if not n_frames <= MAX_FRAMES:
+        raise ValueError(f"{frames_name}: {n_frames:.6g} frames; at most {MAX_FRAMES} (over an "
+                         "hour of video at 25 frames/s)")
+
+
+def check_recording(options, n_frames: int, frames_name: str, prefix: str) -> None:
+    """Before anything is computed, what frame_times and sample_times would give, against the
+    bounds io.read_dataset / io.tracking put on a dataset (so that what simulate writes, run
+    reads): at most MAX_FRAMES frames (check_frame_count), timestamps within MAX_TIMESTAMP_S,
+    frames at most MAX_FRAME_SPACING_S apart, the tracker's (prefix "tracker") or robot's
+    ("robot") samples as check_samples wants them, and at most MAX_SAMPLE_TO_FRAME_SPACING
+    frames apart (sparser, run takes them for timestamps in another unit). ``frames_name``
+    names the option(s) that set n_frames; ValueError naming the likely cause."""
+    cls = type(options).__name__
+    check_frame_count(options, n_frames, frames_name)
+    fps = options.fps
+    t_last = (n_frames - 1) / fps
+    _check_span(options, n_frames, t_last)
+    if n_frames >= 2 and not 1.0 / fps <= MAX_FRAME_SPACING_S:
+        raise ValueError(f"{cls}.fps: frames {1.0 / fps:.3g} s apart ({fps:g} fps), more than "
+                         f"the {MAX_FRAME_SPACING_S:g} s run accepts between frames "
+                         "(io.tracking.MAX_FRAME_SPACING_S): at least "
+                         f"{1.0 / MAX_FRAME_SPACING_S:g} fps")
+    check_samples(options, prefix, t_last, n_frames, frames_name)
+    rate = getattr(options, f"{prefix}_rate_hz")
+    if n_frames >= 3 and not fps <= MAX_SAMPLE_TO_FRAME_SPACING * rate:
+        lead = most_changed(options, "fps", f"{prefix}_rate_hz")
+        raise ValueError(
+            f"{cls}.{lead}: a {prefix} at {rate:g} Hz ({cls}.{prefix}_rate_hz) against frames "
+            f"at {fps:g} fps ({cls}.fps) samples every {fps / rate:.3g} frames, more than the "
+            f"{MAX_SAMPLE_TO_FRAME_SPACING:g} frames apart run accepts (io.tracking."
+            "MAX_SAMPLE_TO_FRAME_SPACING: sparser, it takes the timestamps for another unit): "
+            f"at most {MAX_SAMPLE_TO_FRAME_SPACING * rate:g} fps at {rate:g} Hz")
+
+
+def _check_span(options, n_frames: int, t_last: float) -> None:
+    if not t_last <= MAX_TIMESTAMP_S:
+        raise ValueError(f"{type(options).__name__}.fps: {n_frames} frames at {options.fps:g} "
+                         f"fps span {t_last:.3g} s, beyond the {MAX_TIMESTAMP_S:g} s a "
+                         "timestamp may hold")
+
+
+def _sample_range(options, prefix: str, t_last: float) -> tuple[float, float, float]:
+    """(j0, j1, period): sample_times' samples are offset + j period, j = j0..j1."""
+    period = 1.0 / getattr(options, f"{prefix}_rate_hz")
+    offset = getattr(options, f"{prefix}_offset_s")
+    margin = getattr(options, f"{prefix}_margin_s")
+    return (float(np.floor((-margin - offset) / period)),
+            float(np.ceil((t_last + margin - offset) / period)), period)
+
+
+def check_samples(options, prefix: str, t_last: float, n_frames: int | None = None,
+                  frames_name: str | None = None) -> None:
+    """The samples sample_times would make: at most MAX_SAMPLES, within MAX_TIMESTAMP_S.
+    ValueError naming the rate when it takes over _SAMPLES_PER_FRAME_IS_THE_RATE samples per
+    frame, the margin when the margins make most of the samples, and otherwise the frame count
+    (``frames_name``; the rate when none is given) and the frame rate."""
+    cls = type(options).__name__
+    rate = getattr(options, f"{prefix}_rate_hz")
+    offset = getattr(options, f"{prefix}_offset_s")
+    margin = getattr(options, f"{prefix}_margin_s")
+    j0, j1, period = _sample_range(options, prefix, t_last)
+    count = j1 - j0 + 1
+    rate_name, margin_name = f"{cls}.{prefix}_rate_hz", f"{cls}.{prefix}_margin_s"
+    where = (f"{rate_name}: {rate:g} Hz over the {t_last:.3g} s of the frames and "
+             f"{margin_name} ({margin:g} s) on both sides")
+    if not count <= MAX_SAMPLES:
+        if rate / options.fps > _SAMPLES_PER_FRAME_IS_THE_RATE or (
+                n_frames is None and 2 * margin < t_last):
+            raise ValueError(f"{where} is {count:.3g} samples; at most {MAX_SAMPLES:.3g}")
+        if 2 * margin >= t_last:
+            raise ValueError(f"{margin_name}: {margin:g} s on both sides of the {t_last:.3g} s "
+                             f"of the frames at {rate:g} Hz ({rate_name}) is {count:.3g} "
+                             f"{prefix} samples; at most {MAX_SAMPLES:.3g}")
+        raise ValueError(f"{frames_name}: {n_frames} frames at {options.fps:g} fps ({cls}.fps) "
+                         f"last {t_last:.3g} s, over which the {prefix} at {rate:g} Hz "
+                         f"({rate_name}) takes {count:.3g} samples; at most "
+                         f"{MAX_SAMPLES:.3g}: fewer frames or a higher frame rate")
+    reach = max(abs(offset + j0 * period), abs(offset + j1 * period))
+    if not reach <= MAX_TIMESTAMP_S:
+        lead = where if margin <= MAX_TIMESTAMP_S / 2 else (
+            f"{margin_name}: {margin:g} s on both sides of the frames at {rate:g} Hz "
+            f"({rate_name})")
+        raise ValueError(f"{lead} puts samples at {reach:.3g} s, beyond the "
+                         f"{MAX_TIMESTAMP_S:g} s a timestamp may hold")
+
+
 def check_hand_eye(options) -> None:
     """hand_eye_rot_deg within one turn, hand_eye_offset_mm within MAX_HAND_EYE_OFFSET_MM."""
     cls = type(options).__name__
@@ -98,32 +231,16 @@ def check_hand_eye(options) -> None:
 def frame_times(options, n_frames: int) -> np.ndarray:
     """(n_frames,) frame times k / options.fps, s; ValueError naming fps when they run beyond
     io.tracking.MAX_TIMESTAMP_S (what a dataset's timestamps may hold)."""
-    t_last = (n_frames - 1) / options.fps
-    if not t_last <= MAX_TIMESTAMP_S:
-        raise ValueError(f"{type(options).__name__}.fps: {n_frames} frames at {options.fps:g} "
-                         f"fps span {t_last:.3g} s, beyond the {MAX_TIMESTAMP_S:g} s a "
-                         "timestamp may hold")
+    _check_span(options, n_frames, (n_frames - 1) / options.fps)
     return np.arange(n_frames) / options.fps
 
 
 def sample_times(options, prefix: str, t_last: float) -> np.ndarray:
     """Sample times of the tracker (prefix "tracker") or robot ("robot") on its own clock:
     period 1 / <prefix>_rate_hz, phase <prefix>_offset_s, covering [-<prefix>_margin_s,
-    t_last + <prefix>_margin_s]. ValueError naming the rate when that is over MAX_SAMPLES
-    samples or reaches beyond io.tracking.MAX_TIMESTAMP_S."""
-    rate = getattr(options, f"{prefix}_rate_hz")
-    offset = getattr(options, f"{prefix}_offset_s")
-    margin = getattr(options, f"{prefix}_margin_s")
-    period = 1.0 / rate
-    j0 = np.floor((-margin - offset) / period)
-    j1 = np.ceil((t_last + margin - offset) / period)
-    where = (f"{type(options).__name__}.{prefix}_rate_hz: {rate:g} Hz over the {t_last:.3g} s "
-             f"of the frames and {prefix}_margin_s ({margin:g} s) on both sides")
-    count = j1 - j0 + 1
-    if not count <= MAX_SAMPLES:
-        raise ValueError(f"{where} is {count:.3g} samples; at most {MAX_SAMPLES:.3g}")
-    times = offset + np.arange(j0, j1 + 1) * period
-    if not np.abs(times).max() <= MAX_TIMESTAMP_S:
-        raise ValueError(f"{where} puts samples at {np.abs(times).max():.3g} s, beyond the "
-                         f"{MAX_TIMESTAMP_S:g} s a timestamp may hold")
-    return times
+    t_last + <prefix>_margin_s]. ValueError (check_samples) when that is over MAX_SAMPLES
+    samples or reaches beyond io.tracking.MAX_TIMESTAMP_S (the validators check this first,
+    with the frame count)."""
+    check_samples(options, prefix, t_last)
+    j0, j1, period = _sample_range(options, prefix, t_last)
+    return getattr(options, f"{prefix}_offset_s") + np.arange(j0, j1 + 1) * period

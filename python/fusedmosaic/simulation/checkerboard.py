@@ -37,12 +37,18 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from fusedmosaic.io.calibration import project_points
+from fusedmosaic.io.tracking import MAX_TRANSLATION_MM
 from fusedmosaic.simulation._lens import ideal_pixel_grid, on_inner_branch
 from fusedmosaic.simulation._options import (
+    MAX_ROTATION_SIGMA_DEG,
+    NOISE_REACH_SIGMAS,
+    check_frame_count,
     check_hand_eye,
+    check_recording,
     check_signs,
     check_time_offsets,
     frame_times,
+    most_changed,
     sample_times,
 )
 from fusedmosaic.simulation._options import option as _opt
@@ -67,7 +73,9 @@ class CheckerboardOptions:
     width: int = _opt(480, "frame width, px")
     height: int = _opt(480, "frame height, px")
     focal_factor: float = _opt(1.0, "focal length in px / image width")
-    principal_offset_px: float = _opt(8.0, "principal point offset from the image centre, px")
+    principal_offset_px: float = _opt(
+        8.0, "principal point offset from the image centre, px, along (0.8, -0.6) (right and "
+        "up; negative: left and down)")
     k1: float = _opt(-0.30, "radial distortion k1 (fetoscopes: strong barrel)")
     k2: float = _opt(0.10, "radial distortion k2")
     p1: float = _opt(0.0008, "tangential distortion p1")
@@ -89,7 +97,9 @@ class CheckerboardOptions:
         0.9, "EM tracker rotation noise std (paper 000 Sec. 4.1: Aurora in the laboratory)")
     trans_sigma_mm: float = _opt(0.25, "EM tracker translation noise std (same source)")
     hand_eye_rot_deg: float = _opt(4.0, "sensor_from_camera rotation angle")
-    hand_eye_offset_mm: float = _opt(6.0, "sensor_from_camera translation length")
+    hand_eye_offset_mm: float = _opt(
+        6.0, "sensor_from_camera translation, mm, along a fixed direction mostly along the scope "
+        "axis (negative: the opposite way)")
     image_noise_sigma: float = _opt(2.0, "std of per-frame Gaussian image noise, gray levels")
     seed: int = _opt(0, "seed of every random draw (views, noise)")
 
@@ -102,6 +112,8 @@ class CheckerboardOptions:
                          ("frames_per_view", 2), ("width", 64), ("height", 64)):
             if getattr(self, key) < low:
                 raise ValueError(f"{name}.{key}: must be >= {low}, got {getattr(self, key)}")
+        frames_name = f"{name}.n_views x {name}.frames_per_view"
+        check_frame_count(self, self.n_views * self.frames_per_view, frames_name)
         check_signs(self, positive=("square_mm", "focal_factor", "distance_mm", "fps",
                                     "tracker_rate_hz"),
                     non_negative=("rot_sigma_deg", "trans_sigma_mm", "image_noise_sigma",
@@ -113,6 +125,8 @@ class CheckerboardOptions:
                              f"got {self.distance_variation}")
         if self.tilt_deg >= 70:
             raise ValueError(f"{name}.tilt_deg: must be below 70 deg, got {self.tilt_deg}")
+        check_recording(self, self.n_views * self.frames_per_view, frames_name, "tracker")
+        self._check_tracker_reach()
         # the principal point (offset along (0.8, -0.6)) in the frame's middle half, as in a
         # real scope, and squares big enough to find the corners at the farthest views
         shift = abs(self.principal_offset_px) * np.array([0.8, 0.6])
@@ -135,6 +149,33 @@ class CheckerboardOptions:
                                          or not np.isfinite(self.fisheye).all()):
             raise ValueError(f"{name}.fisheye: expected 4 finite numbers k1 k2 k3 k4, got "
                              f"{self.fisheye}")
+
+    def _check_tracker_reach(self) -> None:
+        """What tracking.csv would hold, within what run / calibrate read: positions within
+        io.tracking.MAX_TRANSLATION_MM of the tracker's origin (the board's place, the views'
+        reach, the hand-eye offset and NOISE_REACH_SIGMAS of the noise), and a rotation noise
+        under MAX_ROTATION_SIGMA_DEG."""
+        name = type(self).__name__
+        if not self.rot_sigma_deg <= MAX_ROTATION_SIGMA_DEG:
+            raise ValueError(f"{name}.rot_sigma_deg: at most {MAX_ROTATION_SIGMA_DEG:g} deg "
+                             f"(beyond, the orientation is random), got {self.rot_sigma_deg}")
+        board = self.square_mm * np.hypot(self.board_cols - 1, self.board_rows - 1)
+        camera = (float(np.linalg.norm(TRACKER_FROM_BOARD[:3, 3])) + 1.5 * board
+                  + self.distance_mm * (1 + self.distance_variation))
+        if not camera <= MAX_TRANSLATION_MM:
+            lead = most_changed(self, "distance_mm", "square_mm")
+            raise ValueError(f"{name}.{lead}: the views reach {camera:.3g} mm from the "
+                             f"tracker's origin ({name}.distance_mm, {name}.square_mm), beyond "
+                             f"the {MAX_TRANSLATION_MM:g} mm a tracker position may hold "
+                             "(io.tracking.MAX_TRANSLATION_MM)")
+        reach = (camera + abs(self.hand_eye_offset_mm)
+                 + NOISE_REACH_SIGMAS * np.sqrt(3.0) * self.trans_sigma_mm)
+        if not reach <= MAX_TRANSLATION_MM:
+            raise ValueError(f"{name}.trans_sigma_mm: a tracker translation noise of "
+                             f"{self.trans_sigma_mm:.3g} mm puts tracker positions up to "
+                             f"{reach:.3g} mm from its origin, beyond the "
+                             f"{MAX_TRANSLATION_MM:g} mm a tracker position may hold "
+                             "(io.tracking.MAX_TRANSLATION_MM)")
 
     @property
     def lens_model(self) -> str:
@@ -286,9 +327,12 @@ def _random_view(o: CheckerboardOptions, K, dist, rng, corners) -> np.ndarray:
             T = np.eye(4)
             T[:3, :3], T[:3, 3] = R.as_matrix(), t
             return T
+    name = type(o).__name__
     raise ValueError(
-        f"{type(o).__name__}: no view shows the whole {o.board_cols}x{o.board_rows} board "
-        "inside the image; raise distance_mm or lower square_mm")
+        f"{name}: no view shows the whole {o.board_cols}x{o.board_rows} board inside the "
+        f"{o.width}x{o.height} image through the lens ({o.lens_options} = "
+        f"{', '.join(f'{v:.3g}' for v in dist)}): raise "
+        f"{name}.distance_mm, lower {name}.square_mm, or give a milder lens")
 
 
 def _path(views: np.ndarray, period: float, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

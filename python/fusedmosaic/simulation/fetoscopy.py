@@ -36,13 +36,21 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from fusedmosaic.io.calibration import LENS_MODELS
+from fusedmosaic.io.tracking import MAX_TRANSLATION_MM
 from fusedmosaic.simulation._lens import ideal_pixel_grid
 from fusedmosaic.simulation._options import (
+    MAX_ROTATION_SIGMA_DEG,
+    MIN_FOV_RADIUS_PX,
+    NOISE_REACH_SIGMAS,
+    check_fov_radius,
+    check_frame_count,
     check_frame_list,
     check_hand_eye,
+    check_recording,
     check_signs,
     check_time_offsets,
     frame_times,
+    most_changed,
     sample_times,
 )
 from fusedmosaic.simulation._options import option as _opt
@@ -55,6 +63,7 @@ MOTIONS = ("syn", "handheld")
 # The SYN pace: the default 150 frames make the default 4 laps (paper 000 Fig. 1); shorter or
 # longer sequences keep the motion with laps = n_frames / SYN_FRAMES_PER_LAP.
 SYN_FRAMES_PER_LAP = 37.5
+MAX_TEXTURE_PX = 60e6  # the placenta texture covering every frame
 
 
 @dataclass
@@ -87,7 +96,9 @@ class FetoscopyOptions:
     rot_sigma_deg: float = _opt(1.0, "EMT rotation noise std at ν=1 (paper 000 appendix Σ_EMT)")
     trans_sigma_mm: float = _opt(1.0, "EMT translation noise std at ν=1 (paper 000 appendix Σ_EMT)")
     hand_eye_rot_deg: float = _opt(4.0, "sensor_from_camera rotation angle (0 = aligned)")
-    hand_eye_offset_mm: float = _opt(6.0, "sensor_from_camera translation length (0 = co-located)")
+    hand_eye_offset_mm: float = _opt(
+        6.0, "sensor_from_camera translation, mm, along a fixed direction mostly along the scope "
+        "axis (0 = co-located; negative: the opposite way)")
     tracker_gap: list[int] | None = _opt(
         None, "[first, last] frames whose tracker samples are invalid"
     )
@@ -95,7 +106,8 @@ class FetoscopyOptions:
         None, "frames replaced by black; the bare CLI flag = paper 000 Sec. 4.2.3 list"
     )
     fov_mask_radius: float = _opt(
-        -1.0, "px circular FOV; -1 auto (syn none, handheld 0.48 min(W,H))"
+        -1.0, f"px circular FOV, at least {MIN_FOV_RADIUS_PX:g}; 0 none; -1 auto (syn none, "
+        "handheld 0.48 min(W,H))"
     )
     image_noise_sigma: float = _opt(2.0, "std of per-frame Gaussian image noise, gray levels")
     lens_distortion: list[float] | None = _opt(
@@ -124,6 +136,7 @@ class FetoscopyOptions:
             )
         if self.n_frames < 1:
             raise ValueError(f"FetoscopyOptions.n_frames: must be >= 1, got {self.n_frames}")
+        check_frame_count(self, self.n_frames, "FetoscopyOptions.n_frames")
         if self.width < 16 or self.height < 16:
             raise ValueError(
                 f"FetoscopyOptions.width/height: must be >= 16 px, got {self.width}x{self.height}"
@@ -161,6 +174,8 @@ class FetoscopyOptions:
                 f"FetoscopyOptions.distance_variation: must be in [0, 0.9), "
                 f"got {self.distance_variation}"
             )
+        check_recording(self, self.n_frames, "FetoscopyOptions.n_frames", "tracker")
+        self._check_tracker_reach()
         if not 0 <= abs(self.tilt_deg) < 60:
             raise ValueError(
                 f"FetoscopyOptions.tilt_deg: must be below 60 deg, got {self.tilt_deg}"
@@ -191,11 +206,39 @@ class FetoscopyOptions:
         elif self.lens_model == "fisheye":
             raise ValueError("FetoscopyOptions.lens_model: 'fisheye' needs lens_distortion "
                              "k1 k2 k3 k4 (0 0 0 0: the pure equidistant lens)")
-        if self.fov_mask_radius < 0 and self.fov_mask_radius != -1:
-            raise ValueError(
-                f"FetoscopyOptions.fov_mask_radius: expected -1 (auto), 0 (none) or "
-                f"a radius in px, got {self.fov_mask_radius}"
-            )
+        check_fov_radius(self, auto=True)
+
+    def _check_tracker_reach(self) -> None:
+        """What tracking.csv would hold, within what run reads: positions within
+        io.tracking.MAX_TRANSLATION_MM of the tracker's origin (the camera's reach plus the
+        hand-eye offset plus NOISE_REACH_SIGMAS of the noise), and a rotation noise under
+        MAX_ROTATION_SIGMA_DEG."""
+        cls = "FetoscopyOptions"
+        nu = f"{cls}.noise_multiplier"
+        rot = self.noise_multiplier * self.rot_sigma_deg
+        if not rot <= MAX_ROTATION_SIGMA_DEG:
+            lead = most_changed(self, "rot_sigma_deg", "noise_multiplier")
+            raise ValueError(f"{cls}.{lead}: a tracker rotation noise of {rot:.3g} deg "
+                             f"({cls}.rot_sigma_deg x {nu}); at most {MAX_ROTATION_SIGMA_DEG:g} "
+                             "deg (beyond, the orientation is random)")
+        h = self.distance_mm * (1 + (self.distance_variation if self.motion == "handheld"
+                                     else 0.0))
+        camera = self.distance_mm + h + np.sqrt(2.0) * self.radius_mm
+        if not camera <= MAX_TRANSLATION_MM:
+            lead = most_changed(self, "distance_mm", "radius_mm")
+            raise ValueError(f"{cls}.{lead}: the camera moves up to {camera:.3g} mm from the "
+                             f"tracker's origin ({cls}.distance_mm, {cls}.radius_mm), beyond "
+                             f"the {MAX_TRANSLATION_MM:g} mm a tracker position may hold "
+                             "(io.tracking.MAX_TRANSLATION_MM)")
+        noise = self.noise_multiplier * self.trans_sigma_mm
+        reach = camera + abs(self.hand_eye_offset_mm) + NOISE_REACH_SIGMAS * np.sqrt(3.0) * noise
+        if not reach <= MAX_TRANSLATION_MM:
+            lead = most_changed(self, "trans_sigma_mm", "noise_multiplier")
+            raise ValueError(f"{cls}.{lead}: a tracker translation noise of {noise:.3g} mm "
+                             f"({cls}.trans_sigma_mm x {nu}) puts tracker positions up to "
+                             f"{reach:.3g} mm from its origin, beyond the "
+                             f"{MAX_TRANSLATION_MM:g} mm a tracker position may hold "
+                             "(io.tracking.MAX_TRANSLATION_MM)")
 
 
 # --------------------------------------------------------------------------------------------
@@ -549,18 +592,29 @@ def generate_fetoscopy(options: FetoscopyOptions | None = None) -> FetoscopyScen
         # what a distorted frame shows: its border's ideal pixels (beyond the corners: barrel)
         border = np.concatenate([ideal[0], ideal[-1], ideal[:, 0], ideal[:, -1]])
         corners = np.hstack([border, np.ones((len(border), 1))]).T
-    uv = np.linalg.solve(M1, np.broadcast_to(corners, (o.n_frames, 3, corners.shape[1])))
-    uv = (uv[:, :2] / uv[:, 2:3]).transpose(0, 2, 1).reshape(-1, 2)
+    lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
+    chunk = max(1, 2**22 // corners.shape[1])  # frames at a time: (chunk, 3, corners) <= 100 MB
+    for k in range(0, o.n_frames, chunk):
+        M1k = M1[k:k + chunk]
+        uv = np.linalg.solve(M1k, np.broadcast_to(corners, (len(M1k), 3, corners.shape[1])))
+        uv = (uv[:, :2] / uv[:, 2:3]).transpose(0, 2, 1).reshape(-1, 2)
+        lo, hi = np.minimum(lo, uv.min(0)), np.maximum(hi, uv.max(0))
     closest = o.distance_mm * (1.0 - (o.distance_variation if o.motion == "handheld" else 0.0))
     s = closest / f  # texture mm/px: never coarser than a frame pixel
     margin = 16 * s
-    lo, hi = uv.min(0) - margin, uv.max(0) + margin
-    tex_w, tex_h = (int(np.ceil(v)) for v in (hi - lo) / s)
-    if tex_w * tex_h > 60e6:
+    lo, hi = lo - margin, hi + margin
+    size = np.ceil((hi - lo) / s)
+    if not np.prod(size) <= MAX_TEXTURE_PX:
+        cls = "FetoscopyOptions"
+        causes = ("focal_factor", "width", "radius_mm", "distance_mm")
+        causes += ("step_px", "rotation_deg", "tilt_deg") if o.motion == "handheld" else ()
         raise ValueError(
-            f"FetoscopyOptions: the camera path needs a {tex_w}x{tex_h} px texture; "
-            "reduce radius_mm/step_px/n_frames or raise distance_mm"
+            f"{cls}.{most_changed(o, *causes)}: the camera path needs a {size[0]:.3g}x"
+            f"{size[1]:.3g} px texture (its pixels as fine as a frame's: {cls}.focal_factor x "
+            f"{cls}.width px per {cls}.distance_mm); at most {MAX_TEXTURE_PX:.3g} px: lower "
+            f"{cls}.focal_factor, {cls}.width or {cls}.radius_mm, or raise {cls}.distance_mm"
         )
+    tex_w, tex_h = (int(v) for v in size)
     O = P0 + lo[0] * R_p[:, 0] + lo[1] * R_p[:, 1]
     texture = placenta_texture(
         (tex_h, tex_w),

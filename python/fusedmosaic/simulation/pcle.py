@@ -29,17 +29,25 @@ Units and conventions:
 
 import json
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 from scipy.special import erf
 
+from fusedmosaic.io.tracking import MAX_ROBOT_UM
 from fusedmosaic.simulation._options import (
+    MAX_FRAMES,
+    MAX_SAMPLES,
+    NOISE_REACH_SIGMAS,
+    check_fov_radius,
+    check_frame_count,
+    check_recording,
     check_signs,
     check_time_offsets,
     frame_times,
+    most_changed,
     sample_times,
 )
 from fusedmosaic.simulation._options import option as _opt
@@ -49,6 +57,11 @@ TRAJECTORIES = ("circle", "spiral")
 MAX_PATH_UM = 1e7  # 10 m of probe path (1e7 polyline points)
 MAX_TEXTURE_PX = 60e6  # the tissue texture covering every field of view
 TEXTURE_MARGIN_PX = 24.0  # texture beyond the outermost fields of view
+CONTACT_STEP_S = 1e-3  # time step of the contact dynamics (z, stick-slip)
+# The largest tissue cell and fibre-core spacing, as fractions of the field of view's smaller
+# side: a frame shows a few cells (the texture NCC registers) and a honeycomb of cores.
+MAX_CELL_FRACTION = 0.5
+MAX_FIBRE_SPACING_FRACTION = 0.125
 
 
 @dataclass
@@ -72,10 +85,12 @@ class PcleOptions:
     z_amplitude_um: float = _opt(150.0, "z oscillation amplitude (paper 004 Sec. III-C: 150 µm)")
     z_period_s: float = _opt(4.0, "z oscillation period")
     contact_loss: bool = _opt(True, "simulate contact loss (probe lifted)")
-    contact_loss_um: float = _opt(125.0, "probe height at which the contrast is 0.5")
+    contact_loss_um: float = _opt(
+        125.0, "probe height above contact (>= 0) at which the contrast is 0.5")
     contact_fade_um: float = _opt(25.0, "width of the contrast fade (erf scale), µm")
     stick_slip: bool = _opt(True, "simulate stick-slip (probe pressed)")
-    stick_um: float = _opt(125.0, "pressing depth beyond which the tissue sticks to the probe")
+    stick_um: float = _opt(
+        125.0, "pressing depth (>= 0) beyond which the tissue sticks to the probe")
     slip_lag_um: float = _opt(120.0, "tangential lag at which a stuck probe slips")
     slip_time_s: float = _opt(0.02, "time constant of the catch-up jump after a slip")
     robot_rate_hz: float = _opt(50.0, "robot sample rate (own clock, not frame-synchronous)")
@@ -132,12 +147,14 @@ class PcleOptions:
                 "fibre_contrast",
                 "spiral_inner_um",
                 "fov_mask_radius",
+                "contact_loss_um",
+                "stick_um",
             ),
         )
+        if self.n_frames:
+            check_frame_count(self, self.n_frames, "PcleOptions.n_frames")
         check_time_offsets(self, "robot_offset_s")
-        if 0 < self.fov_mask_radius < 16:
-            raise ValueError(f"PcleOptions.fov_mask_radius: a field of at least 16 px (or 0: "
-                             f"the whole frame), got {self.fov_mask_radius}")
+        check_fov_radius(self)
         if self.trajectory == "spiral" and not self.spiral_inner_um < self.radius_um:
             raise ValueError(
                 f"PcleOptions.spiral_inner_um: must be below radius_um "
@@ -146,12 +163,7 @@ class PcleOptions:
         for name in ("noise_floor", "fibre_contrast"):  # fractions of the signal
             if getattr(self, name) > 1:
                 raise ValueError(f"PcleOptions.{name}: must be in 0..1, got {getattr(self, name)}")
-        if self.cell_size_um / self.pixel_size_um < 1:
-            raise ValueError(f"PcleOptions.cell_size_um: must be at least a pixel "
-                             f"({self.pixel_size_um} µm), got {self.cell_size_um}")
-        if self.fibre_spacing_px < 1:
-            raise ValueError(f"PcleOptions.fibre_spacing_px: must be >= 1, got "
-                             f"{self.fibre_spacing_px}")
+        self._check_cells_and_fibres()
         # Sizes checked before anything is allocated (the path is a polyline of 1 µm steps).
         if self.trajectory == "circle":
             length, extent, what = 2 * np.pi * self.radius_um * self.laps, 2 * self.radius_um, (
@@ -164,6 +176,14 @@ class PcleOptions:
         if length > MAX_PATH_UM:
             raise ValueError(f"PcleOptions: the path is {length:.3g} µm long ({what}); at most "
                              f"{MAX_PATH_UM:.0e} µm")
+        if self.n_frames:
+            n, frames_name = self.n_frames, "PcleOptions.n_frames"
+        else:  # the whole path (generate_pcle's count, from the polyline's length <= this)
+            n = int(min(np.floor(length / self.speed_um_per_frame), MAX_FRAMES)) + 1
+            frames_name = "PcleOptions.speed_um_per_frame (PcleOptions.n_frames 0: the whole path)"
+            check_frame_count(self, np.floor(length / self.speed_um_per_frame) + 1, frames_name)
+        check_recording(self, n, frames_name, "robot")
+        self._check_contact_steps(n, frames_name)
         travel = self.speed_um_per_frame * max(self.n_frames - 1, 0)
         extent += max(travel - length, 0.0)  # frames beyond the path's end go straight on
         if travel > length:
@@ -175,6 +195,102 @@ class PcleOptions:
                 f"PcleOptions: the frames span up to {extent:.3g} µm ({what}): a texture of "
                 f"~{side + self.width:.3g}x{side + self.height:.3g} px at "
                 f"{self.pixel_size_um} µm/px, at most {MAX_TEXTURE_PX:.0e} px")
+        self._check_robot_reach(n, extent, what)
+
+    def fov_side_px(self) -> float:
+        """The field of view's smaller side, px: the frame's, or the circular field's
+        diameter."""
+        side = min(self.width, self.height)
+        return min(side, 2 * self.fov_mask_radius) if self.fov_mask_radius > 0 else side
+
+    def _check_cells_and_fibres(self) -> None:
+        """A cell at least a pixel and at most MAX_CELL_FRACTION of the field of view; fibre
+        cores 1 px apart at least, MAX_FIBRE_SPACING_FRACTION of the field of view at most."""
+        cls, ps = "PcleOptions", self.pixel_size_um
+        cell_px, fov = self.cell_size_um / ps, self.fov_side_px()
+        what = "the frame" if fov == min(self.width, self.height) else \
+            f"{cls}.fov_mask_radius x 2"
+        if cell_px < 1:
+            if most_changed(self, "cell_size_um", "pixel_size_um") == "cell_size_um":
+                raise ValueError(f"{cls}.cell_size_um: must be at least a pixel ({ps} µm), "
+                                 f"got {self.cell_size_um}")
+            raise ValueError(f"{cls}.pixel_size_um: a pixel of {ps:g} µm is larger than a "
+                             f"cell ({cls}.cell_size_um {self.cell_size_um:g} µm); a cell "
+                             "must be at least a pixel")
+        most = MAX_CELL_FRACTION * fov
+        if cell_px > most:
+            lead = most_changed(self, "cell_size_um", "pixel_size_um")
+            raise ValueError(f"{cls}.{lead}: a cell ({cls}.cell_size_um {self.cell_size_um:g} "
+                             f"µm = {cell_px:.3g} px at {cls}.pixel_size_um {ps:g} µm) must be "
+                             f"at most {MAX_CELL_FRACTION:g} x the field of view's {fov:g} px "
+                             f"({what}): {most * ps:.3g} µm, so that a frame shows a few cells")
+        if self.fibre_spacing_px < 1:
+            raise ValueError(f"{cls}.fibre_spacing_px: must be >= 1, got "
+                             f"{self.fibre_spacing_px}")
+        most = MAX_FIBRE_SPACING_FRACTION * fov
+        if self.fibre_spacing_px > most:
+            raise ValueError(f"{cls}.fibre_spacing_px: must be at most "
+                             f"{MAX_FIBRE_SPACING_FRACTION:g} x the field of view's {fov:g} px "
+                             f"({what}): {most:.3g} px, got {self.fibre_spacing_px:g} (a "
+                             "fibre bundle has thousands of cores)")
+
+    def _check_contact_steps(self, n: int, frames_name: str) -> None:
+        """The contact dynamics run every CONTACT_STEP_S over the frames and the robot's
+        margins: at most MAX_SAMPLES steps."""
+        cls = "PcleOptions"
+        t_last = (n - 1) / self.fps
+        steps = (t_last + 2 * self.robot_margin_s) / CONTACT_STEP_S
+        if not steps <= MAX_SAMPLES:
+            lead = (f"{cls}.robot_margin_s" if 2 * self.robot_margin_s >= t_last
+                    else f"{frames_name}: {n} frames at {self.fps:g} fps ({cls}.fps)")
+            raise ValueError(f"{lead}: the frames' {t_last:.3g} s and {cls}.robot_margin_s "
+                             f"({self.robot_margin_s:g} s) on both sides make {steps:.3g} "
+                             f"steps of the contact dynamics ({CONTACT_STEP_S * 1e3:g} ms "
+                             f"each); at most {MAX_SAMPLES:.3g}")
+
+    def _check_robot_reach(self, n: int, extent: float, what: str) -> None:
+        """robot.csv / robot_noisy.csv within io.tracking.MAX_ROBOT_UM (what run reads): the
+        frames' extent plus the margins' travel, plus NOISE_REACH_SIGMAS of the integrated
+        velocity noise."""
+        cls = "PcleOptions"
+        speed = self.speed_um_per_frame * self.fps  # µm/s
+        reach = extent + speed * (self.robot_margin_s + abs(self.robot_offset_s))
+        if not reach <= MAX_ROBOT_UM:
+            lead = most_changed(self, "pixel_size_um", "speed_um_per_frame", "radius_um")
+            raise ValueError(f"{cls}.{lead}: the robot moves up to {reach:.3g} µm ({what}), "
+                             f"beyond the {MAX_ROBOT_UM:g} µm a robot position may hold "
+                             "(io.tracking.MAX_ROBOT_UM)")
+        duration = (n - 1) / self.fps + 2 * self.robot_margin_s
+        drift = NOISE_REACH_SIGMAS * self.robot_noise * speed * duration
+        if not reach + drift <= MAX_ROBOT_UM:
+            raise ValueError(f"{cls}.robot_noise: a velocity noise of {self.robot_noise:g} x "
+                             f"the path speed ({speed:.3g} µm/s) over {duration:.3g} s could "
+                             f"put robot_noisy.csv's positions {reach + drift:.3g} µm away, "
+                             f"beyond the {MAX_ROBOT_UM:g} µm a robot position may hold "
+                             "(io.tracking.MAX_ROBOT_UM)")
+
+
+def max_n_frames(options: PcleOptions) -> int:
+    """The most frames (n_frames) PcleOptions.validate takes with the other options as given
+    (at most MAX_FRAMES; 0 when it refuses even one frame): past the path's end the frames go
+    straight on, so the tissue texture's bound ends the sequence."""
+
+    def ok(n: int) -> bool:
+        try:
+            replace(options, n_frames=n).validate()
+        except ValueError:
+            return False
+        return True
+
+    if not ok(1):
+        return 0
+    lo, hi = 1, MAX_FRAMES  # ok(lo); the answer is in lo..hi
+    if ok(hi):
+        return hi
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        lo, hi = (mid, hi) if ok(mid) else (lo, mid)
+    return lo
 
 
 # --------------------------------------------------------------------------------------------
@@ -389,7 +505,7 @@ def generate_pcle(options: PcleOptions | None = None) -> PcleScene:
 
     # Robot samples and a fine grid for the contact dynamics, both covering the margins.
     t_robot = sample_times(o, "robot", t_last)
-    dt = 1e-3
+    dt = CONTACT_STEP_S
     t_fine = np.arange(min(t_robot[0], 0.0) - dt, max(t_robot[-1], t_last) + 2 * dt, dt)
     xy_fine = follow(speed * t_fine)
     z_fine = o.z_amplitude_um * np.sin(2 * np.pi * t_fine / o.z_period_s)
@@ -437,8 +553,9 @@ def generate_pcle(options: PcleOptions | None = None) -> PcleScene:
     tex_w, tex_h = (int(np.ceil(v)) for v in hi - lo)
     if tex_w * tex_h > MAX_TEXTURE_PX:
         raise ValueError(
-            f"PcleOptions: the path needs a {tex_w}x{tex_h} px texture; reduce "
-            "radius_um/laps/spiral_turns or raise pixel_size_um"
+            f"PcleOptions: the path needs a {tex_w}x{tex_h} px texture; at most "
+            f"{MAX_TEXTURE_PX:.0e} px: lower PcleOptions.radius_um, PcleOptions.laps or "
+            "PcleOptions.spiral_turns, or raise PcleOptions.pixel_size_um"
         )
     texture = cell_texture(
         (tex_h, tex_w),
