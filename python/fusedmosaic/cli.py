@@ -1167,12 +1167,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help="SYN frames streamed through lba-emt (>= 60; default 300)")
     bench.add_argument("--detector", choices=("orb", "sift"), default="orb",
                        help="lba-emt's feature detector (default orb, the live choice)")
-    # (benchmark.max_pcle_frames, without importing the evaluation package for the parser)
-    most = simulation.pcle.max_n_frames(simulation.PcleOptions())
     bench.add_argument("--pcle-frames", type=int, default=200,
-                       help=f"pCLE frames streamed through kalman-robot (10..{most}: the "
-                            "simulated circle, then a straight run-out that the "
-                            "tissue texture bounds; default 200)")
+                       help="pCLE frames streamed through kalman-robot, on the simulated circle "
+                            "lapped as often as they need (>= 10, at most the simulator's "
+                            f"{simulation._options.MAX_FRAMES}; default 200)")
     bench.add_argument("--offline", action="store_true",
                        help="also time ba-emt over 150 frames (~10 s more)")
     bench.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
