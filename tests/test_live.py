@@ -533,7 +533,7 @@ def test_streamed_pcle_statuses_name_the_recorded_anchor(monkeypatch):
     import fusedmosaic.estimation.translation as translation
     from fusedmosaic.estimation.live import _streamed_result
 
-    monkeypatch.setattr(translation, "frame_columns", lambda results: {})  # (not the point)
+    monkeypatch.setattr(translation, "frame_columns", lambda results, ids: {})  # (not the point)
     finals = {k: SimpleNamespace(index=count, status=status, homography=np.eye(3))
               for k, count, status in (
                   (0, 0, "placed"), (3, 1, "placed"),

@@ -862,9 +862,13 @@ def _live_view(camera, method: str, record: Path, preview, serve_mosaic,
     server = None if serve_mosaic is None else IgtlImageServer(serve_mosaic)
     try:
         chosen = None if blend is None or isinstance(blend, str) else blend.mask_specular
+        # a pCLE frame's pixel is a known size on the tissue (translation methods): the
+        # mosaic served to Slicer is then in true mm; else 1 mm per reference pixel
+        size_um = camera.pixel_size_um if method != "lba-emt" else None
         view = LiveMosaicView(camera.width, camera.height, mask=mask, lens=lens,
                               preview=preview, server=server, interval_s=interval_s,
-                              mask_specular=method == "lba-emt" if chosen is None else chosen)
+                              mask_specular=method == "lba-emt" if chosen is None else chosen,
+                              pixel_size_mm=None if size_um is None else size_um / 1000.0)
     except BaseException:
         if server is not None:
             server.close()

@@ -696,12 +696,59 @@ def parse_listen_address(address: str) -> tuple[str, int]:
     return host, number
 
 
+def mosaic_ijk_to_world(origin_reference_px, scale: float = 1.0,
+                        pixel_size_mm: float | None = None) -> np.ndarray:
+    """4x4 ijk -> world (mm) matrix of a mosaic image for OpenIGTLink (pyigtl's ImageMessage
+    ``ijk_to_world_matrix``): i the column, j the row, k the slice, each index the CENTRE of its
+    pixel, as pyigtl packs it (it sends the image's centre, ijk ((n - 1) / 2), and its axes
+    times the spacing, as the OpenIGTLink IMAGE header holds them).
+
+    origin_reference_px: (x, y) of the image's pixel (0, 0) in the reference's pixels (frame
+    0's grid, the homographies'; mosaic.png's ``origin_reference_px``); scale: image pixels per
+    reference pixel; pixel_size_mm: the size of a reference pixel on the tissue (pCLE:
+    ``pixel_size_um`` / 1000), None: 1 mm. World = the reference's pixel axes (x right, y
+    down, unrotated, as the image's before) times pixel_size_mm, its origin frame 0's pixel
+    (0, 0): a reference pixel keeps its world point however the mosaic's canvas grows, and
+    images at different origins and scales overlay."""
+    mm = 1.0 if pixel_size_mm is None else float(pixel_size_mm)
+    if not (np.isfinite(mm) and mm > 0):
+        raise ValueError(f"pixel_size_mm must be a number > 0, got {pixel_size_mm}")
+    if not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"scale must be a number > 0, got {scale}")
+    x, y = (float(v) for v in origin_reference_px)
+    step = mm / float(scale)  # mm per image pixel
+    return np.array([[step, 0.0, 0.0, x * mm], [0.0, step, 0.0, y * mm],
+                     [0.0, 0.0, step, 0.0], [0.0, 0.0, 0.0, 1.0]])
+
+
+def igtl_image_message(image: np.ndarray, *, device_name: str, timestamp: float,
+                  ijk_to_world: np.ndarray | None = None):
+    """The pyigtl ImageMessage IgtlImageServer.send packs: a uint8 BGR (H, W, 3) image as RGB
+    (as PLUS and Slicer expect colour) or a gray (H, W) one, one slice; ijk_to_world: a 4x4
+    ijk -> world (mm) matrix (see mosaic_ijk_to_world), None the identity (pyigtl's default:
+    pixel (0, 0) at the origin, 1 mm spacing)."""
+    import pyigtl
+
+    image = np.asarray(image)
+    if image.ndim == 3:
+        image = image[:, :, ::-1]  # BGR -> RGB
+    if ijk_to_world is not None:
+        ijk_to_world = np.asarray(ijk_to_world, np.float64)
+        if ijk_to_world.shape != (4, 4) or not np.isfinite(ijk_to_world).all():
+            raise ValueError(f"ijk_to_world must be a finite 4x4 matrix, got shape "
+                             f"{ijk_to_world.shape}")
+    return pyigtl.ImageMessage(np.ascontiguousarray(image)[None], ijk_to_world_matrix=ijk_to_world,
+                               timestamp=timestamp, device_name=device_name)
+
+
 class IgtlImageServer:
     """Serves images over OpenIGTLink: a listening socket on ``address`` ([HOST:]PORT) that
     every client connecting (e.g. 3D Slicer's OpenIGTLinkIF in client mode) receives each
-    :meth:`send` from, as IMAGE messages of ``device_name`` packed by pyigtl (RGB, one slice,
-    1 px spacing). A client that fails or stalls (``send_timeout_s``) is dropped; what clients
-    send is read and ignored. A context manager (closes the sockets)."""
+    :meth:`send` from, as IMAGE messages of ``device_name`` packed by pyigtl (RGB, one slice;
+    placed by the ``ijk_to_world`` given to :meth:`send`, e.g. :func:`mosaic_ijk_to_world`,
+    else 1 mm spacing with pixel (0, 0) at the origin). A client that fails or stalls
+    (``send_timeout_s``) is dropped; what clients send is read and ignored. A context manager
+    (closes the sockets)."""
 
     def __init__(self, address: str, *, device_name: str = "Mosaic",
                  send_timeout_s: float = 2.0) -> None:
@@ -766,17 +813,13 @@ class IgtlImageServer:
         with self._lock:
             return len(self._clients)
 
-    def send(self, image: np.ndarray, timestamp: float | None = None) -> int:
+    def send(self, image: np.ndarray, timestamp: float | None = None, *,
+             ijk_to_world: np.ndarray | None = None) -> int:
         """Sends a uint8 BGR (H, W, 3) or gray (H, W) image to every connected client; returns
-        how many got it."""
-        import pyigtl
-
-        image = np.asarray(image)
-        if image.ndim == 3:
-            image = image[:, :, ::-1]  # BGR -> RGB, as PLUS and Slicer expect colour
-        message = pyigtl.ImageMessage(np.ascontiguousarray(image)[None],
-                                      timestamp=time.time() if timestamp is None else timestamp,
-                                      device_name=self.device_name).pack()
+        how many got it. ijk_to_world: where it lies (igtl_image_message); None: the identity."""
+        message = igtl_image_message(image, device_name=self.device_name,
+                                timestamp=time.time() if timestamp is None else timestamp,
+                                ijk_to_world=ijk_to_world).pack()
         sent = 0
         with self._lock:
             for c in list(self._clients):

@@ -28,6 +28,8 @@ ESTIMATED_COUNT_SUFFIXES = frozenset({".mkv", ".mka", ".webm"})
 # FFmpeg's codes of 16-bit grey pixels (gray16le, gray16be; e.g. FFV1 video), as OpenCV reports
 # them in CAP_PROP_CODEC_PIXEL_FORMAT
 GREY16_PIXEL_FORMATS = (ord("Y") | ord("1") << 8 | 16 << 24, 16 | ord("1") << 16 | ord("Y") << 24)
+# ... and of 8-bit grey pixels (gray: Y800, Y8, GREY; e.g. FFV1 or raw grey video)
+GREY8_PIXEL_FORMATS = tuple(int.from_bytes(code, "little") for code in (b"Y800", b"Y8  ", b"GREY"))
 
 
 def natural_key(name: str) -> tuple:
@@ -92,10 +94,19 @@ class FrameSource(Sequence):
     A video's frame count is its header's, checked at its end (``counted_by`` says when the
     frames had to be counted by decoding).
 
-    Items are uint8 (H, W) or (H, W, 3) BGR as stored (an alpha channel is dropped; a video is
-    decoded to BGR, a 16-bit grey one to grey). With ``expected_size=(w, h)`` every image is
-    checked against it, and every image must have the channel count and bit depth of the first
-    one read (all grey or all BGR; all 8-bit or all 16-bit).
+    Items are uint8 (H, W) or (H, W, 3) BGR as stored (an alpha channel is dropped). A video is
+    decoded to BGR, except a grey one, decoded to grey (H, W) as grey PNG frames are: a 16-bit
+    grey video (pixel format gray16), and an 8-bit video that is grey, which is decided ONCE
+    for the whole video (``video_grey``), before its first frame is handed out: its pixel
+    format is grey (GREY8_PIXEL_FORMATS, e.g. an FFV1 grey video), or each of
+    ``DEPTH_SAMPLE_FRAMES`` frames evenly spaced over it (first and last included; those that
+    do not decode left out) has B == G == R everywhere, not all of them all-black (an MJPG
+    ``.avi`` written with ``isColor=False`` is stored as yuvj420p, I420, with neutral chroma).
+    Never per frame: a black or grey frame inside a colour video stays BGR. A grey video's
+    frames are then their grey plane (cv2.COLOR_BGR2GRAY: channel 0 of a frame with B == G ==
+    R). With ``expected_size=(w, h)`` every image is checked against it, and every image must
+    have the channel count and bit depth of the first one read (all grey or all BGR; all 8-bit
+    or all 16-bit).
 
     A frame that cannot be read (a PNG that is damaged or gone, a video frame that does not
     decode) raises ValueError naming it; with ``blank_unreadable`` it is read as an all-zero
@@ -143,6 +154,10 @@ class FrameSource(Sequence):
         self._dtype: tuple[np.dtype, str] | None = None  # pixel type of the first image, its name
         self._depth_lock = threading.Lock()  # guards bits_in_use (taken without self._lock)
         self.bits_in_use: int | None = None  # 16-bit frames: the bit depth in use (see above)
+        self._grey_lock = threading.Lock()  # guards video_grey (taken without self._lock)
+        # an 8-bit video: decoded to grey (see above); None until its first frame is read, and
+        # for PNG frames
+        self.video_grey: bool | None = None
         self._clipped = False  # a 16-bit frame exceeded 2^bits_in_use - 1 (warned once)
         self.frame_rate: float | None = None
         self._seek_limit: int | None = None  # frames from here on are reached by decoding
@@ -445,6 +460,9 @@ class FrameSource(Sequence):
             image = np.ascontiguousarray(image[:, :, :3])
         if image.ndim == 3 and image.shape[2] == 1:
             image = image[:, :, 0]
+        if (self.video is not None and image.dtype == np.uint8 and image.ndim == 3
+                and self._is_grey_video()):
+            image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)  # (exactly channel 0 when grey)
         if image.dtype == np.uint16:
             image = self._to_8_bits(image, name)
         if self.expected_size is not None:
@@ -483,6 +501,36 @@ class FrameSource(Sequence):
                 f"clipped to 255 when converted to 8 bits (one scale for all frames; further "
                 "frames above the range are clipped without a warning)", stacklevel=4)
         return to_8_bits(image, self.bits_in_use)
+
+    def _is_grey_video(self) -> bool:
+        """video_grey, decided on the first call (see the class docstring)."""
+        if self.video_grey is None:
+            with self._grey_lock:
+                if self.video_grey is None:
+                    self.video_grey = self._decide_grey()
+        return self.video_grey
+
+    def _decide_grey(self) -> bool:
+        """An 8-bit video is grey: a grey pixel format, or B == G == R in every readable sample
+        frame (DEPTH_SAMPLE_FRAMES evenly spaced), not all of them all-black."""
+        with self._lock:
+            code = int(self._open_capture().get(cv2.CAP_PROP_CODEC_PIXEL_FORMAT))
+        if code in GREY8_PIXEL_FORMATS:
+            return True
+        seen = lit = False
+        count = min(DEPTH_SAMPLE_FRAMES, self._length)
+        for k in np.unique(np.round(np.linspace(0, self._length - 1, count)).astype(int)):
+            image, _ = self._raw(int(k))
+            if image is None or image.dtype != np.uint8 or image.ndim != 3:
+                continue
+            if image.shape[2] not in (3, 4):
+                continue
+            b, g, r = image[:, :, 0], image[:, :, 1], image[:, :, 2]
+            if not (np.array_equal(b, g) and np.array_equal(g, r)):
+                return False
+            seen = True
+            lit = lit or bool(b.any())
+        return seen and lit
 
     def _depth_in_use(self) -> int:
         """The bits holding the largest value of the sample frames (8..16), whichever frame is
