@@ -442,3 +442,20 @@ def test_run_writes_the_mosaic_without_a_stray_frame_and_warns(tmp_path):
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert list(report["mosaic"]["skipped_frames"]) == ["15"]
     assert report["mosaic"]["width"] < 2000 and report["mosaic"]["video"]["frames"] == 29
+
+
+def test_render_mosaic_takes_a_list_of_pairs(scene, tmp_path):
+    """render_mosaic's frames may be (k, image) pairs (its docstring); a LIST of them has
+    __getitem__ and was taken as frames[k]: NumPy's 'inhomogeneous shape' error (review). Now
+    read as pairs, the same mosaic as from the sequence; write_mosaic_png, which reads a frame
+    again for each tile, refuses them by name."""
+    s, frames = scene
+    G = s.homographies
+    pairs = [(k, frames[k]) for k in range(len(frames))]
+    np.testing.assert_array_equal(render_mosaic(pairs, G, SIZE, SIZE).image,
+                                  render_mosaic(frames, G, SIZE, SIZE).image)
+    with pytest.raises(TypeError, match=r"write_mosaic_png: frames must be a sequence of images "
+                                        r"\(frames\[k\]: the tiles read a frame again\), not "
+                                        r"\(k, image\) pairs"):
+        write_mosaic_png(tmp_path / "m.png", pairs, G, SIZE, SIZE)
+    assert not (tmp_path / "m.png").exists()

@@ -367,6 +367,16 @@ def _progress_bar(progress: bool, total: int, desc: str):
     return tqdm(total=total, desc=desc, disable=not progress, leave=False)
 
 
+def _is_pairs(frames) -> bool:
+    """A list / tuple of (k, image) pairs (render_mosaic's other form), not of images: it has
+    __getitem__ too, and was taken as frames[k] (a NumPy 'inhomogeneous shape' error)."""
+    if not isinstance(frames, list | tuple) or not frames:
+        return False
+    first = frames[0]
+    return (isinstance(first, tuple) and len(first) == 2
+            and isinstance(first[0], int | np.integer) and not isinstance(first[0], bool))
+
+
 def render_mosaic(frames, homographies: np.ndarray, width: int, height: int, *,
                   mask: np.ndarray | None = None, blend: str | BlendOptions = "linear",
                   max_pixels: int = MAX_CANVAS_PIXELS, gains: np.ndarray | None = None,
@@ -381,6 +391,8 @@ def render_mosaic(frames, homographies: np.ndarray, width: int, height: int, *,
     leaves highlights in (BlendOptions.mask_specular): its seams are chosen before any frame is
     read. highlights: the specular masks frame_gains found (the same SpecularMasks), so each
     frame's is found once; None: found here (multiband: once for its seams and patches)."""
+    if _is_pairs(frames):  # a list of (k, image) pairs: read once, in order (not frames[k])
+        frames = iter(frames)
     options = as_blend_options(blend)
     if (options.blend == "multiband" and options.mask_specular
             and not hasattr(frames, "__getitem__")):
@@ -419,6 +431,10 @@ def write_mosaic_png(path: str | Path, frames: Sequence, homographies: np.ndarra
     frame_gains found, else a new SpecularMasks). Returns (plan, fraction of covered pixels)."""
     from fusedmosaic.compositing.png import PngStreamWriter
 
+    if _is_pairs(frames) or not hasattr(frames, "__getitem__"):
+        raise TypeError("write_mosaic_png: frames must be a sequence of images (frames[k]: "
+                        "the tiles read a frame again), not (k, image) pairs or a one-pass "
+                        "iterable; render_mosaic takes those")
     options = as_blend_options(blend)
     canvas = canvas or CanvasOptions()
     canvas.validate()
