@@ -178,7 +178,9 @@ def match_l2_guided(
     match_hamming_guided, distances in descriptor units. The ratio test compares Euclidean
     distances (as cv2.BFMatcher(cv2.NORM_L2)'s). Returns (query_idx, train_idx, distance):
     int32, int32, float32, ascending query order. A descriptor with a non-finite element
-    matches nothing.
+    matches nothing; so does one whose squared distances leave float32's range (elements
+    from about 2e19 overflow, below about 1e-22 the distances underflow to ties): scale such
+    descriptors first (SIFT's are 0-512).
     """
 
 def evaluate_pose_prior(
