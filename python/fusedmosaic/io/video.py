@@ -518,9 +518,7 @@ class FrameSource(Sequence):
         if code in GREY8_PIXEL_FORMATS:
             return True
         seen = lit = False
-        count = min(DEPTH_SAMPLE_FRAMES, self._length)
-        for k in np.unique(np.round(np.linspace(0, self._length - 1, count)).astype(int)):
-            image, _ = self._raw(int(k))
+        for image in self._sample_frames():
             if image is None or image.dtype != np.uint8 or image.ndim != 3:
                 continue
             if image.shape[2] not in (3, 4):
@@ -532,14 +530,20 @@ class FrameSource(Sequence):
             lit = lit or bool(b.any())
         return seen and lit
 
+    def _sample_frames(self) -> Iterator[np.ndarray | None]:
+        """The DEPTH_SAMPLE_FRAMES frames evenly spaced over the sequence (first and last
+        included) as stored, None for one that cannot be read: what the bit depth in use and a
+        video's greyness are decided from."""
+        count = min(DEPTH_SAMPLE_FRAMES, self._length)
+        for k in np.unique(np.round(np.linspace(0, self._length - 1, count)).astype(int)):
+            yield self._raw(int(k))[0]
+
     def _depth_in_use(self) -> int:
         """The bits holding the largest value of the sample frames (8..16), whichever frame is
         read first. A sample frame that cannot be read, or is not 16-bit, is left out (it is
         refused when read)."""
         peak = 0
-        count = min(DEPTH_SAMPLE_FRAMES, self._length)
-        for k in np.unique(np.round(np.linspace(0, self._length - 1, count)).astype(int)):
-            image, _ = self._raw(int(k))
+        for image in self._sample_frames():
             if image is not None and image.dtype == np.uint16:
                 colour = image.ndim == 3 and image.shape[2] == 4  # the alpha channel is dropped
                 peak = max(peak, int((image[:, :, :3] if colour else image).max()))
