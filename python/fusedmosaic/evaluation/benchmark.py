@@ -63,22 +63,9 @@ def _bench_pcle_options(frames: int, seed: int = 0):
 
 def max_pcle_frames() -> int:
     """The most pCLE frames the bench's simulation takes (the simulator's bounds)."""
-    from fusedmosaic.simulation._options import MAX_FRAMES
+    from fusedmosaic.simulation.pcle import max_n_frames
 
-    def ok(n: int) -> bool:
-        try:
-            _bench_pcle_options(n).validate()
-        except ValueError:
-            return False
-        return True
-
-    lo, hi = MIN_PCLE_FRAMES, MAX_FRAMES  # ok(lo); the answer is in lo..hi
-    if ok(hi):
-        return hi
-    while hi - lo > 1:
-        mid = (lo + hi) // 2
-        lo, hi = (mid, hi) if ok(mid) else (lo, mid)
-    return lo
+    return max_n_frames(_bench_pcle_options, least=MIN_PCLE_FRAMES)
 
 
 @dataclass

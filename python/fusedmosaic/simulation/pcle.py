@@ -28,7 +28,7 @@ Units and conventions:
 """
 
 import json
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -270,21 +270,24 @@ class PcleOptions:
                              "(io.tracking.MAX_ROBOT_UM)")
 
 
-def max_n_frames(options: PcleOptions) -> int:
+def max_n_frames(options: PcleOptions | Callable[[int], PcleOptions], least: int = 1) -> int:
     """The most frames (n_frames) PcleOptions.validate takes with the other options as given
-    (at most MAX_FRAMES; 0 when it refuses even one frame): past the path's end the frames go
-    straight on, so the tissue texture's bound ends the sequence."""
+    (at most MAX_FRAMES; 0 when it refuses even ``least`` frames): past the path's end the
+    frames go straight on, so the tissue texture's bound ends the sequence. ``options`` may
+    also be a function of the frame count giving the options (e.g. laps growing with it)."""
+    options_for = (options if callable(options)
+                   else lambda n: replace(options, n_frames=n))
 
     def ok(n: int) -> bool:
         try:
-            replace(options, n_frames=n).validate()
+            options_for(n).validate()
         except ValueError:
             return False
         return True
 
-    if not ok(1):
+    if not ok(least):
         return 0
-    lo, hi = 1, MAX_FRAMES  # ok(lo); the answer is in lo..hi
+    lo, hi = least, MAX_FRAMES  # ok(lo); the answer is in lo..hi
     if ok(hi):
         return hi
     while hi - lo > 1:
