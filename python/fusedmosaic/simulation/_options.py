@@ -14,6 +14,7 @@ from fusedmosaic.io.tracking import (
     MAX_SAMPLE_TO_FRAME_SPACING,
     MAX_TIME_OFFSET_S,
     MAX_TIMESTAMP_S,
+    MAX_TRANSLATION_MM,
 )
 
 # Tracker / robot samples of one simulated recording (a 40 Hz tracker over 70 hours): more is a
@@ -99,6 +100,30 @@ def check_time_offsets(options, *names: str) -> None:
         if not abs(value) <= MAX_TIME_OFFSET_S:
             raise ValueError(f"{type(options).__name__}.{name}: must be within "
                              f"+-{MAX_TIME_OFFSET_S:g} s, got {value}")
+
+
+def check_tracker_reach(options, camera_mm: float, camera: str, camera_fields: tuple[str, ...],
+                        noise_mm: float, noise_fields: tuple[str, ...]) -> None:
+    """tracking.csv's positions within what run reads (io.tracking.MAX_TRANSLATION_MM of the
+    tracker's origin): the camera's reach ``camera_mm`` ("{camera} N mm from the tracker's
+    origin", made of ``camera_fields``), then with the hand-eye offset and NOISE_REACH_SIGMAS
+    of the translation noise std ``noise_mm`` (the product of ``noise_fields``). Each error
+    names the field furthest from its default (most_changed)."""
+    cls = type(options).__name__
+    beyond = (f"beyond the {MAX_TRANSLATION_MM:g} mm a tracker position may hold "
+              "(io.tracking.MAX_TRANSLATION_MM)")
+    if not camera_mm <= MAX_TRANSLATION_MM:
+        named = ", ".join(f"{cls}.{name}" for name in camera_fields)
+        raise ValueError(f"{cls}.{most_changed(options, *camera_fields)}: {camera} "
+                         f"{camera_mm:.3g} mm from the tracker's origin ({named}), {beyond}")
+    reach = (camera_mm + abs(options.hand_eye_offset_mm)
+             + NOISE_REACH_SIGMAS * np.sqrt(3.0) * noise_mm)
+    if not reach <= MAX_TRANSLATION_MM:
+        made = ("" if len(noise_fields) == 1
+                else " (" + " x ".join(f"{cls}.{name}" for name in noise_fields) + ")")
+        raise ValueError(f"{cls}.{most_changed(options, *noise_fields)}: a tracker translation "
+                         f"noise of {noise_mm:.3g} mm{made} puts tracker positions up to "
+                         f"{reach:.3g} mm from its origin, {beyond}")
 
 
 def most_changed(options, *names: str) -> str:

@@ -37,18 +37,16 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from fusedmosaic.io.calibration import project_points
-from fusedmosaic.io.tracking import MAX_TRANSLATION_MM
 from fusedmosaic.simulation._lens import ideal_pixel_grid, on_inner_branch
 from fusedmosaic.simulation._options import (
     MAX_ROTATION_SIGMA_DEG,
-    NOISE_REACH_SIGMAS,
     check_frame_count,
     check_hand_eye,
     check_recording,
     check_signs,
     check_time_offsets,
+    check_tracker_reach,
     frame_times,
-    most_changed,
     sample_times,
 )
 from fusedmosaic.simulation._options import option as _opt
@@ -162,20 +160,8 @@ class CheckerboardOptions:
         board = self.square_mm * np.hypot(self.board_cols - 1, self.board_rows - 1)
         camera = (float(np.linalg.norm(TRACKER_FROM_BOARD[:3, 3])) + 1.5 * board
                   + self.distance_mm * (1 + self.distance_variation))
-        if not camera <= MAX_TRANSLATION_MM:
-            lead = most_changed(self, "distance_mm", "square_mm")
-            raise ValueError(f"{name}.{lead}: the views reach {camera:.3g} mm from the "
-                             f"tracker's origin ({name}.distance_mm, {name}.square_mm), beyond "
-                             f"the {MAX_TRANSLATION_MM:g} mm a tracker position may hold "
-                             "(io.tracking.MAX_TRANSLATION_MM)")
-        reach = (camera + abs(self.hand_eye_offset_mm)
-                 + NOISE_REACH_SIGMAS * np.sqrt(3.0) * self.trans_sigma_mm)
-        if not reach <= MAX_TRANSLATION_MM:
-            raise ValueError(f"{name}.trans_sigma_mm: a tracker translation noise of "
-                             f"{self.trans_sigma_mm:.3g} mm puts tracker positions up to "
-                             f"{reach:.3g} mm from its origin, beyond the "
-                             f"{MAX_TRANSLATION_MM:g} mm a tracker position may hold "
-                             "(io.tracking.MAX_TRANSLATION_MM)")
+        check_tracker_reach(self, camera, "the views reach", ("distance_mm", "square_mm"),
+                            self.trans_sigma_mm, ("trans_sigma_mm",))
 
     @property
     def lens_model(self) -> str:

@@ -36,12 +36,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from fusedmosaic.io.calibration import LENS_MODELS
-from fusedmosaic.io.tracking import MAX_TRANSLATION_MM
 from fusedmosaic.simulation._lens import ideal_pixel_grid
 from fusedmosaic.simulation._options import (
     MAX_ROTATION_SIGMA_DEG,
     MIN_FOV_RADIUS_PX,
-    NOISE_REACH_SIGMAS,
     check_fov_radius,
     check_frame_count,
     check_frame_list,
@@ -49,6 +47,7 @@ from fusedmosaic.simulation._options import (
     check_recording,
     check_signs,
     check_time_offsets,
+    check_tracker_reach,
     frame_times,
     most_changed,
     sample_times,
@@ -223,22 +222,10 @@ class FetoscopyOptions:
                              "deg (beyond, the orientation is random)")
         h = self.distance_mm * (1 + (self.distance_variation if self.motion == "handheld"
                                      else 0.0))
-        camera = self.distance_mm + h + np.sqrt(2.0) * self.radius_mm
-        if not camera <= MAX_TRANSLATION_MM:
-            lead = most_changed(self, "distance_mm", "radius_mm")
-            raise ValueError(f"{cls}.{lead}: the camera moves up to {camera:.3g} mm from the "
-                             f"tracker's origin ({cls}.distance_mm, {cls}.radius_mm), beyond "
-                             f"the {MAX_TRANSLATION_MM:g} mm a tracker position may hold "
-                             "(io.tracking.MAX_TRANSLATION_MM)")
-        noise = self.noise_multiplier * self.trans_sigma_mm
-        reach = camera + abs(self.hand_eye_offset_mm) + NOISE_REACH_SIGMAS * np.sqrt(3.0) * noise
-        if not reach <= MAX_TRANSLATION_MM:
-            lead = most_changed(self, "trans_sigma_mm", "noise_multiplier")
-            raise ValueError(f"{cls}.{lead}: a tracker translation noise of {noise:.3g} mm "
-                             f"({cls}.trans_sigma_mm x {nu}) puts tracker positions up to "
-                             f"{reach:.3g} mm from its origin, beyond the "
-                             f"{MAX_TRANSLATION_MM:g} mm a tracker position may hold "
-                             "(io.tracking.MAX_TRANSLATION_MM)")
+        check_tracker_reach(self, self.distance_mm + h + np.sqrt(2.0) * self.radius_mm,
+                            "the camera moves up to", ("distance_mm", "radius_mm"),
+                            self.noise_multiplier * self.trans_sigma_mm,
+                            ("trans_sigma_mm", "noise_multiplier"))
 
 
 # --------------------------------------------------------------------------------------------
