@@ -329,3 +329,22 @@ def test_messages_print_the_shape_and_value_given():
         _core.match_hamming(d, d, ratio=-1e-9)
     with pytest.raises(ValueError, match="sigma_v_px: must be finite and > 0, got -1e-09"):
         _core.BundleAdjuster(K, _core.BundleAdjusterOptions(sigma_v_px=-1e-9))
+
+
+def test_options_pickle_and_copy_with_every_field():
+    """The C++ options objects could not be copied or sent to a worker process ("cannot pickle
+    'fusedmosaic._core.BundleAdjusterOptions' object")."""
+    import copy
+    import pickle
+
+    costs = _core.BundleAdjusterOptions(
+        loss="cauchy", max_iterations=7, emt_sigma=[1, 2, 3, 4, 5, 6], use_motion_prior=False
+    )
+    for clone in (pickle.loads(pickle.dumps(costs)), copy.copy(costs), copy.deepcopy(costs)):
+        assert repr(clone) == repr(costs)
+    window = _core.SlidingWindowOptions(window_size=7, num_new=2, costs=costs)
+    window.fold_fixed_cameras, window.full_report, window.plane_max_relative_std = False, True, 0.5
+    clone = pickle.loads(pickle.dumps(window))
+    assert (clone.window_size, clone.num_new, clone.fold_fixed_cameras) == (7, 2, False)
+    assert (clone.full_report, clone.plane_max_relative_std) == (True, 0.5)
+    assert repr(clone.costs) == repr(costs)

@@ -68,6 +68,22 @@ constexpr const char* kSummaryFields[] = {"iterations",
                                           "plane_relative_std",
                                           "motion_released_ids"};
 
+// BundleAdjusterOptions from {field: value}: keyword construction and unpickling.
+BundleAdjusterOptions OptionsFromDict(const py::dict& fields) {
+  BundleAdjusterOptions options;
+  py::object self = py::cast(options);
+  for (const auto& item : fields) {
+    const std::string key = py::str(item.first);
+    bool known = false;
+    for (const char* field : kOptionFields) known = known || key == field;
+    if (!known) {
+      throw py::type_error("BundleAdjusterOptions: unknown option '" + key + "'");
+    }
+    self.attr(key.c_str()) = item.second;
+  }
+  return self.cast<BundleAdjusterOptions>();
+}
+
 std::string Repr(const py::object& self, const char* cls, const char* const* fields, size_t n) {
   std::ostringstream out;
   out << cls << "(";
@@ -86,20 +102,15 @@ void BindProblem(py::module_& m) {
                                     "Options of BundleAdjuster; defaults from seed 000 "
                                     "(Sec. 4.2, appendix Eq. 30). Keyword construction: "
                                     "BundleAdjusterOptions(loss='huber', ...).")
-      .def(py::init([](const py::kwargs& kwargs) {
-        BundleAdjusterOptions options;
-        py::object self = py::cast(options);
-        for (const auto& item : kwargs) {
-          const std::string key = py::str(item.first);
-          bool known = false;
-          for (const char* field : kOptionFields) known = known || key == field;
-          if (!known) {
-            throw py::type_error("BundleAdjusterOptions: unknown option '" + key + "'");
-          }
-          self.attr(key.c_str()) = item.second;
-        }
-        return self.cast<BundleAdjusterOptions>();
-      }))
+      .def(py::init([](const py::kwargs& kwargs) { return OptionsFromDict(kwargs); }))
+      // Pickled (copy, deepcopy, multiprocessing) as the dict of its fields.
+      .def(py::pickle(
+          [](const py::object& self) {
+            py::dict state;
+            for (const char* field : kOptionFields) state[field] = self.attr(field);
+            return state;
+          },
+          [](const py::dict& state) { return OptionsFromDict(state); }))
       .def_readwrite("sigma_v_px", &BundleAdjusterOptions::sigma_v_px,
                      "sigma_v, pixels (paper Sec. 4.2: 1 px).")
       .def_property(

@@ -5,6 +5,8 @@
 #include <pybind11/stl.h>
 
 #include <optional>
+#include <stdexcept>
+#include <string>
 #include <vector>
 
 #include "bindings/bind.h"
@@ -52,7 +54,27 @@ void BindSlidingWindow(py::module_& m) {
       .def_readwrite("plane_max_relative_std", &SlidingWindowOptions::plane_max_relative_std,
                      "plane observability gate: a step whose costs give pi a relative std\n"
                      "sqrt(trace(Cov_pi)) / |pi| above this is solved again with pi held\n"
-                     "(0: gate and std computation off, plane_relative_std NaN)");
+                     "(0: gate and std computation off, plane_relative_std NaN)")
+      // Pickled (copy, deepcopy, multiprocessing) as the tuple of its fields.
+      .def(py::pickle(
+          [](const SlidingWindowOptions& o) {
+            return py::make_tuple(o.window_size, o.num_new, o.costs, o.fold_fixed_cameras,
+                                  o.full_report, o.plane_max_relative_std);
+          },
+          [](const py::tuple& t) {
+            if (t.size() != 6) {
+              throw std::runtime_error("SlidingWindowOptions: pickled state of " +
+                                       std::to_string(t.size()) + " fields, expected 6");
+            }
+            SlidingWindowOptions o;
+            o.window_size = t[0].cast<int>();
+            o.num_new = t[1].cast<int>();
+            o.costs = t[2].cast<BundleAdjusterOptions>();
+            o.fold_fixed_cameras = t[3].cast<bool>();
+            o.full_report = t[4].cast<bool>();
+            o.plane_max_relative_std = t[5].cast<double>();
+            return o;
+          }));
 
   py::class_<WindowStepSummary>(m, "WindowStepSummary", "Result of SlidingWindow.step() / redo().")
       .def_readonly("frame_ids", &WindowStepSummary::frame_ids)
