@@ -177,3 +177,18 @@ def test_a_folder_where_an_input_file_belongs_is_named_as_such(data, tmp_path, c
     (out / "homographies.csv").mkdir(parents=True)
     assert main(["evaluate", str(out), "--truth", str(data / "feto"), "--no-report"]) == 2
     assert f"{out / 'homographies.csv'}: is a folder; expected a file" in capsys.readouterr().err
+
+
+def test_run_alpha_writes_the_coverage_as_alpha(data, tmp_path):
+    """run --alpha: mosaic.png's alpha channel is report.json's covered_fraction."""
+    import cv2
+
+    out = tmp_path / "o"
+    assert main(["--quiet", "run", str(data / "pcle"), "--method", "ncc", "--out", str(out),
+                 "--alpha", "--no-report"]) == 0
+    image = cv2.imread(str(out / "mosaic.png"), cv2.IMREAD_UNCHANGED)
+    mosaic = json.loads((out / "report.json").read_text())["mosaic"]
+    assert mosaic["alpha"] is True and image.shape[2] == 4
+    assert set(np.unique(image[:, :, 3])) == {0, 255}
+    assert (image[:, :, 3] == 255).mean() == pytest.approx(mosaic["covered_fraction"])
+    assert (image[:, :, :3][image[:, :, 3] == 0] == 0).all()  # uncovered: black, transparent

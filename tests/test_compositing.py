@@ -164,6 +164,30 @@ def test_png_stream_round_trip(tmp_path):
             png.write_rows(np.zeros((5, 5), np.uint8))
 
 
+@pytest.mark.parametrize("grey", [False, True])
+def test_alpha_channel_is_the_coverage_tiled_or_not(scene, tmp_path, grey):
+    """CanvasOptions.alpha (run --alpha): mosaic.png gets an alpha channel, 255 where a frame
+    shows the pixel, 0 elsewhere; the colour is the mosaic's without it, grey stays grey."""
+    from fusedmosaic.compositing.png import write_png
+
+    s, frames = scene
+    if grey:
+        frames = [cv2.cvtColor(f, cv2.COLOR_BGR2GRAY) for f in frames]
+    one = render_mosaic(frames, s.homographies, SIZE, SIZE, mask=s.fov_mask())
+    path = tmp_path / "tiled.png"
+    _, covered = write_mosaic_png(path, frames, s.homographies, SIZE, SIZE, mask=s.fov_mask(),
+                                  canvas=CanvasOptions(tile_size=64, alpha=True))
+    write_png(tmp_path / "one.png", np.dstack([one.image, one.covered * np.uint8(255)]))
+    colour = one.image.reshape(*one.image.shape[:2], -1)
+    for written in (path, tmp_path / "one.png"):
+        with open(written, "rb") as f:  # PNG colour type: 4 grey + alpha, 6 RGBA
+            assert f.read(26)[25] == (4 if grey else 6)
+        image = cv2.imread(str(written), cv2.IMREAD_UNCHANGED)  # (read as BGRA either way)
+        np.testing.assert_array_equal(image[:, :, 3], np.where(one.covered, 255, 0))
+        np.testing.assert_array_equal(image[:, :, :3] if not grey else image[:, :, :1], colour)
+    assert 0.5 < covered < 1 and covered == pytest.approx(one.covered.mean())
+
+
 # -- canvas limits --------------------------------------------------------------------------------
 
 

@@ -535,6 +535,7 @@ def _canvas_options(args: argparse.Namespace):
         canvas.max_pixels = args.max_canvas_pixels
     if args.tile_size is not None:
         canvas.tile_size = args.tile_size
+    canvas.alpha = args.alpha
     return canvas
 
 
@@ -1296,6 +1297,10 @@ def _add_compositing_flags(parser: argparse.ArgumentParser) -> None:
                            "estimates are still written (default 400 000 000)")
     comp.add_argument("--tile-size", type=int, default=None,
                       help="tile size (px) for mosaics rendered tile by tile (default 1024)")
+    comp.add_argument("--alpha", action="store_true",
+                      help="mosaic.png with an alpha channel (grey + alpha, or RGBA): opaque "
+                           "where a frame shows the pixel, transparent elsewhere (black either "
+                           "way), to overlay the mosaic on other images")
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:

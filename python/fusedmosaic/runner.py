@@ -501,6 +501,7 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
         write_creation_video,
         write_mosaic_png,
     )
+    from fusedmosaic.compositing.png import write_png
 
     cam = dataset.camera
     frames, mask = frames_to_compose(dataset, result.undistorted)
@@ -575,7 +576,11 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
         rendered = render_mosaic(frames, G, cam.width, cam.height, mask=mask,
                                  blend=blend, max_pixels=canvas.max_pixels, gains=gains,
                                  plan=plan, progress=progress, highlights=highlights)
-        w.write_image("mosaic.png", rendered.image)
+        if canvas.alpha:  # (OpenCV's PNG encoder takes no grey + alpha)
+            write_png(w.path("mosaic.png"), np.dstack(
+                [rendered.image, rendered.covered.view(np.uint8) * np.uint8(255)]))
+        else:
+            w.write_image("mosaic.png", rendered.image)
         covered = float(rendered.covered.mean())
     highlights = None  # (not shared with the video's incremental canvas)
     timings["compose_mosaic"] = time.perf_counter() - t0
@@ -593,6 +598,7 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
         "origin_reference_px": [plan.x0, plan.y0],  # mosaic pixel (0, 0) in frame 0's pixels
         "tiled": tiled,
         "covered_fraction": covered,
+        "alpha": bool(canvas.alpha),  # an alpha channel: 255 where covered
         "frames_shown": int(plan.use.sum()),
         "skipped_frames": {str(int(ids[k])): why for k, why in sorted(
             {**plan.skipped, **{int(k): "dead-reckoned (no anchor): not composed"

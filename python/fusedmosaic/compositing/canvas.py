@@ -51,6 +51,9 @@ class CanvasOptions:
     tile_size: int = 1024  # px; a tile's accumulator is tile_size^2 x (C + 1) float32
     cache_mb: float = 32.0  # warped frames kept for neighbouring tiles (256 MB: no faster, bench)
     absurd_area_factor: float = ABSURD_AREA_FACTOR
+    # mosaic.png with an alpha channel (grey + alpha or BGRA): 255 where a frame shows the
+    # pixel, 0 where none does (black either way); CLI --alpha
+    alpha: bool = False
 
     def validate(self, names: dict[str, str] | None = None) -> None:
         """ValueError for a bad field; `names` maps fields to what the messages call them
@@ -428,7 +431,8 @@ def write_mosaic_png(path: str | Path, frames: Sequence, homographies: np.ndarra
 
     frames: a sequence (frames[k]); frames overlapping several tiles are read and warped again
     unless still in the cache; each frame's specular mask is found once (highlights: those
-    frame_gains found, else a new SpecularMasks). Returns (plan, fraction of covered pixels)."""
+    frame_gains found, else a new SpecularMasks). Returns (plan, fraction of covered pixels).
+    canvas.alpha: the PNG gets an alpha channel, 255 where covered."""
     from fusedmosaic.compositing.png import PngStreamWriter
 
     if _is_pairs(frames) or not hasattr(frames, "__getitem__"):
@@ -454,11 +458,12 @@ def write_mosaic_png(path: str | Path, frames: Sequence, homographies: np.ndarra
     T = int(canvas.tile_size)
     covered_px = 0
     n_tiles = -(-plan.width // T) * -(-plan.height // T)
-    with PngStreamWriter(path, plan.width, plan.height, warper.channels) as png, \
+    C = warper.channels
+    with PngStreamWriter(path, plan.width, plan.height, C + bool(canvas.alpha)) as png, \
             _progress_bar(progress, n_tiles, "mosaic tiles") as bar:
         for ty in range(plan.y0, plan.y1, T):
             th = min(T, plan.y1 - ty)
-            band = np.zeros((th, plan.width, warper.channels), np.uint8)
+            band = np.zeros((th, plan.width, C + bool(canvas.alpha)), np.uint8)
             for tx in range(plan.x0, plan.x1, T):
                 tw = min(T, plan.x1 - tx)
                 rx0, ry0 = max(tx - margin, plan.x0), max(ty - margin, plan.y0)
@@ -469,8 +474,11 @@ def write_mosaic_png(path: str | Path, frames: Sequence, homographies: np.ndarra
                     img, cov = _render_region(rx0, ry0, rx1 - rx0, ry1 - ry0, hit, source,
                                               options, warper.channels)
                     sy, sx = ty - ry0, tx - rx0
-                    band[:, tx - plan.x0:tx - plan.x0 + tw] = img[sy:sy + th, sx:sx + tw]
-                    covered_px += int(cov[sy:sy + th, sx:sx + tw].sum())
+                    cov = cov[sy:sy + th, sx:sx + tw]
+                    band[:, tx - plan.x0:tx - plan.x0 + tw, :C] = img[sy:sy + th, sx:sx + tw]
+                    if canvas.alpha:
+                        band[:, tx - plan.x0:tx - plan.x0 + tw, C] = cov * np.uint8(255)
+                    covered_px += int(cov.sum())
                 bar.update(1)
             png.write_rows(band)
     return plan, covered_px / plan.pixels

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 _SIGNATURE = b"\x89PNG\r\n\x1a\n"
-_COLOUR_TYPE = {1: 0, 3: 2}  # grey, RGB
+_COLOUR_TYPE = {1: 0, 2: 4, 3: 2, 4: 6}  # grey, grey + alpha, RGB, RGB + alpha
 _IDAT_BYTES = 1 << 20
 
 
@@ -24,7 +24,8 @@ def _chunk(kind: bytes, payload: bytes) -> bytes:
 
 
 class PngStreamWriter:
-    """Writes an 8-bit grey or BGR image of known size as PNG, rows in order.
+    """Writes an 8-bit grey, grey + alpha, BGR or BGRA image of known size as PNG, rows in
+    order.
 
     >>> with PngStreamWriter(path, width, height, channels=3) as png:
     ...     for band in bands:  # (h, width, 3) uint8 BGR, top to bottom
@@ -34,8 +35,8 @@ class PngStreamWriter:
     def __init__(self, path: str | Path, width: int, height: int, channels: int = 3,
                  level: int = 6) -> None:
         if channels not in _COLOUR_TYPE:
-            raise ValueError(f"{path}: PNG writer takes 1 (grey) or 3 (BGR) channels, "
-                             f"got {channels}")
+            raise ValueError(f"{path}: PNG writer takes 1 (grey), 2 (grey + alpha), 3 (BGR) "
+                             f"or 4 (BGRA) channels, got {channels}")
         if width <= 0 or height <= 0 or width >= 2**31 or height >= 2**31:
             raise ValueError(f"{path}: invalid PNG size {width}x{height}")
         self.path = Path(path)
@@ -50,7 +51,7 @@ class PngStreamWriter:
         self._file.write(_SIGNATURE + _chunk(b"IHDR", header))
 
     def write_rows(self, rows: np.ndarray) -> None:
-        """rows: (h, width) or (h, width, channels) uint8, the next h rows (BGR order)."""
+        """rows: (h, width) or (h, width, channels) uint8, the next h rows (BGR(A) order)."""
         rows = np.asarray(rows)
         if rows.dtype != np.uint8:
             raise ValueError(f"{self.path}: rows must be uint8, got {rows.dtype}")
@@ -60,8 +61,8 @@ class PngStreamWriter:
                              f"expected {self.channels}")
         if self._rows + rows.shape[0] > self.height:
             raise ValueError(f"{self.path}: more than {self.height} rows written")
-        if self.channels == 3:
-            rows = rows[:, :, ::-1]  # BGR -> RGB
+        if self.channels >= 3:
+            rows = rows[:, :, [2, 1, 0, 3][:self.channels]]  # BGR(A) -> RGB(A)
         flat = np.ascontiguousarray(rows).reshape(rows.shape[0], -1)
         filtered = np.empty((flat.shape[0], flat.shape[1] + 1), np.uint8)
         filtered[:, 0] = 2  # "Up" filter
@@ -93,3 +94,12 @@ class PngStreamWriter:
             self.close()
         else:
             self._file.close()
+
+
+def write_png(path: str | Path, image: np.ndarray, level: int = 6) -> None:
+    """Writes a whole (h, w) or (h, w, C) uint8 image (C = 1, 2, 3 or 4; BGR(A) order), e.g. a
+    grey + alpha image, which OpenCV's PNG encoder does not take."""
+    image = np.asarray(image)
+    channels = 1 if image.ndim == 2 else image.shape[2]
+    with PngStreamWriter(path, image.shape[1], image.shape[0], channels, level) as png:
+        png.write_rows(image)
