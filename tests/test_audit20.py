@@ -192,3 +192,11 @@ def test_run_alpha_writes_the_coverage_as_alpha(data, tmp_path):
     assert set(np.unique(image[:, :, 3])) == {0, 255}
     assert (image[:, :, 3] == 255).mean() == pytest.approx(mosaic["covered_fraction"])
     assert (image[:, :, :3][image[:, :, 3] == 0] == 0).all()  # uncovered: black, transparent
+
+
+def test_report_json_always_lists_warnings(data, tmp_path):
+    """pairwise's report.json had no `warnings` key (every other method wrote [])."""
+    out = tmp_path / "o"
+    assert main(["--quiet", "run", str(data / "feto"), "--method", "pairwise", "--out",
+                 str(out), "--no-report"]) == 0
+    assert isinstance(json.loads((out / "report.json").read_text())["warnings"], list)

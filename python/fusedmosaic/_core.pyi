@@ -8,10 +8,11 @@ float64 unless stated. Bad input raises ValueError (IndexError for an unknown fr
 refused naming the argument and the shape got. pi = 0 (the plane at infinity) is refused.
 """
 
-from typing import Any, Never
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from typing_extensions import Never  # (typing.Never: Python 3.11 on; stubs may use this)
 
 __version__: str
 

@@ -225,8 +225,8 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
                                       video=video, out=out, progress=progress, timings=timings)
             report_json["mosaic"] = outputs["mosaic"]
             heard.add_to(result.details)  # reading the dataset, the method, the compositing
-            if result.details.get("warnings"):
-                report_json["warnings"] = result.details["warnings"]
+            # (always a list: pairwise's details had none, so its report.json had no key)
+            report_json["warnings"] = list(result.details.get("warnings", []))
             if report:
                 t0 = time.perf_counter()
                 write_run_report(w, dataset, method, result, G, outputs, timings)
