@@ -789,7 +789,7 @@ def test_camera_pose_from_one_live_sample():
 def test_robot_frames_in_a_gap_of_samples_are_flagged_not_bridged():
     """A fuzz of the pCLE path: 2 s without robot samples were bridged by a straight line
     (kalman-robot 72 px mean, 103 px off to the end; 0.7 px once the gap is flagged, the image
-    taking over). As for tracking.csv: a gap over 3x the median spacing leaves its frames
+    taking over). As for tracking.csv: a gap over 3x the typical spacing leaves its frames
     without a sample."""
     from fusedmosaic.io.tracking import RobotSamples, interpolate_robot
 

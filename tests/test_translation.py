@@ -341,7 +341,7 @@ def test_robot_without_a_sample_at_frame0_leaves_it_out(small, tmp_path):
     assert all(s == "prior-only" for s in result.status[1:]), result.status
     assert result.details["warnings"] == [
         "1 of 14 frames have no robot sample in robot.csv (outside its time span, or in a gap "
-        "longer than 3x its median spacing; frame 0): they are unplaced (report.json "
+        "longer than 3x its typical sample spacing; frame 0): they are unplaced (report.json "
         "frames_without_robot_sample)"]
     assert result.details["frames_without_robot_sample"] == [0]
     position = result.homographies[:, :2, 2]
@@ -423,8 +423,8 @@ def test_kalman_robot_without_frame0_image_and_robot_starts_at_frame1_and_warns(
         "chain starts at frame 1, put at frame 0's position, so every frame is offset by the "
         "(unknown) motion between frames 0 and 1; the mosaic itself is consistent",
         "1 of 14 frames have no robot sample in robot.csv (outside its time span, or in a gap "
-        "longer than 3x its median spacing; frame 0): kalman-robot placed them by the NCC "
-        "registrations alone, whose drift the robot does not correct there (report.json "
+        "longer than 3x its typical sample spacing; frame 0): kalman-robot placed them by the "
+        "NCC registrations alone, whose drift the robot does not correct there (report.json "
         "frames_without_robot_sample)"]
     position = result.homographies[:, :2, 2]
     truth = dataset.ground_truth[:, :2, 2]
@@ -721,7 +721,8 @@ def test_frames_without_robot_sample_listed_and_warned(small, tmp_path):
         n = len(expected)
         assert any(w.startswith(f"{n} of {len(dataset)} frames have no robot sample in "
                                 "robot.csv (outside its time span, or in a gap longer than 3x "
-                                f"its median spacing; frames {expected[0]}, ") and how in w
+                                "its typical sample spacing; frames "
+                                f"{expected[0]}, ") and how in w
                    for w in report["warnings"]), report["warnings"]
 
 

@@ -5,9 +5,11 @@ answers "what would this recording have looked like live, on this machine?":
 
 - frame k arrives at its timestamp (relative to frame 0's) and gets the newest tracker (or robot)
   sample taken at or before that time, as a live loop has it: no interpolation towards a sample
-  that has not arrived yet; a sample older than ``max_sample_age_s`` (by default 3 sample
-  periods, the offline gap rule) counts as none (a dropout), so the frame is placed from the
-  images and the priors (report.json "live": "frames_without_sample"). A robot position is
+  that has not arrived yet (a sample stamped a rounding error after the frame, as a robot
+  sampled at the frame times is, counts as at it); a sample older than ``max_sample_age_s`` (by
+  default 3 typical sample spacings, io.tracking.sample_spacing: the offline gap rule) counts
+  as none (a dropout), so the frame is placed from the images and the priors (report.json
+  "live": "frames_without_sample"). A robot position is
   extrapolated to the frame time along its last two samples (an accurate robot held 14 ms lags
   the probe and the filter follows the lag: pCLE spiral e_M 10.5 px offline, 27.0 held, 10.5
   extrapolated); a tracker pose is held (EM noise ~1 mm; extrapolating it measured no better on
@@ -35,7 +37,12 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from tqdm import tqdm
 
-from fusedmosaic.io.tracking import camera_pose_from_sample, check_time_offset
+from fusedmosaic.io.tracking import (
+    GAP_SPACINGS,
+    camera_pose_from_sample,
+    check_time_offset,
+    sample_spacing,
+)
 from fusedmosaic.methods import MethodResult, ms_stats
 
 __all__ = ["LIVE_METHODS", "replay_live", "check_live_method", "newest_sample_index",
@@ -61,8 +68,12 @@ def check_live_method(method: str) -> None:
 
 def newest_sample_index(sample_times: np.ndarray, t: float, max_age_s: float) -> int | None:
     """Index of the newest sample taken at or before ``t`` and at most ``max_age_s`` before it;
-    None when there is none (``sample_times`` increasing)."""
-    i = int(np.searchsorted(sample_times, t, side="right")) - 1
+    None when there is none (``sample_times`` increasing). "At or before" allows for rounding:
+    a sample up to max(1 µs, 16 ulp of t) after t counts as at t (a robot sampled at the frame
+    times, its stamps sums of periods: 0.30000000000000004 for frame 3 at 0.3 s took the sample
+    100 ms older, and the replay differed from offline by up to 9.4 px; review)."""
+    tol = max(1e-6, 16.0 * float(np.spacing(abs(t))))
+    i = int(np.searchsorted(sample_times, t + tol, side="right")) - 1
     if i < 0 or t - sample_times[i] > max_age_s:
         return None
     return i
@@ -94,9 +105,10 @@ def replay_live(dataset, method: str, *, options=None, progress: bool = True,
     """Replays `dataset` through the streaming form of `method` (``LIVE_METHODS``) as a live
     source: see the module docstring. ``options``: the method's options (SequentialOptions or
     RobotPriorOptions). ``max_sample_age_s``: the newest tracker / robot sample older than this
-    at a frame's time is not used; None = 3 x the median spacing of the valid samples, the
-    offline path's gap rule (interpolate_camera_poses). ``processing_time``: k -> seconds
-    (finite, >= 0), replaces the measured time of frame k's call (what-if studies, tests)."""
+    at a frame's time is not used; None = 3 x the typical spacing of the valid samples
+    (io.tracking.sample_spacing), the offline path's gap rule (interpolate_camera_poses).
+    ``processing_time``: k -> seconds (finite, >= 0), replaces the measured time of frame k's
+    call (what-if studies, tests)."""
     check_live_method(method)
     if max_sample_age_s is not None and not (np.isfinite(max_sample_age_s)
                                              and max_sample_age_s >= 0):
@@ -146,6 +158,12 @@ def replay_live(dataset, method: str, *, options=None, progress: bool = True,
     for k, busy in dropped:
         status[k] = DROPPED.format(busy=int(dataset.frame_ids[busy]))
     processed = order  # dataset index of each frame given to the mosaicker, in order
+    if method == "robot" and processed and stream.no_sample.issuperset(processed):
+        from fusedmosaic.estimation.translation import no_robot_sample_error
+
+        raise no_robot_sample_error(
+            str(dataset.root / dataset.robot_file), len(processed),
+            f"live replay: none at or up to {1e3 * stream.max_age:.3g} ms before each frame")
     order = sorted(latency)
     details = {"live": {
         "frames_processed": len(latency), "frames_dropped": len(dropped),
@@ -289,8 +307,7 @@ def extrapolated_robot(robot, i: int, t: float, max_age: float) -> np.ndarray:
 def _max_age(sample_times: np.ndarray, given: float | None) -> float:
     if given is not None:
         return float(given)
-    spacing = np.diff(sample_times)
-    return 3.0 * float(np.median(spacing)) if spacing.size else 0.0
+    return GAP_SPACINGS * sample_spacing(sample_times) if len(sample_times) > 1 else 0.0
 
 
 def streaming_mosaicker(method: str, camera, options, where: str,
@@ -333,7 +350,7 @@ def _streaming(dataset, method: str, options, max_age: float | None) -> _Stream:
             if i is None:
                 stream.no_sample.add(k)
             else:
-                stream.ages.append(t - sample_times[i])
+                stream.ages.append(max(0.0, t - sample_times[i]))
             pose = None if i is None else camera_pose_from_sample(
                 translations[i], quaternions[i], dataset.hand_eye)
             mosaicker.add_frame(image, t, pose)
@@ -361,7 +378,7 @@ def _streaming(dataset, method: str, options, max_age: float | None) -> _Stream:
         if i is None:
             stream.no_sample.add(k)
             return [mosaicker.add_frame(image, t, None)]
-        stream.ages.append(t - robot.timestamps[i])
+        stream.ages.append(max(0.0, t - robot.timestamps[i]))
         return [mosaicker.add_frame(image, t, extrapolated_robot(robot, i, t, stream.max_age))]
 
     stream.feed = feed

@@ -133,6 +133,7 @@ from fusedmosaic.io.tracking import (  # noqa: F401  (MAX_FRAME_GAP_S, MAX_TIMES
     MAX_ROBOT_UM,
     MAX_TIMESTAMP_S,
     check_stream_timestamp,
+    sample_spacing,
 )
 from fusedmosaic.methods import MethodResult, listed_ids, ms_stats
 from fusedmosaic.registration.ncc import (
@@ -489,6 +490,8 @@ class _Anchor:
 
 
 _NAN2 = np.full(2, np.nan)
+# Recent frame spacings whose median is the nominal frame interval (_frame_intervals).
+_SPACING_WINDOW = 32
 
 
 def field_boxes(width: int, height: int, radius: float | None
@@ -628,6 +631,7 @@ class RobotPriorMosaicker:
         # warm-up exception is over for the sequence (kept at that count).
         self._unjudged_in_a_row = 0
         self._innovations: deque[np.ndarray] = deque(maxlen=self.options.robot_sigma_window)
+        self._spacings: deque[float] = deque(maxlen=_SPACING_WINDOW)  # recent frame spacings, s
         self._kf = RobotKalmanFilter(self.options.kalman) if self.estimate == "fused" else None
 
     @property
@@ -812,7 +816,7 @@ class RobotPriorMosaicker:
     _STATE = ("_count", "_last_timestamp", "_anchor", "_robot_origin_um", "_image_origin",
               "_robot_origin", "_fused_origin", "_robot_anchor",
               "_steps_without_robot", "_gated_in_a_row", "_unjudged_in_a_row", "_innovations",
-              "_intensity")
+              "_intensity", "_spacings")
 
     def _state(self) -> dict:
         state = {name: copy.copy(getattr(self, name)) for name in self._STATE}
@@ -931,6 +935,7 @@ class RobotPriorMosaicker:
         else:
             t0 = time.perf_counter()
             kf = self._kf
+            intervals = self._frame_intervals(t)
             previous = kf.position
             if self._robot_anchor is not None and np.isfinite(robot).all():
                 r_um, r_xf = self._robot_anchor
@@ -963,7 +968,8 @@ class RobotPriorMosaicker:
                 c_match = conf["c_match"] if image_ok else 0.0
                 verdict = None
                 if image_ok and robot_ok:
-                    verdict = self._robot_glitch(kf, dx_img_f, dx_rob_f, c_match, sigma_r)
+                    verdict = self._robot_glitch(kf, dx_img_f, dx_rob_f, c_match, sigma_r,
+                                                 intervals)
                     robot_gated = verdict == "glitch"
                     if verdict == "unjudged":  # as an inconsistent registration: the robot
                         image_ok, dx_img_f, c_match = False, _NAN2, 0.0  # places the frame
@@ -976,7 +982,7 @@ class RobotPriorMosaicker:
                            and np.isfinite(self.options.kalman.sigma_robot0))
                 saved = kf.snapshot() if unknown else None
                 before = kf.snapshot() if image_ok and robot_ok and not robot_gated else None
-                step = kf.update(dx_img_f, dx_rob_used, c_match)
+                step = kf.update(dx_img_f, dx_rob_used, c_match, intervals)
                 if unknown and step.c_img < self.options.robot_sigma_c_img:
                     # sigma_r0 not measured yet and the image not trusted at this frame (a
                     # contact loss in the first frames): relying on the image (sigma_r0 = inf)
@@ -986,11 +992,11 @@ class RobotPriorMosaicker:
                     kf.restore(saved)
                     sigma_r = self.options.kalman.sigma_robot0
                     kf.options = replace(kf.options, sigma_robot0=sigma_r)
-                    step = kf.update(dx_img_f, dx_rob_used, c_match)
+                    step = kf.update(dx_img_f, dx_rob_used, c_match, intervals)
                 if before is not None and self._image_outlier(step, dx_img_f, dx_rob_used):
                     kf.restore(before)  # the robot places the frame (c_img = 0)
                     image_ok, c_match, image_gated = False, 0.0, True
-                    step = kf.update(_NAN2, dx_rob_used, c_match)
+                    step = kf.update(_NAN2, dx_rob_used, c_match, intervals)
                 for name in CONFIDENCES:
                     conf[name] = float(getattr(step, name))
                 x_f = position = step.position
@@ -1054,6 +1060,19 @@ class RobotPriorMosaicker:
             **conf,
         )
 
+    def _frame_intervals(self, t: float) -> float:
+        """Frame intervals since the previous frame given, in whole ones of the median spacing
+        of the recent frames (1 for the first two and for timing jitter; 2 after a frame a live
+        stream dropped): the Kalman filter judges the image step per interval (kalman.py)."""
+        if not np.isfinite(self._last_timestamp):
+            return 1.0
+        spacing = t - self._last_timestamp
+        intervals = 1.0
+        if self._spacings:
+            intervals = max(1.0, float(round(spacing / float(np.median(self._spacings)))))
+        self._spacings.append(spacing)
+        return intervals
+
     def _image_outlier(self, step, dx_image, dx_robot) -> bool:
         """True when the registration of `step` (a filter update with both displacements) is
         not trusted (c_img < robot_sigma_c_img) and differs from the robot displacement on an
@@ -1073,7 +1092,8 @@ class RobotPriorMosaicker:
         then believed over the robot (_robot_glitch)."""
         return self._unjudged_in_a_row >= self.options.robot_gate_rebase
 
-    def _robot_glitch(self, kf, dx_image, dx_robot, c_match: float, sigma_r: float):
+    def _robot_glitch(self, kf, dx_image, dx_robot, c_match: float, sigma_r: float,
+                      intervals: float = 1.0):
         """"glitch" when the robot displacement is a gross outlier next to a trusted
         registration (module docstring, "Robot gating"), else None. The image confidence c_img
         (Eq. 16) does not depend on the robot; it is read from a trial update of a copy of the
@@ -1113,7 +1133,7 @@ class RobotPriorMosaicker:
         bound *= min(1 + self._steps_without_robot, self.options.robot_gate_max_span)
         if not np.abs(dx_robot - dx_image).max() > bound:  # also False for bound = inf
             return None
-        trial = copy.deepcopy(kf).update(dx_image, _NAN2, c_match)
+        trial = copy.deepcopy(kf).update(dx_image, _NAN2, c_match, intervals)
         if trial.warmup and not self._innovations and not self._streak_judged():
             if c_match >= self.options.warmup_overlap_c_match:
                 return "glitch"  # the frames overlap: the registration is no lock
@@ -1173,6 +1193,13 @@ def _run(
     mosaicker = RobotPriorMosaicker(dataset.camera, options, estimate=estimate,
                                     fixed_pattern=pattern)
     robot = dataset.robot_xy_um
+    if estimate == "robot" and robot is not None and not np.isfinite(robot).all(axis=1).any():
+        ts = dataset.robot.timestamps
+        spacing = f" ({sample_spacing(ts) * 1e3:.3g} ms)" if ts.size > 1 else ""
+        raise no_robot_sample_error(
+            str(dataset.root / dataset.robot_file), n,
+            f"each lies outside its time span or in a gap between samples longer than 3x "
+            f"their typical spacing{spacing}")
     results: list[FrameResult] = []
     read_s = 0.0
     for k in tqdm(range(n), desc=method, disable=not progress, leave=False):
@@ -1207,8 +1234,8 @@ def _run(
     if estimate != "image":
         add_frames_without_robot_sample(
             details, dataset.frame_ids[~np.isfinite(robot).all(axis=1)].tolist(), n, estimate,
-            dataset.robot_file, "outside its time span, or in a gap longer than 3x its median "
-            "spacing")
+            dataset.robot_file, "outside its time span, or in a gap longer than 3x its typical "
+            "sample spacing")
     if estimate == "fused":  # robot and images both seen: do they move alike?
         add_robot_agreement(details, str(dataset.root / dataset.robot_file),
                             mosaicker.pixel_size_um, dataset.frame_times)
@@ -1272,6 +1299,14 @@ def add_inconsistency(details: dict, results: list, ids, estimate: str) -> None:
             "frames likely do not overlap (a scan too fast for the frame rate) or lack texture; "
             "X_m places them anyway and is unreliable (kalman-robot places them by the robot; "
             "report.json ncc_inconsistent)")
+
+
+def no_robot_sample_error(source: str, n: int, why: str) -> ValueError:
+    """The error of the robot method when none of the n frames has a robot sample (``why``):
+    it places frames by their samples alone, and failed later with "no placed frame to compose
+    a mosaic from", naming neither the file nor the cause (review)."""
+    return ValueError(f"{source}: none of the {n} frames has a robot sample ({why}): method "
+                      "'robot' places frames by their robot samples alone and has none to place")
 
 
 def add_frames_without_robot_sample(details: dict, missing: list[int], n: int, estimate: str,

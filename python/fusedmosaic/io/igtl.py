@@ -55,12 +55,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from fusedmosaic.io.tracking import (
+    GAP_SPACINGS,
     MAX_TRANSLATION_MM,
     TrackingSamples,
     camera_pose_from_sample,
     interpolate_camera_poses,
     rigid_defects,
     rigid_problems,
+    sample_spacing,
 )
 
 __all__ = ["IgtlImageServer", "IgtlSource", "LiveFrame", "StreamTimeout", "TrackerSample",
@@ -359,7 +361,8 @@ class IgtlSource:
         """The samples to evaluate at frame time t: [before, after] around it, [newest] at or
         before it (with extrapolate: [previous, newest] when they are within max_age_s of each
         other), or (None, age or None) when the newest one at or before t is missing or older
-        than max_age_s (None: 3 x the median spacing of the recent samples). With a
+        than max_age_s (None: 3 x the typical spacing of the recent samples,
+        io.tracking.sample_spacing: a robot reporting in pairs or bursts is no dropout). With a
         frame-synchronous sender (PLUS Server sends a frame's transform and image with one
         timestamp, in either order: seen once a sample's time equals a frame's) and during the
         first 5 frames, waits up to wait_s for a sample at or after t; a free-running tracker's
@@ -381,7 +384,7 @@ class IgtlSource:
         if times[-1] >= t and np.any(times == t):
             self._synchronous = True
         if max_age_s is None:
-            max_age_s = 3.0 * float(np.median(np.diff(times))) if times.size > 1 else np.inf
+            max_age_s = GAP_SPACINGS * sample_spacing(times) if times.size > 1 else np.inf
         before = int(np.searchsorted(times, t, side="right")) - 1
         if before < 0:
             return None, None

@@ -267,5 +267,9 @@ def sample_times(options, prefix: str, t_last: float) -> np.ndarray:
     samples or reaches beyond io.tracking.MAX_TIMESTAMP_S (the validators check this first,
     with the frame count)."""
     check_samples(options, prefix, t_last)
-    j0, j1, period = _sample_range(options, prefix, t_last)
-    return getattr(options, f"{prefix}_offset_s") + np.arange(j0, j1 + 1) * period
+    j0, j1, _ = _sample_range(options, prefix, t_last)
+    # j / rate, as frame_times' k / fps: a sampler at the frame rate with offset 0 stamps the
+    # frame times exactly (j * (1 / rate) gave 0.30000000000000004 for frame 3 at 0.3 s, and
+    # a live replay took the sample 100 ms older; review)
+    rate = getattr(options, f"{prefix}_rate_hz")
+    return getattr(options, f"{prefix}_offset_s") + np.arange(j0, j1 + 1) / rate
