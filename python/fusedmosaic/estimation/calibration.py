@@ -102,6 +102,13 @@ MIN_HAND_EYE_VIEWS = 3
 MIN_RELATIVE_ROTATION_DEG = 5.0  # pairs of views rotating less say little about X's rotation
 OUTLIER_VIEW_FACTOR = 3.0
 MAX_FOCAL_RELATIVE_STD = 0.02  # above it the views are too alike to calibrate from
+# RMS reprojection error (px) above which the camera model is suspect (a warning, and named in
+# the hand-eye's disagreement): cornerSubPix finds a clear board's corners to ~0.05-0.2 px, so a
+# model that fits the lens leaves about that (the simulator: 0.045 px; 0.34-0.43 px at 320x320
+# with a strong pincushion), while a lens model lacking coefficients leaves a systematic error
+# several times larger (--distortion 0 on the simulator's k1 = -0.3 lens: 0.87 px, cx 12 px
+# off for a reported standard error of 0.75 px). 0.5 px: above any fitting model's, below that.
+MAX_REPROJECTION_RMS_PX = 0.5
 # Board normals (in the camera frame) of the intrinsics' views spreading less than this (RMS
 # angle about their mean) are Zhang's degenerate case, parallel views: the focal length is not
 # determined and OpenCV's standard error says nothing of it. Measured on the simulator (60 views
@@ -649,24 +656,25 @@ def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeR
     """The offset d (s) such that the tracker sample interpolated at t + d belongs to the frame
     at t: the d whose hand-eye fit leaves the smallest cost, over the views the tracker covers
     at every d in [-max_offset_s, max_offset_s] and with the noise of the first fit held (so the
-    costs compare; the board's scale free as in ``first``). The range is scanned in 5 ms steps
-    comparing the angles the scope turns between consecutive views by the board and by the
-    tracker (no hand-eye: cheap over any range; the hand-eye refitted at the scan's best when
-    that is not 0), the fit's cost is then compared in 5 ms steps around the scan's best
-    (widened while the best lies at its edge) and minimised by a bounded search. Standard
-    error ("std_s"): the larger of the cost's curvature's (cost = chi^2 / 2: views independent,
-    "std_curvature_s") and a bootstrap over BOOTSTRAP_BLOCK_S blocks of views by their frame
-    ``times`` (s), linearised as bootstrap_hand_eye's with the offset a parameter beside the
-    hand-eye ("std_bootstrap_s"): the errors of neighbouring views correlate (a tracker sample
-    interpolated to several frames, the interpolation's error along a motion), which the
-    curvature counts as independent. Measured on the simulator (bench/bench_time_offset_se.py,
-    20 seeds, true offsets within +-80 ms; errors within +-1.96 standard errors, RMS error /
-    median standard error): a 40 Hz tracker (0.9 deg / 0.25 mm) 20 / 20, 0.84 (the curvature's
-    19 / 20, 0.85); at 10 Hz 19 / 20, 0.88 (curvature 12 / 20, 2.43); at 10 Hz with 0.1 deg /
-    0.03 mm 20 / 20, 0.87 (curvature 7 / 20, 3.02; its samples half a period later against
-    the frames: 20 / 20, 0.77 against 6 / 20, 2.94). At 10 Hz the errors share a bias (-0.6
-    ms; +0.5 at the other phase): the splines' error along the simulator's motions, which the
-    standard error covers but does not remove.
+    costs compare; the board's scale free as in ``first``). The range is scanned in ~5 ms steps
+    (at least -bound, 0 and +bound) comparing the angles the scope turns between consecutive
+    views by the board and by the tracker (no hand-eye: cheap over any range; the hand-eye
+    refitted at the scan's best when that is not 0), the fit's cost is then compared in those
+    steps around the scan's best (widened while the best lies at its edge) and minimised by a
+    bounded search. An estimate within min(5 ms, a tenth of the bound) of the bound lies at it.
+    Standard error ("std_s"): the larger of the cost's curvature's (cost = chi^2 / 2: views
+    independent, "std_curvature_s") and a bootstrap over BOOTSTRAP_BLOCK_S blocks of views by
+    their frame ``times`` (s), linearised as bootstrap_hand_eye's with the offset a parameter
+    beside the hand-eye ("std_bootstrap_s"): the errors of neighbouring views correlate (a
+    tracker sample interpolated to several frames, the interpolation's error along a motion),
+    which the curvature counts as independent. Measured on the simulator
+    (bench/bench_time_offset_se.py, 20 seeds, true offsets within +-80 ms; errors within +-1.96
+    standard errors, RMS error / median standard error): a 40 Hz tracker (0.9 deg / 0.25 mm) 20
+    / 20, 0.84 (the curvature's 19 / 20, 0.85); at 10 Hz 19 / 20, 0.88 (curvature 12 / 20,
+    2.43); at 10 Hz with 0.1 deg / 0.03 mm 20 / 20, 0.87 (curvature 7 / 20, 3.02; its samples
+    half a period later against the frames: 20 / 20, 0.77 against 6 / 20, 2.94). At 10 Hz the
+    errors share a bias (-0.6 ms; +0.5 at the other phase): the splines' error along the
+    simulator's motions, which the standard error covers but does not remove.
     Still views alone (the board found only while the scope rests, e.g. lost to motion blur
     during the moves; ``still`` (N,) marks the views held still, filmed_motion_std) show the
     offset only where the tracker interpolated across a rest's edge runs into a move: there the
@@ -713,7 +721,15 @@ def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeR
                 "views": int(common.sum()),
                 "reason": f"fewer than {MIN_HAND_EYE_VIEWS} views tracked at every offset"}
     fine = 0.005
-    grid = np.linspace(-max_offset_s, max_offset_s, int(round(2 * max_offset_s / fine)) + 1)
+    # Steps of about `fine`, an odd count: 0 and both bounds are always on the grid (a bound
+    # under 2.5 ms made it the single point -bound, and the estimate was forced there).
+    half = max(int(round(max_offset_s / fine)), 1)
+    grid = np.linspace(-max_offset_s, max_offset_s, 2 * half + 1)
+    # An estimate this close to the bound lies at it (the minimiser ends within xatol of it
+    # when the cost still falls beyond): both scale with a bound below `fine` (a 5 ms
+    # tolerance put every estimate at a 4 ms bound, 0 included).
+    at_bound_tolerance = min(fine, 0.1 * max_offset_s)
+    xatol = min(1e-4, 0.02 * max_offset_s)
     # The coarse scan compares how far the scope turns between consecutive views, by the board
     # and by the tracker: angle(A_k^-1 A_k+1) = angle(C_k C_k+1^-1) whatever the hand-eye, so
     # it needs none (holding the one fitted at offset 0 found -53 ms for clocks 0.6 s apart).
@@ -745,13 +761,13 @@ def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeR
             lo, hi = max(min(lo, i - 2), 0), min(max(hi, i + 2), grid.size - 1)
         lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
         return minimize_scalar(cost, bounds=(lo, hi), args=(method,), method="bounded",
-                               options={"xatol": 1e-4})
+                               options={"xatol": xatol})
 
     search = minimise(i)
     best = float(search.x)
     curvature = (cost(best + h) + cost(best - h) - 2 * search.fun) / h ** 2
     std = float(1 / np.sqrt(curvature)) if curvature > 0 else float("inf")
-    at_bound = abs(abs(best) - max_offset_s) < fine
+    at_bound = abs(abs(best) - max_offset_s) < at_bound_tolerance
     out = {"estimated": True, "estimate_s": float(best), "std_s": std,
            "std_curvature_s": std, "views": int(common.sum()), "applied_s": 0.0,
            "at_bound": bool(at_bound), "search_bound_s": float(max_offset_s)}
@@ -1160,11 +1176,18 @@ def calibrate_detections(
     pattern = f"{o.board_cols}x{o.board_rows}"
     searched = len(points) if searched is None else searched
     if len(points) < MIN_VIEWS:
+        if points and len(points) == searched:
+            # found in every frame searched: too few frames were searched, not a wrong board
+            advice = (f"lower --every (now {o.every}: one frame in {o.every} searched)"
+                      if o.every > 1 else "record more views")
+            advice = f"The board was found in every frame searched: {advice}"
+        else:
+            advice = ("Check the board size (inner corners, not squares) and that the whole "
+                      "board is in view")
         raise ValueError(
             f"{source}: the {pattern} board (inner corners, columns x rows) was found in "
             f"{len(points)} of {searched} frames searched; calibration needs at least "
-            f"{MIN_VIEWS} views (15-30 at varied angles are advised). Check the board size "
-            "(inner corners, not squares) and that the whole board is in view")
+            f"{MIN_VIEWS} views (15-30 at varied angles are advised). {advice}")
     # Frames of one board pose (a still scope, a pause at each view) are one view: the
     # intrinsics take one frame of each distinct pose, the hand-eye's errors are resampled by
     # pose.
@@ -1208,10 +1231,17 @@ def calibrate_detections(
             "different distances)")
     focal_std = float(max(std[0] / K[0, 0], std[1] / K[1, 1]))
     if not np.isfinite(focal_std) or focal_std > MAX_FOCAL_RELATIVE_STD:
+        # The board in under half the frames searched: a wrong --board finds a part of the board
+        # in a few (8x6 on a 9x6 board: 4 views), and more angles would not help.
+        board = "" if 2 * len(points) >= searched else (
+            f"; the {pattern} board was found in only {len(points)} of {searched} frames "
+            "searched: check --board (inner corners, columns x rows: a board of 10x7 squares "
+            "is 9x6; a wrong size can match a part of the board)")
         raise ValueError(
             f"{source}: the {len(chosen)} distinct views do not determine the focal length "
             f"(standard error {100 * focal_std:.1f} %): film the board from more, different "
-            "angles (tilted by 20-40 degrees in different directions, at different distances)")
+            "angles (tilted by 20-40 degrees in different directions, at different distances)"
+            f"{board}")
     usable &= pnp_max <= limit
     usable[chosen[dropped]] = False
     camera = Camera(size[0], size[1], camera_matrix=K,
@@ -1244,6 +1274,10 @@ def calibrate_detections(
         "timings_s": {"intrinsics": time.perf_counter() - t0},
     }
 
+    model_warning = _camera_model_warning(report["intrinsics"]["rms_px"], o)
+    if model_warning:
+        report["intrinsics"]["warning"] = model_warning
+        warnings.warn(f"{source}: {model_warning}", stacklevel=2)
     hand_eye, error = None, None
     if tracking is None:
         report["hand_eye"] = {"skipped": hand_eye_skipped or "no tracker samples"}
@@ -1254,12 +1288,37 @@ def calibrate_detections(
                        poses[keep], [points[i] for i in keep], label[keep], detections.step)
         try:
             hand_eye, report["hand_eye"] = _hand_eye_stage(tracking, tracking_source, views, K,
-                                                           dist, o)
+                                                           dist, o, model_warning=model_warning)
         except ValueError as exc:
             error = str(exc)
             report["hand_eye"] = {"failed": error}
         report["timings_s"]["hand_eye"] = time.perf_counter() - t0
     return CalibrationResult(camera, hand_eye, report, error)
+
+
+def _camera_model_warning(rms_px: float, o: CalibrationOptions) -> str:
+    """What to say of an RMS reprojection error above MAX_REPROJECTION_RMS_PX ("" below): the
+    lens model and what to try instead."""
+    if not rms_px > MAX_REPROJECTION_RMS_PX:
+        return ""
+    n = o.coefficients
+    if o.lens_model == "fisheye":
+        hint = ("estimate the fisheye's k1..k4 (--distortion 4)" if n < FISHEYE_COUNT else
+                "the pinhole model with more coefficients (--lens-model pinhole --distortion 8)")
+    elif n < 5:
+        hint = ("more distortion coefficients (--distortion 5) or, for a wide-angle scope, "
+                "--lens-model fisheye")
+    elif n < 8:
+        hint = ("--distortion 8 (the rational model) or, for a wide-angle scope, "
+                "--lens-model fisheye")
+    else:
+        hint = "--lens-model fisheye"
+    model = f"{o.lens_model} model with {n} distortion coefficient{'s' * (n != 1)}"
+    return (f"the RMS reprojection error is {rms_px:.3f} px, above the "
+            f"{MAX_REPROJECTION_RMS_PX:g} px a camera model fitting the lens leaves (corners on "
+            f"a clear board are found to ~0.05-0.2 px): the {model} may not describe this lens, "
+            f"and its intrinsics and their standard errors are then biased; try {hint} (or check "
+            "the frames for motion blur and an out-of-focus board)")
 
 
 @dataclass
@@ -1321,11 +1380,14 @@ def _check_hand_eye_groups(source: str, still_views: int, blocks: np.ndarray,
 
 
 def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np.ndarray,
-                    o: CalibrationOptions) -> tuple[np.ndarray, dict]:
+                    o: CalibrationOptions, *,
+                    model_warning: str = "") -> tuple[np.ndarray, dict]:
     """The hand-eye of calibrate_detections from the usable views and its report; ValueError
     naming tracking.csv (``source``) when it fails or the result is implausible: the tracker
-    and the board disagree, the board's scale against the tracker's is not 1 (--square-mm, the
-    tracker's unit), or the clock offset lies at the search bound."""
+    and the board disagree (naming the camera model as a suspect when ``model_warning``, its
+    RMS reprojection error high: _camera_model_warning), the board's scale against the
+    tracker's is not 1 (--square-mm, the tracker's unit), or the clock offset lies at the
+    search bound."""
     from fusedmosaic.io.tracking import interpolate_camera_poses
 
     times, poses = views.times, views.poses
@@ -1438,12 +1500,16 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
         # the prior (--rot-sigma / --trans-sigma; it read 1.00 deg / 1.00 mm).
         rms = [float(np.sqrt(np.mean(r ** 2) / 3)) for r in (fit.rotation_residual_deg,
                                                                fit.translation_residual_mm)]
+        # A lens model that does not fit biases every board pose: the first suspect then
+        suspect = "" if not model_warning else (
+            f"Suspect the camera model first: {model_warning}. Otherwise check")
         raise ValueError(
             f"{source}: the tracker and the board disagree: {outliers} of {n} "
             f"{'tracker samples' if mode == 'still' else 'views'} beyond 3 sigma, RMS "
             f"residuals {rms[0]:.2f} deg / {rms[1]:.2f} mm per axis (an EM tracker: tenths). "
-            "Check that tracking.csv holds tracker_from_sensor (not its inverse) with "
-            "quaternions x, y, z, w and translations in mm, the board's --square-mm, and the "
+            f"{suspect or 'Check'} that tracking.csv holds tracker_from_sensor (not its "
+            "inverse) with quaternions x, y, z, w and translations in mm, the board's "
+            "--square-mm, and the "
             f"frame times (frames.csv, or --fps without it){bound_hint}")
 
     check_agreement(free)
@@ -1593,10 +1659,14 @@ class TrackerCalibration:
     time_offset_note: str = ""
 
 
-def read_tracker_calibration(path: str | Path) -> TrackerCalibration:
+def read_tracker_calibration(path: str | Path,
+                             dataset: str | Path | None = None) -> TrackerCalibration:
     """The tracker's time offset and noise from a calibration.json calibrate wrote (its
     "hand_eye" entry); ValueError naming the file when it has no hand-eye calibration or a
-    value is missing or out of range."""
+    value is missing or out of range. ``dataset``: the dataset the calibration is for (run's);
+    when its tracking.csv was already shifted by a tracker time offset at import
+    (io.plus.applied_tracker_time_offset), calibration.json's offset is not applied again:
+    time_offset_s 0, with a warning and the note saying so."""
     from fusedmosaic.io.output import read_json_object
     from fusedmosaic.io.tracking import check_time_offset
 
@@ -1608,8 +1678,13 @@ def read_tracker_calibration(path: str | Path) -> TrackerCalibration:
     why = (he.get("skipped") or he.get("failed")) if isinstance(he, dict) else \
         'no "hand_eye" entry'
     if why:
+        # "calibrate a recording with tracking.csv" only where it had none: a failed hand-eye
+        # had one (a wrong --square-mm, a tracker in another convention)
+        advice = ("calibrate a recording with tracking.csv" if he.get("skipped") else
+                  "the hand-eye failed at calibrate: correct what its message names and "
+                  "calibrate again")
         raise ValueError(f"{path}: holds no hand-eye calibration ({why}), so no tracker time "
-                         "offset or noise: calibrate a recording with tracking.csv")
+                         f"offset or noise: {advice}")
     try:
         entry = he["tracker_time_offset"]
         offset = entry["applied_s"]
@@ -1635,6 +1710,17 @@ def read_tracker_calibration(path: str | Path) -> TrackerCalibration:
                 else "as given to calibrate")
     else:
         note = ""
+    if dataset is not None and offset:
+        from fusedmosaic.io.plus import IMPORT_RECORD, applied_tracker_time_offset
+
+        done = applied_tracker_time_offset(dataset)
+        if done:  # tracking.csv is on the video's clock already: a second shift would err
+            warnings.warn(
+                f"{Path(dataset) / 'tracking.csv'} was already shifted by the tracker time "
+                f"offset {done:+g} s at import ({Path(dataset) / IMPORT_RECORD}); "
+                f"{path}'s offset {offset:+g} s not applied again", stacklevel=2)
+            offset, note = 0.0, (f"not applied: tracking.csv was shifted by {done:+g} s at "
+                                 "import")
     return TrackerCalibration(offset, float(sigma[0]), float(sigma[1]),
                               str(he.get("tracker_sigma_from", "")), note)
 

@@ -25,6 +25,7 @@ The header is written in UTF-8 and read as UTF-8, a line that is not valid UTF-8
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import tempfile
@@ -53,9 +54,11 @@ from fusedmosaic.io.tracking import (
 )
 
 __all__ = [
+    "IMPORT_RECORD",
     "ImportSummary",
     "PlusSequence",
     "SelectedTransform",
+    "applied_tracker_time_offset",
     "import_plus_sequence",
     "read_plus_sequence",
     "write_plus_sequence",
@@ -72,6 +75,12 @@ FRAME_PREFIX = "Seq_Frame"
 _FRAME_KEY = re.compile(r"Seq_Frame(\d+)_(\S+)\Z")
 _MAX_HEADER_LINE = 1 << 20  # bytes; longer means binary data, not a header line
 _SHOWN = 5  # frames listed in a message
+# What import writes into the dataset when it shifted tracking.csv by a tracker time offset
+# (applied_tracker_time_offset reads it).
+IMPORT_RECORD = "import.json"
+# deflate's largest compression ratio is ~1032:1 (a 258-byte match per 2-bit code); a margin
+# above it for the stream's header and trailer
+MAX_ZLIB_RATIO = 1100
 
 
 def _transform_field(name: str) -> str:
@@ -496,6 +505,9 @@ def _read_pixels(path: Path, header, header_end: int, shape: tuple[int, ...],
             raise ValueError(f"{path}: HeaderSize {skip} is not supported (expected >= 0, or -1 "
                              "for uncompressed data at the end of the file)")
         offset = max(size - expected, 0) if skip == -1 else skip  # -1: the file's last bytes
+        if offset > size:  # (it read "image data is -99904 bytes")
+            raise ValueError(f"{path}: HeaderSize {skip} is beyond the end of the data file "
+                             f"{data_path}, which is {size} bytes")
     found = size - offset
     if not compressed:
         if found != expected:
@@ -513,9 +525,29 @@ def _read_pixels(path: Path, header, header_end: int, shape: tuple[int, ...],
         if found != parsed:
             raise ValueError(f"{path}: compressed image data is {found} bytes but "
                              f"CompressedDataSize says {parsed}")
+    # zlib's deflate cannot compress by more than ~1032:1 (its longest match, 258 bytes, in a
+    # code of at least 2 bits): a header asking for more than MAX_ZLIB_RATIO x the compressed
+    # bytes is damaged or not this data's, refused before allocating (a 278-byte file asking for
+    # 9 TiB ended in numpy's MemoryError traceback)
+    if expected > MAX_ZLIB_RATIO * max(found, 1):
+        raise ValueError(f"{path}: {what} decompressed ({_bytes_text(expected)}) from {found} "
+                         f"compressed bytes, more than zlib's maximum ratio (~1032:1) allows: "
+                         "the header (DimSize, ElementNumberOfChannels) does not match the data, "
+                         "or the file is damaged")
     # inflated chunk by chunk into one preallocated array: memory = the images, not the
     # images + the compressed file + a second copy
-    pixels = np.empty(expected, np.uint8)
+    memory = _physical_memory()
+    too_big = (f"{path}: {what}, {_bytes_text(expected)} decompressed, more than this machine "
+               f"can hold{'' if memory is None else f' ({_bytes_text(memory)} of memory)'}: a "
+               "compressed sequence is decompressed into memory. Write it uncompressed (PLUS's "
+               "EditSequenceFile can; an uncompressed sequence is read memory-mapped, frame by "
+               "frame)")
+    if memory is not None and expected > memory:
+        raise ValueError(too_big)
+    try:
+        pixels = _allocate(expected)
+    except MemoryError:
+        raise ValueError(too_big) from None
     done = 0
     inflate = zlib.decompressobj()
     try:
@@ -538,6 +570,29 @@ def _read_pixels(path: Path, header, header_end: int, shape: tuple[int, ...],
         found_text = f"{done}" if done <= expected else f"more than {expected}"
         raise ValueError(f"{path}: decompressed image data is {found_text} bytes but {what}")
     return pixels.reshape(shape)
+
+
+def _allocate(size: int) -> np.ndarray:
+    """The buffer a compressed sequence is decompressed into (a function: the tests make it
+    fail)."""
+    return np.empty(size, np.uint8)
+
+
+def _physical_memory() -> int | None:
+    """This machine's physical memory in bytes (None where the OS does not say): beyond it an
+    allocation may succeed (overcommitted) and the process be killed while filling it."""
+    try:
+        return int(os.sysconf("SC_PHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def _bytes_text(n: int) -> str:
+    """A byte count for messages: 9.1 TiB, 120 MiB, 96 bytes."""
+    for unit, scale in (("TiB", 1 << 40), ("GiB", 1 << 30), ("MiB", 1 << 20), ("KiB", 1 << 10)):
+        if n >= scale:
+            return f"{n / scale:.3g} {unit}"
+    return f"{n} bytes"
 
 
 def _timestamps(path: Path, fields: list[dict]) -> np.ndarray:
@@ -930,6 +985,17 @@ def import_plus_sequence(
             image = sequence.images[i]
             yield np.ascontiguousarray(image[..., ::-1] if sequence.channels == 3 else image)
 
+    # tracking.csv already on the video's clock: said in the dataset (IMPORT_RECORD), so that
+    # run --calibration does not shift it again by calibration.json's offset
+    # (applied_tracker_time_offset)
+    extra = {} if tracking is None or not tracker_time_offset else {IMPORT_RECORD: json.dumps({
+        "tracker_time_offset_applied_s": tracker_time_offset,
+        "source": str(sequence.path),
+        "transform": selected.source,
+        "note": (f"tracking.csv's timestamps are the tracker's shifted by "
+                 f"{-tracker_time_offset:+g} s (import --tracker-time-offset): on the video's "
+                 "clock; run --calibration does not apply calibration.json's offset again"),
+    }, indent=2) + "\n"}
     # frames.csv keeps the sequence indices as frame ids (frames left out leave a gap), so the
     # ids match annotations of the recording.
     written = write_dataset(
@@ -940,6 +1006,7 @@ def import_plus_sequence(
         frame_ids=kept,
         tracking=tracking,
         hand_eye=sensor_from_camera,
+        extra_files=extra,
         overwrite=overwrite,
     )
     return ImportSummary(
@@ -958,3 +1025,17 @@ def import_plus_sequence(
         tracker_time_offset=tracker_time_offset,
     )
 
+
+def applied_tracker_time_offset(root: str | Path) -> float | None:
+    """The tracker time offset (s) import_plus_sequence already applied to the dataset
+    ``root``'s tracking.csv (``import --tracker-time-offset S``: its timestamps shifted by -S,
+    on the video's clock), from its IMPORT_RECORD; None when the dataset has none (nothing
+    shifted at import). ValueError naming the file when it is unreadable or the value is not a
+    number within the offsets import takes."""
+    from fusedmosaic.io.output import read_json_object
+
+    path = Path(root) / IMPORT_RECORD
+    if not path.is_file():
+        return None
+    return check_time_offset(read_json_object(path).get("tracker_time_offset_applied_s"),
+                             f"{path}: tracker_time_offset_applied_s")

@@ -314,11 +314,22 @@ def _random_view(o: CheckerboardOptions, K, dist, rng, corners) -> np.ndarray:
             T[:3, :3], T[:3, 3] = R.as_matrix(), t
             return T
     name = type(o).__name__
+    # The board's inner corners facing the camera at the farthest views, through a pinhole:
+    # wider than the image there, the focal length is the first suspect (--focal-factor 1e6
+    # was told to raise the distance or give a milder lens).
+    far_mm = o.distance_mm * (1 + o.distance_variation)
+    board_px = K[0, 0] * float(np.max(extent[:2])) / far_mm
+    room = min(o.width, o.height) - 2 * margin
+    advice = (f"raise {name}.distance_mm, lower {name}.square_mm, or give a milder lens"
+              if board_px <= room else
+              f"at the farthest views ({far_mm:g} mm) it would span {board_px:.3g} px with "
+              f"{name}.focal_factor {o.focal_factor:g}, where the image leaves {room:.0f} px: "
+              f"lower {name}.focal_factor (or raise {name}.distance_mm, lower "
+              f"{name}.square_mm)")
     raise ValueError(
         f"{name}: no view shows the whole {o.board_cols}x{o.board_rows} board inside the "
         f"{o.width}x{o.height} image through the lens ({o.lens_options} = "
-        f"{', '.join(f'{v:.3g}' for v in dist)}): raise "
-        f"{name}.distance_mm, lower {name}.square_mm, or give a milder lens")
+        f"{', '.join(f'{v:.3g}' for v in dist)}): {advice}")
 
 
 def _path(views: np.ndarray, period: float, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
