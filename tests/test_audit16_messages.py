@@ -259,7 +259,9 @@ def test_drift_note_says_why_the_ratio_is_undefined():
     assert np.isnan(drift_ratio(inf_first))  # no RuntimeWarning (warnings are errors here)
     assert "holds a frame placed at infinity" in drift_note(inf_first)
     inf_last = np.array([1.0, 1, 1, 1, 1, 1, 1, np.inf])
-    assert drift_ratio(inf_last) == np.inf and drift_note(inf_last) is None
+    assert drift_ratio(inf_last) == np.inf  # (with a note since review C #8)
+    assert drift_note(inf_last) == ("the last quarter (frames 6-7) holds a frame placed at "
+                                    "infinity (e_j inf): the ratio is infinite")
     assert drift_ratio(np.ones(10)) == 1.0 and drift_note(np.ones(10)) is None
 
 

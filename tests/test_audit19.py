@@ -57,11 +57,12 @@ def test_compare_with_an_output_placing_under_two_frames_keeps_the_other_pairs(d
     printed = capsys.readouterr().out
     assert ("Wilcoxon signed-rank robot vs lone: n/a: 1 frame placed by both (the test needs "
             "at least 2)") in printed
-    assert "Wilcoxon signed-rank robot vs robot: p = 1 (n = 8)" in printed
+    assert ("Wilcoxon signed-rank robot vs robot: p = 1 (n = 8, 0 ranked): no paired difference "
+            "above 1e-06: nothing to rank") in printed
     lone_pair, same = json.loads((tmp_path / "e.json").read_text())["wilcoxon"]
     assert lone_pair["n"] == 1 and lone_pair["p_value"] is None
     assert lone_pair["note"].startswith("n/a: 1 frame placed by both")
-    assert same["n"] == 8 and same["p_value"] == 1.0
+    assert same["n"] == 8 and same["n_ranked"] == 0 and same["p_value"] == 1.0
 
 
 @pytest.mark.parametrize("gap, bad", [(["5", "50"], 50), (["-3", "2"], -3)])

@@ -200,3 +200,19 @@ def test_report_json_always_lists_warnings(data, tmp_path):
     assert main(["--quiet", "run", str(data / "feto"), "--method", "pairwise", "--out",
                  str(out), "--no-report"]) == 0
     assert isinstance(json.loads((out / "report.json").read_text())["warnings"], list)
+
+
+def test_live_lba_emt_without_hand_eye_is_warned(data, tmp_path, capsys):
+    """live took the tracker's sensor as the camera without a word when --hand-eye was left
+    out (the README's lines left it out: e_M 6.8 px against 0.37 on simulated data). Refused
+    here before connecting (an existing recording folder); the warning comes first."""
+    (tmp_path / "rec").mkdir()
+    (tmp_path / "rec" / "notes.txt").write_text("mine")
+    argv = ["live", "127.0.0.1:1", "--camera", str(data / "feto" / "camera.yaml"),
+            "--transform", "SensorToTracker", "--record", str(tmp_path / "rec"), "--out",
+            str(tmp_path / "out")]
+    assert main(argv) == 2
+    assert "live: no --hand-eye: the tracker's sensor is taken as the camera" in \
+        capsys.readouterr().err
+    assert main([*argv, "--hand-eye", str(data / "feto" / "hand_eye.txt")]) == 2
+    assert "--hand-eye" not in capsys.readouterr().err

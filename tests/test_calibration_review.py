@@ -324,3 +324,47 @@ def test_simulate_checkerboard_names_the_focal_factor(tmp_path, capsys):
              r"px with --focal-factor 1e\+06, where the image leaves 118 px: lower "
              r"--focal-factor \(or raise --distance-mm, lower --square-mm\)\n$", capsys)
     assert not (tmp_path / "s").exists()
+
+
+def test_run_calibration_on_an_import_shifted_dataset_does_not_shift_again(tmp_path, capsys):
+    """import --tracker-time-offset S, then run --calibration CAL (offset S): tracking.csv is
+    not shifted a second time (it was by 2 S, silently); one warning says so; an explicit
+    --tracker-time-offset still applies as given."""
+    from fusedmosaic.io import interpolate_camera_poses, read_dataset
+    from fusedmosaic.simulation import FetoscopyOptions, simulate_fetoscopy
+
+    data = simulate_fetoscopy(tmp_path / "syn", FetoscopyOptions(n_frames=12, laps=12 / 37.5,
+                                                                  width=200, height=200))
+    ds = read_dataset(data)
+    cam_from_sensor, _ = interpolate_camera_poses(ds.tracking, ds.timestamps)
+    R = Rotation.from_rotvec(cam_from_sensor[:, :3]).inv()
+    T = np.tile(np.eye(4), (len(ds), 1, 1))
+    T[:, :3, :3], T[:, :3, 3] = R.as_matrix(), -R.apply(cam_from_sensor[:, 3:])
+    seq = write_plus_sequence(tmp_path / "rec.igs.mha", np.stack(list(ds.frames))[..., ::-1],
+                              ds.timestamps, {"SensorToTracker": T})
+    imported = tmp_path / "imported"
+    assert main(["--quiet", "import", str(seq), str(imported), "--camera",
+                 str(data / "camera.yaml"), "--hand-eye", str(data / "hand_eye.txt"),
+                 "--tracker-time-offset", "0.02"]) == 0
+    cal = {"hand_eye": {"tracker_time_offset": {"estimated": True, "estimate_s": 0.02,
+                                                "applied_s": 0.02},
+                        "tracker_sigma_deg": 0.9, "tracker_sigma_mm": 0.25}}
+    (tmp_path / "calibration.json").write_text(json.dumps(cal))
+    with warnings.catch_warnings():
+        warnings.simplefilter("default")
+        assert main(["run", str(imported), "--method", "emt", "--out", str(tmp_path / "out"),
+                     "--calibration", str(tmp_path / "calibration.json"), "--allow-untracked",
+                     "--no-report"]) == 0
+    said = capsys.readouterr()
+    assert said.err.count("already shifted by the tracker time offset +0.02 s at import") == 1
+    assert "not applied again" in said.err
+    assert ("tracker time offset +0.0000 s (not applied: tracking.csv was shifted by +0.02 s "
+            "at import)") in said.out
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["tracker_time_offset_s"] == 0.0
+    # an explicit offset applies as given
+    assert main(["--quiet", "run", str(imported), "--method", "emt", "--out",
+                 str(tmp_path / "out2"), "--tracker-time-offset", "0.02", "--allow-untracked",
+                 "--no-report"]) == 0
+    assert json.loads((tmp_path / "out2" / "report.json").read_text())[
+        "tracker_time_offset_s"] == 0.02

@@ -831,15 +831,24 @@ def test_evaluate_refuses_or_warns_about_another_dataset(data, emt_out, tmp_path
     assert (f"{pcle / 'report.json'}: the output was computed on 128x112 frames, the truth "
             f"dataset {data / 'feto'} has 400x400 frames" in capsys.readouterr().err)
     assert not (pcle / "evaluation.json").exists()
-    # another pCLE recording of the same size: scored, but with a warning
+    # another pCLE recording of the same size: refused (its frames differ), nothing written;
+    # with --allow-other-dataset scored, but with a warning
     other = tmp_path / "other"
     assert main(["--quiet", "simulate", "pcle", str(other), "--n-frames", "8", "--width", "128",
                  "--height", "112", "--trajectory", "spiral"]) == 0
-    assert main(["--quiet", "evaluate", str(pcle), "--truth", str(other), "--no-report"]) == 0
+    assert main(["--quiet", "evaluate", str(pcle), "--truth", str(other), "--no-report"]) == 2
+    assert capsys.readouterr().err.startswith(
+        f"fusedmosaic: error: {pcle / 'report.json'} records the dataset "
+        f"{(data / 'pcle').resolve()}, but {other} differs from it")
+    assert not (pcle / "evaluation.json").exists()
+    assert main(["--quiet", "evaluate", str(pcle), "--truth", str(other), "--no-report",
+                 "--allow-other-dataset"]) == 0
     err = capsys.readouterr().err
     assert err.startswith(f"fusedmosaic: warning: {pcle / 'report.json'} records the dataset "
                           f"{(data / 'pcle').resolve()}, but {other} differs from it")
-    assert "ground_truth.csv" in err
+    # (its truth differs too: a note of its own, not a reason for the warning)
+    assert "ground_truth.csv" not in err.splitlines()[0]
+    assert "fusedmosaic: note: " in err and "the truth changed since the run" in err
     # a moved copy of the right dataset is fine
     moved = tmp_path / "moved"
     shutil.copytree(data / "pcle", moved)
@@ -883,6 +892,7 @@ def test_evaluate_positions_tests_the_sampled_frames_and_refuses_more_than_there
     assert test["n"] == 8 and test["frames"] == "all" and "positions" not in test
     # more positions than frames: refused (statistics over 8 frames would pass for 13)
     (exact / "evaluation.json").unlink()
+    capsys.readouterr()  # (the notes that exact and shifted have no report.json)
     assert main([*argv, "--positions", "13"]) == 2
     assert capsys.readouterr().err == (
         f"fusedmosaic: error: {truth}: 8 frames, fewer than the 13 evenly spaced frames asked "
@@ -905,9 +915,14 @@ def test_a_run_without_ground_truth_matches_its_dataset(data, tmp_path, capsys):
     assert capsys.readouterr().err == ""
     (nogt / "camera.yaml").write_text((nogt / "camera.yaml").read_text() + "\n# edited\n")
     assert run(nogt, tmp_path / "o", "emt") == 0
+    # another camera.yaml: another dataset, refused unless --allow-other-dataset (a warning)
     assert main(["--quiet", "evaluate", str(tmp_path / "o"), "--truth", str(data / "feto"),
-                 "--no-report"]) == 0
-    assert "differs from it (camera.yaml)" in capsys.readouterr().err
+                 "--no-report"]) == 2
+    assert "differs from it (camera.yaml): it is another dataset" in capsys.readouterr().err
+    assert main(["--quiet", "evaluate", str(tmp_path / "o"), "--truth", str(data / "feto"),
+                 "--no-report", "--allow-other-dataset"]) == 0
+    err = capsys.readouterr().err
+    assert err.startswith("fusedmosaic: warning: ") and "differs from it (camera.yaml)" in err
 
 
 def test_evaluate_warns_about_other_frames_behind_the_same_files(data, tmp_path, capsys):
@@ -925,8 +940,14 @@ def test_evaluate_warns_about_other_frames_behind_the_same_files(data, tmp_path,
     for name in ("camera.yaml", "frames.csv"):  # the files alone cannot tell them apart
         assert (other / name).read_bytes() == (held_out / name).read_bytes()
     res = tmp_path / "res"
+    # refused (decision of review C #5), scored with a warning when allowed
     assert main(["--quiet", "evaluate", str(out), "--truth", str(other), "--json",
-                 str(res / "e.json")]) == 0
+                 str(res / "e.json")]) == 2
+    assert ("differs from it (pixels of the first, middle and last frame): it is another "
+            "dataset" in capsys.readouterr().err)
+    assert not (res / "e.json").exists()
+    assert main(["--quiet", "evaluate", str(out), "--truth", str(other), "--json",
+                 str(res / "e.json"), "--allow-other-dataset"]) == 0
     warning = (f"{out / 'report.json'} records the dataset {held_out.resolve()}, but {other} "
                "differs from it (pixels of the first, middle and last frame): the scores may "
                "compare the output with another dataset's ground truth")

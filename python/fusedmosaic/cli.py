@@ -243,7 +243,7 @@ def _tracker_calibration(args: argparse.Namespace, methods) -> None:
             raise ValueError(f"--calibration gives the tracker's time offset and noise; "
                              f"{' / '.join(given)} beside it would contradict it: give one or "
                              "the other")
-        cal = read_tracker_calibration(args.calibration)
+        cal = read_tracker_calibration(args.calibration, dataset=getattr(args, "dataset", None))
         args.tracker_time_offset = cal.time_offset_s
         said = f"tracker time offset {cal.time_offset_s:+.4f} s"
         if cal.time_offset_note:
@@ -388,7 +388,8 @@ def _say_hand_eye(args: argparse.Namespace, he: dict) -> None:
         _say(args, f"tracker time offset {shift:+.1f} +- {offset['std_s'] * 1e3:.1f} ms "
                    + (f"(applied: the frame at t takes the tracker sample at t {shift:+.1f} ms; "
                       f"give recordings of this set-up run/import --tracker-time-offset "
-                      f"{offset['applied_s']:.4f})" if offset["applied_s"]
+                      f"{offset['applied_s']:.4f}, or run --calibration with this "
+                      f"calibration.json: one or the other, not both)" if offset["applied_s"]
                       else f"(not applied: {offset.get('reason', 'not significant')})"))
     else:  # the reason was in calibration.json only
         _say(args, f"tracker time offset {offset['applied_s'] * 1e3:+.1f} ms: not estimated ("
@@ -455,6 +456,13 @@ def _cmd_live(args: argparse.Namespace) -> int:
                          "it grows); neither is given")
     blend, canvas = _blend_options(args), _canvas_options(args)
     check_compositing_options(blend, canvas, names=COMPOSITING_FLAGS)
+    if args.method == "lba-emt" and args.hand_eye is None:
+        # (a line on stderr, as warnings are shown, under --quiet too; README's live lines
+        # give --hand-eye: without it a simulated 4 deg / 6 mm offset gave e_M 6.8 px, not 0.4)
+        print("fusedmosaic: warning: live: no --hand-eye: the tracker's sensor is taken as the "
+              "camera (sensor_from_camera the identity); a sensor mounted off the camera "
+              "places every frame off, and the recording keeps no hand_eye.txt: give "
+              "calibrate's hand_eye.txt", file=sys.stderr)
     _say(args, f"live: connecting to {args.address} (Ctrl-C ends the session and writes the "
                "outputs)")
     summary = run_igtl(args.address, args.out, record=args.record, camera=args.camera,
@@ -553,7 +561,7 @@ def _format_table(results: list[dict]) -> str:
                      f"{_measure(r['e_M_px'], 3):>9} {_measure(r['max_e_j_px'], 3):>9} "
                      f"{_measure(r['drift_ratio'], 2):>7}")
         if r.get("drift_ratio_note"):
-            lines.append(f"  drift n/a: {r['drift_ratio_note']}")
+            lines.append(f"  drift {_measure(r['drift_ratio'], 2)}: {r['drift_ratio_note']}")
         for key, which in (("position_all_um", "all "), ("position_sampled_um", "")):
             if key in r:
                 s = r[key]
@@ -566,7 +574,7 @@ def _format_table(results: list[dict]) -> str:
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from fusedmosaic.evaluation import compare_position_errors, evaluate_output
-    from fusedmosaic.evaluation.metrics import check_positions_n, evenly_spaced
+    from fusedmosaic.evaluation.metrics import check_positions_n
     from fusedmosaic.io.output import OutputWriter, check_output_dir, is_under
 
     if args.positions is not None:
@@ -593,18 +601,23 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         raise ValueError(f"--json {json_path}: {exc}") from None
     plots = md_path.stem + "_plots"
     older = _check_report_destination(json_path, plots, report=not args.no_report)
-    results = [evaluate_output(o, args.truth, positions_n=args.positions) for o in outs]
+    results = [evaluate_output(o, args.truth, positions_n=args.positions,
+                               allow_other_dataset=args.allow_other_dataset) for o in outs]
     # (shown on the terminal, and in evaluation.md beside the scores they put in doubt)
-    notes = [f"**Warning:** {r['dataset_warning']}" for r in results if "dataset_warning" in r]
+    notes = []
     for r in results:
-        if "dataset_warning" in r:
-            print(f"fusedmosaic: warning: {r['dataset_warning']}", file=sys.stderr)
+        for key, kind in (("dataset_warning", "warning"), ("truth_note", "note"),
+                          ("provenance_note", "note")):
+            if key in r:
+                print(f"fusedmosaic: {kind}: {r[key]}", file=sys.stderr)
+                notes.append(f"**{kind.capitalize()}:** {r[key]}")
     report: dict = {"results": results}
     if len(results) > 1 and "position_errors_um" in results[0]:
         # with --positions, on the frames its statistics are over, as seed 004 (Sec. IV-B)
-        # tests its n = 13 / 25 evenly spaced images; else on every frame
+        # tests its n = 13 / 25 evenly spaced images (among the frames with a truth); else on
+        # every frame
         frames = (slice(None) if args.positions is None
-                  else evenly_spaced(len(results[0]["position_errors_um"]), args.positions))
+                  else _sampled_indices(args.truth, results[0]["position_sampled_frames"]))
         sample = ({"frames": "all"} if args.positions is None
                   else {"frames": "positions", "positions": args.positions})
         base = np.array([np.nan if e is None else e
@@ -626,8 +639,10 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     for w in report.get("wilcoxon", []):
         over = "" if w["frames"] == "all" else f" at the {w['positions']} evenly spaced frames"
         _say(args, f"Wilcoxon signed-rank {Path(w['a']).name} vs {Path(w['b']).name}{over}: "
-                   + (w["note"] if w["p_value"] is None else
-                      f"p = {w['p_value']:.3g} (n = {w['n']})"))
+                   + _wilcoxon_text(w))
+    if loaded is not None:  # the µm statistics, the tests and the drift notes in the .md too
+        notes += _evaluation_md_notes(results, report.get("wilcoxon", []),
+                                      [run.label for run in loaded[0]])
     # json, .md and plots replace the previous evaluation of that name as one set, or not at
     # all; an evaluation of the output folder it is written into goes when that folder is run
     # again.
@@ -647,6 +662,65 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if loaded is not None:
         _say(args, f"wrote {md_path} (plots in {md_path.parent / plots})")
     return 0
+
+
+def _wilcoxon_text(w: dict) -> str:
+    """A Wilcoxon entry of evaluation.json as text: "p = ... (n = ...)", with the pairs ranked
+    when ties (|difference| <= WILCOXON_ZERO) were dropped, or its note when it has no test."""
+    if w["p_value"] is None:
+        return w["note"]
+    n = f"n = {w['n']}"
+    if w.get("n_ranked", w["n"]) != w["n"]:
+        n += f", {w['n_ranked']} ranked"
+    return f"p = {w['p_value']:.3g} ({n})" + (f": {w['note']}" if w.get("note") else "")
+
+
+def _sampled_indices(truth, sampled_ids: list[int]) -> np.ndarray:
+    """Positions (rows of position_errors_um) of the frames --positions sampled."""
+    from fusedmosaic.io import read_dataset
+
+    ids = read_dataset(truth, allow_untracked=True, strict_tracking=False,
+                       strict_robot=False).frame_ids
+    return np.flatnonzero(np.isin(ids, sampled_ids))
+
+
+def _evaluation_md_notes(results: list[dict], wilcoxon: list[dict], labels: list[str]) -> list:
+    """evaluation.md's notes beside its table: the drift ratio's notes, the µm position
+    statistics (seed 004, Tables I-II) and the Wilcoxon tests."""
+    notes = [f"**Drift ratio ({label}):** {r['drift_ratio_note']}"
+             for label, r in zip(labels, results, strict=True) if r.get("drift_ratio_note")]
+    rows = []
+    for label, r in zip(labels, results, strict=True):
+        for key, which in (("position_all_um", "all"), ("position_sampled_um", "evenly spaced")):
+            if key in r:
+                s = r[key]
+                rows.append(f"| {label} | {which} | {s['n']} | "
+                            + " | ".join(_measure(s[k], 2) for k in ("mean", "max", "std",
+                                                                      "median")) + " |")
+    if rows:
+        sampled = results[0].get("position_sampled_frames")
+        notes.append("\n".join(
+            ["## Position errors (µm)", "",
+             "Distance between estimated and true image positions (seed 004, Sec. IV-B)"
+             + (f"; evenly spaced frames: {', '.join(map(str, sampled))}." if sampled else "."),
+             "", "| method | frames | n | mean | max | std | median |",
+             "|---|---|---|---|---|---|---|", *rows]))
+    if wilcoxon:
+        by_output = {r["output"]: label for label, r in zip(labels, results, strict=True)}
+        from fusedmosaic.evaluation.metrics import WILCOXON_ZERO
+
+        lines = ["## Wilcoxon signed-rank tests", "",
+                 f"Paired position errors (µm) per frame; differences of at most "
+                 f"{WILCOXON_ZERO:g} µm are ties, not ranked.", "",
+                 "| a | b | frames | n | ranked | p |",
+                 "|---|---|---|---|---|---|"]
+        for w in wilcoxon:
+            over = "all" if w["frames"] == "all" else f"{w['positions']} evenly spaced"
+            p = w["note"] if w["p_value"] is None else f"{w['p_value']:.3g}"
+            lines.append(f"| {by_output.get(w['a'], w['a'])} | {by_output.get(w['b'], w['b'])} "
+                         f"| {over} | {w['n']} | {w.get('n_ranked', '–')} | {p} |")
+        notes.append("\n".join(lines))
+    return notes
 
 
 def _demo_dataset_options(data: Path) -> dict:
@@ -930,7 +1004,11 @@ def _say_summary(args: argparse.Namespace, summary: str) -> None:
 def build_parser() -> argparse.ArgumentParser:
     from fusedmosaic import __version__, methods, simulation
 
-    parser = argparse.ArgumentParser(prog="fusedmosaic", description=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="fusedmosaic",
+        description="Drift-free mosaics of a planar surface from an endoscope video fused with "
+                    "an external pose source: an EM tracker (fetoscopy) or a robot (confocal "
+                    "endomicroscopy). `fusedmosaic demo` runs it all on simulated data.")
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -1123,7 +1201,7 @@ def build_parser() -> argparse.ArgumentParser:
                            "alone listens on 127.0.0.1, 0.0.0.0:PORT on every interface)")
     view.add_argument("--view-interval", type=float, default=None, metavar="S",
                       help="seconds between updates of --preview / --serve-mosaic (default 1)")
-    _add_lba_flags(live)
+    _add_lba_flags(live, "lba-emt")
     _add_feature_flags(live, "features")
     _add_compositing_flags(live)
     live.set_defaults(func=_cmd_live)
@@ -1136,9 +1214,13 @@ def build_parser() -> argparse.ArgumentParser:
                     help="more output folders (translation methods: Wilcoxon signed-rank vs "
                          "the first)")
     ev.add_argument("--positions", type=int, default=None, metavar="N",
-                    help="also report position errors at N evenly spaced frames (seed 004; at "
-                         "most the sequence's frame count), and run --compare's Wilcoxon test "
-                         "on those N frames instead of all")
+                    help="also report position errors at N evenly spaced frames among those "
+                         "with a ground truth (seed 004; at most their count), and run "
+                         "--compare's Wilcoxon test on those N frames instead of all")
+    ev.add_argument("--allow-other-dataset", action="store_true",
+                    help="score an output whose report.json records another dataset than "
+                         "--truth (camera.yaml or frame pixels differ) with a warning instead "
+                         "of refusing")
     ev.add_argument("--json", help="JSON path (default OUT/evaluation.json); the report goes "
                                    "beside it (evaluation.md, evaluation_plots/)")
     ev.add_argument("--no-report", action="store_true", help="skip the .md report and plots")
@@ -1207,21 +1289,22 @@ def _add_tracked_camera_flags(parser: argparse.ArgumentParser, *, transform: str
                         help="4x4 sensor_from_camera (default identity)")
 
 
-def _add_lba_flags(parser: argparse.ArgumentParser) -> None:
-    """lba-emt (and ba-emt) estimation flags, shared by run and live."""
+def _add_lba_flags(parser: argparse.ArgumentParser, methods: str = "ba-emt / lba-emt") -> None:
+    """lba-emt (and ba-emt) estimation flags, shared by run and live (methods: those of the
+    subcommand that take them, for the help)."""
     parser.add_argument("--motion-sigma-from", metavar="RECORDING",
-                     help="ba-emt / lba-emt: estimate the constant-velocity prior's Sigma_p from "
+                     help=f"{methods}: estimate the constant-velocity prior's Sigma_p from "
                           "an independent recording's truth_poses.csv (paper 000 Sec. 4.2) "
                           "instead of the paper's appendix values")
     parser.add_argument("--tracker-rot-sigma", type=float, metavar="DEG",
-                        help="ba-emt / lba-emt: the tracker's rotation noise per axis, the EMT "
-                             "prior's (default: the paper's 0.017 rad, ~1 deg); calibrate "
+                        help=f"{methods}: the tracker's rotation noise per axis in degrees, "
+                             "the EMT prior's (default 1 deg, the paper's 0.017 rad); calibrate "
                              "measures it (--calibration takes it from calibration.json)")
     parser.add_argument("--tracker-trans-sigma", type=float, metavar="MM",
-                        help="ba-emt / lba-emt: the tracker's translation noise per axis, mm "
+                        help=f"{methods}: the tracker's translation noise per axis, mm "
                              "(default: the paper's 1 mm)")
     parser.add_argument("--calibration", metavar="CALIB.json",
-                        help="tracked methods: the tracker time offset and (ba-emt / lba-emt) "
+                        help=f"tracked methods: the tracker time offset and ({methods}) "
                              "the tracker noise per axis that calibrate measured on a "
                              "recording of the same set-up (its calibration.json), instead of "
                              "--tracker-time-offset / --tracker-rot-sigma / --tracker-trans-sigma")

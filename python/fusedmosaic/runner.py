@@ -202,10 +202,10 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
                 from fusedmosaic.evaluation import drift_ratio, frame_errors, mosaic_error
                 from fusedmosaic.evaluation.metrics import truth_in_reference
 
-                errors = frame_errors(G, truth_in_reference(G, dataset.ground_truth)[0],
-                                      dataset.camera.width, dataset.camera.height)
+                G_true, r = truth_in_reference(G, dataset.ground_truth)
+                errors = frame_errors(G, G_true, dataset.camera.width, dataset.camera.height)
                 report_json["metrics"] = {
-                    "e_M_px": mosaic_error(errors), "drift_ratio": drift_ratio(errors),
+                    "e_M_px": mosaic_error(errors), "drift_ratio": drift_ratio(errors, r),
                     "max_e_j_px": float(np.nanmax(errors)) if np.isfinite(errors).any() else None,
                     "frames_scored": int((~np.isnan(errors)).sum())}  # placed, with ground truth
             w.write_homographies(dataset.frame_ids, G)

@@ -72,13 +72,16 @@ def mosaic_error(errors: np.ndarray) -> float:
     return float(errors[placed].mean()) if placed.any() else float("nan")
 
 
-def drift_ratio(errors: np.ndarray) -> float:
+def drift_ratio(errors: np.ndarray, reference: int | None = 0) -> float:
     """Mean e_j over the last quarter of frames / first quarter (frames with an e_j only; a
-    quarter is max(n // 4, 1) frames). NaN when undefined (drift_note says why: a quarter
-    without a placed frame, or a first quarter whose mean e_j is 0 (up to EXACT_E_J_PX) or
-    inf); inf when the last
-    quarter holds a frame placed at infinity."""
-    return _drift(errors)[0]
+    quarter is max(n // 4, 1) frames). The reference frame's e_j (index `reference`, frame 0 by
+    default; None: none), 0 by construction (the estimate writes it as the identity, the truth
+    is taken to its grid), is left out of the quarter means when it is 0 up to EXACT_E_J_PX: a
+    constant error would otherwise give a ratio above 1 (2.0 over 8 frames). NaN when undefined
+    (drift_note says why: a quarter without a placed frame, a first quarter holding only the
+    reference, or whose mean e_j is 0 (up to EXACT_E_J_PX) or inf); inf when the last quarter
+    holds a frame placed at infinity (drift_note says so too)."""
+    return _drift(errors, reference=reference)[0]
 
 
 def reference_frame(G: np.ndarray) -> int:
@@ -103,27 +106,39 @@ def rereferenced(G: np.ndarray, r: int) -> np.ndarray:
 
 
 def truth_in_reference(G_est: np.ndarray, G_true: np.ndarray) -> tuple[np.ndarray, int]:
-    """The true homographies in the estimate's reference grid, and its index: frame 0's, or,
-    when frame 0 is unplaced, that of reference_frame(G_est) when the truth places it (else
-    the score holds frame r's true offset on every frame: a streamed run whose tracker came on
-    late, e_j 19-44 px)."""
+    """The true homographies in the estimate's reference grid, and its index r: frame 0's, or,
+    when frame 0 is unplaced, that of reference_frame(G_est). Whenever the truth has a row for
+    frame r the truth is re-based to it (inv(G_true[r]) @ G_true, normalised), frame 0
+    included: a truth given in another grid (frame 0 not the identity, e.g. positions in a
+    microscope image, seed 004 Sec. IV-A) scores the same as one in frame 0's. Without a row
+    for r the truth is returned as it is, with r = 0 (for r != 0 the score then holds frame r's
+    true offset on every frame: evaluate_output refuses that case)."""
+    G_true = np.asarray(G_true, np.float64)
     r = reference_frame(G_est)
-    if r and np.isfinite(G_true[r]).all():
-        return rereferenced(G_true, r), r
-    return np.asarray(G_true, np.float64), 0
+    if not np.isfinite(G_true[r]).all():
+        return G_true, 0
+    if np.array_equal(G_true[r], np.eye(3)):  # already in r's grid: bit for bit as it was
+        return G_true, r
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        out = np.linalg.inv(G_true[r]) @ G_true
+        scale = out[:, 2:3, 2:3]
+        ok = np.isfinite(scale) & (scale != 0)  # (a row sending its centre to infinity: kept)
+        out = np.where(ok, out / np.where(ok, scale, 1.0), out)
+    return out, r
 
 
-def drift_note(errors: np.ndarray, frame_ids=None) -> str | None:
-    """Why drift_ratio(errors) is undefined (None when it is a number), naming the quarters by
-    frame_ids (default: positions 0..n-1)."""
-    return _drift(errors, frame_ids)[1]
+def drift_note(errors: np.ndarray, frame_ids=None, reference: int | None = 0) -> str | None:
+    """Why drift_ratio(errors, reference) is undefined or infinite (None when it is a finite
+    number), naming the quarters by frame_ids (default: positions 0..n-1)."""
+    return _drift(errors, frame_ids, reference)[1]
 
 
 # A mean e_j at or below this is 0 up to rounding (a reference frame written as the identity).
 EXACT_E_J_PX = 1e-9
 
 
-def _drift(errors: np.ndarray, frame_ids=None) -> tuple[float, str | None]:
+def _drift(errors: np.ndarray, frame_ids=None,
+           reference: int | None = 0) -> tuple[float, str | None]:
     errors = np.asarray(errors, dtype=np.float64)
     n = len(errors)
     if n == 0:
@@ -134,25 +149,39 @@ def _drift(errors: np.ndarray, frame_ids=None) -> tuple[float, str | None]:
     def span(part: np.ndarray) -> str:
         return f"frame {part[0]}" if len(part) == 1 else f"frames {part[0]}-{part[-1]}"
 
-    first, last = errors[:q], errors[n - q:]
     spans = (span(ids[:q]), span(ids[n - q:]))
-    empty = [where for where, part in zip(spans, (first, last), strict=True)
+    empty = [where for where, part in zip(spans, (errors[:q], errors[n - q:]), strict=True)
              if np.isnan(part).all()]
     if empty:  # (a placed frame without ground truth has no e_j either)
         return float("nan"), (
             f"needs placed frames in both the first and the last quarter of the sequence "
             f"({spans[0]}; {spans[1]}): drift = mean e_j of the last / of the first; none "
             f"placed in {' nor in '.join(empty)}")
-    first, last = float(np.nanmean(first)), float(np.nanmean(last))
+    # the reference frame's e_j is 0 by construction: left out of the quarter means (a
+    # larger one is a real error, kept); the quarters still count all frames
+    if (reference is not None and 0 <= reference < n
+            and abs(errors[reference]) <= EXACT_E_J_PX):
+        errors = errors.copy()
+        errors[reference] = np.nan
+    first, last = errors[:q], errors[n - q:]
+    # under 8 frames a quarter is one frame: the reference's alone, exact by definition (a
+    # method writes it as the identity up to rounding: 1e-14 px would give a ratio 1e13)
+    why = " (with under 8 frames a quarter is one frame)" if q == 1 else ""
+    if np.isnan(last).all():  # (a sequence of under 8 frames whose reference is the last)
+        return float("nan"), (f"the last quarter ({spans[1]}) holds only the reference frame "
+                              "(e_j 0 by construction): the ratio is undefined")
+    # (the first quarter's only scored frame being the reference counts as a mean e_j of 0)
+    first = float(np.nanmean(first)) if not np.isnan(first).all() else 0.0
+    last = float(np.nanmean(last))
     if first <= EXACT_E_J_PX:
-        # under 8 frames a quarter is the first frame alone: the reference, exact by definition
-        # (a method writes it as the identity up to rounding: 1e-14 px would give a ratio 1e13)
-        why = " (with under 8 frames a quarter is one frame)" if q == 1 else ""
-        return float("nan"), (f"the first quarter ({span(ids[:q])}) has mean e_j 0{why}: no "
+        return float("nan"), (f"the first quarter ({spans[0]}) has mean e_j 0{why}: no "
                               "ratio to it")
     if np.isinf(first):
-        return float("nan"), (f"the first quarter ({span(ids[:q])}) holds a frame placed at "
+        return float("nan"), (f"the first quarter ({spans[0]}) holds a frame placed at "
                               "infinity (e_j inf): no ratio to it")
+    if np.isinf(last):
+        return float("inf"), (f"the last quarter ({spans[1]}) holds a frame placed at "
+                              "infinity (e_j inf): the ratio is infinite")
     return last / first, None
 
 
@@ -198,6 +227,15 @@ def evenly_spaced(n_frames: int, n: int) -> np.ndarray:
     return np.round(np.linspace(0, n_frames - 1, n)).astype(int)
 
 
+def position_sample(G_true: np.ndarray, n: int) -> np.ndarray:
+    """Indices of n frames evenly spaced among those with a ground-truth homography (rows of
+    G_true without NaN), the first and last of them included: seed 004 scores n images along
+    the trajectory, and a sparse truth has rows only there. ValueError when fewer than n
+    frames have one (statistics over fewer frames would be taken for a table over n)."""
+    with_truth = np.flatnonzero(np.isfinite(_check_stack(G_true, "G_true")).all(axis=(1, 2)))
+    return with_truth[evenly_spaced(len(with_truth), n)]
+
+
 def position_stats(errors_um: np.ndarray, frames: np.ndarray | None = None) -> PositionStats:
     e = errors_um if frames is None else errors_um[frames]
     e = e[np.isfinite(e)]
@@ -207,18 +245,33 @@ def position_stats(errors_um: np.ndarray, frames: np.ndarray | None = None) -> P
                          float(np.median(e)))
 
 
+# Paired errors (µm, or px: the unit compared) closer than this are equal: a difference of
+# rounding (homographies written with 10 significant digits: 6e-8 µm) is no difference.
+WILCOXON_ZERO = 1e-6
+
+
 def compare_position_errors(errors_a: np.ndarray, errors_b: np.ndarray) -> dict:
-    """Wilcoxon signed-rank test between two methods' per-frame errors (paired by frame)."""
+    """Wilcoxon signed-rank test between two methods' per-frame errors (paired by frame).
+
+    Pairs whose errors differ by at most WILCOXON_ZERO count as no difference and are not
+    ranked (scipy's zero_method="wilcox"; the reference frame, 0 vs 0, is one): "n" counts the
+    frames placed by both, "n_ranked" the pairs ranked. With none ranked p = 1 and "note" says
+    why."""
+    errors_a, errors_b = np.asarray(errors_a, np.float64), np.asarray(errors_b, np.float64)
     ok = np.isfinite(errors_a) & np.isfinite(errors_b)
     if ok.sum() < 2:
         raise ValueError("Wilcoxon test needs at least 2 frames placed by both methods")
-    if np.all(errors_a[ok] == errors_b[ok]):  # no difference at all: nothing to rank
-        statistic, p_value = 0.0, 1.0
+    d = errors_a[ok] - errors_b[ok]
+    ranked = d[np.abs(d) > WILCOXON_ZERO]
+    result = {"n": int(ok.sum()), "n_ranked": int(len(ranked))}
+    if len(ranked) == 0:  # no difference at all: nothing to rank
+        result.update(statistic=0.0, p_value=1.0,
+                      note=f"no paired difference above {WILCOXON_ZERO:g}: nothing to rank")
     else:
-        res = stats.wilcoxon(errors_a[ok], errors_b[ok])
-        statistic, p_value = float(res.statistic), float(res.pvalue)
-    return {"n": int(ok.sum()), "statistic": statistic, "p_value": p_value,
-            "mean_a": float(errors_a[ok].mean()), "mean_b": float(errors_b[ok].mean())}
+        res = stats.wilcoxon(ranked)
+        result.update(statistic=float(res.statistic), p_value=float(res.pvalue))
+    result.update(mean_a=float(errors_a[ok].mean()), mean_b=float(errors_b[ok].mean()))
+    return result
 
 
 def mosaic_difference(mosaic: np.ndarray, origin: tuple[int, int], truth: np.ndarray,
@@ -260,7 +313,7 @@ RESULT_KEYS = ("output", "truth", "frames", "e_M_px", "e_j_px")
 
 
 def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
-                    positions_n: int | None = None) -> dict:
+                    positions_n: int | None = None, allow_other_dataset: bool = False) -> dict:
     """Scores an output folder's homographies.csv against a dataset's ground_truth.csv.
 
     The result is ready for JSON: a measure that is undefined is None (null), not NaN — e_M_px
@@ -268,10 +321,20 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
     quarter of the sequence has no placed frame (then "drift_ratio_note" says why). A frame
     placed at infinity keeps e_j inf (it counts against e_M).
 
-    positions_n: also the position statistics at that many evenly spaced frames (>= 1, at most
-    the sequence's frames: ValueError otherwise; "position_sampled_frames" names them).
-    When the output's report.json records another dataset than `truth_root`, the result's
-    "dataset_warning" says so; frames of another size are refused (see evaluation.provenance)."""
+    The truth is taken to the grid of the output's reference frame (truth_in_reference); an
+    output whose reference is a frame r != 0 the truth has no row for is refused (ValueError):
+    it could only be scored in another grid.
+
+    positions_n: also the position statistics at that many evenly spaced frames, chosen among
+    the frames that have a ground-truth homography (a sparse truth, as seed 004's n images),
+    the first and last of them included (>= 1, at most the frames with a truth: ValueError
+    otherwise; "position_sampled_frames" names them).
+    When the output's report.json records another dataset than `truth_root` (camera.yaml or
+    the frames' pixels differ) it is refused (ValueError) unless allow_other_dataset, then the
+    result's "dataset_warning" says so (as for frames.csv differing, or an older report.json's
+    other path); ground_truth.csv alone differing gets a "truth_note"; without report.json,
+    "provenance_note" says the dataset could not be checked; frames of another size are
+    refused (see evaluation.provenance)."""
     from fusedmosaic.evaluation.provenance import check_frame_size, dataset_mismatch
     from fusedmosaic.io import read_dataset, read_homographies_csv
     from fusedmosaic.io.output import read_json_object
@@ -292,6 +355,13 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
     report = read_json_object(report_path) if report_path.is_file() else None
     if report is not None:
         check_frame_size(report, dataset, report_path)
+        # (refused here, before the scores: another dataset's truth)
+        provenance = dataset_mismatch(report, dataset, report_path,
+                                      allow_other=allow_other_dataset)
+    else:
+        provenance = {"provenance_note": (
+            f"{out_dir} has no report.json: which dataset the output was computed from could "
+            f"not be checked against {truth_root}")}
     ids, G_est = read_homographies_csv(est_path)
     truth_ids = dataset.frame_ids
     if not np.array_equal(np.sort(ids), np.sort(truth_ids)):
@@ -306,11 +376,18 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
                          f"(missing {listed(missing)}, unexpected {listed(extra)})")
     G_est = G_est[np.argsort(ids)]
     w, h = dataset.camera.width, dataset.camera.height
+    r_est = reference_frame(G_est)
+    if r_est != 0 and not np.isfinite(dataset.ground_truth[r_est]).all():
+        raise ValueError(
+            f"{truth_root / 'ground_truth.csv'}: the truth has no row for the output's "
+            f"reference frame {truth_ids[r_est]} (the frame {est_path} writes as the identity): "
+            "the truth cannot be taken to the output's grid, and scored in another grid every "
+            "e_j would hold that frame's offset")
     G_true, r = truth_in_reference(G_est, dataset.ground_truth)
     errors = frame_errors(G_est, G_true, w, h)
     placed = np.isfinite(G_est).all(axis=(1, 2))
     scored = ~np.isnan(errors)
-    drift, why = _drift(errors, truth_ids)
+    drift, why = _drift(errors, truth_ids, r)
     result: dict = {
         "output": str(out_dir),
         "truth": str(truth_root),
@@ -319,7 +396,7 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
         "unplaced": int((~placed).sum()),
         "e_M_px": mosaic_error(errors) if scored.any() else None,
         "max_e_j_px": float(np.nanmax(errors)) if scored.any() else None,
-        "drift_ratio": None if np.isnan(drift) else drift,
+        "drift_ratio": None if np.isnan(drift) else drift,  # (inf: null in the JSON file)
         "e_j_px": [None if np.isnan(e) else float(e) for e in errors],
         "reference_frame": int(truth_ids[r]),
     }
@@ -341,27 +418,31 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
             result["dead_reckoned"] = [int(k) for k in truth_ids[dead]]
             result["e_M_px_without_dead_reckoned"] = (mosaic_error(errors[rest]) if rest.any()
                                                       else None)
-    if report is not None:
-        warning = dataset_mismatch(report, dataset, report_path)
-        if warning:
-            result["dataset_warning"] = warning
+    result.update(provenance)
     if positions_n is not None and not dataset.camera.pixel_size_um:
         raise ValueError(f"{truth_root / 'camera.yaml'}: no pixel_size_um, so no position "
                          f"errors in µm at {positions_n} evenly spaced frames (a pCLE "
                          "measure): leave out positions_n (--positions)")
-    if positions_n is not None and positions_n > len(errors):
+    with_truth = np.flatnonzero(np.isfinite(dataset.ground_truth).all(axis=(1, 2)))
+    if positions_n is not None and positions_n > len(with_truth):
         # refused, not reduced: statistics over fewer frames than asked for would be taken for
         # a table over positions_n (seed 004's 13 / 25 images)
-        raise ValueError(f"{truth_root}: {len(errors)} frames, fewer than the {positions_n} "
-                         "evenly spaced frames asked for (positions_n, --positions); give at "
-                         f"most {len(errors)}")
+        if len(with_truth) == len(errors):
+            raise ValueError(f"{truth_root}: {len(errors)} frames, fewer than the {positions_n} "
+                             "evenly spaced frames asked for (positions_n, --positions); give "
+                             f"at most {len(errors)}")
+        raise ValueError(f"{truth_root / 'ground_truth.csv'}: {len(with_truth)} of the "
+                         f"{len(errors)} frames have a ground-truth homography, fewer than the "
+                         f"{positions_n} evenly spaced frames asked for (positions_n, "
+                         f"--positions), which are chosen among them; give at most "
+                         f"{len(with_truth)}")
     if dataset.camera.pixel_size_um:
         err_um = position_errors_um(G_est, G_true, w, h,
                                     dataset.camera.pixel_size_um)
         result["position_errors_um"] = [None if not np.isfinite(e) else float(e) for e in err_um]
         result["position_all_um"] = _json_stats(position_stats(err_um))
         if positions_n:
-            sampled = evenly_spaced(len(err_um), positions_n)
+            sampled = position_sample(dataset.ground_truth, positions_n)
             result["position_sampled_um"] = _json_stats(position_stats(err_um, sampled))
             result["position_sampled_frames"] = [int(k) for k in truth_ids[sampled]]
     return result

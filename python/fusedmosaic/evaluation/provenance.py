@@ -1,7 +1,10 @@
 """Which dataset an output was computed from: `run` records a cheap fingerprint in report.json,
-`evaluate` compares it with the dataset given as --truth (a mismatch is warned about, not an
-error: datasets get moved, and a moved dataset keeps its fingerprint; but frames of another size
-are an error, since e_j's grid of points comes from the truth's frame size)."""
+`evaluate` compares it with the dataset given as --truth. Datasets get moved, and a moved copy
+keeps its fingerprint (a path alone differing is no mismatch). Another camera.yaml or other
+frame pixels mean another dataset: refused (ValueError) unless allowed, then warned about;
+frames.csv or the frame count differing is warned about; ground_truth.csv alone differing (a
+corrected, extended or sparse truth for the same frames) only gets a note; frames of another
+size are an error, since e_j's grid of points comes from the truth's frame size."""
 
 from __future__ import annotations
 
@@ -62,14 +65,27 @@ def _frame_pixels_sha256(frames) -> str:
     return digest.hexdigest()[:16]
 
 
-def dataset_mismatch(report: dict, dataset, report_path: str | Path) -> str | None:
-    """A warning when report.json's recorded dataset differs from `dataset`, else None.
+# Fingerprint entries that differ only between different datasets (a copy, moved or with its
+# frames re-encoded, matches): a mismatch there is refused unless allowed.
+IDENTIFYING = ("camera.yaml", FINGERPRINT_FRAMES)
+# The truth alone: edited, extended or made sparse since the run without the frames changing.
+TRUTH_FILE = "ground_truth.csv"
 
-    With a recorded fingerprint only the fingerprint counts (a moved copy matches); without one
-    (older outputs), a different path is reported."""
+
+def dataset_mismatch(report: dict, dataset, report_path: str | Path, *,
+                     allow_other: bool = False) -> dict:
+    """How report.json's recorded dataset compares with `dataset`: {} when they agree, else
+    {"dataset_warning": ...} and / or {"truth_note": ...}.
+
+    With a recorded fingerprint only the fingerprint counts (a moved copy matches): camera.yaml
+    or the frames' pixels differing is another dataset, a ValueError naming what differs unless
+    `allow_other` (then a warning); frames.csv or the frame count differing, a warning;
+    ground_truth.csv alone, a note that the truth changed since the run. Without a fingerprint
+    (older outputs), a different path is warned about."""
     recorded = report.get("dataset_fingerprint")
     here = Path(dataset.root)
     where = f"{report_path} records the dataset {report.get('dataset', '(unknown)')}"
+    found: dict = {}
     if isinstance(recorded, dict):
         now = dataset_fingerprint(dataset)
         differ = [key for key in ("frames", "width", "height") if recorded.get(key) != now[key]]
@@ -81,19 +97,33 @@ def dataset_mismatch(report: dict, dataset, report_path: str | Path) -> str | No
             for name in sorted(set(old_files) & set(now["sha256"]))
             if old_files[name] != now["sha256"][name]
         ]
+        truth_changed = TRUTH_FILE in differ
+        differ = [name for name in differ if name != TRUTH_FILE]
+        if any(name in IDENTIFYING for name in differ) and not allow_other:
+            raise ValueError(
+                f"{where}, but {here} differs from it ({', '.join(differ)}): it is another "
+                "dataset, whose ground truth would score the output meaninglessly; give the "
+                "dataset the output was computed from as --truth, or pass "
+                "--allow-other-dataset to score it anyway"
+            )
         if differ:
-            return (
+            found["dataset_warning"] = (
                 f"{where}, but {here} differs from it ({', '.join(differ)}): the scores "
                 "may compare the output with another dataset's ground truth"
             )
-        return None
+        if truth_changed:
+            found["truth_note"] = (
+                f"{here / TRUTH_FILE} differs from the ground_truth.csv of the dataset the "
+                f"output was computed from ({report_path}): the truth changed since the run"
+            )
+        return found
     recorded_path = report.get("dataset")
     if isinstance(recorded_path, str) and Path(recorded_path).resolve() != here.resolve():
-        return (
+        found["dataset_warning"] = (
             f"{where}, not {here.resolve()}: check that --truth is the dataset the output "
             "was computed from"
         )
-    return None
+    return found
 
 
 def check_frame_size(report: dict, dataset, report_path: str | Path) -> None:

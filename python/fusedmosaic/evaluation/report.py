@@ -412,10 +412,12 @@ def write_report(directory: str | Path, runs: list[RunRecord], truth: TruthRecor
     if truth is not None and truth.root:
         lines += [f"Dataset: `{truth.root}`", ""]
     errors = None
+    references = [0] * len(runs)  # each estimate's reference frame (left out of the drift)
     if truth is not None and truth.homographies is not None:
-        errors = [frame_errors(r.homographies,
-                               truth_in_reference(r.homographies, truth.homographies)[0],
-                               truth.width, truth.height) for r in runs]
+        errors = []
+        for i, r in enumerate(runs):
+            G_true, references[i] = truth_in_reference(r.homographies, truth.homographies)
+            errors.append(frame_errors(r.homographies, G_true, truth.width, truth.height))
     header = ("| method | output | frames placed | e_M (px) | max e_j (px) | drift "
               "| sum of stage times (s) |")
     lines += [header, "|---|---|---|---|---|---|---|"]
@@ -424,7 +426,7 @@ def write_report(directory: str | Path, runs: list[RunRecord], truth: TruthRecor
         e = errors[i] if errors is not None else None
         em = mosaic_error(e) if e is not None else None
         mx = float(np.nanmax(e)) if e is not None and np.isfinite(e).any() else None
-        dr = drift_ratio(e) if e is not None else None
+        dr = drift_ratio(e, references[i]) if e is not None else None
         total = sum(run.timings.values()) if run.timings else None
         lines.append(f"| {run.label} | `{run.output or '.'}` | {placed}/{len(run.homographies)} "
                      f"| {_fmt(em)} | {_fmt(mx)} | {_fmt(dr, 2)} | {_fmt(total, 1)} |")

@@ -77,7 +77,9 @@ class FetoscopyOptions:
     focal_factor: float = _opt(1.2, "focal length in px / image width (~45 deg horizontal FOV)")
     fps: float = _opt(25.0, "frame rate (paper 000 Sec. 4.1: video at 25 fps)")
     distance_mm: float = _opt(30.0, "camera-plane distance (perpendicular, mm)")
-    laps: float = _opt(4.0, "syn: laps of the circle (paper 000 Fig. 1: four laps)")
+    laps: float = _opt(4.0, "syn: laps of the circle in --n-frames frames (paper 000 Fig. 1: "
+                            "four laps in 152 frames; fewer frames, same laps: faster motion, "
+                            "where demo --frames keeps SYN's pace)")
     radius_mm: float = _opt(15.0, "syn: circle radius; handheld: extent of the random path")
     step_px: float = _opt(
         30.0, "handheld: rms image motion per frame, px (keeps ~90 percent overlap)"
