@@ -368,3 +368,22 @@ def test_run_calibration_on_an_import_shifted_dataset_does_not_shift_again(tmp_p
                  "--no-report"]) == 0
     assert json.loads((tmp_path / "out2" / "report.json").read_text())[
         "tracker_time_offset_s"] == 0.02
+
+
+def test_a_live_recording_with_a_time_offset_records_it(tmp_path):
+    """live --record DATA --tracker-time-offset S writes the samples on the video's clock (as
+    import does), and now says so as import does (import.json), so that run --calibration on
+    the recording does not shift them a second time; without an offset nothing is written."""
+    from fusedmosaic.io.calibration import Camera
+    from fusedmosaic.io.plus import applied_tracker_time_offset
+    from fusedmosaic.io.recorder import DatasetRecorder
+
+    camera = Camera(64, 48, camera_matrix=np.array([[60.0, 0, 32], [0, 60, 24], [0, 0, 1]]))
+    for name, offset in (("shifted", 0.05), ("plain", 0.0)):
+        recorder = DatasetRecorder(tmp_path / name, camera, tracker_time_offset=offset)
+        for k in range(3):
+            recorder.add_sample(0.04 * k, np.eye(4))
+            recorder.add_frame(np.full((48, 64), 10 * k, np.uint8), 0.04 * k)
+        recorder.finish()
+    assert applied_tracker_time_offset(tmp_path / "shifted") == 0.05
+    assert applied_tracker_time_offset(tmp_path / "plain") is None

@@ -554,6 +554,9 @@ def test_live_with_a_tracker_clock_ahead(syn, tmp_path):
     sent = syn.tracking.timestamps[syn.tracking.valid]
     sent = sent[sent <= syn.timestamps[-1]]
     np.testing.assert_allclose(rec.tracking.timestamps - T0, sent, atol=1e-6)
+    from fusedmosaic.io.plus import applied_tracker_time_offset
+
+    assert applied_tracker_time_offset(tmp_path / "rec") == offset  # run --calibration: no 2nd
     _, G = read_homographies_csv(tmp_path / "out" / "homographies.csv")
     assert mosaic_error(frame_errors(G, syn.ground_truth, 300, 300)) < 1.0
 

@@ -1252,7 +1252,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
             # (the pCLE methods record the samples as robot positions: ncc's recording re-runs
             # with kalman-robot when a robot streamed)
             recorder = DatasetRecorder(record, camera, hand_eye, overwrite=overwrite_record,
-                                       robot=method != "lba-emt")
+                                       robot=method != "lba-emt", tracker_time_offset=offset,
+                                       source=f"live session from {address}")
             with IgtlSource(address, transform_device=transform_device, image_device=image_device,
                             rgb=rgb, orientation_required=method == "lba-emt",
                             on_frame=on_frame, on_sample=on_sample) as src:

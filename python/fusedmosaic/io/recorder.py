@@ -68,7 +68,8 @@ class DatasetRecorder:
     (`recover_unfinished_recordings`, a warning each; `recovered` lists them)."""
 
     def __init__(self, root: str | Path, camera: Camera, hand_eye=None, *,
-                 overwrite: bool = False, max_queued: int = 64, robot: bool = False) -> None:
+                 overwrite: bool = False, max_queued: int = 64, robot: bool = False,
+                 tracker_time_offset: float = 0.0, source: str = "live session") -> None:
         self.root = Path(root)
         self.recovered = recover_unfinished_recordings(self.root.parent, self.root.name)
         for note in self.recovered:
@@ -94,6 +95,19 @@ class DatasetRecorder:
             write_camera_yaml(self._tmp / "camera.yaml", camera)
             if hand_eye is not None:
                 write_hand_eye(self._tmp / "hand_eye.txt", hand_eye)
+            if tracker_time_offset:  # the samples are recorded on the video's clock (stamped -
+                # offset): said as import says it, so that run --calibration on the recording
+                # does not shift them again (io.plus.applied_tracker_time_offset)
+                from fusedmosaic.io.plus import IMPORT_RECORD
+
+                (self._tmp / IMPORT_RECORD).write_text(json.dumps({
+                    "tracker_time_offset_applied_s": float(tracker_time_offset),
+                    "source": source,
+                    "note": (f"the {'robot' if robot else 'tracker'} samples' timestamps are "
+                             f"the sender's shifted by {-tracker_time_offset:+g} s "
+                             "(--tracker-time-offset): on the video's clock; run --calibration "
+                             "does not apply calibration.json's offset again"),
+                }, indent=2) + "\n")
             (self._tmp / "frames").mkdir()
             self._frames_fd = _open_table(self._tmp / "frames.csv", ["frame", "timestamp"])
         except BaseException:
