@@ -80,6 +80,10 @@ def test_sample_spacing_of_even_paired_bunched_and_dropout_samples():
     # a dropout of 70 % of the span raises neither the median nor the quartile
     dropout = np.r_[np.arange(0.0, 0.3, 0.01), np.arange(1.0, 1.3, 0.01)]
     assert sample_spacing(dropout) == pytest.approx(0.01)
+    # one holding 80 % of the span raises the quartile, not the 95th percentile (a tracker
+    # off for frames 0-85 of 110 was bridged by a straight line)
+    dropout = np.r_[-0.1, np.arange(3.4, 4.4, 0.025)]
+    assert sample_spacing(dropout) == pytest.approx(0.025)
     with pytest.raises(ValueError, match="at least 2"):
         sample_spacing([1.0])
 

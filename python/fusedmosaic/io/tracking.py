@@ -500,8 +500,9 @@ GAP_SPACINGS = 3.0
 def sample_spacing(times) -> float:
     """The typical spacing (s) of the samples at increasing ``times`` (at least 2), for telling
     a dropout (a gap over GAP_SPACINGS of it) from the normal sampling: the larger of the median
-    spacing and the time-weighted lower quartile of the spacings, the spacing s such that 25 %
-    of the samples' span lies in intervals <= s.
+    spacing and the smaller of two robust spacings, the time-weighted lower quartile (the
+    spacing s such that 25 % of the samples' span lies in intervals <= s) and the 95th
+    percentile of the spacings.
 
     Evenly spaced samples: their spacing (the median). Samples that come unevenly spaced,
     e.g. in pairs (a controller reporting twice per cycle, 1 ms then 19 ms) or in bursts
@@ -509,17 +510,19 @@ def sample_spacing(times) -> float:
     the median is the short spacing, and 3x it flagged every long one, the sampling itself, as
     a dropout (a 50 Hz robot in pairs was discarded for every 100 ms frame: kalman-robot fell
     back to NCC alone, e_M 10.5 -> 117.9 px; review). The short spacings there hold little of
-    the time, so the time-weighted quartile is the long one. A dropout is one long interval
-    holding much of the time but few of the spacings: it raises neither the median nor, as long
-    as the normal sampling covers over 25 % of the span (dropouts up to ~75 % of it), the
-    quartile."""
+    the time and the long ones are over 5 % of the spacings (one per burst of up to 20), so
+    both robust spacings are the long one. A dropout is a long interval holding much of the
+    time but few of the spacings: it raises the quartile only when it holds over 75 % of the
+    span (a tracker off for frames 0-85 of 110), the percentile only when dropouts are over 5 %
+    of the spacings, so the smaller of the two stays the sampling's."""
     spacing = np.sort(np.diff(np.asarray(times, dtype=np.float64)))
     if spacing.size == 0:
         raise ValueError("sample_spacing: needs at least 2 sample times")
     cumulative = np.cumsum(spacing)
     quartile = spacing[min(int(np.searchsorted(cumulative, 0.25 * cumulative[-1])),
                            spacing.size - 1)]
-    return max(float(np.median(spacing)), float(quartile))
+    return max(float(np.median(spacing)),
+               min(float(quartile), float(np.percentile(spacing, 95, method="lower"))))
 
 
 def _beyond(spacing, max_gap: float):
