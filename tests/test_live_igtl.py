@@ -820,6 +820,7 @@ def test_preview_never_replaces_an_image_it_did_not_write(syn, tmp_path, capsys)
     cv2.imwrite(str(mine), np.full((20, 30), 7, np.uint8))
     content = mine.read_bytes()
     assert main(["live", "127.0.0.1:1", "--camera", str(syn.root / "camera.yaml"),
+                 "--hand-eye", str(syn.root / "hand_eye.txt"),
                  "--transform", "SensorToTracker", "--record", str(tmp_path / "rec"),
                  "--out", str(tmp_path / "out"), "--preview", str(mine)]) == 2
     err = capsys.readouterr().err
