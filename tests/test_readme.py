@@ -33,3 +33,15 @@ def test_readme_cli_lines_use_existing_options():
         # optional parts written [a|b] in the README: keep the first alternative
         args = [a.strip("[]").split("|")[0] for a in args if a not in ("...", "OUT2")]
         parser.parse_args(args)
+
+
+def test_one_version_in_pyproject_the_package_and_the_core():
+    """The version is written in pyproject.toml and python/fusedmosaic/__init__.py; the core
+    gets it from the build (SKBUILD_PROJECT_VERSION): the three agree."""
+    import fusedmosaic
+    from fusedmosaic import _core
+
+    pyproject = (README.parent / "pyproject.toml").read_text()
+    version = re.search(r'^version = "([^"]+)"', pyproject, re.M)
+    assert version is not None
+    assert fusedmosaic.__version__ == _core.__version__ == version.group(1)
