@@ -464,6 +464,33 @@ def test_live_kalman_robot_session(tmp_path, position):
     assert e_live < 1.0, (e_live, e_offline)
 
 
+def test_live_robot_session_without_a_sample_names_the_robot(tmp_path, capsys):
+    """live --method robot whose robot transform never comes (sent under another name): it
+    ended in the canvas's "no placed frame to compose a mosaic from"; now the robot and the
+    cause are named, and the recording is kept."""
+    from _igtl_sender import robot_events
+
+    from fusedmosaic.simulation import PcleOptions, simulate_pcle
+
+    ds = read_dataset(simulate_pcle(tmp_path / "pcle", PcleOptions(
+        width=96, height=80, n_frames=10, speed_um_per_frame=6.0, radius_um=80.0,
+        contact_loss=False, stick_slip=False)))
+    sender = Sender(robot_events(ds, device="ProbeToBase"), speed=2.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("default")  # (the session warns: no RobotToBase heard)
+        assert main(["--quiet", "live", f"127.0.0.1:{sender.port}", "--method", "robot",
+                     "--camera", str(ds.root / "camera.yaml"), "--transform", "RobotToBase",
+                     "--record", str(tmp_path / "rec"), "--out", str(tmp_path / "out"),
+                     "--no-report"]) == 2
+    sender.join()
+    err = capsys.readouterr().err
+    assert "no valid robot sample (TRANSFORM or POSITION) of RobotToBase" in err
+    assert f"live session from 127.0.0.1:{sender.port}: none of the " in err
+    assert "frames has a robot sample" in err and "ProbeToBase" in err
+    assert f"the recording is kept in {tmp_path / 'rec'}" in err
+    assert (tmp_path / "rec" / "frames.csv").is_file() and not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize("with_robot", [True, False], ids=["robot-streamed", "images-only"])
 def test_live_ncc_session(tmp_path, with_robot):
     """A hand-held pCLE probe (no robot, no --transform) mosaicked live by ncc, the images

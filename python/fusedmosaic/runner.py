@@ -1346,6 +1346,15 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
         add_warnings(result.details, [*told, *heard.texts])
         if view is not None:
             result.details["live"]["view"] = view.summary()
+        if method == "robot" and not np.isfinite(result.homographies).all(axis=(1, 2)).any():
+            # (robot places frames by their samples alone: it ended in the canvas's "no placed
+            # frame to compose a mosaic from", naming neither the robot nor the cause)
+            from fusedmosaic.estimation.translation import no_robot_sample_error
+
+            raise no_robot_sample_error(
+                f"live session from {address}", len(timestamps),
+                f"none heard at or shortly before each frame{samples_heard(src)}; the "
+                f"recording is kept in {record}")
         inform(f"live session ended ({session.stopped_by}): writing the outputs to {out} "
                "(Ctrl-C twice abandons them)")
         writing = time.time()
