@@ -272,6 +272,13 @@ def test_failed_hand_eye_calibration_not_told_to_add_a_tracker(board, tmp_path):
         assert str(err.value) == (f"{path}: holds no hand-eye calibration "
                                   f"({next(iter(entry.values()))}), so no tracker time offset "
                                   f"or noise: {advice}")
+    # no hand_eye entry at all (the advice's test above read it from a None: AttributeError)
+    path = tmp_path / "none.json"
+    path.write_text(json.dumps({"camera": {}}))
+    with pytest.raises(ValueError, match=r'holds no hand-eye calibration \(no "hand_eye" '
+                       r"entry\), so no tracker time offset or noise: calibrate a recording "
+                       r"with tracking.csv$"):
+        read_tracker_calibration(path)
 
 
 def test_wrong_board_size_named_when_few_frames_have_it(board):

@@ -1680,9 +1680,9 @@ def read_tracker_calibration(path: str | Path,
     if why:
         # "calibrate a recording with tracking.csv" only where it had none: a failed hand-eye
         # had one (a wrong --square-mm, a tracker in another convention)
-        advice = ("calibrate a recording with tracking.csv" if he.get("skipped") else
-                  "the hand-eye failed at calibrate: correct what its message names and "
-                  "calibrate again")
+        advice = ("the hand-eye failed at calibrate: correct what its message names and "
+                  "calibrate again" if isinstance(he, dict) and not he.get("skipped") else
+                  "calibrate a recording with tracking.csv")
         raise ValueError(f"{path}: holds no hand-eye calibration ({why}), so no tracker time "
                          f"offset or noise: {advice}")
     try:
