@@ -287,8 +287,7 @@ def flag_reference_frame(result: methods.MethodResult, dataset) -> int:
                     and np.isfinite(G[k]).all()]
         if anchored:
             r = anchored[0]
-            with np.errstate(invalid="ignore"):  # (unplaced rows stay NaN)
-                result.homographies = rereferenced(G, r)
+            result.homographies = rereferenced(G, r)  # (unplaced rows stay NaN)
             _warn_first(result, (
                 f"frame {ids[first]} has no anchor ({status[first]}: placed by the motion "
                 f"prior alone): homographies.csv maps the frames to frame {ids[r]}'s pixel "

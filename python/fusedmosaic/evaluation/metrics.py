@@ -99,10 +99,18 @@ def reference_frame(G: np.ndarray) -> int:
 def rereferenced(G: np.ndarray, r: int) -> np.ndarray:
     """(N, 3, 3) frame -> frame r homographies from frame -> frame 0 ones (NaN stays NaN)."""
     G = np.asarray(G, np.float64)
-    if r == 0:
-        return G
-    out = np.linalg.inv(G[r]) @ G
-    return out / out[:, 2:3, 2:3]
+    return G if r == 0 else _rebased(G, r)
+
+
+def _rebased(G: np.ndarray, r: int) -> np.ndarray:
+    """inv(G[r]) @ G, each row normalised to h22 = 1: the homographies into frame r's grid,
+    whatever grid G maps to. NaN rows stay NaN; a row whose h22 comes out 0 or non-finite (it
+    sends its frame's pixel (0, 0) to infinity) is kept unnormalised."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        out = np.linalg.inv(G[r]) @ G
+        scale = out[:, 2:3, 2:3]
+        ok = np.isfinite(scale) & (scale != 0)
+        return np.where(ok, out / np.where(ok, scale, 1.0), out)
 
 
 def truth_in_reference(G_est: np.ndarray, G_true: np.ndarray) -> tuple[np.ndarray, int]:
@@ -119,12 +127,7 @@ def truth_in_reference(G_est: np.ndarray, G_true: np.ndarray) -> tuple[np.ndarra
         return G_true, 0
     if np.array_equal(G_true[r], np.eye(3)):  # already in r's grid: bit for bit as it was
         return G_true, r
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        out = np.linalg.inv(G_true[r]) @ G_true
-        scale = out[:, 2:3, 2:3]
-        ok = np.isfinite(scale) & (scale != 0)  # (a row sending its centre to infinity: kept)
-        out = np.where(ok, out / np.where(ok, scale, 1.0), out)
-    return out, r
+    return _rebased(G_true, r), r
 
 
 def drift_note(errors: np.ndarray, frame_ids=None, reference: int | None = 0) -> str | None:
