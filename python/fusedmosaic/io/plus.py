@@ -988,14 +988,11 @@ def import_plus_sequence(
     # tracking.csv already on the video's clock: said in the dataset (IMPORT_RECORD), so that
     # run --calibration does not shift it again by calibration.json's offset
     # (applied_tracker_time_offset)
-    extra = {} if tracking is None or not tracker_time_offset else {IMPORT_RECORD: json.dumps({
-        "tracker_time_offset_applied_s": tracker_time_offset,
-        "source": str(sequence.path),
-        "transform": selected.source,
-        "note": (f"tracking.csv's timestamps are the tracker's shifted by "
-                 f"{-tracker_time_offset:+g} s (import --tracker-time-offset): on the video's "
-                 "clock; run --calibration does not apply calibration.json's offset again"),
-    }, indent=2) + "\n"}
+    extra = {}
+    if tracking is not None and tracker_time_offset:
+        extra[IMPORT_RECORD] = time_offset_record(
+            tracker_time_offset, str(sequence.path), "tracking.csv",
+            "import --tracker-time-offset", transform=selected.source)
     # frames.csv keeps the sequence indices as frame ids (frames left out leave a gap), so the
     # ids match annotations of the recording.
     written = write_dataset(
@@ -1024,6 +1021,19 @@ def import_plus_sequence(
         orientation=sequence.orientation,
         tracker_time_offset=tracker_time_offset,
     )
+
+
+def time_offset_record(offset: float, source: str, samples: str, how: str, **more) -> str:
+    """IMPORT_RECORD's text: the `samples` file's timestamps were shifted by -offset onto the
+    video's clock (`how`: the option that did it), for applied_tracker_time_offset to read."""
+    return json.dumps({
+        "tracker_time_offset_applied_s": float(offset),
+        "source": source,
+        **more,
+        "note": (f"{samples}'s timestamps are the sender's shifted by {-offset:+g} s ({how}): on "
+                 "the video's clock; run --calibration does not apply calibration.json's offset "
+                 "again"),
+    }, indent=2) + "\n"
 
 
 def applied_tracker_time_offset(root: str | Path) -> float | None:

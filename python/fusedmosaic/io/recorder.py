@@ -98,16 +98,11 @@ class DatasetRecorder:
             if tracker_time_offset:  # the samples are recorded on the video's clock (stamped -
                 # offset): said as import says it, so that run --calibration on the recording
                 # does not shift them again (io.plus.applied_tracker_time_offset)
-                from fusedmosaic.io.plus import IMPORT_RECORD
+                from fusedmosaic.io.plus import IMPORT_RECORD, time_offset_record
 
-                (self._tmp / IMPORT_RECORD).write_text(json.dumps({
-                    "tracker_time_offset_applied_s": float(tracker_time_offset),
-                    "source": source,
-                    "note": (f"the {'robot' if robot else 'tracker'} samples' timestamps are "
-                             f"the sender's shifted by {-tracker_time_offset:+g} s "
-                             "(--tracker-time-offset): on the video's clock; run --calibration "
-                             "does not apply calibration.json's offset again"),
-                }, indent=2) + "\n")
+                (self._tmp / IMPORT_RECORD).write_text(time_offset_record(
+                    tracker_time_offset, source, "robot.csv" if robot else "tracking.csv",
+                    "live --tracker-time-offset"))
             (self._tmp / "frames").mkdir()
             self._frames_fd = _open_table(self._tmp / "frames.csv", ["frame", "timestamp"])
         except BaseException:
