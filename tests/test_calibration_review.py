@@ -21,7 +21,7 @@ from fusedmosaic.estimation.calibration import (
     BoardDetections,
     CalibrationOptions,
     calibrate_detections,
-    detect_board,
+    find_board_views,
     read_tracker_calibration,
     write_calibration,
 )
@@ -45,17 +45,14 @@ def board(tmp_path_factory):
     o = CalibrationOptions()
     frames = FrameSource.open(root)
     ids, times, _ = read_frame_times(root, frames, None)
-    found = [detect_board(frames[k], o) for k in range(len(frames))]
-    views = np.array([k for k, c in enumerate(found) if c is not None])
-    detections = BoardDetections([found[k] for k in views], views, ids[views], times[views],
-                                 (frames[0].shape[1], frames[0].shape[0]))
+    detections, searched = find_board_views(frames, ids, times, o)
     tracking = read_tracking_csv(root / "tracking.csv")
-    result = calibrate_detections(detections, o, tracking=tracking, searched=len(frames))
+    result = calibrate_detections(detections, o, tracking=tracking, searched=searched)
     assert result.hand_eye_error is None, result.hand_eye_error
     cal = root.parent / "cal"
     write_calibration(cal, result)
     return dict(root=root, detections=detections, tracking=tracking, result=result,
-                cal_json=cal / "calibration.json", searched=len(frames))
+                cal_json=cal / "calibration.json", searched=searched)
 
 
 def _refused(argv: list[str], message: str, capsys) -> str:

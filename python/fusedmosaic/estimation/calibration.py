@@ -1077,34 +1077,22 @@ def calibrate_recording(
         frames.expected_size, frames.size_source = size, f"its first frame {size}"
     frame_ids, timestamps, frame_times = read_frame_times(root, frames, fps)
     tracking, skipped = _read_tracking(root, timestamps, o)
-    tried = np.arange(0, len(frames), o.every)
-
-    def detect(k: int):
-        return detect_board(frames[int(k)], o)
-
-    with ThreadPoolExecutor(max_workers=o.threads) as pool:
-        results = pool.map(detect, tried)
-        if progress:
-            from tqdm import tqdm
-            results = tqdm(results, total=tried.size, desc="board search", unit="frame")
-        found = list(results)
-    views = np.array([k for k, c in zip(tried, found, strict=True) if c is not None], int)
-    detections = BoardDetections([c for c in found if c is not None], views, frame_ids[views],
-                                 timestamps[views], size, o.every)
+    detections, searched = find_board_views(frames, frame_ids, timestamps, o, size=size,
+                                            progress=progress)
     t_detect = time.perf_counter() - t_start
     result = calibrate_detections(detections, o, tracking=tracking,
                                   tracking_source=str(root / "tracking.csv"),
                                   hand_eye_skipped=skipped, given=given, source=str(root),
-                                  searched=int(tried.size))
+                                  searched=searched)
     result.report = {"recording": str(root.resolve()), **result.report,
                      "frames": len(frames), "frame_times": frame_times,
-                     "frames_searched": int(tried.size)}
+                     "frames_searched": searched}
     if frames.unreadable:
         ids = [int(frame_ids[k]) for k in sorted(frames.unreadable)]
         result.report["unreadable_frames"] = {
             str(i): frames.unreadable[k] for i, k in zip(ids, sorted(frames.unreadable),
                                                          strict=True)}
-        warnings.warn(f"{len(ids)} of the {tried.size} frames searched could not be read "
+        warnings.warn(f"{len(ids)} of the {searched} frames searched could not be read "
                       f"(frames {', '.join(map(str, ids[:10]))}{', ...' if len(ids) > 10 else ''}"
                       f"; first: {frames.unreadable[min(frames.unreadable)]}): searched as "
                       "frames without the board (calibration.json unreadable_frames)",
@@ -1113,6 +1101,32 @@ def calibrate_recording(
     timings["board_search"] = t_detect
     timings["total"] = time.perf_counter() - t_start
     return result
+
+
+def find_board_views(frames, frame_ids: np.ndarray, timestamps: np.ndarray,
+                     options: CalibrationOptions, *, size: tuple[int, int] | None = None,
+                     progress: bool = False) -> tuple[BoardDetections, int]:
+    """The board searched in every options.every-th of `frames` (frames[k]: an image) on
+    options.threads threads: its detections (frame ids and times from `frame_ids` /
+    `timestamps`; size: the frames' (width, height), None: the first frame's) and the number
+    of frames searched."""
+    if size is None:
+        size = (frames[0].shape[1], frames[0].shape[0])
+    tried = np.arange(0, len(frames), options.every)
+
+    def detect(k: int):
+        return detect_board(frames[int(k)], options)
+
+    with ThreadPoolExecutor(max_workers=options.threads) as pool:
+        results = pool.map(detect, tried)
+        if progress:
+            from tqdm import tqdm
+            results = tqdm(results, total=tried.size, desc="board search", unit="frame")
+        found = list(results)
+    views = np.array([k for k, c in zip(tried, found, strict=True) if c is not None], int)
+    detections = BoardDetections([c for c in found if c is not None], views, frame_ids[views],
+                                 timestamps[views], size, options.every)
+    return detections, int(tried.size)
 
 
 def _read_tracking(root: Path, timestamps: np.ndarray, o: CalibrationOptions):

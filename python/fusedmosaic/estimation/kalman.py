@@ -503,7 +503,7 @@ class RobotKalmanFilter:
         if image_ok:
             alpha = float(np.arctan2(dx_img[1], dx_img[0]))  # Eq. 11
             norm = float(np.hypot(dx_img[0], dx_img[1]))  # Eq. 12
-            speed = norm / intervals if intervals != 1.0 else norm  # per frame interval
+            speed = norm / intervals  # per frame interval (norm itself at 1: x / 1.0 is x)
         warmup = len(self._norm) < opt.min_history
         if robot_ok and image_ok:
             c_sp = speed_agreement_confidence(
