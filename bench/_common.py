@@ -329,6 +329,7 @@ class ProblemLog:
         )
         self.line("emt_sigma " + _pose(c.emt_sigma))
         self.line("motion_sigma " + _pose(c.motion_sigma))
+        self.line(f"plane_std {int(c.plane_std)} {int(c.plane_std_paired_only)}")
         if window is not None:
             self.line(
                 f"window {window.window_size} {window.num_new} {int(window.fold_fixed_cameras)}"
@@ -379,6 +380,7 @@ class BundleRecorder:
         self.log = ProblemLog(path, "ba", K, ba.options)
         self.python_solve_s = None
         self.summary = None
+        self.solved_at = None  # perf_counter at the first solve()
 
     def __getattr__(self, name):
         return getattr(self._ba, name)
@@ -406,6 +408,8 @@ class BundleRecorder:
     def solve(self):
         self.log.line("solve")
         t0 = time.perf_counter()
+        if self.solved_at is None:
+            self.solved_at = t0
         summary = self._ba.solve()
         self.python_solve_s = time.perf_counter() - t0
         self.summary = summary
@@ -418,21 +422,25 @@ class BundleRecorder:
 
 @contextmanager
 def record_bundle_problems(directory: Path, stem: str):
-    """While active, every BundleAdjuster that estimation.bundle builds is recorded to
-    directory/<stem>-<i>.txt. Hooks bundle._adjuster, the one factory run_bundle uses; if that
-    private name changes, nothing is recorded (the benchmark says so) and runs are unaffected."""
+    """While active, every BundleAdjuster that estimation.bundle builds is recorded; those that
+    solved are written to directory/<stem>-<i>.txt in the order they solved (an adjuster built
+    only to check the options is not written), after the files of an earlier run of the same
+    stem are removed. Hooks bundle._adjuster, the one factory run_bundle uses; if that private
+    name changes, nothing is recorded (the benchmark says so) and runs are unaffected."""
     from fusedmosaic.estimation import bundle
 
+    directory = Path(directory)
     recorders: list[BundleRecorder] = []
     original = getattr(bundle, "_adjuster", None)
     if original is None:
         yield recorders
         return
+    for old in directory.glob(f"{stem}-*.txt"):
+        if old.stem[len(stem) + 1 :].isdigit():
+            old.unlink()
 
-    def make(K, options, use_emt):
-        rec = BundleRecorder(
-            original(K, options, use_emt), K, Path(directory) / f"{stem}-{len(recorders)}.txt"
-        )
+    def make(K, options, use_emt, *args, **kwargs):
+        rec = BundleRecorder(original(K, options, use_emt, *args, **kwargs), K, directory / "_")
         recorders.append(rec)
         return rec
 
@@ -441,7 +449,10 @@ def record_bundle_problems(directory: Path, stem: str):
         yield recorders
     finally:
         bundle._adjuster = original
-        for r in recorders:
+        solved = sorted((r for r in recorders if r.solved_at is not None),
+                        key=lambda r: r.solved_at)
+        for i, r in enumerate(solved):
+            r.log.path = directory / f"{stem}-{i}.txt"
             r.log.close()
 
 

@@ -82,6 +82,8 @@ def load_problem(path: Path) -> dict:
             p["costs"] = rest
         elif name in ("emt_sigma", "motion_sigma"):
             p[name] = np.array(rest, float)
+        elif name == "plane_std":
+            p["plane_std"] = [x == "1" for x in rest]
         elif name == "window":
             p["window"] = [int(x) for x in rest]
         elif name == "add_pair":
@@ -145,6 +147,7 @@ def _costs(p: dict):
     )
     o.emt_sigma = p["emt_sigma"]
     o.motion_sigma = p["motion_sigma"]
+    o.plane_std, o.plane_std_paired_only = p.get("plane_std", (False, False))
     return o
 
 

@@ -162,6 +162,7 @@ def run_one(
                 "ceres_solve_s": r.summary.solve_time_s if r.summary else None,
             }
             for r in recorders
+            if r.summary is not None
         ]
     return row
 

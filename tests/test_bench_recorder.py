@@ -1,6 +1,8 @@
 """bench/_common.WindowRecorder, through which bench_latency.py times lba-emt's window steps
 and logs them for the C++ replay: it must accept every call the mosaicker makes (a step's
-hold_plane included: its absence broke bench_latency unnoticed) and change nothing."""
+hold_plane included: its absence broke bench_latency unnoticed) and change nothing. Likewise
+record_bundle_problems, through which bench_table1.py saves the BA problems (a new argument of
+bundle._adjuster broke it unnoticed)."""
 
 import sys
 from pathlib import Path
@@ -12,7 +14,8 @@ from fusedmosaic.estimation.sequential import SequentialMosaicker, SequentialOpt
 from fusedmosaic.evaluation.benchmark import syn_stream
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-from _common import WindowRecorder  # noqa: E402
+from _common import WindowRecorder, record_bundle_problems  # noqa: E402
+from bench_cpp import load_problem, python_replay  # noqa: E402
 
 
 def _stream(camera, scene, poses, valid, n, options, wrap=None):
@@ -47,3 +50,28 @@ def test_window_recorder_is_transparent_and_logs_every_step(tmp_path):
     assert len(rec.step_wall_s) >= steps and all(t > 0 for t in rec.step_wall_s)
     lines = log.read_text().splitlines()
     assert sum(x.startswith("step ") for x in lines) == len(rec.step_wall_s)
+
+
+def test_bundle_recorder_saves_the_solved_problems_the_replay_reproduces(tmp_path):
+    from fusedmosaic.runner import run_dataset
+    from fusedmosaic.simulation import FetoscopyOptions, simulate_fetoscopy
+
+    data = simulate_fetoscopy(tmp_path / "data", FetoscopyOptions(n_frames=24))
+    problems = tmp_path / "problems"
+    problems.mkdir()
+    (problems / "syn-ba-emt-7.txt").write_text("stale\n")  # an earlier run's file goes
+    (problems / "syn-ba-emt-guided-0.txt").write_text("other\n")  # another stem's stays
+    run_dataset(data, "ba-emt", tmp_path / "plain", progress=False, report=False)
+    with record_bundle_problems(problems, "syn-ba-emt") as recorders:
+        run_dataset(data, "ba-emt", tmp_path / "out", progress=False, report=False)
+    solved = [r for r in recorders if r.summary is not None]
+    assert len(solved) == 1  # the adjuster built only to check the options is not saved
+    assert sorted(f.name for f in problems.iterdir()) == [
+        "syn-ba-emt-0.txt", "syn-ba-emt-guided-0.txt"]
+    h = [np.loadtxt(tmp_path / d / "homographies.csv", delimiter=",", skiprows=1)
+         for d in ("plain", "out")]
+    np.testing.assert_allclose(h[1], h[0], rtol=0, atol=1e-9)  # Ceres' threads: ~1e-13 apart
+    p = load_problem(problems / "syn-ba-emt-0.txt")
+    assert p["plane_std"] == [True, True]  # ba-emt on <= 150 paired frames computes it
+    replay = python_replay(p, 1)
+    assert replay["max_abs_diff_vs_recorded"] < 1e-9

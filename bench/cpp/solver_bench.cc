@@ -21,6 +21,7 @@
 //         function_tolerance gradient_tolerance parameter_tolerance num_threads use_emt
 //         use_motion_prior
 //   emt_sigma s1..s6          motion_sigma s1..s6
+//   plane_std plane_std plane_std_paired_only      (0|1 each; optional, 0 0 when absent)
 //   window window_size num_new fold_fixed_cameras             (window files only)
 //   add_frame id has_initial [x1..x6] has_emt [z1..z6] fixed [motion_ratio motion_sigma_scale]
 //     (ba: fixed is ignored; the C_p timing is optional, 1 1 when absent)
@@ -158,6 +159,14 @@ Problem Load(const std::string& path) {
       continue;
     } else if (name == "motion_sigma") {
       p.costs.motion_sigma = ReadPose(in, path, line);
+      continue;
+    } else if (name == "plane_std") {
+      int on = 0, paired_only = 0;
+      if (!(in >> on >> paired_only)) {
+        Fail(path, line, "plane_std: expected plane_std plane_std_paired_only");
+      }
+      p.costs.plane_std = on != 0;
+      p.costs.plane_std_paired_only = paired_only != 0;
       continue;
     } else if (name == "window") {
       int fold = 1;
