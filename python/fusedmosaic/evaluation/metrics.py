@@ -315,9 +315,23 @@ def check_positions_n(positions_n, what: str = "positions") -> None:
 RESULT_KEYS = ("output", "truth", "frames", "e_M_px", "e_j_px")
 
 
-def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
+def read_truth_dataset(root):
+    """The dataset at `root` as scoring reads it: its truth and frames, not its tracker / robot
+    (a run with --allow-untracked or --live on a late tracker, or an ncc run beside an unusable
+    robot.csv, is scored like any other), and frames that cannot be read as `run` reads them,
+    blank (a damaged first frame was refused here while `run` had accepted it; review)."""
+    from fusedmosaic.io import read_dataset
+
+    return read_dataset(root, allow_untracked=True, strict_tracking=False, strict_robot=False,
+                        blank_unreadable=True)
+
+
+def evaluate_output(out_dir: str | Path, truth_root, *,
                     positions_n: int | None = None, allow_other_dataset: bool = False) -> dict:
     """Scores an output folder's homographies.csv against a dataset's ground_truth.csv.
+
+    truth_root: the dataset folder, or the Dataset read from it by read_truth_dataset (a caller
+    scoring several outputs reads it once: a video dataset is decoded end to end when read).
 
     The result is ready for JSON: a measure that is undefined is None (null), not NaN — e_M_px
     and max_e_j_px with no scored frame, e_j_px of an unplaced frame, drift_ratio when a
@@ -339,17 +353,13 @@ def evaluate_output(out_dir: str | Path, truth_root: str | Path, *,
     "provenance_note" says the dataset could not be checked; frames of another size are
     refused (see evaluation.provenance)."""
     from fusedmosaic.evaluation.provenance import check_frame_size, dataset_mismatch
-    from fusedmosaic.io import read_dataset, read_homographies_csv
+    from fusedmosaic.io import Dataset, read_homographies_csv
     from fusedmosaic.io.output import read_json_object
 
     if positions_n is not None:
         check_positions_n(positions_n)
-    out_dir, truth_root = Path(out_dir), Path(truth_root)
-    # scoring needs the truth and the frames, not the tracker / robot (a run with
-    # --allow-untracked or --live on a late tracker, or an ncc run beside an unusable robot.csv,
-    # is scored like any other)
-    dataset = read_dataset(truth_root, allow_untracked=True, strict_tracking=False,
-                           strict_robot=False)
+    dataset = truth_root if isinstance(truth_root, Dataset) else read_truth_dataset(truth_root)
+    out_dir, truth_root = Path(out_dir), Path(dataset.root)
     if dataset.ground_truth is None:
         raise ValueError(f"{truth_root / 'ground_truth.csv'}: file not found; nothing to score")
     est_path = out_dir / "homographies.csv"

@@ -133,12 +133,11 @@ def frame_centres(G: np.ndarray, width: int, height: int) -> np.ndarray:
 
 def load_truth(dataset_root: str | Path) -> TruthRecord:
     """Ground truth and tracker poses of a dataset folder (files that are absent are None)."""
-    from fusedmosaic.io import read_dataset
+    from fusedmosaic.evaluation.metrics import read_truth_dataset
 
-    root = Path(dataset_root)
-    # the tracker poses are only plotted: an unusable tracking.csv / robot.csv is left out
-    ds = read_dataset(root, allow_untracked=True, strict_tracking=False, strict_robot=False)
-    return truth_from_dataset(ds)
+    # the tracker poses are only plotted: an unusable tracking.csv / robot.csv is left out, and
+    # unreadable frames read blank as `run` reads them
+    return truth_from_dataset(read_truth_dataset(Path(dataset_root)))
 
 
 def truth_from_dataset(ds) -> TruthRecord:

@@ -7,7 +7,10 @@ error message's row number is the file's line number.
 from __future__ import annotations
 
 import csv
+import io
 import math
+import operator
+import warnings
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
@@ -25,47 +28,141 @@ def read_table(
     """Read a headed CSV with exactly ``columns`` followed by any prefix of ``optional``.
 
     Empty fields become NaN (float columns); ``integer`` columns must be filled with integers and
-    come back as int64; ``text`` columns come back as the fields' stripped text (str arrays), for
-    the caller to parse (e.g. with parse_numbers, skipping rows whose content does not count).
+    come back as int64; ``text`` columns come back as the fields' stripped text (object arrays of
+    str), for the caller to parse (e.g. with parse_numbers, skipping rows whose content does not
+    count).
     Returns the columns by name and each data row's spreadsheet row number.
     """
     path = Path(path)
     require_file(path)
+    records: list[list[str]] = []
     try:  # utf-8-sig: a byte order mark (spreadsheets' "CSV UTF-8") is not part of the header
         with path.open(newline="", encoding="utf-8-sig") as f:
-            lines = list(csv.reader(f))
+            try:
+                records.extend(csv.reader(f))
+            except csv.Error as e:  # (not a ValueError: it crashed every command; review)
+                raise ValueError(
+                    f"{path}: row {len(records) + 1}: cannot be read as CSV ({e}): an unbalanced "
+                    f'quote (") or a field over {csv.field_size_limit()} characters; not a CSV '
+                    "of numbers?") from None
     except UnicodeDecodeError:
         raise ValueError(f"{path}: not UTF-8 text; expected a CSV file") from None
-    while lines and not any(field.strip() for field in lines[-1]):
-        lines.pop()  # trailing blank lines
-    if not lines:
+    while records and not "".join(records[-1]).strip():
+        records.pop()  # trailing blank lines
+    if not records:
         raise ValueError(f"{path}: empty file, expected header {','.join(columns)}")
-    header = [h.strip() for h in lines[0]]
+    header = [h.strip() for h in records[0]]
     allowed = [list(columns) + list(optional[:k]) for k in range(len(optional) + 1)]
     if header not in allowed:
         expected = ",".join(columns) + "".join(f"[,{c}]" for c in optional)
-        raise ValueError(f"{path}: row 1: header is {','.join(header)!r}, expected {expected!r}")
+        raise ValueError(f"{path}: row 1: header is {','.join(header)!r}, expected "
+                         f"{expected!r}{_header_hint(header)}")
 
-    values: dict[str, list] = {name: [] for name in header}
-    rows = []
-    for row_number, fields in enumerate(lines[1:], start=2):
-        if not any(field.strip() for field in fields):
-            continue  # blank line
-        if len(fields) != len(header):
+    n = len(header)
+    body = records[1:]
+    del records
+    # rows of another length than the header's: blank ones skipped, the first other refused
+    keep = np.ones(len(body), bool)
+    lengths = np.fromiter(map(len, body), np.int64, len(body))
+    for i in np.flatnonzero(lengths != n):
+        fields = body[i]
+        if "".join(fields).strip():
+            comment = fields[0].lstrip().startswith("#")
             raise ValueError(
-                f"{path}: row {row_number}: {len(fields)} fields, expected {len(header)} "
-                f"({','.join(header)})"
+                f"{path}: row {i + 2}: {len(fields)} fields, expected {n} "
+                f"({','.join(header)})" + (" (a comment line? comment lines are not allowed)"
+                                           if comment else "")
             )
-        for name, field in zip(header, fields, strict=True):
-            values[name].append(field.strip() if name in text else
-                                _parse(path, row_number, name, field.strip(), name in integer))
-        rows.append(row_number)
-    table = {
-        name: np.asarray(v, dtype=str if name in text else
-                         np.int64 if name in integer else np.float64).reshape(-1)
-        for name, v in values.items()
-    }
-    return table, np.asarray(rows, dtype=np.int64)
+        keep[i] = False
+    joined = list(map("".join, body))  # a line of empty fields is a blank one too
+    keep &= ~(np.fromiter(map(str.isspace, joined), bool, len(body))
+              | np.fromiter(map(operator.not_, joined), bool, len(body)))
+    del joined
+    row_numbers = np.flatnonzero(keep).astype(np.int64) + 2
+    if not keep.all():
+        body = [body[i] for i in np.flatnonzero(keep)]
+    columns_text = list(zip(*body, strict=True)) if body else [()] * n
+    del body
+    table = {}
+    for name, fields in zip(header, columns_text, strict=True):
+        if name in text:
+            table[name] = np.array(list(map(str.strip, fields)), dtype=object).reshape(-1)
+        elif name in integer:
+            table[name] = _integers(path, row_numbers, name, fields)
+        else:
+            table[name] = _floats(path, row_numbers, name, fields)
+    return table, row_numbers
+
+
+def read_number_table(path: str | Path, columns: Sequence[str], optional: Sequence[str] = ()
+                      ) -> tuple[dict[str, np.ndarray], np.ndarray] | None:
+    """read_table's result for a file of numbers only (every field filled, no quotes, no blank
+    line; e.g. tracking.csv or robot.csv as write_table writes them), its columns all float64,
+    parsed by numpy's C reader (np.loadtxt, which parses numbers as Python's float does: a
+    long tracking.csv took 120 µs a row field by field; review); None for any other file,
+    which the caller then reads with read_table (whose messages name the problem)."""
+    path = Path(path)
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as f:
+            text = f.read()
+    except (OSError, UnicodeDecodeError):
+        return None
+    first, _, body = text.partition("\n")
+    header = [h.strip() for h in first.rstrip("\r").split(",")]
+    if header not in [list(columns) + list(optional[:k]) for k in range(len(optional) + 1)]:
+        return None
+    body = body.rstrip()
+    del text
+    if not body or '"' in body:
+        return None
+    n_rows = body.count("\n") + 1
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            data = np.loadtxt(io.StringIO(body), delimiter=",", dtype=np.float64,
+                              comments=None, ndmin=2)
+    except (ValueError, TypeError, OverflowError):
+        return None
+    if data.shape != (n_rows, len(header)):  # a blank line skipped, a lone CR line end
+        return None
+    return ({name: np.ascontiguousarray(data[:, j]) for j, name in enumerate(header)},
+            np.arange(2, n_rows + 2, dtype=np.int64))
+
+
+def _floats(path: Path, rows: np.ndarray, column: str, fields: Sequence) -> np.ndarray:
+    """Fields (text) as float64, empty ones NaN: in one pass of Python's float when every one
+    is a number; else field by field, naming the row of the first that is no number
+    (ValueError)."""
+    try:
+        return np.fromiter(map(float, fields), np.float64, len(fields))
+    except ValueError:
+        pass
+    try:  # empty fields (NaN) among numbers
+        return np.array([float(f) if f.strip() else math.nan for f in fields], np.float64)
+    except ValueError:
+        pass
+    return np.array([_parse(path, int(r), column, str(f).strip(), False)
+                     for r, f in zip(rows, fields, strict=True)], np.float64).reshape(-1)
+
+
+def _integers(path: Path, rows: np.ndarray, column: str, fields: Sequence) -> np.ndarray:
+    """Fields (text) as int64; ValueError naming the row of the first that is no integer or
+    beyond int64."""
+    try:
+        return np.fromiter(map(int, fields), np.int64, len(fields))
+    except (ValueError, OverflowError):
+        return np.array([_parse(path, int(r), column, str(f).strip(), True)
+                         for r, f in zip(rows, fields, strict=True)], np.int64).reshape(-1)
+
+
+def _header_hint(header: list[str]) -> str:
+    """A hint for headers of common exports: a comment line first, pandas' index column."""
+    if header and header[0].startswith("#"):
+        return " (a comment line? comment lines are not allowed: the first line is the header)"
+    if header and header[0] == "" and len(header) > 1:
+        return (" (an unnamed first column: pandas' index? write the file with "
+                "to_csv(..., index=False))")
+    return ""
 
 
 def parse_numbers(path: str | Path, rows: np.ndarray, column: str, fields: np.ndarray,
@@ -73,13 +170,20 @@ def parse_numbers(path: str | Path, rows: np.ndarray, column: str, fields: np.nd
     """A ``text`` column of read_table as float64: empty fields NaN; text that is no number
     raises naming the row and column, except in rows where ``skip`` is True (rows whose content
     is ignored, e.g. flagged invalid), which become NaN."""
+    path = Path(path)
+    fields = np.asarray(fields, dtype=object).reshape(-1)
+    rows = np.asarray(rows).reshape(-1)
+    if skip is None or not np.any(skip):
+        return _floats(path, rows, column, fields)
+    skip = np.asarray(skip, bool).reshape(-1)
     out = np.full(len(fields), np.nan)
-    for i, field in enumerate(fields):
+    checked = np.flatnonzero(~skip)
+    out[checked] = _floats(path, rows[checked], column, fields[checked])  # names a bad row
+    for i in np.flatnonzero(skip):  # rows whose content is ignored: a number kept, else NaN
         try:
-            out[i] = _parse(Path(path), int(rows[i]), column, str(field), False)
+            out[i] = _parse(path, int(rows[i]), column, str(fields[i]).strip(), False)
         except ValueError:
-            if skip is None or not skip[i]:
-                raise
+            pass
     return out
 
 

@@ -437,6 +437,14 @@ def read_camera_yaml(path: str | Path) -> Camera:
             except UnicodeDecodeError:  # e.g. Latin-1 comments: the keys and values are ASCII
                 text = body.decode("latin-1")
         text = _yaml_without_tabs(text, path)
+    if _format_flag(body) == cv2.FILE_STORAGE_FORMAT_YAML and _FLUSH_ITEM.search(
+            text if text is not None else body.decode("latin-1")):
+        try:
+            source = text if text is not None else body.decode("utf-8")
+        except UnicodeDecodeError:  # e.g. Latin-1 comments: the keys and values are ASCII
+            source = body.decode("latin-1")
+        indented = _yaml_lists_indented(source)
+        text = indented if indented != source or text is not None else text
     fmt = _FORMAT_NAMES[_format_flag(body)]
     try:
         if text is not None:  # parsed from memory
@@ -521,6 +529,44 @@ def _yaml_without_tabs(text: str, path: Path) -> str:
     return "\n".join(lines)
 
 
+_FLUSH_ITEM = re.compile(r"^[ ]*-( |$)", re.MULTILINE)  # a block sequence's item line
+_KEY_ONLY = re.compile(r"^([ ]*)[^\s#\-][^#]*:[ ]*(#.*)?$")  # "key:" with its value below
+
+
+def _yaml_lists_indented(text: str) -> str:
+    """YAML text with block sequences written flush under their key (``key:`` then ``- 1`` at
+    the key's indentation, as PyYAML's safe_dump and many emitters write them; valid YAML)
+    indented by two spaces, which OpenCV's YAML reader needs ("Incorrect indentation" else;
+    review). Every other line is left as it is."""
+    lines = text.split("\n")
+    for _ in range(len(lines)):  # one sequence per pass; nested ones in later passes
+        for i, line in enumerate(lines):
+            key = _KEY_ONLY.match(line)
+            if key is None:
+                continue
+            k = len(key.group(1))
+            j = next((j for j in range(i + 1, len(lines))
+                      if lines[j].strip() and not lines[j].lstrip().startswith("#")), None)
+            if j is None or _indent(lines[j]) != k or not _FLUSH_ITEM.match(lines[j]):
+                continue
+            while j < len(lines):
+                content = lines[j].strip()
+                if content and not content.startswith("#"):
+                    if _indent(lines[j]) < k or (_indent(lines[j]) == k
+                                                 and not _FLUSH_ITEM.match(lines[j])):
+                        break
+                lines[j] = "  " + lines[j] if content else lines[j]
+                j += 1
+            break
+        else:
+            break
+    return "\n".join(lines)
+
+
+def _indent(line: str) -> int:
+    return len(line) - len(line.lstrip(" "))
+
+
 def _format_flag(data: bytes) -> int:
     """The FileStorage format of a file's content, as OpenCV reads it whatever the file's name:
     ``<`` first XML, ``{`` first JSON, else YAML."""
@@ -601,6 +647,11 @@ def _read_camera(fs: cv2.FileStorage, path: Path, unknown: Sequence[str] = ()) -
         for i in range(node.size()):
             item = node.at(i)
             if not (item.isInt() or item.isReal()):
+                if item.isSeq() or item.isMap():
+                    raise ValueError(
+                        f"{path}: {key}: element {i + 1} is a {'list' if item.isSeq() else 'map'}"
+                        ", not a number: give the numbers in one list, or every row as a list of "
+                        "numbers ([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])")
                 text = item.string() if item.isString() else "not a number"
                 raise ValueError(f"{path}: {key}: element {i + 1} is not a number ({text!r})")
             values.append(item.real())
@@ -610,6 +661,13 @@ def _read_camera(fs: cv2.FileStorage, path: Path, unknown: Sequence[str] = ()) -
         node = fs.getNode(key)
         if node.empty() or node.isNone():
             return None
+        if node.isSeq() and node.size() and all(node.at(i).isSeq() for i in range(node.size())):
+            # a list of rows (K.tolist(), [[k1, k2, p1, p2, k3]]): a matrix of their numbers
+            rows = [numbers_of(f"{key} row {i + 1}", node.at(i)) for i in range(node.size())]
+            if len({len(row) for row in rows}) != 1:
+                raise ValueError(f"{path}: {key}: rows of different lengths "
+                                 f"({', '.join(str(len(row)) for row in rows)} numbers)")
+            return np.array(rows, dtype=np.float64)
         if node.isSeq():  # plain YAML list; 9 numbers are read as a row-major 3x3
             values = np.array(numbers_of(key, node), dtype=np.float64)
             return values.reshape(3, 3) if values.size == 9 else values[None, :]

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numbers
 import os
-import warnings
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,6 +21,7 @@ from fusedmosaic.io._table import (
     check_increasing,
     format_float,
     parse_numbers,
+    read_number_table,
     read_table,
     require_file,
     write_table,
@@ -171,15 +172,27 @@ def read_tracking_csv(path: str | Path) -> TrackingSamples:
     increasing order. Timestamps must be within |t| <= MAX_TIMESTAMP_S. Quaternions of valid
     rows are checked (|q| within 1e-3 of 1; the error names the row) and renormalised (by
     TrackingSamples)."""
-    text = [*TRACKING_COLUMNS[1:], "valid"]
-    table, rows = read_table(path, TRACKING_COLUMNS, ["valid"], text=text)
+    numbers = read_number_table(path, TRACKING_COLUMNS, ["valid"])  # at numpy's speed
+    if numbers is not None and "valid" in numbers[0] and not np.all(
+            np.isin(numbers[0]["valid"], (0.0, 1.0))):
+        numbers = None  # (read again as text: the message names the row)
+    if numbers is None:
+        text = [*TRACKING_COLUMNS[1:], "valid"]
+        table, rows = read_table(path, TRACKING_COLUMNS, ["valid"], text=text)
+    else:
+        table, rows = numbers
     timestamps = table["timestamp"]
     check_increasing(path, rows, timestamps, "timestamp")
     check_timestamp_bound(path, rows, timestamps, "tracker")
-    valid = (_valid_flags(path, rows, table["valid"]) if "valid" in table
-             else np.ones(timestamps.size, bool))
-    values = np.stack([parse_numbers(path, rows, c, table[c], skip=~valid)
-                       for c in TRACKING_COLUMNS[1:]], axis=1).reshape(-1, 7)
+    if numbers is not None:
+        valid = (table["valid"] == 1.0 if "valid" in table
+                 else np.ones(timestamps.size, bool))
+        values = np.stack([table[c] for c in TRACKING_COLUMNS[1:]], axis=1).reshape(-1, 7)
+    else:
+        valid = (_valid_flags(path, rows, table["valid"]) if "valid" in table
+                 else np.ones(timestamps.size, bool))
+        values = np.stack([parse_numbers(path, rows, c, table[c], skip=~valid)
+                           for c in TRACKING_COLUMNS[1:]], axis=1).reshape(-1, 7)
     _check_values(
         path,
         rows,
@@ -205,6 +218,10 @@ def _valid_flags(path, rows: np.ndarray, fields: np.ndarray) -> np.ndarray:
     """tracking.csv's ``valid`` column as booleans: 1 / 0 as numbers (1, 1.0, ...) or true /
     false in any case; ValueError naming the row of the first other value and listing what is
     accepted."""
+    fields = np.asarray(fields, dtype=object).reshape(-1)
+    ones = fields == "1"
+    if np.all(ones | (fields == "0")):  # as written by write_tracking_csv: at once
+        return np.asarray(ones, bool)
     flags = np.empty(len(fields), bool)
     for i, field in enumerate(fields):
         word = str(field).lower()
@@ -345,21 +362,44 @@ def rigid_defects(T, tolerance: float, brief: bool = False) -> str:
 
 
 def read_hand_eye(path: str | Path) -> np.ndarray:
-    """Read the 4x4 rigid sensor_from_camera transform (whitespace-separated text); checked and
-    projected as `hand_eye_matrix` does."""
+    """Read the 4x4 rigid sensor_from_camera transform (text: numbers separated by blanks, or
+    by commas or semicolons, brackets ignored, as np.savetxt, MATLAB's writematrix and print(T)
+    write them; '#' starts a comment). Also accepted: the 16 numbers in another layout (read
+    row by row) and a 3x4 [R | t] without its last row (0 0 0 1 added). Checked and projected
+    as `hand_eye_matrix` does."""
     path = Path(path)
     require_file(path)
-    if not path.read_bytes().strip():
+    data = path.read_bytes()
+    if not data.strip():
         raise ValueError(f"{path}: empty file, expected a 4x4 matrix")
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", UserWarning)  # "input contained no data": see below
-            T = np.loadtxt(path, dtype=np.float64, ndmin=2, encoding="utf-8-sig")  # BOM skipped
-    except ValueError as e:
-        raise ValueError(f"{path}: cannot parse as a 4x4 matrix of numbers ({e})") from None
-    if T.shape != (4, 4):
-        raise ValueError(f"{path}: expected a 4x4 matrix, got {T.shape[0]}x{T.shape[1]}")
+        text = data.decode("utf-8-sig")  # a byte order mark skipped
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not UTF-8 text; expected a 4x4 matrix of numbers") from None
+    rows = []
+    for line in text.splitlines():
+        tokens = _HAND_EYE_SEPARATORS.sub(" ", line.split("#", 1)[0]).split()
+        if tokens:
+            try:
+                rows.append([float(t) for t in tokens])
+            except ValueError as e:
+                raise ValueError(f"{path}: cannot parse as a 4x4 matrix of numbers ({e})") from None
+    widths = sorted({len(row) for row in rows})
+    flat = [v for row in rows for v in row]
+    if len(rows) == 3 and widths == [4]:  # [R | t]
+        T = np.array([*rows, [0.0, 0.0, 0.0, 1.0]])
+    elif len(flat) == 16:
+        T = np.array(flat, dtype=np.float64).reshape(4, 4)
+    else:
+        shape = (f"{len(rows)}x{widths[0]}" if len(widths) == 1 else
+                 f"{len(rows)} rows of {', '.join(map(str, widths))} numbers" if rows else
+                 "no numbers")
+        raise ValueError(f"{path}: expected a 4x4 matrix, got {shape} (also accepted: its 16 "
+                         "numbers in another layout, read row by row; a 3x4 [R | t])")
     return _checked_hand_eye(T, str(path))
+
+
+_HAND_EYE_SEPARATORS = re.compile(r"[,;\[\]]")  # read as blanks in hand_eye.txt
 
 
 def hand_eye_matrix(hand_eye) -> np.ndarray:
@@ -406,7 +446,7 @@ def write_hand_eye(path: str | Path, T) -> None:
 
 def read_robot_csv(path: str | Path) -> RobotSamples:
     """Read ``timestamp,x,y`` (s, µm; every field filled, |timestamp| <= MAX_TIMESTAMP_S)."""
-    table, rows = read_table(path, ROBOT_COLUMNS)
+    table, rows = read_number_table(path, ROBOT_COLUMNS) or read_table(path, ROBOT_COLUMNS)
     check_increasing(path, rows, table["timestamp"], "timestamp")
     check_timestamp_bound(path, rows, table["timestamp"], "robot")
     xy = np.stack([table["x"], table["y"]], axis=1)

@@ -83,6 +83,15 @@ NOT_VIDEO_SUFFIXES = frozenset({".srt", ".vtt", ".ass", ".ssa", ".sub", ".json",
                                 ".md5"})
 
 
+# Image files in frames/ that are not frames (only PNG is): named when found there.
+OTHER_IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".gif",
+                                  ".pgm", ".ppm", ".pnm", ".jp2", ".exr", ".dng", ".raw"})
+
+
+def _named(names: list[str], shown: int = 3) -> str:
+    return ", ".join(names[:shown]) + (", ..." if len(names) > shown else "")
+
+
 class FrameSource(Sequence):
     """Sequence of frames read from disk on demand; no image is kept in memory (a video source
     keeps at most ``VIDEO_RECENT_FRAMES`` decoded frames it skipped over).
@@ -239,10 +248,20 @@ class FrameSource(Sequence):
                              "frames one way: move one of them out")
         if frames_dir.is_dir():
             # As the shell's frames/*.png: hidden files (e.g. macOS ._000005.png) are not frames.
-            found = [p.name for p in frames_dir.iterdir() if p.suffix.lower() == ".png"
-                     and not p.name.startswith(".") and p.is_file()]
+            files = [p for p in frames_dir.iterdir() if not p.name.startswith(".") and p.is_file()]
+            found = [p.name for p in files if p.suffix.lower() == ".png"]
+            others = sorted(p.name for p in files if p.suffix.lower() in OTHER_IMAGE_SUFFIXES)
             if not found:
-                raise ValueError(f"{frames_dir}: no frames (*.png)")
+                kinds = sorted({Path(n).suffix.lower() for n in others})
+                raise ValueError(
+                    f"{frames_dir}: no frames (*.png)" + (
+                        f": it holds {len(others)} {'/'.join(kinds)} file(s) ({_named(others)}), "
+                        "and only PNG frames are read; convert them to PNG (lossless), or give "
+                        "the recording as one video.* file" if others else ""))
+            if others:  # (a stray JPEG was left out without a word; review)
+                warnings.warn(
+                    f"{frames_dir}: {len(others)} image file(s) that are not PNG left out "
+                    f"({_named(others)}): only frames/*.png are frames", stacklevel=2)
             paths = [frames_dir / name for name in sort_frame_names(found, frames_dir)]
             return cls(paths, expected_size=expected_size, size_source=size_source,
                        blank_unreadable=blank_unreadable)
@@ -251,7 +270,14 @@ class FrameSource(Sequence):
                 f"{root}: several video files ({', '.join(p.name for p in videos)}), expected one"
             )
         if not videos:
-            raise ValueError(f"{root}: no frames (neither frames/*.png nor a video.* file)")
+            near = sorted(p.name for p in (root.iterdir() if root.is_dir() else ())
+                          if p.name.lower() == "frames" or (
+                              p.stem.lower() == "video" and p.is_file()
+                              and p.suffix.lower() not in NOT_VIDEO_SUFFIXES))
+            raise ValueError(
+                f"{root}: no frames (neither frames/*.png nor a video.* file)" + (
+                    f"; found {', '.join(near)}: the names are case-sensitive (frames/, "
+                    "video.<ext>); rename it" if near else ""))
         return cls(video=videos[0], expected_size=expected_size, size_source=size_source,
                    blank_unreadable=blank_unreadable)
 
@@ -273,7 +299,11 @@ class FrameSource(Sequence):
     def _raw(self, i: int) -> tuple[np.ndarray | None, str | Path]:
         """Frame i as stored (None if it cannot be read) and its name for messages."""
         if self.paths is not None:
-            return cv2.imread(str(self.paths[i]), cv2.IMREAD_UNCHANGED), self.paths[i]
+            image = cv2.imread(str(self.paths[i]), cv2.IMREAD_UNCHANGED)
+            if image is not None and image.ndim == 3 and image.shape[2] == 4 and _grey_alpha_png(
+                    self.paths[i]):
+                image = np.ascontiguousarray(image[:, :, 0])  # OpenCV expands it to BGRA
+            return image, self.paths[i]
         return self._read_video(i), f"{self.video} frame {i}"
 
     def __iter__(self) -> Iterator[np.ndarray]:
@@ -548,6 +578,19 @@ class FrameSource(Sequence):
                 colour = image.ndim == 3 and image.shape[2] == 4  # the alpha channel is dropped
                 peak = max(peak, int((image[:, :, :3] if colour else image).max()))
         return bits_holding(peak)
+
+
+def _grey_alpha_png(path: Path) -> bool:
+    """A PNG file of colour type 4, grey with alpha (its IHDR chunk's byte 25): OpenCV reads it
+    as BGRA, B == G == R; it is a grey frame (its alpha dropped), not a colour one (a grey
+    recording with such frames was refused as grey and colour mixed; review)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(26)
+    except OSError:
+        return False
+    return (len(head) == 26 and head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR"
+            and head[25] == 4)
 
 
 def bits_holding(peak: int) -> int:
