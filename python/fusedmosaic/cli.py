@@ -574,7 +574,7 @@ def _format_table(results: list[dict]) -> str:
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from fusedmosaic.evaluation import compare_position_errors, evaluate_output
-    from fusedmosaic.evaluation.metrics import check_positions_n
+    from fusedmosaic.evaluation.metrics import check_positions_n, read_truth_dataset
     from fusedmosaic.io.output import OutputWriter, check_output_dir, is_under
 
     if args.positions is not None:
@@ -601,7 +601,10 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         raise ValueError(f"--json {json_path}: {exc}") from None
     plots = md_path.stem + "_plots"
     older = _check_report_destination(json_path, plots, report=not args.no_report)
-    results = [evaluate_output(o, args.truth, positions_n=args.positions,
+    # read once for every output, the --positions frames and the report (a video dataset is
+    # decoded end to end when read: 3 passes for one comparison; review)
+    dataset = read_truth_dataset(args.truth)
+    results = [evaluate_output(o, dataset, positions_n=args.positions,
                                allow_other_dataset=args.allow_other_dataset) for o in outs]
     # (shown on the terminal, and in evaluation.md beside the scores they put in doubt)
     notes = []
@@ -617,7 +620,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         # tests its n = 13 / 25 evenly spaced images (among the frames with a truth); else on
         # every frame
         frames = (slice(None) if args.positions is None
-                  else _sampled_indices(args.truth, results[0]["position_sampled_frames"]))
+                  else _sampled_indices(dataset, results[0]["position_sampled_frames"]))
         sample = ({"frames": "all"} if args.positions is None
                   else {"frames": "positions", "positions": args.positions})
         base = np.array([np.nan if e is None else e
@@ -634,7 +637,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             else:
                 pair.update(compare_position_errors(base, other))
             report["wilcoxon"].append(pair)
-    loaded = None if args.no_report else _load_for_report(outs, args.truth)
+    loaded = None if args.no_report else _load_for_report(outs, dataset)
     _say(args, _format_table(results))
     for w in report.get("wilcoxon", []):
         over = "" if w["frames"] == "all" else f" at the {w['positions']} evenly spaced frames"
@@ -676,11 +679,12 @@ def _wilcoxon_text(w: dict) -> str:
 
 
 def _sampled_indices(truth, sampled_ids: list[int]) -> np.ndarray:
-    """Positions (rows of position_errors_um) of the frames --positions sampled."""
-    from fusedmosaic.io import read_dataset
+    """Positions (rows of position_errors_um) of the frames --positions sampled; `truth`: the
+    truth Dataset (or its folder)."""
+    from fusedmosaic.evaluation.metrics import read_truth_dataset
+    from fusedmosaic.io import Dataset
 
-    ids = read_dataset(truth, allow_untracked=True, strict_tracking=False,
-                       strict_robot=False).frame_ids
+    ids = (truth if isinstance(truth, Dataset) else read_truth_dataset(truth)).frame_ids
     return np.flatnonzero(np.isin(ids, sampled_ids))
 
 
@@ -814,10 +818,12 @@ def _is_evaluation_report(md_path: Path) -> bool:
 
 def _load_for_report(outs: list[Path], truth_root):
     """What evaluation.md shows (e_j of every output on one plot, poses, plane, timing), read
-    and checked before anything is written."""
-    from fusedmosaic.evaluation.report import load_run, load_truth
+    and checked before anything is written; `truth_root`: the truth Dataset (or its folder)."""
+    from fusedmosaic.evaluation.report import load_run, load_truth, truth_from_dataset
+    from fusedmosaic.io import Dataset
 
-    truth = load_truth(truth_root)
+    truth = (truth_from_dataset(truth_root) if isinstance(truth_root, Dataset)
+             else load_truth(truth_root))
     runs = [load_run(o, truth.frame_ids) for o in outs]
     labels = [r.label for r in runs]
     for r in runs:  # the same method twice: tell them apart by folder
@@ -889,8 +895,16 @@ def _demo_summary(method: str, result: dict, seconds: float) -> list[str]:
 
 
 def _demo_into(args: argparse.Namespace, root: Path) -> int:
+    import json
+
     from fusedmosaic import methods, simulation
-    from fusedmosaic.compositing import BlendOptions, render_mosaic
+    from fusedmosaic.compositing import (
+        BlendOptions,
+        CanvasOptions,
+        plan_canvas,
+        render_mosaic,
+        write_mosaic_png,
+    )
     from fusedmosaic.evaluation import evaluate_output
     from fusedmosaic.io import read_dataset, read_homographies_csv
     from fusedmosaic.io.output import OutputWriter
@@ -924,17 +938,32 @@ def _demo_into(args: argparse.Namespace, root: Path) -> int:
     run_dataset(data, method, out, progress=_progress(args),
                 blend=BlendOptions("multiband"), video=out / "creation.mp4")
     # The paper's demonstration look (seed 000 Sec. 4.2): linear blending with a thin black
-    # border per frame, which shows where each frame was stitched.
+    # border per frame, which shows where each frame was stitched; of the frames mosaic.png
+    # shows (those it left out, report.json mosaic.skipped_frames, are left out here too), in
+    # one piece or tile by tile as mosaic.png, and not at all when mosaic.png was skipped.
     dataset = read_dataset(data)
-    _, G = read_homographies_csv(out / "homographies.csv")
+    ids, G = read_homographies_csv(out / "homographies.csv")
+    mosaic = json.loads((out / "report.json").read_text(encoding="utf-8")).get("mosaic") or {}
+    left_out = [int(k) for k in (mosaic.get("skipped_frames") or {})]
+    G = np.where(np.isin(ids, left_out)[:, None, None], np.nan, G)
     cam = dataset.camera
     frames, mask = frames_to_compose(dataset)  # lba-emt: undistorted pixels
-    seams = render_mosaic(frames, G, cam.width, cam.height, mask=mask,
-                          blend=BlendOptions("linear", border_px=1.5)).image
+    canvas, seams_blend = CanvasOptions(), BlendOptions("linear", border_px=1.5)
+    plan = None
+    if mosaic.get("file"):
+        plan = plan_canvas(G, cam.width, cam.height, max_pixels=canvas.max_pixels,
+                           absurd_area_factor=canvas.absurd_area_factor)
     result = evaluate_output(out, data)
     with OutputWriter(out, record="demo", stale_after_run=True,
-                      expects=["mosaic_seams.png", "evaluation.json"]) as w:
-        w.write_image("mosaic_seams.png", seams)
+                      expects=["mosaic_seams.png"] * (plan is not None) + ["evaluation.json"]
+                      ) as w:
+        if plan is not None and plan.pixels > canvas.in_memory_pixels:
+            write_mosaic_png(w.path("mosaic_seams.png"), frames, G, cam.width, cam.height,
+                             mask=mask, blend=seams_blend, canvas=canvas, plan=plan)
+        elif plan is not None:
+            w.write_image("mosaic_seams.png", render_mosaic(
+                frames, G, cam.width, cam.height, mask=mask, blend=seams_blend, plan=plan,
+                max_pixels=canvas.max_pixels).image)
         w.write_json("evaluation.json", result)
     _say(args, _format_table([result]))
     for line in _demo_summary(method, result, time.perf_counter() - t0):
@@ -944,7 +973,8 @@ def _demo_into(args: argparse.Namespace, root: Path) -> int:
                        ("mosaic.png", "mosaic, multi-band blending"),
                        ("mosaic_seams.png", "mosaic, linear blending with each frame's border"),
                        ("creation.mp4", "video of the sequential creation")):
-        _say(args, f"  {out / name}  {what}")
+        if (out / name).exists():
+            _say(args, f"  {out / name}  {what}")
     return 0
 
 
@@ -1364,8 +1394,10 @@ def _add_compositing_flags(parser: argparse.ArgumentParser) -> None:
                       help="draw each frame's field-of-view edge as a thin black border of PX "
                            "pixels, to show the seams (seed 000 Sec. 4.2; e.g. 1.5; at most "
                            "the median distance to the edge, where it covers half a frame)")
-    comp.add_argument("--bands", type=int, default=None, help="multiband pyramid levels "
-                      "(default 5)")
+    comp.add_argument("--bands", type=int, default=None, help="multiband pyramid levels, "
+                      "1..10 (default 5); each level doubles the padding warped around every "
+                      "frame (3 x 2^bands px a side), and more than log2 of the frames' smaller "
+                      "side (e.g. 6 for 64 x 64 frames) is lowered to it, with a warning")
     comp.add_argument("--gain-compensation", action="store_true",
                       help="equalise the brightness of overlapping frames (one gain per frame)")
     comp.add_argument("--video", metavar="OUT.mp4",
@@ -1379,7 +1411,9 @@ def _add_compositing_flags(parser: argparse.ArgumentParser) -> None:
                       help="skip (with a warning) mosaics larger than this many pixels; the "
                            "estimates are still written (default 400 000 000)")
     comp.add_argument("--tile-size", type=int, default=None,
-                      help="tile size (px) for mosaics rendered tile by tile (default 1024)")
+                      help="tile size (px) for mosaics rendered tile by tile, 64..8192 "
+                           "(default 1024; a tile's accumulator takes its size squared x 16 "
+                           "bytes for colour)")
     comp.add_argument("--alpha", action="store_true",
                       help="mosaic.png with an alpha channel (grey + alpha, or RGBA): opaque "
                            "where a frame shows the pixel, transparent elsewhere (black either "

@@ -488,15 +488,18 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
     The options were checked by run_dataset (check_compositing_options).
 
     A canvas above the pixel budget (CanvasTooLargeError, raised before anything is allocated)
-    skips the mosaic and the video with a warning; the estimates are still written."""
+    or no frame left to show (NoFrameToComposeError: every placed frame left out, e.g. all
+    black) skips the mosaic and the video with a warning; the estimates are still written."""
     from fusedmosaic.compositing import (
         BlendOptions,
         CanvasOptions,
         CanvasTooLargeError,
+        NoFrameToComposeError,
         SpecularMasks,
         frame_gains,
         plan_canvas,
         render_mosaic,
+        screen_frames,
         write_creation_video,
         write_mosaic_png,
     )
@@ -532,18 +535,42 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
         blend = dataclasses.replace(blend, mask_specular=result.mask_specular)
     canvas = canvas or CanvasOptions()
     t0 = time.perf_counter()
+    ids = dataset.frame_ids
+
+    def skipped_frames(reasons: dict[int, str]) -> dict[str, str]:
+        return {str(int(ids[k])): why for k, why in sorted(
+            {**reasons, **{int(k): "dead-reckoned (no anchor): not composed"
+                           for k in np.flatnonzero(dead)},
+             **{int(k): "image unreadable: not composed"
+                for k in np.flatnonzero(unreadable)},
+             **{int(k): f"no visual content (every pixel <= {BLANK_LEVEL}): not composed"
+                for k in np.flatnonzero(blank)}}.items())}
+
+    plan, none_left = None, None
     try:
         plan = plan_canvas(G, cam.width, cam.height, max_pixels=canvas.max_pixels,
                            absurd_area_factor=canvas.absurd_area_factor)
+    except NoFrameToComposeError:
+        # every placed frame left out (black, unreadable, dead-reckoned or screened): as a
+        # canvas too large, the mosaic is skipped and the estimates kept
+        none_left = skipped_frames(
+            screen_frames(G, cam.width, cam.height, canvas.absurd_area_factor)[1])
+        why = ("no frame to compose a mosaic from: " + (
+            f"the {len(none_left)} placed frame(s) are all left out (report.json "
+            "mosaic.skipped_frames says why)" if none_left else "no frame is placed"))
     except CanvasTooLargeError as exc:
+        why = str(exc)
+    if plan is None:
         skipped = ["mosaic.png"] + ([str(video)] if video is not None else [])
         kept = (" (an earlier file at the video's path is left as it was)"
                 if video is not None and not is_under(video, out) else "")
-        warnings.warn(f"{out}: {' and '.join(skipped)} not written{kept}: {exc}. The "
+        warnings.warn(f"{out}: {' and '.join(skipped)} not written{kept}: {why}. The "
                       "estimates (homographies.csv, report.json, ...) are written.", stacklevel=3)
-        info = {"file": None, "skipped": str(exc)}
+        info = {"file": None, "skipped": why}
+        if none_left is not None:
+            info["skipped_frames"] = none_left
         if video is not None:
-            info["video"] = {"file": None, "skipped": str(exc)}
+            info["video"] = {"file": None, "skipped": why}
         return {"mosaic": info, "plan": None, "video": None}
     strays = [k for k, why in sorted(plan.skipped.items()) if why.startswith("stray")]
     if strays:
@@ -583,7 +610,6 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
         covered = float(rendered.covered.mean())
     highlights = None  # (not shared with the video's incremental canvas)
     timings["compose_mosaic"] = time.perf_counter() - t0
-    ids = dataset.frame_ids
     info = {
         "file": "mosaic.png",
         "blend": blend.blend,
@@ -599,13 +625,7 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
         "covered_fraction": covered,
         "alpha": bool(canvas.alpha),  # an alpha channel: 255 where covered
         "frames_shown": int(plan.use.sum()),
-        "skipped_frames": {str(int(ids[k])): why for k, why in sorted(
-            {**plan.skipped, **{int(k): "dead-reckoned (no anchor): not composed"
-                                for k in np.flatnonzero(dead)},
-             **{int(k): "image unreadable: not composed"
-                for k in np.flatnonzero(unreadable)},
-             **{int(k): f"no visual content (every pixel <= {BLANK_LEVEL}): not composed"
-                for k in np.flatnonzero(blank)}}.items())},
+        "skipped_frames": skipped_frames(plan.skipped),
     }
     if gains is not None:
         info["gains"] = gains.tolist()

@@ -20,7 +20,7 @@ zero weight: they never paint over tissue.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -70,6 +70,43 @@ class BlendOptions:
                              f"{self.border_px}")
         if not 1 <= int(self.bands) <= 10:
             raise ValueError(f"{name('bands', 'bands')} must be in 1..10, got {self.bands}")
+
+
+def max_bands(width: int, height: int) -> int:
+    """The most multiband levels frames of this size support: log2 of the smaller side (the
+    coarsest band of the frame is then about 1 px; coarser ones would only blend the padding
+    around it, each band doubling the padding: 3 x 2^bands px a side)."""
+    return max(1, int(np.floor(np.log2(max(1, min(int(width), int(height)))))))
+
+
+def fit_bands(options: BlendOptions, width: int, height: int) -> BlendOptions:
+    """`options` with multiband's bands capped at max_bands(width, height), with a warning when
+    they are lowered (--bands 10 padded each 64 x 64 frame to ~7000 x 7000 float32: 3.4 s and
+    1.5 GB for a two-frame mosaic); other blends as given."""
+    if options.blend != "multiband":
+        return options
+    cap = max_bands(width, height)
+    if int(options.bands) <= cap:
+        return options
+    import warnings
+
+    warnings.warn(f"multiband bands (--bands) {int(options.bands)} is more than {width}x{height} "
+                  f"frames support (log2 of the smaller side: {cap}); blending with {cap} "
+                  "bands", stacklevel=3)
+    return replace(options, bands=cap)
+
+
+def check_frame_dtype(image: np.ndarray, name) -> None:
+    """ValueError unless `image` is uint8: frames are not rescaled, so a 16-bit one saturates
+    and a 0..1 float one is black; the message says how to convert it."""
+    if image.dtype != np.uint8:
+        hint = ""
+        if image.dtype.kind == "f":
+            hint = " (0..1 floats: np.clip(np.rint(image * 255), 0, 255).astype(np.uint8))"
+        elif image.dtype.kind in "iu" and image.dtype.itemsize > 1:
+            hint = " (16-bit: (image >> 8).astype(np.uint8))"
+        raise ValueError(f"frame {name}: image is {image.dtype}, expected uint8: the canvas "
+                         f"does not guess the value range; convert it first{hint}")
 
 
 def as_blend_options(blend: str | BlendOptions | None) -> BlendOptions:
@@ -207,12 +244,14 @@ def footprint_box(G: np.ndarray, width: int, height: int, align: int = 1, pad: i
                   ) -> tuple[int, int, int, int] | None:
     """Integer box [x0, x1) x [y0, y1) in reference pixels holding the frame's footprint
     (pixel extent -0.5 .. W - 0.5), grown by `pad` and to multiples of `align`; None if a corner
-    is behind the camera or not finite."""
+    is behind the camera, not finite or beyond 2^62 px."""
     c = np.array([[-0.5, -0.5, 1], [width - 0.5, -0.5, 1], [width - 0.5, height - 0.5, 1],
                   [-0.5, height - 0.5, 1]]) @ np.asarray(G, np.float64).T
     if not np.isfinite(c).all() or (c[:, 2] <= 0).any():
         return None
     xy = c[:, :2] / c[:, 2:]
+    if not np.abs(xy).max() < 2.0**62:  # (int64 holds the box: canvas.MAX_COORDINATE)
+        return None
     x0, y0 = np.floor(xy.min(axis=0)).astype(int) - pad
     x1, y1 = np.ceil(xy.max(axis=0)).astype(int) + 1 + pad
     if align > 1:
@@ -260,6 +299,7 @@ class FrameWarper:
 
     def _check_image(self, image: np.ndarray, name) -> np.ndarray:
         image = np.asarray(image)
+        check_frame_dtype(image, name)
         if image.shape[:2] != (self.height, self.width):
             raise ValueError(f"frame {name}: image is {image.shape[1]}x{image.shape[0]}, "
                              f"expected {self.width}x{self.height}")
@@ -296,11 +336,12 @@ class FrameWarper:
         return (fill_highlights(image, spots, self.mask) if fill else image, weight,
                 colour_weight)
 
-    def warp(self, image: np.ndarray, G: np.ndarray, *, gain: float = 1.0, name=None
-             ) -> Patch | None:
-        """Patch of `image` placed by G (frame -> reference); None if G is not usable."""
+    def warp(self, image: np.ndarray, G: np.ndarray, *, gain: float = 1.0, name=None,
+             box: tuple[int, int, int, int] | None = None) -> Patch | None:
+        """Patch of `image` placed by G (frame -> reference); None if G is not usable.
+        box: only this part of the frame's box (x0, y0, x1, y1; e.g. the part a tile needs)."""
         image = self._check_image(image, name)
-        box = self.box(G)
+        box = _clipped(self.box(G), box)
         if box is None:
             return None
         x0, y0, x1, y1 = box
@@ -326,17 +367,29 @@ class FrameWarper:
         src[:, :, -1] = weight
         return Patch(x0, y0, _warp(src, G, x0, y0, w, h))
 
-    def warp_weight(self, G: np.ndarray, image: np.ndarray | None = None, *, name=None
-                    ) -> Patch | None:
+    def warp_weight(self, G: np.ndarray, image: np.ndarray | None = None, *, name=None,
+                    box: tuple[int, int, int, int] | None = None) -> Patch | None:
         """Only the weight channel, as `warp` gives it (multiband seam selection): `image`
-        is needed only for mask_specular, whose weights depend on the frame."""
-        box = self.box(G)
+        is needed only for mask_specular, whose weights depend on the frame. box: as warp's."""
+        box = _clipped(self.box(G), box)
         if box is None:
             return None
         x0, y0, x1, y1 = box
         image = None if image is None else self._check_image(image, name)
         _, weight, _ = self._weights(image, fill=False, name=name)
         return Patch(x0, y0, _warp(weight, G, x0, y0, x1 - x0, y1 - y0))
+
+
+def _clipped(box, region) -> tuple[int, int, int, int] | None:
+    """The frame's box cut to `region` (None: the whole box); an empty cut is an empty box at
+    the region's corner (a patch of no pixels, which overlaps nothing)."""
+    if box is None or region is None:
+        return box
+    x0, y0 = max(box[0], int(region[0])), max(box[1], int(region[1]))
+    x1, y1 = min(box[2], int(region[2])), min(box[3], int(region[3]))
+    if x1 <= x0 or y1 <= y0:
+        return x0, y0, x0, y0
+    return x0, y0, x1, y1
 
 
 def fill_highlights(image: np.ndarray, spots: np.ndarray, fov: np.ndarray) -> np.ndarray:
@@ -364,6 +417,8 @@ def fill_highlights(image: np.ndarray, spots: np.ndarray, fov: np.ndarray) -> np
 
 
 def _warp(src: np.ndarray, G: np.ndarray, x0: int, y0: int, w: int, h: int) -> np.ndarray:
+    if w <= 0 or h <= 0:  # (OpenCV takes a size of 0 for the source's)
+        return np.zeros((max(h, 0), max(w, 0), 1 if src.ndim == 2 else src.shape[2]), src.dtype)
     M = np.array([[1.0, 0, -x0], [0, 1.0, -y0], [0, 0, 1.0]]) @ np.asarray(G, np.float64)
     out = cv2.warpPerspective(src, M, (w, h), flags=cv2.INTER_LINEAR,
                               borderMode=cv2.BORDER_CONSTANT, borderValue=0)

@@ -25,6 +25,8 @@ from fusedmosaic.compositing.blending import (
     accumulate,
     as_blend_options,
     compensate_gains,
+    fit_bands,
+    footprint_box,
     resolve,
     thumbnail,
 )
@@ -38,8 +40,20 @@ STRAY_DIAGONALS = 10.0
 STRAY_MAX_FRACTION = 0.1
 
 
+# A footprint corner farther than this from the reference (px) is left out ("beyond the canvas
+# range"): a near-degenerate homography (diag(2e17, 5e-18, 1): det 1, a normal area) reached
+# 2e19 px, beyond int64, and its canvas came out of negative size. 1e15 px keeps every sum of
+# the bounds exact in float64 and int64; such a frame is far beyond any pixel budget anyway.
+MAX_COORDINATE = 1e15
+MAX_TILE_SIZE = 8192  # px: a tile's accumulator is then 8192^2 x (C + 1) x 4 B (1 GiB colour)
+
+
 class CanvasTooLargeError(ValueError):
     pass
+
+
+class NoFrameToComposeError(ValueError):
+    """No placed frame is left to show (all unplaced, or left out: see the reasons)."""
 
 
 @dataclass
@@ -62,9 +76,10 @@ class CanvasOptions:
         for key in ("max_pixels", "in_memory_pixels"):
             if getattr(self, key) <= 0:
                 raise ValueError(f"{name(key, key)} must be > 0, got {getattr(self, key)}")
-        if self.tile_size < 64:
-            raise ValueError(f"{name('tile_size', 'tile_size')} must be >= 64 (pixels), got "
-                             f"{self.tile_size}")
+        if not 64 <= self.tile_size <= MAX_TILE_SIZE:
+            raise ValueError(f"{name('tile_size', 'tile_size')} must be in 64..{MAX_TILE_SIZE} "
+                             f"(pixels; a tile's accumulator is tile size squared x 16 bytes "
+                             f"for colour), got {self.tile_size}")
 
 
 def _corners(width: int, height: int) -> np.ndarray:
@@ -81,25 +96,54 @@ def footprints(homographies: np.ndarray, width: int, height: int) -> np.ndarray:
     return out
 
 
+def _orientation(width: int, height: int) -> float:
+    """The sign of OpenCV's oriented area of an unmirrored footprint (the reference frame's)."""
+    return float(np.sign(cv2.contourArea(_corners(width, height).astype(np.float32),
+                                         oriented=True)))
+
+
+def footprint_problem(G: np.ndarray, quad: np.ndarray, width: int, height: int
+                      ) -> tuple[str | None, float]:
+    """(why the frame placed by G, whose footprint() corners are `quad`, cannot be composed,
+    or None; its footprint area). Shared by plan_canvas and IncrementalCanvas."""
+    if not np.isfinite(quad).all():
+        return "footprint behind the camera", np.nan
+    if np.abs(quad).max() > MAX_COORDINATE:
+        return (f"footprint beyond the canvas range (a corner {np.abs(quad).max():.3g} px from "
+                f"the reference, more than {MAX_COORDINATE:g})"), np.nan
+    if footprint_box(G, width, height) is None:
+        # a corner of the pixel extent (-0.5 .. W - 0.5, which the warp covers) behind it
+        return "footprint behind the camera", np.nan
+    # about its centre before OpenCV's float32: a frame 1e10 px from the reference (a pixel
+    # size wrong by 1e9) otherwise collapsed to a "non-convex" quad
+    centred = (quad - quad.mean(axis=0)).astype(np.float32)
+    if not cv2.isContourConvex(centred):
+        return "non-convex footprint", np.nan
+    signed = cv2.contourArea(centred, oriented=True)
+    if np.sign(signed) != _orientation(width, height):
+        # frame -> reference between two views on the same side of the surface keeps the
+        # orientation; a flip is a placement failure (a plane or pose sign), not a view
+        return "mirrored footprint (the homography flips the frame)", abs(signed)
+    return None, abs(signed)
+
+
 def screen_frames(homographies: np.ndarray, width: int, height: int,
                   absurd_area_factor: float = ABSURD_AREA_FACTOR
                   ) -> tuple[np.ndarray, dict[int, str]]:
-    """Which frames go on the canvas: placed, with a convex footprint in front of the camera of
-    area <= factor x the median. Returns (use (N,) bool, reasons for placed frames left out)."""
+    """Which frames go on the canvas: placed, with a convex, unmirrored footprint in front of
+    the camera, within MAX_COORDINATE px of the reference, of area <= factor x the median.
+    Returns (use (N,) bool, reasons for placed frames left out)."""
     G = np.asarray(homographies, np.float64)
     placed = np.isfinite(G).all(axis=(1, 2))
     fp = footprints(np.where(placed[:, None, None], G, np.eye(3)), width, height)
-    use = placed & np.isfinite(fp).all(axis=(1, 2))
-    reasons = {int(k): "footprint behind the camera" for k in np.flatnonzero(placed & ~use)}
+    use = placed.copy()
+    reasons: dict[int, str] = {}
     areas = np.full(len(G), np.nan)
-    for k in np.flatnonzero(use):
-        # about its centre before OpenCV's float32: a frame 1e10 px from the reference (a
-        # pixel size wrong by 1e9) otherwise collapsed to a "non-convex" quad
-        quad = (fp[k] - fp[k].mean(axis=0)).astype(np.float32)
-        if not cv2.isContourConvex(quad):
+    for k in np.flatnonzero(placed):
+        why, areas[k] = footprint_problem(G[k], fp[k], width, height)
+        if why is not None:
             use[k] = False
-            reasons[int(k)] = "non-convex footprint"
-        areas[k] = cv2.contourArea(quad)
+            reasons[int(k)] = why
     if use.any():
         med = np.median(areas[use])
         for k in np.flatnonzero(use & (areas > absurd_area_factor * med)):
@@ -120,11 +164,14 @@ def canvas_bounds(homographies: np.ndarray, width: int, height: int,
     exclusive): the union of the frames' pixel-centre footprints."""
     use = usable_frames(homographies, width, height) if use is None else use
     if not use.any():
-        raise ValueError("no placed frame to compose a mosaic from")
+        raise NoFrameToComposeError("no placed frame to compose a mosaic from")
     pts = footprints(homographies[use], width - 1, height - 1).reshape(-1, 2)
-    x0, y0 = np.floor(pts.min(axis=0)).astype(int)
-    x1, y1 = np.ceil(pts.max(axis=0)).astype(int) + 1
-    return int(x0), int(y0), int(x1), int(y1)
+    lo, hi = np.floor(pts.min(axis=0)), np.ceil(pts.max(axis=0)) + 1
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all()
+            and np.abs(np.concatenate([lo, hi])).max() <= 2 * MAX_COORDINATE):
+        raise ValueError(f"canvas bounds x {lo[0]:.3g}..{hi[0]:.3g}, y {lo[1]:.3g}..{hi[1]:.3g} "
+                         "cannot be represented (a footprint not screened: screen_frames)")
+    return int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])
 
 
 @dataclass
@@ -232,15 +279,21 @@ def _proximity_groups(G: np.ndarray, width: int, height: int,
 
 class _PatchSource:
     """Warped patches of the used frames. `frames` is a sequence (frames[k]) or an iterable of
-    (k, image) pairs in increasing k, which can then only be read once, in order."""
+    (k, image) pairs in increasing k, which can then only be read once, in order.
+
+    clip: a patch too large for the cache (cache_bytes) is warped only over the region asked
+    for (a tile and its margin), not over the frame's whole box for every tile it touches: a
+    thin diagonal footprint's 6000 x 6000 box took 497 MB and 36 whole warps. Patches that
+    fit are warped whole and kept, as before."""
 
     def __init__(self, frames, G: np.ndarray, warper: FrameWarper, gains: np.ndarray | None,
-                 cache_bytes: int) -> None:
+                 cache_bytes: int, clip: bool = False) -> None:
         self._seq = frames if hasattr(frames, "__getitem__") else None
         self._iter = None if self._seq is not None else iter(frames)
         self.G, self.warper, self.gains = G, warper, gains
         self._cache: OrderedDict[int, Patch] = OrderedDict()
         self._cache_bytes, self._bytes = cache_bytes, 0
+        self._clip = clip
 
     def image(self, k: int) -> np.ndarray:
         if self._seq is not None:
@@ -252,22 +305,36 @@ class _PatchSource:
                 break
         raise ValueError(f"frame {k} missing from the frames given (pairs must come in order)")
 
-    def patch(self, k: int) -> Patch:
+    def _cut(self, k: int, region) -> tuple[int, int, int, int] | None:
+        """The part of frame k's box to warp for `region`: None (the whole box) unless clipping
+        and its whole patch would not fit the cache."""
+        if not self._clip or region is None:
+            return None
+        box = self.warper.box(self.G[k])
+        if box is None:
+            return None
+        channels = (self.warper.channels or 3) + 1
+        whole = (box[2] - box[0]) * (box[3] - box[1]) * channels * 4
+        return None if whole <= self._cache_bytes else tuple(region)
+
+    def patch(self, k: int, region: tuple[int, int, int, int] | None = None) -> Patch:
+        """Frame k's patch; region (x0, y0, x1, y1): the part needed (see `clip`)."""
         if k in self._cache:
             self._cache.move_to_end(k)
             return self._cache[k]
         gain = 1.0 if self.gains is None else float(self.gains[k])
-        patch = self.warper.warp(self.image(k), self.G[k], gain=gain, name=k)
+        cut = self._cut(k, region)
+        patch = self.warper.warp(self.image(k), self.G[k], gain=gain, name=k, box=cut)
         if patch is None:  # screened out by plan_canvas; here only if G changed
             raise ValueError(f"frame {k}: homography has no valid footprint")
-        if self._seq is not None and patch.nbytes <= self._cache_bytes:
+        if (cut is None and self._seq is not None and patch.nbytes <= self._cache_bytes):
             self._cache[k] = patch
             self._bytes += patch.nbytes
             while self._bytes > self._cache_bytes:
                 self._bytes -= self._cache.popitem(last=False)[1].nbytes
         return patch
 
-    def weight_patch(self, k: int) -> Patch:
+    def weight_patch(self, k: int, region: tuple[int, int, int, int] | None = None) -> Patch:
         if k in self._cache:
             p = self._cache[k]
             return Patch(p.x0, p.y0, p.data[:, :, -1:])
@@ -276,7 +343,7 @@ class _PatchSource:
         # chosen here are those of the patches.
         image = (self.image(k) if self.warper.options.mask_specular and self._seq is not None
                  else None)
-        return self.warper.warp_weight(self.G[k], image, name=k)
+        return self.warper.warp_weight(self.G[k], image, name=k, box=self._cut(k, region))
 
 
 def _render_region(x0: int, y0: int, w: int, h: int, ks: Iterable[int], source: _PatchSource,
@@ -288,7 +355,7 @@ def _render_region(x0: int, y0: int, w: int, h: int, ks: Iterable[int], source: 
     if options.blend != "multiband":
         acc = None if not channels else np.zeros((h, w, channels + 1), np.float32)
         for k in ks:
-            patch = source.patch(k)
+            patch = source.patch(k, (x0, y0, x0 + w, y0 + h))
             if acc is None:
                 acc = np.zeros((h, w, patch.data.shape[2]), np.float32)
             accumulate(acc, x0, y0, patch, options.blend)
@@ -304,14 +371,14 @@ def _render_region(x0: int, y0: int, w: int, h: int, ks: Iterable[int], source: 
     aw, ah = ax1 - ax0, ay1 - ay0
     best = np.zeros((ah, aw), np.float32)  # largest feathering weight: who owns each pixel
     for k in ks:
-        wp = source.weight_patch(k)
+        wp = source.weight_patch(k, (ax0, ay0, ax1, ay1))
         ov = _overlap(wp, ax0, ay0, aw, ah)
         if ov is not None:
             np.maximum(best[ov[0]], wp.data[ov[1]][:, :, 0], out=best[ov[0]])
     region = None if not channels else MultibandRegion(ax0, ay0, aw, ah, channels,
                                                        options.bands)
     for k in ks:
-        p = source.patch(k)
+        p = source.patch(k, (ax0, ay0, ax1, ay1))
         if region is None:
             region = MultibandRegion(ax0, ay0, aw, ah, p.data.shape[2] - 1, options.bands)
         ov = _overlap(p, ax0, ay0, aw, ah)
@@ -402,6 +469,7 @@ def render_mosaic(frames, homographies: np.ndarray, width: int, height: int, *,
         options = replace(options, mask_specular=False)
     if highlights is None and options.mask_specular and options.blend == "multiband":
         highlights = SpecularMasks()
+    options = fit_bands(options, width, height)
     G = np.asarray(homographies, np.float64)
     plan = plan or plan_canvas(G, width, height, max_pixels=max_pixels)
     if plan.pixels > max_pixels:
@@ -439,7 +507,7 @@ def write_mosaic_png(path: str | Path, frames: Sequence, homographies: np.ndarra
         raise TypeError("write_mosaic_png: frames must be a sequence of images (frames[k]: "
                         "the tiles read a frame again), not (k, image) pairs or a one-pass "
                         "iterable; render_mosaic takes those")
-    options = as_blend_options(blend)
+    options = fit_bands(as_blend_options(blend), width, height)
     canvas = canvas or CanvasOptions()
     canvas.validate()
     G = np.asarray(homographies, np.float64)
@@ -449,7 +517,7 @@ def write_mosaic_png(path: str | Path, frames: Sequence, homographies: np.ndarra
         highlights = SpecularMasks()
     warper = FrameWarper(width, height, mask, options,
                          highlights=highlights if options.mask_specular else None)
-    source = _PatchSource(frames, G, warper, gains, int(canvas.cache_mb * 2**20))
+    source = _PatchSource(frames, G, warper, gains, int(canvas.cache_mb * 2**20), clip=True)
     ks = np.flatnonzero(plan.use)
     first = np.asarray(frames[int(ks[0])])
     warper.channels = 1 if first.ndim == 2 else first.shape[2]

@@ -57,9 +57,15 @@ from fusedmosaic.compositing.blending import (
     _warp,
     accumulate,
     as_blend_options,
+    check_frame_dtype,
     resolve,
 )
-from fusedmosaic.compositing.canvas import ABSURD_AREA_FACTOR, CanvasTooLargeError, footprints
+from fusedmosaic.compositing.canvas import (
+    ABSURD_AREA_FACTOR,
+    CanvasTooLargeError,
+    footprint_problem,
+    footprints,
+)
 
 Box = tuple[int, int, int, int]  # x0, y0, x1, y1 (x1, y1 exclusive), canvas pixels
 
@@ -124,7 +130,8 @@ class IncrementalCanvas:
         self._stray_box: Box | None = None  # the last of them
         self._areas: deque[float] = deque(maxlen=101)
         self._calls = 0
-        self._channels: int | None = None
+        self._channels: int | None = None  # the tiles': the frames' + 1 (the weight)
+        self._frame_channels: int | None = None  # the frames' (those of every call that passed)
 
     # -- frames -------------------------------------------------------------------------------
     def _warper(self, mask: np.ndarray | None) -> FrameWarper:
@@ -142,12 +149,9 @@ class IncrementalCanvas:
         if not np.isfinite(G).all():
             return "not placed", np.nan
         quad = footprints(G[None], self.width, self.height)[0]
-        if not np.isfinite(quad).all():
-            return "footprint behind the camera", np.nan
-        quad = quad.astype(np.float32)
-        if not cv2.isContourConvex(quad):
-            return "non-convex footprint", np.nan
-        area = cv2.contourArea(quad)
+        reason, area = footprint_problem(G, quad, self.width, self.height)
+        if reason is not None:
+            return reason, np.nan
         if self._areas and area > self.absurd_area_factor * float(np.median(self._areas)):
             return f"footprint area {area / np.median(self._areas):.0f} x the recent median", area
         return None, area
@@ -157,14 +161,7 @@ class IncrementalCanvas:
             raise TypeError(f"frame {name}: image is None; expected an (H, W) gray or (H, W, 3) "
                             "BGR uint8 array")
         image = np.asarray(image)
-        if image.dtype != np.uint8:
-            hint = ""
-            if image.dtype.kind == "f":
-                hint = " (0..1 floats: np.clip(np.rint(image * 255), 0, 255).astype(np.uint8))"
-            elif image.dtype.kind in "iu" and image.dtype.itemsize > 1:
-                hint = " (16-bit: (image >> 8).astype(np.uint8))"
-            raise ValueError(f"frame {name}: image is {image.dtype}, expected uint8: the canvas "
-                             f"does not guess the value range; convert it first{hint}")
+        check_frame_dtype(image, name)
         if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] not in (1, 3, 4)):
             raise ValueError(f"frame {name}: expected an (H, W) gray or (H, W, 3) BGR image, got "
                              f"shape {image.shape}")
@@ -214,7 +211,15 @@ class IncrementalCanvas:
         if G.shape != (3, 3):
             raise ValueError(f"frame {name}: homography must be 3x3, got {G.shape}")
         warper = self._warper(mask)
-        image = warper._check_image(image, name)  # size and channels, before any state change
+        # size and channels, before any state change; the channel count is the canvas's, not
+        # the warper's (each mask has its own warper: a colour frame with its own mask on a grey
+        # canvas passed, and broke the tiles or render())
+        channels = 1 if image.ndim == 2 else image.shape[2]
+        if self._frame_channels is not None and channels != self._frame_channels:
+            raise ValueError(f"frame {name}: {channels} channel(s), earlier frames have "
+                             f"{self._frame_channels}")
+        warper.channels = self._frame_channels
+        image = warper._check_image(image, name)
         reason, area = self._screen(G)
         if self.scale != 1.0:
             G = np.diag([self.scale, self.scale, 1.0]) @ G
@@ -257,6 +262,7 @@ class IncrementalCanvas:
                     "scale, or start a new canvas")
         if reason is not None:
             self._calls += 1
+            self._frame_channels = channels
             self.skipped.append((name, reason))
             if strays is not None:
                 self._strays, self._stray_box = strays, box
@@ -265,15 +271,15 @@ class IncrementalCanvas:
             patch = _warp_shrunk(warper, image, G, box, self.scale, gain, name)
         else:
             patch = warper.warp(image, G, gain=gain, name=name)
-        channels = patch.data.shape[2]
         self._calls += 1
+        self._frame_channels = channels
         self._areas.append(area)
         if self._channels is None:
-            self._channels = channels
+            self._channels = patch.data.shape[2]
         for key in tiles:
             tile = self.tiles.get(key)
             if tile is None:
-                tile = self.tiles[key] = np.zeros((T, T, channels), np.float32)
+                tile = self.tiles[key] = np.zeros((T, T, self._channels), np.float32)
             accumulate(tile, key[1] * T, key[0] * T, patch, self.options.blend)
         self.bounds = self._bounds_with(box)
         self._last_box = box

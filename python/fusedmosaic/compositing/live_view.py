@@ -21,13 +21,24 @@ mosaic.origin_reference_px for mosaic.png), size and ``scale``.
 The published canvas is the same linear blend that ``run --blend linear`` renders from the final
 homographies, at ``scale`` (the final outputs are written by the session as ``run`` writes
 them). A frame without a final placement is not drawn. A failure of the view (a full disk, a
-canvas above ``max_pixels``) is recorded in ``problems`` and never stops the session.
+canvas above ``max_pixels``, any error of the worker) is recorded in ``problems`` (a count per
+kind, without frame numbers or coordinates, so it stays small however long the session;
+``problem_details`` has the first frame of each kind and its full message) and never stops the
+session or the worker.
+
+Each publication renders and encodes the whole canvas, at a cost growing with it (4096 x 4096:
+~1.8 s). So that the worker never spends more than about 1 / PUBLISH_DUTY of its time on them,
+the next publication waits at least PUBLISH_DUTY x the last one's cost (``summary()``:
+``publish_s``, ``effective_interval_s``). An OpenIGTLink IMAGE holds at most 65535 px a side:
+a larger canvas is sent shrunk by a whole factor (area averaged; its geometry says so), and
+counted in ``server.downscaled``.
 """
 
 from __future__ import annotations
 
 import os
 import queue
+import re
 import threading
 import time
 from pathlib import Path
@@ -41,6 +52,11 @@ from fusedmosaic.compositing.incremental import IncrementalCanvas
 
 _STOP = object()
 MAX_QUEUED = 100  # frames waiting for the worker (memory bound: ~50 MB at 400x400 colour)
+# The next publication waits at least this many times the last one's cost (render, encode,
+# send): the view's worker spends at most ~1/4 of a core on publishing, whatever the canvas.
+PUBLISH_DUTY = 4.0
+IGTL_MAX_SIDE = 65535  # an OpenIGTLink IMAGE's size fields are uint16
+MAX_PROBLEM_KINDS = 32  # distinct problem texts kept; further kinds are counted together
 
 
 class LiveMosaicView:
@@ -76,9 +92,17 @@ class LiveMosaicView:
         self.frames_added = 0
         self.published = 0
         self.problems: dict[str, int] = {}  # what went wrong -> how often
+        # each kind's first occurrence: {"frame": the view's frame number, "message": full text}
+        self.problem_details: dict[str, dict] = {}
         self._queue: queue.Queue = queue.Queue()
         self._last_publish = -np.inf
         self._dirty = False
+        self._received = 0  # frames handed to add(), numbering them for problem_details
+        self._current: int | None = None  # the frame the worker is at
+        self.publish_s: list[float] = []  # the last publications' costs (render .. send), s
+        self.effective_interval_s = self.interval_s
+        self.igtl_downscaled = 0  # images sent to the server shrunk to fit OpenIGTLink
+        self.igtl_scale: float | None = None  # the last sent image's pixels per reference pixel
         self._thread = threading.Thread(target=self._work, name="live-mosaic-view", daemon=True)
         self._thread.start()
 
@@ -91,10 +115,13 @@ class LiveMosaicView:
         """A frame and its final frame -> reference homography (the call returns at once). A
         worker more than ``MAX_QUEUED`` frames behind leaves the frame out of the view (counted
         in ``problems``) rather than holding ever more images."""
+        index = self._received
+        self._received += 1
         if self._queue.qsize() >= MAX_QUEUED:
-            self._problem(f"frame left out of the view: {MAX_QUEUED} frames were waiting")
+            self._problem(f"frame left out of the view: {MAX_QUEUED} frames were waiting",
+                          frame=index)
             return
-        self._queue.put((image, np.asarray(homography, np.float64)))
+        self._queue.put((index, image, np.asarray(homography, np.float64)))
 
     def close(self, timeout_s: float = 30.0) -> None:
         """Composites what is queued, publishes the result once more, stops the worker."""
@@ -103,7 +130,14 @@ class LiveMosaicView:
         if self._thread.is_alive():
             self._problem(f"the view was still compositing after {timeout_s:g} s")
 
-    def _problem(self, what: str) -> None:
+    def _problem(self, what: str, frame: int | None = None, message: str | None = None
+                 ) -> None:
+        """Counts a problem of kind `what` (no frame numbers in it); the first of each kind
+        keeps its frame and full message in problem_details."""
+        if what not in self.problems and len(self.problems) >= MAX_PROBLEM_KINDS:
+            what = "other problems (more kinds than the report keeps)"
+        if what not in self.problems:
+            self.problem_details[what] = {"frame": frame, "message": message or what}
         self.problems[what] = self.problems.get(what, 0) + 1
 
     def _work(self) -> None:
@@ -111,19 +145,32 @@ class LiveMosaicView:
             item = self._queue.get()
             if item is _STOP:
                 break
-            image, G = item
+            index, image, G = item
+            self._current = index
             try:
                 if self.lens is not None:
                     image = self.lens.image(image)
                 if self.canvas.add(image, G) is not None:
                     self.frames_added += 1
                     self._dirty = True
-            except (ValueError, cv2.error) as exc:  # CanvasTooLargeError is a ValueError
-                self._problem(f"frame left out of the view: {exc}")
-            if self._dirty and time.monotonic() - self._last_publish >= self.interval_s:
-                self._publish()
+            except Exception as exc:  # noqa: BLE001 (recorded: the worker must not die)
+                self._problem(f"frame left out of the view: {_kind(exc)}", frame=index,
+                              message=f"{type(exc).__name__}: {exc}")
+            if self._dirty and time.monotonic() - self._last_publish >= self.effective_interval_s:
+                self._publish_safely()
         if self._dirty:
+            self._publish_safely()
+
+    def _publish_safely(self) -> None:
+        start = time.monotonic()
+        try:
             self._publish()
+        except Exception as exc:  # noqa: BLE001 (recorded: the worker must not die)
+            self._problem(f"not published: {_kind(exc)}", frame=self._current,
+                          message=f"{type(exc).__name__}: {exc}")
+        cost = time.monotonic() - start
+        self.publish_s = (self.publish_s + [cost])[-20:]
+        self.effective_interval_s = max(self.interval_s, PUBLISH_DUTY * cost)
 
     def _publish(self) -> None:
         self._last_publish = time.monotonic()
@@ -131,7 +178,8 @@ class LiveMosaicView:
         try:
             view = self.canvas.render()  # (the worker's thread: bounds are the view's)
         except CanvasTooLargeError as exc:
-            self._problem(f"not published: {exc}")
+            self._problem("not published: the canvas's bounding box is above max_pixels "
+                          f"({self.canvas.max_pixels})", frame=self._current, message=str(exc))
             return
         s = self.canvas.scale
         origin = (self.canvas.bounds[0] / s, self.canvas.bounds[1] / s)
@@ -144,14 +192,22 @@ class LiveMosaicView:
                     raise OSError("PNG encoding failed")
                 tmp.write_bytes(data.tobytes())
                 os.replace(tmp, self.preview)
-            except OSError as exc:
+            except (OSError, cv2.error) as exc:
                 tmp.unlink(missing_ok=True)
-                self._problem(f"{self.preview}: not written: {exc.strerror or exc}")
+                self._problem(f"{self.preview}: not written: "
+                              f"{getattr(exc, 'strerror', None) or exc}", frame=self._current)
         if self.server is not None:
             from fusedmosaic.io.igtl import mosaic_ijk_to_world
 
-            self.server.send(view, ijk_to_world=mosaic_ijk_to_world(origin, s,
-                                                                    self.pixel_size_mm))
+            image, step = _fit_igtl(view)
+            if step > 1:
+                self.igtl_downscaled += 1
+            # pixel i of the image shrunk `step` times: the mean of view pixels i*step ..
+            # i*step + step - 1, centred at view pixel i*step + (step - 1) / 2
+            at = (origin[0] + (step - 1) / (2 * s), origin[1] + (step - 1) / (2 * s))
+            self.igtl_scale = s / step
+            self.server.send(image, ijk_to_world=mosaic_ijk_to_world(at, s / step,
+                                                                     self.pixel_size_mm))
         self.published += 1
 
     def summary(self) -> dict:
@@ -168,10 +224,44 @@ class LiveMosaicView:
                "height": None if self.view_size is None else self.view_size[1],
                "scale": self.canvas.scale,
                "pixel_size_mm": 1.0 if self.pixel_size_mm is None else self.pixel_size_mm,
-               "problems": dict(self.problems)}
+               # a publication's cost (render .. send) and the interval it imposes
+               "publish_s": ({"last": self.publish_s[-1], "max": max(self.publish_s)}
+                             if self.publish_s else None),
+               "effective_interval_s": self.effective_interval_s,
+               "problems": dict(self.problems),
+               "problem_details": {k: dict(v) for k, v in self.problem_details.items()}}
         if self.server is not None:
             out["server"] = {"address": self.server.address,
                              "device": self.server.device_name,
                              "clients": self.server.clients_served,
-                             "messages_sent": self.server.messages_sent}
+                             "messages_sent": self.server.messages_sent,
+                             # images shrunk to fit OpenIGTLink's 65535 px a side; the last
+                             # one's pixels per reference pixel
+                             "downscaled": self.igtl_downscaled,
+                             "scale": self.igtl_scale}
         return out
+
+
+def _kind(exc: BaseException) -> str:
+    """An error's text without what changes from frame to frame (its number, where it lands,
+    pixel counts), for the problems' keys."""
+    if isinstance(exc, CanvasTooLargeError):
+        return "the live canvas's tiles would exceed max_pixels"
+    text = re.sub(r"^frame \d+: ", "", str(exc).splitlines()[0] if str(exc) else "")
+    text = re.sub(r"\(frame \d+[^)]*\)", "", text)
+    text = re.sub(r"-?\d+(\.\d+)?(e[+-]?\d+)?", "N", text)
+    return f"{type(exc).__name__}: {text.strip()}"[:200]
+
+
+def _fit_igtl(view: np.ndarray) -> tuple[np.ndarray, int]:
+    """(image, step): `view` shrunk by the whole factor `step` (area averaged, padded with black
+    to a multiple of it) when a side exceeds OpenIGTLink's 65535 px, else as it is (step 1)."""
+    h, w = view.shape[:2]
+    step = -(-max(h, w) // IGTL_MAX_SIDE)
+    if step <= 1:
+        return view, 1
+    ph, pw = -(-h // step) * step, -(-w // step) * step
+    padded = np.zeros((ph, pw) + view.shape[2:], view.dtype)
+    padded[:h, :w] = view
+    small = cv2.resize(padded, (pw // step, ph // step), interpolation=cv2.INTER_AREA)
+    return small, step

@@ -7,6 +7,7 @@ row. Standard library only (zlib, struct); any PNG reader (OpenCV, PIL, browsers
 
 from __future__ import annotations
 
+import os
 import struct
 import zlib
 from pathlib import Path
@@ -30,6 +31,11 @@ class PngStreamWriter:
     >>> with PngStreamWriter(path, width, height, channels=3) as png:
     ...     for band in bands:  # (h, width, 3) uint8 BGR, top to bottom
     ...         png.write_rows(band)
+
+    The rows go to a hidden temporary file beside `path` (``.<name>.tmp-<pid>``), renamed to
+    `path` by a successful close(): until then an earlier file at `path` is kept as it was,
+    and a failure (an exception inside ``with``, or in close()) removes the temporary file
+    rather than leave a truncated PNG there.
     """
 
     def __init__(self, path: str | Path, width: int, height: int, channels: int = 3,
@@ -45,10 +51,18 @@ class PngStreamWriter:
         self._prev = np.zeros((1, self.width * self.channels), np.uint8)
         self._zip = zlib.compressobj(level)
         self._pending = bytearray()
-        self._file = open(self.path, "wb")  # noqa: SIM115 (closed in close())
+        self._tmp = self.path.with_name(f".{self.path.name}.tmp-{os.getpid()}")
+        try:
+            self._file = open(self._tmp, "wb")  # noqa: SIM115 (closed in close())
+        except OSError as exc:  # named by the path asked for, not the temporary one
+            raise OSError(exc.errno, exc.strerror, str(self.path)) from None
         header = struct.pack(">IIBBBBB", self.width, self.height, 8,
                              _COLOUR_TYPE[self.channels], 0, 0, 0)
-        self._file.write(_SIGNATURE + _chunk(b"IHDR", header))
+        try:
+            self._file.write(_SIGNATURE + _chunk(b"IHDR", header))
+        except BaseException:
+            self.abort()
+            raise
 
     def write_rows(self, rows: np.ndarray) -> None:
         """rows: (h, width) or (h, width, channels) uint8, the next h rows (BGR(A) order)."""
@@ -75,16 +89,27 @@ class PngStreamWriter:
             self._pending.clear()
 
     def close(self) -> None:
+        """Finishes the PNG and renames it to `path`; on any failure removes it."""
         if self._file.closed:
             return
         try:
-            if self._rows != self.height:
-                raise ValueError(f"{self.path}: {self._rows} of {self.height} rows written")
-            self._pending += self._zip.flush()
-            self._file.write(_chunk(b"IDAT", bytes(self._pending)))
-            self._file.write(_chunk(b"IEND", b""))
-        finally:
-            self._file.close()
+            try:
+                if self._rows != self.height:
+                    raise ValueError(f"{self.path}: {self._rows} of {self.height} rows written")
+                self._pending += self._zip.flush()
+                self._file.write(_chunk(b"IDAT", bytes(self._pending)))
+                self._file.write(_chunk(b"IEND", b""))
+            finally:
+                self._file.close()
+            os.replace(self._tmp, self.path)
+        except BaseException:
+            self._tmp.unlink(missing_ok=True)
+            raise
+
+    def abort(self) -> None:
+        """Drops the PNG: `path` is left as it was."""
+        self._file.close()
+        self._tmp.unlink(missing_ok=True)
 
     def __enter__(self) -> PngStreamWriter:
         return self
@@ -93,7 +118,7 @@ class PngStreamWriter:
         if exc_type is None:
             self.close()
         else:
-            self._file.close()
+            self.abort()
 
 
 def write_png(path: str | Path, image: np.ndarray, level: int = 6) -> None:

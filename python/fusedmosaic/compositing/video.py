@@ -114,8 +114,18 @@ class MosaicVideoWriter:
         return True
 
     def close(self) -> None:
+        """Finishes the video and renames it to `path`; on any failure (an interrupt too)
+        removes the temporary file."""
         if self._writer is None:
             return
+        try:
+            self._finish()
+        except BaseException:
+            self._writer = None
+            self._tmp.unlink(missing_ok=True)
+            raise
+
+    def _finish(self) -> None:
         self._writer.release()
         self._writer = None
         if self.frames_written == 0:
@@ -146,7 +156,11 @@ class MosaicVideoWriter:
 
     def __exit__(self, exc_type, exc, tb) -> None:
         if exc_type is None:
-            self.close()
+            try:
+                self.close()
+            except BaseException:
+                self.abort()
+                raise
         else:
             self.abort()
 

@@ -1258,6 +1258,9 @@ def _run(
         blend="average",
         undistorted=False,  # NCC on the raw frames
         mask_specular=False,  # confocal frames: bright is fluorescence, not a reflection
+        # robot places every frame from the robot alone, frame 0 ("placed") too: run checks
+        # them all for a black image (a black frame 0 was pasted into mosaic.png)
+        images_seen=estimate != "robot",
     )
 
 
