@@ -1,4 +1,4 @@
-"""Review C of the input readers (/tmp/s43/reviewC.md), findings F1-F9: CSV parse errors as
+"""A review of the input readers, its findings F1-F9: CSV parse errors as
 ValueErrors, tracking.csv at numpy's speed, evaluate on a damaged first frame and a video read
 once, camera.yaml as PyYAML / json write it, grey+alpha PNGs, hand_eye.txt layouts, README, and
 the message hints."""

@@ -92,6 +92,10 @@ void BindSlidingWindow(py::module_& m) {
       .def_readonly("solve_time_s", &WindowStepSummary::solve_time_s)
       .def_readonly("step_time_s", &WindowStepSummary::step_time_s)
       .def_readonly("termination", &WindowStepSummary::termination)
+      .def_readonly("message", &WindowStepSummary::message,
+                    "Ceres' summary message of the step's last solve (why it stopped, e.g. a\n"
+                    "FAILURE's \"Residual and Jacobian evaluation failed.\"); empty without a\n"
+                    "solve (NO_RESIDUALS)")
       .def_readonly("num_visual_blocks", &WindowStepSummary::num_visual_blocks)
       .def_readonly("num_correspondences", &WindowStepSummary::num_correspondences)
       .def_readonly("num_window_correspondences", &WindowStepSummary::num_window_correspondences)
@@ -148,6 +152,11 @@ void BindSlidingWindow(py::module_& m) {
           "    long gap, the camera starting at the preceding one; see BundleAdjuster)")
       .def("set_emt_sigma_scale", &SlidingWindow::SetEmtSigmaScale, "frame_id"_a, "scale"_a,
            py::call_guard<py::gil_scoped_release>())
+      .def("drop_emt_measurement", &SlidingWindow::DropEmtMeasurement, "frame_id"_a,
+           py::call_guard<py::gil_scoped_release>(),
+           "Drops a frame's tracker measurement (an unusable sample, e.g. one putting the camera\n"
+           "centre on the plane): no C_EMT term, and its pose is initialised again from the\n"
+           "constant-velocity prediction by the next step or redo that estimates it.")
       .def("set_motion_timing", &SlidingWindow::SetMotionTiming, "frame_id"_a,
            "motion_ratio"_a, "motion_sigma_scale"_a, py::call_guard<py::gil_scoped_release>(),
            "The timing of a frame's constant-velocity prior (as add_frame's), from the next "
@@ -178,7 +187,9 @@ void BindSlidingWindow(py::module_& m) {
            "hold_plane"_a = false, py::call_guard<py::gil_scoped_release>(),
            "Re-estimates the last frames (GIL released), e.g. after gating a tracker sample:\n"
            "frame_ids, distinct, must hold every frame from the first of them on (the last\n"
-           "step's, and any added since), with no pending frame before them; ValueError else.")
+           "step's, and any added since), with no pending frame before them; keyframe_ids\n"
+           "fixed frames not among them. ValueError (IndexError: an unknown id) else, with\n"
+           "nothing changed.")
       .def("forget", &SlidingWindow::Forget, "frame_ids"_a,
            py::call_guard<py::gil_scoped_release>(),
            "Drops fixed frames outside the window and their pairs.")

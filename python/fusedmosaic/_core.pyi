@@ -460,6 +460,10 @@ class WindowStepSummary:
     @property
     def termination(self) -> str: ...
     @property
+    def message(self) -> str:
+        """Ceres' summary message of the step's last solve (why it stopped); empty without a
+        solve (NO_RESIDUALS)."""
+    @property
     def num_visual_blocks(self) -> int: ...
     @property
     def num_correspondences(self) -> int: ...
@@ -527,6 +531,11 @@ class SlidingWindow:
     def set_emt_sigma_scale(self, frame_id: int, scale: float) -> None:
         """Inflates a frame's tracker standard deviations (gating), scale >= 1."""
 
+    def drop_emt_measurement(self, frame_id: int) -> None:
+        """Drops a frame's tracker measurement (an unusable sample, e.g. one putting the camera
+        centre on the plane): no C_EMT term, and its pose is initialised again from the
+        constant-velocity prediction by the next step or redo that estimates it."""
+
     def set_motion_timing(
         self, frame_id: int, motion_ratio: float, motion_sigma_scale: float
     ) -> None:
@@ -549,7 +558,8 @@ class SlidingWindow:
              hold_plane: bool = False) -> WindowStepSummary:
         """Re-estimates the last frames (after set_emt_sigma_scale). frame_ids, distinct, must
         hold every frame from the first of them on (the last step's frames, and any added since,
-        pending), with no pending frame before them; ValueError otherwise."""
+        pending), with no pending frame before them, and keyframe_ids fixed frames not among
+        them; ValueError otherwise (IndexError for an unknown id), with nothing changed."""
 
     def forget(self, frame_ids: list[int]) -> None:
         """Drops fixed frames outside the window, with their pairs."""

@@ -71,6 +71,16 @@ void SlidingWindowOptions::Validate() const {
     throw std::invalid_argument("window_size: must be >= num_new (" + std::to_string(num_new) +
                                 "), got " + std::to_string(window_size));
   }
+  if (costs.use_motion_prior && window_size - num_new < 2) {
+    // C_p (Eq. 27) links the first new camera to its two predecessors, the last two fixed
+    // cameras; Forget keeps only the window's window_size - num_new, so with fewer an older
+    // camera could silently stand in for a forgotten predecessor.
+    throw std::invalid_argument(
+        "window_size: must be >= num_new + 2 (" + std::to_string(num_new + 2) +
+        ") with the constant-velocity prior (costs.use_motion_prior): C_p links each new camera "
+        "to its two predecessors, which the window must hold fixed; got window_size " +
+        std::to_string(window_size) + ", num_new " + std::to_string(num_new));
+  }
   if (!(plane_max_relative_std >= 0.0) || !std::isfinite(plane_max_relative_std)) {
     throw std::invalid_argument("plane_max_relative_std: must be finite and >= 0, got " +
                                 FormatDouble(plane_max_relative_std));
@@ -142,6 +152,26 @@ void SlidingWindow::SetEmtSigmaScale(int frame_id, double scale) {
     throw std::invalid_argument("scale: must be finite and >= 1, got " + FormatDouble(scale));
   }
   FindFrame(frame_id, "set_emt_sigma_scale").emt_sigma_scale = scale;
+}
+
+void SlidingWindow::DropEmtMeasurement(int frame_id) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  Frame& frame = FindFrame(frame_id, "drop_emt_measurement");
+  frame.emt_measurement.reset();
+  frame.emt_sigma_scale = 1.0;
+  frame.has_initial = false;  // (InitialisePending predicts it at its next step)
+}
+
+void SlidingWindow::CheckKeyframes(const std::vector<int>& keyframe_ids,
+                                   const std::vector<int>& free_ids, const char* what) const {
+  for (int id : keyframe_ids) {
+    const Frame& f = FindFrame(id, (std::string(what) + " keyframe").c_str());
+    if (!f.fixed || std::count(free_ids.begin(), free_ids.end(), id)) {
+      throw std::invalid_argument(std::string(what) + ": keyframe " + std::to_string(id) +
+                                  " is not yet fixed" +
+                                  (f.fixed ? " (it is among the frames estimated)" : ""));
+    }
+  }
 }
 
 void SlidingWindow::SetMotionTiming(int frame_id, double motion_ratio,
@@ -234,6 +264,8 @@ WindowStepSummary SlidingWindow::Step(const std::vector<int>& keyframe_ids, bool
   for (const auto& [id, f] : frames_)
     if (!f.fixed) pending.push_back(id);
   if (pending.empty()) throw std::invalid_argument("step: no pending frame (call add_frame)");
+  if (!plane_set_) throw std::invalid_argument("step: set_plane must be called first");
+  CheckKeyframes(keyframe_ids, pending, "step");  // (before anything changes)
   return Solve(pending, keyframe_ids, hold_plane);
 }
 
@@ -271,6 +303,7 @@ WindowStepSummary SlidingWindow::Redo(const std::vector<int>& frame_ids,
     }
   }
   if (!plane_set_) throw std::invalid_argument("redo: set_plane must be called first");
+  CheckKeyframes(keyframe_ids, ids, "redo");  // (before anything changes)
   for (int id : ids) {
     Frame& f = frames_.at(id);
     if (f.emt_measurement) Eigen::Map<Pose>(f.pose.data()) = *f.emt_measurement;
@@ -461,6 +494,7 @@ WindowStepSummary SlidingWindow::SolveStep(const std::vector<int>& free_ids,
     out.num_free_parameters = summary.num_effective_parameters_reduced;
     if (options_.full_report) out.full_report += summary.FullReport();
     out.termination = ceres::TerminationTypeToString(summary.termination_type);
+    out.message = summary.message;
   };
 
   // Starting values, to solve again with pi held if the step cannot observe it.
@@ -471,8 +505,11 @@ WindowStepSummary SlidingWindow::SolveStep(const std::vector<int>& free_ids,
   solve(/*first=*/true);
   // The motion gate (motion_gate.h), in rounds, each followed by a solve, before the plane
   // gate; for this step only (a redo, after the caller's tracker gate, judges again).
+  // (a failed solve, e.g. an evaluation failing at the starting point, is left to the caller:
+  // neither gate judges a problem that cannot be evaluated)
+  const auto failed = [&out] { return out.termination == "FAILURE"; };
   int releases_left =
-      MaxMotionReleases(static_cast<int>(motion.blocks.size()), c.motion_gate_chi2);
+      failed() ? 0 : MaxMotionReleases(static_cast<int>(motion.blocks.size()), c.motion_gate_chi2);
   while (releases_left > 0) {
     const std::vector<int> released =
         ReleaseMotionBlocks(&problem, &motion, c.motion_gate_chi2, releases_left);
@@ -483,7 +520,7 @@ WindowStepSummary SlidingWindow::SolveStep(const std::vector<int>& free_ids,
     solve(/*first=*/false);
   }
   const double limit = options_.plane_max_relative_std;
-  if (plane_free && limit > 0.0) {
+  if (plane_free && limit > 0.0 && !failed()) {
     std::vector<double*> free_poses;
     for (int id : free_ids) free_poses.push_back(frames_.at(id).pose.data());
     out.plane_relative_std =

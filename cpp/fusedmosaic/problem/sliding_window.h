@@ -37,6 +37,8 @@ namespace fusedmosaic {
 struct SlidingWindowOptions {
   int window_size = 5;  // W, cameras in the temporal window (paper Sec. 4.2, SYN preset)
   int num_new = 3;      // chi_e, new cameras estimated per step (SYN preset)
+  // With costs.use_motion_prior, window_size - num_new >= 2: C_p links the first new camera to
+  // its two predecessors, which only the window keeps from Forget (Validate refuses less).
   // Cost weights, robust loss and Ceres settings shared with the bundle adjuster; use_emt and
   // use_motion_prior switch C_EMT and C_p. costs.linear_solver "auto" is sparse_normal_cholesky
   // for the window (measured, see sliding_window.cc); the iteration limit, tolerances and thread
@@ -80,6 +82,9 @@ struct WindowStepSummary {
   double solve_time_s = 0.0;  // Ceres' total time
   double step_time_s = 0.0;   // assembly + solve
   std::string termination;
+  // Ceres' Summary::message of the step's last solve (why it stopped; on a FAILURE, e.g.
+  // "Residual and Jacobian evaluation failed."), empty without a solve (NO_RESIDUALS).
+  std::string message;
   int num_visual_blocks = 0;
   int num_correspondences = 0;
   // Correspondences of C_v by the role of the pair's cameras: a pair touching a keyframe
@@ -132,6 +137,12 @@ class SlidingWindow {
                 double motion_ratio = 1.0, double motion_sigma_scale = 1.0);
   // Inflates the tracker standard deviations of a pending camera (gating, >= 1).
   void SetEmtSigmaScale(int frame_id, double scale);
+  // Drops a camera's tracker measurement (a sample the caller found unusable, e.g. one that
+  // puts the camera centre on the plane, so that the step's evaluation failed): no C_EMT term
+  // for it any more, its sigma scale back to 1, and its pose is initialised again, from the
+  // constant-velocity prediction of its predecessors, by the next Step or Redo that estimates
+  // it (until then it has no pose: GetPose refuses it).
+  void DropEmtMeasurement(int frame_id);
   // The timing of a camera's constant-velocity prior, as AddFrame's, from the next Step or
   // Redo that estimates it on (e.g. judged again when later tracker samples are known).
   void SetMotionTiming(int frame_id, double motion_ratio, double motion_sigma_scale);
@@ -180,6 +191,10 @@ class SlidingWindow {
   };
 
   Frame& FindFrame(int frame_id, const char* what);
+  // Refuses (out_of_range / invalid_argument) a keyframe id that is unknown, not fixed, or
+  // among the frames the call estimates, before anything changes.
+  void CheckKeyframes(const std::vector<int>& keyframe_ids, const std::vector<int>& free_ids,
+                      const char* what) const;
   const Frame& FindFrame(int frame_id, const char* what) const;
   std::vector<int> WindowIdsLocked(int num_new) const;
   void InitialisePending(const std::vector<int>& ids);

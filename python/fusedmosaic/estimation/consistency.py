@@ -247,8 +247,10 @@ def add_robot_agreement(details: dict, source: str, pixel_size_um: float | None,
 
 def solver_warning(summary, max_iterations: int, what: str = "the adjustment") -> str | None:
     """A message when Ceres stopped without converging (iteration limit, or failure), else
-    None. ``summary`` is a SolveSummary (or its as_dict())."""
-    get = summary.get if isinstance(summary, dict) else lambda key: getattr(summary, key)
+    None. ``summary`` is a SolveSummary (or its as_dict()) or a WindowStepSummary; a field it
+    lacks (e.g. the message of an older build's or a test's summary) reads as None."""
+    get = summary.get if isinstance(summary, dict) else (
+        lambda key: getattr(summary, key, None))
     termination = get("termination")
     if termination in ("CONVERGENCE", "USER_SUCCESS", "NO_RESIDUALS", None):
         return None
@@ -256,7 +258,8 @@ def solver_warning(summary, max_iterations: int, what: str = "the adjustment") -
         return (f"{what} stopped at its iteration limit ({max_iterations}) before converging: "
                 "the estimates are not at the cost's minimum (a tracker disagreeing with the "
                 "images is a common cause; else raise max_iterations)")
-    return f"{what} failed: Ceres {termination}: {get('message')}"
+    message = get("message")
+    return f"{what} failed: Ceres {termination}" + (f": {message}" if message else "")
 
 
 # pCLE (seed 004): the robot's steps against the image registrations', on the frames the image

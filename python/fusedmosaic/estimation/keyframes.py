@@ -87,16 +87,28 @@ class KeyframeIndex:
         if not blocks or num_clusters < 1:
             return []
         if len(blocks) <= num_clusters:
-            chosen = blocks
-        else:
-            pts = np.array([b.centroid for b in blocks])
+            return sorted(k for b in blocks for k in b.frame_ids)
+        pts = np.array([b.centroid for b in blocks])
+        # Coinciding block centroids (a camera held over one spot) are clustered once: K-means
+        # on fewer distinct points than clusters divided by zero and left clusters empty, with
+        # scipy warnings at every step. Each distinct centroid is then a cluster of its own
+        # when there are at most num_clusters of them.
+        unique, inverse = np.unique(pts, axis=0, return_inverse=True)
+        inverse = inverse.ravel()
+        if len(unique) == len(pts):
             seed = int(self.rng.integers(2**31 - 1))
             _, labels = kmeans2(pts, num_clusters, minit="++", seed=seed)
-            chosen = []
-            for c in range(num_clusters):
-                members = np.flatnonzero(labels == c)
-                if len(members):
-                    chosen.append(blocks[int(self.rng.choice(members))])
+        elif len(unique) <= num_clusters:
+            labels = inverse
+        else:
+            seed = int(self.rng.integers(2**31 - 1))
+            _, unique_labels = kmeans2(unique, num_clusters, minit="++", seed=seed)
+            labels = unique_labels[inverse]
+        chosen = []
+        for c in range(num_clusters):
+            members = np.flatnonzero(labels == c)
+            if len(members):
+                chosen.append(blocks[int(self.rng.choice(members))])
         return sorted(k for b in chosen for k in b.frame_ids)
 
     def centroids(self) -> tuple[np.ndarray, np.ndarray]:

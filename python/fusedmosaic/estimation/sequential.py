@@ -119,6 +119,10 @@ from fusedmosaic.registration.pairs import MatchOptions, guided_search, match_pa
 
 # Paper presets (Sec. 4.2): (W, chi_e, K, frames per cluster).
 PRESETS = {"syn": (5, 3, 3, 5), "phb": (3, 1, 3, 3), "ex": (12, 6, 3, 12)}
+# FrameResult.status of a frame whose window step Ceres could not solve (FAILURE), even after
+# dropping the samples that made its evaluation fail: it stays at its starting pose (its
+# tracker sample, or the motion prediction).
+SOLVER_FAILED_STATUS = "prior-only (solver failed)"
 # Sigma_p scale of the constant-velocity term linking a tracked frame to frames placed without
 # any anchor (see SequentialMosaicker._unanchored): the term is in effect released, the
 # dead-reckoned motion before the tracker came back is no evidence for the frame.
@@ -143,6 +147,10 @@ UNBOUNDED_CHECK_RELATIVE_STD = 10.0
 # A start-up plane behind its cameras from at least this many registered pairs showing parallax
 # is blamed on the tracker's poses, not on too few pairs or too short a baseline.
 CONTRADICTING_PAIRS = 20
+# A window step whose evaluation failed (Ceres FAILURE) drops the tracker samples of its frames
+# that put their camera nearer the plane than this fraction of the window cameras' median depth
+# (or on or behind it), re-initialises those frames and is redone (_recover_failed_step).
+UNUSABLE_DEPTH_RATIO = 0.05
 # A start-up refused while it holds startup_wait_frames frames is tried again once this
 # fraction of them came since (new tracked pairs, a quarter more, still try at once): every
 # frame then hands its oldest out unplaced, so a start-up accepted k frames later places k
@@ -367,7 +375,10 @@ class FrameResult:
     registered pair), "dead-reckoned" (final, with no anchor at all: neither a tracker sample
     nor a registered pair to a frame that had one, e.g. black frames inside a tracker dropout;
     placed by the constant-velocity prior between the anchored frames around it when one follows
-    within hold_unanchored_frames, else extrapolated, its error growing with the gap), "provisional"
+    within hold_unanchored_frames, else extrapolated, its error growing with the gap),
+    "prior-only (solver failed)" (final, its window step could not be solved, Ceres FAILURE, even
+    after dropping the tracker samples that made it fail: left at its starting pose, the tracker
+    sample or the motion prediction), "provisional"
     (not final yet) or "unplaced: <why>". final: whether the
     estimate will not change. tracker_gated: its tracker sample was down-weighted by the
     window step (gate_chi2) or dropped as a glitch; tracker_dropped: dropped (never used).
@@ -381,7 +392,9 @@ class FrameResult:
     timestamp: float
     homography: np.ndarray  # (3, 3) frame -> reference (NaN when unplaced)
     pose: np.ndarray  # (6,) cam_from_world
-    status: str  # "placed" | "prior-only" | "dead-reckoned" | "provisional" | "unplaced: ..."
+    # "placed" | "prior-only" | "dead-reckoned" | "prior-only (solver failed)" | "provisional"
+    # | "unplaced: ..."
+    status: str
     final: bool
     # its tracker sample was down-weighted by the window step (gate_chi2) or dropped as a
     # glitch (tracker_max_speed_mm_s ...) before reaching the window; tracker_dropped tells which
@@ -458,6 +471,13 @@ class SequentialMosaicker:
                     and 0 <= value < np.inf):
                 raise ValueError(f"SequentialOptions.{name} must be finite and >= 0 (0 disables "
                                  f"the check), got {value!r}")
+        if o.window_size < o.num_new + 2:
+            # C_p (Eq. 27) links each new camera to its two predecessors, which only the
+            # window's W - chi_e fixed cameras keep from being forgotten
+            raise ValueError("SequentialOptions.window_size must be >= num_new + 2 (the "
+                             "constant-velocity prior links each new camera to its two "
+                             "predecessors, which the window holds fixed), got window_size "
+                             f"{o.window_size}, num_new {o.num_new}")
         if o.frames_per_cluster < o.window_size - 1:
             # a keyframe block shorter than the fixed part of the window can be evicted while
             # its frames are still in the window (every preset has frames_per_cluster >= W)
@@ -559,7 +579,13 @@ class SequentialMosaicker:
         # C++ summaries of the last history_steps window steps (each frame's plane is in its
         # FrameResult).
         self.step_summaries: deque = deque(maxlen=o.history_steps)
+        # the last window step's summary, kept whatever history_steps (0 keeps none above)
+        self.last_step_summary = None
         self.num_steps = 0
+        # Frames handed out unplaced because the plane passes through their camera centre:
+        # they never join the keyframe reservoir, so they are forgotten by the C++ window once
+        # neither the window nor the recent frames' matching can use them (_forget_orphans).
+        self._orphans: set[int] = set()
         self.bootstrap_summary: dict | None = None  # the start-up BA+EMT solve, once it ran
         # Pair registrations (window / start-up and spatial loop pairs): attempted, registered,
         # correspondences of the registered ones.
@@ -676,7 +702,13 @@ class SequentialMosaicker:
         pose = pose.astype(np.float64)  # a copy: the caller's array is never kept
         if pose.shape == (6,) and np.isnan(pose).all():
             return None  # no sample, as read_dataset writes a tracker gap (Dataset.cam_from_world)
-        if pose.shape != (6,) or not np.isfinite(pose).all():
+        if pose.shape != (6,):
+            hint = ("; a (4, 4) matrix is the pose's matrix form: give its [angle-axis r, t] "
+                    "(io.camera_pose_from_sample converts a tracker sample)"
+                    if pose.shape == (4, 4) else "")
+            raise ValueError(f"frame {k}: tracker_pose must be 6 finite values [r, t] "
+                             f"(cam_from_world) of shape (6,), got shape {pose.shape}{hint}")
+        if not np.isfinite(pose).all():
             raise ValueError(f"frame {k}: tracker_pose must be 6 finite values "
                              f"[r, t] (cam_from_world), got {tracker_pose!r}")
         # |t| is the camera's distance from the tracker origin (t = -R c); the max first, so
@@ -716,7 +748,8 @@ class SequentialMosaicker:
     _SAVED = ("_next_id", "_last_timestamp", "_trusted", "_reference_pose", "_reference_id",
               "_plane",
               "_startup_G", "_startup_plane", "_startup_problem", "_startup_refused",
-              "num_steps", "_finalized", "_boot_feats", "_boot_matches", "_loop_feats",
+              "num_steps", "_orphans", "_finalized", "_boot_feats",
+              "_boot_matches", "_loop_feats",
               "_loop_centroids", "_loop_G", "_pair_H", "_recent_G", "_poses", "pair_counts",
               "_mirror_frames", "_mirror_pairs", "_mirror_plane", "_implausible_run",
               "_world", "_times", "_intervals", "_unanchored", "bootstrap_summary",
@@ -727,6 +760,7 @@ class SequentialMosaicker:
         saved = {name: copy.copy(getattr(self, name)) for name in self._SAVED}
         saved["_recent"] = deque(self._recent, maxlen=self._recent.maxlen)
         saved["step_summaries"] = deque(self.step_summaries, maxlen=self.step_summaries.maxlen)
+        saved["last_step_summary"] = self.last_step_summary  # (read-only: never mutated)
         saved["_pending"] = [dict(p, timings=dict(p["timings"])) for p in self._pending]
         saved["rng"] = self.rng.bit_generator.state
         saved["keyframes"] = self.keyframes.snapshot()
@@ -775,6 +809,12 @@ class SequentialMosaicker:
         self.window.set_emt_sigma_scale(k, scale)
         initial, emt, _, fixed, timing = self._mirror_frames[k]
         self._mirror_frames[k] = (initial, emt, scale, fixed, timing)
+
+    def _win_drop_sample(self, k) -> None:
+        self._window_touched = True
+        self.window.drop_emt_measurement(k)
+        initial, _, _, fixed, timing = self._mirror_frames[k]
+        self._mirror_frames[k] = (initial, None, 1.0, fixed, timing)
 
     def _win_set_timing(self, k, timing) -> None:
         self._window_touched = True
@@ -1116,14 +1156,27 @@ class SequentialMosaicker:
                                                    zip(tried, out, strict=True))
         return out
 
+    def _startup_rows(self) -> dict[int, int]:
+        """The start-up's frames (pending) by their row in its tables: {id: position}. The
+        tables are sized by the frames the start-up holds (at most startup_wait_frames), not by
+        the frame count: indexed by frame id they grew with every frame a start-up waiting for
+        its tracker saw (0.9 of 2 s over 10 frames after 3e6 frames)."""
+        return {p["id"]: i for i, p in enumerate(self._pending)}
+
     def _pending_tracker_poses(self) -> tuple[dict, np.ndarray]:
-        """Tracker poses of the pending frames: {id: pose} and an (n, 6) table by frame id,
-        NaN where a frame has none."""
-        tracked = {p["id"]: p["tracker"] for p in self._pending if p["tracker"] is not None}
-        table = np.full((self._next_id, 6), np.nan)
-        for i, z in tracked.items():
-            table[i] = z
+        """Tracker poses of the pending frames: {id: pose} and an (n, 6) table by row of
+        _startup_rows (use _renumbered matches with it), NaN where a frame has none."""
+        tracked, table = {}, np.full((len(self._pending), 6), np.nan)
+        for i, p in enumerate(self._pending):
+            if p["tracker"] is not None:
+                tracked[p["id"]] = table[i] = p["tracker"]
         return tracked, table
+
+    def _renumbered(self, matches: list) -> list:
+        """The start-up's pair matches with their frame ids replaced by _startup_rows' rows
+        (the ids the tables of _pending_tracker_poses are indexed by)."""
+        rows = self._startup_rows()
+        return [_Renumbered(m, rows[m.frame_l], rows[m.frame_m]) for m in matches]
 
     def _startup_candidates(self, tracker_pose) -> list:
         """Earlier start-up frames to match a new one against: those of the window, and the
@@ -1136,7 +1189,7 @@ class SequentialMosaicker:
             return list(self._boot_feats)
         tracked, table = self._pending_tracker_poses()
         try:
-            plane = estimate_plane(self._boot_matches, table, self.K)
+            plane = estimate_plane(self._renumbered(self._boot_matches), table, self.K)
         except ValueError:  # no registered start-up pair with tracker poses yet
             return list(self._boot_feats)
         self._startup_plane = plane
@@ -1258,15 +1311,18 @@ class SequentialMosaicker:
         structure tied to 2 samples leaves (the homographies within 0.02 px after 12); the
         nominal start converged in 4-23 to the ~1300 of the visual noise."""
         usable = [m for m in self._boot_matches if m.frame_l in tracked and m.frame_m in tracked]
-        planes = [estimate_plane(usable, table, self.K)]
+        planes = [estimate_plane(self._renumbered(usable), table, self.K)]
         if self._startup_untracked():  # (all tracked: nothing is chained through the plane)
             samples = np.array([tracked[k] for k in ids if k in tracked])
             with np.errstate(divide="ignore", invalid="ignore"):  # (checked below)
                 nominal = plane_facing(samples, self.options.nominal_plane_distance_mm)
             if np.isfinite(nominal).all():  # (not through the tracker's origin)
                 planes.append(nominal)
+        rows = self._startup_rows()
+        boot = self._renumbered(self._boot_matches)
         starts = [(plane, fill_missing_poses(chain_missing_poses(
-            table, self._boot_matches, plane, self.K, fill=False)[ids])) for plane in planes]
+            table, boot, plane, self.K, fill=False)[[rows[k] for k in ids]]))
+            for plane in planes]
         if len(starts) == 1:
             return starts[0]
         best = (np.inf, *starts[0])  # (taken if no probe succeeds)
@@ -1394,9 +1450,10 @@ class SequentialMosaicker:
         # start-up of 8 frames has too few triples for the scale to stand out of its glitches.
         gated = [k for k in sorted(bad) if k in tracked]
         rest = {k: z for k, z in tracked.items() if k not in bad}
+        rows = self._startup_rows()
         if gated and any(m.frame_l in rest and m.frame_m in rest for m in usable):
             tracked, table = rest, table.copy()
-            table[gated] = np.nan
+            table[[rows[k] for k in gated]] = np.nan
         else:
             gated = []
         for p in self._pending:  # (decided again while the start-up waits)
@@ -1436,7 +1493,7 @@ class SequentialMosaicker:
             gated.append(worst)
             tracked = rest
             table = table.copy()
-            table[worst] = np.nan
+            table[rows[worst]] = np.nan
         usable = [m for m in usable if m.frame_l in tracked and m.frame_m in tracked]
         if (limit > 0 and not summary["plane_relative_std"] < UNBOUNDED_CHECK_RELATIVE_STD
                 and must_decide):
@@ -1529,10 +1586,11 @@ class SequentialMosaicker:
         # frames with no anchor (no tracker sample, no pairs chaining them to a frame with
         # one), as the window's: 6 black frames in a tracker gap of a 30-frame start-up were
         # "prior-only" here and "dead-reckoned" after it (and in ba-emt)
-        has_sample = np.zeros(self._next_id, bool)
-        has_sample[list(tracked)] = True
-        lost = unanchored_frames(self._next_id, self._boot_matches, has_sample)
-        anchored = {k for k in ids if not lost[k]}
+        # (by row of the start-up's frames: sized by them, not by the frame count)
+        has_sample = np.zeros(len(ids), bool)
+        has_sample[[rows[k] for k in tracked]] = True
+        lost = unanchored_frames(len(ids), self._renumbered(self._boot_matches), has_sample)
+        anchored = {k for k in ids if not lost[rows[k]]}
         self._boot_feats, self._boot_matches = [], []
         elapsed = (time.perf_counter() - t0) / len(ids)
         self._finalize(ids, [ba.pose(k) for k in ids], gated, elapsed, 0.0, final_step,
@@ -1592,20 +1650,79 @@ class SequentialMosaicker:
             summary = self._win_solved(ids, self.window.redo, ids, keyframe_ids, hold)
         else:
             summary = self._win_solved(ids, self.window.step, keyframe_ids, hold)
+        failed: set[int] = set()
+        if summary.termination == "FAILURE":
+            summary, failed = self._recover_failed_step(ids, keyframe_ids, hold, summary)
+            tracked = {p["id"] for p in self._pending if p["tracker"] is not None} - set(glitched)
         # a tracker sample is gated only against visual evidence that is itself anchored
         gated = [p["id"] for p, d2 in zip(self._pending, summary.emt_mahalanobis2, strict=True)
-                 if np.isfinite(d2) and d2 > self.options.gate_chi2 and p["id"] in visual]
+                 if np.isfinite(d2) and d2 > self.options.gate_chi2 and p["id"] in visual
+                 and not failed]
         if gated:
             for k in gated:
                 self._win_set_scale(k, self.options.gate_sigma_scale)
             summary = self._win_solved(ids, self.window.redo, ids, keyframe_ids, hold)
         anchored = self._linked(fixed - self._unanchored, tracked - set(gated))
         self.step_summaries.append(summary)
+        self.last_step_summary = summary
         self.num_steps += 1
         self._plane = np.asarray(self.window.plane())
         gated += [k for k in glitched if k not in gated]
         self._finalize(ids, [self.window.pose(k) for k in ids], gated,
-                       summary.step_time_s / len(ids), t_kf / len(ids), final_step, anchored)
+                       summary.step_time_s / len(ids), t_kf / len(ids), final_step, anchored,
+                       failed)
+
+    def _recover_failed_step(self, ids, keyframe_ids, hold, summary):
+        """A step Ceres ended in FAILURE: its costs could not be evaluated at the starting
+        poses (a camera centre on the plane makes the plane-induced homography singular), and
+        the C++ window fixed its frames where they started, at their raw tracker samples.
+        A tracker sample that puts its camera on or behind the plane, or much nearer it than
+        the window's cameras (_unusable_samples), is no pose the images can come from: it is
+        dropped (the frame flagged tracker_dropped), its frame re-initialised from the
+        constant-velocity prediction, and the step redone. Before, one such sample within the
+        glitch filter's bound failed that step and every later step pairing a frame with it,
+        leaving 6 neighbours 4-25 px off, all reported "placed".
+        Returns the summary and the frames the redo could not place either (the step's, all
+        of them: they are finalised at their starting poses as "prior-only (solver failed)"),
+        else none."""
+        bad = self._unusable_samples(ids)
+        if bad:
+            for p in self._pending:
+                if p["id"] in bad:
+                    p["tracker"], p["dropped"], p["motion_glitch"] = None, True, False
+                    self._samples.pop(p["id"], None)
+                    self._win_drop_sample(p["id"])
+                elif p["tracker"] is None and p["id"] > min(bad):
+                    # (started from the dropped sample's prediction: predicted again)
+                    self._win_drop_sample(p["id"])
+            summary = self._win_solved(ids, self.window.redo, ids, keyframe_ids, hold)
+        if summary.termination == "FAILURE":
+            return summary, set(ids)
+        return summary, set()
+
+    def _unusable_samples(self, ids) -> set[int]:
+        """Pending frames whose tracker sample puts the camera on or behind the current plane,
+        or nearer it than UNUSABLE_DEPTH_RATIO x the median depth of the last window_size fixed
+        cameras before the step's frames `ids` (their plane-induced homographies degenerate:
+        the step cannot be evaluated)."""
+        step = set(ids)
+        if self._plane is None:
+            return set()
+        tracked = [p["id"] for p in self._pending if p["tracker"] is not None]
+        if not tracked:
+            return set()
+        depths = plane_depths(np.array([p["tracker"] for p in self._pending
+                                        if p["tracker"] is not None]), self._plane)
+        frames = self._mirror_frames
+        before = sorted(k for k, v in frames.items() if v[3] and v[0] is not None
+                        and k not in step)[-self.options.window_size:]
+        fixed = [frames[k][0] for k in before]
+        reference = (np.median(plane_depths(np.array(fixed), self._plane)) if fixed
+                     else np.nan)
+        floor = UNUSABLE_DEPTH_RATIO * reference if np.isfinite(reference) and reference > 0 \
+            else 0.0
+        return {k for k, d in zip(tracked, depths, strict=True)
+                if not (np.isfinite(d) and d > floor)}
 
     def _linked(self, anchors: set[int], seeds: set[int]) -> set[int]:
         """Pending frames anchored: the seeds, and those linked by registered pairs to an
@@ -1647,7 +1764,12 @@ class SequentialMosaicker:
         return n
 
     def _finalize(self, ids, poses, gated, solve_per_frame, keyframe_per_frame,
-                  final_step: bool = False, anchored: set[int] | None = None) -> None:
+                  final_step: bool = False, anchored: set[int] | None = None,
+                  failed: set[int] | frozenset = frozenset()) -> None:
+        """Hands out the pending frames before the held tail (_held_tail) as final. `failed`:
+        frames whose step Ceres could not solve (FAILURE, also after _recover_failed_step):
+        finalised at their starting poses as "prior-only (solver failed)", and, like frames
+        without an anchor, never keyframes, loop frames or anchors of later frames."""
         forget: list[int] = []
         cut = self._held_tail(final_step, anchored)
         held = self._pending[cut:]
@@ -1668,13 +1790,18 @@ class SequentialMosaicker:
                     "unplaced: the estimated plane passes through its camera centre", True,
                     k in gated or p["dropped"], p["timings"], self.plane,
                     tracker_dropped=p["dropped"]))
+                # forgotten by _forget_orphans; no anchor for later frames meanwhile (its pose
+                # is on the plane: a pair to it cannot be evaluated)
+                self._orphans = self._orphans | {k}
+                self._unanchored = self._unanchored | {k}
                 continue
             if self._reference_pose is None:
                 self._reference_pose, self._reference_id = reference, k
             centroid = self._centroid(G)
             forget += self.keyframes.add(k, centroid)
             dead_reckoned = anchored is not None and k not in anchored
-            if dead_reckoned:
+            solver_failed = k in failed
+            if dead_reckoned or solver_failed:
                 self._unanchored = self._unanchored | {k}
             elif k % self.options.frames_per_cluster == self.options.frames_per_cluster // 2:
                 feats = p.pop("features", None)
@@ -1682,11 +1809,12 @@ class SequentialMosaicker:
                     self._loop_feats[k] = feats
                     self._loop_centroids[k] = centroid
                     self._loop_G[k] = G
-            if not dead_reckoned:
+            if not (dead_reckoned or solver_failed):
                 self._recent_G[k] = G
             p["timings"]["window_solve"] = solve_per_frame
             p["timings"]["keyframe_selection"] = keyframe_per_frame
-            status = ("dead-reckoned" if dead_reckoned else
+            status = (SOLVER_FAILED_STATUS if solver_failed else
+                      "dead-reckoned" if dead_reckoned else
                       "placed" if p["visual"] else "prior-only")
             self._finalized.append(FrameResult(
                 k, p["timestamp"], G, poses_from_aligned(pose, self._world), status,
@@ -1705,6 +1833,29 @@ class SequentialMosaicker:
         for p in held:
             p["held"] += 1
         self._pending = held
+        self._forget_orphans()
+
+    def _forget_orphans(self) -> None:
+        """Forgets, in the C++ window, the frames handed out unplaced for a plane through
+        their camera centre (_orphans) once nothing can use them: not pending, not among the
+        recent frames new ones are matched against, not in the window Forget keeps, nor one
+        of the two fixed predecessors of the first pending frame (its C_p)."""
+        if not self._orphans:
+            return
+        frames = self._mirror_frames
+        fixed = sorted(k for k, v in frames.items() if v[3])
+        pending_cpp = len(frames) - len(fixed)
+        keep = max(0, self.options.window_size - max(1, pending_cpp))
+        protected = set(fixed[-keep:]) if keep else set()
+        first = min((p["id"] for p in self._pending), default=None)
+        if first is not None:
+            protected |= set([k for k in fixed if k < first][-2:])
+        protected |= {i for i, _ in self._recent} | {p["id"] for p in self._pending}
+        gone = sorted(k for k in self._orphans if k not in protected)
+        if gone:
+            self._orphans = self._orphans - set(gone)
+            self._unanchored = self._unanchored - set(gone)
+            self._win_forget([k for k in gone if k in frames])
 
     def _to_reference(self, pose: np.ndarray) -> np.ndarray:
         return _core.transfer_homography(self._reference_pose, pose, self._plane, self.K)
@@ -1750,6 +1901,19 @@ class SequentialMosaicker:
         G = _transfer_or_nan(reference, pose, plane, self.K)
         return FrameResult(k, timestamp, G, poses_from_aligned(pose, self._world),
                            "provisional", False, timings=timings)
+
+
+class _Renumbered:
+    """A pair match seen with other frame ids (SequentialMosaicker._renumbered); every other
+    attribute is the match's."""
+
+    __slots__ = ("_match", "frame_l", "frame_m")
+
+    def __init__(self, match, frame_l: int, frame_m: int):
+        self._match, self.frame_l, self.frame_m = match, frame_l, frame_m
+
+    def __getattr__(self, name):
+        return getattr(self._match, name)
 
 
 def _transfer_or_nan(cam_l, cam_m, plane, K) -> np.ndarray:
@@ -1823,8 +1987,8 @@ def run_lba_emt(dataset, *, progress: bool = True,
     def take(finals: list[FrameResult]) -> None:
         """Results made final by the last call, and the time of its step (at most one)."""
         if mosaicker.num_steps > len(step_times):
-            step_times.append(mosaicker.step_summaries[-1].step_time_s)
-            summary = mosaicker.step_summaries[-1]
+            summary = mosaicker.last_step_summary  # (step_summaries may keep none)
+            step_times.append(summary.step_time_s)
             plane_steps.append((summary.plane_relative_std, summary.plane_held))
             if solver_warning(summary, o.max_iterations):
                 unconverged.append(summary.termination)
@@ -1867,6 +2031,8 @@ def run_lba_emt(dataset, *, progress: bool = True,
         "tracker_dropped": [k for k in range(n) if results[k].tracker_dropped],
         # C_p released by the motion gate (SequentialOptions.motion_gate_chi2)
         "motion_released": [k for k in range(n) if results[k].motion_released],
+        # frames whose window step Ceres could not solve, left at their starting poses
+        "solver_failed": [k for k in range(n) if results[k].status == SOLVER_FAILED_STATUS],
         # the plane observability gate (SequentialOptions.plane_max_relative_std)
         "plane_gate": _plane_gate_details(plane_steps),
         # per frame: the plane of the step that made the frame final
