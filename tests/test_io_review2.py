@@ -115,6 +115,27 @@ def test_f1_an_unreadable_csv_is_left_out_when_the_method_does_not_need_it(tmp_p
 # ----------------------------------------------------------------------------------- F2
 
 
+def test_f2_files_of_numbers_take_the_fast_path(tmp_path, monkeypatch):
+    """tracking.csv and robot.csv as written (numbers only) never reach the text reader."""
+    import fusedmosaic.io.tracking as tracking
+
+    rng = np.random.default_rng(2)
+    ts = np.arange(50) / 40.0
+    q = rng.normal(size=(50, 4))
+    write_tracking_csv(tmp_path / "tracking.csv", TrackingSamples(
+        ts, rng.normal(size=(50, 3)), q / np.linalg.norm(q, axis=1, keepdims=True),
+        rng.random(50) > 0.2))
+    tracking.write_robot_csv(tmp_path / "robot.csv", RobotSamples(ts, np.c_[ts, 2 * ts]))
+
+    def text_reader(*args, **kwargs):
+        raise AssertionError("read through the field-by-field text reader")
+
+    monkeypatch.setattr(tracking, "read_table", text_reader)
+    assert len(tracking.read_tracking_csv(tmp_path / "tracking.csv").timestamps) == 50
+    np.testing.assert_array_equal(tracking.read_robot_csv(tmp_path / "robot.csv").xy_um[:, 1],
+                                  2 * ts)
+
+
 def test_f2_fast_and_text_paths_read_the_same_samples(tmp_path):
     rng = np.random.default_rng(1)
     m = 200
@@ -255,9 +276,10 @@ K_ROWS = [[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]]
     "  data:\n  - -0.1\n  - 0.01\n  - 0.0\n  - 0.0\n  - 0.0\n  rows: 1\n"
     "distortion_model: plumb_bob\nimage_height: 480\nimage_width: 640\n",
 ])
-def test_f5_camera_yaml_as_pyyaml_and_json_write_it(tmp_path, text):
+@pytest.mark.parametrize("newline", ["\n", "\r\n"])  # CRLF: safe_dump to a text file on Windows
+def test_f5_camera_yaml_as_pyyaml_and_json_write_it(tmp_path, text, newline):
     path = tmp_path / "camera.yaml"
-    path.write_text(text)
+    path.write_bytes(text.replace("\n", newline).encode())
     camera = read_camera_yaml(path)
     assert (camera.width, camera.height) == (640, 480)
     np.testing.assert_array_equal(camera.camera_matrix, K_ROWS)
@@ -392,6 +414,12 @@ def test_f9_a_capitalised_video_name_is_named(tmp_path):
     with pytest.raises(ValueError, match=r"no frames \(neither frames/\*\.png nor a video\.\* "
                                          r"file\); found Video\.AVI: the names are "
                                          r"case-sensitive"):
+        read_dataset(root)
+    (root / "Video.AVI").rename(root / "video")  # the case right: the real problem is named
+    with pytest.raises(ValueError, match=r"; video has no extension: name it video\.<ext>"):
+        read_dataset(root)
+    (root / "video").rename(root / "frames")
+    with pytest.raises(ValueError, match=r"; frames is a file, not a folder of PNG frames$"):
         read_dataset(root)
 
 

@@ -265,12 +265,13 @@ def stepped_window():
     return w
 
 
-@pytest.mark.parametrize("keyframes, error", [([6], ValueError), ([99], IndexError),
-                                              ([2, 99], IndexError)])
-def test_redo_refused_for_a_bad_keyframe_changes_nothing(keyframes, error):
+@pytest.mark.parametrize("keyframes, error, message", [
+    ([6], ValueError, "redo: keyframe 6 is among the frames this call estimates"),
+    ([99], IndexError, "unknown frame id 99"), ([2, 99], IndexError, "unknown frame id 99")])
+def test_redo_refused_for_a_bad_keyframe_changes_nothing(keyframes, error, message):
     w = stepped_window()
     before = [np.array(w.pose(k)) for k in range(8)]
-    with pytest.raises(error):
+    with pytest.raises(error, match=message):
         w.redo([5, 6, 7], keyframes)
     assert w.pending_ids() == []
     for k in range(8):
@@ -278,12 +279,14 @@ def test_redo_refused_for_a_bad_keyframe_changes_nothing(keyframes, error):
     assert w.redo([5, 6, 7], [2]).termination == "CONVERGENCE"
 
 
-@pytest.mark.parametrize("keyframes, error", [([8], ValueError), ([99], IndexError)])
-def test_step_refused_for_a_bad_keyframe_changes_nothing(keyframes, error):
+@pytest.mark.parametrize("keyframes, error, message", [
+    ([8], ValueError, "step: keyframe 8 is not yet fixed"),
+    ([99], IndexError, "unknown frame id 99")])
+def test_step_refused_for_a_bad_keyframe_changes_nothing(keyframes, error, message):
     w = stepped_window()
     w.add_frame(8, None, None)  # no pose until its step
     w.add_frame(9, None, np.array([0, 0, 0, 4.5, 0, 0.0]))
-    with pytest.raises(error):
+    with pytest.raises(error, match=message):
         w.step(keyframes)
     assert w.pending_ids() == [8, 9]
     with pytest.raises(ValueError, match="pending without a pose yet"):

@@ -1230,7 +1230,9 @@ def build_parser() -> argparse.ArgumentParser:
                            "connecting here (e.g. 3D Slicer's OpenIGTLinkIF as a client; PORT "
                            "alone listens on 127.0.0.1, 0.0.0.0:PORT on every interface)")
     view.add_argument("--view-interval", type=float, default=None, metavar="S",
-                      help="seconds between updates of --preview / --serve-mosaic (default 1)")
+                      help="least seconds between updates of --preview / --serve-mosaic "
+                           "(default 1; longer while drawing the mosaic takes more than S / 4: "
+                           "at least 4x that cost)")
     _add_lba_flags(live, "lba-emt")
     _add_feature_flags(live, "features")
     _add_compositing_flags(live)

@@ -35,8 +35,9 @@ class MethodResult:
 
     homographies: (N, 3, 3) frame -> reference, all-NaN rows for frames that could not be placed.
     status: per frame, "placed", "prior-only" (placed from priors without visual evidence),
-        "dead-reckoned" (lba-emt, ba-emt: placed with no anchor at all, see FrameResult) or
-        "unplaced: <reason>".
+        "dead-reckoned" (lba-emt, ba-emt: placed with no anchor at all, see FrameResult),
+        "prior-only (solver failed)" (lba-emt: its window step could not be solved; composed
+        as prior-only) or "unplaced: <reason>".
     """
 
     homographies: np.ndarray

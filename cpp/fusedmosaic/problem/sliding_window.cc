@@ -166,10 +166,14 @@ void SlidingWindow::CheckKeyframes(const std::vector<int>& keyframe_ids,
                                    const std::vector<int>& free_ids, const char* what) const {
   for (int id : keyframe_ids) {
     const Frame& f = FindFrame(id, (std::string(what) + " keyframe").c_str());
-    if (!f.fixed || std::count(free_ids.begin(), free_ids.end(), id)) {
+    if (!f.fixed) {
       throw std::invalid_argument(std::string(what) + ": keyframe " + std::to_string(id) +
-                                  " is not yet fixed" +
-                                  (f.fixed ? " (it is among the frames estimated)" : ""));
+                                  " is not yet fixed");
+    }
+    if (std::count(free_ids.begin(), free_ids.end(), id)) {
+      throw std::invalid_argument(std::string(what) + ": keyframe " + std::to_string(id) +
+                                  " is among the frames this call estimates (keyframes must be "
+                                  "fixed frames outside them)");
     }
   }
 }

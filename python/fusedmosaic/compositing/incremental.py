@@ -211,15 +211,12 @@ class IncrementalCanvas:
         if G.shape != (3, 3):
             raise ValueError(f"frame {name}: homography must be 3x3, got {G.shape}")
         warper = self._warper(mask)
-        # size and channels, before any state change; the channel count is the canvas's, not
-        # the warper's (each mask has its own warper: a colour frame with its own mask on a grey
-        # canvas passed, and broke the tiles or render())
-        channels = 1 if image.ndim == 2 else image.shape[2]
-        if self._frame_channels is not None and channels != self._frame_channels:
-            raise ValueError(f"frame {name}: {channels} channel(s), earlier frames have "
-                             f"{self._frame_channels}")
+        # size and channels, before any state change; the channel count checked is the
+        # canvas's, not the warper's (each mask has its own warper: a colour frame with its own
+        # mask on a grey canvas passed, and broke the tiles or render())
         warper.channels = self._frame_channels
-        image = warper._check_image(image, name)
+        image = warper._check_image(image, name)  # (H, W, channels)
+        channels = image.shape[2]
         reason, area = self._screen(G)
         if self.scale != 1.0:
             G = np.diag([self.scale, self.scale, 1.0]) @ G

@@ -59,7 +59,7 @@ import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 from tqdm import tqdm
@@ -1176,7 +1176,8 @@ class SequentialMosaicker:
         """The start-up's pair matches with their frame ids replaced by _startup_rows' rows
         (the ids the tables of _pending_tracker_poses are indexed by)."""
         rows = self._startup_rows()
-        return [_Renumbered(m, rows[m.frame_l], rows[m.frame_m]) for m in matches]
+        return [replace(m, frame_l=rows[m.frame_l], frame_m=rows[m.frame_m])
+                for m in matches]  # (the arrays are shared, not copied)
 
     def _startup_candidates(self, tracker_pose) -> list:
         """Earlier start-up frames to match a new one against: those of the window, and the
@@ -1662,6 +1663,8 @@ class SequentialMosaicker:
             for k in gated:
                 self._win_set_scale(k, self.options.gate_sigma_scale)
             summary = self._win_solved(ids, self.window.redo, ids, keyframe_ids, hold)
+            if summary.termination == "FAILURE":  # (the gated redo too: never "placed")
+                summary, failed = self._recover_failed_step(ids, keyframe_ids, hold, summary)
         anchored = self._linked(fixed - self._unanchored, tracked - set(gated))
         self.step_summaries.append(summary)
         self.last_step_summary = summary
@@ -1901,19 +1904,6 @@ class SequentialMosaicker:
         G = _transfer_or_nan(reference, pose, plane, self.K)
         return FrameResult(k, timestamp, G, poses_from_aligned(pose, self._world),
                            "provisional", False, timings=timings)
-
-
-class _Renumbered:
-    """A pair match seen with other frame ids (SequentialMosaicker._renumbered); every other
-    attribute is the match's."""
-
-    __slots__ = ("_match", "frame_l", "frame_m")
-
-    def __init__(self, match, frame_l: int, frame_m: int):
-        self._match, self.frame_l, self.frame_m = match, frame_l, frame_m
-
-    def __getattr__(self, name):
-        return getattr(self._match, name)
 
 
 def _transfer_or_nan(cam_l, cam_m, plane, K) -> np.ndarray:

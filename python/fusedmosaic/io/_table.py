@@ -52,7 +52,7 @@ def read_table(
     if not records:
         raise ValueError(f"{path}: empty file, expected header {','.join(columns)}")
     header = [h.strip() for h in records[0]]
-    allowed = [list(columns) + list(optional[:k]) for k in range(len(optional) + 1)]
+    allowed = _headers(columns, optional)
     if header not in allowed:
         expected = ",".join(columns) + "".join(f"[,{c}]" for c in optional)
         raise ValueError(f"{path}: row 1: header is {','.join(header)!r}, expected "
@@ -109,7 +109,7 @@ def read_number_table(path: str | Path, columns: Sequence[str], optional: Sequen
         return None
     first, _, body = text.partition("\n")
     header = [h.strip() for h in first.rstrip("\r").split(",")]
-    if header not in [list(columns) + list(optional[:k]) for k in range(len(optional) + 1)]:
+    if header not in _headers(columns, optional):
         return None
     body = body.rstrip()
     del text
@@ -153,6 +153,11 @@ def _integers(path: Path, rows: np.ndarray, column: str, fields: Sequence) -> np
     except (ValueError, OverflowError):
         return np.array([_parse(path, int(r), column, str(f).strip(), True)
                          for r, f in zip(rows, fields, strict=True)], np.int64).reshape(-1)
+
+
+def _headers(columns: Sequence[str], optional: Sequence[str]) -> list[list[str]]:
+    """The headers a table may have: its columns, then a prefix of the optional ones."""
+    return [list(columns) + list(optional[:k]) for k in range(len(optional) + 1)]
 
 
 def _header_hint(header: list[str]) -> str:

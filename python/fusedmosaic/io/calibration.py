@@ -529,8 +529,8 @@ def _yaml_without_tabs(text: str, path: Path) -> str:
     return "\n".join(lines)
 
 
-_FLUSH_ITEM = re.compile(r"^[ ]*-( |$)", re.MULTILINE)  # a block sequence's item line
-_KEY_ONLY = re.compile(r"^([ ]*)[^\s#\-][^#]*:[ ]*(#.*)?$")  # "key:" with its value below
+_FLUSH_ITEM = re.compile(r"^[ ]*-( |\r?$)", re.MULTILINE)  # a block sequence's item line
+_KEY_ONLY = re.compile(r"^([ ]*)[^\s#\-][^#]*:[ ]*(#.*)?\r?$")  # (CRLF files too)
 
 
 def _yaml_lists_indented(text: str) -> str:

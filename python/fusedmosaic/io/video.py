@@ -270,14 +270,20 @@ class FrameSource(Sequence):
                 f"{root}: several video files ({', '.join(p.name for p in videos)}), expected one"
             )
         if not videos:
-            near = sorted(p.name for p in (root.iterdir() if root.is_dir() else ())
-                          if p.name.lower() == "frames" or (
-                              p.stem.lower() == "video" and p.is_file()
-                              and p.suffix.lower() not in NOT_VIDEO_SUFFIXES))
+            hints = []
+            for p in sorted(root.iterdir() if root.is_dir() else ()):
+                if p.name == "frames" and not p.is_dir():
+                    hints.append("frames is a file, not a folder of PNG frames")
+                elif p.name == "video" and p.is_file():
+                    hints.append("video has no extension: name it video.<ext> (video.mp4, ...)")
+                elif p.name.lower() == "frames" or (
+                        p.stem.lower() == "video" and p.is_file()
+                        and p.suffix.lower() not in NOT_VIDEO_SUFFIXES):
+                    hints.append(f"found {p.name}: the names are case-sensitive (frames/, "
+                                 "video.<ext>); rename it")
             raise ValueError(
-                f"{root}: no frames (neither frames/*.png nor a video.* file)" + (
-                    f"; found {', '.join(near)}: the names are case-sensitive (frames/, "
-                    "video.<ext>); rename it" if near else ""))
+                f"{root}: no frames (neither frames/*.png nor a video.* file)"
+                + "".join(f"; {h}" for h in hints))
         return cls(video=videos[0], expected_size=expected_size, size_source=size_source,
                    blank_unreadable=blank_unreadable)
 
