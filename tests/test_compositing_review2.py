@@ -236,6 +236,7 @@ def test_live_view_problem_kinds_are_bounded():
     assert len(view.problems) == live_view.MAX_PROBLEM_KINDS + 1
 
 
+@pytest.mark.realtime  # (wall-clock pacing: run alone, not beside another worker)
 def test_live_view_publication_interval_follows_its_cost(monkeypatch):
     """Each publication renders and encodes the whole canvas (4096 x 4096: ~1.8 s); at the
     1 s interval the worker ate a whole core. The next publication now waits PUBLISH_DUTY x
