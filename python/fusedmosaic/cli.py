@@ -680,12 +680,8 @@ def _wilcoxon_text(w: dict) -> str:
 
 def _sampled_indices(truth, sampled_ids: list[int]) -> np.ndarray:
     """Positions (rows of position_errors_um) of the frames --positions sampled; `truth`: the
-    truth Dataset (or its folder)."""
-    from fusedmosaic.evaluation.metrics import read_truth_dataset
-    from fusedmosaic.io import Dataset
-
-    ids = (truth if isinstance(truth, Dataset) else read_truth_dataset(truth)).frame_ids
-    return np.flatnonzero(np.isin(ids, sampled_ids))
+    truth Dataset."""
+    return np.flatnonzero(np.isin(truth.frame_ids, sampled_ids))
 
 
 def _evaluation_md_notes(results: list[dict], wilcoxon: list[dict], labels: list[str]) -> list:
@@ -816,14 +812,12 @@ def _is_evaluation_report(md_path: Path) -> bool:
     return first.rstrip(b"\r\n") == f"# {EVALUATION_TITLE}".encode()
 
 
-def _load_for_report(outs: list[Path], truth_root):
+def _load_for_report(outs: list[Path], truth_dataset):
     """What evaluation.md shows (e_j of every output on one plot, poses, plane, timing), read
-    and checked before anything is written; `truth_root`: the truth Dataset (or its folder)."""
-    from fusedmosaic.evaluation.report import load_run, load_truth, truth_from_dataset
-    from fusedmosaic.io import Dataset
+    and checked before anything is written; `truth_dataset`: the truth Dataset."""
+    from fusedmosaic.evaluation.report import load_run, truth_from_dataset
 
-    truth = (truth_from_dataset(truth_root) if isinstance(truth_root, Dataset)
-             else load_truth(truth_root))
+    truth = truth_from_dataset(truth_dataset)
     runs = [load_run(o, truth.frame_ids) for o in outs]
     labels = [r.label for r in runs]
     for r in runs:  # the same method twice: tell them apart by folder

@@ -360,11 +360,7 @@ WindowStepSummary SlidingWindow::SolveStep(const std::vector<int>& free_ids,
       if (frames_.at(other).fixed) in_problem.insert(other);
     }
   }
-  for (int id : keyframe_ids) {
-    const Frame& f = FindFrame(id, "step keyframe");
-    if (!f.fixed) {
-      throw std::invalid_argument("step: keyframe " + std::to_string(id) + " is not yet fixed");
-    }
+  for (int id : keyframe_ids) {  // (known and fixed: CheckKeyframes, before any change)
     if (in_problem.insert(id).second) out.keyframe_ids.push_back(id);
   }
 

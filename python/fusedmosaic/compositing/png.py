@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from fusedmosaic.io.output import temp_beside
+
 _SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _COLOUR_TYPE = {1: 0, 2: 4, 3: 2, 4: 6}  # grey, grey + alpha, RGB, RGB + alpha
 _IDAT_BYTES = 1 << 20
@@ -32,7 +34,7 @@ class PngStreamWriter:
     ...     for band in bands:  # (h, width, 3) uint8 BGR, top to bottom
     ...         png.write_rows(band)
 
-    The rows go to a hidden temporary file beside `path` (``.<name>.tmp-<pid>``), renamed to
+    The rows go to a hidden temporary file beside `path` (io.output.temp_beside), renamed to
     `path` by a successful close(): until then an earlier file at `path` is kept as it was,
     and a failure (an exception inside ``with``, or in close()) removes the temporary file
     rather than leave a truncated PNG there.
@@ -51,7 +53,7 @@ class PngStreamWriter:
         self._prev = np.zeros((1, self.width * self.channels), np.uint8)
         self._zip = zlib.compressobj(level)
         self._pending = bytearray()
-        self._tmp = self.path.with_name(f".{self.path.name}.tmp-{os.getpid()}")
+        self._tmp = temp_beside(self.path)
         try:
             self._file = open(self._tmp, "wb")  # noqa: SIM115 (closed in close())
         except OSError as exc:  # named by the path asked for, not the temporary one

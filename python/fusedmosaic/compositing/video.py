@@ -17,6 +17,7 @@ import numpy as np
 
 from fusedmosaic.compositing.blending import BlendOptions, as_blend_options, fov_mask_bool
 from fusedmosaic.compositing.incremental import IncrementalCanvas
+from fusedmosaic.io.output import temp_beside
 
 OUTLINE_BGR = (0, 255, 0)  # the current frame's outline: green
 # Containers that take OpenCV's 'mp4v' (MPEG-4 part 2) stream; others (.gif, .txt, none) fail.
@@ -77,7 +78,7 @@ class MosaicVideoWriter:
         self.outline = fov_outline(width, height, mask) if outline else None
         self.frames_written = 0
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._tmp = self.path.with_name(f".{self.path.stem}.tmp-{os.getpid()}{self.path.suffix}")
+        self._tmp = temp_beside(self.path)
         self._writer = cv2.VideoWriter(str(self._tmp), cv2.VideoWriter_fourcc(*"mp4v"),
                                        float(fps), self.size)
         if not self._writer.isOpened():
@@ -156,11 +157,7 @@ class MosaicVideoWriter:
 
     def __exit__(self, exc_type, exc, tb) -> None:
         if exc_type is None:
-            try:
-                self.close()
-            except BaseException:
-                self.abort()
-                raise
+            self.close()  # (which removes the temporary file if it fails)
         else:
             self.abort()
 

@@ -95,15 +95,13 @@ class KeyframeIndex:
         # when there are at most num_clusters of them.
         unique, inverse = np.unique(pts, axis=0, return_inverse=True)
         inverse = inverse.ravel()
-        if len(unique) == len(pts):
-            seed = int(self.rng.integers(2**31 - 1))
-            _, labels = kmeans2(pts, num_clusters, minit="++", seed=seed)
-        elif len(unique) <= num_clusters:
+        distinct = len(unique) == len(pts)  # (then clustered as given: the same draws)
+        if not distinct and len(unique) <= num_clusters:
             labels = inverse
         else:
             seed = int(self.rng.integers(2**31 - 1))
-            _, unique_labels = kmeans2(unique, num_clusters, minit="++", seed=seed)
-            labels = unique_labels[inverse]
+            _, labels = kmeans2(pts if distinct else unique, num_clusters, minit="++", seed=seed)
+            labels = labels if distinct else labels[inverse]
         chosen = []
         for c in range(num_clusters):
             members = np.flatnonzero(labels == c)

@@ -1708,15 +1708,11 @@ class SequentialMosaicker:
         or nearer it than UNUSABLE_DEPTH_RATIO x the median depth of the last window_size fixed
         cameras before the step's frames `ids` (their plane-induced homographies degenerate:
         the step cannot be evaluated)."""
-        step = set(ids)
-        if self._plane is None:
+        samples = {p["id"]: p["tracker"] for p in self._pending if p["tracker"] is not None}
+        if self._plane is None or not samples:
             return set()
-        tracked = [p["id"] for p in self._pending if p["tracker"] is not None]
-        if not tracked:
-            return set()
-        depths = plane_depths(np.array([p["tracker"] for p in self._pending
-                                        if p["tracker"] is not None]), self._plane)
-        frames = self._mirror_frames
+        depths = plane_depths(np.array(list(samples.values())), self._plane)
+        frames, step = self._mirror_frames, set(ids)
         before = sorted(k for k, v in frames.items() if v[3] and v[0] is not None
                         and k not in step)[-self.options.window_size:]
         fixed = [frames[k][0] for k in before]
@@ -1724,7 +1720,7 @@ class SequentialMosaicker:
                      else np.nan)
         floor = UNUSABLE_DEPTH_RATIO * reference if np.isfinite(reference) and reference > 0 \
             else 0.0
-        return {k for k, d in zip(tracked, depths, strict=True)
+        return {k for k, d in zip(samples, depths, strict=True)
                 if not (np.isfinite(d) and d > floor)}
 
     def _linked(self, anchors: set[int], seeds: set[int]) -> set[int]:

@@ -430,21 +430,13 @@ def read_camera_yaml(path: str | Path) -> Camera:
                              f"(byte offset {e.start + 3})") from None
     if not body.strip():
         raise ValueError(f"{path}: empty file, expected OpenCV FileStorage YAML with {_KEYS}")
-    if b"\t" in body and _format_flag(body) == cv2.FILE_STORAGE_FORMAT_YAML:
-        if text is None:
-            try:
-                text = body.decode("utf-8")
-            except UnicodeDecodeError:  # e.g. Latin-1 comments: the keys and values are ASCII
-                text = body.decode("latin-1")
-        text = _yaml_without_tabs(text, path)
-    if _format_flag(body) == cv2.FILE_STORAGE_FORMAT_YAML and _FLUSH_ITEM.search(
-            text if text is not None else body.decode("latin-1")):
-        try:
-            source = text if text is not None else body.decode("utf-8")
-        except UnicodeDecodeError:  # e.g. Latin-1 comments: the keys and values are ASCII
-            source = body.decode("latin-1")
+    yaml = _format_flag(body) == cv2.FILE_STORAGE_FORMAT_YAML
+    if b"\t" in body and yaml:
+        text = _yaml_without_tabs(text if text is not None else _decoded(body), path)
+    if yaml and _FLUSH_ITEM.search(source := text if text is not None else _decoded(body)):
         indented = _yaml_lists_indented(source)
-        text = indented if indented != source or text is not None else text
+        if indented != source:
+            text = indented
     fmt = _FORMAT_NAMES[_format_flag(body)]
     try:
         if text is not None:  # parsed from memory
@@ -561,6 +553,15 @@ def _yaml_lists_indented(text: str) -> str:
         else:
             break
     return "\n".join(lines)
+
+
+def _decoded(body: bytes) -> str:
+    """camera.yaml's bytes as text: UTF-8, else Latin-1 (e.g. Latin-1 comments: the keys and
+    values are ASCII)."""
+    try:
+        return body.decode("utf-8")
+    except UnicodeDecodeError:
+        return body.decode("latin-1")
 
 
 def _indent(line: str) -> int:

@@ -424,7 +424,7 @@ class OutputWriter:
         if self._tmp is None:
             raise RuntimeError("OutputWriter: use it as a context manager (with OutputWriter(…))")
         target = Path(target)
-        temp = target.with_name(f".{target.stem}.tmp-{os.getpid()}{target.suffix}")
+        temp = temp_beside(target)
         missing = missing_folders(target.parent)
         target.parent.mkdir(parents=True, exist_ok=True)
         self._external_dirs += missing
@@ -490,6 +490,14 @@ def _pid_alive(pid: int) -> bool:
     except OSError:  # e.g. another user's process: alive
         return True
     return True
+
+
+def temp_beside(target: str | Path) -> Path:
+    """The hidden temporary file a file is written to before being renamed to `target`:
+    ``.<stem>.tmp-<pid><suffix>`` beside it (the suffix kept: a video writer picks its container
+    by it)."""
+    target = Path(target)
+    return target.with_name(f".{target.stem}.tmp-{os.getpid()}{target.suffix}")
 
 
 def _remove_stale_temps(folder: Path, prefix: str) -> None:
