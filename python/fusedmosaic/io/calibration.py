@@ -365,6 +365,10 @@ class LensUndistortion:
     def valid(self, raw_mask: np.ndarray | None = None) -> np.ndarray:
         """(H, W) uint8, 255 where an undistorted pixel's whole bilinear support lies inside
         the raw frame and inside raw_mask (a field of view, non-zero = inside; None: all)."""
+        if raw_mask is not None and np.shape(raw_mask) != (self.height, self.width):
+            # remap samples any size, unchecked (a smaller mask, its corner of the frame; review)
+            raise ValueError(f"mask shape {np.shape(raw_mask)} differs from the camera's "
+                             f"undistortion maps ({self.height}, {self.width})")
         raw = (np.full((self.height, self.width), 255, np.uint8) if raw_mask is None
                else np.where(np.asarray(raw_mask) > 0, np.uint8(255), np.uint8(0)))
         valid = cv2.remap(raw, self._map1, self._map2, cv2.INTER_LINEAR,

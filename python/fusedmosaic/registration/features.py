@@ -79,7 +79,7 @@ class FeatureOptions:
                                  f"(grey levels), got {t!r}")
         for field_name in ("sift_contrast_threshold", "sift_contrast_threshold_low"):
             t = getattr(self, field_name)
-            if isinstance(t, bool) or not isinstance(t, float | int) or not 0 <= t < 1:
+            if isinstance(t, bool) or not isinstance(t, REAL) or not 0 <= t < 1:
                 raise ValueError(f"{name(field_name, field_name)} must be a number in [0, 1) "
                                  f"(SIFT's contrastThreshold), got {t!r}")
         m = self.sift_min_features
@@ -94,7 +94,7 @@ class FeatureOptions:
                 raise ValueError(f"{name(field_name, field_name)} must be an integer in "
                                  f"{low}..{high} ({unit}), got {v!r}")
         c = self.clahe_clip_limit
-        if isinstance(c, bool) or not isinstance(c, float | int) or not 0 <= c < np.inf:
+        if isinstance(c, bool) or not isinstance(c, REAL) or not 0 <= c < np.inf:
             raise ValueError(f"{name('clahe_clip_limit', 'clahe_clip_limit')} must be a finite "
                              f"number >= 0 (CLAHE's clipLimit; 0: not clipped), got {c!r}")
         side = self.max_image_side
@@ -104,9 +104,19 @@ class FeatureOptions:
             none = "" if names and "max_image_side" in names else ", or None"
             raise ValueError(f"{name('max_image_side', 'max_image_side')} must be >= 32 "
                              f"(pixels), an integer{none}; got {side!r}")
+        if side is not None and self.detector == "orb" and side < ORB_MIN_IMAGE_SIDE:
+            raise ValueError(f"{name('max_image_side', 'max_image_side')} must be >= "
+                             f"{ORB_MIN_IMAGE_SIDE} (pixels) with {name('detector', 'detector')} "
+                             f"'orb', whose 31 px patch border leaves a smaller copy (almost) no "
+                             f"keypoints; got {side!r}")
 
 
 C_INT_MAX = 2**31 - 1  # OpenCV's detectors take nfeatures as a C int
+REAL = int | float | np.integer | np.floating  # (np.float32 is not a float)
+# ORB detects nothing within edgeThreshold = patchSize = 31 px of the border: on a SYN frame
+# shrunk to a longer side of 64 px it found 0 keypoints, 96 px 31, 128 px 209 (review).
+ORB_MIN_IMAGE_SIDE = 128
+MIN_FRAME_SIDE = 2  # px: ORB's pyramid fails on a side of 1 (SIFT finds nothing there either)
 # The low-contrast SIFT retry keeps the strongest 4 x sift_min_features (200) keypoints, what
 # the simulator's frames give at full contrast (80-320), not max_features: a thousand on every
 # small frame (200-300 px, often under 50) made brute-force matching ~5x slower (a test file of
@@ -273,6 +283,11 @@ class FeatureExtractor:
         # OpenCV takes any non-zero mask value as inside; 255 is what the shrink below expects
         raw = None if mask is None else _binary(mask)
         if raw is not None and undistortion is not None:
+            # (remap samples a mask of any size, unchecked: a smaller one kept keypoints to its
+            # corner of the frame; review)
+            if raw.shape != (undistortion.height, undistortion.width):
+                raise ValueError(f"mask shape {raw.shape} differs from the camera's frames "
+                                 f"({undistortion.height}, {undistortion.width})")
             raw = undistortion.valid(raw)  # the field of view on the undistorted frame
         self._mask = None if raw is None else self._shrink(raw)
         # without a fixed mask, frames with no black border are masked by the lens alone
@@ -293,16 +308,25 @@ class FeatureExtractor:
         if o.detector == "sift":
             return cv2.SIFT_create(nfeatures=o.max_features if max_features is None
                                    else max_features,
-                                   contrastThreshold=o.sift_contrast_threshold
-                                   if contrast_threshold is None else contrast_threshold)
+                                   contrastThreshold=float(o.sift_contrast_threshold
+                                                           if contrast_threshold is None
+                                                           else contrast_threshold))
         return cv2.ORB_create(nfeatures=o.max_features,
                               fastThreshold=fast_threshold or o.orb_fast_threshold)
 
     def extract(self, image: np.ndarray, frame_id: int = 0) -> Features:
-        if image.ndim not in (2, 3) or image.dtype != np.uint8:
-            raise ValueError(f"frame {frame_id}: expected a uint8 (H, W) or (H, W, 3) image, "
-                             f"got {image.dtype} {image.shape}")
-        gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        # (H, W, 1) / (H, W, 2) failed in cvtColor, a side of 1 px in ORB's pyramid (review)
+        if (image.ndim not in (2, 3) or image.dtype != np.uint8
+                or (image.ndim == 3 and image.shape[2] not in (1, 3, 4))
+                or min(image.shape[:2]) < MIN_FRAME_SIDE):
+            raise ValueError(f"frame {frame_id}: expected a uint8 (H, W), (H, W, 1), (H, W, 3) "
+                             f"or (H, W, 4) image of at least {MIN_FRAME_SIDE}x{MIN_FRAME_SIDE} "
+                             f"pixels, got {image.dtype} {image.shape}")
+        if image.ndim == 2 or image.shape[2] == 1:
+            gray = image.reshape(image.shape[:2])
+        else:
+            gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY if image.shape[2] == 3
+                                else cv2.COLOR_BGRA2GRAY)
         lens = self.undistortion
         if lens is not None and gray.shape != (lens.height, lens.width):
             raise ValueError(f"frame {frame_id}: image is {gray.shape[1]}x{gray.shape[0]}, the "
@@ -333,7 +357,7 @@ class FeatureExtractor:
             gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
             mask = None if mask is None else self._small_mask(mask, size, mask is self._mask)
         if self.options.clahe:
-            clahe = cv2.createCLAHE(self.options.clahe_clip_limit,
+            clahe = cv2.createCLAHE(float(self.options.clahe_clip_limit),
                                     (self.options.clahe_tiles, self.options.clahe_tiles))
             gray = clahe.apply(gray)
         keypoints, descriptors = self._detector().detectAndCompute(gray, mask)
@@ -360,7 +384,8 @@ class FeatureExtractor:
         if side is None or max(full_size) <= side:
             return full_size
         s = side / max(full_size)
-        return max(1, round(full_size[0] * s)), max(1, round(full_size[1] * s))
+        return (max(MIN_FRAME_SIDE, round(full_size[0] * s)),
+                max(MIN_FRAME_SIDE, round(full_size[1] * s)))
 
     def _small_mask(self, mask: np.ndarray, size: tuple[int, int], fixed: bool) -> np.ndarray:
         """The mask at detection size: only pixels entirely inside the full-size mask."""

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from fusedmosaic import _core
-from fusedmosaic.registration.features import Features
+from fusedmosaic.registration.features import C_INT_MAX, Features
 
 
 @dataclass
@@ -25,9 +25,13 @@ class MatchOptions:
     ransac_threshold_px: float = 3.0  # inlier reprojection threshold
     ransac_confidence: float = 0.999
     ransac_max_iters: int = 2000
-    min_inliers: int = 15  # fewer inliers: the pair is not registered
+    # fewer inliers: the pair is not registered. Counted per match: SIFT's keypoints at one
+    # location with several orientations can pair up twice (~25 % of inliers on a blurred-
+    # noise texture; session 44 review), a count the weak-texture tests were measured with
+    min_inliers: int = 15
     min_inlier_ratio: float = 0.2  # inliers / ratio-test matches
-    max_scale_change: float = 4.0  # |det| of the affine part outside [1/4, 4]: degenerate
+    # the warped frame's area over the frame's outside (1/4, 4): degenerate (degeneracy)
+    max_scale_change: float = 4.0
     num_threads: int = 2  # pairs matched in parallel (OpenCV releases the GIL)
     # Binary descriptors (ORB): "exact" Hamming nearest neighbours in the C++ core, or "lsh",
     # FLANN's approximate LSH index (the matcher before). On this 2-core Xeon per 1000 x 1000
@@ -71,10 +75,12 @@ class MatchOptions:
                     or not np.isfinite(v) or not ok(v):
                 raise ValueError(f"{name}: expected {expected}, got {v!r}")
 
-        def integer(name: str, low: int) -> None:
+        def integer(name: str, low: int, high: int | None = None) -> None:
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < low:
-                raise ValueError(f"{name}: expected an integer >= {low}, got {v!r}")
+            if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < low \
+                    or (high is not None and v > high):
+                expected = f">= {low}" if high is None else f"in {low}..{high} (OpenCV's int)"
+                raise ValueError(f"{name}: expected an integer {expected}, got {v!r}")
 
         for name in ("ratio", "guided_ratio", "guided_sift_ratio"):
             number(name, lambda v: 0 < v <= 1, "a value in (0, 1]")
@@ -83,7 +89,7 @@ class MatchOptions:
         number("min_inlier_ratio", lambda v: 0 <= v <= 1, "a value in [0, 1]")
         number("max_scale_change", lambda v: v >= 1, "a factor >= 1")
         number("guided_radius_px", lambda v: v >= 0, "pixels >= 0 (0: no guided search)")
-        integer("ransac_max_iters", 1)
+        integer("ransac_max_iters", 1, C_INT_MAX)  # findHomography's maxIters is a C int
         integer("min_inliers", 4)  # a homography needs 4 correspondences
         integer("num_threads", 1)
         if self.binary_matcher not in BINARY_MATCHERS:
@@ -149,19 +155,31 @@ def _ratio_matches(f_m: Features, f_l: Features, ratio: float,
 
 
 def degeneracy(H: np.ndarray, width: int, height: int, max_scale_change: float) -> str | None:
-    """Why H is not a plausible frame-to-frame homography, or None if it is."""
+    """Why H is not a plausible frame-to-frame homography, or None if it is: the frame's corners
+    must map in front of the camera to a convex quadrilateral whose area is that of the frame
+    times a scale within (1 / max_scale_change, max_scale_change), positive (not mirrored)."""
     if not np.isfinite(H).all() or abs(H[2, 2]) < 1e-12:
         return "degenerate homography (non-finite)"
     A = H / H[2, 2]
-    det = np.linalg.det(A[:2, :2])
-    if det <= 1.0 / max_scale_change or det >= max_scale_change:
-        return f"degenerate homography (area scale {det:.3g})"
     corners = np.array([[0, 0], [width, 0], [width, height], [0, height]], np.float64)
     hom = np.hstack([corners, np.ones((4, 1))]) @ A.T
     if (hom[:, 2] <= 0).any():
         return "degenerate homography (image corners behind the camera)"
-    quad = (hom[:, :2] / hom[:, 2:]).astype(np.float32)
-    if not cv2.isContourConvex(quad):
+    # The frame's area scale: the warped frame's signed (shoelace) area over the frame's. Not
+    # det(A[:2, :2]), the scale at pixel (0, 0) alone: with perspective terms it told a camera
+    # turned 30 deg one way (frame area x 2.1) from the same turn the other way (det 0.37 vs
+    # 4.2: one rejected), and passed a zoom to 0.25 of the area (det 0.69; review).
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        quad = hom[:, :2] / hom[:, 2:]
+        x, y = quad[:, 0], quad[:, 1]
+        scale = 0.5 * float(x @ np.roll(y, -1) - np.roll(x, -1) @ y) / (width * height)
+    if not 1.0 / max_scale_change < scale < max_scale_change:  # (nan too)
+        s = max_scale_change
+        return (f"degenerate homography (area scale {scale:.3g}: the warped frame's area over "
+                f"the frame's, outside (1/{s:g}, {s:g}) for max_scale_change {s:g})")
+    with np.errstate(over="ignore"):
+        quad32 = quad.astype(np.float32)
+    if not np.isfinite(quad32).all() or not cv2.isContourConvex(quad32):
         return "degenerate homography (warped frame not convex)"
     return None
 
