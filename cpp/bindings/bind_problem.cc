@@ -66,6 +66,7 @@ constexpr const char* kSummaryFields[] = {"iterations",
                                           "num_motion_blocks",
                                           "gauge_fixed_by_constraints",
                                           "plane_relative_std",
+                                          "plane_std_time_s",
                                           "motion_released_ids"};
 
 // BundleAdjusterOptions from {field: value}: keyword construction and unpickling.
@@ -199,6 +200,8 @@ void BindProblem(py::module_& m) {
       .def_readonly("plane_relative_std", &SolveSummary::plane_relative_std,
                     "sqrt(trace(Cov_pi)) / |pi| at the solution with options.plane_std (pi free,\n"
                     "EMT priors, per-pair blocks); NaN otherwise, inf: pi unobservable.")
+      .def_readonly("plane_std_time_s", &SolveSummary::plane_std_time_s,
+                    "seconds plane_relative_std took (not in solve_time_s); 0 when not computed")
       .def_readonly("motion_released_ids", &SolveSummary::motion_released_ids,
                     "frames whose C_p block the motion gate released in this solve")
       .def(

@@ -325,6 +325,9 @@ class SolveSummary:
         """sqrt(trace(Cov_pi)) / |pi| at the solution with options.plane_std (pi free, EMT priors,
         per-pair blocks); NaN otherwise, inf: pi unobservable."""
     @property
+    def plane_std_time_s(self) -> float:
+        """Seconds plane_relative_std took (not in solve_time_s); 0 when not computed."""
+    @property
     def motion_released_ids(self) -> list[int]:
         """Frames whose C_p block the motion gate released in this solve
         (options.motion_gate_chi2); iterations and solve_time_s cover every round."""

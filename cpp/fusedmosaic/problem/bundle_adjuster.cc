@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <cctype>
+#include <chrono>
 #include <cmath>
 #include <limits>
 #include <memory>
@@ -474,8 +475,11 @@ SolveSummary BundleAdjuster::Solve() {
         free_poses.push_back(pose);
       }
     }
+    const auto start = std::chrono::steady_clock::now();
     out.plane_relative_std = PlaneRelativeStd(&problem, plane, free_poses,
                                               Eigen::Map<const Eigen::Vector3d>(plane).norm());
+    out.plane_std_time_s =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   }
   return out;
 }

@@ -131,6 +131,7 @@ struct SolveSummary {
   // sqrt(trace(Cov_pi)) / |pi| at the solution (plane_observability.h) when options.plane_std
   // and pi is free with EMT priors, per-pair blocks; NaN otherwise; inf: pi unobservable.
   double plane_relative_std = std::numeric_limits<double>::quiet_NaN();
+  double plane_std_time_s = 0.0;  // the time plane_relative_std took (0 when not computed)
   // Frames whose C_p block the motion gate released in this solve, in order
   // (options.motion_gate_chi2). The times, iterations and final values cover every round.
   std::vector<int> motion_released_ids;

@@ -36,6 +36,7 @@ from fusedmosaic.estimation.world import (
     plane_to_aligned,
     poses_from_aligned,
     poses_to_aligned,
+    same_world,
     tracked_world,
 )
 from fusedmosaic.methods import MethodResult
@@ -52,7 +53,8 @@ class BundleOptions:
     # footprints predicted from the tracker overlap (O(N k)); "window": temporal neighbours.
     pair_selection: str = "all"
     min_overlap: float = 0.3  # EMT-guided: overlap fraction of the smaller footprint
-    max_pairs_per_frame: int = 6  # EMT-guided: older overlapping frames kept per frame
+    max_pairs_per_frame: int | None = 6  # EMT-guided: older overlapping frames kept per
+    # frame (None: all)
     min_pair_separation: int = 4  # EMT-guided: frames apart between kept older frames
     window: int = 2  # "window" selection, and the seed pairs used to initialise the plane
     max_points_per_pair: int = 100  # inliers kept per pair (paper Table 1: 67-222 on average)
@@ -78,8 +80,9 @@ class BundleOptions:
     # ba-emt computes the plane's relative standard deviation given the costs (details
     # plane_relative_std; a warning above consistency.MAX_PLANE_RELATIVE_STD) over the poses of
     # the frames in a registered pair, the others held (a lower bound), when there are at most
-    # this many: dense in 6 M + 3 (+0.1 s at 50 paired frames, +1.2 s at 150 on a 12 s run).
-    # Beyond, so many frames see the plane that it is observed (0: never computed).
+    # this many: a dense Cholesky factorisation in 6 M + 3 (0.1-0.2 s at 150 paired frames,
+    # timings "plane_std"; the eigen-decomposition it replaced took 0.8-1.4 s). Beyond, so many
+    # frames see the plane that it is observed (0: never computed).
     plane_std_max_frames: int = 150
 
 
@@ -121,12 +124,14 @@ def subsample_inliers(match: PairMatch, k: int, rng: np.random.Generator):
 
 def _select_pairs_with_emt(dataset, options: BundleOptions, progress: bool):
     """EMT-guided selection: temporal seed pairs -> first plane -> footprints predicted from the
-    tracker -> overlapping pairs matched -> plane re-estimated from the wider baselines."""
+    tracker -> overlapping pairs matched -> plane re-estimated from the wider baselines. The
+    footprints are relative to the first tracked frame (their overlaps do not depend on the
+    reference; frame 0 without a sample failed the run; review)."""
     cam = dataset.camera
     K = cam.camera_matrix
     n = len(dataset.frames)
     seed = register_frames(dataset, lambda f: window_pairs(n, options.window), options, progress)
-    plane = estimate_plane(seed.matches, dataset.cam_from_world, K)
+    plane = estimate_plane(seed.matches, dataset.cam_from_world, K, source=str(dataset.root))
     predicted = predicted_homographies(dataset.cam_from_world, plane, K)
     selected = emt_guided_pairs(predicted, cam.width, cam.height, min_overlap=options.min_overlap,
                                 max_per_frame=options.max_pairs_per_frame,
@@ -136,21 +141,64 @@ def _select_pairs_with_emt(dataset, options: BundleOptions, progress: bool):
     rest = [p for p in selected if p not in done]
     more = register_frames(dataset, lambda f: rest, options, progress, seed.features)
     matches = seed.matches + more.matches
-    plane = estimate_plane(matches, dataset.cam_from_world, K)
+    plane = estimate_plane(matches, dataset.cam_from_world, K, source=str(dataset.root))
     timings = {"features": seed.timings["features"],
                "matching": seed.timings["matching"] + more.timings["matching"]}
     return FrontEnd(seed.features, matches, timings), plane
 
 
-def predicted_homographies(poses: np.ndarray, plane: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """G_k from poses (NaN rows stay NaN) and a plane; frame 0 must have a pose."""
+# Status of a frame whose pose is known but whose homography through the plane is singular.
+UNPLACED_SINGULAR = ("unplaced: its homography through the estimated plane is singular (its "
+                     "camera centre on the plane, or nearer it than floating point resolves)")
+
+
+def predicted_homographies(poses: np.ndarray, plane: np.ndarray, K: np.ndarray,
+                           reference: int | None = None) -> np.ndarray:
+    """(N, 3, 3) G_k = H_ref H_k^-1 from (N, 6) cam_from_world poses and a plane, normalised
+    (G[2, 2] = 1, G_ref = I). NaN rows: frames without a pose (NaN rows of `poses`) and frames
+    whose induced homography is singular (_core.frame_to_reference's test: one such frame no
+    longer fails the table). The reference is `reference` (a frame with a regular homography;
+    ValueError otherwise), by default the first frame that has one: frame 0 normally."""
+    return _predicted(poses, plane, K, reference)[0]
+
+
+def _predicted(poses: np.ndarray, plane: np.ndarray, K: np.ndarray,
+               reference: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """predicted_homographies and the (N,) mask of frames with a pose but a singular
+    homography."""
+    poses = np.asarray(poses, np.float64)
     G = np.full((len(poses), 3, 3), np.nan)
+    singular = np.zeros(len(poses), bool)
     valid = np.isfinite(poses).all(axis=1)
-    if not valid[0]:
-        raise ValueError("frame 0 has no valid pose: the reference frame cannot be placed")
+    if reference is not None and not valid[reference]:
+        raise ValueError(f"frame {reference} has no valid pose: the reference frame cannot be "
+                         "placed")
     idx = np.flatnonzero(valid)
-    G[idx] = _core.frame_to_reference(poses[idx], plane, K, reference=0)
-    return G
+    if not len(idx):
+        return G, singular
+    first = int(np.searchsorted(idx, reference)) if reference is not None else 0
+    try:
+        G[idx] = _core.frame_to_reference(poses[idx], plane, K, reference=first)
+        return G, singular
+    except ValueError as error:
+        if "induced homography is singular" not in str(error):
+            raise
+    # frame by frame (a rare path): the singular ones stay NaN
+    for k in idx:
+        try:
+            _core.frame_to_reference(poses[k:k + 1], plane, K, reference=0)
+        except ValueError as error:
+            if "induced homography is singular" not in str(error):
+                raise
+            singular[k] = True
+    regular = idx[~singular[idx]]
+    if reference is not None and singular[reference]:
+        raise ValueError(f"frame {reference}, the reference, cannot be placed: "
+                         + UNPLACED_SINGULAR.removeprefix("unplaced: "))
+    if len(regular):
+        ref = int(np.searchsorted(regular, reference)) if reference is not None else 0
+        G[regular] = _core.frame_to_reference(poses[regular], plane, K, reference=ref)
+    return G, singular
 
 
 def fill_missing_poses(poses: np.ndarray) -> np.ndarray:
@@ -334,53 +382,137 @@ def _pair_details(front: FrontEnd) -> dict:
                       if ok else 0.0}}
 
 
+def _count(value, low: int) -> bool:
+    return (isinstance(value, numbers.Integral) and not isinstance(value, bool | np.bool_)
+            and value >= low)
+
+
+def check_bundle_options(options, *, use_emt: bool, camera_matrix: np.ndarray) -> BundleOptions:
+    """`options` when every field of the BundleOptions is usable by ba / ba-emt (use_emt) /
+    emt; ValueError "BundleOptions.<field> ..." otherwise, before minutes of feature extraction
+    and matching (unchecked, a bad count failed after them with a numpy message, or a NaN
+    min_overlap silently kept only the seed pairs; review)."""
+    if not isinstance(options, BundleOptions):
+        raise ValueError(f"options must be a BundleOptions, got {type(options).__name__}")
+    o = options
+    for name, kind in (("features", FeatureOptions), ("matching", MatchOptions)):
+        value = getattr(o, name)
+        if not isinstance(value, kind):
+            raise ValueError(f"BundleOptions.{name} must be a {kind.__name__}, got "
+                             f"{type(value).__name__}")
+        try:
+            value.validate()
+        except ValueError as error:
+            raise ValueError(f"BundleOptions.{name}.{error}") from None
+    pairings = ("all", "window") + (("emt-guided",) if use_emt else ())
+    if o.pair_selection not in pairings:
+        raise ValueError(f"BundleOptions.pair_selection must be 'all', 'window' or "
+                         f"'emt-guided', got {o.pair_selection!r} (emt-guided needs the EMT)")
+    for name, low in (("window", 1), ("max_points_per_pair", 1), ("min_pair_separation", 0),
+                      ("plane_std_max_frames", 0), ("seed", 0)):
+        value = getattr(o, name)
+        if not _count(value, low):
+            raise ValueError(f"BundleOptions.{name} must be an integer >= {low}, got {value!r}")
+    if not (o.max_pairs_per_frame is None or _count(o.max_pairs_per_frame, 0)):
+        raise ValueError("BundleOptions.max_pairs_per_frame must be an integer >= 0 (older "
+                         f"frames paired per frame) or None (no limit), got "
+                         f"{o.max_pairs_per_frame!r}")
+    if not (isinstance(o.min_overlap, numbers.Real) and not isinstance(o.min_overlap, bool)
+            and 0.0 < o.min_overlap <= 1.0):
+        raise ValueError("BundleOptions.min_overlap must be a fraction in (0, 1] (of the smaller "
+                         f"footprint), got {o.min_overlap!r}")
+    if not (isinstance(o.motion_gate_chi2, numbers.Real) and o.motion_gate_chi2 > 0):
+        raise ValueError("BundleOptions.motion_gate_chi2 must be > 0 (inf: no gate), got "
+                         f"{o.motion_gate_chi2!r}")
+    if o.emt_sigma is not None:
+        check_emt_sigma(o.emt_sigma, "BundleOptions.emt_sigma")
+    try:  # the solver's fields (sigma_v_px, motion_sigma, loss, ..., num_threads)
+        _adjuster(camera_matrix, o, use_emt)
+    except (ValueError, TypeError) as error:
+        raise ValueError(f"BundleOptions.{error}") from None
+    return o
+
+
+def _frame_name(dataset, k: int) -> str:
+    ids = getattr(dataset, "frame_ids", None)
+    return f"frame {ids[k]}" if ids is not None and len(ids) > k else f"frame {k}"
+
+
+def tracker_poses(dataset, method: str) -> tuple[np.ndarray, np.ndarray]:
+    """The dataset's (N, 6) tracker cam_from_world poses at its N frames, NaN where not valid,
+    and their (N,) validity. ValueError naming the dataset (and the frame) when it has no
+    tracking.csv (Dataset.require_tracking) or its poses do not fit its frames."""
+    dataset.require_tracking(method)
+    n = len(dataset.frames)
+    where = f"{dataset.root}: method {method!r}"
+    if dataset.cam_from_world is None or dataset.pose_valid is None:
+        raise ValueError(f"{where} needs the tracker's camera poses at the frames "
+                         "(cam_from_world, pose_valid), got None")
+    try:
+        poses = np.asarray(dataset.cam_from_world, np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: cam_from_world must be an ({n}, 6) array of numbers, got "
+                         f"{type(dataset.cam_from_world).__name__}") from None
+    valid = np.asarray(dataset.pose_valid)
+    if poses.shape != (n, 6):
+        raise ValueError(f"{where}: cam_from_world must hold one pose (angle-axis, translation) "
+                         f"per frame, shape ({n}, 6), got {poses.shape}")
+    if valid.shape != (n,) or not (valid.dtype == bool or (
+            np.issubdtype(valid.dtype, np.integer) and np.isin(valid, (0, 1)).all())):
+        raise ValueError(f"{where}: pose_valid must be ({n},) booleans, one per frame, got shape "
+                         f"{valid.shape} of {valid.dtype}")
+    valid = valid.astype(bool)
+    bad = np.flatnonzero(valid & ~np.isfinite(poses).all(axis=1))
+    if bad.size:
+        raise ValueError(f"{where}: the tracker pose of {_frame_name(dataset, int(bad[0]))} (row "
+                         f"{bad[0]} of cam_from_world) is marked valid but holds NaN or infinite "
+                         f"values ({bad.size} such frames)")
+    return np.where(valid[:, None], poses, np.nan), valid
+
+
+def _front_end(dataset, o: BundleOptions, progress: bool, method: str):
+    """(FrontEnd, plane or None) of the pair selection o.pair_selection: the EMT-guided one also
+    gives the plane it estimated (in the dataset's world)."""
+    n = len(dataset.frames)
+    if n < 2:
+        raise ValueError(f"{dataset.root}: method {method!r} registers pairs of frames, and the "
+                         f"dataset has {n} frame{'s' if n != 1 else ''}")
+    if o.pair_selection == "emt-guided":
+        return _select_pairs_with_emt(dataset, o, progress)
+    select = {"all": lambda f: all_pairs(n), "window": lambda f: window_pairs(n, o.window)}
+    return register_frames(dataset, select[o.pair_selection], o, progress), None
+
+
+def _world_for_plane(poses: np.ndarray, valid: np.ndarray, world, plane, matches, K, root):
+    """(world, poses in it, plane in it) after a first plane `plane` (in `world`): the world is
+    recentred on a tracked camera when its origin lies near that plane (world.tracked_world;
+    origin_near_plane), then the plane re-estimated there from the same pairs. `poses`: the
+    tracker's, in its own world."""
+    recentred = tracked_world(poses, valid, plane=plane_from_aligned(plane, world))
+    if same_world(recentred, world):
+        return world, poses_to_aligned(poses, world), plane
+    aligned = poses_to_aligned(poses, recentred)
+    return recentred, aligned, estimate_plane(matches, aligned, K, source=str(root))
+
+
 def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None = None,
                use_emt: bool = True) -> MethodResult:
     """BAVis+EMT (use_emt=True, Eq. 17-20) or BAVis (visual cost only). With the EMT, the
-    adjustment runs in a world aligned on the first tracked camera when that is near a rotation
-    of pi or far from the tracker's origin (estimation/world.py); poses and plane are returned
-    in the tracker's world."""
-    K = dataset.camera.require_camera_matrix("ba-emt" if use_emt else "ba")
-    if options is not None and options.emt_sigma is not None:  # before minutes of matching
-        check_emt_sigma(options.emt_sigma, "BundleOptions.emt_sigma")
-    if options is not None and not (isinstance(options.plane_std_max_frames, numbers.Integral)
-                                    and not isinstance(options.plane_std_max_frames, bool)
-                                    and options.plane_std_max_frames >= 0):
-        raise ValueError("BundleOptions.plane_std_max_frames must be an integer >= 0, got "
-                         f"{options.plane_std_max_frames!r}")
-    if options is not None and not options.motion_gate_chi2 > 0:
-        raise ValueError("BundleOptions.motion_gate_chi2 must be > 0 (inf: no gate), got "
-                         f"{options.motion_gate_chi2!r}")
-    if options is not None:  # the solver's options too, before minutes of matching
-        pairings = ("all", "window") + (("emt-guided",) if use_emt else ())
-        if options.pair_selection not in pairings:
-            raise ValueError(f"BundleOptions.pair_selection must be 'all', 'window' or "
-                             f"'emt-guided', got {options.pair_selection!r} (emt-guided needs "
-                             "the EMT)")
-        try:
-            _adjuster(K, options, use_emt)
-        except ValueError as error:
-            raise ValueError(f"BundleOptions.{error}") from None
-    world = tracked_world(dataset.cam_from_world, dataset.pose_valid) if use_emt else None
-    if world is not None:
-        aligned = replace(dataset, cam_from_world=poses_to_aligned(dataset.cam_from_world,
-                                                                   world))
-        result = run_bundle(aligned, progress=progress, options=options, use_emt=use_emt)
-        result.poses = poses_from_aligned(result.poses, world)
-        result.plane = plane_from_aligned(result.plane, world)
-        return result
-    o = options or BundleOptions()
+    adjustment runs in a world aligned on a tracked camera when the tracker's frame is near a
+    rotation of pi, its origin far from the cameras or near the plane (estimation/world.py);
+    poses and plane are returned in the tracker's world."""
+    method = "ba-emt" if use_emt else "ba"
+    K = dataset.camera.require_camera_matrix(method)
+    o = check_bundle_options(BundleOptions() if options is None else options, use_emt=use_emt,
+                             camera_matrix=K)
     n = len(dataset.frames)
+    world = None
+    if use_emt:
+        emt, valid = tracker_poses(dataset, method)
+        world = tracked_world(emt, valid)
+        dataset = replace(dataset, cam_from_world=poses_to_aligned(emt, world), pose_valid=valid)
     rng = np.random.default_rng(o.seed)
-    plane = None
-    if use_emt and o.pair_selection == "emt-guided":
-        front, plane = _select_pairs_with_emt(dataset, o, progress)
-    else:
-        select = {"all": lambda f: all_pairs(n), "window": lambda f: window_pairs(n, o.window)}
-        if o.pair_selection not in select:
-            raise ValueError(f"pair_selection must be 'all', 'window' or 'emt-guided', got "
-                             f"{o.pair_selection!r} (emt-guided needs the EMT)")
-        front = register_frames(dataset, select[o.pair_selection], o, progress)
+    front, plane = _front_end(dataset, o, progress, method)
     ok = [m for m in front.matches if m.ok]
     if not ok:
         raise ValueError(f"{dataset.root}: no pair of frames could be registered "
@@ -389,10 +521,11 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
 
     t0 = time.perf_counter()
     if use_emt:
-        emt = dataset.cam_from_world
         if plane is None:
-            plane = estimate_plane(ok, emt, K)
-        init = chain_missing_poses(emt, ok, plane, K)
+            plane = estimate_plane(ok, dataset.cam_from_world, K, source=str(dataset.root))
+        world, aligned, plane = _world_for_plane(emt, valid, world, plane, ok, K, dataset.root)
+        dataset = replace(dataset, cam_from_world=aligned)
+        init = chain_missing_poses(dataset.cam_from_world, ok, plane, K)
         frames = range(n)
     else:
         init = _visual_initialisation(n, ok, K)
@@ -419,11 +552,9 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     # glitch on a black frame pulled it and its neighbours against C_p)
     breaks, glitches = [], []
     if use_emt:
-        samples = np.where(np.asarray(dataset.pose_valid, bool)[:, None],
-                           dataset.cam_from_world, np.nan)
         breaks, glitches = tracker_motion_verdicts(
-            samples, times, ba.options.motion_sigma, ba.options.emt_sigma, o.motion_gate_chi2,
-            nominal)
+            dataset.cam_from_world, times, ba.options.motion_sigma, ba.options.emt_sigma,
+            o.motion_gate_chi2, nominal)
         for k in breaks:
             timing[k] = RELEASED
     for k in frames:
@@ -438,12 +569,16 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     ba.set_plane(plane)
     summary = ba.solve()
     timings["optimisation"] = summary.solve_time_s
-    timings["problem_setup"] = time.perf_counter() - t0 - summary.solve_time_s
+    # (pi's covariance for the warning, booked apart: 1.2 s of "problem_setup" at 150 frames
+    # before its Cholesky path; review)
+    timings["plane_std"] = summary.plane_std_time_s
+    timings["problem_setup"] = (time.perf_counter() - t0 - summary.solve_time_s
+                                - summary.plane_std_time_s)
     ids, est = ba.poses()
     poses = np.full((n, 6), np.nan)
     poses[ids] = est
     plane = ba.plane()
-    G = predicted_homographies(poses, plane, K)
+    G, singular = _predicted(poses, plane, K)
     placed = np.isfinite(G).all(axis=(1, 2))
     details = _pair_details(front)
     details["solver"] = summary.as_dict()
@@ -457,16 +592,19 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
         # the poses are where the failed solve left them (the tracker's, at first): their
         # agreement, 0.0 on every axis, read as perfect (e_M 117 px; helper fuzz 32)
         details["tracker_agreement"] = {"skipped": "the adjustment failed"}
-    elif use_emt:
+    elif use_emt:  # (in the aligned world, where the EMT prior weighed the poses)
         add_tracker_agreement(details, poses, dataset, plane, o.emt_sigma, o.motion_sigma)
     status = _status(n, placed, ok, "not connected to frame 0 by registered pairs")
+    for k in np.flatnonzero(singular):
+        status[k] = UNPLACED_SINGULAR
     if use_emt:  # as lba-emt's: placed by C_p alone, however far from their anchors
         tracked = np.asarray(dataset.pose_valid, bool).copy()
         tracked[list(glitches)] = False
         for k in np.flatnonzero(placed & unanchored_frames(n, ok, tracked)):
             status[k] = "dead-reckoned"
-    return MethodResult(G, status, poses=poses, plane=plane, timings=timings, parameters=asdict(o),
-                        details=details)
+    return MethodResult(G, status, poses=poses_from_aligned(poses, world),
+                        plane=plane_from_aligned(plane, world), timings=timings,
+                        parameters=asdict(o), details=details)
 
 
 def run_ba(dataset, *, progress: bool = True, options: BundleOptions | None = None):
@@ -481,37 +619,46 @@ def run_ba_emt(dataset, *, progress: bool = True, options: BundleOptions | None 
 
 def run_emt(dataset, *, progress: bool = True, options: BundleOptions | None = None,
             plane: np.ndarray | None = None) -> MethodResult:
-    """EMT baseline: tracker poses + a plane (estimated from EMT-guided pairs unless given, in
-    the tracker's world). The plane is estimated in the world ba-emt adjusts in (world.
-    tracked_world: aligned on a tracked camera when the tracker's origin is far): with the
-    origin 800 mm away its fit in the tracker's world put e_M at 81 px, 35 near it."""
-    o = options or BundleOptions(pair_selection="emt-guided")
+    """EMT baseline: tracker poses + a plane (estimated unless given, in the tracker's world)
+    from the pairs of options.pair_selection (default EMT-guided). The plane is estimated in
+    the world ba-emt adjusts in (world.tracked_world: aligned on a tracked camera when the
+    tracker's origin is far, or near the plane): with the origin 800 mm away its fit in the
+    tracker's world put e_M at 81 px, 35 near it. The homographies map to frame 0's pixel grid,
+    or, when frame 0 has no tracker sample, to the first placed frame's (its status says why;
+    runner.flag_reference_frame names the reference)."""
     K = dataset.camera.require_camera_matrix("emt")
-    world = tracked_world(dataset.cam_from_world, dataset.pose_valid)
-    if world is not None:
-        aligned = replace(dataset, cam_from_world=poses_to_aligned(dataset.cam_from_world,
-                                                                   world))
-        result = run_emt(aligned, progress=progress, options=options,
-                         plane=None if plane is None else plane_to_aligned(plane, world))
-        result.poses = dataset.cam_from_world.copy()
-        result.plane = plane_from_aligned(result.plane, world)
-        return result
+    o = check_bundle_options(BundleOptions(pair_selection="emt-guided") if options is None
+                             else options, use_emt=True, camera_matrix=K)
+    emt, valid = tracker_poses(dataset, "emt")
+    if plane is not None:
+        plane = np.asarray(plane, np.float64)
+        if plane.shape != (3,) or not np.isfinite(plane).all() or not np.any(plane):
+            raise ValueError(f"plane must be pi = n / d, 3 finite numbers not all 0, got {plane}")
+    world = tracked_world(emt, valid, plane=plane)
+    aligned = poses_to_aligned(emt, world)
     timings: dict[str, float] = {}
     details: dict = {}
     if plane is None:
         t0 = time.perf_counter()
-        front, plane = _select_pairs_with_emt(dataset, o, progress)
+        work = replace(dataset, cam_from_world=aligned, pose_valid=valid)
+        front, plane = _front_end(work, o, progress, "emt")
+        if plane is None:
+            plane = estimate_plane(front.matches, aligned, K, source=str(dataset.root))
+        world, aligned, plane = _world_for_plane(emt, valid, world, plane, front.matches, K,
+                                                 dataset.root)
         timings.update(front.timings)
         timings["initialisation"] = time.perf_counter() - t0 - sum(front.timings.values())
         details = _pair_details(front)
-    G = predicted_homographies(dataset.cam_from_world, np.asarray(plane, float), K)
+    else:
+        plane = plane_to_aligned(plane, world)
+    G, singular = _predicted(aligned, plane, K)
     placed = np.isfinite(G).all(axis=(1, 2))
-    status = ["placed" if p else "unplaced: no tracker sample" for p in placed]
+    status = ["placed" if p else UNPLACED_SINGULAR if s else "unplaced: no tracker sample"
+              for p, s in zip(placed, singular, strict=True)]
     # the tracker's own poses: only the plane's distance can be implausible (a unit mix-up)
-    agreement = tracker_agreement(dataset.cam_from_world, dataset.cam_from_world,
-                                  dataset.pose_valid, plane, o.emt_sigma,
+    agreement = tracker_agreement(aligned, aligned, valid, plane, o.emt_sigma,
                                   source=str(dataset.root / "tracking.csv"))
     details["warnings"] = agreement.pop("warnings")
-    return MethodResult(G, status, poses=dataset.cam_from_world.copy(), plane=plane,
-                        timings=timings, parameters=asdict(o), details=details,
-                        images_seen=False)
+    return MethodResult(G, status, poses=np.array(dataset.cam_from_world, np.float64),
+                        plane=plane_from_aligned(plane, world), timings=timings,
+                        parameters=asdict(o), details=details, images_seen=False)

@@ -14,6 +14,8 @@ plane to the pose noise (4-6 deg normal error on SYN-150 against 0.24 deg for th
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import ConvexHull, QhullError
+from scipy.spatial.distance import cdist
 
 from fusedmosaic import _core
 
@@ -35,12 +37,66 @@ def plane_depths(poses: np.ndarray, plane: np.ndarray) -> np.ndarray:
 
 def camera_baseline_mm(poses: np.ndarray) -> float:
     """The largest distance between the centres of (N, 6) cam_from_world poses (world units,
-    mm): how far the cameras moved, which is what makes the plane's distance observable."""
+    mm): how far the cameras moved, which is what makes the plane's distance observable (0
+    for fewer than two)."""
     poses = np.atleast_2d(np.asarray(poses, np.float64))
     centres = np.array([-_core.rotation_from_angle_axis(p[:3]).T @ p[3:] for p in poses])
     if len(centres) < 2:
         return 0.0
-    return float(np.max(np.linalg.norm(centres[:, None] - centres[None], axis=2)))
+    return point_set_diameter(centres)
+
+
+# Rows compared per block by _max_distance: 512 x N distances (4 MB at 1000 points, 60 MB
+# at 15 000; the whole N x N x 3 difference array of a 6000-frame run took 2.3 GB; review).
+_DISTANCE_BLOCK = 512
+
+
+def _max_distance(points: np.ndarray) -> float:
+    """The largest Euclidean distance between two rows of (N, d) `points`, by blocks of rows:
+    exact, in memory O(_DISTANCE_BLOCK * N)."""
+    best = 0.0
+    for i in range(0, len(points), _DISTANCE_BLOCK):
+        best = max(best, float(cdist(points[i:i + _DISTANCE_BLOCK], points[i:]).max()))
+    return best
+
+
+def _hull_points(points: np.ndarray) -> np.ndarray | None:
+    """Indices of the points on the convex hull of (N, d) points (its vertices, and the points
+    qhull found coplanar with a facet, which rounding may have kept off the vertex list); None
+    when the points span fewer than d dimensions (qhull cannot build the hull)."""
+    try:
+        hull = ConvexHull(points)
+    except QhullError:
+        return None
+    return np.union1d(hull.vertices, hull.coplanar[:, 0] if len(hull.coplanar) else [])
+
+
+def point_set_diameter(points: np.ndarray) -> float:
+    """The largest distance between two of the (N, d) points, exactly as over all pairs: the two
+    farthest points are vertices of their convex hull, so only the hull's points are compared
+    (a few dozen for a camera path in 3-D). Flat or collinear sets (qhull needs a full-
+    dimensional hull) are projected on their own span (SVD; distances kept) and the hull of the
+    projection taken; a set too thin for that, or a hull of many points, is compared by
+    blocks (_max_distance), exact too."""
+    points = np.unique(np.asarray(points, np.float64), axis=0)
+    if len(points) < 2:
+        return 0.0
+    if len(points) <= points.shape[1] + 1:
+        return _max_distance(points)
+    on_hull = _hull_points(points)
+    if on_hull is None:  # flat or collinear: the hull of the points in their own span
+        centred = points - points.mean(axis=0)
+        _, s, vt = np.linalg.svd(centred, full_matrices=False)
+        rank = int(np.sum(s > s[0] * 1e-9)) if s[0] > 0 else 0
+        if rank >= 2:
+            on_hull = _hull_points(centred @ vt[:rank].T)
+        elif rank == 1:  # along a line: the points at (or within rounding of) its two ends
+            t = centred @ vt[0]
+            tie = 1e-9 * (t.max() - t.min())
+            on_hull = np.flatnonzero((t <= t.min() + tie) | (t >= t.max() - tie))
+    if on_hull is None:
+        return _max_distance(points)
+    return _max_distance(points[on_hull.astype(int)])
 
 
 # Below this ratio of the cameras' spread (camera_baseline_mm) to their distance from the plane
@@ -133,15 +189,19 @@ def _robust_combine(planes: np.ndarray) -> np.ndarray:
     return n / np.linalg.norm(n) * inv_depth
 
 
-def estimate_plane(pairs, poses: np.ndarray, K: np.ndarray, *, max_pairs: int = 60) -> np.ndarray:
+def estimate_plane(pairs, poses: np.ndarray, K: np.ndarray, *, max_pairs: int = 60,
+                   source: str | None = None) -> np.ndarray:
     """Plane pi from registered pairs (PairMatch, frame ids index `poses`) and tracker poses.
 
-    Raises ValueError when no registered pair with valid poses is available."""
+    Raises ValueError when no registered pair with valid poses is available (the message starts
+    with `source`, e.g. the dataset's folder, when given)."""
+    where = f"{source}: " if source else ""
     usable = [p for p in pairs if p.ok and np.isfinite(poses[p.frame_l]).all()
               and np.isfinite(poses[p.frame_m]).all()]
     if not usable:
-        raise ValueError("cannot estimate the plane: no registered pair of frames with valid "
-                         "tracker poses")
+        ok = sum(1 for p in pairs if p.ok)
+        raise ValueError(f"{where}cannot estimate the plane: no registered pair of frames with "
+                         f"valid tracker poses ({ok} of {len(pairs)} pairs registered)")
     centres = {k: -(_core.rotation_from_angle_axis(poses[k][:3]).T @ poses[k][3:])
                for p in usable for k in (p.frame_l, p.frame_m)}
     baseline = np.array([np.linalg.norm(centres[p.frame_l] - centres[p.frame_m])
@@ -150,5 +210,5 @@ def estimate_plane(pairs, poses: np.ndarray, K: np.ndarray, *, max_pairs: int = 
     estimates = [plane_from_pair(p.H_lm, K, poses[p.frame_l], poses[p.frame_m]) for p in chosen]
     estimates = np.array([e for e in estimates if e is not None and np.isfinite(e).all()])
     if len(estimates) == 0:
-        raise ValueError("cannot estimate the plane: every pair was degenerate")
+        raise ValueError(f"{where}cannot estimate the plane: every pair was degenerate")
     return _robust_combine(estimates)

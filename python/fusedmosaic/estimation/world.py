@@ -20,10 +20,18 @@ tracker's frame make that go wrong:
   axis: e_M 56 409 px one way, 87 145 px worst frame the other with frames 3-8 untracked;
   recentred, 0.4 px (worst frame 1 px) for origins 0.2-1 m away along or across the axis.
 
+- Origin near the plane. pi = n / d puts the plane at 1 / |pi| from the origin, and the images
+  measure it relative to the cameras, D from it: an error of the plane's position is D / d
+  times larger relative to pi, and H_k = R_k - t_k pi^T is nearly its rank-1 term (a tracker
+  origin 1 mm from the tissue, the cameras 29 mm: ba-emt's pi went to 1e5 and every induced
+  homography tested singular; review). D / d is |det H_k| = |1 + pi . c_k| (c_k the centre).
+
 So the methods work in an aligned world X' = R_a (X - c_a), taken from a tracked camera (lba-emt:
 the first; offline methods and the checks: the one nearest the median centre, tracked_world):
-c_a its centre when that is more than ``ALIGN_DISTANCE`` from the tracker's origin (else 0), R_a
-its rotation when that is more than ``ALIGN_ANGLE`` from identity (else I). Then
+c_a its centre when that is more than ``ALIGN_DISTANCE`` from the tracker's origin, or (given a
+plane, offline methods) when the origin lies nearer the plane than ``ORIGIN_PLANE_FRACTION`` of
+the cameras' median distance to it (else 0), R_a its rotation when that is more than
+``ALIGN_ANGLE`` from identity (else I). Then
 
     cam_from_world' = (R R_a^T, t + R c_a),   pi' = R_a pi / (1 + pi . c_a)
 
@@ -45,11 +53,14 @@ from scipy.spatial.transform import Rotation
 __all__ = [
     "ALIGN_ANGLE",
     "ALIGN_DISTANCE",
+    "ORIGIN_PLANE_FRACTION",
     "WorldAlignment",
+    "origin_near_plane",
     "plane_from_aligned",
     "plane_to_aligned",
     "poses_from_aligned",
     "poses_to_aligned",
+    "same_world",
     "tracked_world",
     "world_alignment",
 ]
@@ -58,6 +69,10 @@ __all__ = [
 ALIGN_ANGLE = np.pi / 2
 # mm; a first camera centre further than this from the tracker's origin becomes the origin.
 ALIGN_DISTANCE = 50.0
+# An origin nearer the plane than this fraction of the cameras' median distance to it becomes a
+# camera's centre (given the plane): pi's conditioning then loses at most a factor 2 against a
+# world centred on a camera (D / d = 1), which is where the paper puts the origin (Sec. 3.2).
+ORIGIN_PLANE_FRACTION = 0.5
 
 
 @dataclass(frozen=True)
@@ -68,10 +83,11 @@ class WorldAlignment:
     centre: np.ndarray  # c_a (3,), mm in the tracker's world
 
 
-def world_alignment(poses: np.ndarray) -> WorldAlignment | None:
+def world_alignment(poses: np.ndarray, *, recentre: bool = False) -> WorldAlignment | None:
     """The aligned world from the first finite pose of ``poses`` ((N, 6) or (6,)
     cam_from_world), or None when that camera is within ALIGN_ANGLE of identity and
-    ALIGN_DISTANCE of the origin (or there is no finite pose)."""
+    ALIGN_DISTANCE of the origin (or there is no finite pose). ``recentre``: its centre becomes
+    the origin whatever its distance."""
     p = np.atleast_2d(np.asarray(poses, dtype=np.float64))
     finite = np.flatnonzero(np.isfinite(p).all(axis=1))
     if not len(finite):
@@ -80,19 +96,38 @@ def world_alignment(poses: np.ndarray) -> WorldAlignment | None:
     R = Rotation.from_rotvec(r)
     centre = -R.inv().apply(t)
     rotate = np.linalg.norm(r) > ALIGN_ANGLE
-    move = np.linalg.norm(centre) > ALIGN_DISTANCE
+    move = recentre or np.linalg.norm(centre) > ALIGN_DISTANCE
     if not (rotate or move):
         return None
     return WorldAlignment(R.as_matrix() if rotate else np.eye(3),
                           centre if move else np.zeros(3))
 
 
-def tracked_world(poses: np.ndarray, valid=None) -> WorldAlignment | None:
+def origin_near_plane(poses: np.ndarray, plane: np.ndarray) -> bool:
+    """True when the world's origin lies nearer the plane pi (n . X + d = 0, pi = n / d, at
+    1 / |pi| from the origin) than ORIGIN_PLANE_FRACTION of the median distance of the (N, 6)
+    cam_from_world poses' centres (finite rows) to it: median |1 + pi . c| above
+    1 / ORIGIN_PLANE_FRACTION (module docstring). A plane through the origin (pi not finite) is
+    near; a plane at infinity (pi = 0), or no finite pose, is not."""
+    plane = np.asarray(plane, dtype=np.float64).reshape(3)
+    if not np.isfinite(plane).all():
+        return True
+    p = np.asarray(poses, dtype=np.float64).reshape(-1, 6)
+    p = p[np.isfinite(p).all(axis=1)]
+    if not len(p) or not np.any(plane):
+        return False
+    centres = -Rotation.from_rotvec(p[:, :3]).inv().apply(p[:, 3:])
+    return bool(np.median(np.abs(1.0 + centres @ plane)) > 1.0 / ORIGIN_PLANE_FRACTION)
+
+
+def tracked_world(poses: np.ndarray, valid=None, plane=None) -> WorldAlignment | None:
     """The aligned world of a whole recording's tracked cameras ((N, 6) cam_from_world, rows
     NaN or not ``valid`` left out), as the offline methods and the checks take it: from the
     camera whose centre lies nearest the cameras' median centre, so that one bad sample (the
     first, say, 2 m off) does not move the world's origin (world_alignment of the first
-    camera: a consistent tracker then read 20 x its noise). None as world_alignment."""
+    camera: a consistent tracker then read 20 x its noise). None as world_alignment. Given
+    the plane pi (in the same world as ``poses``), that camera's centre also becomes the origin
+    when the origin lies near the plane (origin_near_plane)."""
     p = np.asarray(poses, dtype=np.float64).reshape(-1, 6)
     ok = np.isfinite(p).all(axis=1)
     if valid is not None:
@@ -102,7 +137,15 @@ def tracked_world(poses: np.ndarray, valid=None) -> WorldAlignment | None:
     tracked = p[ok]
     centres = -Rotation.from_rotvec(tracked[:, :3]).inv().apply(tracked[:, 3:])
     nearest = int(np.argmin(np.linalg.norm(centres - np.median(centres, axis=0), axis=1)))
-    return world_alignment(tracked[nearest])
+    recentre = plane is not None and origin_near_plane(tracked, plane)
+    return world_alignment(tracked[nearest], recentre=recentre)
+
+
+def same_world(a: WorldAlignment | None, b: WorldAlignment | None) -> bool:
+    """Whether two alignments (None: the tracker's own world) are the same."""
+    if a is None or b is None:
+        return a is b
+    return bool(np.array_equal(a.rotation, b.rotation) and np.array_equal(a.centre, b.centre))
 
 
 def _transform(poses: np.ndarray, right: Rotation, shift: np.ndarray) -> np.ndarray:
