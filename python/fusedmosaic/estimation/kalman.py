@@ -28,6 +28,13 @@ Reading choices where the paper leaves room (all configurable in :class:`KalmanO
   polynomial) is read at i. The median filter mirrors the sequence at its end, so an outlier at
   i is removed from its own reference (the text's "n time-steps directly preceding i" reading,
   with ``f`` extrapolated one step, is ``include_current=False``; it is about twice as noisy).
+  The cost: the mirrored end lags a steady trend by ~0.9 step (a ramp 0..10 gives 9.13), so a
+  smooth turn of w rad/frame reads as a deviation of ~0.87 w (c_angle 0.91 at 0.3 rad/frame,
+  0.64 at 0.5). A median of the residuals about a least-squares line (the line added back) has
+  no lag, but the line follows an outlier at i, which then pulls its own reference (c_speed of
+  a speed doubling 0.50 -> 0.61, c_angle of a 0.7 rad turn 0.13 -> 0.22), and on the
+  simulator's circle / spiral it made #3 worse (10.2 -> 12.8 / 10.8 -> 13.5 µm at the paper's
+  n frames) and flagged fewer event frames (c_img < 0.5: 53 -> 50 % / 60 -> 56 %): not used.
   Histories keep the last n *valid* samples with their step indices (failed registrations are
   skipped) and the angle history skips displacements too short to have a direction.
 - Eq. 14 compares N(i) with f(h_N) scale-free, as Eq. 17 compares the image and robot speeds:
@@ -168,6 +175,23 @@ class KalmanOptions:
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"KalmanOptions.{name} must be a finite number >= 0, got {value}")
+        # The Eq. 15 levels x_r: where a confidence is 0.5. Not finite, a confidence is NaN or
+        # constant and silently drops out (angle_x_r NaN: c_angle NaN, counted as 1 in Eq. 16;
+        # speed_x_r NaN: c_img NaN, every registration ignored; sp_x_r inf: c_rob always 1).
+        # Each must lie inside its deviation's range: beyond it the confidence never falls to
+        # 0.5 (the check is off), at or below 0 it never rises above 0.5.
+        upper = {
+            "angle_x_r": (np.pi, "rad: |wrapped angle deviation| <= pi"),
+            "sp_x_r": (1.0, "Eq. 17's 1 - min(n_I/n_r, n_r/n_I) < 1"),
+            "speed_x_r": (1.0, "speed_deviation='ratio': 1 - min(N', f') / max(N', f') < 1")
+            if self.speed_deviation == "ratio" else (np.inf, f"speed_deviation="
+                                                     f"{self.speed_deviation!r}"),
+        }
+        for name, (high, why) in upper.items():
+            value = getattr(self, name)
+            if not (np.isfinite(value) and 0.0 < value < high):
+                bound = "a finite number > 0" if high == np.inf else f"in (0, {high:.4g})"
+                raise ValueError(f"KalmanOptions.{name} must be {bound} ({why}), got {value}")
         if self.c_rob0 == 0 and self.c_img0 == 0:
             raise ValueError("KalmanOptions: c_rob0 and c_img0 cannot both be 0")
         if self.speed_deviation not in ("ratio", "relative", "absolute"):

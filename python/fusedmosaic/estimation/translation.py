@@ -48,10 +48,15 @@ frames whose image was trusted (``c_img >= 0.5``), floored at ``robot_sigma_floo
 ``KalmanOptions.sigma_robot0`` is used), except on a frame whose registration the filter does
 not trust (``c_img < robot_sigma_c_img``, e.g. a contact loss in the first frames), which uses
 ``KalmanOptions.sigma_robot0``: an infinite ``sigma_r0`` would let a registration of
-confidence ~0.1 place it. A robot sampled more slowly than the frames (``robot_xy_um`` None
-between samples) feeds the estimate with displacements spanning up to
-``robot_sigma_max_span`` frames. With
-``adaptive_robot_sigma=False`` the filter is the paper's with fixed ``sigma_robot0``.
+confidence ~0.1 place it. Trust in the filter's warm-up: there c_img is the initial
+``c_img0 = 1`` of Sec. II-B, whatever the registration, so a registration is trusted when its
+``c_match`` reaches ``warmup_overlap_c_match`` (the frames visibly overlap; a fibre-pattern lock
+at 0 px scores ~0.5); this judgement decides the ``sigma_r0`` samples, the fallback above and
+both gates below. A recording starting inside a contact loss had its lock placed 40 px off for
+good, all frames (e_M 38.8 px, robot 0.02). A robot sampled more slowly than the frames
+(``robot_xy_um`` None between samples) feeds the estimate with displacements spanning up to
+``robot_sigma_max_span`` frames. With ``adaptive_robot_sigma=False`` the filter is the paper's
+with fixed ``sigma_robot0``.
 
 Robot gating (not in the paper). Eq. 17-18 bound the robot's confidence below by
 ``c_rob >= 1 - c_img`` (``c_sp`` compares speed *ratios*, so it saturates), whatever the size of
@@ -83,14 +88,15 @@ they are believed over the robot, as ``robot_gate_rebase`` gated frames in a row
 believed over them: the robot is judged (gated) from then on.
 
 Image gating (not in the paper), the converse: a registration the filter does not trust
-(``c_img < robot_sigma_c_img``) that differs from the robot displacement by more than
-``image_gate_sigmas`` of the robot's standard deviations (``sigma_r0 / sqrt(c_rob)``, Eq. 9,
-per axis) is left out: the robot places the frame (``c_img = 0``,
-``prior-only``). Eqs. 7-8 are a weighted mean, so a confident robot of small ``sigma_r0`` already
-outweighs such a registration; a robot whose ``sigma_r0`` is of the order of ``sigma_i0`` (a robot
-sampled more slowly than the frames, interpolated: its interpolation error) did not, and each
-registration locked on the fibre pattern (contact loss) or on stuck tissue (stick-slip) pulled
-its frame several pixels off for good. Never before ``sigma_r0`` is known.
+(``c_img < robot_sigma_c_img``; in the warm-up ``c_match < warmup_overlap_c_match``) that
+differs from the robot displacement by more than ``image_gate_sigmas`` of the robot's standard
+deviations (``sigma_r0 / sqrt(c_rob)``, Eq. 9, per axis) is left out: the robot places the
+frame (``c_img = 0``, ``prior-only``). Eqs. 7-8 are a weighted mean, so a confident robot of
+small ``sigma_r0`` already outweighs such a registration; a robot whose ``sigma_r0`` is of the
+order of ``sigma_i0`` (a robot sampled more slowly than the frames, interpolated: its
+interpolation error) did not, and each registration locked on the fibre pattern (contact loss)
+or on stuck tissue (stick-slip) pulled its frame several pixels off for good. Never before
+``sigma_r0`` is known.
 
 Origin. Frame 0 is the reference (0, 0). When frame 0 is blank, X_m starts at the first
 textured frame, put at frame 0's position, and X_f, when frame 0 is blank and has no robot
@@ -271,6 +277,9 @@ class RobotPriorOptions:
     # 1-3 of the simulator's scans 0.77-0.87 (circle seed 0, spiral seed 1, 256x224 seed 0).
     # Before, a +5 mm robot glitch at frame 1 placed frame 1 at the glitch (256x224, 120
     # frames: e_M 39.4 px, 10.5 without the glitch). > 1: never (the robot places the frame).
+    # The same level judges every warm-up registration (RobotPriorMosaicker._trusted): below
+    # it, it gives no sigma_r0 sample, can be image-gated and, with sigma_r0 still unknown,
+    # meets the robot at KalmanOptions.sigma_robot0. 0: every warm-up registration trusted.
     warmup_overlap_c_match: float = 0.65
 
     def __post_init__(self) -> None:
@@ -481,10 +490,13 @@ class FrameResult:
 
 @dataclass
 class _Anchor:
-    """The last frame registered successfully: its image and positions in the mosaic."""
+    """The last frame registered successfully: its image (float32, as NCC and SSIM read it:
+    converted once, when it was the current frame), whether that was uint8 (SSIM's data range
+    is then 255) and its positions in the mosaic."""
 
     index: int
     image: np.ndarray
+    uint8: bool
     x_m: np.ndarray
     x_f: np.ndarray
 
@@ -715,7 +727,8 @@ class RobotPriorMosaicker:
             self._intensity = (low, 255.0 / (high - low))  # (textured: high > low)
         low, factor = self._intensity
         out = (gray.astype(np.float64) - low) * factor
-        return out.astype(np.float32)
+        with np.errstate(over="ignore"):  # beyond float32: refused by _place, naming the frame
+            return out.astype(np.float32)
 
     def _prepare_timestamp(self, timestamp, index: int) -> float:
         return check_stream_timestamp(index, timestamp, self._last_timestamp)
@@ -838,6 +851,13 @@ class RobotPriorMosaicker:
             gray = flat_field(gray, self.fixed_pattern)
         if gray is not None and gray.dtype != np.uint8 and not blank:
             gray = self._common_scale(gray)
+        # The frame as NCC and SSIM read it, converted once (a fresh array: it may become the
+        # anchor, and a live caller may reuse its capture buffer for the next frame).
+        image32 = None if gray is None or blank else gray.astype(np.float32)
+        if (image32 is not None and gray.dtype != np.uint8 and self.estimate != "robot"
+                and not np.isfinite(image32).all()):  # (register_ncc no longer checks it)
+            raise ValueError(f"frame {i}: pixel values overflow float32 on the sequence's "
+                             "intensity scale (the first textured frame's range mapped to 0-255)")
         timings = dict.fromkeys(STAGES, 0.0)
         nan = float("nan")
         conf = dict.fromkeys(CONFIDENCES, nan)
@@ -867,13 +887,14 @@ class RobotPriorMosaicker:
                 against = self._anchor.index
                 reg = register_ncc(
                     self._anchor.image[box],
-                    gray[box],
+                    image32[box],
                     template_fraction=self.options.template_fraction,
                     max_displacement=self.options.max_displacement_px,
                     pyramid_levels=self.options.pyramid_levels,
                     presmooth_sigma=self.options.presmooth_sigma,
                     max_disagreement=self.options.max_disagreement_px,
                     fallback_template_fraction=self.options.fallback_template_fraction,
+                    prepared=True,
                 )
                 t1 = time.perf_counter()
                 timings["ncc"] = t1 - t0
@@ -889,8 +910,12 @@ class RobotPriorMosaicker:
                                     "forward and backward directions disagree")
                 if np.isfinite(dx).all():
                     conf["c_match"] = aligned_overlap_ssim(
-                        self._anchor.image[square], gray[square], dx,
+                        self._anchor.image[square], image32[square], dx,
+                        # 8-bit frames: SSIM's constants for the 0-255 range, as for uint8 input
+                        data_range=(255.0 if self._anchor.uint8 and gray.dtype == np.uint8
+                                    else None),
                         downsample=self.options.ssim_downsample,
+                        prepared=True,
                     )
                     if self.options.c_match_normalize is not None:
                         slope, level = self.options.c_match_normalize
@@ -983,17 +1008,20 @@ class RobotPriorMosaicker:
                 saved = kf.snapshot() if unknown else None
                 before = kf.snapshot() if image_ok and robot_ok and not robot_gated else None
                 step = kf.update(dx_img_f, dx_rob_used, c_match, intervals)
-                if unknown and step.c_img < self.options.robot_sigma_c_img:
+                if unknown and not self._trusted(step, c_match):
                     # sigma_r0 not measured yet and the image not trusted at this frame (a
-                    # contact loss in the first frames): relying on the image (sigma_r0 = inf)
-                    # would let a 0-confidence registration place the frame, and the robot
-                    # anchor would keep its error for good; KalmanOptions.sigma_robot0, the
-                    # paper's fixed filter, weighs the two by c_img and c_rob instead.
+                    # contact loss in the first frames; in the warm-up judged by c_match, see
+                    # _trusted): relying on the image (sigma_r0 = inf) would let such a
+                    # registration place the frame, and the robot anchor and every later
+                    # position would keep its error for good; KalmanOptions.sigma_robot0, the
+                    # paper's fixed filter, weighs the two by c_img and c_rob instead, and the
+                    # image gate below can then leave a gross outlier out.
                     kf.restore(saved)
                     sigma_r = self.options.kalman.sigma_robot0
                     kf.options = replace(kf.options, sigma_robot0=sigma_r)
                     step = kf.update(dx_img_f, dx_rob_used, c_match, intervals)
-                if before is not None and self._image_outlier(step, dx_img_f, dx_rob_used):
+                if before is not None and self._image_outlier(step, c_match, dx_img_f,
+                                                              dx_rob_used):
                     kf.restore(before)  # the robot places the frame (c_img = 0)
                     image_ok, c_match, image_gated = False, 0.0, True
                     step = kf.update(_NAN2, dx_rob_used, c_match, intervals)
@@ -1007,7 +1035,7 @@ class RobotPriorMosaicker:
                     and not robot_gated
                     # a re-acquisition after a dropout spans many steps, and their drift
                     and self._steps_without_robot < self.options.robot_sigma_max_span
-                    and step.c_img >= self.options.robot_sigma_c_img
+                    and self._trusted(step, c_match)
                 ):
                     self._innovations.append(dx_rob_f - dx_img_f)
             timings["filter"] = time.perf_counter() - t0
@@ -1019,8 +1047,8 @@ class RobotPriorMosaicker:
             and not blank
             and (i == 0 or self._anchor is None or np.isfinite(dx).all())
         ):
-            # a copy: a live caller may reuse its capture buffer for the next frame
-            self._anchor = _Anchor(i, np.array(gray), x_m.copy(), x_f.copy())
+            # image32 is a fresh float32 array (not a live caller's capture buffer)
+            self._anchor = _Anchor(i, image32, gray.dtype == np.uint8, x_m.copy(), x_f.copy())
         if self.estimate == "fused" and placed and np.isfinite(robot).all():
             # A gated sample is not an anchor: the next robot displacement is taken from the
             # last good one, unless the robot has been gated so often in a row that it more
@@ -1073,14 +1101,31 @@ class RobotPriorMosaicker:
         self._spacings.append(spacing)
         return intervals
 
-    def _image_outlier(self, step, dx_image, dx_robot) -> bool:
+    def _trusted(self, step, c_match: float) -> bool:
+        """Whether the registration of `step` (a filter update) is trusted: the judgement behind
+        the sigma_r0 samples, the unknown-sigma_r0 fallback and both gates. Once the filter
+        computes its confidences, c_img >= robot_sigma_c_img (the 0.5 level of Eq. 15). In
+        its warm-up c_img is the initial c_img0 of Sec. II-B, which judges nothing (it is 1
+        whatever the registration), so the one confidence that is computed judges it: its
+        c_match (SSIM of the aligned overlap) must reach warmup_overlap_c_match, the level at
+        which the frames visibly overlap, as for robot gating in the warm-up (a fibre-pattern
+        lock at 0 px scores 0.48-0.50). Taken as trusted, a lock in the first frames of a
+        recording that starts in a contact loss was placed 40 px off (sigma_r0 still inf), an
+        offset every later position kept (44 frames: e_M 38.8 px, the robot's 0.02), and locks
+        after good frames fed their 40 px disagreement into the sigma_r0 estimate (e_M 71 px).
+        """
+        if step.warmup:
+            return c_match >= self.options.warmup_overlap_c_match
+        return step.c_img >= self.options.robot_sigma_c_img
+
+    def _image_outlier(self, step, c_match: float, dx_image, dx_robot) -> bool:
         """True when the registration of `step` (a filter update with both displacements) is
-        not trusted (c_img < robot_sigma_c_img) and differs from the robot displacement on an
-        axis by more than image_gate_sigmas x the robot's standard deviation under Eq. 9,
+        not trusted (:meth:`_trusted`) and differs from the robot displacement on an axis by
+        more than image_gate_sigmas x the robot's standard deviation under Eq. 9,
         sigma_r0 / sqrt(c_rob) (module docstring, "Image gating"). Never before sigma_r0 is
         known (an infinite prior variance)."""
         k = self.options.image_gate_sigmas
-        if k is None or not step.c_img < self.options.robot_sigma_c_img:
+        if k is None or self._trusted(step, c_match):
             return False
         if not np.isfinite(step.prior_variance):
             return False
@@ -1138,7 +1183,9 @@ class RobotPriorMosaicker:
             if c_match >= self.options.warmup_overlap_c_match:
                 return "glitch"  # the frames overlap: the registration is no lock
             return "unjudged"
-        return "glitch" if trial.c_img >= self.options.robot_sigma_c_img else None
+        if trial.warmup and not self._innovations:  # a streak: believed over the robot
+            return "glitch"
+        return "glitch" if self._trusted(trial, c_match) else None
 
 
 # -- batch methods (`fusedmosaic run --method ncc|robot|kalman-robot`) ---------------------------

@@ -138,7 +138,8 @@ class TrackingSamples:
 
 @dataclass(eq=False)
 class RobotSamples:
-    """Robot-reported probe positions in the image axes: timestamps (M,) s, xy_um (M, 2) µm."""
+    """Robot-reported probe positions in the image axes: timestamps (M,) s, xy_um (M, 2) µm.
+    M = 0 is allowed (interpolate_robot then refuses it: "no samples")."""
 
     timestamps: np.ndarray
     xy_um: np.ndarray
@@ -153,7 +154,8 @@ class RobotSamples:
             )
         # as robot.csv refuses them (a NaN sample was interpolated into frames marked valid)
         for name, values in (("timestamps", self.timestamps), ("xy_um", self.xy_um)):
-            bad = np.flatnonzero(~np.isfinite(values.reshape(len(self.timestamps), -1)).all(1))
+            finite = np.isfinite(values)
+            bad = np.flatnonzero(~(finite if finite.ndim == 1 else finite.all(1)))
             if bad.size:
                 raise ValueError(f"RobotSamples.{name}: sample {bad[0]} is not finite "
                                  f"({values[bad[0]]}); leave a missing sample out")
@@ -447,6 +449,9 @@ def write_hand_eye(path: str | Path, T) -> None:
 def read_robot_csv(path: str | Path) -> RobotSamples:
     """Read ``timestamp,x,y`` (s, µm; every field filled, |timestamp| <= MAX_TIMESTAMP_S)."""
     table, rows = read_number_table(path, ROBOT_COLUMNS) or read_table(path, ROBOT_COLUMNS)
+    if table["timestamp"].size == 0:  # a logger that wrote its header only
+        raise ValueError(
+            f"{path}: no samples (header only): need rows of {','.join(ROBOT_COLUMNS)}")
     check_increasing(path, rows, table["timestamp"], "timestamp")
     check_timestamp_bound(path, rows, table["timestamp"], "robot")
     xy = np.stack([table["x"], table["y"]], axis=1)

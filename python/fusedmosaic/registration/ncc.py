@@ -59,8 +59,21 @@ _MIN_TEMPLATE_SIDE = 16
 _FLAT_TEMPLATE_STD = 1e-6
 # A second thread (None on a 1-core machine): the backward NCC search beside the forward one,
 # one half of the SSIM beside the other (OpenCV and numpy release the GIL): the same numbers,
-# ~1.5x faster per pair on 2 cores.
+# ~1.5x faster per pair on 2 cores. Set to None for serial work (the tests do).
 _SECOND = ThreadPoolExecutor(1, "fusedmosaic-ncc") if (os.cpu_count() or 1) > 1 else None
+
+
+def _new_second_in_child() -> None:
+    """After a fork: the child inherits the parent's executor but not its worker thread, so a
+    task submitted to it never ran and ``.result()`` waited for ever (a ``multiprocessing``
+    worker forked after a registration in the parent hung). The child gets an executor of its
+    own, which starts its thread on first use."""
+    global _SECOND
+    if _SECOND is not None:
+        _SECOND = ThreadPoolExecutor(1, "fusedmosaic-ncc")
+
+
+os.register_at_fork(after_in_child=_new_second_in_child)
 
 
 @dataclass(frozen=True)
@@ -121,9 +134,22 @@ def _as_gray_float32(image: np.ndarray, name: str) -> np.ndarray:
     return out
 
 
-def _check_pair(previous: np.ndarray, current: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    prev = _as_gray_float32(previous, "previous")
-    curr = _as_gray_float32(current, "current")
+def _check_pair(
+    previous: np.ndarray, current: np.ndarray, prepared: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
+    if prepared:
+        # The caller converted and checked the pixels once per frame (RobotPriorMosaicker keeps
+        # its anchor as float32): no second conversion, only the cheap structural checks.
+        prev, curr = np.asarray(previous), np.asarray(current)
+        for name, image in (("previous", prev), ("current", curr)):
+            if image.ndim != 2 or image.dtype != np.float32:
+                raise ValueError(
+                    f"{name}: prepared=True needs a 2-D float32 image, got shape "
+                    f"{image.shape} and dtype {image.dtype}"
+                )
+    else:
+        prev = _as_gray_float32(previous, "previous")
+        curr = _as_gray_float32(current, "current")
     if prev.shape != curr.shape:
         raise ValueError(
             f"previous and current frames differ in size: previous has shape {prev.shape}, "
@@ -260,6 +286,7 @@ def register_ncc(
     presmooth_sigma: float = 0.0,
     max_disagreement: float | None = 3.0,
     fallback_template_fraction: float | None = 0.4,
+    prepared: bool = False,
 ) -> NccResult:
     """Register ``current`` (frame i) to ``previous`` (frame i-1) by forward/backward NCC.
 
@@ -299,6 +326,11 @@ def register_ncc(
         ~150 µm in one frame (Sec. III-C). Accepted only if its own directions agree; otherwise
         the primary result is returned (``consistent`` tells whether to trust it). It runs on
         the failing frames only. None = no retry (the paper's registration as written).
+    prepared : bool
+        True: both frames are already 2-D float32 with finite pixels (e.g. uint8 frames
+        converted once with ``astype(np.float32)``); they are used as they are, without the
+        per-call conversion and finiteness check. A streaming caller converts each frame once
+        and keeps the previous one's float copy. Same results as the unprepared call.
 
     Returns
     -------
@@ -313,7 +345,7 @@ def register_ncc(
         If the frames are not 2-D, differ in shape, hold non-finite values, or the options are
         out of range.
     """
-    prev, curr = _check_pair(previous, current)
+    prev, curr = _check_pair(previous, current, prepared)
     if not 0.0 < template_fraction < 1.0:
         raise ValueError(f"template_fraction must be in (0, 1), got {template_fraction}")
     if pyramid_levels < 0:
@@ -460,8 +492,7 @@ def structural_similarity(
             f"structural_similarity: images of shape {a.shape} are smaller than "
             f"the {win_size}x{win_size} window"
         )
-    a = np.ascontiguousarray(a, dtype=np.float32)
-    b = np.ascontiguousarray(b, dtype=np.float32)
+    a, b = _float32_rows(a), _float32_rows(b)
     pad = (win_size - 1) // 2
     h = a.shape[0]
     if _SECOND is None or h < 64:
@@ -473,6 +504,15 @@ def structural_similarity(
     upper = _SECOND.submit(_ssim_sum, a[: mid + pad], b[: mid + pad], data_range, win_size)
     lower = _ssim_sum(a[mid - pad:], b[mid - pad:], data_range, win_size)
     return (upper.result() + lower) / ((h - 2 * pad) * (a.shape[1] - 2 * pad))
+
+
+def _float32_rows(x: np.ndarray) -> np.ndarray:
+    """x as float32 whose rows are contiguous: a slice of a float32 image (an overlap) is used as
+    it is, OpenCV and numpy read it through its strides (the same numbers as a copy)."""
+    x = np.asarray(x, dtype=np.float32)
+    if x.strides[1] == x.itemsize and x.strides[0] > 0:
+        return x
+    return np.ascontiguousarray(x)
 
 
 def _ssim_sum(a: np.ndarray, b: np.ndarray, data_range: float, win_size: int) -> float:
@@ -525,6 +565,7 @@ def aligned_overlap_ssim(
     data_range: float | None = None,
     downsample: int = 1,
     min_overlap: int = 16,
+    prepared: bool = False,
 ) -> float:
     """Matching confidence ``c_match`` (paper 004, Sec. II-C): SSIM of the aligned overlap.
 
@@ -547,9 +588,13 @@ def aligned_overlap_ssim(
         A factor of 2 is ~4x cheaper but ignores the finest (pixel-level) noise.
     min_overlap : int
         Overlap narrower than this (pixels, per axis) gives 0.0.
+    prepared : bool
+        As in :func:`register_ncc`: both frames are already 2-D float32 with finite pixels, used
+        as they are. Their source type is then unknown: give ``data_range=255`` for frames that
+        were uint8.
     """
     prev_in, curr_in = np.asarray(previous), np.asarray(current)
-    prev, curr = _check_pair(prev_in, curr_in)
+    prev, curr = _check_pair(prev_in, curr_in, prepared)
     dx = np.asarray(dx, dtype=np.float64)
     if dx.shape != (2,):
         raise ValueError(f"dx: expected shape (2,), got {dx.shape}")
