@@ -386,7 +386,7 @@ def test_startup_with_a_tracker_gap_takes_its_plane_at_once(work):
     unobservable (relative std inf, a numerical null test), so the start-up waited, solved
     again at each frame, to the end of the sequence. Now taken at frame 39 (std 0.015)."""
     ds = read_dataset(simulate_fetoscopy(work / "startup_gap", FetoscopyOptions(
-        n_frames=60, laps=60 / 37.5, tracker_gap=[30, 45])), allow_untracked=True)
+        n_frames=60, laps=60 / 37.5, tracker_gap=[29, 45])), allow_untracked=True)
     assert not ds.pose_valid[29:40].any() and ds.pose_valid[:29].all()
     m = SequentialMosaicker(ds.camera, SequentialOptions())
     results = {}

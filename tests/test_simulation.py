@@ -195,18 +195,24 @@ def test_tracker_clock_is_not_frame_synchronous_and_spans_the_frames(syn):
     assert np.min(np.abs(t[:, None] - syn.timestamps[None, :])) > 1e-4
 
 
-def test_tracker_gap_flags_frames():
-    scene = generate_fetoscopy(FetoscopyOptions(n_frames=30, laps=0.8, tracker_gap=[10, 14]))
-    gap = ~scene.tracker_valid
-    assert gap.any() and np.isnan(scene.tracker_translations[gap]).all()
+@pytest.mark.parametrize("gap", [[10, 14], [0, 4], [25, 29], [12, 14], [3, 26]])
+def test_tracker_gap_flags_exactly_its_frames(gap):
+    """The reader flags exactly frames first..last: frames first - 1 and last + 1 keep their
+    tracker (a [10, 14] gap flagged frame 9 too, [5, 6] flagged 4..7; review 44)."""
+    scene = generate_fetoscopy(FetoscopyOptions(n_frames=30, laps=0.8, tracker_gap=gap,
+                                                width=64, height=64))
+    dropped = ~scene.tracker_valid
+    assert dropped.any() and np.isnan(scene.tracker_translations[dropped]).all()
     samples = TrackingSamples(
         scene.tracker_timestamps,
         scene.tracker_translations,
         scene.tracker_quaternions,
         scene.tracker_valid,
     )
-    _, valid = interpolate_camera_poses(samples, scene.timestamps, scene.hand_eye)
-    assert not valid[10:15].any() and valid[:9].all() and valid[16:].all()
+    _, valid = interpolate_camera_poses(samples, scene.timestamps, scene.hand_eye,
+                                        allow_outside=True)
+    frames = np.arange(30)
+    np.testing.assert_array_equal(~valid, (frames >= gap[0]) & (frames <= gap[1]))
 
 
 # -- black frames, options -------------------------------------------------------------------

@@ -40,6 +40,18 @@ def ideal_pixel_grid(camera_matrix: np.ndarray, distortion: np.ndarray, lens_mod
     return ideal.reshape(height * S, width * S, 2)
 
 
+def ideal_border(camera_matrix: np.ndarray, distortion: np.ndarray, lens_model: str,
+                 width: int, height: int) -> np.ndarray:
+    """(P, 2) ideal pixels of the centres of a width x height frame's border pixels through the
+    lens (no fold check: an estimate of what the frame shows, for ideal_pixel_grid's cost)."""
+    u, v = np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64)
+    raw = np.concatenate([np.stack([u, 0 * u], 1), np.stack([u, 0 * u + height - 1], 1),
+                          np.stack([0 * v, v], 1), np.stack([0 * v + width - 1, v], 1)])
+    return undistort_points(raw, np.asarray(camera_matrix, np.float64),
+                            np.asarray(distortion, np.float64), lens_model,
+                            P=np.asarray(camera_matrix, np.float64), criteria=_CRITERIA)
+
+
 def on_inner_branch(pixels: np.ndarray, cam_points: np.ndarray, camera_matrix: np.ndarray,
                     distortion: np.ndarray, lens_model: str) -> bool:
     """Whether camera-frame points cam_points (N, 3) that project to pixels (N, 2) are what

@@ -46,6 +46,26 @@ def option(default, help_text: str, choices: tuple | None = None):
     return field(default=default, metadata=metadata)
 
 
+def check_types(options, whole: tuple[str, ...] = ()) -> None:
+    """Raise ValueError naming the first field of ``options`` that is not a number where one is
+    meant: each field of ``whole`` (frame counts, sizes) must be a whole number, and an integral
+    float there (200.0 from a config file or W / 2) is converted to int in place; every field
+    declared float must be a real number. bools are refused for both (True is 1 to Python, not
+    a size). Run first by validate, before any comparison: text or 200.5 gave TypeErrors or
+    cv2.error deep inside rendering (review 44)."""
+    cls = type(options).__name__
+    for f in fields(options):
+        value = getattr(options, f.name)
+        declared = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", "")
+        number = isinstance(value, numbers.Real) and not isinstance(value, bool)
+        if f.name in whole:
+            if not (number and math.isfinite(value) and value == int(value)):
+                raise ValueError(f"{cls}.{f.name}: must be a whole number, got {value!r}")
+            setattr(options, f.name, int(value))
+        elif declared == "float" and not number:
+            raise ValueError(f"{cls}.{f.name}: must be a number, got {value!r}")
+
+
 def check_finite(options) -> None:
     """Raise ValueError naming the first numeric field (in declaration order) that is NaN or
     infinite: no simulator option means anything there (NaN also slips past comparisons, so a

@@ -46,6 +46,7 @@ from fusedmosaic.simulation._options import (
     check_signs,
     check_time_offsets,
     check_tracker_reach,
+    check_types,
     frame_times,
     sample_times,
 )
@@ -106,6 +107,8 @@ class CheckerboardOptions:
         ranges; the lens's invertibility over the frame is checked by generate_checkerboard,
         which builds the camera matrix)."""
         name = type(self).__name__
+        check_types(self, whole=("board_cols", "board_rows", "n_views", "frames_per_view",
+                                 "width", "height"))
         for key, low in (("board_cols", 2), ("board_rows", 2), ("n_views", 1),
                          ("frames_per_view", 2), ("width", 64), ("height", 64)):
             if getattr(self, key) < low:

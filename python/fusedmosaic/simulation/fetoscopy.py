@@ -28,15 +28,17 @@ rendered images obey G_k = M_0 M_k⁻¹ = H_0 H_k⁻¹ exactly.
 import json
 import numbers
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
+from dataclasses import fields as dataclass_fields
 from pathlib import Path
 
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from fusedmosaic.io.calibration import LENS_MODELS
-from fusedmosaic.simulation._lens import ideal_pixel_grid
+from fusedmosaic.io.calibration import LENS_MODELS, Camera
+from fusedmosaic.io.tracking import GAP_SPACINGS, TrackingSamples, interpolate_camera_poses
+from fusedmosaic.simulation._lens import ideal_border, ideal_pixel_grid
 from fusedmosaic.simulation._options import (
     MAX_ROTATION_SIGMA_DEG,
     MIN_FOV_RADIUS_PX,
@@ -48,12 +50,13 @@ from fusedmosaic.simulation._options import (
     check_signs,
     check_time_offsets,
     check_tracker_reach,
+    check_types,
     frame_times,
     most_changed,
     sample_times,
 )
 from fusedmosaic.simulation._options import option as _opt
-from fusedmosaic.simulation.textures import placenta_texture
+from fusedmosaic.simulation.textures import placenta_texture, placenta_texture_cost
 
 # Paper 000 Sec. 4.2.3: frames replaced by black frames in the loss-of-visual-information test.
 PAPER_BLACK_FRAMES = [7, 11, 12, 23, 24, 37, 38, 42, 43, 45, 51, 54]
@@ -63,6 +66,16 @@ MOTIONS = ("syn", "handheld")
 # longer sequences keep the motion with laps = n_frames / SYN_FRAMES_PER_LAP.
 SYN_FRAMES_PER_LAP = 37.5
 MAX_TEXTURE_PX = 60e6  # the placenta texture covering every frame
+# What drawing that texture may cost (textures.placenta_texture_cost's estimate): beyond, a
+# simulation takes minutes and GBs for one texture (a 4000 px frame, or a camera coming 10x
+# closer than its mean distance, needs a finer texture with thick vessels; review 44).
+MAX_TEXTURE_SECONDS = 60.0
+MAX_TEXTURE_GB = 3.0
+# The farthest a frame may see the plane: MAX_VIEW_RANGE x the camera's distance from it, along
+# a ray (a ray at most arccos(1 / MAX_VIEW_RANGE) = 87.1 deg from the plane's normal). Beyond,
+# the view grazes the plane's horizon or looks past it, at points behind the camera that
+# warpPerspective would still paint from the texture, mirrored (review 44).
+MAX_VIEW_RANGE = 20.0
 
 
 @dataclass
@@ -101,7 +114,9 @@ class FetoscopyOptions:
         6.0, "sensor_from_camera translation, mm, along a fixed direction mostly along the scope "
         "axis (0 = co-located; negative: the opposite way)")
     tracker_gap: list[int] | None = _opt(
-        None, "[first, last] frames whose tracker samples are invalid"
+        None, "[first, last] frames left untracked, exactly as run's reader flags them: the "
+        "tracker samples between them dropped (a hole over 3 tracker periods; refused when "
+        "the tracker rate cannot make one, e.g. for 1 frame at 40 Hz and 25 fps)"
     )
     black_frames: list[int] | None = _opt(
         None, "frames replaced by black; the bare CLI flag = paper 000 Sec. 4.2.3 list"
@@ -131,6 +146,7 @@ class FetoscopyOptions:
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad option."""
+        check_types(self, whole=("n_frames", "width", "height"))
         if self.motion not in MOTIONS:
             raise ValueError(
                 f"FetoscopyOptions.motion: expected one of {MOTIONS}, got {self.motion!r}"
@@ -425,9 +441,9 @@ class FetoscopyScene:
         """(H, W) bool, True inside the circular field of view (centre ((W-1)/2, (H-1)/2))."""
         if self.fov_mask_radius is None:
             return None
+        # camera.yaml's mask, by construction (io.calibration.Camera.fov_mask)
         w, h = self.size
-        y, x = np.ogrid[:h, :w]
-        return (x - (w - 1) / 2.0) ** 2 + (y - (h - 1) / 2.0) ** 2 <= self.fov_mask_radius**2
+        return Camera(w, h, fov_mask_radius=self.fov_mask_radius).fov_mask() > 0
 
     def render(self, k: int, *, noise: bool = True) -> np.ndarray:
         """Frame k, (H, W, 3) BGR uint8: the texture warped by the true M_k, its specular
@@ -545,71 +561,40 @@ def generate_fetoscopy(options: FetoscopyOptions | None = None) -> FetoscopyScen
     lazy frame renderer) without touching the disk."""
     o = FetoscopyOptions() if options is None else options
     o.validate()
-    rng = np.random.default_rng([o.seed, 0])
-    f = o.focal_factor * o.width
-    K = np.array([[f, 0.0, (o.width - 1) / 2.0], [0.0, f, (o.height - 1) / 2.0], [0, 0, 1.0]])
-
-    # Plane through P0 = (0, 0, D) seen by the virtual camera; tilted about a random in-plane
-    # axis in hand-held mode.
-    if o.motion == "handheld":
-        phi = rng.uniform(0, 2 * np.pi)
-        R_p = Rotation.from_rotvec(
-            np.deg2rad(o.tilt_deg) * np.array([np.cos(phi), np.sin(phi), 0.0])
-        ).as_matrix()
-    else:
-        R_p = np.eye(3)
-    P0 = np.array([0.0, 0.0, o.distance_mm])
-    e3 = R_p[:, 2]
-    plane = -e3 / float(e3 @ P0) + 0.0  # n·X + d = 0 with n = e3, d = -e3·P0; π = n/d
-
-    traj = _Trajectory(o, R_p, P0, rng)
-    timestamps = frame_times(o, o.n_frames)
-    poses = traj.poses(timestamps) + 0.0  # (+ 0.0 turns -0.0 into 0.0 in the files)
+    K, R_p, P0, plane, traj, timestamps, poses = _geometry(o)
     G = frame_to_reference_truth(poses, plane, K)
 
-    # Texture geometry: plane coordinates (mm) of every frame corner, then a margin.
-    R = Rotation.from_rotvec(poses[:, :3]).as_matrix()
-    M1 = K @ np.stack(
-        [R @ R_p[:, 0], R @ R_p[:, 1], R @ P0 + poses[:, 3:]], axis=2
-    )  # plane mm (about P0) -> frame px
-    corners = np.array(
-        [[0, 0, 1], [o.width - 1, 0, 1], [0, o.height - 1, 1], [o.width - 1, o.height - 1, 1.0]]
-    ).T
-    ideal = None
-    if o.lens_distortion is not None:
-        ideal = _ideal_pixels(o, K)
-        # what a distorted frame shows: its border's ideal pixels (beyond the corners: barrel)
-        border = np.concatenate([ideal[0], ideal[-1], ideal[:, 0], ideal[:, -1]])
-        corners = np.hstack([border, np.ones((len(border), 1))]).T
-    lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
-    chunk = max(1, 2**22 // corners.shape[1])  # frames at a time: (chunk, 3, corners) <= 100 MB
-    for k in range(0, o.n_frames, chunk):
-        M1k = M1[k:k + chunk]
-        uv = np.linalg.solve(M1k, np.broadcast_to(corners, (len(M1k), 3, corners.shape[1])))
-        uv = (uv[:, :2] / uv[:, 2:3]).transpose(0, 2, 1).reshape(-1, 2)
-        lo, hi = np.minimum(lo, uv.min(0)), np.maximum(hi, uv.max(0))
-    closest = o.distance_mm * (1.0 - (o.distance_variation if o.motion == "handheld" else 0.0))
-    s = closest / f  # texture mm/px: never coarser than a frame pixel
-    margin = 16 * s
-    lo, hi = lo - margin, hi + margin
-    size = np.ceil((hi - lo) / s)
+    ideal = None if o.lens_distortion is None else _ideal_pixels(o, K)
+    corners = _view_outline(o, K, ideal)
+    _check_view(o, _view_cosines(poses, plane, K, corners))
+    lo, s, size = _texture_box(o, K, R_p, P0, poses, corners)
+    cls = "FetoscopyOptions"
     if not np.prod(size) <= MAX_TEXTURE_PX:
-        cls = "FetoscopyOptions"
-        causes = ("focal_factor", "width", "radius_mm", "distance_mm")
-        causes += ("step_px", "rotation_deg", "tilt_deg") if o.motion == "handheld" else ()
+        lead, remedy = _size_remedies(o, lambda box: float(np.prod(box[2])))
         raise ValueError(
-            f"{cls}.{most_changed(o, *causes)}: the camera path needs a {size[0]:.3g}x"
+            f"{cls}.{lead}: the camera path needs a {size[0]:.3g}x"
             f"{size[1]:.3g} px texture (its pixels as fine as a frame's: {cls}.focal_factor x "
-            f"{cls}.width px per {cls}.distance_mm); at most {MAX_TEXTURE_PX:.3g} px: lower "
-            f"{cls}.focal_factor, {cls}.width or {cls}.radius_mm, or raise {cls}.distance_mm"
+            f"{cls}.width px per {cls}.distance_mm); at most {MAX_TEXTURE_PX:.3g} px: {remedy}"
         )
     tex_w, tex_h = (int(v) for v in size)
+    vessel_width = _vessel_width_px(s)
+    seconds, gigabytes = placenta_texture_cost((tex_h, tex_w), vessel_width)
+    if seconds > MAX_TEXTURE_SECONDS or gigabytes > MAX_TEXTURE_GB:
+        lead, remedy = _size_remedies(o, _texture_cost_ratio)
+        raise ValueError(
+            f"{cls}.{lead}: the camera path needs a {tex_w}x{tex_h} px texture with "
+            f"{vessel_width:.3g} px vessels (its pixels as fine as a frame's: {cls}.focal_factor "
+            f"x {cls}.width px per {cls}.distance_mm), which takes about {seconds:.0f} s and "
+            f"{gigabytes:.2g} GB to draw; at most {MAX_TEXTURE_SECONDS:g} s and "
+            f"{MAX_TEXTURE_GB:g} GB (textures.placenta_texture_cost): {remedy}"
+        )
     O = P0 + lo[0] * R_p[:, 0] + lo[1] * R_p[:, 1]
     texture = placenta_texture(
         (tex_h, tex_w),
         np.random.default_rng([o.seed, 2]),
-        vessel_width_px=9.0 * (0.0625 / s) ** 0.5,
+        vessel_width_px=vessel_width,
     )
+    R = Rotation.from_rotvec(poses[:, :3]).as_matrix()
     M = K @ np.stack([s * (R @ R_p[:, 0]), s * (R @ R_p[:, 1]), R @ O + poses[:, 3:]], axis=2)
 
     # EM tracker: truth at its own times, noise on [r, t] of cam_from_world, then
@@ -624,9 +609,7 @@ def generate_fetoscopy(options: FetoscopyOptions | None = None) -> FetoscopyScen
     tracker_from_sensor = np.linalg.inv(pose_matrix(noisy)) @ np.linalg.inv(hand_eye)
     valid = np.ones(t_tr.size, bool)
     if o.tracker_gap is not None:
-        g0 = o.tracker_gap[0] / o.fps - 0.5 / o.fps
-        g1 = o.tracker_gap[1] / o.fps + 0.5 / o.fps
-        valid &= ~((t_tr >= g0) & (t_tr <= g1))
+        valid = _tracker_gap_valid(o, timestamps, t_tr)
     translations = tracker_from_sensor[:, :3, 3].copy()
     quaternions = Rotation.from_matrix(tracker_from_sensor[:, :3, :3]).as_quat()
     translations[~valid] = np.nan
@@ -659,6 +642,252 @@ def generate_fetoscopy(options: FetoscopyOptions | None = None) -> FetoscopyScen
         fov_mask_radius=fov,
         ideal_pixels=ideal,
     )
+
+
+def _geometry(o: FetoscopyOptions) -> tuple:
+    """K, world_from_plane R_p, the plane's point P0, π, the trajectory, the frame times and the
+    true cam_from_world poses of options ``o`` (the draws of rng [seed, 0])."""
+    rng = np.random.default_rng([o.seed, 0])
+    f = o.focal_factor * o.width
+    K = np.array([[f, 0.0, (o.width - 1) / 2.0], [0.0, f, (o.height - 1) / 2.0], [0, 0, 1.0]])
+
+    # Plane through P0 = (0, 0, D) seen by the virtual camera; tilted about a random in-plane
+    # axis in hand-held mode.
+    if o.motion == "handheld":
+        phi = rng.uniform(0, 2 * np.pi)
+        R_p = Rotation.from_rotvec(
+            np.deg2rad(o.tilt_deg) * np.array([np.cos(phi), np.sin(phi), 0.0])
+        ).as_matrix()
+    else:
+        R_p = np.eye(3)
+    P0 = np.array([0.0, 0.0, o.distance_mm])
+    e3 = R_p[:, 2]
+    plane = -e3 / float(e3 @ P0) + 0.0  # n·X + d = 0 with n = e3, d = -e3·P0; π = n/d
+
+    traj = _Trajectory(o, R_p, P0, rng)
+    timestamps = frame_times(o, o.n_frames)
+    poses = traj.poses(timestamps) + 0.0  # (+ 0.0 turns -0.0 into 0.0 in the files)
+    return K, R_p, P0, plane, traj, timestamps, poses
+
+
+def _view_outline(o: FetoscopyOptions, K: np.ndarray, ideal: np.ndarray | None,
+                  border_only: bool = False) -> np.ndarray:
+    """(3, P) homogeneous ideal pixels outlining what a frame shows (its corners; through a
+    lens, the ideal pixels of its border, beyond the corners for a barrel lens): the whole
+    frame, FOV mask or not, which the renderer warps (the mask blacks it afterwards) and the
+    texture box covers, so _check_view refuses a corner past the horizon too. ideal: the
+    scene's ideal pixel grid (_ideal_pixels); with ``border_only`` (and no grid) the lens's
+    border is undistorted alone, pixel by pixel (cheap, for the remedies' estimates)."""
+    if o.lens_distortion is None:
+        return np.array([[0, 0, 1], [o.width - 1, 0, 1], [0, o.height - 1, 1],
+                         [o.width - 1, o.height - 1, 1.0]]).T
+    if ideal is None and border_only:
+        border = ideal_border(K, np.asarray(o.lens_distortion, np.float64), o.lens_model,
+                              o.width, o.height)
+    else:
+        border = np.concatenate([ideal[0], ideal[-1], ideal[:, 0], ideal[:, -1]])
+    return np.hstack([border, np.ones((len(border), 1))]).T
+
+
+def _chunks(n_frames: int, n_points: int) -> Iterator[slice]:
+    """Frames at a time so that (chunk, 3, n_points) float64 stays <= 100 MB."""
+    chunk = max(1, 2**22 // n_points)
+    for k in range(0, n_frames, chunk):
+        yield slice(k, k + chunk)
+
+
+def _view_cosines(poses: np.ndarray, plane: np.ndarray, K: np.ndarray,
+                  corners: np.ndarray) -> np.ndarray:
+    """(N,) per frame, the smallest cosine between a ray through the ideal pixels ``corners``
+    (3, P) and the plane's normal (pointing away from the camera): 1 / the farthest range at
+    which the frame sees the plane, in camera-plane distances; <= 0 when a ray misses the plane
+    (it meets it behind the camera: the view reaches past the plane's horizon). The cosine is
+    quasi-concave over the image, so a region's outline holds its smallest value."""
+    rays = np.linalg.solve(K, corners)
+    rays /= np.linalg.norm(rays, axis=0)
+    normal = -plane / np.linalg.norm(plane)
+    out = np.empty(len(poses))
+    for k in _chunks(len(poses), rays.shape[1]):
+        R_cw = Rotation.from_rotvec(poses[k, :3]).as_matrix()
+        out[k] = ((R_cw @ normal) @ rays).min(axis=1)
+    return out
+
+
+def _check_view(o: FetoscopyOptions, cosines: np.ndarray) -> None:
+    """ValueError naming the likely cause when a frame sees the plane beyond MAX_VIEW_RANGE x
+    its distance from it, or past its horizon (rays that meet it behind the camera, which
+    warpPerspective still paints from the texture, mirrored, and whose G_k lands at negative
+    depth)."""
+    limit = 1.0 / MAX_VIEW_RANGE
+    bad = np.flatnonzero(~(cosines >= limit))
+    if bad.size == 0:
+        return
+    cls = "FetoscopyOptions"
+    worst = int(bad[np.argmin(cosines[bad])])
+    c = float(cosines[worst])
+    angle = np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))
+    if c > 0:
+        sees = (f"sees the plane {1.0 / c:.3g}x as far as the camera is from it (a ray "
+                f"{angle:.3g} deg from the plane's normal)")
+    else:
+        sees = (f"reaches past the plane's horizon (a ray {angle:.3g} deg from the plane's "
+                "normal meets it behind the camera)")
+    defaults = {f.name: f.default for f in dataclass_fields(o)}
+    worse = {"focal_factor": o.focal_factor < defaults["focal_factor"]}  # a wider view
+    remedy = f"raise {cls}.focal_factor"
+    if o.motion == "handheld":
+        worse["tilt_deg"] = abs(o.tilt_deg) > abs(defaults["tilt_deg"])
+        worse["rotation_deg"] = abs(o.rotation_deg) > abs(defaults["rotation_deg"])
+        remedy = f"lower {cls}.tilt_deg or {cls}.rotation_deg, or " + remedy
+    if o.lens_distortion is not None:
+        remedy += f", or a milder {cls}.lens_distortion"
+    causes = [name for name, yes in worse.items() if yes]
+    if causes:
+        lead = most_changed(o, *causes)
+    else:
+        lead = ("lens_distortion" if o.lens_distortion is not None
+                else "tilt_deg" if o.motion == "handheld" else "focal_factor")
+    more = f" (and {bad.size - 1} more frames)" if bad.size > 1 else ""
+    raise ValueError(
+        f"{cls}.{lead}: frame {worst}{more} {sees}; a frame may see it at most "
+        f"{MAX_VIEW_RANGE:g}x as far ({np.degrees(np.arccos(limit)):.3g} deg from the normal): "
+        f"{remedy}"
+    )
+
+
+def _vessel_width_px(s: float) -> float:
+    """Width of the root vessels in a texture of s mm/px (9 px at 1/16 mm/px)."""
+    return 9.0 * (0.0625 / s) ** 0.5
+
+
+def _texture_box(o: FetoscopyOptions, K: np.ndarray, R_p: np.ndarray, P0: np.ndarray,
+                 poses: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """The texture covering every frame: (lo (2,) its corner in plane mm about P0, s its mm/px,
+    size (2,) its width and height, px)."""
+    # Plane coordinates (mm) of every frame corner, then a margin.
+    R = Rotation.from_rotvec(poses[:, :3]).as_matrix()
+    M1 = K @ np.stack(
+        [R @ R_p[:, 0], R @ R_p[:, 1], R @ P0 + poses[:, 3:]], axis=2
+    )  # plane mm (about P0) -> frame px
+    lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
+    for k in _chunks(o.n_frames, corners.shape[1]):
+        M1k = M1[k]
+        uv = np.linalg.solve(M1k, np.broadcast_to(corners, (len(M1k), 3, corners.shape[1])))
+        uv = (uv[:, :2] / uv[:, 2:3]).transpose(0, 2, 1).reshape(-1, 2)
+        lo, hi = np.minimum(lo, uv.min(0)), np.maximum(hi, uv.max(0))
+    f = o.focal_factor * o.width
+    closest = o.distance_mm * (1.0 - (o.distance_variation if o.motion == "handheld" else 0.0))
+    s = closest / f  # texture mm/px: never coarser than a frame pixel
+    margin = 16 * s
+    lo, hi = lo - margin, hi + margin
+    return lo, s, np.ceil((hi - lo) / s)
+
+
+def _texture_cost_ratio(box) -> float:
+    """The placenta texture's estimated cost over its bound (time or memory, the larger)."""
+    _, s, size = box
+    seconds, gigabytes = placenta_texture_cost((size[1], size[0]), _vessel_width_px(s))
+    return max(seconds / MAX_TEXTURE_SECONDS, gigabytes / MAX_TEXTURE_GB)
+
+
+def _size_remedies(o: FetoscopyOptions, measure) -> tuple[str, str]:
+    """(the option to name, "lower A, B or C, or raise D"): the size options that, halved or
+    doubled, make ``measure`` (of _texture_box's result) smaller, each tried on a copy of the
+    options (the path is redrawn: the same random draws). A wider view can grow the texture
+    (a tilted plane's far side) as well as shrink it (fewer pixels per mm), so none is assumed.
+    The option named is the one furthest from its default among those."""
+    base = measure(_options_box(o))
+    tries = [("focal_factor", "lower", o.focal_factor / 2), ("width", "lower", o.width // 2),
+             ("radius_mm", "lower", o.radius_mm / 2), ("distance_mm", "raise", 2 * o.distance_mm)]
+    if o.motion == "handheld":
+        tries += [("distance_variation", "lower", o.distance_variation / 2),
+                  ("tilt_deg", "lower", o.tilt_deg / 2),
+                  ("rotation_deg", "lower", o.rotation_deg / 2),
+                  ("step_px", "lower", o.step_px / 2)]
+    tries.append(("focal_factor", "raise", 2 * o.focal_factor))
+    helps: dict[str, list[str]] = {"lower": [], "raise": []}
+    for name, way, value in tries:
+        if value == getattr(o, name) or name in helps["lower"]:
+            continue
+        try:
+            smaller = measure(_options_box(replace(o, **{name: value}))) < base
+        except ValueError:  # the change is itself refused
+            smaller = False
+        if smaller:
+            helps[way].append(name)
+    cls = "FetoscopyOptions"
+    parts = [f"{way} " + _or_list([f"{cls}.{n}" for n in names])
+             for way, names in helps.items() if names]
+    named = helps["lower"] + helps["raise"]
+    if not named:
+        return "width", f"lower {cls}.width or {cls}.height"
+    return most_changed(o, *named), ", or ".join(parts)
+
+
+def _or_list(items: list[str]) -> str:
+    """"a", "a or b", "a, b or c"."""
+    return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " or " + items[-1]
+
+
+def _options_box(o: FetoscopyOptions) -> tuple[np.ndarray, float, np.ndarray]:
+    """_texture_box of options ``o`` (validated; lens border undistorted alone); ValueError
+    when the options are refused or the view reaches beyond MAX_VIEW_RANGE."""
+    o.validate()
+    K, R_p, P0, plane, _, _, poses = _geometry(o)
+    corners = _view_outline(o, K, None, border_only=True)
+    _check_view(o, _view_cosines(poses, plane, K, corners))
+    return _texture_box(o, K, R_p, P0, poses, corners)
+
+
+def _tracker_gap_valid(o: FetoscopyOptions, timestamps: np.ndarray,
+                       t_tr: np.ndarray) -> np.ndarray:
+    """(M,) validity of the tracker samples at t_tr for tracker_gap = [first, last]: a reader
+    (io.tracking.interpolate_camera_poses, the one run uses) flags exactly frames first..last
+    untracked. It flags the frames inside a hole between valid samples longer than
+    GAP_SPACINGS sample spacings, and every frame in it: the samples from frame first's time to
+    frame last's are dropped, and if that hole is too short, the widest hole that leaves frames
+    first - 1 and last + 1 out (from the first sample at or after frame first - 1 to the last
+    at or before frame last + 1). ValueError when neither works (a gap of one or two frames at
+    40 Hz and 25 fps: a 75 ms hole needs about three frame periods)."""
+    first, last = (int(v) for v in o.tracker_gap)
+    frames = np.arange(timestamps.size)
+    wanted = (frames >= first) & (frames <= last)
+    # the samples that bound the widest hole (none before frame 0 / after the last frame)
+    start = t_tr[t_tr >= timestamps[first - 1]].min() if first > 0 else -np.inf
+    end = t_tr[t_tr <= timestamps[last + 1]].max() if last + 1 < timestamps.size else np.inf
+    flagged = wanted
+    for drop in ((t_tr >= timestamps[first]) & (t_tr <= timestamps[last]),
+                 (t_tr > start) & (t_tr < end)):
+        flagged = _untracked_frames(timestamps, t_tr, ~drop)
+        if np.array_equal(flagged, wanted):
+            return ~drop
+    cls = "FetoscopyOptions"
+    asked = f"frames {first}..{last}" if last > first else f"frame {first}"
+    got = np.flatnonzero(flagged)
+    got = "none" if got.size == 0 else f"frames {got[0]}..{got[-1]}" if np.all(
+        np.diff(got) == 1) else f"frames {got.tolist()}"
+    raise ValueError(
+        f"{cls}.tracker_gap: {asked} cannot be untracked alone with a "
+        f"tracker at {o.tracker_rate_hz:g} Hz ({cls}.tracker_rate_hz): a reader (io.tracking."
+        "interpolate_camera_poses) flags the frames inside a hole between valid samples over "
+        f"{GAP_SPACINGS:g} sample spacings ({GAP_SPACINGS / o.tracker_rate_hz * 1e3:.3g} ms), "
+        f"and the widest hole between frames {first - 1} and {last + 1} flags {got}: "
+        "give a longer gap or a faster tracker"
+    )
+
+
+def _untracked_frames(timestamps: np.ndarray, t_tr: np.ndarray,
+                      valid: np.ndarray) -> np.ndarray:
+    """(N,) the frames a reader of tracking.csv (io.tracking.interpolate_camera_poses) flags
+    untracked, given which samples are valid (all, when it refuses the samples)."""
+    m = t_tr.size
+    quaternions = np.tile([0.0, 0.0, 0.0, 1.0], (m, 1))
+    samples = TrackingSamples(t_tr, np.zeros((m, 3)), quaternions, valid)
+    try:
+        _, tracked = interpolate_camera_poses(samples, timestamps, allow_outside=True)
+    except ValueError:  # e.g. under 2 valid samples
+        return np.ones(timestamps.size, bool)
+    return ~tracked
 
 
 # Raw pixels are rendered as the mean of LENS_SUPERSAMPLE^2 samples: a barrel lens compresses

@@ -46,6 +46,7 @@ from fusedmosaic.simulation._options import (
     check_recording,
     check_signs,
     check_time_offsets,
+    check_types,
     frame_times,
     most_changed,
     sample_times,
@@ -110,6 +111,7 @@ class PcleOptions:
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad option."""
+        check_types(self, whole=("width", "height", "n_frames"))
         if self.trajectory not in TRAJECTORIES:
             raise ValueError(
                 f"PcleOptions.trajectory: expected one of {TRAJECTORIES}, got {self.trajectory!r}"

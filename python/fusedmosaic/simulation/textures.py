@@ -30,6 +30,14 @@ def _shape2(size) -> tuple[int, int]:
     return h, w
 
 
+# smooth_noise upsamples a grid padded by 2 features on every side: an intermediate of
+# (h + 4 scale) (w + 4 scale) floats, about 4 h w for a square texture and scale max(h, w) / 4.
+# An elongated texture (48 x 340000 px: 2.7e11 bytes, review 44) makes the pad of its short
+# side huge: beyond SMOOTH_NOISE_MAX_PADDING x h w floats, only the rows and columns kept are
+# interpolated (_cubic_crop; the same bicubic to float rounding).
+SMOOTH_NOISE_MAX_PADDING = 16.0
+
+
 def smooth_noise(shape: tuple[int, int], scale_px: float, rng: np.random.Generator) -> np.ndarray:
     """Zero-mean, unit-std float32 noise with features of about ``scale_px`` pixels.
 
@@ -41,13 +49,54 @@ def smooth_noise(shape: tuple[int, int], scale_px: float, rng: np.random.Generat
     coarse = rng.standard_normal((gh, gw)).astype(np.float32)
     if scale > 1.5:  # soften the grid before upsampling (cheap at the coarse resolution)
         coarse = cv2.GaussianBlur(coarse, (0, 0), 0.6)
-    big = cv2.resize(
-        coarse, (int(round(gw * scale)), int(round(gh * scale))), interpolation=cv2.INTER_CUBIC
-    )
+    big_w, big_h = int(round(gw * scale)), int(round(gh * scale))
     o = int(round(2 * scale))
-    out = big[o : o + h, o : o + w]
+    if big_w * big_h <= SMOOTH_NOISE_MAX_PADDING * h * w:
+        big = cv2.resize(coarse, (big_w, big_h), interpolation=cv2.INTER_CUBIC)
+        out = big[o : o + h, o : o + w]
+    else:
+        out = _cubic_crop(coarse, (big_h, big_w), (o, o), (h, w))
     out = out - out.mean()
     return out / max(float(out.std()), 1e-6)
+
+
+def smooth_noise_floats(shape: tuple[int, int], scale_px: float) -> float:
+    """The floats smooth_noise's upsampled intermediate holds (its largest allocation)."""
+    h, w = shape
+    scale = max(float(scale_px), 1.0)
+    gh, gw = int(np.ceil(h / scale)) + 4, int(np.ceil(w / scale)) + 4
+    full = round(gw * scale) * round(gh * scale)
+    return float(full if full <= SMOOTH_NOISE_MAX_PADDING * h * w else h * w + h * gw)
+
+
+def _cubic_taps(n_src: int, n_dst: int, start: int, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """(count, 4) source indices and weights of cv2.resize's INTER_CUBIC (A = -0.75, pixel
+    centres aligned, border replicated) for destination samples start .. start + count - 1 of
+    an n_src -> n_dst resize."""
+    x = (np.arange(start, start + count) + 0.5) * (n_src / n_dst) - 0.5
+    i = np.floor(x)
+    t = x - i
+    a = -0.75
+    w0 = ((a * (t + 1) - 5 * a) * (t + 1) + 8 * a) * (t + 1) - 4 * a
+    w1 = ((a + 2) * t - (a + 3)) * t * t + 1
+    w2 = ((a + 2) * (1 - t) - (a + 3)) * (1 - t) * (1 - t) + 1
+    weights = np.stack([w0, w1, w2, 1.0 - w0 - w1 - w2], 1)
+    index = np.clip(i[:, None].astype(np.int64) + np.arange(-1, 3), 0, n_src - 1)
+    return index, weights
+
+
+def _cubic_crop(coarse: np.ndarray, size: tuple[int, int], origin: tuple[int, int],
+                shape: tuple[int, int]) -> np.ndarray:
+    """cv2.resize(coarse, size[::-1], INTER_CUBIC)[y0:y0 + h, x0:x0 + w] without the rest of
+    the resized image: rows then columns, float32 (origin (y0, x0), shape (h, w))."""
+    (big_h, big_w), (y0, x0), (h, w) = size, origin, shape
+    iy, wy = _cubic_taps(coarse.shape[0], big_h, y0, h)
+    ix, wx = _cubic_taps(coarse.shape[1], big_w, x0, w)
+    rows = np.einsum("ik,ikj->ij", wy.astype(np.float32), coarse[iy])  # (h, gw)
+    out = np.zeros((h, w), np.float32)
+    for k in range(4):
+        out += wx[:, k].astype(np.float32) * rows[:, ix[:, k]]
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -151,6 +200,29 @@ def _draw_segments(mask: np.ndarray, segments, scale: float, width_gain: float =
             cv2.LINE_AA,
             _SHIFT,
         )
+
+
+# placenta_texture's cost, measured on a 2-core x86 machine (2000 x 2000 px: 7.9 s with 9 px
+# vessels, 15 s with 27 px: each 2 px step of a vessel is its own thick anti-aliased line, so
+# thick vessels are drawn over and over): seconds per pixel, per pixel and px of vessel width,
+# per float of smooth_noise's intermediates; bytes per pixel (peak RSS) and per float.
+_COST_S_PER_PX = 0.8e-6
+_COST_S_PER_PX_WIDTH = 0.1e-6
+_COST_S_PER_FLOAT = 0.04e-6
+_COST_BYTES_PER_PX = 75.0
+
+
+def placenta_texture_cost(size_px, vessel_width_px: float = 9.0) -> tuple[float, float]:
+    """(seconds, GB): an estimate of what placenta_texture(size_px, vessel_width_px=...) takes
+    to draw and its peak memory, for refusing sizes before drawing them (linear in the pixels,
+    with the vessels' overdraw growing with their width)."""
+    h, w = _shape2(size_px)
+    px = float(h) * float(w)
+    floats = [smooth_noise_floats((h, w), scale)
+              for scale in (max(h, w) / 6.0, 60.0, 7.0, 2.5, max(h, w) / 4.0)]
+    seconds = (_COST_S_PER_PX * px + _COST_S_PER_PX_WIDTH * px * max(vessel_width_px, 1.0)
+               + _COST_S_PER_FLOAT * sum(floats))
+    return seconds, (_COST_BYTES_PER_PX * px + 4.0 * max(floats)) / 1e9
 
 
 def placenta_texture(
