@@ -92,6 +92,18 @@ def test_emt_default_is_emt_guided(base):
     guided = run_emt(ds, progress=False)
     assert guided.parameters["pair_selection"] == "emt-guided"
     assert N - 1 <= guided.details["pairs"]["attempted"] < N * (N - 1) // 2
+    # options given for another field keep the method's own selection (pair_selection None):
+    # emt matched every pair when given BundleOptions(min_overlap=0.5) (final review)
+    tuned = run_emt(ds, progress=False, options=BundleOptions(min_overlap=0.5))
+    assert tuned.parameters["pair_selection"] == "emt-guided"
+    assert tuned.details["pairs"]["attempted"] < N * (N - 1) // 2
+    assert BundleOptions().pair_selection is None
+
+
+def test_ba_emt_default_is_all_pairs(base):
+    r = run_ba_emt(read_dataset(base), progress=False, options=BundleOptions(min_overlap=0.5))
+    assert r.parameters["pair_selection"] == "all"
+    assert r.details["pairs"]["attempted"] == N * (N - 1) // 2
 
 
 # ---- B2: camera_baseline_mm ----------------------------------------------------------------
@@ -125,6 +137,15 @@ def point_sets():
 def test_point_set_diameter_equals_the_brute_force(name, points, monkeypatch):
     monkeypatch.setattr(plane_module, "_DISTANCE_BLOCK", 7)  # several blocks
     assert point_set_diameter(points) == pytest.approx(brute_force(points), rel=1e-12, abs=0)
+
+
+@pytest.mark.parametrize("n", [3, 50])
+def test_point_set_diameter_of_non_finite_points_is_nan(n):
+    """As over all pairs (a NaN point among 4 gave 0.0, among more qhull's error)."""
+    points = np.random.default_rng(2).normal(size=(n, 3))
+    for bad in (np.nan, np.inf):
+        points[1, 2] = bad
+        assert np.isnan(point_set_diameter(points))
 
 
 def test_camera_baseline_mm_equals_the_brute_force():
@@ -350,7 +371,7 @@ def near_plane(base, work):
     return read_dataset(tracking_variant(base, work / "near_plane", shift))
 
 
-def test_ba_emt_and_emt_recentre_a_world_whose_origin_is_near_the_plane(near_plane):
+def test_ba_emt_and_emt_recentre_a_world_whose_origin_is_near_the_plane(near_plane, base):
     truth = np.array(json.loads((near_plane.root / "truth_plane.json").read_text())["plane"])
     shifted = near_plane.cam_from_world.copy()  # truth plane moved with the origin: d = 1 mm
     d = 1 / np.linalg.norm(truth) - 29.0
@@ -361,7 +382,10 @@ def test_ba_emt_and_emt_recentre_a_world_whose_origin_is_near_the_plane(near_pla
     assert 1 / np.linalg.norm(r.plane) == pytest.approx(d, abs=0.5)  # in the tracker's world
     emt = run_emt(near_plane, progress=False)
     assert set(emt.status) == {"placed"}
-    assert e_M(emt, near_plane) < 100.0
+    # as good as on the same recording with the tracker's origin where it was (the tracker
+    # noise, not the origin, sets the EMT baseline's error; measured 35.8 px near the plane)
+    ds = read_dataset(base)
+    assert e_M(emt, near_plane) < 1.25 * e_M(run_emt(ds, progress=False), ds)
 
 
 def test_a_singular_frame_is_left_unplaced_not_the_whole_table():

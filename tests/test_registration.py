@@ -107,7 +107,9 @@ def test_feature_options_refused_before_any_frame(bad, message):
     (dict(ratio=1.5), r"ratio: expected a value in \(0, 1\], got 1\.5"),
     (dict(ransac_threshold_px=-1.0), r"ransac_threshold_px: expected pixels > 0"),
     (dict(ransac_confidence=1.0), r"ransac_confidence: expected a value in \(0, 1\)"),
-    (dict(max_scale_change=0.5), r"max_scale_change: expected a factor >= 1"),
+    (dict(max_scale_change=0.5), r"max_scale_change: expected a factor > 1 \(1 refuses every "
+                                 r"pair\)"),
+    (dict(max_scale_change=1.0), r"max_scale_change: expected a factor > 1"),
     (dict(num_threads=0), r"num_threads: expected an integer >= 1"),
     (dict(binary_matcher="flann"), r"binary_matcher: expected one of \('exact', 'lsh'\)")])
 def test_match_options_refused(bad, message):

@@ -196,8 +196,6 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
             options = PairwiseOptions(features=features)
             overrides = {}
-        elif args.method == "emt":  # the EMT baseline's own default pair selection
-            overrides.setdefault("pair_selection", "emt-guided")
     if args.preset is not None or args.loop_pairs is not None or args.guided_sift:
         if args.method != "lba-emt":
             raise ValueError(f"--preset / --loop-pairs / --guided-sift apply to lba-emt, not "

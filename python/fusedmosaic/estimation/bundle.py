@@ -50,8 +50,10 @@ class BundleOptions:
     features: FeatureOptions = field(default_factory=FeatureOptions)
     matching: MatchOptions = field(default_factory=MatchOptions)
     # "all": every pair, the paper's O(N^2) attempts (Sec. 1); "emt-guided": pairs whose
-    # footprints predicted from the tracker overlap (O(N k)); "window": temporal neighbours.
-    pair_selection: str = "all"
+    # footprints predicted from the tracker overlap (O(N k)); "window": temporal neighbours;
+    # None: the method's own, "all" for ba / ba-emt (the paper's), "emt-guided" for emt (options
+    # given to tune min_overlap made emt match every pair; review)
+    pair_selection: str | None = None
     min_overlap: float = 0.3  # EMT-guided: overlap fraction of the smaller footprint
     max_pairs_per_frame: int | None = 6  # EMT-guided: older overlapping frames kept per
     # frame (None: all)
@@ -387,14 +389,17 @@ def _count(value, low: int) -> bool:
             and value >= low)
 
 
-def check_bundle_options(options, *, use_emt: bool, camera_matrix: np.ndarray) -> BundleOptions:
-    """`options` when every field of the BundleOptions is usable by ba / ba-emt (use_emt) /
-    emt; ValueError "BundleOptions.<field> ..." otherwise, before minutes of feature extraction
-    and matching (unchecked, a bad count failed after them with a numpy message, or a NaN
-    min_overlap silently kept only the seed pairs; review)."""
+def check_bundle_options(options, *, use_emt: bool, camera_matrix: np.ndarray,
+                         default_selection: str = "all") -> BundleOptions:
+    """`options` (pair_selection None resolved to the method's `default_selection`) when every
+    field of the BundleOptions is usable by ba / ba-emt (use_emt) / emt; ValueError
+    "BundleOptions.<field> ..." otherwise, before minutes of feature extraction and matching
+    (unchecked, a bad count failed after them with a numpy message, or a NaN min_overlap
+    silently kept only the seed pairs; review)."""
     if not isinstance(options, BundleOptions):
         raise ValueError(f"options must be a BundleOptions, got {type(options).__name__}")
-    o = options
+    o = options if options.pair_selection is not None else replace(
+        options, pair_selection=default_selection)
     for name, kind in (("features", FeatureOptions), ("matching", MatchOptions)):
         value = getattr(o, name)
         if not isinstance(value, kind):
@@ -620,15 +625,15 @@ def run_ba_emt(dataset, *, progress: bool = True, options: BundleOptions | None 
 def run_emt(dataset, *, progress: bool = True, options: BundleOptions | None = None,
             plane: np.ndarray | None = None) -> MethodResult:
     """EMT baseline: tracker poses + a plane (estimated unless given, in the tracker's world)
-    from the pairs of options.pair_selection (default EMT-guided). The plane is estimated in
-    the world ba-emt adjusts in (world.tracked_world: aligned on a tracked camera when the
-    tracker's origin is far, or near the plane): with the origin 800 mm away its fit in the
-    tracker's world put e_M at 81 px, 35 near it. The homographies map to frame 0's pixel grid,
+    from the pairs of options.pair_selection (None, the default: EMT-guided). The plane is
+    estimated in the world ba-emt adjusts in (world.tracked_world: aligned on a tracked camera
+    when the tracker's origin is far, or near the plane): with the origin 800 mm away its fit in
+    the tracker's world put e_M at 81 px, 35 near it. The homographies map to frame 0's pixel grid,
     or, when frame 0 has no tracker sample, to the first placed frame's (its status says why;
     runner.flag_reference_frame names the reference)."""
     K = dataset.camera.require_camera_matrix("emt")
-    o = check_bundle_options(BundleOptions(pair_selection="emt-guided") if options is None
-                             else options, use_emt=True, camera_matrix=K)
+    o = check_bundle_options(BundleOptions() if options is None else options, use_emt=True,
+                             camera_matrix=K, default_selection="emt-guided")
     emt, valid = tracker_poses(dataset, "emt")
     if plane is not None:
         plane = np.asarray(plane, np.float64)

@@ -78,7 +78,10 @@ def point_set_diameter(points: np.ndarray) -> float:
     dimensional hull) are projected on their own span (SVD; distances kept) and the hull of the
     projection taken; a set too thin for that, or a hull of many points, is compared by
     blocks (_max_distance), exact too."""
-    points = np.unique(np.asarray(points, np.float64), axis=0)
+    points = np.asarray(points, np.float64)
+    if not np.isfinite(points).all():  # NaN, as over all pairs (not qhull's error or a max of 0)
+        return float("nan")
+    points = np.unique(points, axis=0)
     if len(points) < 2:
         return 0.0
     if len(points) <= points.shape[1] + 1:

@@ -87,7 +87,7 @@ class MatchOptions:
         number("ransac_threshold_px", lambda v: v > 0, "pixels > 0")
         number("ransac_confidence", lambda v: 0 < v < 1, "a value in (0, 1)")
         number("min_inlier_ratio", lambda v: 0 <= v <= 1, "a value in [0, 1]")
-        number("max_scale_change", lambda v: v >= 1, "a factor >= 1")
+        number("max_scale_change", lambda v: v > 1, "a factor > 1 (1 refuses every pair)")
         number("guided_radius_px", lambda v: v >= 0, "pixels >= 0 (0: no guided search)")
         integer("ransac_max_iters", 1, C_INT_MAX)  # findHomography's maxIters is a C int
         integer("min_inliers", 4)  # a homography needs 4 correspondences
@@ -173,6 +173,9 @@ def degeneracy(H: np.ndarray, width: int, height: int, max_scale_change: float) 
         quad = hom[:, :2] / hom[:, 2:]
         x, y = quad[:, 0], quad[:, 1]
         scale = 0.5 * float(x @ np.roll(y, -1) - np.roll(x, -1) @ y) / (width * height)
+    if scale < 0:
+        return (f"degenerate homography (mirrored: the warped frame's signed area is {scale:.3g}"
+                " x the frame's)")
     if not 1.0 / max_scale_change < scale < max_scale_change:  # (nan too)
         s = max_scale_change
         return (f"degenerate homography (area scale {scale:.3g}: the warped frame's area over "
