@@ -12,6 +12,7 @@ from fusedmosaic.registration.features import FeatureExtractor, FeatureOptions
 from fusedmosaic.registration.pair_selection import (
     emt_guided_pairs,
     footprint_polygons,
+    kept_pairs,
     overlap_fraction,
 )
 from fusedmosaic.registration.pairs import (
@@ -99,7 +100,8 @@ def test_wrong_size_mask_refused_with_a_lens():
 
 def _reference_emt_guided_pairs(predicted, width, height, *, min_overlap=0.3, max_per_frame=20,
                                 fov_radius=None, temporal_window=2, min_separation=4):
-    """The loop before the review: every (l, m) in Python, overlap_fraction per pair."""
+    """The loop before the review: every (l, m) in Python, overlap_fraction per pair (the
+    choice among the overlapping frames, kept_pairs, is shared: the pre-filter is under test)."""
     polys = footprint_polygons(predicted, width, height, fov_radius)
     n = len(polys)
     areas = np.array([cv2.contourArea(p) if p is not None else 0.0 for p in polys])
@@ -122,15 +124,7 @@ def _reference_emt_guided_pairs(predicted, width, height, *, min_overlap=0.3, ma
             frac = overlap_fraction(polys[l], polys[m], areas[l], areas[m])
             if frac >= min_overlap:
                 candidates.append((frac, m))
-        chosen = [m for _, m in candidates if l - m <= temporal_window]
-        older = sorted((c for c in candidates if l - c[1] > temporal_window), reverse=True)
-        picked = []
-        for _, m in older:
-            if max_per_frame is not None and len(picked) >= max_per_frame:
-                break
-            if all(abs(m - q) >= min_separation for q in picked):
-                picked.append(m)
-        pairs += [(l, m) for m in sorted(chosen + picked)]
+        pairs += kept_pairs(l, candidates, temporal_window, max_per_frame, min_separation)
     return pairs
 
 

@@ -109,14 +109,22 @@ def origin_near_plane(poses: np.ndarray, plane: np.ndarray) -> bool:
     cam_from_world poses' centres (finite rows) to it: median |1 + pi . c| above
     1 / ORIGIN_PLANE_FRACTION (module docstring). A plane through the origin (pi not finite) is
     near; a plane at infinity (pi = 0), or no finite pose, is not."""
+    p = np.asarray(poses, dtype=np.float64).reshape(-1, 6)
+    return _origin_near_plane(_centres(p[np.isfinite(p).all(axis=1)]), plane)
+
+
+def _centres(poses: np.ndarray) -> np.ndarray:
+    """(N, 3) camera centres of (N, 6) finite cam_from_world poses."""
+    return -Rotation.from_rotvec(poses[:, :3]).inv().apply(poses[:, 3:])
+
+
+def _origin_near_plane(centres: np.ndarray, plane) -> bool:
+    """origin_near_plane from the cameras' (N, 3) centres."""
     plane = np.asarray(plane, dtype=np.float64).reshape(3)
     if not np.isfinite(plane).all():
         return True
-    p = np.asarray(poses, dtype=np.float64).reshape(-1, 6)
-    p = p[np.isfinite(p).all(axis=1)]
-    if not len(p) or not np.any(plane):
+    if not len(centres) or not np.any(plane):
         return False
-    centres = -Rotation.from_rotvec(p[:, :3]).inv().apply(p[:, 3:])
     return bool(np.median(np.abs(1.0 + centres @ plane)) > 1.0 / ORIGIN_PLANE_FRACTION)
 
 
@@ -135,9 +143,9 @@ def tracked_world(poses: np.ndarray, valid=None, plane=None) -> WorldAlignment |
     if not ok.any():
         return None
     tracked = p[ok]
-    centres = -Rotation.from_rotvec(tracked[:, :3]).inv().apply(tracked[:, 3:])
+    centres = _centres(tracked)
     nearest = int(np.argmin(np.linalg.norm(centres - np.median(centres, axis=0), axis=1)))
-    recentre = plane is not None and origin_near_plane(tracked, plane)
+    recentre = plane is not None and _origin_near_plane(centres, plane)
     return world_alignment(tracked[nearest], recentre=recentre)
 
 

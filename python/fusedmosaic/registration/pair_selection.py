@@ -95,13 +95,21 @@ def emt_guided_pairs(predicted: np.ndarray, width: int, height: int, *,
                 candidates.append((frac, m))
         if l >= 1 and not placed[l - 1]:
             pairs.append((l, l - 1))
-        chosen = [m for _, m in candidates if l - m <= temporal_window]
-        older = sorted((c for c in candidates if l - c[1] > temporal_window), reverse=True)
-        picked: list[int] = []
-        for _, m in older:
-            if max_per_frame is not None and len(picked) >= max_per_frame:
-                break
-            if all(abs(m - q) >= min_separation for q in picked):
-                picked.append(m)
-        pairs += [(l, m) for m in sorted(chosen + picked)]
+        pairs += kept_pairs(l, candidates, temporal_window, max_per_frame, min_separation)
     return pairs
+
+
+def kept_pairs(l: int, candidates: list[tuple[float, int]], temporal_window: int,
+               max_per_frame: int | None, min_separation: int) -> list[tuple[int, int]]:
+    """emt_guided_pairs' choice for frame l among its overlapping older frames, candidates
+    (overlap fraction, m): every temporal neighbour, and greedily by overlap at most
+    max_per_frame older frames at least min_separation apart; (l, m) pairs in order of m."""
+    chosen = [m for _, m in candidates if l - m <= temporal_window]
+    older = sorted((c for c in candidates if l - c[1] > temporal_window), reverse=True)
+    picked: list[int] = []
+    for _, m in older:
+        if max_per_frame is not None and len(picked) >= max_per_frame:
+            break
+        if all(abs(m - q) >= min_separation for q in picked):
+            picked.append(m)
+    return [(l, m) for m in sorted(chosen + picked)]
