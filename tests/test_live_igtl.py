@@ -170,7 +170,8 @@ def test_position_messages_are_poses_like_transforms(syn):
     assert invalid.pop("status MISSING") == 1
     assert invalid.pop("not finite") == 1
     (why, n), = invalid.items()
-    assert why.startswith("quaternion of norm 3") and why.endswith("(expected 1)") and n == 1
+    assert why == "quaternion not of unit norm (within 1e-3)" and n == 1
+    assert source.invalid_sample_details == {why: "norm 3"}
 
 
 def _inverse(tr, j):
@@ -1180,9 +1181,9 @@ def test_a_sender_dying_after_a_header_is_a_cut_not_a_close():
 
 
 def test_stamp_jumps_refuse_a_glitch_and_follow_a_new_clock():
-    """StampJumps (frames in run_igtl, samples in IgtlSource): a stamp more than
-    MAX_STAMP_LEAD_S ahead of the time since the last accepted one arrived is refused, and the
-    stream goes on from the last accepted one; STAMP_JUMP_CONFIRM such stamps in a row,
+    """StampJumps (frames in run_igtl, samples in IgtlSource): a stamp more than its lead bound
+    (StampJumps.lead_bound) ahead of the time since the last accepted one arrived is refused, and
+    the stream goes on from the last accepted one; STAMP_JUMP_CONFIRM such stamps in a row,
     consistent among themselves, are a clock jump: the last is accepted."""
     from fusedmosaic.io.igtl import STAMP_JUMP, STAMP_JUMP_CONFIRM, StampJumps
 
@@ -1192,13 +1193,14 @@ def test_stamp_jumps_refuse_a_glitch_and_follow_a_new_clock():
     assert jumps.check(3700.04, 0.04) == STAMP_JUMP  # an hour ahead, 40 ms later: a glitch
     assert jumps.check(100.08, 0.08) is None  # the stream goes on
     jumps.accepted(100.08, 0.08)
-    assert jumps.check(100.08 + 9.0, 0.12) is None  # 9 s ahead: within the bound
-    jumps.accepted(100.08 + 9.0, 0.12)
+    assert jumps.check(100.08 + 3.0, 0.12) == STAMP_JUMP  # 3 s ahead of an 80 ms stream too
+    assert jumps.check(100.08 + 0.7, 0.12) is None  # 0.66 s ahead: within 10 intervals
+    jumps.accepted(100.08 + 0.7, 0.12)
     for k in range(1, STAMP_JUMP_CONFIRM):  # the clock jumps an hour and stays there
         assert jumps.check(3709.0 + 0.04 * k, 0.12 + 0.04 * k) == STAMP_JUMP
     k = STAMP_JUMP_CONFIRM
     assert jumps.check(3709.0 + 0.04 * k, 0.12 + 0.04 * k) is None
-    assert jumps.jumps == [pytest.approx(3709.0 + 0.04 * k - 109.08 - 0.04 * k)]
+    assert jumps.jumps == [pytest.approx(3709.0 + 0.04 * k - 100.78 - 0.04 * k)]
 
 
 def test_a_frame_stamped_an_hour_ahead_is_refused_alone(syn, tmp_path):

@@ -9,11 +9,13 @@ answers "what would this recording have looked like live, on this machine?":
   sampled at the frame times is, counts as at it); a sample older than ``max_sample_age_s`` (by
   default 3 typical sample spacings, io.tracking.sample_spacing: the offline gap rule) counts
   as none (a dropout), so the frame is placed from the images and the priors (report.json
-  "live": "frames_without_sample"). A robot position is
-  extrapolated to the frame time along its last two samples (an accurate robot held 14 ms lags
-  the probe and the filter follows the lag: pCLE spiral e_M 10.5 px offline, 27.0 held, 10.5
-  extrapolated); a tracker pose is held (EM noise ~1 mm; extrapolating it measured no better on
-  SYN: e_M 0.136 held, 0.144 extrapolated, 0.144 offline);
+  "live": "frames_without_sample"). A robot position is extrapolated to the frame time along
+  its motion since the newest sample at least half a typical spacing before the newest one
+  (io.igtl.extrapolation_base: an accurate robot held 14 ms lags the probe and the filter
+  follows the lag: pCLE spiral e_M 10.5 px offline, 27.0 held, 10.5 extrapolated; along the
+  last two samples, 1 ms apart for a robot reporting in pairs, an error of the newest grew 20
+  times 19 ms later); a tracker pose is held (EM noise ~1 mm; extrapolating it measured no
+  better on SYN: e_M 0.136 held, 0.144 extrapolated, 0.144 offline);
 - frames are processed one at a time, each as soon as the previous one is done; when frames
   arrived while the mosaicker was busy, only the newest of them is processed and the others are
   dropped (a capture queue of one frame: the live view never falls behind), with the status
@@ -37,6 +39,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from tqdm import tqdm
 
+from fusedmosaic.io.igtl import extrapolation_base
 from fusedmosaic.io.tracking import (
     GAP_SPACINGS,
     camera_pose_from_sample,
@@ -237,13 +240,15 @@ def _lba_checks(mosaicker) -> dict:
 
 
 def _translation_checks(method: str, origin_frames: dict, ids: list, results: list,
-                        robot_name: str, no_sample: list, max_age: float | None) -> dict:
+                        robot_name: str, no_sample: list, max_age: float | None,
+                        dropped: tuple[int, str] = (0, "")) -> dict:
     """A streamed pCLE method's report.json entries that the offline run gives: the warnings
     when its chain starts after frame 0 (frame 0 blank, no robot sample at it) or never
     (translation.origin_warnings), with images ncc_inconsistent (with ncc's warning when most
     registrations disagree), with a robot the frames without a sample (``no_sample``: their
-    ids; none within ``max_age`` s before the frame, None: the source's bound) and their
-    warning; ids / results: the id /
+    ids; none within ``max_age`` s before the frame, None: the source's bound; ``dropped``:
+    how many of them because the source no longer kept their samples, and what it keeps) and
+    their warning; ids / results: the id /
     FrameResult of each frame given to the mosaicker, in order."""
     from fusedmosaic.estimation.translation import (
         add_frames_without_robot_sample,
@@ -256,10 +261,12 @@ def _translation_checks(method: str, origin_frames: dict, ids: list, results: li
     if estimate != "robot":
         add_inconsistency(checks, results, ids, estimate)
     if estimate != "image":
-        add_frames_without_robot_sample(
-            checks, no_sample, len(ids), estimate, robot_name,
-            "none at the frame or recent enough before it" if max_age is None else
-            f"none at or up to {1e3 * max_age:.0f} ms before the frame")
+        why = ("none at the frame or recent enough before it" if max_age is None else
+               f"none at or up to {1e3 * max_age:.0f} ms before the frame")
+        if dropped[0]:
+            why += (f"; for {dropped[0]} of them, the samples of their time were no longer "
+                    f"kept ({dropped[1]})")
+        add_frames_without_robot_sample(checks, no_sample, len(ids), estimate, robot_name, why)
     return checks
 
 
@@ -290,18 +297,28 @@ class _Stream:
     ages: list = field(default_factory=list)  # age of the sample used, per frame given one (s)
 
 
-def extrapolated_robot(robot, i: int, t: float, max_age: float) -> np.ndarray:
+def extrapolated_robot(robot, i: int, t: float, max_age: float,
+                       spacing: float | None = None) -> np.ndarray:
     """The robot position at time t from its newest sample i: extrapolated along the motion
-    between samples i-1 and i when they are at most max_age apart (a live loop's best guess; an
-    accurate robot's sample held 14 ms at 40 µm/frame and 10 frames/s lags ~6 µm, and the
-    filter, trusting the robot, follows the lag: pCLE spiral e_M 10.5 -> 27 px), else held."""
+    since sample j, the newest at least half a typical spacing before i
+    (io.igtl.extrapolation_base, as IgtlSource.position_at; ``spacing``: sample_spacing of the
+    robot's times, None: computed), when it is at most max_age before i (a live loop's best
+    guess; an accurate robot's sample held 14 ms at 40 µm/frame and 10 frames/s lags ~6 µm,
+    and the filter, trusting the robot, follows the lag: pCLE spiral e_M 10.5 -> 27 px), else
+    held. (Along i-1 and i, 1 ms apart for a robot reporting in pairs, a 1 µm error of sample i
+    was 20 µm 19 ms later; 1 µm of noise: median 6.2 µm, p95 33.3 at 12 frames/s, now 0.9 and
+    3.1; review.)"""
     xy = robot.xy_um[i]
-    if i == 0:
+    times = robot.timestamps
+    if spacing is None:
+        spacing = sample_spacing(times) if len(times) > 1 else 0.0
+    j = extrapolation_base(times, i, spacing)
+    if j is None:
         return xy
-    dt = robot.timestamps[i] - robot.timestamps[i - 1]
+    dt = times[i] - times[j]
     if not 0 < dt <= max_age:
         return xy
-    return xy + (xy - robot.xy_um[i - 1]) * ((t - robot.timestamps[i]) / dt)
+    return xy + (xy - robot.xy_um[j]) * ((t - times[i]) / dt)
 
 
 def _max_age(sample_times: np.ndarray, given: float | None) -> float:
@@ -371,6 +388,7 @@ def _streaming(dataset, method: str, options, max_age: float | None) -> _Stream:
                                                 dataset.robot_file)
     robot = dataset.robot
     stream = _Stream(mosaicker, None, _max_age(robot.timestamps, max_age), parameters)
+    spacing = sample_spacing(robot.timestamps) if len(robot.timestamps) > 1 else 0.0
 
     def feed(k: int, image) -> list:
         t = float(dataset.timestamps[k])
@@ -379,7 +397,8 @@ def _streaming(dataset, method: str, options, max_age: float | None) -> _Stream:
             stream.no_sample.add(k)
             return [mosaicker.add_frame(image, t, None)]
         stream.ages.append(max(0.0, t - robot.timestamps[i]))
-        return [mosaicker.add_frame(image, t, extrapolated_robot(robot, i, t, stream.max_age))]
+        return [mosaicker.add_frame(image, t, extrapolated_robot(robot, i, t, stream.max_age,
+                                                                spacing))]
 
     stream.feed = feed
     return stream
@@ -406,6 +425,10 @@ class LiveSession:
     latency: dict = field(default_factory=dict)
     processing: dict = field(default_factory=dict)
     no_sample: list = field(default_factory=list)
+    # of no_sample, the frames whose samples the source had dropped from its history
+    # (io.igtl.HISTORY_S), and what it keeps
+    no_sample_dropped: list = field(default_factory=list)
+    history: str = ""
     ages: list = field(default_factory=list)
     stopped_by: str = ""
     plane: object = None
@@ -480,9 +503,12 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
             if frame is None:
                 session.stopped_by = "the sender closed the stream"
                 break
+            misses = getattr(source, "history_misses", 0)
             sample, age = sample_at(frame.timestamp + offset)
             if sample is None and takes_samples(method):
                 session.no_sample.append(frame.index)
+                if getattr(source, "history_misses", 0) > misses:
+                    _dropped_from_history(session, source, method, frame.index)
             elif age is not None:
                 session.ages.append(age)
             session.processed.append(frame.index)  # before the call: flush() numbers it
@@ -523,6 +549,22 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
     if method == "lba-emt":
         session.checks = _lba_checks(mosaicker)
     return session
+
+
+def _dropped_from_history(session: LiveSession, source, method: str, index: int) -> None:
+    """Notes that frame `index` got no sample because the source had dropped those of its
+    time from its history (told as "none recent enough", the cause unnamed; review); warns
+    at the first."""
+    session.no_sample_dropped.append(index)
+    if len(session.no_sample_dropped) > 1:
+        return
+    import warnings
+
+    session.history = getattr(source, "history_text", "")
+    kind = "tracker" if method == "lba-emt" else "robot"
+    warnings.warn(f"live session: frame {index} got no {kind} sample: the samples of its time "
+                  f"were no longer kept ({session.history}); such frames are listed in "
+                  "report.json live frames_without_sample_dropped", stacklevel=3)
 
 
 def _warn_without_samples(source, method: str, elapsed_s: float | None) -> bool:
@@ -590,6 +632,8 @@ def session_result(session: LiveSession, timestamps, dropped: list[int], *,
         **_timing_details([session.latency[k] for k in session.processed],
                           [session.processing[k] for k in session.processed], session.ages),
         "frames_without_sample": [int(k) for k in session.no_sample],
+        # of those, the frames whose samples had been dropped from the source's history
+        "frames_without_sample_dropped": [int(k) for k in session.no_sample_dropped],
     }}
     details.update(session.checks)
     if method in TRANSLATION_ESTIMATES and session.origin_frames is not None \
@@ -597,7 +641,8 @@ def session_result(session: LiveSession, timestamps, dropped: list[int], *,
         details.update(_translation_checks(
             method, session.origin_frames, [int(k) for k in session.processed],
             [session.finals[k] for k in session.processed], "the robot stream",
-            [int(k) for k in session.no_sample], None))
+            [int(k) for k in session.no_sample], None,
+            dropped=(len(session.no_sample_dropped), session.history)))
     return _streamed_result(method, status, session.finals, session.plane, details,
                             float(sum(session.processing.values())),
                             {"live": "openigtlink", **session.parameters})

@@ -14,8 +14,8 @@ reconnect.
   falls behind. Every frame received goes first to ``on_frame`` (the recorder), which may refuse
   it (returns False: not offered to the loop either).
 - Tracker: every TRANSFORM or POSITION sample of the device goes to ``on_sample`` and into a
-  bounded history (a POSITION is a position and an orientation quaternion: see
-  `position_message_matrix`);
+  history of the last HISTORY_S seconds (at most HISTORY_MAX samples; a POSITION is a position
+  and an orientation quaternion: see `position_message_matrix`);
   `pose_at(t)` gives the camera pose at a frame time from it (see there). A sample whose matrix
   is not finite, not a rotation (orthonormal within 1e-3, det +1), beyond
   ``MAX_TRANSLATION_MM``, or flagged by the sender (metadata ``TransformStatus`` not ``OK``, as
@@ -30,8 +30,11 @@ reconnect.
   (``undecodable_frames``; one ended the session and lost every later frame); when the first
   UNDECODABLE_LIMIT IMAGEs all fail, none decoded, the session ends naming the device and why
   (the sender's images are not readable at all).
-- Other message types (e.g. TDATA, QTDATA, QTRANS) are not read; their devices are listed in
-  ``ignored_devices`` with "(type not read)", as the other devices heard are.
+- Other message types (e.g. TDATA, QTDATA, QTRANS) are not read (their bodies are let go
+  unbuffered); their devices are listed in ``ignored_devices`` with "(type not read)", as the
+  other devices heard are (up to MAX_PROBLEM_KINDS; invalid samples are counted by kind, as
+  many kinds). A header declaring more than MAX_BODY_BYTES, or MAX_SMALL_BODY_BYTES for a
+  TRANSFORM or POSITION, is a corrupt size: the session ends naming it.
 - A transform device named ``BToA`` answers a request for ``AToB`` (inverted).
 
 Timestamps are the messages' own (the sender's clock, seconds since 1970): frame and tracker
@@ -40,8 +43,10 @@ times must come from one clock, as PLUS Server's do.
 
 from __future__ import annotations
 
+import bisect
 import errno
 import functools
+import itertools
 import re
 import select
 import socket
@@ -56,6 +61,7 @@ import numpy as np
 
 from fusedmosaic.io.tracking import (
     GAP_SPACINGS,
+    MAX_TIME_OFFSET_S,
     MAX_TRANSLATION_MM,
     TrackingSamples,
     camera_pose_from_sample,
@@ -66,8 +72,8 @@ from fusedmosaic.io.tracking import (
 )
 
 __all__ = ["IgtlImageServer", "IgtlSource", "LiveFrame", "StreamTimeout", "TrackerSample",
-           "format_address", "inverse_device_name", "parse_address", "parse_listen_address",
-           "position_message_matrix"]
+           "extrapolation_base", "format_address", "inverse_device_name", "parse_address",
+           "parse_listen_address", "position_message_matrix"]
 
 DEFAULT_PORT = 18944  # the OpenIGTLink port (PLUS Server's default)
 # A message body above this is a corrupt header (an 8K RGB frame is 100 MB), not a frame to buffer.
@@ -77,22 +83,61 @@ _BACKWARDS = "timestamp not after the previous sample"
 # images are not readable); fewer, or after a decoded one, are dropped and counted.
 UNDECODABLE_LIMIT = 10
 _READ = ("IMAGE", "TRANSFORM", "POSITION")
-_HISTORY = 128  # tracker samples kept for pose_at (3 s at 40 Hz)
-# A stamp further ahead of the stream than this (its step from the last accepted one beyond the
-# time between their arrivals) is a glitch, refused: one frame or sample stamped an hour ahead
-# was accepted and every later one refused as going back in time (review). STAMP_JUMP_CONFIRM
-# such stamps in a row, consistent among themselves, are the sender's clock jumping: the last
-# is accepted and the stream goes on from it.
+# A body above this for these types (48 or 12-28 bytes of content, plus the extended header and
+# metadata of header version 2: PLUS sends ~100 bytes of it) is a corrupt size field: a
+# TRANSFORM declaring 200 MB read the IMAGEs after it as its body, and the session ended with
+# "no frame ... in 5 s" while frames were arriving (review).
+MAX_SMALL_BODY_BYTES = 64 * 2**10
+_SMALL_TYPES = ("TRANSFORM", "POSITION")
+_SMALL_PREFIXES = ("GET_", "STT_", "STP_")  # queries, start / stop: empty or a few bytes
+# Tracker samples kept for pose_at / position_at: those of the last HISTORY_S seconds, at most
+# HISTORY_MAX (~0.4 KB each: 8 MB; 15 s up to 1.3 kHz). A frame takes the sample at its time
+# plus the tracker's clock offset (up to MAX_TIME_OFFSET_S either way), and the video lags the
+# tracker by its latency: 128 samples were 0.128 s at 1 kHz, and with 200 ms of video latency
+# every frame found its samples dropped, told as "none recent enough" (review).
+HISTORY_S = MAX_TIME_OFFSET_S + 5.0
+HISTORY_MAX = 20_000
+_READS_PER_PASS = 16  # IgtlImageServer reads of 64 KB per client and pass (ignored)
+_SEND_POLL_S = 0.05  # IgtlImageServer.send tries a client that did not take bytes this often
+_SPACING_WINDOW = 128  # the newest samples whose typical spacing bounds a sample's age
+_BASELINE_WINDOW = 32  # the samples before the newest searched for an extrapolation's base
+# A position past the newest sample is extrapolated along the motion since the newest sample
+# at least this many typical spacings (sample_spacing) before it: the sample just before, 1 ms
+# earlier for a robot reporting in pairs (1 ms then 19 ms), made 1 µm of noise ~19 µm at the
+# next frame (review: position error median 6.2 µm, p95 33.3; held 2.7, 6.5).
+EXTRAPOLATION_BASELINE_SPACINGS = 0.5
+# Distinct invalid-sample kinds (and devices ignored) kept by name; further ones are counted
+# together (bounded however long the session, as compositing.live_view's problems).
+MAX_PROBLEM_KINDS = 32
+OTHER_PROBLEMS = f"other problems (beyond {MAX_PROBLEM_KINDS} kinds)"
+MORE_DEVICES = f"more devices heard, not listed (beyond {MAX_PROBLEM_KINDS})"
+QUATERNION_NOT_UNIT = "quaternion not of unit norm (within 1e-3)"
+# A stamp further ahead of the stream than its lead bound (its step from the last accepted one
+# beyond the time between their arrivals) is a glitch, refused: one frame or sample stamped an
+# hour ahead was accepted and every later one refused as going back in time (review). The
+# bound is the longer of MIN_STAMP_LEAD_S and STAMP_LEAD_SPACINGS typical intervals of the
+# stream's recent stamps (sample_spacing), at most MAX_STAMP_LEAD_S: a fixed 10 s let a frame
+# stamped 3 s ahead of a 25 fps stream in, and the 75 frames of the next 3 s were refused as
+# "timestamp does not increase" (review). A stamp's lead is at most its step from the last
+# accepted one (arrivals do not go back): a stream without gaps in its stamps stays within an
+# interval or two of lead, even as a backlog drains.
+# STAMP_JUMP_CONFIRM such stamps in a row, consistent among themselves, are the sender's clock
+# jumping: the last is accepted and the stream goes on from it.
 MAX_STAMP_LEAD_S = 10.0
+MIN_STAMP_LEAD_S = 0.5
+STAMP_LEAD_SPACINGS = 10.0
+_STAMP_WINDOW = 32  # the recent accepted stamps whose intervals set the bound
 STAMP_JUMP_CONFIRM = 3
-STAMP_JUMP = (f"a timestamp jumping ahead of the stream (more than {MAX_STAMP_LEAD_S:g} s beyond "
-              "the time since the last accepted one arrived: a glitch in the sender's stamp?)")
+STAMP_JUMP = (f"a timestamp jumping ahead of the stream (beyond the time since the last "
+              f"accepted one arrived by more than {MIN_STAMP_LEAD_S:g} s or "
+              f"{STAMP_LEAD_SPACINGS:g} stamp intervals: a glitch in the sender's stamp?)")
 
 
 class StampJumps:
-    """Refuses stamps that jump ahead of a stream (MAX_STAMP_LEAD_S); after STAMP_JUMP_CONFIRM
-    in a row consistent with each other, takes the jump as the sender's new clock. `check`
-    before accepting a stamp later than the last accepted one, `accepted` after."""
+    """Refuses stamps that jump ahead of a stream (beyond `lead_bound`); after
+    STAMP_JUMP_CONFIRM in a row consistent with each other, takes the jump as the sender's new
+    clock. `check` before accepting a stamp later than the last accepted one, `accepted`
+    after."""
 
     def __init__(self) -> None:
         self.last: tuple[float, float] | None = None  # (stamp, arrival) last accepted
@@ -100,28 +145,41 @@ class StampJumps:
         self.jumps: list[float] = []  # the clock jumps taken (s)
         self._back: list[tuple[float, float]] = []  # stamped far behind, in a row
         self.steps_back: list[float] = []  # the clock's steps back seen (s)
+        self._recent: deque[float] = deque(maxlen=_STAMP_WINDOW)  # accepted stamps
+
+    def lead_bound(self) -> float:
+        """The lead (s) beyond which a stamp is a jump: the longer of MIN_STAMP_LEAD_S and
+        STAMP_LEAD_SPACINGS typical intervals of the recent accepted stamps (sample_spacing:
+        a sender stamping in pairs or bursts is no faster stream), at most MAX_STAMP_LEAD_S;
+        MIN_STAMP_LEAD_S before two stamps."""
+        if len(self._recent) < 2:
+            return MIN_STAMP_LEAD_S
+        return min(MAX_STAMP_LEAD_S, max(MIN_STAMP_LEAD_S,
+                                         STAMP_LEAD_SPACINGS * sample_spacing(self._recent)))
 
     def check(self, stamp: float, arrival: float) -> str | None:
         """None: accept (a jump of the clock taken: `jumps` grows), else the refusal."""
         if self.last is None:
             return None
         lead = (stamp - self.last[0]) - (arrival - self.last[1])
-        if lead <= MAX_STAMP_LEAD_S:
-            self.pending.clear()
+        if lead <= MIN_STAMP_LEAD_S or lead <= (bound := self.lead_bound()):
+            self.pending.clear()  # (the bound computed only past its floor: 1 kHz samples)
             return None
         if self.pending:
             ps, pa = self.pending[-1]
-            if not (stamp > ps and (stamp - ps) - (arrival - pa) <= MAX_STAMP_LEAD_S):
+            if not (stamp > ps and (stamp - ps) - (arrival - pa) <= bound):
                 self.pending.clear()
         self.pending.append((stamp, arrival))
         if len(self.pending) < STAMP_JUMP_CONFIRM:
             return STAMP_JUMP
         self.pending.clear()
         self.jumps.append(lead)
+        self._recent.clear()  # (the stream's intervals start again on the new clock)
         return None
 
     def accepted(self, stamp: float, arrival: float) -> None:
         self.last = (stamp, arrival)
+        self._recent.append(stamp)
         self._back.clear()
 
     def behind(self, stamp: float, arrival: float) -> float | None:
@@ -263,11 +321,16 @@ class IgtlSource:
         self.corrupted_frames = 0  # IMAGE messages of the image device failing their CRC64
         self.undecodable_frames: dict[str, int] = {}  # why -> IMAGE messages not decoded
         self.frames_crc_checked = _crc64_is_fast()
-        self.invalid_samples: dict[str, int] = {}  # problem -> count
+        self.invalid_samples: dict[str, int] = {}  # problem (its kind) -> count
+        self.invalid_sample_details: dict[str, str] = {}  # problem -> the first one's figures
         self._last_sample_time: float | None = None
         self._sample_jumps = StampJumps()  # samples stamped far ahead of the stream
-        self.ignored_devices: set[str] = set()
-        self.samples: deque[TrackerSample] = deque(maxlen=_HISTORY)
+        self.ignored_devices: set[str] = set()  # (at most MAX_PROBLEM_KINDS, then MORE_DEVICES)
+        # valid samples in time order: the last HISTORY_S s, at most HISTORY_MAX
+        self.samples: deque[TrackerSample] = deque()
+        self._first_dropped: float | None = None  # stamp of the first sample dropped from it
+        self.history_misses = 0  # frames whose samples had been dropped from the history
+        self._receiving: tuple[str, str, int, int] | None = None  # a message partly received
         self._slot: LiveFrame | None = None
         self._cond = threading.Condition()
         self._closed = False
@@ -311,12 +374,31 @@ class IgtlSource:
                     what = (f"IMAGE device {self.image_device}" if self.image_device
                             else "any IMAGE device")
                     raise StreamTimeout(f"{self.where}: no frame from {what} in "
-                                        f"{timeout_s:g} s")
+                                        f"{timeout_s:g} s{self._partly_received()}")
                 self._cond.wait(left)
             if self._slot is None and self._error is not None:
                 raise ValueError(f"{self.where}: {self._error}") from self._error
             frame, self._slot = self._slot, None
             return frame
+
+    def _partly_received(self) -> str:
+        """' (inside a ... message: k of n bytes received)' while the receiver is inside a
+        message, else '': a sender stalled halfway, or a corrupt size swallowing the stream,
+        was told as silence (review)."""
+        receiving = self._receiving  # (set by the receiver thread: read once)
+        if receiving is None:
+            return ""
+        kind, device, got, size = receiving
+        what = f"a {kind} message of {device!r}" if kind else "a message header"
+        return (f" (inside {what}: {_bytes_text(got)} of {_bytes_text(size)} received; a "
+                f"sender stalled mid-message, or a corrupt size in its header?)")
+
+    @property
+    def history_text(self) -> str:
+        """What the sample history keeps, for a frame whose samples were dropped from it."""
+        return (f"the samples of the last {HISTORY_S:g} s are kept, at most {HISTORY_MAX}: "
+                "the frames lag the tracker's stamps by more than that (video latency or a "
+                "clock offset), or it sends faster")
 
     def pose_at(self, t: float, hand_eye=None, *, max_age_s: float | None = None,
                 wait_s: float = 0.01) -> tuple[np.ndarray | None, float | None]:
@@ -344,9 +426,11 @@ class IgtlSource:
                     wait_s: float = 0.01) -> tuple[np.ndarray | None, float | None]:
         """The transform's translation (3,) (mm) at frame time t, and the age of the newest
         sample at or before t (a robot reporting the probe position: kalman-robot). Linear
-        between the samples around t; past the newest sample, extrapolated along the last two
-        (an accurate robot's sample held 14 ms lags the probe, and the filter, trusting the
-        robot, follows the lag: see estimation.live.extrapolated_robot); one sample: held."""
+        between the samples around t; past the newest sample, extrapolated along the motion
+        since the newest sample at least EXTRAPOLATION_BASELINE_SPACINGS typical spacings
+        before it (an accurate robot's sample held 14 ms lags the probe, and the filter,
+        trusting the robot, follows the lag: see estimation.live.extrapolated_robot); held
+        when there is none within max_age_s, or one sample."""
         found = self._around(t, max_age_s, wait_s, extrapolate=True)
         if found[0] is None:
             return None, found[1]
@@ -359,14 +443,17 @@ class IgtlSource:
     def _around(self, t: float, max_age_s: float | None, wait_s: float,
                 extrapolate: bool = False) -> tuple[list | None, float | None]:
         """The samples to evaluate at frame time t: [before, after] around it, [newest] at or
-        before it (with extrapolate: [previous, newest] when they are within max_age_s of each
-        other), or (None, age or None) when the newest one at or before t is missing or older
-        than max_age_s (None: 3 x the typical spacing of the recent samples,
-        io.tracking.sample_spacing: a robot reporting in pairs or bursts is no dropout). With a
-        frame-synchronous sender (PLUS Server sends a frame's transform and image with one
-        timestamp, in either order: seen once a sample's time equals a frame's) and during the
-        first 5 frames, waits up to wait_s for a sample at or after t; a free-running tracker's
-        next sample is not waited for (up to a sample period of latency for little gain)."""
+        before it (with extrapolate: [base, newest], base the newest sample at least
+        EXTRAPOLATION_BASELINE_SPACINGS typical spacings older, when it is within max_age_s),
+        or (None, age or None) when the newest one at or before t is missing or older than
+        max_age_s (None: 3 x the typical spacing of the recent samples,
+        io.tracking.sample_spacing: a robot reporting in pairs or bursts is no dropout); a
+        time whose samples were dropped from the history (HISTORY_S) is counted in
+        `history_misses`. With a frame-synchronous sender (PLUS Server sends a frame's
+        transform and image with one timestamp, in either order: seen once a sample's time
+        equals a frame's) and during the first 5 frames, waits up to wait_s for a sample at or
+        after t; a free-running tracker's next sample is not waited for (up to a sample period
+        of latency for little gain)."""
         wait = wait_s if (self._synchronous or self._pose_calls < 5) else 0.0
         self._pose_calls += 1
         deadline = time.monotonic() + wait
@@ -377,30 +464,40 @@ class IgtlSource:
                 if left <= 0:
                     break
                 self._cond.wait(left)
-            valid = list(self.samples)
-        if not valid:
-            return None, None
-        times = np.array([s.timestamp for s in valid])
-        if times[-1] >= t and np.any(times == t):
+            if not self.samples:
+                return None, None
+            # (a bisection on the deque: the history holds up to HISTORY_MAX samples, and a
+            # copy of it per frame cost ~1 ms at 15 000)
+            before = bisect.bisect_right(self.samples, t, key=_stamp) - 1
+            if before < 0:
+                if self._first_dropped is not None and self._first_dropped <= t:
+                    self.history_misses += 1  # (its time's samples were kept once)
+                return None, None
+            low = max(0, before - _BASELINE_WINDOW)
+            near = [self.samples[i] for i in range(low, min(len(self.samples), before + 2))]
+            recent = np.array([s.timestamp for s in itertools.islice(reversed(self.samples),
+                                                                     _SPACING_WINDOW)])[::-1]
+        before -= low
+        times = np.array([s.timestamp for s in near])
+        if times[before] == t:
             self._synchronous = True
+        spacing = sample_spacing(recent) if recent.size > 1 else 0.0
         if max_age_s is None:
-            max_age_s = GAP_SPACINGS * sample_spacing(times) if times.size > 1 else np.inf
-        before = int(np.searchsorted(times, t, side="right")) - 1
-        if before < 0:
-            return None, None
+            max_age_s = GAP_SPACINGS * spacing if recent.size > 1 else np.inf
         age = t - times[before]
         if age > max_age_s:
             return None, age
         after = before + 1
         if times[before] == t:
-            return [valid[before]], age
+            return [near[before]], age
         if after < times.size:
             if times[after] - times[before] <= max_age_s:
-                return [valid[before], valid[after]], age
-            return [valid[before]], age
-        if extrapolate and before > 0 and times[before] - times[before - 1] <= max_age_s:
-            return [valid[before - 1], valid[before]], age
-        return [valid[before]], age
+                return [near[before], near[after]], age
+            return [near[before]], age
+        base = extrapolation_base(times, before, spacing) if extrapolate else None
+        if base is not None and times[before] - times[base] <= max_age_s:
+            return [near[base], near[before]], age
+        return [near[before]], age
 
     def close(self) -> None:
         self._stop = True
@@ -427,27 +524,34 @@ class IgtlSource:
                 except (UnicodeDecodeError, ValueError) as exc:
                     raise ValueError(f"malformed OpenIGTLink header (type and device name are "
                                      f"not text: {exc})") from None
-                if fields["body_size"] > MAX_BODY_BYTES:
-                    raise ValueError(f"malformed OpenIGTLink header: a {fields['message_type']} "
-                                     f"message of {fields['body_size']} bytes (more than "
-                                     f"{MAX_BODY_BYTES} bytes)")
-                body = self._recv_exact(fields["body_size"])
-                if body is None and fields["body_size"] and not self._stop:
+                kind, device, size = (fields["message_type"], fields["device_name"],
+                                      fields["body_size"])
+                limit = (MAX_SMALL_BODY_BYTES if kind in _SMALL_TYPES
+                         or kind.startswith(_SMALL_PREFIXES) else MAX_BODY_BYTES)
+                if size > limit:
+                    small = " for its type" if limit < MAX_BODY_BYTES else ""
+                    raise ValueError(
+                        f"malformed OpenIGTLink header: a {kind} message of {size} bytes "
+                        f"(more than {limit} bytes{small}): a corrupt size field, the stream "
+                        "cannot be followed past it")
+                # (the bodies of messages not read are received and let go, not buffered)
+                read = kind in _READ and not (kind == "IMAGE" and self.image_device not in
+                                              (None, device))
+                body = self._recv_exact(size, (kind, device), keep=read)
+                if body is None and size and not self._stop:
                     # (a sender dying right after a header was told as a normal close)
                     raise ConnectionError(
                         f"the connection closed inside a message (after the header of a "
-                        f"message of type {fields['message_type']}, none of its "
-                        f"{fields['body_size']} body bytes)")
+                        f"message of type {kind}, none of its {size} body bytes)")
                 if body is None:
                     break
-                kind, device = fields["message_type"], fields["device_name"]
                 crc = struct.unpack(">Q", header[-8:])[0]
                 if kind == "IMAGE":
                     self._on_image(fields, body, device, crc)
                 elif kind in _READ:
                     self._on_transform(fields, body, device, crc)
                 elif kind:
-                    self.ignored_devices.add(f"{kind} {device} (type not read)")
+                    self._ignore(f"{kind} {device} (type not read)")
         except BaseException as exc:  # reported to the consumer, which raises it
             with self._cond:
                 self._error = exc
@@ -457,13 +561,19 @@ class IgtlSource:
             self._closed = True
             self._cond.notify_all()
 
-    def _recv_exact(self, size: int) -> bytes | None:
+    def _recv_exact(self, size: int, message: tuple[str, str] | None = None,
+                    keep: bool = True) -> bytes | None:
         """size bytes, or None when the connection ended (or close() was called) cleanly
-        between messages; a connection ending inside a message is an error."""
+        between messages; a connection ending inside a message is an error. message: (type,
+        device) of the body received (None: a header), told while it is partly received
+        (`_partly_received`); keep False: the bytes are let go (b'' returned)."""
         chunks, got = [], 0
+        kind, device = message or ("", "")
         while got < size:
             if self._stop:
                 return None
+            if got or message is not None:
+                self._receiving = (kind, device, got, size)
             try:
                 chunk = self._socket.recv(min(size - got, 1 << 20))
             except TimeoutError:
@@ -473,9 +583,28 @@ class IgtlSource:
                     raise ConnectionError(f"the connection closed inside a message ({got} of "
                                           f"{size} bytes)")
                 return None
-            chunks.append(chunk)
+            if keep:
+                chunks.append(chunk)
             got += len(chunk)
+        self._receiving = None
         return b"".join(chunks)
+
+    def _ignore(self, device: str) -> None:
+        """Lists a device heard and not read in `ignored_devices`, up to MAX_PROBLEM_KINDS
+        (then MORE_DEVICES: every name heard was kept, without bound; review)."""
+        if device not in self.ignored_devices:
+            self.ignored_devices.add(device if len(self.ignored_devices) < MAX_PROBLEM_KINDS
+                                     else MORE_DEVICES)
+
+    def _keep(self, sample: TrackerSample) -> None:
+        """Adds a valid sample (later than those kept) to the history, dropping those older
+        than HISTORY_S before it or beyond HISTORY_MAX (under self._cond)."""
+        self.samples.append(sample)
+        oldest = sample.timestamp - HISTORY_S
+        while self.samples[0].timestamp < oldest or len(self.samples) > HISTORY_MAX:
+            dropped = self.samples.popleft()
+            if self._first_dropped is None:
+                self._first_dropped = dropped.timestamp
 
     def _on_image(self, fields: dict, body: bytes, device: str, crc: int) -> None:
         from pyigtl import ImageMessage
@@ -483,7 +612,7 @@ class IgtlSource:
         if self.image_device is None:
             self.image_device = device
         if device != self.image_device:
-            self.ignored_devices.add(f"IMAGE {device}")
+            self._ignore(f"IMAGE {device}")
             return
         if self.frames_crc_checked and _crc64(body) != crc:
             self.corrupted_frames += 1  # (a lost frame, as a dropped one: the session goes on)
@@ -500,7 +629,7 @@ class IgtlSource:
             if self.received == 0 and failed >= UNDECODABLE_LIMIT:
                 raise ValueError(f"the IMAGE messages of {device!r} cannot be decoded (the "
                                  f"first {failed}, none decoded): {problem}")
-            self.undecodable_frames[problem] = self.undecodable_frames.get(problem, 0) + 1
+            _count(self.undecodable_frames, problem)
             return  # (a lost frame, as a corrupted one: the session goes on)
         image = _frame_image(message.image, self.rgb)
         frame = LiveFrame(image, float(fields["timestamp"]), time.perf_counter(), self.received)
@@ -519,19 +648,22 @@ class IgtlSource:
         kind = fields["message_type"]
         if self.transform_device is None or device not in (self.transform_device,
                                                            self._inverse_device):
-            self.ignored_devices.add(f"{kind} {device}")
+            self._ignore(f"{kind} {device}")
             return
         message = TransformMessage() if kind == "TRANSFORM" else _position_message_type()()
         problem = ("CRC64 of the body differs from the header's (corrupted message)"
                    if _crc64(body) != crc else
                    "no timestamp (0): the sender does not stamp its samples"
                    if fields["timestamp"] == 0 else _unpack(message, fields, body))
+        detail = None  # the figures of this sample's problem (not in its kind: counted by it)
         if problem is not None:
             matrix = np.full((4, 4), np.nan)
+            if (size := re.fullmatch(r"(.*) \((body of \d+ bytes)\)", problem)) is not None:
+                problem, detail = size[1], size[2]
         elif kind == "TRANSFORM":
             matrix = np.asarray(message.matrix, dtype=np.float64)
         else:
-            matrix, problem = position_message_matrix(message.content)
+            matrix, problem, detail = _position_pose(message.content)
             if problem is None and len(message.content) == 12 and self.orientation_required:
                 problem = "POSITION without an orientation (a 6-DoF pose is needed)"
         if problem is None:
@@ -557,10 +689,11 @@ class IgtlSource:
                 self._last_sample_time = sample.timestamp
                 self._sample_jumps.accepted(sample.timestamp, arrival)
             if not sample.valid:
-                self.invalid_samples[sample.problem] = self.invalid_samples.get(
-                    sample.problem, 0) + 1
+                why = _count(self.invalid_samples, sample.problem)
+                if detail is not None and why == sample.problem:
+                    self.invalid_sample_details.setdefault(why, detail)
             else:
-                self.samples.append(sample)
+                self._keep(sample)
                 self.valid_samples += 1
             self._cond.notify_all()
         if self.on_sample is not None and not unrecorded:
@@ -582,6 +715,37 @@ def _crc64_is_fast() -> bool:
     except ImportError:
         return False
     return True
+
+
+def _count(counts: dict[str, int], kind: str) -> str:
+    """Counts one of `kind` in counts (kind -> count), under OTHER_PROBLEMS once
+    MAX_PROBLEM_KINDS kinds are there; returns the key counted."""
+    if kind not in counts and len(counts) >= MAX_PROBLEM_KINDS:
+        kind = OTHER_PROBLEMS
+    counts[kind] = counts.get(kind, 0) + 1
+    return kind
+
+
+def _stamp(sample: TrackerSample) -> float:
+    return sample.timestamp
+
+
+def extrapolation_base(times, i: int, spacing: float) -> int | None:
+    """The index of the sample to extrapolate sample i's motion from (``times`` increasing):
+    the newest one at least EXTRAPOLATION_BASELINE_SPACINGS x ``spacing`` (the samples'
+    typical spacing, io.tracking.sample_spacing) before it; None when there is none (held)."""
+    if i <= 0:
+        return None
+    times = np.asarray(times, dtype=np.float64)
+    j = int(np.searchsorted(times[:i], times[i] - EXTRAPOLATION_BASELINE_SPACINGS * spacing,
+                            side="right")) - 1
+    return j if j >= 0 else None
+
+
+def _bytes_text(n: int) -> str:
+    """'58 bytes', '3.1 MB': a size for a message."""
+    return (f"{n} bytes" if n < 10**4 else f"{n / 1e3:.3g} KB" if n < 10**6 else
+            f"{n / 1e6:.3g} MB")
 
 
 def _crc64(body: bytes) -> int:
@@ -613,26 +777,36 @@ def position_message_matrix(content: bytes) -> tuple[np.ndarray, str | None]:
     """The 4x4 pose of a POSITION message's content (identity rotation when it carries no
     quaternion) and, for an unusable one, why (the sample is then kept as invalid): a size
     other than 12, 24 or 28 bytes, values not finite, a quaternion not of unit norm (within
-    1e-3; float32 on the wire). pyigtl's PositionMessage reads another, multi-point layout."""
+    1e-3; float32 on the wire: QUATERNION_NOT_UNIT). pyigtl's PositionMessage reads another,
+    multi-point layout."""
+    matrix, problem, _ = _position_pose(content)
+    return matrix, problem
+
+
+def _position_pose(content: bytes) -> tuple[np.ndarray, str | None, str | None]:
+    """position_message_matrix, and the figures of its problem (the quaternion's norm): not
+    in the problem, which IgtlSource counts samples by (one key per norm seen grew without
+    bound; review)."""
     n = len(content)
     if n not in _POSITION_SIZES:
-        return np.eye(4), f"POSITION content of {n} bytes (expected 12, 24 or 28)"
+        return np.eye(4), f"POSITION content of {n} bytes (expected 12, 24 or 28)", None
     values = np.array(struct.unpack(f">{n // 4}f", content), dtype=np.float64)
     if not np.all(np.isfinite(values)):
-        return np.eye(4), "not finite"
+        return np.eye(4), "not finite", None
     matrix = np.eye(4)
     matrix[:3, 3] = values[:3]
     if n == 12:
-        return matrix, None
+        return matrix, None, None
     q = values[3:]
     if n == 24:
         q = np.append(q, np.sqrt(max(0.0, 1.0 - float(q @ q))))
-    if abs(float(np.linalg.norm(q)) - 1.0) > 1e-3:
-        return np.eye(4), f"quaternion of norm {np.linalg.norm(q):.4g} (expected 1)"
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > 1e-3:
+        return np.eye(4), QUATERNION_NOT_UNIT, f"norm {norm:.4g}"
     from scipy.spatial.transform import Rotation
 
-    matrix[:3, :3] = Rotation.from_quat(q / np.linalg.norm(q)).as_matrix()
-    return matrix, None
+    matrix[:3, :3] = Rotation.from_quat(q / norm).as_matrix()
+    return matrix, None, None
 
 
 @functools.cache
@@ -650,9 +824,12 @@ def _position_message_type() -> type:
 
 def _frame_image(image: np.ndarray, rgb: bool) -> np.ndarray:
     """An IMAGE message's (1, H, W[, C]) array as the (H, W) gray or (H, W, 3) BGR frame the
-    mosaickers take (alpha dropped); other layouts are returned as they are for the caller's
-    checks to name."""
+    mosaickers take (alpha dropped), in the machine's byte order; other layouts are returned
+    as they are for the caller's checks to name."""
     image = np.asarray(image)
+    # (pyigtl keeps the message's byte order: a 16-bit IMAGE sent big-endian, as the spec
+    # allows, was a '>u2' array, refused as "expected ... uint16" frame after frame; review)
+    image = image.astype(image.dtype.newbyteorder("="), copy=False)
     if image.ndim >= 3 and image.shape[0] == 1:
         image = image[0]
     if image.ndim == 3 and image.shape[2] == 1:
@@ -749,8 +926,9 @@ class IgtlImageServer:
     every client connecting (e.g. 3D Slicer's OpenIGTLinkIF in client mode) receives each
     :meth:`send` from, as IMAGE messages of ``device_name`` packed by pyigtl (RGB, one slice;
     placed by the ``ijk_to_world`` given to :meth:`send`, e.g. :func:`mosaic_ijk_to_world`,
-    else 1 mm spacing with pixel (0, 0) at the origin). A client that fails or stalls
-    (``send_timeout_s``) is dropped; what clients send is read and ignored. A context manager
+    else 1 mm spacing with pixel (0, 0) at the origin). A client that fails, or stalls (takes
+    no byte of a message for ``send_timeout_s``; a slow link taking a large image for longer
+    is not stalled), is dropped; what clients send is read and ignored. A context manager
     (closes the sockets)."""
 
     def __init__(self, address: str, *, device_name: str = "Mosaic",
@@ -774,7 +952,8 @@ class IgtlImageServer:
         self.address = format_address(self.host, self.port)
         self._listener.settimeout(0.2)
         self._clients: list[socket.socket] = []
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # the client list (held briefly: accepting goes on)
+        self._send_lock = threading.Lock()  # one message at a time to the clients
         self._stop = False
         self.clients_served = 0  # clients that connected
         self.messages_sent = 0  # messages sent to a client in full
@@ -790,19 +969,30 @@ class IgtlImageServer:
                 client = None
             except OSError:
                 return  # closed
-            with self._lock:
-                if client is not None:
-                    client.settimeout(self.send_timeout_s)
+            if client is not None:
+                client.setblocking(False)  # (send waits for each client's progress: select)
+                with self._lock:
                     self._clients.append(client)
                     self.clients_served += 1
-                for c in list(self._clients):  # read and ignore what clients send
-                    try:
-                        while select.select([c], [], [], 0)[0]:
-                            if not c.recv(65536):  # the client closed
-                                self._drop(c)
-                                break
-                    except OSError:
-                        self._drop(c)
+            with self._lock:
+                clients = list(self._clients)
+            for c in clients:  # read and ignore what clients send
+                try:
+                    for _ in range(_READS_PER_PASS):  # (a client flooding us cannot hold it)
+                        if not select.select([c], [], [], 0)[0]:
+                            break
+                        if not c.recv(65536):  # the client closed
+                            self._remove(c)
+                            break
+                except BlockingIOError:
+                    pass
+                except (OSError, ValueError):  # (ValueError: closed meanwhile by send)
+                    self._remove(c)
+
+    def _remove(self, client: socket.socket) -> None:
+        with self._lock:
+            if client in self._clients:
+                self._drop(client)
 
     def _drop(self, client: socket.socket) -> None:
         self._clients.remove(client)
@@ -823,16 +1013,52 @@ class IgtlImageServer:
         message = igtl_image_message(image, device_name=self.device_name,
                                 timestamp=time.time() if timestamp is None else timestamp,
                                 ijk_to_world=ijk_to_world).pack()
-        sent = 0
-        with self._lock:
-            for c in list(self._clients):
-                try:
-                    c.sendall(message)
-                    sent += 1
-                except OSError:  # closed, reset or stalled: its stream is broken
-                    self._drop(c)
+        with self._send_lock:
+            with self._lock:  # (released while sending: a client connecting is accepted)
+                clients = list(self._clients)
+            sent = self._send_to(clients, message)
         self.messages_sent += sent
         return sent
+
+    def _send_to(self, clients: list[socket.socket], message: bytes) -> int:
+        """Sends message to every client at once, each as fast as it takes it; drops a client
+        that fails or takes no byte for send_timeout_s (a timeout on the whole sendall dropped
+        a client 2 s into a 27 MB mosaic over a 32 Mbit/s link, mid-message, every time;
+        review). Returns how many got all of it."""
+        data = memoryview(message)
+        start = time.monotonic()
+        pending = {c: [0, start] for c in clients}  # client -> [bytes sent, last progress]
+        done = 0
+        while pending and not self._stop:
+            now = time.monotonic()
+            for c in [c for c, (_, last) in pending.items() if now - last > self.send_timeout_s]:
+                del pending[c]  # stalled: its stream is broken (part of the message sent)
+                self._remove(c)
+            if not pending:
+                break
+            wait = min(last for _, last in pending.values()) + self.send_timeout_s - now
+            try:
+                select.select([], list(pending), [], min(max(wait, 0.0), _SEND_POLL_S))
+            except (OSError, ValueError):  # a client closed meanwhile (_accept: it left)
+                time.sleep(0.01)  # (its send fails below)
+            # (every client tried, not only those select calls writable: a socket is writable
+            # once a third of its buffer, up to 4 MB, is free, and a client reading 1.6 MB/s
+            # steadily went 0.4 s without it; a send takes whatever room there is)
+            for c in list(pending):
+                state = pending[c]
+                try:
+                    state[0] += c.send(data[state[0]:])
+                except BlockingIOError:
+                    continue
+                except (OSError, ValueError):  # closed, reset: its stream is broken
+                    del pending[c]
+                    self._remove(c)
+                    continue
+                state[1] = time.monotonic()
+                if state[0] == len(data):
+                    del pending[c]
+                    done += 1
+        return done
 
     def close(self) -> None:
         self._stop = True
