@@ -94,6 +94,7 @@ def summary_record(s, cpu_s: float) -> dict:
         "window_corr": s.num_window_correspondences,
         "keyframe_corr": s.num_keyframe_correspondences,
         "loop_corr": s.num_loop_correspondences,
+        "temporal_corr": s.num_temporal_correspondences,
         "fixed_pair_corr": s.num_fixed_pair_correspondences,
         "residuals": s.num_residuals, "final_cost": s.final_cost,
     }
@@ -243,7 +244,7 @@ def step_stats(steps: list[dict]) -> dict:
            ("step_ms", "solve_ms", "cpu_ms", "evaluation_ms", "linear_solver_ms",
             "preprocessor_ms")}
     for key in ("iterations", "correspondences", "window_corr", "keyframe_corr", "loop_corr",
-                "fixed_pair_corr", "residuals"):
+                "temporal_corr", "fixed_pair_corr", "residuals"):
         out[key] = {"median": float(np.median([s[key] for s in steps])),
                     "max": float(np.max([s[key] for s in steps]))}
     return out
@@ -355,7 +356,10 @@ def markdown(res: dict) -> str:
                  f"{s['step_ms']['median'] / chi:.2f} | {s['step_ms']['p95'] / chi:.2f} |")
     lines += ["", "Correspondences per step (median): "
               f"{s['correspondences']['median']:.0f} = window {s['window_corr']['median']:.0f} + "
-              f"keyframe {s['keyframe_corr']['median']:.0f} + loop {s['loop_corr']['median']:.0f};"
+              f"keyframe {s['keyframe_corr']['median']:.0f} + "
+              f"loop {s['loop_corr']['median']:.0f} + "
+              f"temporal {s['temporal_corr']['median']:.0f} (pairs with the W - 1 frames before "
+              "the first new one, outside the window; medians, so the sum differs);"
               f" of these {s['fixed_pair_corr']['median']:.0f} in pairs of two fixed cameras "
               "(they constrain pi only).", "",
               "## End to end per frame (add_frame wall time, steady state)", "",

@@ -102,6 +102,10 @@ void BindSlidingWindow(py::module_& m) {
       .def_readonly("num_keyframe_correspondences",
                     &WindowStepSummary::num_keyframe_correspondences)
       .def_readonly("num_loop_correspondences", &WindowStepSummary::num_loop_correspondences)
+      .def_readonly("num_temporal_correspondences",
+                    &WindowStepSummary::num_temporal_correspondences,
+                    "correspondences of pairs with one of the window_size - 1 frames before the "
+                    "first new one, outside the window (the new frames' temporal pairs)")
       .def_readonly("num_fixed_pair_correspondences",
                     &WindowStepSummary::num_fixed_pair_correspondences,
                     "correspondences of pairs of two fixed cameras (they constrain pi only)")

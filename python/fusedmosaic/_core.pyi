@@ -477,6 +477,9 @@ class WindowStepSummary:
     @property
     def num_loop_correspondences(self) -> int: ...
     @property
+    def num_temporal_correspondences(self) -> int:
+        """With the window_size - 1 frames before the first new one, outside the window."""
+    @property
     def num_fixed_pair_correspondences(self) -> int:
         """In pairs of two fixed cameras: constrain pi only."""
     @property

@@ -371,12 +371,18 @@ WindowStepSummary SlidingWindow::SolveStep(const std::vector<int>& free_ids,
   const bool per_point = c.residual_blocks == "per_point";
 
   // Role of a camera in this step, for the residual counts of the summary.
-  enum class Role { kFree, kWindow, kKeyframe, kLoop };
+  enum class Role { kFree, kWindow, kKeyframe, kTemporal, kLoop };
   const std::set<int> keyframe_set(out.keyframe_ids.begin(), out.keyframe_ids.end());
+  std::set<int> temporal;  // the window_size - 1 frames before the first free one
+  for (auto it = frames_.find(free_ids.front());
+       it != frames_.begin() && static_cast<int>(temporal.size()) < options_.window_size - 1;) {
+    temporal.insert((--it)->first);
+  }
   auto role = [&](int id) {
     if (std::binary_search(free_ids.begin(), free_ids.end(), id)) return Role::kFree;
     if (std::count(out.fixed_ids.begin(), out.fixed_ids.end(), id)) return Role::kWindow;
     if (keyframe_set.count(id)) return Role::kKeyframe;
+    if (temporal.count(id)) return Role::kTemporal;
     return Role::kLoop;
   };
 
@@ -396,6 +402,8 @@ WindowStepSummary SlidingWindow::SolveStep(const std::vector<int>& free_ids,
         out.num_keyframe_correspondences += n;
       } else if (role_l == Role::kLoop || role_m == Role::kLoop) {
         out.num_loop_correspondences += n;
+      } else if (role_l == Role::kTemporal || role_m == Role::kTemporal) {
+        out.num_temporal_correspondences += n;
       } else {
         out.num_window_correspondences += n;
       }
@@ -584,8 +592,9 @@ void SlidingWindow::Forget(const std::vector<int>& frame_ids) {
 SlidingWindow::Pose SlidingWindow::GetPose(int frame_id) const {
   std::lock_guard<std::mutex> lock(mutex_);
   const Frame& f = FindFrame(frame_id, "pose");
-  // A pending frame added without an initial pose has none until its step (zeros, not a pose).
-  if (!f.has_initial) {
+  // A pending frame added without an initial pose has none until its step (zeros, not a pose);
+  // a fixed one whose tracker sample was dropped keeps its last estimate until a Redo.
+  if (!f.fixed && !f.has_initial) {
     throw std::invalid_argument("pose: frame " + std::to_string(frame_id) +
                                 " is pending without a pose yet (no initial pose; its step "
                                 "gives it one)");

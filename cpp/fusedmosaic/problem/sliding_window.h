@@ -89,10 +89,14 @@ struct WindowStepSummary {
   int num_correspondences = 0;
   // Correspondences of C_v by the role of the pair's cameras: a pair touching a keyframe
   // counts as keyframe, else one touching a loop camera (a fixed camera outside the window
-  // paired with a new one) as loop, else window (new and window cameras).
+  // paired with a new one, not temporal) as loop, else one touching a temporal camera (one of
+  // the window_size - 1 frames before the first new one, outside the window: the predecessors
+  // a caller matches each new frame with, as SequentialMosaicker does) as temporal, else window
+  // (new and window cameras).
   int num_window_correspondences = 0;
   int num_keyframe_correspondences = 0;
   int num_loop_correspondences = 0;
+  int num_temporal_correspondences = 0;
   int num_fixed_pair_correspondences = 0;  // pairs of two fixed cameras: they only see pi
   int num_residuals = 0;
   int num_free_parameters = 0;
@@ -141,7 +145,8 @@ class SlidingWindow {
   // puts the camera centre on the plane, so that the step's evaluation failed): no C_EMT term
   // for it any more, its sigma scale back to 1, and its pose is initialised again, from the
   // constant-velocity prediction of its predecessors, by the next Step or Redo that estimates
-  // it (until then it has no pose: GetPose refuses it).
+  // it (until then a pending camera has no pose: GetPose refuses it; a fixed one keeps its last
+  // estimate, which later steps hold constant, until a Redo estimates it again).
   void DropEmtMeasurement(int frame_id);
   // The timing of a camera's constant-velocity prior, as AddFrame's, from the next Step or
   // Redo that estimates it on (e.g. judged again when later tracker samples are known).
