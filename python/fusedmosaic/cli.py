@@ -1167,7 +1167,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "mosaics each frame (lba-emt, kalman-robot, ncc or robot) as soon as the "
                     "previous one is "
                     "done (frames arriving meanwhile are dropped from the mosaic but recorded), "
-                    "records every frame and tracker / robot sample into --record (a dataset: "
+                    "records every frame (but those arriving while 256 MiB of frames wait to be "
+                    "written: the disk or CPU behind the stream; counted) and tracker / robot "
+                    "sample into --record (a dataset: "
                     "re-run it offline with any method; frames outside the tracker's time span "
                     "need run's --allow-untracked), and when the stream ends (sender closes, "
                     "--max-frames, --duration or Ctrl-C) writes --out as `run` does.")

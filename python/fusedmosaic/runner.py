@@ -42,6 +42,13 @@ READS_NO_IMAGE = {"robot"}
 # A frame whose every pixel is at or below this grey level shows nothing (not composed): the
 # level below which features.py finds no visual content (FeatureOptions.border_threshold).
 BLANK_LEVEL = 12
+# --frame-timeout at most (s, 11.6 days: as good as none); a wait beyond threading.TIMEOUT_MAX
+# (9.2e9 s) ended the session in OverflowError
+MAX_FRAME_TIMEOUT_S = 1e6
+# A live session's receive backlog is measured against the least (arrival - stamp) of its first
+# this many accepted frames (1 s of a 25 frames/s stream): the clocks' offset and the transport's
+# delay, before any backlog could build up.
+BACKLOG_BASELINE_FRAMES = 25
 
 
 def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
@@ -850,14 +857,18 @@ class _EndingGuard:
 
 def check_live_limits(max_frames, duration_s, frame_timeout_s,
                       names: dict[str, str] | None = None) -> None:
-    """ValueError unless each limit of a live session is None or a number > 0; `names` maps
-    the parameters to what the message calls them (the CLI's flags)."""
+    """ValueError unless each limit of a live session is None or a number > 0, and
+    frame_timeout_s at most MAX_FRAME_TIMEOUT_S; `names` maps the parameters to what the message
+    calls them (the CLI's flags)."""
     names = names or {}
     for name, value in (("max_frames", max_frames), ("duration_s", duration_s),
                         ("frame_timeout_s", frame_timeout_s)):
+        what = names.get(name, f"live session: {name}")
         if value is not None and not (np.isfinite(value) and value > 0):
-            what = names.get(name, f"live session: {name}")
             raise ValueError(f"{what} must be a number > 0, got {value}")
+        if name == "frame_timeout_s" and value is not None and value > MAX_FRAME_TIMEOUT_S:
+            raise ValueError(f"{what} must be at most {MAX_FRAME_TIMEOUT_S:.0f} s (11.6 days, "
+                             f"as good as no timeout), got {value:g}")
 
 
 def _live_view(camera, method: str, record: Path, preview, serve_mosaic,
@@ -1017,6 +1028,37 @@ class _LiveScale:
                 "frames_clipped": self.clipped}
 
 
+class _ReceiveBacklog:
+    """How far a live session's receiver fell behind the sender: each accepted frame's
+    (arrival - stamp) less the least of the first BACKLOG_BASELINE_FRAMES (that takes out the
+    clocks' offset and the transport's delay): about 0 while frames are read as they are sent;
+    it grows while they wait in the socket or the sender (a receiver held up), by the clocks'
+    relative drift too (ppm), and for a sender stamping at another pace than real time (a
+    replay). The latency figures start at arrival and cannot show it.
+    report.json live source receive_backlog_s (end: the last frame's, max)."""
+
+    def __init__(self) -> None:
+        self.base, self.seen, self.end, self.max = np.inf, 0, 0.0, 0.0
+        self.frames = 0
+
+    def add(self, stamp: float, arrival: float) -> None:
+        lag = arrival - stamp
+        if self.seen < BACKLOG_BASELINE_FRAMES:
+            self.base = min(self.base, lag)
+        self.seen += 1
+        self.frames += 1
+        self.end = lag - self.base
+        self.max = max(self.max, self.end)
+
+    def restart(self) -> None:
+        """The sender's clock jumped (taken as its clock from there): a new baseline."""
+        self.base, self.seen = np.inf, 0
+
+    def details(self) -> dict | None:
+        return (None if not self.frames else
+                {"end": round(self.end, 3), "max": round(self.max, 3)})
+
+
 def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
              transform_device: str | None, image_device: str | None = None, hand_eye=None,
              rgb: bool = True, options=None, max_frames: int | None = None,
@@ -1037,7 +1079,10 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     duration_s passed or Ctrl-C. Every received frame and tracker sample is recorded into the
     dataset folder `record` (re-runnable offline with any method; it grows as a readable dataset
     in a staging folder, and a session killed outright is recovered by the next one in that
-    folder: io.recorder); then the outputs of the live estimates go to `out` as `run` writes
+    folder: io.recorder), but for frames arriving while the recorder's queue is full (writing
+    behind the stream): those are neither recorded nor processed, so that the receiver never
+    waits for the disk (told at the first, counted: report.json live frames_not_recorded);
+    then the outputs of the live estimates go to `out` as `run` writes
     them (report.json "live": drops, latency, why the session stopped). camera / hand_eye: a
     Camera / 4x4 or the path of camera.yaml / hand_eye.txt. tracker_time_offset: s, the
     tracker's (robot's) clock ahead of the video's (calibrate's calibration.json
@@ -1134,6 +1179,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     rejected: dict[str, int] = {}  # why -> frames refused
     first_refused: dict[str, int] = {}  # why -> the first such frame (the source's count)
     after_limit = 0  # frames received once max_frames were recorded (not recorded)
+    not_recorded: list[int] = []  # received frames the recorder had no room for (the first)
+    backlog = _ReceiveBacklog()
     accepting, first, last_time = True, None, -np.inf  # first: (ndim, dtype) of the first frame
     frame_jumps = StampJumps()  # frames stamped far ahead of the stream: refused as glitches
     device = "tracker" if method == "lba-emt" else "robot"
@@ -1170,6 +1217,7 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                     last_time = t
                     frame_jumps.accepted(t, frame.arrival)
                     if len(frame_jumps.jumps) > jumped:
+                        backlog.restart()
                         warn_from_receiver(
                             f"live session: the sender's frame stamps jumped "
                             f"{frame_jumps.jumps[-1]:.3g} s ahead of the stream at received "
@@ -1202,7 +1250,21 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                                "taken as they are")
         first = (image.ndim, image.dtype)
         received = frame.index
-        frame.index = recorder.add_frame(image, frame.timestamp)  # as received (16-bit PNG)
+        backlog.add(frame.timestamp, frame.arrival)
+        k = recorder.add_frame(image, frame.timestamp)  # as received (16-bit PNG); never waits
+        if k is None:  # the recorder's queue is full: not processed either (the outputs are
+            # composed on the recording), and the socket goes on being read (a receiver that
+            # waited for the disk let the live view fall a minute behind; review)
+            if not not_recorded:
+                not_recorded.append(received)
+                warn_from_receiver(
+                    f"live session: received frame {received} neither recorded nor processed: "
+                    f"{recorder.max_queued_bytes / 2**20:.3g} MiB of frames wait to be written "
+                    "to the recording (writing cannot keep up with the stream: the disk, or the "
+                    "CPU the live session leaves it); the live view stays live, and such frames "
+                    "are counted (report.json live frames_not_recorded)")
+            return False
+        frame.index = k
         if image.dtype == np.uint16:  # the session mosaics 8 bits, on one scale
             frame.image = scale.convert(image, received, frame.index, warn_from_receiver)
         check_clocks(frame)
@@ -1305,6 +1367,11 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                            "frames_undecodable": dict(src.undecodable_frames),
                            "frames_refused": dict(rejected),
                            "frames_refused_first": dict(first_refused),
+                           # frames the recorder had no room for: neither recorded nor processed
+                           "frames_not_recorded": recorder.frames_not_recorded,
+                           "frames_not_recorded_first": not_recorded[0] if not_recorded else None,
+                           # s: how far reading fell behind the sender's stamps (_ReceiveBacklog)
+                           "receive_backlog_s": backlog.details(),
                            # 16-bit frames: the session's 8-bit scale, frames clipped by it
                            **scale.details(),
                            "tracker_samples_valid": src.valid_samples,
@@ -1324,6 +1391,9 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                 raise ValueError(f"live session: no frame was processed ({session.stopped_by})")
             timestamps = list(recorder.timestamps)
             recorder.finish()  # SIGINT / SIGTERM / SIGHUP wait until the recording is in place
+            details["frames_not_recorded"] = recorder.frames_not_recorded  # (final)
+            # frames written as stored PNG while the compression was behind (lossless, larger)
+            details["frames_recorded_uncompressed"] = recorder.frames_uncompressed
         except BaseException as exc:
             # the recording is the session's safety net: kept whenever it holds a frame (first:
             # closing the view may take a while)
@@ -1392,13 +1462,26 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
         guard.stop()
     span = recorder.valid_sample_span()
     outside = span is None or timestamps[0] < span[0] or timestamps[-1] > span[1]
-    lines = [summary, f"  record  {record}  ({len(timestamps)} frames; re-run offline: "
+    stored = (f", {recorder.frames_uncompressed} of them stored uncompressed, the compression "
+              "behind the stream" if recorder.frames_uncompressed else "")
+    lines = [summary, f"  record  {record}  ({len(timestamps)} frames{stored}; re-run offline: "
                       f"fusedmosaic run {record} --method "
                       f"{'ba-emt' if method == 'lba-emt' else method} --out OUT2"
                       f"{' --allow-untracked' if outside else ''})"]
     if session.no_sample:
         lines.append(f"  {device:<7} {len(session.no_sample)} frame(s) without a usable sample"
                      f"{samples_heard(src)}")
+    if recorder.frames_not_recorded:
+        lines.append(f"  frames  {recorder.frames_not_recorded} received frame(s) neither "
+                     "recorded nor processed: the recorder's "
+                     f"{recorder.max_queued_bytes / 2**20:.3g} MiB queue was full, writing "
+                     "behind the stream (first: received frame "
+                     f"{not_recorded[0]}; report.json live frames_not_recorded)")
+    if (lag := backlog.details()) is not None and lag["max"] >= 1.0:  # (below: jitter)
+        lines.append(f"  frames  received up to {lag['max']:.1f} s later than their stamps "
+                     f"say, against the first frames ({lag['end']:.1f} s at the end): read "
+                     "behind the sender, or stamped at another pace than real time (the latency "
+                     "figures count from receipt; report.json live receive_backlog_s)")
     if rejected:
         lines.append(f"  frames  {sum(rejected.values())} received frame(s) refused, neither "
                      "processed nor recorded" + "".join(

@@ -5,20 +5,34 @@ that is a readable dataset at every moment, so that a session killed outright (S
 cut of the process, a crash) loses at most the frame being written:
 
 - camera.yaml and hand_eye.txt are written when the recording starts;
-- frames are written as received (8- or 16-bit PNG: an offline re-run reads what the sender
-  sent; fast, level 1) by a background thread (a live loop does not wait for the disk), each
-  under a hidden name renamed once complete, and only then is its row appended to frames.csv;
+- frames are written as received (8- or 16-bit PNG, lossless: an offline re-run reads what the
+  sender sent) by a background thread, each under a hidden name renamed once complete, and only
+  then is its row appended to frames.csv;
 - every tracker sample is appended to tracking.csv as it arrives (at the tracker's own rate;
   samples the sender flagged or that are not rigid as valid=0), or for a robot its valid
   positions to robot.csv (µm);
 - each row is one unbuffered write (nothing waits in a buffer of this process; no fsync, so a
   crash of the machine itself may lose the last seconds the OS had not yet written).
 
-The queue holds at most ``max_queued`` frames: when the disk cannot keep up, `add_frame` waits
-(the recording never skips a frame, and memory stays bounded; the live view then drops more
-frames). `finish` renames the folder into place atomically; SIGINT / SIGTERM / SIGHUP arriving
-meanwhile are handled after it, and a failure keeps the frames written (a recording that holds a
-frame is never deleted); `abort` discards it. A lock file in the staging folder
+The recording does not hold up a live session: it may skip frames, the live view does not fall
+behind for it. `add_frame` never waits for the disk (the OpenIGTLink receiver calls it: a
+receiver that waited stopped reading the socket, and at 1920x1080, 25 frames/s, the live view
+was 68 s behind after 95 s while the latency measured from receipt read 0.1 s), and the writer
+thread runs at a lower priority (nice 10, on Linux): it takes the CPU the receiver and the live
+loop leave. The frames waiting to be written hold at most ``max_queued_bytes`` (256 MiB); a
+frame that does not fit is not recorded (`add_frame` returns None; counted in
+`frames_not_recorded`; run_igtl neither records nor processes it, warns at the first and reports
+the count). To record as many as it can, the writer compresses fast (zlib's run-length strategy
+on the "up" filter: 1920x1080 colour 52 ms a frame, 3.1 MB, where level 1 took 116 ms for
+3.0 MB; a scope's round field on black 29 ms instead of 85, and smaller) and, while frames wait
+beyond an eighth of that bound (the compression behind the stream), stores them uncompressed
+(12 ms and 6.2 MB each written to disk here) unless storing was measured slower (a slow disk):
+lossless either way, `frames_uncompressed` counts them. With the CPU and disk to spare, every
+frame is recorded.
+
+`finish` renames the folder into place atomically; SIGINT / SIGTERM / SIGHUP arriving meanwhile
+are handled after it, and a failure keeps the frames written (a recording that holds a frame is
+never deleted); `abort` discards it. A lock file in the staging folder
 (``.fusedmosaic-recording.json``, locked while its process lives) tells a later recorder in the
 same folder that a session ended without finishing: `recover_unfinished_recordings` renames such
 a folder into a dataset ``NAME.recovered-START`` beside it and says so. The recording can then
@@ -35,6 +49,7 @@ import queue
 import shutil
 import signal
 import socket
+import sys
 import threading
 import time
 import warnings
@@ -56,6 +71,33 @@ __all__ = ["DatasetRecorder", "recover_unfinished_recordings", "stop_signals_def
 # folder whose lock can be taken belongs to a session that ended without finishing.
 MARKER = ".fusedmosaic-recording.json"
 STOP_SIGNALS = ("SIGINT", "SIGTERM", "SIGHUP")  # what ends a live session (the CLI's)
+# The frames waiting to be written, at most (their arrays' bytes): 43 frames of 1920x1080 colour,
+# 1.7 s of a 25 frames/s stream: a short stall of the disk passes without a frame lost, in memory
+# a theatre PC spares (the former bound, 64 frames, was 400 MB at 1080p and could not drop).
+MAX_QUEUED_BYTES = 256 << 20
+# Lossless PNG, fast: zlib's run-length strategy (LZ77 of distance 1) on the "up" filter, against
+# level 1's default (1920x1080, one core here): textured colour 52 ms / 3.11 MB a frame (level 1
+# 116 ms / 3.04 MB), a round field on black 29 ms / 1.39 MB (85 ms / 1.57 MB), 16-bit gray
+# 21 ms / 1.16 MB (55 ms / 1.24 MB); Huffman-only was 46 ms but 2.0 MB for the round field.
+# (cv2 < 4.10 has no filter setting: the strategy alone, 101 ms on the textured frame.)
+_FILTER = ([cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_UP]
+           if hasattr(cv2, "IMWRITE_PNG_FILTER") else [])
+PNG_COMPRESSED = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY,
+                  cv2.IMWRITE_PNG_STRATEGY_RLE, *_FILTER]
+# Stored (deflate's level 0, no filter): 7 ms to encode a 1920x1080 colour frame, 12 ms with the
+# write, 6.2 MB; for the frames written while the compression is behind the stream.
+PNG_STORED = [cv2.IMWRITE_PNG_COMPRESSION, 0,
+              *([cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE] if _FILTER else [])]
+STORE_ABOVE = 1 / 8  # of max_queued_bytes waiting (32 MiB: 5 frames of 1080p colour, 0.2 s)
+# The writer thread's nice value (Linux, where a thread has its own): the receiver and the live
+# loop come first, the recording takes the CPU they leave, and a queue that fills drops frames.
+# 1920x1080 colour at 25 frames/s into IgtlSource for 30 s (review's repro; 2 cores shared with
+# another job, runs interleaved): at nice 10 the frame taken was 0.04 s old (median; 0.27-0.31 s
+# at most), 91 % of the frames recorded; at nice 0 all were, but it fell 2.3-5.7 s behind; with
+# no recorder, 0.04 s (0.07-0.12 s at most).
+WRITER_NICE = 10
+RETRY_STORED = 32  # while behind and compressing (storing measured slower), every 32nd frame
+# is stored to measure it again (a disk stall may have made it look slow)
 
 
 class DatasetRecorder:
@@ -65,11 +107,17 @@ class DatasetRecorder:
     robot's probe positions (their translation, mm, in the image axes) and go to robot.csv in µm
     (valid ones only: robot.csv has no validity column) instead of tracking.csv. Recordings of
     earlier sessions in the same parent folder that ended without finishing are recovered first
-    (`recover_unfinished_recordings`, a warning each; `recovered` lists them)."""
+    (`recover_unfinished_recordings`, a warning each; `recovered` lists them).
+    max_queued_bytes: the frames waiting to be written hold at most this (see the module's
+    docstring); a frame beyond it is not recorded."""
 
     def __init__(self, root: str | Path, camera: Camera, hand_eye=None, *,
-                 overwrite: bool = False, max_queued: int = 64, robot: bool = False,
-                 tracker_time_offset: float = 0.0, source: str = "live session") -> None:
+                 overwrite: bool = False, max_queued_bytes: int = MAX_QUEUED_BYTES,
+                 robot: bool = False, tracker_time_offset: float = 0.0,
+                 source: str = "live session") -> None:
+        if not (isinstance(max_queued_bytes, int) and max_queued_bytes > 0):
+            raise ValueError(f"recorder: max_queued_bytes must be an integer > 0, got "
+                             f"{max_queued_bytes!r}")
         self.root = Path(root)
         self.recovered = recover_unfinished_recordings(self.root.parent, self.root.name)
         for note in self.recovered:
@@ -79,11 +127,18 @@ class DatasetRecorder:
         self.camera, self.hand_eye, self.robot = camera, hand_eye, robot
         self.timestamps: list[float] = []  # every frame queued (recording ids 0, 1, ...)
         self.frames_written = 0  # frames on disk with their frames.csv row
+        self.frames_not_recorded = 0  # frames add_frame had no room for
+        self.frames_uncompressed = 0  # frames written stored, the compression behind
+        self._max_bytes = max_queued_bytes
+        self._queued_bytes = 0  # of the frames queued and not yet written
+        # seconds per byte of image written, EMA, compressed [0] / stored [1] (0: not measured)
+        self._cost = [0.0, 0.0]
+        self._since_stored = 0  # frames compressed while behind since the last one stored
         self._valid_span: list[float] = []  # first and last valid sample time
         self.samples_skipped = 0
         self._last_sample = -np.inf
         self._lock = threading.Lock()
-        self._queue: queue.Queue = queue.Queue(maxsize=max_queued)
+        self._queue: queue.Queue = queue.Queue()  # bounded by _max_bytes in add_frame
         self._error: BaseException | None = None
         self._discard = False
         self._finished = False
@@ -112,14 +167,23 @@ class DatasetRecorder:
         self._writer = threading.Thread(target=self._write_loop, name="recorder", daemon=True)
         self._writer.start()
 
-    def add_frame(self, image: np.ndarray, timestamp: float) -> int:
-        """Queues a frame for writing; returns its frame id in the recording (0, 1, ...)."""
+    def add_frame(self, image: np.ndarray, timestamp: float) -> int | None:
+        """Queues a frame for writing (the array is kept as it is: not to be changed after);
+        returns its frame id in the recording (0, 1, ...), or None, at once, when the frames
+        waiting to be written would hold more than max_queued_bytes with it: it is not recorded
+        (counted in `frames_not_recorded`). Never waits for the disk."""
+        size = image.nbytes
         with self._lock:
             if self._error is not None:
                 raise self._error
+            if self._queued_bytes and self._queued_bytes + size > self._max_bytes:  # (a frame
+                # larger than the bound is taken when nothing waits)
+                self.frames_not_recorded += 1
+                return None
             k = len(self.timestamps)
             self.timestamps.append(float(timestamp))
-        self._queue.put((k, image, float(timestamp)))
+            self._queued_bytes += size
+            self._queue.put((k, image, float(timestamp)))  # (unbounded: does not block)
         return k
 
     def add_sample(self, timestamp: float, tracker_from_sensor: np.ndarray | None) -> None:
@@ -161,6 +225,11 @@ class DatasetRecorder:
         """(first, last) time of the valid tracker samples recorded; None without any."""
         with self._lock:
             return tuple(self._valid_span) if self._valid_span else None
+
+    @property
+    def max_queued_bytes(self) -> int:
+        """The bound of the frames waiting to be written (bytes)."""
+        return self._max_bytes
 
     @property
     def finished(self) -> bool:
@@ -223,25 +292,53 @@ class DatasetRecorder:
                     os.close(fd)  # closing the marker releases its lock
 
     def _write_loop(self) -> None:
+        if sys.platform.startswith("linux"):  # (where a thread has its own nice value)
+            with contextlib.suppress(OSError):
+                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), WRITER_NICE)
         while True:
             item = self._queue.get()
             if item is None:
                 return
-            if self._error is not None or self._discard:
-                continue
             k, image, t = item
-            name = f"{k:06d}.png"
-            part = self._tmp / "frames" / f".{k:06d}.part.png"  # hidden: not a frame yet
-            try:  # fast PNG (level 1): the disk keeps up with the video
-                if not cv2.imwrite(str(part), image, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
-                    raise OSError(f"{part}: cv2.imwrite failed")
-                os.replace(part, part.with_name(name))
-                with self._lock:
-                    os.write(self._frames_fd, f"{k},{format_float(t)}\n".encode())
-                    self.frames_written += 1
+            try:
+                if self._error is None and not self._discard:
+                    self._write(k, image, t)
             except BaseException as exc:
                 with self._lock:
                     self._error = exc
+            finally:
+                with self._lock:
+                    self._queued_bytes -= image.nbytes
+
+    def _store(self) -> bool:
+        """Whether the next frame is stored uncompressed: while the frames waiting exceed
+        STORE_ABOVE of the bound (the compression behind the stream), unless storing was
+        measured slower than compressing (a disk slower than the encoder), then only every
+        RETRY_STORED frames, to measure it again."""
+        with self._lock:
+            behind = self._queued_bytes > STORE_ABOVE * self._max_bytes
+        compressed, stored = self._cost
+        if not behind:
+            return False
+        self._since_stored += 1
+        return not (stored > compressed > 0) or self._since_stored >= RETRY_STORED
+
+    def _write(self, k: int, image: np.ndarray, t: float) -> None:
+        name = f"{k:06d}.png"
+        part = self._tmp / "frames" / f".{k:06d}.part.png"  # hidden: not a frame yet
+        store = self._store()
+        start = time.perf_counter()
+        if not cv2.imwrite(str(part), image, PNG_STORED if store else PNG_COMPRESSED):
+            raise OSError(f"{part}: cv2.imwrite failed")
+        cost, mode = (time.perf_counter() - start) / max(image.nbytes, 1), int(store)
+        self._cost[mode] = cost if not self._cost[mode] else 0.75 * self._cost[mode] + 0.25 * cost
+        if store:
+            self._since_stored = 0
+        os.replace(part, part.with_name(name))
+        with self._lock:
+            os.write(self._frames_fd, f"{k},{format_float(t)}\n".encode())
+            self.frames_written += 1
+            self.frames_uncompressed += store
 
 
 def _describe(exc: BaseException) -> str:
