@@ -147,6 +147,10 @@ UNBOUNDED_CHECK_RELATIVE_STD = 10.0
 # A start-up plane behind its cameras from at least this many registered pairs showing parallax
 # is blamed on the tracker's poses, not on too few pairs or too short a baseline.
 CONTRADICTING_PAIRS = 20
+# A start-up refused with that many pairs while its tracked camera centres lie within this (mm)
+# of each other says the tracker's translations may not be in mm (_units_hint): in metres an
+# 80-frame SYN start-up's 33 mm read 0.033.
+UNITS_BASELINE_MM = 1.0
 # A window step whose evaluation failed (Ceres FAILURE) drops the tracker samples of its frames
 # that put their camera nearer the plane than this fraction of the window cameras' median depth
 # (or on or behind it), re-initialises those frames and is redone (_recover_failed_step).
@@ -156,6 +160,40 @@ UNUSABLE_DEPTH_RATIO = 0.05
 # frame then hands its oldest out unplaced, so a start-up accepted k frames later places k
 # frames fewer, at most 9 of 80.
 STARTUP_RETRY_FRACTION = 0.125
+# A start-up frame whose overlap with an older start-up frame the tracker cannot predict (either
+# untracked) is matched, beyond the window's W - 1 frames, against at most this many older
+# frames that the chain of registered pairs says overlap it most (_chained_candidates; 6 as
+# ba-emt's EMT-guided pairs), and about STARTUP_STRIDE_PAIRS more in a stride over the rest.
+# Before, against every frame the start-up held: a tracker off for the first 110 frames (SYN
+# 400 px, ORB) cost 80 pairs and 371 ms a frame (median), now 12 and 22-32 ms. Placed after
+# the tracker came on (e_j re-referenced to the first frame placed, median / max px): that run
+# 0.11 / 0.34 and 0.19 / 0.48 before and after frame 110 (exhaustive 0.18 / 0.77, 0.26 /
+# 0.78); recordings of 300 px, SIFT, tracker on at frame 85 or 100: SYN 0.16 / 0.39 and 0.10 /
+# 0.19 (exhaustive 0.14 / 0.36, 0.12 / 0.18), hand-held 0.13 / 0.33, 0.47 / 1.35, 0.25 / 0.43
+# (0.15 / 0.43, 0.33 / 1.01, 0.25 / 0.45). 10 instead of 6 gave 0.39 / 1.20 on the worst of
+# these, 0.38 / 1.33 on the first: such start-ups, a few tracked frames, are ill-conditioned
+# either way.
+STARTUP_CHAINED_PAIRS = 6
+STARTUP_STRIDE_PAIRS = 2
+# The start-up refuses its tracker samples when the glitch filter dropped more than this
+# fraction of them (_tracker_jumps). Measured at the start-up's first attempt: tracker_pose
+# with rotations in degrees 5 of 8 samples dropped (the tests' 8-frame start-up) and 37 of 40
+# (SYN, 256 px), given as [t, r] 4 of 8 and 37 of 40; the tests' glitches (a +10 m or +100 m
+# sample, a bad first one, 4x the prior's noise) at most 1 of 8. The tracker's disagreement
+# with the adjusted poses (consistency.tracker_agreement's noise ratio) does not tell them
+# apart: quaternions stored w first, which a 12-frame start-up takes and the run warns of, read
+# 4.2 x the prior's noise (30 frames: 8.3), [t, r] from 4.4, 4x the noise 3.3-3.5.
+STARTUP_MAX_DROPPED_FRACTION = 0.25
+# live_solver_warnings warns when more than TRACKER_WARNING_FRACTION of the tracker samples of
+# the last TRACKER_WARNING_FRAMES final frames given one (at least TRACKER_WARNING_MIN) were
+# gated or dropped (tracker_warning). Measured over the last 100 of 200 frames (SYN 256 px,
+# ORB): consistent samples 0 %, 2x the prior's noise 56 %, 4x 98 %, rotations in degrees or
+# [t, r] from frame 60 on (the start-up took the right ones) 100 %. 3/4 warns from ~2.5x the
+# noise on, as the offline tracker_agreement check does (MAX_NOISE_RATIO: 2x read 1.65); over
+# 50 frames, a mix-up is warned of ~40 frames after it began.
+TRACKER_WARNING_FRACTION = 0.75
+TRACKER_WARNING_FRAMES = 50
+TRACKER_WARNING_MIN = 20
 
 
 @dataclass
@@ -239,20 +277,30 @@ class SequentialOptions:
     # Start-up frames are matched against the window and every earlier start-up frame whose
     # footprint, predicted from the tracker poses and a provisional plane (from the start-up
     # pairs registered so far), overlaps theirs by >= this fraction of the smaller one (as
-    # ba-emt's EMT-guided pairs); 0 = all earlier start-up frames. The start-up adjustment is then
-    # ba-emt over the first frames with (nearly) all pairs that can register: every later frame is
-    # tied to it. On SYN 152 (bench/bench_sequential.py, bench_lba_experiments.py) all pairs gave
-    # e_M 0.136 px where a sparse stride-4 subset gave 0.152 (lba/ba 1.42 vs 1.59), but cost ORB
-    # 13 s over the 40 frames; this overlap test: 0.144 px, ORB 1.7 s (stride 4: 4.1 s). On slow
-    # hand-held motion every start-up frame overlaps, so the start-up gets all 780 pairs
-    # (start-up frames up to ~67 ms instead of ~30). Keeping only the 6 best-overlapping older
-    # frames per frame, as ba-emt's EMT-guided selection does, was measured too: cheaper, but
-    # e_M 0.145 / 0.135 / 0.042 / 0.077 px on SYN seeds 0-3 against 0.144 / 0.123 / 0.034 / 0.064.
+    # ba-emt's EMT-guided pairs); 0 = all earlier start-up frames. Where either frame has no
+    # tracker sample, the start-up's chain of registered pairs predicts the overlap, and at most
+    # STARTUP_CHAINED_PAIRS + STARTUP_STRIDE_PAIRS such older frames are tried (a start-up
+    # waiting for its tracker matched each frame against all it held). The start-up adjustment
+    # is then ba-emt over the first frames with (nearly) all pairs that can register: every
+    # later frame is tied to it. On SYN 152 (bench/bench_sequential.py,
+    # bench_lba_experiments.py) all pairs gave e_M 0.136 px where a sparse stride-4 subset gave
+    # 0.152 (lba/ba 1.42 vs 1.59), but cost ORB 13 s over the 40 frames; this overlap test:
+    # 0.144 px, ORB 1.7 s (stride 4: 4.1 s). On slow hand-held motion every start-up frame
+    # overlaps, so the start-up gets all 780 pairs (start-up frames up to ~67 ms instead of
+    # ~30). Keeping only the 6 best-overlapping older frames per frame, as ba-emt's EMT-guided
+    # selection does, was measured too: cheaper, but e_M 0.145 / 0.135 / 0.042 / 0.077 px on
+    # SYN seeds 0-3 against 0.144 / 0.123 / 0.034 / 0.064.
     startup_min_overlap: float = 0.3
     # Spatial loop pairs (beyond the paper's Eq. 25 window; its Sec. 5 proposes such a
     # spatio-temporal window): each new frame is also matched against up to this many retained
     # older frames whose footprint, predicted from the drift-free tracker pose, overlaps it.
-    # 0 gives the paper's LBA exactly. Measured in bench/bench_sequential.py.
+    # Measured in bench/bench_sequential.py. 0: no loop pairs, only the temporal ones, which is
+    # close to the paper's LBA but not exactly its Eq. 25 window: each new frame is matched
+    # against its W - 1 predecessors, so a step's later frames reach up to W - 2 frames behind
+    # the window's W - chi_e fixed ones (SYN: the step 115-117 has pairs to 111 and 112, outside
+    # 113-117). The C++ step joins every fixed camera paired with a free one as a constant, so
+    # those pairs, and the pairs among those cameras (which constrain pi alone), enter C_v; the
+    # step summary counts them as loop correspondences (SYN: 800 of a step's 1800, no loop pair).
     loop_pairs: int = 2
     loop_min_separation: int = 10  # frames between a new frame and its loop candidates
     # A frame without visual evidence (Sec. 4.2.3) is placed by C_EMT and C_p alone. Fixed at the
@@ -418,8 +466,13 @@ def canonical_rotation_vector(r: np.ndarray) -> np.ndarray:
     return r * (wrapped / theta)
 
 
-# tracker_pose's rotation vector: components up to 1e6 rad (any wrap of a real angle, and
-# degrees passed by mistake, which the tracker checks then catch); beyond, refused.
+# tracker_pose's rotation vector: components up to 1e6 rad (any wrap of a real angle); beyond,
+# refused. Degrees passed by mistake are within it, and not refused here: a probe turning faster
+# than ~0.3 rad/s at 25 frames/s (its degrees then jump ~57x as far) has most of its samples
+# dropped by the glitch filter, which the start-up refuses (_tracker_jumps) and
+# live_solver_warnings warns of once the start-up is done (tracker_warning); a slower one's pass
+# the filter, and only the window's gate (tracker_warning again) and, offline, the run's
+# tracker_agreement check tell.
 MAX_ROTATION_VECTOR_RAD = 1e6
 
 
@@ -552,6 +605,9 @@ class SequentialMosaicker:
         # samples used (id -> pose) and the recent departures from constant velocity.
         self._samples: dict[int, np.ndarray] = {}
         self._motion_history: deque = deque(maxlen=200)
+        # Of the last TRACKER_WARNING_FRAMES final frames given a tracker sample, whether it was
+        # gated or dropped (live_solver_warnings' tracker warning).
+        self._tracker_verdicts: deque = deque(maxlen=TRACKER_WARNING_FRAMES)
         self._reference_pose: np.ndarray | None = None
         self._reference_id: int | None = None  # the frame whose pose it is
         self._plane: np.ndarray | None = None
@@ -753,7 +809,7 @@ class SequentialMosaicker:
               "_loop_centroids", "_loop_G", "_pair_H", "_recent_G", "_poses", "pair_counts",
               "_mirror_frames", "_mirror_pairs", "_mirror_plane", "_implausible_run",
               "_world", "_times", "_intervals", "_unanchored", "bootstrap_summary",
-              "_samples", "_motion_history")
+              "_samples", "_motion_history", "_tracker_verdicts")
 
     def _save(self) -> dict:
         """What a call may change, copied (shallowly: the values it replaces, never mutates)."""
@@ -950,7 +1006,7 @@ class SequentialMosaicker:
 
         t0 = time.perf_counter()
         if self._plane is None:  # start-up: the window and the older frames that overlap
-            against = self._startup_candidates(tracker_pose)
+            against = self._startup_candidates(k, tracker_pose)
             matches = self._match(feats, against)
         else:
             matches = self._match_recent(feats, [f for _, f in self._recent])
@@ -1179,32 +1235,68 @@ class SequentialMosaicker:
         return [replace(m, frame_l=rows[m.frame_l], frame_m=rows[m.frame_m])
                 for m in matches]  # (the arrays are shared, not copied)
 
-    def _startup_candidates(self, tracker_pose) -> list:
-        """Earlier start-up frames to match a new one against: those of the window, and the
-        others whose footprint, predicted from the tracker poses and a provisional plane,
-        overlaps the new frame's by >= startup_min_overlap. All of them while no plane can be
-        estimated yet, or when the new frame has no tracker pose; an older frame without a
-        tracker pose or a predicted footprint is always tried."""
+    def _startup_candidates(self, k: int, tracker_pose) -> list:
+        """Earlier start-up frames to match frame k against: those of the window (the last
+        W - 1), the others whose footprint, predicted from the tracker poses and a provisional
+        plane, overlaps frame k's by >= startup_min_overlap, and among those without that
+        prediction (frame k or they untracked, or no plane yet) the ones _chained_candidates
+        picks. An older tracked frame without a predicted footprint is always tried;
+        startup_min_overlap 0: every earlier start-up frame."""
         o = self.options
-        if tracker_pose is None or o.startup_min_overlap <= 0:
+        if o.startup_min_overlap <= 0:
             return list(self._boot_feats)
-        tracked, table = self._pending_tracker_poses()
-        try:
-            plane = estimate_plane(self._renumbered(self._boot_matches), table, self.K)
-        except ValueError:  # no registered start-up pair with tracker poses yet
-            return list(self._boot_feats)
-        self._startup_plane = plane
-        recent = {f.frame_id for _, f in self._recent}
-        older = [f.frame_id for f in self._boot_feats
-                 if f.frame_id not in recent and f.frame_id in tracked]
+        recent = {i for i, _ in self._recent}
+        older = [f.frame_id for f in self._boot_feats if f.frame_id not in recent]
+        tracked, plane = {}, None
+        if tracker_pose is not None:
+            tracked, table = self._pending_tracker_poses()
+            try:
+                plane = estimate_plane(self._renumbered(self._boot_matches), table, self.K)
+            except ValueError:  # no registered start-up pair with tracker poses yet
+                tracked = {}
+            else:
+                self._startup_plane = plane
+        predicted = [i for i in older if i in tracked]
         G = np.array([_transfer_or_nan(tracker_pose, tracked[i], plane, self.K)
-                      for i in older]).reshape(-1, 3, 3)
+                      for i in predicted]).reshape(-1, 3, 3)
         polys = footprint_polygons(G, *self.size, self._fov_radius)
         # poly None: the provisional plane puts the footprint behind the camera (or a camera on
         # it); no prediction, so the frame is tried
-        skip = {i for i, poly in zip(older, polys, strict=True) if poly is not None
+        skip = {i for i, poly in zip(predicted, polys, strict=True) if poly is not None
                 and overlap_fraction(self._own_footprint, poly) < o.startup_min_overlap}
+        unpredicted = [i for i in older if i not in tracked]
+        skip |= set(unpredicted) - self._chained_candidates(k, unpredicted)
         return [f for f in self._boot_feats if f.frame_id not in skip]
+
+    def _chained_candidates(self, k: int, ids: list[int]) -> set[int]:
+        """Of the older start-up frames `ids`, whose overlap with frame k the tracker cannot
+        predict, those frame k is matched against: the STARTUP_CHAINED_PAIRS whose footprints,
+        chained through the start-up's registered pairs (_startup_G), overlap most, by >=
+        startup_min_overlap, the footprint of the newest chained frame of the window (frame
+        k's, predicted: it is not matched yet), and a stride over the others that tries each
+        of them every few frames (STARTUP_STRIDE_PAIRS a frame: frames the chain does not
+        reach, e.g. after black frames, or whose chain drifted). Before, a frame without a
+        tracker sample was matched against every frame the start-up holds, up to
+        startup_wait_frames: 80 pairs, ~370 ms a frame at 400x400 (ORB) for as long as the
+        tracker stayed off (review)."""
+        if not ids:
+            return set()
+        overlaps = {}
+        newest = next((i for i, _ in reversed(self._recent) if i in self._startup_G), None)
+        chained = [i for i in ids if i in self._startup_G]
+        if newest is not None and chained:
+            # older frame -> the newest chained frame's pixels
+            G = np.linalg.solve(self._startup_G[newest],
+                                np.array([self._startup_G[i] for i in chained]))
+            polys = footprint_polygons(G, *self.size, self._fov_radius)
+            for i, poly in zip(chained, polys, strict=True):
+                overlap = overlap_fraction(self._own_footprint, poly)
+                if overlap >= self.options.startup_min_overlap:
+                    overlaps[i] = overlap
+        best = set(sorted(overlaps, key=overlaps.get, reverse=True)[:STARTUP_CHAINED_PAIRS])
+        others = [i for i in ids if i not in best]
+        stride = -(-len(others) // STARTUP_STRIDE_PAIRS)  # (ceil; others empty: 0, unused)
+        return best | {i for i in others if (k - i) % stride == 0}
 
     def _timing(self, k: int, times: dict | None = None) -> tuple[float, float]:
         """C_p timing of frame k over the frames k-2, k-1 given before it (motion_timing);
@@ -1339,13 +1431,29 @@ class SequentialMosaicker:
                         [probe.pose(k) for k in ids])
         return best[1], best[2]
 
-    def _std_refusal(self, std: float, pairs: int) -> str:
-        """Why a start-up plane of relative std `std` from `pairs` registered pairs is refused."""
+    def _std_refusal(self, std: float, pairs: int, tracked: dict) -> str:
+        """Why a start-up plane of relative std `std` from `pairs` registered pairs is refused
+        (`tracked`: the samples it used, for _units_hint)."""
         return (f"the plane the start-up estimated from {pairs} registered pairs has a "
                 + ("relative standard deviation that the images leave unbounded (too few "
                    "pairs, or pairs that do not see it)" if np.isinf(std) else
                    f"relative standard deviation of {std:.2g}")
-                + f" (startup_max_plane_std {self.options.startup_max_plane_std:g})")
+                + f" (startup_max_plane_std {self.options.startup_max_plane_std:g})"
+                + self._units_hint(pairs, tracked))
+
+    @staticmethod
+    def _units_hint(pairs: int, tracked: dict) -> str:
+        """For a refused start-up: "; ... in mm?" when at least CONTRADICTING_PAIRS pairs
+        registered but the tracked camera centres lie within UNITS_BASELINE_MM of each other
+        (a tracker in metres: an 80-frame start-up on the SYN circle, 1131 pairs, was refused
+        as "too few pairs, or pairs that do not see it", its 33 mm of baseline read 0.033)."""
+        if pairs < CONTRADICTING_PAIRS or len(tracked) < 2:
+            return ""
+        spread = camera_baseline_mm(np.array(list(tracked.values())))
+        if not spread < UNITS_BASELINE_MM:
+            return ""
+        return (f"; yet its tracked camera centres lie within {spread:.2g} mm of each other: "
+                "are the tracker's translations in mm? (metres give a 1000x smaller baseline)")
 
     def _disagreement(self, ba, tracked: dict, conventions: bool = True) -> str:
         """For a refused start-up: "; its tracker samples disagree ..." when the adjusted poses
@@ -1410,13 +1518,34 @@ class SequentialMosaicker:
         usable = sum(m.frame_l in tracked and m.frame_m in tracked for m in self._boot_matches)
         return usable >= max(pairs + 1, 1.25 * pairs)
 
+    def _tracker_jumps(self) -> str | None:
+        """Why the start-up refuses its tracker samples, or None: when the glitch filter
+        (_plausible) dropped more than STARTUP_MAX_DROPPED_FRACTION of them (and at least
+        tracker_reanchor_after), they jump between frames as no probe moves: a convention mix-up
+        (rotations in degrees, [t, r] order), not glitches. The start-up adjustment took such
+        samples and frames came out "placed" 50-2000 px off (median)."""
+        given = sum(p.get("sample") is not None for p in self._pending)
+        dropped = sum(bool(p["dropped"]) for p in self._pending)
+        if not (dropped > STARTUP_MAX_DROPPED_FRACTION * given
+                and dropped >= self.options.tracker_reanchor_after):
+            return None
+        return (f"the glitch filter dropped {dropped} of the start-up's {given} tracker samples "
+                "as jumps from the sample before faster than tracker_max_speed_mm_s / "
+                "tracker_max_angular_speed allow: the tracker evidently disagrees with the "
+                "images. Check that tracker_pose is the camera's cam_from_world as [angle-axis "
+                "r in rad, t in mm] (rotations in degrees, or [t, r] for [r, t], make samples "
+                "jump so), and that "
+                + CONVENTIONS_AND_TIMING)
+
     def _bootstrap(self, final_step: bool = False) -> bool:
         """BA+EMT over the first frames (all their pairs): plane and poses to start from.
         False (nothing done) while no registered pair has tracker poses for both frames, or
         when the plane it gives is not in front of every start-up camera."""
         t0 = time.perf_counter()
-        self._startup_problem = None
         self._startup_refused = (0, 0, 0)
+        self._startup_problem = self._tracker_jumps()  # (None: not refused for this)
+        if self._startup_problem:  # (checked again at the next frame: a count, no solve)
+            return False
         tracked, table = self._pending_tracker_poses()
         usable = [m for m in self._boot_matches if m.frame_l in tracked and m.frame_m in tracked]
         if not usable:
@@ -1480,8 +1609,8 @@ class SequentialMosaicker:
                     if not summary["plane_relative_std"] <= limit:
                         self._startup_refused = (refused_pairs, len(ids), self._next_id)
                         self._startup_problem = self._std_refusal(
-                            summary["plane_relative_std"], len(usable)) + self._disagreement(
-                            ba, tracked)
+                            summary["plane_relative_std"], len(usable), tracked
+                        ) + self._disagreement(ba, tracked)
                         return False
                     ba, summary = self._solve_startup(ids, tracked, table, timing, start=ba)
             else:
@@ -1554,7 +1683,8 @@ class SequentialMosaicker:
                            "; a camera held still or only turning about its axis gives the "
                            "images no parallax"
                            if baseline_ratio(checked_poses, np.asarray(ba.plane()))
-                           < MIN_BASELINE_RATIO else "") + ")")
+                           < MIN_BASELINE_RATIO else "") + ")"
+                       + self._units_hint(len(usable), tracked))
             self._startup_problem = (
                 f"the plane the start-up estimated from {len(usable)} registered pairs is not "
                 f"in front of frames {behind[:5]}{' ...' if len(behind) > 5 else ''}: {why}"
@@ -1569,7 +1699,7 @@ class SequentialMosaicker:
         if limit > 0 and not std <= limit and (
                 np.isinf(std) or not must_decide):
             self._startup_refused = (refused_pairs, len(ids), self._next_id)
-            self._startup_problem = (self._std_refusal(std, len(usable))
+            self._startup_problem = (self._std_refusal(std, len(usable), tracked)
                                      + self._disagreement(ba, tracked))
             return False
         self.bootstrap_summary = summary
@@ -1592,6 +1722,11 @@ class SequentialMosaicker:
         has_sample[[rows[k] for k in tracked]] = True
         lost = unanchored_frames(len(ids), self._renumbered(self._boot_matches), has_sample)
         anchored = {k for k in ids if not lost[rows[k]]}
+        # the start-up's pairs, for the frames its tail holds back to the next step: what
+        # links them to the start-up frames placed now (_fixed_partners, _linked)
+        for p in self._pending:
+            p["links"] = {m.frame_l if m.frame_m == p["id"] else m.frame_m
+                          for m in self._boot_matches if p["id"] in (m.frame_l, m.frame_m)}
         self._boot_feats, self._boot_matches = [], []
         elapsed = (time.perf_counter() - t0) / len(ids)
         self._finalize(ids, [ba.pose(k) for k in ids], gated, elapsed, 0.0, final_step,
@@ -1642,7 +1777,7 @@ class SequentialMosaicker:
         # Anchors: fixed cameras placed with one, the frames' own tracker samples, and
         # registered pairs (visual: linked to an anchored fixed camera through pairs alone).
         # A step with none cannot inform pi: it is held.
-        fixed = (window_ids | set(keyframe_ids) | set(self._loop_feats)) - set(ids)
+        fixed = self._fixed_partners(ids)
         visual = self._linked(fixed - self._unanchored, set())
         glitched = [p["id"] for p in self._pending if p.get("motion_glitch")]
         tracked = {p["id"] for p in self._pending if p["tracker"] is not None} - set(glitched)
@@ -1723,6 +1858,19 @@ class SequentialMosaicker:
         return {k for k, d in zip(samples, depths, strict=True)
                 if not (np.isfinite(d) and d > floor)}
 
+    def _fixed_partners(self, ids) -> set[int]:
+        """The fixed cameras a step of the pending frames `ids` holds constant through their
+        pairs: every fixed frame the C++ window still holds that a pending frame has a stored
+        pair with (the step joins each such camera, sliding_window.cc SolveStep). Not
+        window_ids(): those are the last W - chi_e frames the window fixed, which after a step
+        that held its last frames back (_held_tail) are those held frames themselves, pending
+        again; the frames placed before them, which the new frames' pairs point to, were then
+        no anchor (review: textured frames chained to placed ones came out "dead-reckoned", the
+        plane held for 17 steps, steps of up to 28 free frames)."""
+        frames, step = self._mirror_frames, set(ids)
+        linked = set().union(*(p.get("links", ()) for p in self._pending))
+        return {i for i in linked - step if i in frames and frames[i][3]}
+
     def _linked(self, anchors: set[int], seeds: set[int]) -> set[int]:
         """Pending frames anchored: the seeds, and those linked by registered pairs to an
         anchor or to an anchored pending frame."""
@@ -1775,6 +1923,8 @@ class SequentialMosaicker:
         for p, pose in zip(self._pending[:cut], poses[:cut], strict=True):
             k = p["id"]
             pose = np.asarray(pose)
+            if p.get("sample") is not None:
+                self._tracker_verdicts.append(k in gated or bool(p["dropped"]))
             self._poses[k] = (pose, p["timestamp"])
             reference = pose if self._reference_pose is None else self._reference_pose
             try:
@@ -1936,12 +2086,33 @@ def observed_plane_std(mosaicker: SequentialMosaicker,
 
 def live_solver_warnings(mosaicker: SequentialMosaicker) -> list[str]:
     """_solver_warnings of a streamed run, from the mosaicker's start-up summary and its kept
-    step summaries (the last history_steps)."""
+    step summaries (the last history_steps), and tracker_warning's (the offline run's
+    tracker_agreement compares the whole run's poses with the recording's samples instead)."""
     o = mosaicker.options
     steps = mosaicker.step_summaries
     unconverged = [s.termination for s in steps if solver_warning(s, o.max_iterations)]
-    return _solver_warnings(mosaicker.bootstrap_summary, unconverged, len(steps),
-                            o.max_iterations, o.startup_max_iterations)
+    out = _solver_warnings(mosaicker.bootstrap_summary, unconverged, len(steps),
+                           o.max_iterations, o.startup_max_iterations)
+    tracker = tracker_warning(mosaicker)
+    return out + [tracker] if tracker else out
+
+
+def tracker_warning(mosaicker: SequentialMosaicker) -> str | None:
+    """A warning when more than TRACKER_WARNING_FRACTION of the last TRACKER_WARNING_FRAMES
+    final frames given a tracker sample (at least TRACKER_WARNING_MIN of them) had it gated or
+    dropped: the tracker disagrees with the images, as tracker_pose in another convention does
+    once the start-up took it (frames then "placed" hundreds of px off with at most a solver
+    warning before), or a tracker noisier than emt_sigma says."""
+    verdicts = mosaicker._tracker_verdicts
+    bad = sum(verdicts)
+    if len(verdicts) < TRACKER_WARNING_MIN or not bad > TRACKER_WARNING_FRACTION * len(verdicts):
+        return None
+    return (f"{bad} of the last {len(verdicts)} tracker samples of final frames were gated "
+            "(down-weighted: they disagree with the images, gate_chi2) or dropped as glitches: "
+            "the tracker disagrees with the images by more than the EMT prior's noise. "
+            + TRACKER_NOISE_ADVICE.format("emt_sigma; --tracker-rot-sigma / "
+                                          "--tracker-trans-sigma")
+            + "; tracker_pose is the camera's cam_from_world, [angle-axis r in rad, t in mm]")
 
 
 def _solver_warnings(bootstrap, unconverged: list[str], steps: int, max_iterations: int,
