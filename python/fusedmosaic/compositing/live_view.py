@@ -26,12 +26,21 @@ kind, without frame numbers or coordinates, so it stays small however long the s
 ``problem_details`` has the first frame of each kind and its full message) and never stops the
 session or the worker.
 
+The worker renders each publication and hands it to a publisher thread, which writes the
+preview and sends it to the server's clients: compositing never waits for a disk or a client (a
+client taking the mosaic at 1.5 MB/s held the worker 5.4 s a publication, and frames beyond the
+MAX_QUEUED waiting were never drawn; review). The publisher holds one publication waiting, the
+latest: one rendered while it is still busy replaces the one waiting, not yet started
+(``superseded``), so a slow client gets the newest view next, never a queue of old ones.
+:meth:`close` delivers the last one. ``published`` counts the publications delivered.
+
 Each publication renders and encodes the whole canvas, at a cost growing with it (4096 x 4096:
-~1.8 s). So that the worker never spends more than about 1 / PUBLISH_DUTY of its time on them,
-the next publication waits at least PUBLISH_DUTY x the last one's cost (``summary()``:
-``publish_s``, ``effective_interval_s``). An OpenIGTLink IMAGE holds at most 65535 px a side:
-a larger canvas is sent shrunk by a whole factor (area averaged; its geometry says so), and
-counted in ``server.downscaled``.
+~1.8 s). So that the view never spends more than about 1 / PUBLISH_DUTY of a core on them, the
+next publication waits at least PUBLISH_DUTY x the last one's cost (``summary()``:
+``publish_s``, ``effective_interval_s``): the render's time on the worker plus the publisher's
+CPU time for the last delivery (encoding, writing, packing; the time spent waiting for clients
+is no cost). An OpenIGTLink IMAGE holds at most 65535 px a side: a larger canvas is sent shrunk
+by a whole factor (area averaged; its geometry says so), and counted in ``server.downscaled``.
 """
 
 from __future__ import annotations
@@ -90,8 +99,10 @@ class LiveMosaicView:
         self.origin_reference_px: tuple[float, float] | None = None
         self.view_size: tuple[int, int] | None = None
         self.frames_added = 0
-        self.published = 0
+        self.published = 0  # publications delivered (preview written, sent: as far as they went)
+        self.superseded = 0  # publications replaced by a newer one before the publisher took them
         self.problems: dict[str, int] = {}  # what went wrong -> how often
+        self._problems_lock = threading.Lock()  # (the worker and the publisher record them)
         # each kind's first occurrence: {"frame": the view's frame number, "message": full text}
         self.problem_details: dict[str, dict] = {}
         self._queue: queue.Queue = queue.Queue()
@@ -99,12 +110,20 @@ class LiveMosaicView:
         self._dirty = False
         self._received = 0  # frames handed to add(), numbering them for problem_details
         self._current: int | None = None  # the frame the worker is at
-        self.publish_s: list[float] = []  # the last publications' costs (render .. send), s
+        self.publish_s: list[float] = []  # the last publications' costs (module notes), s
         self.effective_interval_s = self.interval_s
         self.igtl_downscaled = 0  # images sent to the server shrunk to fit OpenIGTLink
         self.igtl_scale: float | None = None  # the last sent image's pixels per reference pixel
+        # the publication waiting for the publisher (frame, view, origin, scale), or None
+        self._waiting: tuple | None = None
+        self._waiting_cv = threading.Condition()
+        self._closing = False  # the publisher ends once nothing waits
+        self._deliver_cpu_s = 0.0  # the publisher's CPU time for the last delivery, s
         self._thread = threading.Thread(target=self._work, name="live-mosaic-view", daemon=True)
+        self._publisher = threading.Thread(target=self._deliver_loop,
+                                           name="live-mosaic-publisher", daemon=True)
         self._thread.start()
+        self._publisher.start()
 
     @staticmethod
     def check_preview(preview: str | Path | None) -> None:
@@ -124,21 +143,30 @@ class LiveMosaicView:
         self._queue.put((index, image, np.asarray(homography, np.float64)))
 
     def close(self, timeout_s: float = 30.0) -> None:
-        """Composites what is queued, publishes the result once more, stops the worker."""
+        """Composites what is queued, publishes the result once more (delivered: written and
+        sent), stops the worker and the publisher, within timeout_s in all."""
+        end = time.monotonic() + timeout_s
         self._queue.put(_STOP)
         self._thread.join(timeout=timeout_s)
         if self._thread.is_alive():
             self._problem(f"the view was still compositing after {timeout_s:g} s")
+        with self._waiting_cv:
+            self._closing = True
+            self._waiting_cv.notify()
+        self._publisher.join(timeout=max(end - time.monotonic(), 0.0))
+        if self._publisher.is_alive():
+            self._problem(f"the view was still publishing after {timeout_s:g} s")
 
     def _problem(self, what: str, frame: int | None = None, message: str | None = None
                  ) -> None:
         """Counts a problem of kind `what` (no frame numbers in it); the first of each kind
         keeps its frame and full message in problem_details."""
-        if what not in self.problems and len(self.problems) >= MAX_PROBLEM_KINDS:
-            what = "other problems (more kinds than the report keeps)"
-        if what not in self.problems:
-            self.problem_details[what] = {"frame": frame, "message": message or what}
-        self.problems[what] = self.problems.get(what, 0) + 1
+        with self._problems_lock:
+            if what not in self.problems and len(self.problems) >= MAX_PROBLEM_KINDS:
+                what = "other problems (more kinds than the report keeps)"
+            if what not in self.problems:
+                self.problem_details[what] = {"frame": frame, "message": message or what}
+            self.problems[what] = self.problems.get(what, 0) + 1
 
     def _work(self) -> None:
         while True:
@@ -168,11 +196,13 @@ class LiveMosaicView:
         except Exception as exc:  # noqa: BLE001 (recorded: the worker must not die)
             self._problem(f"not published: {_kind(exc)}", frame=self._current,
                           message=f"{type(exc).__name__}: {exc}")
-        cost = time.monotonic() - start
+        cost = time.monotonic() - start + self._deliver_cpu_s
         self.publish_s = (self.publish_s + [cost])[-20:]
         self.effective_interval_s = max(self.interval_s, PUBLISH_DUTY * cost)
 
     def _publish(self) -> None:
+        """Renders the canvas (the worker's) and hands it to the publisher, replacing the
+        publication waiting, if any (latest wins)."""
         self._last_publish = time.monotonic()
         self._dirty = False
         try:
@@ -183,6 +213,32 @@ class LiveMosaicView:
             return
         s = self.canvas.scale
         origin = (self.canvas.bounds[0] / s, self.canvas.bounds[1] / s)
+        with self._waiting_cv:
+            if self._waiting is not None:
+                self.superseded += 1
+            self._waiting = (self._current, view, origin, s)
+            self._waiting_cv.notify()
+
+    def _deliver_loop(self) -> None:
+        """The publisher: delivers the publication waiting, until close() and none waits."""
+        while True:
+            with self._waiting_cv:
+                while self._waiting is None and not self._closing:
+                    self._waiting_cv.wait()
+                if self._waiting is None:
+                    return
+                publication, self._waiting = self._waiting, None
+            start = time.thread_time()  # (CPU: waiting for a slow client costs nothing)
+            try:
+                self._deliver(*publication)
+            except Exception as exc:  # noqa: BLE001 (recorded: the publisher must not die)
+                self._problem(f"not published: {_kind(exc)}", frame=publication[0],
+                              message=f"{type(exc).__name__}: {exc}")
+            self._deliver_cpu_s = time.thread_time() - start
+
+    def _deliver(self, frame: int | None, view: np.ndarray, origin: tuple[float, float],
+                 s: float) -> None:
+        """Writes the preview and sends the view to the server (the publisher's thread)."""
         self.origin_reference_px, self.view_size = origin, (view.shape[1], view.shape[0])
         if self.preview is not None:
             tmp = self.preview.with_name(f".{self.preview.name}.{os.getpid()}.tmp.png")
@@ -195,7 +251,7 @@ class LiveMosaicView:
             except (OSError, cv2.error) as exc:
                 tmp.unlink(missing_ok=True)
                 self._problem(f"{self.preview}: not written: "
-                              f"{getattr(exc, 'strerror', None) or exc}", frame=self._current)
+                              f"{getattr(exc, 'strerror', None) or exc}", frame=frame)
         if self.server is not None:
             from fusedmosaic.io.igtl import mosaic_ijk_to_world
 
@@ -211,12 +267,18 @@ class LiveMosaicView:
         self.published += 1
 
     def summary(self) -> dict:
-        """For report.json: frames drawn, publications, the last published image's place
-        (origin_reference_px: its pixel (0, 0) in reference pixels, None before the first;
-        width, height; scale: its pixels per reference pixel; pixel_size_mm: the world's mm per
-        reference pixel in the server's image geometry), clients, problems."""
+        """For report.json: frames drawn, publications (delivered; superseded), the last
+        published image's place (origin_reference_px: its pixel (0, 0) in reference pixels,
+        None before the first; width, height; scale: its pixels per reference pixel;
+        pixel_size_mm: the world's mm per reference pixel in the server's image geometry),
+        clients, problems."""
         origin = self.origin_reference_px
+        with self._problems_lock:  # (the publisher may be recording one)
+            problems = dict(self.problems)
+            details = {k: dict(v) for k, v in self.problem_details.items()}
         out = {"frames_drawn": self.frames_added, "published": self.published,
+               # replaced by a newer one before the publisher was free (a slow client, disk)
+               "superseded": self.superseded,
                "interval_s": self.interval_s,
                "preview": None if self.preview is None else str(self.preview),
                "origin_reference_px": None if origin is None else [float(v) for v in origin],
@@ -224,12 +286,12 @@ class LiveMosaicView:
                "height": None if self.view_size is None else self.view_size[1],
                "scale": self.canvas.scale,
                "pixel_size_mm": 1.0 if self.pixel_size_mm is None else self.pixel_size_mm,
-               # a publication's cost (render .. send) and the interval it imposes
+               # a publication's cost (render, and the publisher's CPU time for the last
+               # delivery) and the interval it imposes
                "publish_s": ({"last": self.publish_s[-1], "max": max(self.publish_s)}
                              if self.publish_s else None),
                "effective_interval_s": self.effective_interval_s,
-               "problems": dict(self.problems),
-               "problem_details": {k: dict(v) for k, v in self.problem_details.items()}}
+               "problems": problems, "problem_details": details}
         if self.server is not None:
             out["server"] = {"address": self.server.address,
                              "device": self.server.device_name,

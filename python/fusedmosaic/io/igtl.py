@@ -99,6 +99,13 @@ HISTORY_S = MAX_TIME_OFFSET_S + 5.0
 HISTORY_MAX = 20_000
 _READS_PER_PASS = 16  # IgtlImageServer reads of 64 KB per client and pass (ignored)
 _SEND_POLL_S = 0.05  # IgtlImageServer.send tries a client that did not take bytes this often
+# IgtlImageServer.send gives a client at most max(send_timeout_s, message bytes / MIN_SEND_RATE)
+# for one message, however steadily it takes bytes: a send holds the next message back from
+# every client, and a client slower than 1 MB/s cannot follow a live mosaic (a 2000 x 2000
+# colour view is 12 MB: 12 s a publication). With the stall rule alone (no byte for
+# send_timeout_s) a send lasted size / rate however slow the client (5.4 s for 12 MB to a
+# 1.5 MB/s client, still allowed), and for ever for one trickling a byte every 1.9 s (review).
+MIN_SEND_RATE = 1e6  # bytes/s
 _SPACING_WINDOW = 128  # the newest samples whose typical spacing bounds a sample's age
 _BASELINE_WINDOW = 32  # the samples before the newest searched for an extrapolation's base
 # A position past the newest sample is extrapolated along the motion since the newest sample
@@ -121,12 +128,25 @@ QUATERNION_NOT_UNIT = "quaternion not of unit norm (within 1e-3)"
 # "timestamp does not increase" (review). A stamp's lead is at most its step from the last
 # accepted one (arrivals do not go back): a stream without gaps in its stamps stays within an
 # interval or two of lead, even as a backlog drains.
+# While a backlog drains (messages queued at the sender or in the socket read faster than real
+# time: PLUS Server's burst of its buffered frames to a new client, a receiver catching up),
+# arrivals are compressed and any pause in the stamps (an EM sensor out of the field, PLUS's
+# SendValidTransformsOnly sending nothing meanwhile; a video freeze) reads as lead: a 1 s pause
+# in a 40 Hz burst read 1 ms apart had 2 samples refused and a clock jump taken (review). The
+# stream is draining when, over its accepted stamps of the last DRAIN_WINDOW_S, the arrivals
+# span less than DRAIN_RATIO of the stamps' span and the receiver gained more than
+# MIN_STAMP_LEAD_S on them (a sender whose arrivals come in bursts of a few ms, e.g. a 1 kHz
+# robot's, is no drain); the bound is then MAX_STAMP_LEAD_S, a stamp's lead saying nothing of a
+# jump until the stream is read live again.
 # STAMP_JUMP_CONFIRM such stamps in a row, consistent among themselves, are the sender's clock
 # jumping: the last is accepted and the stream goes on from it.
 MAX_STAMP_LEAD_S = 10.0
 MIN_STAMP_LEAD_S = 0.5
 STAMP_LEAD_SPACINGS = 10.0
 _STAMP_WINDOW = 32  # the recent accepted stamps whose intervals set the bound
+DRAIN_WINDOW_S = 2.0
+DRAIN_RATIO = 0.5
+_DRAIN_MAX = 4096  # accepted (stamp, arrival) kept for it (a shorter window beyond 2 kHz)
 STAMP_JUMP_CONFIRM = 3
 STAMP_JUMP = (f"a timestamp jumping ahead of the stream (beyond the time since the last "
               f"accepted one arrived by more than {MIN_STAMP_LEAD_S:g} s or "
@@ -146,12 +166,27 @@ class StampJumps:
         self._back: list[tuple[float, float]] = []  # stamped far behind, in a row
         self.steps_back: list[float] = []  # the clock's steps back seen (s)
         self._recent: deque[float] = deque(maxlen=_STAMP_WINDOW)  # accepted stamps
+        # accepted (stamp, arrival) of the last DRAIN_WINDOW_S of stamps
+        self._window: deque[tuple[float, float]] = deque(maxlen=_DRAIN_MAX)
+
+    def draining(self) -> bool:
+        """Whether the stream is read faster than real time (a backlog draining): over the
+        accepted stamps of the last DRAIN_WINDOW_S, the arrivals span less than DRAIN_RATIO of
+        the stamps' span, and the receiver gained more than MIN_STAMP_LEAD_S on them."""
+        if len(self._window) < 2:
+            return False
+        stamps = self._window[-1][0] - self._window[0][0]
+        arrivals = self._window[-1][1] - self._window[0][1]
+        return arrivals < DRAIN_RATIO * stamps and stamps - arrivals > MIN_STAMP_LEAD_S
 
     def lead_bound(self) -> float:
         """The lead (s) beyond which a stamp is a jump: the longer of MIN_STAMP_LEAD_S and
         STAMP_LEAD_SPACINGS typical intervals of the recent accepted stamps (sample_spacing:
         a sender stamping in pairs or bursts is no faster stream), at most MAX_STAMP_LEAD_S;
-        MIN_STAMP_LEAD_S before two stamps."""
+        MIN_STAMP_LEAD_S before two stamps; MAX_STAMP_LEAD_S while a backlog drains
+        (`draining`: a pause in the stamps is no lead then)."""
+        if self.draining():
+            return MAX_STAMP_LEAD_S
         if len(self._recent) < 2:
             return MIN_STAMP_LEAD_S
         return min(MAX_STAMP_LEAD_S, max(MIN_STAMP_LEAD_S,
@@ -175,11 +210,15 @@ class StampJumps:
         self.pending.clear()
         self.jumps.append(lead)
         self._recent.clear()  # (the stream's intervals start again on the new clock)
+        self._window.clear()
         return None
 
     def accepted(self, stamp: float, arrival: float) -> None:
         self.last = (stamp, arrival)
         self._recent.append(stamp)
+        self._window.append((stamp, arrival))
+        while stamp - self._window[0][0] > DRAIN_WINDOW_S:
+            self._window.popleft()
         self._back.clear()
 
     def behind(self, stamp: float, arrival: float) -> float | None:
@@ -926,10 +965,11 @@ class IgtlImageServer:
     every client connecting (e.g. 3D Slicer's OpenIGTLinkIF in client mode) receives each
     :meth:`send` from, as IMAGE messages of ``device_name`` packed by pyigtl (RGB, one slice;
     placed by the ``ijk_to_world`` given to :meth:`send`, e.g. :func:`mosaic_ijk_to_world`,
-    else 1 mm spacing with pixel (0, 0) at the origin). A client that fails, or stalls (takes
+    else 1 mm spacing with pixel (0, 0) at the origin). A client that fails, stalls (takes
     no byte of a message for ``send_timeout_s``; a slow link taking a large image for longer
-    is not stalled), is dropped; what clients send is read and ignored. A context manager
-    (closes the sockets)."""
+    is not stalled) or is too slow (has not taken a whole message max(send_timeout_s, its size /
+    MIN_SEND_RATE) after the send began) is dropped; what clients send is read and ignored. A
+    context manager (closes the sockets)."""
 
     def __init__(self, address: str, *, device_name: str = "Mosaic",
                  send_timeout_s: float = 2.0) -> None:
@@ -1022,21 +1062,25 @@ class IgtlImageServer:
 
     def _send_to(self, clients: list[socket.socket], message: bytes) -> int:
         """Sends message to every client at once, each as fast as it takes it; drops a client
-        that fails or takes no byte for send_timeout_s (a timeout on the whole sendall dropped
-        a client 2 s into a 27 MB mosaic over a 32 Mbit/s link, mid-message, every time;
-        review). Returns how many got all of it."""
+        that fails, takes no byte for send_timeout_s, or has not taken all of it by
+        max(send_timeout_s, len(message) / MIN_SEND_RATE) after the start (a timeout of
+        send_timeout_s on the whole sendall dropped a client 2 s into a 27 MB mosaic over a
+        32 Mbit/s link, mid-message, every time; review). Returns how many got all of it."""
         data = memoryview(message)
         start = time.monotonic()
+        deadline = start + max(self.send_timeout_s, len(message) / MIN_SEND_RATE)
         pending = {c: [0, start] for c in clients}  # client -> [bytes sent, last progress]
         done = 0
         while pending and not self._stop:
             now = time.monotonic()
-            for c in [c for c, (_, last) in pending.items() if now - last > self.send_timeout_s]:
-                del pending[c]  # stalled: its stream is broken (part of the message sent)
+            for c in [c for c, (_, last) in pending.items()
+                      if now - last > self.send_timeout_s or now > deadline]:
+                del pending[c]  # stalled or too slow: its stream is broken (part sent)
                 self._remove(c)
             if not pending:
                 break
-            wait = min(last for _, last in pending.values()) + self.send_timeout_s - now
+            wait = min(min(last for _, last in pending.values()) + self.send_timeout_s,
+                       deadline) - now
             try:
                 select.select([], list(pending), [], min(max(wait, 0.0), _SEND_POLL_S))
             except (OSError, ValueError):  # a client closed meanwhile (_accept: it left)
