@@ -19,7 +19,6 @@ from fusedmosaic.io import recorder as recorder_module
 from fusedmosaic.io.calibration import Camera
 from fusedmosaic.io.recorder import RETRY_STORED, DatasetRecorder
 from fusedmosaic.runner import (
-    BACKLOG_BASELINE_FRAMES,
     MAX_FRAME_TIMEOUT_S,
     _ReceiveBacklog,
     check_live_limits,
@@ -125,7 +124,7 @@ def test_receive_backlog_is_the_growth_of_arrival_minus_stamp():
     backlog = _ReceiveBacklog()
     assert backlog.details() is None
     rng = np.random.default_rng(0)
-    for k in range(BACKLOG_BASELINE_FRAMES + 10):
+    for k in range(35):
         stamp = 1000 + 0.04 * k
         backlog.add(stamp, stamp - 1000 + rng.uniform(0.005, 0.015))
     assert backlog.details()["max"] < 0.011
@@ -216,3 +215,25 @@ def test_cli_refuses_a_frame_timeout_beyond_the_bound(tmp_path, capsys):
     assert ("--frame-timeout must be at most 1000000 s (11.6 days, as good as no timeout), got "
             "1e+10") in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["camera.yaml"]
+
+
+def test_receive_backlog_is_not_hidden_by_a_connect_burst():
+    """PLUS Server starts a new client at its oldest buffered frames, seconds old, read as fast
+    as they come (2 ms apart here, 5 s of them), then live (50 ms of transport); then the
+    receiver falls 3 s behind. The baseline was the least (arrival - stamp) of the first 25
+    frames, those of the burst: the 3 s read {'end': -0.79, 'max': 0.0}. It is now the least
+    so far."""
+    backlog = _ReceiveBacklog()
+    arrival = 0.0
+    for k in range(125):  # the buffered burst: stamped 1000 - 5 .. 1000
+        backlog.add(995 + 0.04 * k, arrival)
+        arrival += 0.002
+    assert backlog.details() == {"end": 0.0, "max": 0.0}  # (behind from the start: unseen)
+    for k in range(250):  # live, 10 s
+        stamp = 1000 + 0.04 * k
+        backlog.add(stamp, stamp - 1000 + 0.3)
+    assert backlog.details()["max"] < 0.02  # (the burst's last frame was read 12 ms sooner)
+    for k in range(75):  # each frame read 80 ms after the one before: 3 s behind at the end
+        stamp = 1010 + 0.04 * k
+        backlog.add(stamp, stamp - 1000 + 0.3 + 0.04 * (k + 1))
+    assert backlog.details() == pytest.approx({"end": 3.0, "max": 3.0}, abs=0.02)

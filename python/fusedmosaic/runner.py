@@ -45,11 +45,6 @@ BLANK_LEVEL = 12
 # --frame-timeout at most (s, 11.6 days: as good as none); a wait beyond threading.TIMEOUT_MAX
 # (9.2e9 s) ended the session in OverflowError
 MAX_FRAME_TIMEOUT_S = 1e6
-# A live session's receive backlog is measured against the least (arrival - stamp) of its first
-# this many accepted frames (1 s of a 25 frames/s stream): the clocks' offset and the transport's
-# delay, before any backlog could build up.
-BACKLOG_BASELINE_FRAMES = 25
-
 
 def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
                 fps: float | None = None,
@@ -1030,29 +1025,32 @@ class _LiveScale:
 
 class _ReceiveBacklog:
     """How far a live session's receiver fell behind the sender: each accepted frame's
-    (arrival - stamp) less the least of the first BACKLOG_BASELINE_FRAMES (that takes out the
-    clocks' offset and the transport's delay): about 0 while frames are read as they are sent;
-    it grows while they wait in the socket or the sender (a receiver held up), by the clocks'
-    relative drift too (ppm), and for a sender stamping at another pace than real time (a
-    replay). The latency figures start at arrival and cannot show it.
+    (arrival - stamp) less the least one so far (since the session began, or the sender's clock
+    last jumped), which takes out the clocks' offset and the transport's delay: about 0 while
+    frames are read as they are sent; it grows while they wait in the socket or the sender (a
+    receiver held up), by the clocks' relative drift too (ppm), and for a sender stamping at
+    another pace than real time (a replay). The latency figures start at arrival and cannot
+    show it. The least so far, not that of the first frames: PLUS Server starts a new client at
+    its oldest buffered frames, seconds old, sent as fast as it can (vtkPlusOpenIGTLinkServer's
+    SendLatestFramesToClients), and a baseline taken from them hid a later backlog as long
+    (review: a real 3 s backlog read max 0.0, end -0.79; now 3.0). Frames read behind from the
+    start (that burst) read 0 until a frame comes sooner.
     report.json live source receive_backlog_s (end: the last frame's, max)."""
 
     def __init__(self) -> None:
-        self.base, self.seen, self.end, self.max = np.inf, 0, 0.0, 0.0
+        self.base, self.end, self.max = np.inf, 0.0, 0.0
         self.frames = 0
 
     def add(self, stamp: float, arrival: float) -> None:
         lag = arrival - stamp
-        if self.seen < BACKLOG_BASELINE_FRAMES:
-            self.base = min(self.base, lag)
-        self.seen += 1
+        self.base = min(self.base, lag)
         self.frames += 1
         self.end = lag - self.base
         self.max = max(self.max, self.end)
 
     def restart(self) -> None:
         """The sender's clock jumped (taken as its clock from there): a new baseline."""
-        self.base, self.seen = np.inf, 0
+        self.base = np.inf
 
     def details(self) -> dict | None:
         return (None if not self.frames else

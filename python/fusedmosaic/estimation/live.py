@@ -178,8 +178,9 @@ def replay_live(dataset, method: str, *, options=None, progress: bool = True,
         # processed frames whose newest sample was missing or older than max_sample_age_s
         "frames_without_sample": [int(dataset.frame_ids[k]) for k in sorted(stream.no_sample)],
         "processing_time": "measured" if processing_time is None else "given"}}
-    if method == "lba-emt":
-        details.update(_lba_checks(stream.mosaicker))
+    if method == "lba-emt":  # (the mosaicker numbers the frames it was given)
+        details.update(_lba_checks(stream.mosaicker,
+                                   lambda i: int(dataset.frame_ids[processed[i]])))
     if method in TRANSLATION_ESTIMATES:  # a chain starting after frame 0 warns as offline
         ids = [int(dataset.frame_ids[k]) for k in processed]
         details.update(_translation_checks(
@@ -228,15 +229,16 @@ def _streamed_result(method: str, status: list, finals: dict, plane, details: di
                         undistorted=method == "lba-emt", mask_specular=method == "lba-emt")
 
 
-def _lba_checks(mosaicker) -> dict:
+def _lba_checks(mosaicker, frame_name=None) -> dict:
     """report.json entries of a streamed lba-emt run that the offline one has: the plane's
     relative std and the registered pairs (for consistency.tracker_agreement's plane check),
-    and the start-up's and window steps' solver warnings."""
+    and the start-up's and window steps' solver warnings, and the tracker's (frame_name: the
+    mosaicker's frame number -> the frame's id, which the tracker warning names)."""
     from fusedmosaic.estimation.sequential import live_solver_warnings, observed_plane_std
 
     return {"plane_relative_std": observed_plane_std(mosaicker),
             "pairs": {"registered": mosaicker.pair_counts["registered"]},
-            "warnings": live_solver_warnings(mosaicker)}
+            "warnings": live_solver_warnings(mosaicker, frame_name)}
 
 
 def _translation_checks(method: str, origin_frames: dict, ids: list, results: list,
@@ -546,8 +548,8 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
             take(mosaicker.flush())
     session.plane = getattr(mosaicker, "plane", None)
     session.origin_frames = getattr(mosaicker, "origin_frames", None)
-    if method == "lba-emt":
-        session.checks = _lba_checks(mosaicker)
+    if method == "lba-emt":  # (the tracker warning names the source's frames)
+        session.checks = _lba_checks(mosaicker, lambda i: session.processed[i])
     return session
 
 

@@ -57,6 +57,7 @@ import numbers
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
@@ -177,20 +178,27 @@ STARTUP_CHAINED_PAIRS = 6
 STARTUP_STRIDE_PAIRS = 2
 # The start-up refuses its tracker samples when the glitch filter dropped more than this
 # fraction of them (_tracker_jumps). Measured at the start-up's first attempt: tracker_pose
-# with rotations in degrees 5 of 8 samples dropped (the tests' 8-frame start-up) and 37 of 40
-# (SYN, 256 px), given as [t, r] 4 of 8 and 37 of 40; the tests' glitches (a +10 m or +100 m
-# sample, a bad first one, 4x the prior's noise) at most 1 of 8. The tracker's disagreement
-# with the adjusted poses (consistency.tracker_agreement's noise ratio) does not tell them
-# apart: quaternions stored w first, which a 12-frame start-up takes and the run warns of, read
-# 4.2 x the prior's noise (30 frames: 8.3), [t, r] from 4.4, 4x the noise 3.3-3.5.
+# with rotations in degrees 4 of 8 samples dropped (the tests' 8-frame start-up) and 25 of 40
+# (SYN, 200 px), given as [t, r] 4 of 8 and 18 of 40; the tests' glitches (a +10 m or +100 m
+# sample, a bad first one, 4x the prior's noise) at most 1 of 8. A tracker re-based once (its
+# reference changed mid-start-up) has 2 dropped (tracker_reanchor_after - 1): the samples a
+# re-anchoring drops, those the old reference had accepted, are not counted (counted, 20 of
+# them made a default start-up wait 40 frames more, 30 lost 10 frames). The tracker's
+# disagreement with the adjusted poses (consistency.tracker_agreement's noise ratio) does not
+# tell them apart: quaternions stored w first, which a 12-frame start-up takes and the run warns
+# of, read 4.2 x the prior's noise (30 frames: 8.3), [t, r] from 4.4, 4x the noise 3.3-3.5.
 STARTUP_MAX_DROPPED_FRACTION = 0.25
-# live_solver_warnings warns when more than TRACKER_WARNING_FRACTION of the tracker samples of
-# the last TRACKER_WARNING_FRAMES final frames given one (at least TRACKER_WARNING_MIN) were
-# gated or dropped (tracker_warning). Measured over the last 100 of 200 frames (SYN 256 px,
-# ORB): consistent samples 0 %, 2x the prior's noise 56 %, 4x 98 %, rotations in degrees or
-# [t, r] from frame 60 on (the start-up took the right ones) 100 %. 3/4 warns from ~2.5x the
+# The tracker disagrees with the images while more than TRACKER_WARNING_FRACTION of the tracker
+# samples of the last TRACKER_WARNING_FRAMES final frames given one (at least
+# TRACKER_WARNING_MIN) were gated or dropped. Measured over the last 100 of 200 frames (SYN 256
+# px, ORB): consistent samples 0 %, 2x the prior's noise 56 %, 4x 98 %, rotations in degrees or
+# [t, r] from frame 60 on (the start-up took the right ones) 100 %. 3/4 holds from ~2.5x the
 # noise on, as the offline tracker_agreement check does (MAX_NOISE_RATIO: 2x read 1.65); over
-# 50 frames, a mix-up is warned of ~40 frames after it began.
+# 50 frames, from a mix-up's 38th final frame on (after consistent samples). It is checked as
+# frames are finalised: the first stretch where it held is kept (_tracker_episode: the frame
+# where it began, and where it ended) and live_solver_warnings reports it at the session's end
+# (tracker_warning), with the last 50 frames' count when it still holds (a stretch of 55 frames
+# 4x as noisy mid-session, 75 % gated, went unreported when only the last 50 were looked at).
 TRACKER_WARNING_FRACTION = 0.75
 TRACKER_WARNING_FRAMES = 50
 TRACKER_WARNING_MIN = 20
@@ -469,10 +477,11 @@ def canonical_rotation_vector(r: np.ndarray) -> np.ndarray:
 # tracker_pose's rotation vector: components up to 1e6 rad (any wrap of a real angle); beyond,
 # refused. Degrees passed by mistake are within it, and not refused here: a probe turning faster
 # than ~0.3 rad/s at 25 frames/s (its degrees then jump ~57x as far) has most of its samples
-# dropped by the glitch filter, which the start-up refuses (_tracker_jumps) and
-# live_solver_warnings warns of once the start-up is done (tracker_warning); a slower one's pass
-# the filter, and only the window's gate (tracker_warning again) and, offline, the run's
-# tracker_agreement check tell.
+# dropped by the glitch filter, which the start-up refuses (_tracker_jumps) and, after it (the
+# start-up took the right samples), live_solver_warnings reports at the session's end
+# (tracker_warning, from the frame where it was first seen); a slower one's pass the filter, and
+# only the window's gate (tracker_warning again) and, offline, the run's tracker_agreement
+# check tell.
 MAX_ROTATION_VECTOR_RAD = 1e6
 
 
@@ -605,9 +614,11 @@ class SequentialMosaicker:
         # samples used (id -> pose) and the recent departures from constant velocity.
         self._samples: dict[int, np.ndarray] = {}
         self._motion_history: deque = deque(maxlen=200)
-        # Of the last TRACKER_WARNING_FRAMES final frames given a tracker sample, whether it was
-        # gated or dropped (live_solver_warnings' tracker warning).
+        # Of the last TRACKER_WARNING_FRAMES final frames given a tracker sample, (frame,
+        # whether it was gated or dropped); the first stretch of final frames where most were
+        # (_note_tracker_verdict), None while none was: live_solver_warnings' tracker warning.
         self._tracker_verdicts: deque = deque(maxlen=TRACKER_WARNING_FRAMES)
+        self._tracker_episode: TrackerEpisode | None = None
         self._reference_pose: np.ndarray | None = None
         self._reference_id: int | None = None  # the frame whose pose it is
         self._plane: np.ndarray | None = None
@@ -809,7 +820,7 @@ class SequentialMosaicker:
               "_loop_centroids", "_loop_G", "_pair_H", "_recent_G", "_poses", "pair_counts",
               "_mirror_frames", "_mirror_pairs", "_mirror_plane", "_implausible_run",
               "_world", "_times", "_intervals", "_unanchored", "bootstrap_summary",
-              "_samples", "_motion_history", "_tracker_verdicts")
+              "_samples", "_motion_history", "_tracker_verdicts", "_tracker_episode")
 
     def _save(self) -> dict:
         """What a call may change, copied (shallowly: the values it replaces, never mutates)."""
@@ -1023,6 +1034,9 @@ class SequentialMosaicker:
         self._pending.append({"id": k, "timestamp": timestamp, "tracker": tracker_pose,
                               "visual": bool(ok), "timings": timings, "features": feats,
                               "held": 0, "dropped": dropped, "sample": sample,
+                              # dropped by the glitch filter itself, as a jump from the sample
+                              # before (a re-anchoring's drops and restorings leave it as it is)
+                              "jump": dropped,
                               "departure": departure, "motion_break": False})
         self._finalized = []
         waiting = False
@@ -1523,9 +1537,12 @@ class SequentialMosaicker:
         (_plausible) dropped more than STARTUP_MAX_DROPPED_FRACTION of them (and at least
         tracker_reanchor_after), they jump between frames as no probe moves: a convention mix-up
         (rotations in degrees, [t, r] order), not glitches. The start-up adjustment took such
-        samples and frames came out "placed" 50-2000 px off (median)."""
+        samples and frames came out "placed" 50-2000 px off (median). Counted: the samples the
+        filter dropped on arrival ("jump"), whether a re-anchoring restored them since; not
+        those a re-anchoring dropped (the old reference's: a tracker re-based once is no
+        convention mix-up, which re-anchors again and again)."""
         given = sum(p.get("sample") is not None for p in self._pending)
-        dropped = sum(bool(p["dropped"]) for p in self._pending)
+        dropped = sum(bool(p["jump"]) for p in self._pending)
         if not (dropped > STARTUP_MAX_DROPPED_FRACTION * given
                 and dropped >= self.options.tracker_reanchor_after):
             return None
@@ -1924,7 +1941,7 @@ class SequentialMosaicker:
             k = p["id"]
             pose = np.asarray(pose)
             if p.get("sample") is not None:
-                self._tracker_verdicts.append(k in gated or bool(p["dropped"]))
+                self._note_tracker_verdict(k, k in gated or bool(p["dropped"]))
             self._poses[k] = (pose, p["timestamp"])
             reference = pose if self._reference_pose is None else self._reference_pose
             try:
@@ -1983,6 +2000,21 @@ class SequentialMosaicker:
             p["held"] += 1
         self._pending = held
         self._forget_orphans()
+
+    def _note_tracker_verdict(self, k: int, bad: bool) -> None:
+        """Final frame k's tracker sample was gated or dropped (`bad`) or not: the verdicts of
+        the last TRACKER_WARNING_FRAMES, and the first stretch where most of them were bad
+        (begun at the frame where that first held, ended at the last where it still did)."""
+        self._tracker_verdicts.append((k, bad))
+        count = _tracker_disagreement(self._tracker_verdicts)
+        episode = self._tracker_episode
+        if episode is None:
+            if count is not None:
+                self._tracker_episode = TrackerEpisode(
+                    self._tracker_verdicts[0][0], k, *count, last=k, holds=True)
+        elif episode.holds:  # (replaced, never mutated: the rollback copies it shallowly)
+            self._tracker_episode = replace(
+                episode, last=k if count is not None else episode.last, holds=count is not None)
 
     def _forget_orphans(self) -> None:
         """Forgets, in the C++ window, the frames handed out unplaced for a plane through
@@ -2084,32 +2116,74 @@ def observed_plane_std(mosaicker: SequentialMosaicker,
     return None if std is None or np.isnan(std) else float(std)
 
 
-def live_solver_warnings(mosaicker: SequentialMosaicker) -> list[str]:
+def live_solver_warnings(mosaicker: SequentialMosaicker,
+                         frame_name: Callable[[int], int] | None = None) -> list[str]:
     """_solver_warnings of a streamed run, from the mosaicker's start-up summary and its kept
     step summaries (the last history_steps), and tracker_warning's (the offline run's
-    tracker_agreement compares the whole run's poses with the recording's samples instead)."""
+    tracker_agreement compares the whole run's poses with the recording's samples instead;
+    frame_name: see tracker_warning)."""
     o = mosaicker.options
     steps = mosaicker.step_summaries
     unconverged = [s.termination for s in steps if solver_warning(s, o.max_iterations)]
     out = _solver_warnings(mosaicker.bootstrap_summary, unconverged, len(steps),
                            o.max_iterations, o.startup_max_iterations)
-    tracker = tracker_warning(mosaicker)
+    tracker = tracker_warning(mosaicker, frame_name)
     return out + [tracker] if tracker else out
 
 
-def tracker_warning(mosaicker: SequentialMosaicker) -> str | None:
-    """A warning when more than TRACKER_WARNING_FRACTION of the last TRACKER_WARNING_FRAMES
-    final frames given a tracker sample (at least TRACKER_WARNING_MIN of them) had it gated or
-    dropped: the tracker disagrees with the images, as tracker_pose in another convention does
-    once the start-up took it (frames then "placed" hundreds of px off with at most a solver
-    warning before), or a tracker noisier than emt_sigma says."""
-    verdicts = mosaicker._tracker_verdicts
-    bad = sum(verdicts)
+@dataclass(frozen=True)
+class TrackerEpisode:
+    """The first stretch of a run where most recent tracker samples were gated or dropped: at
+    final frame `began` first, then `bad` of the `of` samples of the final frames `first` to
+    `began` given one were; it last held at final frame `last`, and `holds` still (the run's
+    last final frame)."""
+
+    first: int
+    began: int
+    bad: int
+    of: int
+    last: int
+    holds: bool
+
+
+def _tracker_disagreement(verdicts) -> tuple[int, int] | None:
+    """(bad, count) when more than TRACKER_WARNING_FRACTION of the (frame, bad) `verdicts` (at
+    least TRACKER_WARNING_MIN of them) are bad, else None."""
+    bad = sum(b for _, b in verdicts)
     if len(verdicts) < TRACKER_WARNING_MIN or not bad > TRACKER_WARNING_FRACTION * len(verdicts):
         return None
-    return (f"{bad} of the last {len(verdicts)} tracker samples of final frames were gated "
-            "(down-weighted: they disagree with the images, gate_chi2) or dropped as glitches: "
-            "the tracker disagrees with the images by more than the EMT prior's noise. "
+    return bad, len(verdicts)
+
+
+def tracker_warning(mosaicker: SequentialMosaicker,
+                    frame_name: Callable[[int], int] | None = None) -> str | None:
+    """A warning when, at some final frame, more than TRACKER_WARNING_FRACTION of the last
+    TRACKER_WARNING_FRAMES final frames given a tracker sample (at least TRACKER_WARNING_MIN of
+    them) had it gated or dropped: the tracker disagrees with the images, as tracker_pose in
+    another convention does once the start-up took it (frames then "placed" hundreds of px off
+    with at most a solver warning before), a tracker noisier than emt_sigma says, or one
+    distorted for a while (near metal). It names the first such stretch (where it began and
+    ended) and says whether it held at the last final frame. frame_name: the mosaicker's frame
+    number -> the frame's name in the messages (a live session's recorded frame), else itself."""
+    episode = mosaicker._tracker_episode
+    if episode is None:
+        return None
+    name = (lambda k: k) if frame_name is None else frame_name
+    first, began, last = name(episode.first), name(episode.began), name(episode.last)
+    at_first = f"{episode.bad} of the {episode.of} of frames {first}-{began}"
+    gated = ("gated (down-weighted: they disagree with the images, gate_chi2) or dropped as "
+             "glitches")
+    now = _tracker_disagreement(mosaicker._tracker_verdicts)
+    if now is not None:
+        bad, count = now
+        when = (f"have been since frame {began}" if episode.holds else
+                f"were from frame {began} to frame {last} before")
+        head = (f"{bad} of the last {count} tracker samples of final frames were {gated}, and "
+                f"most {when} ({at_first}): the tracker disagrees")
+    else:
+        head = (f"from frame {began} to frame {last}, most tracker samples of final frames were "
+                f"{gated} ({at_first} at first; no longer at the end): the tracker disagreed")
+    return (head + " with the images by more than the EMT prior's noise. "
             + TRACKER_NOISE_ADVICE.format("emt_sigma; --tracker-rot-sigma / "
                                           "--tracker-trans-sigma")
             + "; tracker_pose is the camera's cam_from_world, [angle-axis r in rad, t in mm]")
