@@ -61,3 +61,31 @@ def test_a_fixed_frame_keeps_its_pose_when_its_sample_is_dropped(scene):
     w.add_frame(9, None, None)
     with pytest.raises(ValueError, match="frame 9 is pending without a pose yet"):
         w.pose(9)
+
+
+def test_forgetting_frames_keeps_the_window_mirror_consistent():
+    """Keyframe candidates evicted early (max_keyframe_blocks=2): SequentialMosaicker's mirror of
+    the C++ window (what a failed call rebuilds it from) forgets exactly the evicted frames'
+    pairs, through its per-frame index, and a window rebuilt from it holds what the C++ one
+    does; the run stays accurate."""
+    from test_sequential_robustness import Scene
+
+    from fusedmosaic.estimation.sequential import SequentialMosaicker, SequentialOptions
+    from fusedmosaic.evaluation import frame_errors
+
+    scene = Scene(n=90)
+    m = SequentialMosaicker(scene.camera, SequentialOptions(bootstrap_frames=8,
+                                                            max_keyframe_blocks=2))
+    results = scene.feed(m, range(scene.n), {})
+    frames, pairs = m._mirror_frames, m._mirror_pairs
+    assert len(frames) < 60 and m.window.num_frames == len(frames)  # frames were forgotten
+    assert m.window.num_pairs == len(pairs)
+    assert all(l in frames and f in frames for l, f in pairs)
+    indexed = {key for keys in m._mirror_pair_index.values() for key in keys}
+    assert indexed == set(pairs) and set(m._mirror_pair_index) <= set(frames)
+    assert all(key in m._mirror_pair_index[k] for key in pairs for k in key)
+    before = (m.window.num_frames, m.window.num_pairs, m.window.num_correspondences)
+    m._rebuild_window()
+    assert (m.window.num_frames, m.window.num_pairs, m.window.num_correspondences) == before
+    G = scene.finish(m, results)
+    assert np.nanmedian(frame_errors(G, scene.truth, 200, 200)) < 1.0  # px
