@@ -296,3 +296,56 @@ def test_the_tracker_episode_is_rolled_back(monkeypatch):
             m.add_frame(scene.frames[k], scene.timestamps[k], z[k])
             k += 1
     assert m._tracker_episode == before and before.holds
+
+
+class _TrackedSource:
+    """A live source without a socket: the scene's frames one per next_frame (recorded ids
+    0, 1, ...), the tracker sample of each frame as pose_at's pose (cam_from_world)."""
+
+    def __init__(self, scene, tracker) -> None:
+        self.scene, self.tracker, self.received = scene, tracker, 0
+        self.transform_device = "TrackerToReference"
+        self.valid_samples, self.invalid_samples, self.ignored_devices = len(tracker), {}, set()
+
+    def next_frame(self, timeout_s: float):
+        import time
+
+        from fusedmosaic.io.igtl import LiveFrame
+
+        if self.received == self.scene.n:
+            return None
+        k, self.received = self.received, self.received + 1
+        return LiveFrame(self.scene.frames[k], float(self.scene.timestamps[k]),
+                         time.perf_counter(), k)
+
+    def pose_at(self, t, hand_eye=None, *, max_age_s=None):
+        k = int(np.argmin(np.abs(self.scene.timestamps - t)))
+        return self.tracker[k], 0.0
+
+
+def test_a_live_session_says_the_tracker_disagreement_when_it_begins():
+    """live_session warns of the first stretch of mostly gated or dropped tracker samples at
+    the frame where it begins (the session's checks said it only after the session ended),
+    once, naming the recorded frames; a consistent tracker gives no such warning."""
+    from fusedmosaic.estimation.live import live_session
+
+    scene = Scene(n=40)
+    z = scene.tracker.copy()
+    z[8:, :3] = np.degrees(z[8:, :3])  # (as test_most_tracker_samples_gated_gives_a_live_...)
+    options = SequentialOptions(bootstrap_frames=8)
+    marks = []  # (frame given, tracker warnings said by then)
+    with pytest.warns(UserWarning, match=r"live session: .* most have been since frame 32 "
+                                         r"\(25 of the 33 of frames 0-32\)") as record:
+        session = live_session(
+            _TrackedSource(scene, z), scene.camera, options=options,
+            on_result=lambda frame, result: marks.append(
+                (frame.index, sum("tracker samples" in str(w.message) for w in record))))
+    assert sum("tracker samples" in str(w.message) for w in record) == 1
+    said_at = next(k for k, n in marks if n)
+    assert 32 <= said_at < scene.n - 1  # (frame 32 is final a step or so after it is given)
+    assert any("tracker samples" in w for w in session.checks["warnings"])  # (and at the end)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # (no tracker warning, nor any other)
+        live_session(_TrackedSource(scene, scene.tracker), scene.camera, options=options)

@@ -475,6 +475,7 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
     start = time.monotonic()
     first_frame = None  # time.monotonic() when the first frame was taken
     warned = False
+    tracker_said = False  # the tracker disagreement said (_warn_tracker_disagreement)
 
     images: dict = {}  # frame index -> image, until its result is final (on_final only)
 
@@ -527,6 +528,8 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
             session.latency[frame.index] = done - frame.arrival
             session.processing[frame.index] = done - t0
             take(mosaicker.finalized() if method == "lba-emt" else [result])
+            if method == "lba-emt" and not tracker_said and mosaicker.tracker_episode:
+                tracker_said = _warn_tracker_disagreement(mosaicker, session)
             if on_result is not None:
                 on_result(frame, result)
             first_frame = time.monotonic() if first_frame is None else first_frame
@@ -551,6 +554,20 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
     if method == "lba-emt":  # (the tracker warning names the source's frames)
         session.checks = _lba_checks(mosaicker, lambda i: session.processed[i])
     return session
+
+
+def _warn_tracker_disagreement(mosaicker, session: LiveSession) -> bool:
+    """Says, as it begins, the first stretch where most tracker samples of final frames were
+    gated or dropped (sequential.tracker_warning; the session's checks word it again at its
+    end, with where it ended): in theatre the operator hears of a tracker disagreeing with the
+    images (a sensor near metal, a convention mix-up) while it lasts, not after. True."""
+    import warnings
+
+    from fusedmosaic.estimation.sequential import tracker_warning
+
+    warnings.warn(f"live session: {tracker_warning(mosaicker, lambda i: session.processed[i])}",
+                  stacklevel=3)
+    return True
 
 
 def _dropped_from_history(session: LiveSession, source, method: str, index: int) -> None:

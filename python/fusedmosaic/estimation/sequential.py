@@ -2016,6 +2016,12 @@ class SequentialMosaicker:
         self._pending = held
         self._forget_orphans()
 
+    @property
+    def tracker_episode(self) -> TrackerEpisode | None:
+        """The first stretch of final frames where most tracker samples were gated or dropped
+        (tracker_warning words it), or None."""
+        return self._tracker_episode
+
     def _note_tracker_verdict(self, k: int, bad: bool) -> None:
         """Final frame k's tracker sample was gated or dropped (`bad`) or not: the verdicts of
         the last TRACKER_WARNING_FRAMES, and the first stretch where most of them were bad
@@ -2180,7 +2186,7 @@ def tracker_warning(mosaicker: SequentialMosaicker,
     distorted for a while (near metal). It names the first such stretch (where it began and
     ended) and says whether it held at the last final frame. frame_name: the mosaicker's frame
     number -> the frame's name in the messages (a live session's recorded frame), else itself."""
-    episode = mosaicker._tracker_episode
+    episode = mosaicker.tracker_episode
     if episode is None:
         return None
     name = (lambda k: k) if frame_name is None else frame_name
