@@ -242,6 +242,7 @@ def test_invalid_tracker_samples_are_skipped_not_fatal(syn, tmp_path):
     live = json.loads((tmp_path / "out" / "report.json").read_text())["live"]
     assert live["source"]["tracker_samples_invalid"] == {
         "not rigid: scaled": 1, "timestamp not after the previous sample": 1, STAMP_JUMP: 1}
+    assert live["source"]["tracker_samples_invalid_details"] == {}  # (none with figures)
     assert live["frames_without_sample"] == []
     rec = read_dataset(tmp_path / "rec", allow_untracked=True)
     # the non-rigid sample is recorded as a missing one (valid=0: the dropout stays visible

@@ -465,3 +465,24 @@ def test_problem_kinds_and_ignored_devices_are_bounded():
     assert len(source.ignored_devices) == igtl.MAX_PROBLEM_KINDS + 1
     assert igtl.MORE_DEVICES in source.ignored_devices
     assert "TRANSFORM Tool0ToTracker" in source.ignored_devices
+
+
+def test_a_robot_position_stands_with_a_bad_quaternion():
+    """A POSITION whose quaternion is not of unit norm voided its position too; for a source
+    that needs no orientation (a robot: kalman-robot, robot) the position is now taken."""
+    pose = tracker_matrix([1.0, 2.0, 3.0], [0.0, 0.0, 0.0, 1.0])
+    raw = bytearray(position_message(pose, 0.0))
+    raw[-4:] = np.array([1.2], ">f4").tobytes()  # w: not a unit quaternion
+    events = [(0.0, _with_crc(bytes(raw)))]
+    for required, valid in ((True, 0), (False, 1)):
+        sender = Sender(events, speed=10.0, delay=0.0)
+        with IgtlSource(f":{sender.port}", transform_device="SensorToTracker",
+                        orientation_required=required) as source:
+            sender.join()
+            _drain(source)
+        assert source.valid_samples == valid
+        if valid:
+            assert source.invalid_samples == {}
+            np.testing.assert_allclose(source.samples[0].matrix[:3, 3], [1.0, 2.0, 3.0])
+        else:
+            assert source.invalid_samples == {igtl.QUATERNION_NOT_UNIT: 1}

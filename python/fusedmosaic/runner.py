@@ -1374,6 +1374,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                            **scale.details(),
                            "tracker_samples_valid": src.valid_samples,
                            "tracker_samples_invalid": dict(src.invalid_samples),
+                           # kind -> the figures of its first sample (e.g. a quaternion's norm)
+                           "tracker_samples_invalid_details": dict(src.invalid_sample_details),
                            # the sender's clock jumping ahead (s), taken (io.igtl.StampJumps)
                            "frame_clock_jumps_s": list(frame_jumps.jumps),
                            "sample_clock_jumps_s": src.sample_clock_jumps,

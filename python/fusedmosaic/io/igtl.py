@@ -703,6 +703,13 @@ class IgtlSource:
             matrix = np.asarray(message.matrix, dtype=np.float64)
         else:
             matrix, problem, detail = _position_pose(message.content)
+            if problem == QUATERNION_NOT_UNIT and not self.orientation_required:
+                # a robot's probe position (kalman-robot, robot, ncc --transform: the
+                # translation alone): its position stands, the orientation is not used (review:
+                # a bad quaternion voided it)
+                matrix = np.eye(4)
+                matrix[:3, 3] = struct.unpack(">3f", message.content[:12])
+                problem = detail = None
             if problem is None and len(message.content) == 12 and self.orientation_required:
                 problem = "POSITION without an orientation (a 6-DoF pose is needed)"
         if problem is None:
