@@ -529,7 +529,8 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
             session.processing[frame.index] = done - t0
             take(mosaicker.finalized() if method == "lba-emt" else [result])
             if method == "lba-emt" and not tracker_said and mosaicker.tracker_episode:
-                tracker_said = _warn_tracker_disagreement(mosaicker, session)
+                _warn_tracker_disagreement(mosaicker, session)
+                tracker_said = True
             if on_result is not None:
                 on_result(frame, result)
             first_frame = time.monotonic() if first_frame is None else first_frame
@@ -556,18 +557,17 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
     return session
 
 
-def _warn_tracker_disagreement(mosaicker, session: LiveSession) -> bool:
+def _warn_tracker_disagreement(mosaicker, session: LiveSession) -> None:
     """Says, as it begins, the first stretch where most tracker samples of final frames were
     gated or dropped (sequential.tracker_warning; the session's checks word it again at its
     end, with where it ended): in theatre the operator hears of a tracker disagreeing with the
-    images (a sensor near metal, a convention mix-up) while it lasts, not after. True."""
+    images (a sensor near metal, a convention mix-up) while it lasts, not after."""
     import warnings
 
     from fusedmosaic.estimation.sequential import tracker_warning
 
     warnings.warn(f"live session: {tracker_warning(mosaicker, lambda i: session.processed[i])}",
                   stacklevel=3)
-    return True
 
 
 def _dropped_from_history(session: LiveSession, source, method: str, index: int) -> None:
