@@ -189,7 +189,9 @@ void BindSlidingWindow(py::module_& m) {
            "Estimates the pending frames and the plane (GIL released); hold_plane: pi kept.")
       .def("redo", &SlidingWindow::Redo, "frame_ids"_a, "keyframe_ids"_a = std::vector<int>{},
            "hold_plane"_a = false, py::call_guard<py::gil_scoped_release>(),
-           "Re-estimates the last frames (GIL released), e.g. after gating a tracker sample:\n"
+           "Re-estimates the last frames (GIL released), e.g. after gating a tracker sample,\n"
+           "each started again as a step starts it: from its tracker sample, or the constant-\n"
+           "velocity prediction without one or when the sample is gated (sigma scale > 1);\n"
            "frame_ids, distinct, must hold every frame from the first of them on (the last\n"
            "step's, and any added since), with no pending frame before them; keyframe_ids\n"
            "fixed frames not among them. ValueError (IndexError: an unknown id) else, with\n"

@@ -238,11 +238,12 @@ void SlidingWindow::InitialisePending(const std::vector<int>& ids) {
   for (int id : ids) {
     Frame& f = frames_.at(id);
     if (f.has_initial) continue;
-    if (f.emt_measurement) {
+    auto it = frames_.find(id);
+    // (a gated sample starts from the constant-velocity prediction where there is one: Redo)
+    if (f.emt_measurement && (f.emt_sigma_scale <= 1.0 || it == frames_.begin())) {
       Eigen::Map<Pose>(f.pose.data()) = *f.emt_measurement;
     } else {
       // Constant-velocity prediction (Eq. 15-16) from the two preceding cameras, if any.
-      auto it = frames_.find(id);
       if (it == frames_.begin()) {
         throw std::invalid_argument("frame " + std::to_string(id) +
                                     ": no initial pose, no tracker sample and no predecessor");
@@ -310,7 +311,18 @@ WindowStepSummary SlidingWindow::Redo(const std::vector<int>& frame_ids,
   CheckKeyframes(keyframe_ids, ids, "redo");  // (before anything changes)
   for (int id : ids) {
     Frame& f = frames_.at(id);
-    if (f.emt_measurement) Eigen::Map<Pose>(f.pose.data()) = *f.emt_measurement;
+    // Started again as a step starts them, not from the solve being redone: from the tracker
+    // sample, or the constant-velocity prediction (InitialisePending) for a frame without one
+    // and for a gated sample (down-weighted: it disagreed with the images, no starting point).
+    // A sample 124 deg off, gated, redone from its sample and from the first solve's poses of
+    // the untracked frames beside it, settled far from the images: every later frame 100-1e5 px
+    // off, all "placed".
+    if (f.emt_measurement && f.emt_sigma_scale <= 1.0) {
+      Eigen::Map<Pose>(f.pose.data()) = *f.emt_measurement;
+      f.has_initial = true;
+    } else {
+      f.has_initial = false;
+    }
     f.fixed = false;
   }
   return Solve(ids, keyframe_ids, hold_plane);

@@ -1833,6 +1833,7 @@ class SequentialMosaicker:
             if summary.termination == "FAILURE":  # (the gated redo too: never "placed")
                 summary, failed = self._recover_failed_step(ids, keyframe_ids, hold, summary)
         anchored = self._linked(fixed - self._unanchored, tracked - set(gated))
+        self._trust_the_estimate(gated)
         self.step_summaries.append(summary)
         self.last_step_summary = summary
         self.num_steps += 1
@@ -1841,6 +1842,25 @@ class SequentialMosaicker:
         self._finalize(ids, [self.window.pose(k) for k in ids], gated,
                        summary.step_time_s / len(ids), t_kf / len(ids), final_step, anchored,
                        failed)
+
+    def _trust_the_estimate(self, gated) -> None:
+        """When the glitch filter's reference (the last sample it kept) is a sample the window
+        step just gated against anchored visual evidence, the reference becomes that frame's
+        estimate: later samples are judged against where the images put the camera, not
+        against the sample they contradict. Before, after a stretch of samples with rotations
+        in degrees (frames 20-24 of a 110-frame scan, 37-132 deg off) re-anchored the filter on
+        sample 24 (the third disagreeing sample in a row), the right samples after it were
+        dropped until the third of them re-anchored it again (sample 26 of that scan)."""
+        if self._trusted is None or not gated:
+            return
+        t0 = self._trusted[0]
+        for p in self._pending:
+            if p["id"] in gated and p["timestamp"] == t0:
+                pose = np.asarray(self.window.pose(p["id"]))
+                if np.all(np.isfinite(pose)):
+                    R = _core.rotation_from_angle_axis(pose[:3])
+                    self._trusted = (t0, -R.T @ pose[3:], R)
+                return
 
     def _recover_failed_step(self, ids, keyframe_ids, hold, summary):
         """A step Ceres ended in FAILURE: its costs could not be evaluated at the starting
