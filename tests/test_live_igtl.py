@@ -1029,9 +1029,14 @@ def test_a_recording_that_cannot_be_written_further_keeps_its_frames(tmp_path, m
     from fusedmosaic.io import recorder as module
     from fusedmosaic.io.calibration import Camera
 
-    write = module.cv2.imwrite
-    monkeypatch.setattr(module.cv2, "imwrite", lambda path, *a: "000003" not in str(path)
-                        and write(path, *a))
+    write = module._write_png
+
+    def full(path, *args):
+        if "000003" in str(path):
+            raise OSError(f"{path}: cv2.imwrite failed")
+        write(path, *args)
+
+    monkeypatch.setattr(module, "_write_png", full)
     camera = Camera(64, 48, camera_matrix=np.array([[60.0, 0, 32], [0, 60, 24], [0, 0, 1]]))
     recorder = DatasetRecorder(tmp_path / "rec", camera)
     for k in range(6):

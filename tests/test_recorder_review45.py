@@ -29,10 +29,10 @@ CAMERA = Camera(50, 40, camera_matrix=np.array([[60.0, 0, 25], [0, 60, 20], [0, 
 
 
 def _hold_writer(monkeypatch) -> tuple[threading.Event, threading.Event]:
-    """(release, entered): the recorder's writer thread waits in cv2.imwrite, once entered,
+    """(release, entered): the recorder's writer thread waits in cv2.imencode, once entered,
     until release is set (a writer far behind the stream, e.g. a slow encoder)."""
     release, entered = threading.Event(), threading.Event()
-    write = cv2.imwrite
+    write = cv2.imencode
 
     def held(path, *args):
         if threading.current_thread().name == "recorder":
@@ -40,7 +40,7 @@ def _hold_writer(monkeypatch) -> tuple[threading.Event, threading.Event]:
             release.wait(30)
         return write(path, *args)
 
-    monkeypatch.setattr(cv2, "imwrite", held)
+    monkeypatch.setattr(cv2, "imencode", held)
     return release, entered
 
 

@@ -1218,7 +1218,8 @@ def build_parser() -> argparse.ArgumentParser:
         "blending)")
     view.add_argument("--preview", metavar="FILE.png",
                       help="rewrite this PNG with the mosaic so far (replaced atomically: an "
-                           "image viewer that reloads it never shows half an image)")
+                           "image viewer that reloads it never shows half an image; shrunk "
+                           "when larger than 50 Mpixel: see --max-canvas-pixels)")
     view.add_argument("--serve-mosaic", metavar="[HOST:]PORT",
                       help="send the mosaic as OpenIGTLink IMAGE 'Mosaic' to every client "
                            "connecting here (e.g. 3D Slicer's OpenIGTLinkIF as a client; PORT "
@@ -1405,7 +1406,10 @@ def _add_compositing_flags(parser: argparse.ArgumentParser) -> None:
                       help="skip report.md and its plots")
     comp.add_argument("--max-canvas-pixels", type=int, default=None,
                       help="skip (with a warning) mosaics larger than this many pixels; the "
-                           "estimates are still written (default 400 000 000)")
+                           "estimates are still written (default 400 000 000); live: also the "
+                           "budget of the --preview / --serve-mosaic view's canvas, whose "
+                           "images are shrunk by a whole factor above 50 000 000 pixels (or "
+                           "this, if lower)")
     comp.add_argument("--tile-size", type=int, default=None,
                       help="tile size (px) for mosaics rendered tile by tile, 64..8192 "
                            "(default 1024; a tile's accumulator takes its size squared x 16 "

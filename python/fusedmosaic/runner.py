@@ -867,10 +867,14 @@ def check_live_limits(max_frames, duration_s, frame_timeout_s,
 
 
 def _live_view(camera, method: str, record: Path, preview, serve_mosaic,
-               interval_s: float, say, blend=None):
+               interval_s: float, say, blend=None, max_pixels: int | None = None, warn=None):
     """(LiveMosaicView, IgtlImageServer or None) for run_igtl, checked before connecting; the
     preview's folder is created (as an output folder is); say(text) is told a free port taken
-    (--serve-mosaic 0). blend: run_igtl's, for its mask_specular (None: the method's)."""
+    (--serve-mosaic 0). blend: run_igtl's, for its mask_specular (None: the method's).
+    max_pixels: the view's canvas budget, run_igtl's canvas's (--max-canvas-pixels; None:
+    CanvasOptions'), as the final mosaic's; a published image is shrunk above
+    live_view.VIEW_MAX_PIXELS. warn(text): told once if the view is published shrunk."""
+    from fusedmosaic.compositing import CanvasOptions
     from fusedmosaic.compositing.live_view import LiveMosaicView
     from fusedmosaic.io.igtl import IgtlImageServer
     from fusedmosaic.io.output import check_output_dir
@@ -899,7 +903,12 @@ def _live_view(camera, method: str, record: Path, preview, serve_mosaic,
         view = LiveMosaicView(camera.width, camera.height, mask=mask, lens=lens,
                               preview=preview, server=server, interval_s=interval_s,
                               mask_specular=method == "lba-emt" if chosen is None else chosen,
-                              pixel_size_mm=None if size_um is None else size_um / 1000.0)
+                              pixel_size_mm=None if size_um is None else size_um / 1000.0,
+                              # (a fixed 50 Mpx stopped the view's publications for the rest
+                              # of a session whose bounding box passed it; review 46)
+                              max_pixels=(CanvasOptions().max_pixels if max_pixels is None
+                                          else max_pixels),
+                              notify=warn)
     except BaseException:
         if server is not None:
             server.close()
@@ -1327,7 +1336,9 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
             check_output_dir(out, "output folder")
             if preview is not None or serve_mosaic is not None:  # before connecting
                 view, server = _live_view(camera, method, record, preview, serve_mosaic,
-                                          view_interval_s, say, blend)
+                                          view_interval_s, say, blend,
+                                          None if canvas is None else canvas.max_pixels,
+                                          warn_from_receiver)
             # (the pCLE methods record the samples as robot positions: ncc's recording re-runs
             # with kalman-robot when a robot streamed)
             recorder = DatasetRecorder(record, camera, hand_eye, overwrite=overwrite_record,

@@ -205,6 +205,9 @@ def fov_mask_bool(mask: np.ndarray | None, width: int, height: int) -> np.ndarra
     if mask is None:
         return np.ones((height, width), bool)
     mask = np.asarray(mask)
+    if mask.ndim != 2:  # (its last two sizes were reported as W x H: "40x30 but ... 40x30")
+        raise ValueError(f"field-of-view mask must be one channel (H, W), got shape "
+                         f"{mask.shape}; the frames are {width}x{height}")
     if mask.shape != (height, width):
         raise ValueError(f"field-of-view mask is {mask.shape[1]}x{mask.shape[0]} but the frames "
                          f"are {width}x{height}")

@@ -32,7 +32,9 @@ from fusedmosaic.compositing.blending import (
 )
 
 MAX_CANVAS_PIXELS = 64_000_000  # one-piece canvases above this are refused (compose_mosaic)
-ABSURD_AREA_FACTOR = 20.0  # issue 6: a footprint > 20x the median area is left out
+# issue 6: a footprint > 20x the median area is left out, as one > 20x the median extent (its
+# bounding box's diagonal: a thin footprint of normal area)
+ABSURD_AREA_FACTOR = 20.0
 # A canvas over its budget: frames landing more than this many median footprint diagonals from
 # the main group of frames are strays (a placement glitch), as IncrementalCanvas's
 # stray_diagonals; they are left out when they are at most STRAY_MAX_FRACTION of the frames.
@@ -131,8 +133,9 @@ def screen_frames(homographies: np.ndarray, width: int, height: int,
                   absurd_area_factor: float = ABSURD_AREA_FACTOR
                   ) -> tuple[np.ndarray, dict[int, str]]:
     """Which frames go on the canvas: placed, with a convex, unmirrored footprint in front of
-    the camera, within MAX_COORDINATE px of the reference, of area <= factor x the median.
-    Returns (use (N,) bool, reasons for placed frames left out)."""
+    the camera, within MAX_COORDINATE px of the reference, of area and of extent (its bounding
+    box's diagonal) <= factor x the median. Returns (use (N,) bool, reasons for placed frames
+    left out)."""
     G = np.asarray(homographies, np.float64)
     placed = np.isfinite(G).all(axis=(1, 2))
     fp = footprints(np.where(placed[:, None, None], G, np.eye(3)), width, height)
@@ -145,12 +148,28 @@ def screen_frames(homographies: np.ndarray, width: int, height: int,
             use[k] = False
             reasons[int(k)] = why
     if use.any():
-        med = np.median(areas[use])
-        for k in np.flatnonzero(use & (areas > absurd_area_factor * med)):
+        # By extent too: a sheared footprint of normal area (diag(1e4, 1e-4) in the placement)
+        # centred among the others passed both this and the stray rule, and made a 990001 x 100
+        # canvas 99 % black; at 1e5 the canvas was refused, mosaic and video lost (review 46).
+        extents = footprint_extents(fp)
+        med, med_extent = np.median(areas[use]), np.median(extents[use])
+        for k in np.flatnonzero(use):
+            if areas[k] > absurd_area_factor * med:
+                reasons[int(k)] = (f"footprint area {areas[k] / med:.0f} x the median "
+                                   f"(limit {absurd_area_factor:g})")
+            elif extents[k] > absurd_area_factor * med_extent:
+                reasons[int(k)] = (f"footprint extent {extents[k] / med_extent:.0f} x the median "
+                                   f"(its bounding box's diagonal; limit {absurd_area_factor:g})")
+            else:
+                continue
             use[k] = False
-            reasons[int(k)] = (f"footprint area {areas[k] / med:.0f} x the median "
-                               f"(limit {absurd_area_factor:g})")
     return use, reasons
+
+
+def footprint_extents(quads: np.ndarray) -> np.ndarray:
+    """(N,) diagonal of each (4, 2) footprint's bounding box (px)."""
+    quads = np.asarray(quads, np.float64)
+    return np.hypot(*np.moveaxis(quads.max(axis=-2) - quads.min(axis=-2), -1, 0))
 
 
 def usable_frames(homographies: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -227,10 +246,12 @@ def plan_canvas(homographies: np.ndarray, width: int, height: int, *,
         kept[strays] = False
         bounds = canvas_bounds(G, width, height, kept)
         if (bounds[2] - bounds[0]) * (bounds[3] - bounds[1]) <= max_pixels:
-            centres = footprints(G[main], width, height).mean(axis=1)
-            for k in strays:
-                centre = footprints(G[k : k + 1], width, height)[0].mean(axis=0)
-                distance = np.linalg.norm(centres - centre, axis=1).min()
+            from scipy.spatial import cKDTree
+
+            # (a tree: up to a tenth of the frames are strays, each against all the others)
+            distances, _ = cKDTree(footprints(G[main], width, height).mean(axis=1)).query(
+                footprints(G[strays], width, height).mean(axis=1))
+            for k, distance in zip(strays, distances, strict=True):
                 reasons[int(k)] = (
                     f"stray: lands {distance:.3g} px from the other frames (more than "
                     f"{STRAY_DIAGONALS:g} footprint diagonals from any), which would grow the "
@@ -255,21 +276,60 @@ def _proximity_groups(G: np.ndarray, width: int, height: int,
                       use: np.ndarray) -> list[np.ndarray]:
     """The used frames in groups linked by footprint centres within STRAY_DIAGONALS + 1 median
     footprint diagonals of each other (frame positions, each group in increasing order)."""
-    from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
 
     idx = np.flatnonzero(use)
     fp = footprints(G[idx], width, height)
     centres = fp.mean(axis=1)
     diagonal = float(np.median(np.maximum(np.linalg.norm(fp[:, 2] - fp[:, 0], axis=1),
                                           np.linalg.norm(fp[:, 3] - fp[:, 1], axis=1))))
-    pairs = cKDTree(centres).query_pairs((STRAY_DIAGONALS + 1) * diagonal, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
-                       shape=(idx.size, idx.size)) if len(pairs) else \
-        coo_matrix((idx.size, idx.size))
+    graph = _linkage_graph(centres, (STRAY_DIAGONALS + 1) * diagonal)
     _, labels = connected_components(graph, directed=False)
     return [idx[labels == label] for label in np.unique(labels)]
+
+
+def _linkage_graph(points: np.ndarray, radius: float):
+    """A sparse graph on (N, 2) `points` with the connected components of "within `radius` of
+    each other" (single linkage), from O(N) candidate edges.
+
+    Every pair within the radius (cKDTree.query_pairs) is O(N^2) for a compact sweep, since the
+    radius spans 11 footprints: 10 000 frames took 16.6 s and 2.8 GB (review 46), 30 000 would
+    exhaust 24 GB. The Delaunay triangulation's edges hold the minimum spanning tree (a pair
+    whose closed diametral disk holds a third point is linked through it by two shorter edges),
+    so its edges within the radius link the same groups: 20 000 frames 0.14 s. Qhull refuses
+    fewer than 3 distinct points and points on a line (to its precision): those are linked by a
+    sweep along the line, consecutive points being the line's spanning tree."""
+    from scipy.sparse import coo_matrix
+    from scipy.spatial import Delaunay, QhullError
+
+    points = np.asarray(points, np.float64)
+    # duplicates (frames placed at one spot) are one point to Qhull: grouped by `inverse`
+    unique, first, inverse = np.unique(points, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    edges = np.zeros((0, 2), np.int64)
+    if len(unique) >= 3:
+        try:
+            tri = Delaunay(unique)
+            s = tri.simplices
+            # points Qhull left out as coincident with a vertex (closer than its precision):
+            # linked to that vertex
+            edges = np.vstack([s[:, [0, 1]], s[:, [1, 2]], s[:, [2, 0]],
+                               tri.coplanar[:, [0, 2]]]).astype(np.int64)
+        except QhullError:  # flat: on one line
+            pass
+    if len(unique) >= 2 and not edges.size:
+        centred = unique - unique.mean(axis=0)
+        direction = np.linalg.svd(centred, full_matrices=False)[2][0]
+        order = np.argsort(centred @ direction, kind="stable")
+        edges = np.column_stack([order[:-1], order[1:]])
+    if edges.size:
+        edges = edges[np.linalg.norm(unique[edges[:, 0]] - unique[edges[:, 1]], axis=1)
+                      <= radius]
+    # edges between the first of each set of duplicates, and each point to its first
+    n = len(points)
+    rows = np.concatenate([first[edges[:, 0]], np.arange(n)])
+    cols = np.concatenate([first[edges[:, 1]], first[inverse]])
+    return coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
 
 
 # ------------------------------------------------------------------------------------------
@@ -494,8 +554,13 @@ def write_mosaic_png(path: str | Path, frames: Sequence, homographies: np.ndarra
                      progress: bool = False, highlights: SpecularMasks | None = None
                      ) -> tuple[CanvasPlan, float]:
     """Renders the mosaic tile by tile and streams it into a PNG at `path`; memory is bounded by
-    one band of tiles (tile_size rows x canvas width x C bytes) plus one tile's accumulator and
-    the patch cache, whatever the canvas size (up to canvas.max_pixels).
+    one band of tiles (tile_size rows x canvas width x C bytes, C + 1 with canvas.alpha), the
+    rendering of one tile (its accumulator, tile_size^2 x (C + 1) x 4 bytes, and its uint8
+    result; for multiband, a tile and its margin of 4 x 2^bands px, in pyramids), the patch
+    cache (canvas.cache_mb) and the PNG encoding (~9 MiB: png.PngStreamWriter), whatever the
+    canvas size (up to canvas.max_pixels). A 29800 x 2048 canvas, tile 2048 (band 175 MB,
+    accumulator 64 MB) peaks at 386 MB traced (899 MB when the encoding took four copies of
+    the band).
 
     frames: a sequence (frames[k]); frames overlapping several tiles are read and warped again
     unless still in the cache; each frame's specular mask is found once (highlights: those

@@ -21,9 +21,10 @@ the size of any one `render()` view. It does not bound the bounding box: a long 
 has a bounding box growing with the square of its length while its tiles grow with the length,
 and all its frames are kept; once the bounding box is above `max_pixels`, `render()` of the
 whole canvas raises CanvasTooLargeError and the caller renders sub-boxes (e.g. the box `add`
-returned). Only a stray frame is left out for the bounding box: one that would grow the bounds
-beyond `max_pixels` while landing more than `stray_diagonals` (10) of its own diagonals away
-from every frame placed so far (a wild jump such as a placement 1e6 px off; it is recorded in
+returned) or the whole shrunk (`render`'s step, at a cost of the tiles, not the box). Only a
+stray frame is left out for the bounding box: one that would grow the bounds beyond
+`max_pixels` while landing more than `stray_diagonals` (10) of its own diagonals away from
+every frame placed so far (a wild jump such as a placement 1e6 px off; it is recorded in
 `skipped`, like an unplaced frame). A far frame that keeps the bounds within `max_pixels` is
 kept, as is anything landing near the content already there.
 
@@ -63,6 +64,7 @@ from fusedmosaic.compositing.blending import (
 from fusedmosaic.compositing.canvas import (
     ABSURD_AREA_FACTOR,
     CanvasTooLargeError,
+    footprint_extents,
     footprint_problem,
     footprints,
 )
@@ -129,6 +131,7 @@ class IncrementalCanvas:
         self._strays = 0  # consistent strays in a row since the last placed frame
         self._stray_box: Box | None = None  # the last of them
         self._areas: deque[float] = deque(maxlen=101)
+        self._extents: deque[float] = deque(maxlen=101)  # footprints' bounding box diagonals
         self._calls = 0
         self._channels: int | None = None  # the tiles': the frames' + 1 (the weight)
         self._frame_channels: int | None = None  # the frames' (those of every call that passed)
@@ -144,17 +147,23 @@ class IncrementalCanvas:
             self._warpers[key] = FrameWarper(self.width, self.height, mask, self.options)
         return self._warpers[key]
 
-    def _screen(self, G: np.ndarray) -> tuple[str | None, float]:
-        """(reason to leave the frame out or None, footprint area)."""
+    def _screen(self, G: np.ndarray) -> tuple[str | None, float, float]:
+        """(reason to leave the frame out or None, footprint area, footprint extent)."""
         if not np.isfinite(G).all():
-            return "not placed", np.nan
+            return "not placed", np.nan, np.nan
         quad = footprints(G[None], self.width, self.height)[0]
         reason, area = footprint_problem(G, quad, self.width, self.height)
         if reason is not None:
-            return reason, np.nan
+            return reason, np.nan, np.nan
+        extent = float(footprint_extents(quad))
         if self._areas and area > self.absurd_area_factor * float(np.median(self._areas)):
-            return f"footprint area {area / np.median(self._areas):.0f} x the recent median", area
-        return None, area
+            return (f"footprint area {area / np.median(self._areas):.0f} x the recent median",
+                    area, extent)
+        # (as canvas.screen_frames: a thin footprint of normal area)
+        if self._extents and extent > self.absurd_area_factor * float(np.median(self._extents)):
+            return (f"footprint extent {extent / np.median(self._extents):.0f} x the recent "
+                    "median (its bounding box's diagonal)", area, extent)
+        return None, area, extent
 
     def _check_image(self, image, name: int) -> np.ndarray:
         if image is None:
@@ -195,8 +204,8 @@ class IncrementalCanvas:
         """Blends one frame placed by `homography` (frame -> reference). mask: this frame's field
         of view if it differs from the canvas's. Returns the canvas box that changed, or None if
         the frame was left out (unplaced, footprint behind the camera, non-convex, > 20 x the
-        recent median area, or a stray: growing the canvas bounds beyond `max_pixels` while
-        landing more than `stray_diagonals` frame diagonals from every placed frame; see
+        recent median area or extent, or a stray: growing the canvas bounds beyond `max_pixels`
+        while landing more than `stray_diagonals` frame diagonals from every placed frame; see
         `skipped`). A frame near the content is kept however large the bounding box gets. The
         `stray_rebase`-th consistent stray in a row is placed instead, accepting the new place
         (see the module notes).
@@ -217,7 +226,7 @@ class IncrementalCanvas:
         warper.channels = self._frame_channels
         image = warper._check_image(image, name)  # (H, W, channels)
         channels = image.shape[2]
-        reason, area = self._screen(G)
+        reason, area, extent = self._screen(G)
         if self.scale != 1.0:
             G = np.diag([self.scale, self.scale, 1.0]) @ G
         box = warper.box(G) if reason is None else None
@@ -271,6 +280,7 @@ class IncrementalCanvas:
         self._calls += 1
         self._frame_channels = channels
         self._areas.append(area)
+        self._extents.append(extent)
         if self._channels is None:
             self._channels = patch.data.shape[2]
         for key in tiles:
@@ -296,13 +306,22 @@ class IncrementalCanvas:
         """Canvas pixels held in tiles: the memory `max_pixels` bounds."""
         return len(self.tiles) * self.tile_size * self.tile_size
 
-    def render(self, box: Box | None = None) -> np.ndarray:
+    def render(self, box: Box | None = None, *, step: int = 1) -> np.ndarray:
         """uint8 (h, w, C) view of `box` (default: everything so far, `bounds`); empty pixels are
-        black. Cost proportional to the box; a box of more than `max_pixels` pixels raises
-        CanvasTooLargeError (render a part of it instead). The default box can be above the
-        budget with the tiles far below it (a long or diagonal sweep: see the module notes)."""
+        black. Cost proportional to the box; a view of more than `max_pixels` pixels raises
+        CanvasTooLargeError (render a part of it instead, or shrunk). The default box can be
+        above the budget with the tiles far below it (a long or diagonal sweep: see the module
+        notes).
+
+        step: the view shrunk by this whole factor, (ceil(h / step), ceil(w / step)): pixel
+        (i, j) is the mean of the box's pixels (x0 + j step .. + step - 1, y0 + i step ..), the
+        box padded with black (empty) to a multiple of step, as cv2.resize's INTER_AREA gives
+        it; its cost is proportional to the tiles in the box and the view, not to the box."""
         if self._channels is None:
             raise ValueError("no frame added yet")
+        if not (isinstance(step, int | np.integer) and not isinstance(step, bool) and step >= 1):
+            raise ValueError(f"render: step must be an integer >= 1, got {step!r}")
+        step = int(step)
         given, box = box, self.bounds if box is None else box
         try:
             x0, y0, x1, y1 = (int(v) for v in box)
@@ -311,13 +330,17 @@ class IncrementalCanvas:
                              ) from None
         if not (x1 > x0 and y1 > y0):
             raise ValueError(f"render: empty box {box!r} (need x1 > x0 and y1 > y0)")
-        if (x1 - x0) * (y1 - y0) > self.max_pixels:
+        vw, vh = -(-(x1 - x0) // step), -(-(y1 - y0) // step)
+        if vw * vh > self.max_pixels:
             whole = (" (the whole canvas: its bounding box; the tiles hold "
                      f"{self.tile_pixels} pixels)") if given is None else ""
+            shrunk = f" shrunk {step} times" if step > 1 else ""
             raise CanvasTooLargeError(
-                f"render: the view of x {x0}..{x1}, y {y0}..{y1} is {x1 - x0} x {y1 - y0} "
+                f"render: the view of x {x0}..{x1}, y {y0}..{y1}{shrunk} is {vw} x {vh} "
                 f"pixels, above the budget of {self.max_pixels} pixels (max_pixels){whole}; "
-                "render a smaller box, e.g. the one add() returned")
+                "render a smaller box, e.g. the one add() returned, or a larger step")
+        if step > 1:
+            return self._render_shrunk((x0, y0, x1, y1), step)
         C = self._channels - 1
         out = np.zeros((y1 - y0, x1 - x0, C), np.uint8)
         T = self.tile_size
@@ -331,6 +354,49 @@ class IncrementalCanvas:
                 sub = tile[ay0 - ty * T:ay1 - ty * T, ax0 - tx * T:ax1 - tx * T]
                 out[ay0 - y0:ay1 - y0, ax0 - x0:ax1 - x0] = resolve(sub)[0]
         return out[:, :, 0] if C == 1 else out
+
+    def _render_shrunk(self, box: Box, step: int) -> np.ndarray:
+        """render(box, step=step) for step > 1: each tile's pixels are summed by blocks of the
+        view's pixels into a float32 strip of view rows, so memory is the view plus one strip
+        (<= ~64 MB), and only allocated tiles are visited."""
+        x0, y0, x1, y1 = box
+        C, T = self._channels - 1, self.tile_size
+        vw, vh = -(-(x1 - x0) // step), -(-(y1 - y0) // step)
+        out = np.zeros((vh, vw, C), np.uint8)
+        columns: dict[int, list[int]] = {}  # tile row -> its allocated tiles' columns in box
+        for ty, tx in self.tiles:
+            if tx * T < x1 and tx * T + T > x0 and ty * T < y1 and ty * T + T > y0:
+                columns.setdefault(ty, []).append(tx)
+        rows = max(1, min(-(-T // step), (64 << 20) // (vw * C * 4)))  # view rows per strip
+        for r0 in range(0, vh, rows):
+            r1 = min(r0 + rows, vh)
+            cy0, cy1 = y0 + r0 * step, min(y0 + r1 * step, y1)  # the strip's canvas rows
+            acc = None
+            for ty in range(cy0 // T, (cy1 - 1) // T + 1):
+                for tx in columns.get(ty, ()):
+                    ax0, ay0 = max(x0, tx * T), max(cy0, ty * T)
+                    ax1, ay1 = min(x1, tx * T + T), min(cy1, ty * T + T)
+                    sub = resolve(self.tiles[(ty, tx)][ay0 - ty * T:ay1 - ty * T,
+                                                       ax0 - tx * T:ax1 - tx * T])[0]
+                    sums, i0 = _block_sums(sub, ay0 - y0, step, axis=0)
+                    sums, j0 = _block_sums(sums, ax0 - x0, step, axis=1)
+                    if acc is None:
+                        acc = np.zeros((r1 - r0, vw, C), np.float32)
+                    acc[i0 - r0:i0 - r0 + sums.shape[0], j0:j0 + sums.shape[1]] += sums
+            if acc is not None:
+                acc *= np.float32(1.0 / (step * step))
+                acc += np.float32(0.5)  # round half up (values are >= 0)
+                np.clip(acc, 0, 255, out=acc)
+                out[r0:r1] = acc.astype(np.uint8)
+        return out[:, :, 0] if C == 1 else out
+
+
+def _block_sums(a: np.ndarray, start: int, step: int, axis: int) -> tuple[np.ndarray, int]:
+    """(float32 sums of `a` over blocks of `step` along `axis`, the first block's index), a's
+    index 0 lying at `start` in a grid of blocks starting at 0."""
+    cuts = np.arange(step - start % step, a.shape[axis], step)
+    return (np.add.reduceat(a, np.concatenate([[0], cuts]), axis=axis, dtype=np.float32),
+            start // step)
 
 
 def _warp_shrunk(warper: FrameWarper, image: np.ndarray, G: np.ndarray, box: Box, scale: float,

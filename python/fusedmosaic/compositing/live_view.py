@@ -20,11 +20,18 @@ mosaic.origin_reference_px for mosaic.png), size and ``scale``.
 
 The published canvas is the same linear blend that ``run --blend linear`` renders from the final
 homographies, at ``scale`` (the final outputs are written by the session as ``run`` writes
-them). A frame without a final placement is not drawn. A failure of the view (a full disk, a
-canvas above ``max_pixels``, any error of the worker) is recorded in ``problems`` (a count per
-kind, without frame numbers or coordinates, so it stays small however long the session;
+them). A frame without a final placement is not drawn. A failure of the view (a full disk, tiles
+above ``max_pixels``, any error of the worker) is recorded in ``problems`` (a count per kind,
+without frame numbers or coordinates, so it stays small however long the session;
 ``problem_details`` has the first frame of each kind and its full message) and never stops the
 session or the worker.
+
+The canvas's bounding box can outgrow its tiles (a diagonal sweep's grows with the square of its
+length): a bounding box above the view's budget, min(``max_pixels``, VIEW_MAX_PIXELS), is
+published shrunk by the least whole factor that fits it (area averaged: IncrementalCanvas.render's
+step), and the view keeps following the session (it stopped publishing there, for the rest of
+the session; review 46). The first such publication is told once (``notify``), and they are
+counted (``summary()``: ``reduced``; ``scale`` is the last published image's).
 
 The worker renders each publication and hands it to a publisher thread, which writes the
 preview and sends it to the server's clients: compositing never waits for a disk or a client (a
@@ -50,6 +57,7 @@ import queue
 import re
 import threading
 import time
+import warnings
 from pathlib import Path
 
 import cv2
@@ -65,6 +73,10 @@ MAX_QUEUED = 100  # frames waiting for the worker (memory bound: ~50 MB at 400x4
 # send): the view's worker spends at most ~1/4 of a core on publishing, whatever the canvas.
 PUBLISH_DUTY = 4.0
 IGTL_MAX_SIDE = 65535  # an OpenIGTLink IMAGE's size fields are uint16
+# A published image holds at most this many pixels (a larger bounding box is shrunk): rendering
+# and encoding it costs ~1.8 s at 4096 x 4096, so ~5 s here, and PUBLISH_DUTY spaces the
+# publications by 4x that.
+VIEW_MAX_PIXELS = 50_000_000
 MAX_PROBLEM_KINDS = 32  # distinct problem texts kept; further kinds are counted together
 
 
@@ -74,14 +86,19 @@ class LiveMosaicView:
     (lba-emt's homographies hold between undistorted pixels), or None; preview: PNG path or
     None; server: an IgtlImageServer or None (closed by the caller); interval_s: s between
     publications (the last frame is always published by :meth:`close`); scale: canvas pixels
-    per reference pixel; max_pixels: the canvas budget (IncrementalCanvas); mask_specular:
-    specular highlights not pasted (BlendOptions.mask_specular); pixel_size_mm: a reference
-    pixel's size on the tissue for the server's image geometry (None: 1 mm)."""
+    per reference pixel; max_pixels: the canvas budget (IncrementalCanvas: the tiles, 16 bytes
+    a pixel for colour; a published image holds at most min(max_pixels, VIEW_MAX_PIXELS), a
+    larger bounding box being shrunk: module notes); mask_specular: specular highlights not
+    pasted (BlendOptions.mask_specular); pixel_size_mm: a reference pixel's size on the tissue
+    for the server's image geometry (None: 1 mm); notify(text): told once, on the worker's
+    thread, when the view is first published shrunk (None: a warning); its errors are
+    ignored."""
 
     def __init__(self, width: int, height: int, *, mask: np.ndarray | None = None, lens=None,
                  preview: str | Path | None = None, server=None, interval_s: float = 1.0,
                  scale: float = 1.0, max_pixels: int = 50_000_000,
-                 mask_specular: bool = False, pixel_size_mm: float | None = None) -> None:
+                 mask_specular: bool = False, pixel_size_mm: float | None = None,
+                 notify=None) -> None:
         if not (np.isfinite(interval_s) and interval_s >= 0):
             raise ValueError(f"interval_s must be >= 0, got {interval_s}")
         if pixel_size_mm is not None and not (np.isfinite(pixel_size_mm) and pixel_size_mm > 0):
@@ -114,6 +131,11 @@ class LiveMosaicView:
         self.effective_interval_s = self.interval_s
         self.igtl_downscaled = 0  # images sent to the server shrunk to fit OpenIGTLink
         self.igtl_scale: float | None = None  # the last sent image's pixels per reference pixel
+        self.view_max_pixels = min(self.canvas.max_pixels, VIEW_MAX_PIXELS)
+        self.reduced = 0  # publications shrunk to fit view_max_pixels (module notes)
+        self.view_scale: float | None = None  # the last published image's pixels per ref. pixel
+        self._notify = notify
+        self._told_reduced = False
         # the publication waiting for the publisher (frame, view, origin, scale), or None
         self._waiting: tuple | None = None
         self._waiting_cv = threading.Condition()
@@ -205,19 +227,37 @@ class LiveMosaicView:
         publication waiting, if any (latest wins)."""
         self._last_publish = time.monotonic()
         self._dirty = False
-        try:
-            view = self.canvas.render()  # (the worker's thread: bounds are the view's)
-        except CanvasTooLargeError as exc:
-            self._problem("not published: the canvas's bounding box is above max_pixels "
-                          f"({self.canvas.max_pixels})", frame=self._current, message=str(exc))
-            return
-        s = self.canvas.scale
-        origin = (self.canvas.bounds[0] / s, self.canvas.bounds[1] / s)
+        x0, y0, x1, y1 = self.canvas.bounds  # (the worker's thread: bounds are the view's)
+        step = shrink_step(x1 - x0, y1 - y0, self.view_max_pixels)
+        view = self.canvas.render() if step == 1 else self.canvas.render(step=step)
+        if step > 1:
+            self.reduced += 1
+            if not self._told_reduced:
+                self._told_reduced = True
+                self._tell(f"live view: the mosaic's bounding box ({x1 - x0} x {y1 - y0} "
+                           f"pixels) is above the view's budget of {self.view_max_pixels} "
+                           f"pixels: it is published shrunk {step} times (area averaged), more "
+                           "as it grows; the final outputs are at full resolution "
+                           "(report.json live view reduced)")
+        # view pixel (0, 0): the mean of canvas pixels x0 .. x0 + step - 1 (y0 ..), centred at
+        # canvas x0 + (step - 1) / 2, i.e. reference pixel that / scale
+        c = self.canvas.scale
+        s = c / step
+        origin = ((x0 + (step - 1) / 2) / c, (y0 + (step - 1) / 2) / c)
         with self._waiting_cv:
             if self._waiting is not None:
                 self.superseded += 1
             self._waiting = (self._current, view, origin, s)
             self._waiting_cv.notify()
+
+    def _tell(self, text: str) -> None:
+        try:
+            if self._notify is not None:
+                self._notify(text)
+            else:
+                warnings.warn(text, stacklevel=2)
+        except Exception:  # noqa: BLE001 (a warning made an error must not stop the view)
+            pass
 
     def _deliver_loop(self) -> None:
         """The publisher: delivers the publication waiting, until close() and none waits."""
@@ -240,6 +280,7 @@ class LiveMosaicView:
                  s: float) -> None:
         """Writes the preview and sends the view to the server (the publisher's thread)."""
         self.origin_reference_px, self.view_size = origin, (view.shape[1], view.shape[0])
+        self.view_scale = s
         if self.preview is not None:
             tmp = self.preview.with_name(f".{self.preview.name}.{os.getpid()}.tmp.png")
             try:
@@ -284,7 +325,9 @@ class LiveMosaicView:
                "origin_reference_px": None if origin is None else [float(v) for v in origin],
                "width": None if self.view_size is None else self.view_size[0],
                "height": None if self.view_size is None else self.view_size[1],
-               "scale": self.canvas.scale,
+               "scale": self.canvas.scale if self.view_scale is None else self.view_scale,
+               # publications shrunk to fit the view's budget (its bounding box above it)
+               "reduced": self.reduced, "view_max_pixels": self.view_max_pixels,
                "pixel_size_mm": 1.0 if self.pixel_size_mm is None else self.pixel_size_mm,
                # a publication's cost (render, and the publisher's CPU time for the last
                # delivery) and the interval it imposes
@@ -313,6 +356,19 @@ def _kind(exc: BaseException) -> str:
     text = re.sub(r"\(frame \d+[^)]*\)", "", text)
     text = re.sub(r"-?\d+(\.\d+)?(e[+-]?\d+)?", "N", text)
     return f"{type(exc).__name__}: {text.strip()}"[:200]
+
+
+def shrink_step(width: int, height: int, max_pixels: int) -> int:
+    """The least whole factor by which a width x height image shrinks (padded to a multiple of
+    it) to at most max_pixels pixels."""
+    lo, hi = 1, max(width, height, 1)  # (the pixels are non-increasing with the step)
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if -(-width // mid) * -(-height // mid) > max_pixels:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
 
 
 def _fit_igtl(view: np.ndarray) -> tuple[np.ndarray, int]:

@@ -8,8 +8,10 @@ plus the encoding of one video frame, at frame 10 as at frame 10 000.
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import os
+import struct
 from pathlib import Path
 
 import cv2
@@ -22,6 +24,7 @@ from fusedmosaic.io.output import temp_beside
 OUTLINE_BGR = (0, 255, 0)  # the current frame's outline: green
 # Containers that take OpenCV's 'mp4v' (MPEG-4 part 2) stream; others (.gif, .txt, none) fail.
 VIDEO_SUFFIXES = (".mp4", ".m4v", ".mov", ".avi", ".mkv")
+ATOM_SUFFIXES = (".mp4", ".m4v", ".mov")  # ISO base media / QuickTime: a sequence of atoms
 
 
 def check_video_suffix(path: str | Path) -> None:
@@ -60,7 +63,9 @@ class MosaicVideoWriter:
                  outline: bool = True) -> None:
         options = as_blend_options(blend)
         if options.blend == "multiband":  # not incremental: show the linear blend instead
-            options = BlendOptions("linear", border_px=options.border_px)
+            # (the rest kept: rebuilt, the options lost mask_specular, and lba-emt's video had
+            # each frame's highlights as a trail along the path; review 46)
+            options = dataclasses.replace(options, blend="linear")
         if not fps > 0:
             raise ValueError(f"video fps must be > 0, got {fps}")
         check_video_suffix(path)
@@ -144,6 +149,14 @@ class MosaicVideoWriter:
             raise OSError(errno.EIO, f"the video does not read back ({readable} of "
                           f"{self.frames_written} frames; a full disk?): no video written",
                           str(self.path))
+        # A file cut in its last atom (the index's tail: 71 bytes short, its metadata gone)
+        # still decodes every frame: the atoms' sizes must add up to the file's.
+        problem = (_atoms_problem(self._tmp) if self.path.suffix.lower() in ATOM_SUFFIXES
+                   else None)
+        if problem is not None:
+            self._tmp.unlink(missing_ok=True)
+            raise OSError(errno.EIO, f"the video is incomplete ({problem}; a full disk?): no "
+                          "video written", str(self.path))
         os.replace(self._tmp, self.path)
 
     def abort(self) -> None:
@@ -160,6 +173,36 @@ class MosaicVideoWriter:
             self.close()  # (which removes the temporary file if it fails)
         else:
             self.abort()
+
+
+def _atoms_problem(path: Path) -> str | None:
+    """What is wrong with the top-level atoms of an MP4 / QuickTime file (each: a 32-bit size,
+    1 for a 64-bit one after the type, 0 for "to the end"; then a 4-byte type), None if their
+    sizes add up to the file's."""
+    size = path.stat().st_size
+    offset = 0
+    with open(path, "rb") as f:
+        while offset < size:
+            f.seek(offset)
+            header = f.read(16)
+            if len(header) < 8:
+                return f"{size - offset} stray bytes at its end"
+            length, kind = struct.unpack(">I4s", header[:8])
+            name = kind.decode("latin-1")
+            least = 8
+            if length == 1:
+                if len(header) < 16:
+                    return f"the atom '{name}' at byte {offset} is cut in its header"
+                length, least = struct.unpack(">Q", header[8:16])[0], 16
+            elif length == 0:
+                length = size - offset
+            if length < least:
+                return f"the atom '{name}' at byte {offset} has an invalid size {length}"
+            if offset + length > size:
+                return (f"the atom '{name}' at byte {offset} declares {length} bytes, "
+                        f"{offset + length - size} beyond the file's end at {size}")
+            offset += length
+    return None
 
 
 def write_creation_video(path: str | Path, frames, homographies: np.ndarray, width: int,

@@ -11,6 +11,7 @@ import errno
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import tempfile
@@ -448,10 +449,27 @@ class OutputWriter:
         return path
 
     def write_image(self, name: str, image: np.ndarray) -> Path:
+        """Writes `image` in the format its name's extension says (OpenCV's encoders)."""
         path = self.path(name)
-        if not cv2.imwrite(str(path), image):
-            raise ValueError(f"{self.out_dir / name}: the image could not be written (a full "
-                             f"disk, or no write permission in {self.out_dir}?)")
+        # Encoded in memory and written by Python, whose close() reports a failed last write:
+        # cv2.imwrite does not check it, and a mosaic.png cut 300 bytes short (a file size
+        # limit, as on a full disk) was committed with exit 0 (review 46).
+        try:
+            ok, data = cv2.imencode(PurePath(name).suffix, image)
+        except cv2.error as exc:  # (OpenCV's text without its source file and function)
+            what = re.sub(r" in function .*$", "",
+                          re.sub(r"^.*error: \([^)]*\) ", "", str(exc).strip()))
+            raise ValueError(f"{self.out_dir / name}: the image could not be encoded ({what})"
+                             ) from None
+        if not ok:
+            raise ValueError(f"{self.out_dir / name}: the image could not be encoded")
+        try:
+            path.write_bytes(data.tobytes())
+        except OSError as exc:
+            path.unlink(missing_ok=True)
+            raise ValueError(f"{self.out_dir / name}: the image could not be written "
+                             f"({exc.strerror or exc}: a full disk, or no write permission in "
+                             f"{self.out_dir}?)") from None
         return path
 
     def write_text(self, name: str, text: str) -> Path:

@@ -328,8 +328,7 @@ class DatasetRecorder:
         part = self._tmp / "frames" / f".{k:06d}.part.png"  # hidden: not a frame yet
         store = self._store()
         start = time.perf_counter()
-        if not cv2.imwrite(str(part), image, PNG_STORED if store else PNG_COMPRESSED):
-            raise OSError(f"{part}: cv2.imwrite failed")
+        _write_png(part, image, PNG_STORED if store else PNG_COMPRESSED)
         cost, mode = (time.perf_counter() - start) / max(image.nbytes, 1), int(store)
         self._cost[mode] = cost if not self._cost[mode] else 0.75 * self._cost[mode] + 0.25 * cost
         if store:
@@ -339,6 +338,21 @@ class DatasetRecorder:
             os.write(self._frames_fd, f"{k},{format_float(t)}\n".encode())
             self.frames_written += 1
             self.frames_uncompressed += store
+
+
+def _write_png(path: Path, image: np.ndarray, params: list[int]) -> None:
+    """`image` encoded as PNG in memory and written by Python, whose close() reports a failed
+    last write: cv2.imwrite does not check it, and a PNG cut short by a full disk (mosaic.png,
+    review 46) passed as written. OSError naming `path` if it cannot be written."""
+    ok, data = cv2.imencode(".png", image, params)
+    if not ok:
+        raise OSError(f"{path}: PNG encoding failed")
+    try:
+        path.write_bytes(data)
+    except OSError as exc:
+        with contextlib.suppress(OSError):  # (hidden, not a frame: not kept cut short)
+            path.unlink(missing_ok=True)
+        raise OSError(exc.errno, f"{path}: {exc.strerror or exc}") from None
 
 
 def _describe(exc: BaseException) -> str:
