@@ -595,21 +595,29 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
         timings["gain_compensation"] = time.perf_counter() - t0
         t0 = time.perf_counter()
     tiled = plan.pixels > canvas.in_memory_pixels
-    if tiled:
-        _, covered = write_mosaic_png(w.path("mosaic.png"), frames, G, cam.width,
-                                      cam.height, mask=mask, blend=blend, canvas=canvas,
-                                      gains=gains, plan=plan, progress=progress,
-                                      highlights=highlights)
-    else:
-        rendered = render_mosaic(frames, G, cam.width, cam.height, mask=mask,
-                                 blend=blend, max_pixels=canvas.max_pixels, gains=gains,
-                                 plan=plan, progress=progress, highlights=highlights)
-        if canvas.alpha:  # (OpenCV's PNG encoder takes no grey + alpha)
-            write_png(w.path("mosaic.png"), np.dstack(
-                [rendered.image, rendered.covered.view(np.uint8) * np.uint8(255)]))
+    staged = w.path("mosaic.png")
+    try:
+        if tiled:
+            _, covered = write_mosaic_png(staged, frames, G, cam.width, cam.height, mask=mask,
+                                          blend=blend, canvas=canvas, gains=gains, plan=plan,
+                                          progress=progress, highlights=highlights)
         else:
-            w.write_image("mosaic.png", rendered.image)
-        covered = float(rendered.covered.mean())
+            rendered = render_mosaic(frames, G, cam.width, cam.height, mask=mask,
+                                     blend=blend, max_pixels=canvas.max_pixels, gains=gains,
+                                     plan=plan, progress=progress, highlights=highlights)
+            if canvas.alpha:  # (OpenCV's PNG encoder takes no grey + alpha)
+                write_png(staged, np.dstack(
+                    [rendered.image, rendered.covered.view(np.uint8) * np.uint8(255)]))
+            else:
+                w.write_image("mosaic.png", rendered.image)
+            covered = float(rendered.covered.mean())
+    except OSError as exc:
+        if exc.filename != str(staged):
+            raise
+        # the streamed writers name the file they write, the output folder's staging copy: the
+        # error names OUT's mosaic.png, as write_image's does (review 46)
+        raise ValueError(f"{w.out_dir / 'mosaic.png'}: the image could not be written "
+                         f"({exc.strerror or exc}: a full disk?)") from None
     highlights = None  # (not shared with the video's incremental canvas)
     timings["compose_mosaic"] = time.perf_counter() - t0
     info = {
