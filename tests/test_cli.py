@@ -123,12 +123,15 @@ def test_run_feature_options(datasets, tmp_path, capsys):
             (["--method", "ncc", "--detector", "orb"],
              "--detector / --max-features / --clahe / --detect-max-side / "
              "--orb-fast-threshold / --keep-specular apply to lba-emt"),
-            (["--method", "lba-emt", "--orb-fast-threshold", "300"],
+            (["--method", "lba-emt", "--detector", "orb", "--orb-fast-threshold", "300"],
              "--orb-fast-threshold must be an integer in 1..255 (grey levels), got 300"),
             (["--method", "pairwise", "--max-features", "0"],
-             "--max-features must be an integer in 1..2147483647 (OpenCV's int), got 0"),
+             "--max-features must be an integer in 1..1000000 (keypoints per frame), got 0"),
             (["--method", "lba-emt", "--max-features", "5000000000"],
-             "--max-features must be an integer in 1..2147483647 (OpenCV's int), got 5000000000"),
+             "--max-features must be an integer in 1..1000000 (keypoints per frame), got "
+             "5000000000"),
+            (["--method", "pairwise", "--orb-fast-threshold", "10"],
+             "--orb-fast-threshold applies to --detector orb (SIFT has no FAST threshold)"),
             (["--method", "lba-emt", "--detect-max-side", "16"],
              "--detect-max-side must be >= 32 (pixels), an integer; got 16"),
             (["--method", "pairwise", "--detect-max-side", "16"],

@@ -1163,8 +1163,9 @@ def test_pairwise_starts_its_chain_after_an_unreadable_frame0(data, tmp_path, ca
     assert run(root, out, "pairwise") == 0
     err = capsys.readouterr().err
     assert f"1 of 8 frames could not be read (frames 0; first: {damaged}: cannot read" in err
-    assert ("warning: the pairwise chain starts at frame 1, the first frame whose image can be "
-            "read and has features: the 1 frame(s) before it are unplaced") in err
+    assert ("warning: the pairwise chain starts at frame 1, the first frame registered to the "
+            "next one: the 1 frame(s) before it are unplaced (frame 0: its image cannot be "
+            "read)") in err
     report = json.loads((out / "report.json").read_text())
     assert report["frame_status"][0] == "unplaced: its image cannot be read"
     assert report["frame_status"][1:] == ["placed"] * 7, report["frame_status"]

@@ -8,14 +8,16 @@ registered the chain breaks, so that frame and every later frame are left unplac
 from __future__ import annotations
 
 import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from tqdm import tqdm
 
 from fusedmosaic.methods import MethodResult
-from fusedmosaic.registration.features import FeatureOptions, extract_features
-from fusedmosaic.registration.pairs import MatchOptions, match_pairs
+from fusedmosaic.registration.features import FeatureExtractor, FeatureOptions, Features
+from fusedmosaic.registration.pairs import MatchOptions, PairMatch, match_pair
 
 
 @dataclass
@@ -41,43 +43,120 @@ def chain_homographies(consecutive: list[np.ndarray | None], start: int = 0) -> 
     return G
 
 
+def _stream_pairs(frames, n: int, extractor: FeatureExtractor, image_size: tuple[int, int],
+                  matching: MatchOptions, bar,
+                  timings: dict) -> tuple[list[int], list[PairMatch], list[int]]:
+    """Features of frames 0..n-1 and the matches (k, k + 1), streamed: frames are detected in
+    order a few ahead, each pair is matched as soon as both frames' features exist, and a
+    frame's features are dropped once its pairs are matched. PairVis needs no more: extracting
+    every frame first held all their features (~100 kB per frame at ~200 SIFT keypoints, 500
+    kB at 1000: 7.5 GB for a 10-minute recording at 25 frames/s; review); streamed, the run's
+    peak memory grew 89 MB over 300 hand-held frames and 98 MB over 1500, where it grew 116 and
+    230 MB. Returns the keypoint count per frame, the matches in pair order with their inlier
+    points dropped, and their inlier counts.
+
+    Detection and matching share one pool of threads (OpenCV releases the GIL), each task the
+    same computation as before, so the results are the same whatever the threads' order."""
+    workers = max(2, matching.num_threads)  # (features had 2 threads, matching num_threads)
+    ahead = 2 * workers  # frames detected ahead of the one being paired, and pairs in flight
+    counts: list[int] = []
+    matches: list[PairMatch] = []
+    inliers: list[int] = []
+    pending_features: deque = deque()
+    pending_matches: deque = deque()
+
+    def extract(k: int) -> Features:
+        return extractor.extract(frames[k], k)
+
+    def match(f_l: Features, f_m: Features) -> tuple[PairMatch, int]:
+        m = match_pair(f_l, f_m, image_size, matching)
+        n_inliers = m.n_inliers
+        m.points_l = m.points_m = np.zeros((0, 2))  # (~6 kB a pair) only their count is used
+        return m, n_inliers
+
+    def collect(limit: int) -> None:
+        while len(pending_matches) > limit:
+            m, n_inliers = pending_matches.popleft().result()
+            matches.append(m)
+            inliers.append(n_inliers)
+            bar.update(1)
+
+    pool = ThreadPoolExecutor(workers)
+    try:
+        t0 = time.perf_counter()
+        submitted = 0
+        previous = None
+        for k in range(n):
+            while submitted < n and submitted <= k + ahead:
+                pending_features.append(pool.submit(extract, submitted))
+                submitted += 1
+            features = pending_features.popleft().result()
+            counts.append(len(features))
+            if previous is not None:
+                pending_matches.append(pool.submit(match, previous, features))
+            previous = features
+            collect(ahead)
+        del features, previous
+        # the two overlap: features up to the last frame's, matching what is left after it
+        timings["features"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        collect(0)
+        timings["matching"] = time.perf_counter() - t0
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)  # (an error: no more frames read)
+    return counts, matches, inliers
+
+
 def run_pairwise(dataset, *, progress: bool = True,
                  options: PairwiseOptions | None = None) -> MethodResult:
     o = options or PairwiseOptions()
+    o.matching.validate()
     cam = dataset.camera
     n = len(dataset.frames)
+    if n == 0:
+        raise ValueError(f"{dataset.root}: no frames")
     timings = {}
-    t0 = time.perf_counter()
     # keypoints in undistorted pixels (camera.yaml's lens distortion removed), where the
     # frame-to-frame mapping of a plane is a homography
-    feats = extract_features(dataset.frames, range(n), cam.fov_mask(), o.features, progress,
-                             undistortion=cam.undistortion())
-    timings["features"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    pairs = [(k, k + 1) for k in range(n - 1)]  # target k, source k + 1
-    with tqdm(total=len(pairs), desc="matching", disable=not progress, leave=False) as bar:
-        matches = match_pairs(feats, pairs, (cam.width, cam.height), o.matching, bar.update)
-    timings["matching"] = time.perf_counter() - t0
+    extractor = FeatureExtractor(o.features, cam.fov_mask(), cam.undistortion())
+    with tqdm(total=max(n - 1, 0), desc="features and matching", disable=not progress,
+              leave=False) as bar:
+        counts, matches, inliers = _stream_pairs(dataset.frames, n, extractor,
+                                                 (cam.width, cam.height), o.matching, bar,
+                                                 timings)
     ids = dataset.frame_ids
     unreadable = getattr(dataset.frames, "unreadable", {})
-    # The chain starts at the first frame with content: frame 0 unreadable (read as a black
-    # frame) or featureless left every frame unplaced and the run failed with "no placed frame"
-    # naming neither (review). Frames before it are unplaced; it is the reference.
-    start = next((k for k in range(n) if k not in unreadable
-                  and len(feats[k]) >= o.matching.min_inliers), 0)
-    if n > 1 and not any(m.ok for m in matches):
-        first = unreadable.get(0) or (f"pair ({int(ids[0])}, {int(ids[1])}): "
-                                      f"{matches[0].status}")
-        raise ValueError(f"{dataset.root}: no consecutive pair of frames could be registered "
-                         f"(first failure: {first})")
+
+    def pair_name(k: int) -> str:
+        return f"pair ({int(ids[k])}, {int(ids[k + 1])})"
+
+    def why_unplaced(k: int) -> str:  # a frame before the chain's first
+        if k in unreadable:
+            return "its image cannot be read"
+        if k == n - 1:
+            return f"too few features ({counts[k]} < {o.matching.min_inliers})"
+        return f"{pair_name(k)} not registered: {matches[k].status}"
+
+    # The chain starts at the first frame registered to the next one: that frame is the
+    # reference, the frames before it unplaced. A first frame with features that matched
+    # nothing (defocused while the scope went in, a flash, smoke, noise) lost the whole
+    # sequence, 1 of 150 placed, where a black one (no features) moved the start (review).
+    start = next((k for k in range(n - 1) if matches[k].ok), None)
+    if start is None:
+        if n > 1:
+            first = unreadable.get(0) or f"{pair_name(0)}: {matches[0].status}"
+            raise ValueError(f"{dataset.root}: no consecutive pair of frames could be registered "
+                             f"(first failure: {first})")
+        if 0 in unreadable or counts[0] < o.matching.min_inliers:
+            # (a single black frame was 'placed', exit 0, a black mosaic and no warning; review)
+            raise ValueError(f"{dataset.root}: its only frame ({int(ids[0])}) has no visual "
+                             f"content to place ({unreadable.get(0) or why_unplaced(0)})")
+        start = 0
     t0 = time.perf_counter()
     G = chain_homographies([m.H_lm if m.ok else None for m in matches], start)
     timings["optimisation"] = time.perf_counter() - t0
-    status = []
-    for k in range(start):
-        why = ("its image cannot be read" if k in unreadable else
-               f"too few features ({len(feats[k])})")
-        status.append(f"unplaced: before the chain's first frame ({why})")
+    status = [f"unplaced: before the chain's first frame ({why_unplaced(k)})"
+              for k in range(start)]
     status.append("placed")
     broken = None
     for k in range(start, n - 1):
@@ -85,27 +164,27 @@ def run_pairwise(dataset, *, progress: bool = True,
         if broken is None and not m.ok:
             broken = k + 1  # (the statuses name frame ids, as homographies.csv: a dataset
             # with files missing named positions, 'pair (9, 10)' for frames 9 and 12; review)
-            status.append(f"unplaced: pair ({int(ids[k])}, {int(ids[k + 1])}) not registered: "
-                          f"{m.status}")
+            status.append(f"unplaced: {pair_name(k)} not registered: {m.status}")
         elif broken is not None:
             status.append(f"unplaced: chain broken at frame {int(ids[broken])}")
         else:
             status.append("placed")
-    ok = [m for m in matches if m.ok]
+    ok = [c for m, c in zip(matches, inliers, strict=True) if m.ok]
     details = {"pairs": {"attempted": len(matches), "registered": len(ok),
-                         "mean_correspondences": float(np.mean([m.n_inliers for m in ok]))
-                         if ok else 0.0}}
+                         "mean_correspondences": float(np.mean(ok)) if ok else 0.0}}
     warnings = []
     if start > 0:
         warnings.append(
-            f"the pairwise chain starts at frame {int(ids[start])}, the first frame whose image "
-            f"can be read and has features: the {start} frame(s) before it are unplaced")
+            f"the pairwise chain starts at frame {int(ids[start])}, the first frame registered "
+            f"to the next one: the {start} frame(s) before it are unplaced (frame "
+            f"{int(ids[0])}: {why_unplaced(0)})")
     if broken is not None:  # exit 0 with most frames unplaced must not pass unnoticed
+        # (counted with the frames before the chain's start: 5 of 10 said where 7 were; review)
         warnings.append(
-            f"the pairwise chain breaks at frame {int(ids[broken])}: pair ({int(ids[broken - 1])}, "
-            f"{int(ids[broken])}) not registered ({matches[broken - 1].status}), so "
-            f"{n - broken} of {n} frames are unplaced (PairVis cannot continue past a failed "
-            "pair; ba-emt / lba-emt place them with the tracker)")
+            f"the pairwise chain breaks at frame {int(ids[broken])}: {pair_name(broken - 1)} "
+            f"not registered ({matches[broken - 1].status}), so {n - broken + start} of {n} "
+            "frames are unplaced (PairVis cannot continue past a failed pair; ba-emt / lba-emt "
+            "place them with the tracker)")
     if warnings:
         details["warnings"] = warnings
     return MethodResult(
@@ -115,4 +194,3 @@ def run_pairwise(dataset, *, progress: bool = True,
         parameters=asdict(o),
         details=details,
     )
-

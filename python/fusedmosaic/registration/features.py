@@ -39,7 +39,10 @@ class FeatureOptions:
     # vs 0.364 / 0.294 px at 10, SYN (600 frames, 4 seeds) 0.318 vs 0.288 px mean. A raised
     # threshold trades accuracy for speed (e.g. live HD video). A frame where fewer than 90 %
     # of max_features are found (low contrast) is detected again at orb_fast_threshold_low, if
-    # that is lower.
+    # that is lower. Both passes are then paid for, so a threshold too high for the tissue is
+    # slower than the default, for the default's keypoints: 400x400 ms per frame SYN 13.3 at
+    # 5, 7.8 at 10, 16.3 at 20 (244 of 1000 found: every frame detected again), hand-held 17.0
+    # at 5, 20.7 at 20 (381 found; review).
     orb_fast_threshold: int = 5
     orb_fast_threshold_low: int = 5
     clahe: bool = False  # contrast-limited histogram equalisation for low-texture tissue
@@ -69,9 +72,15 @@ class FeatureOptions:
             raise ValueError(f"{name('detector', 'detector')} must be 'sift' or 'orb', got "
                              f"{self.detector!r}")
         n = self.max_features
-        if isinstance(n, bool) or not isinstance(n, int | np.integer) or not 1 <= n <= C_INT_MAX:
+        if (isinstance(n, bool) or not isinstance(n, int | np.integer)
+                or not 1 <= n <= MAX_FEATURES):
             raise ValueError(f"{name('max_features', 'max_features')} must be an integer in "
-                             f"1..{C_INT_MAX} (OpenCV's int), got {n!r}")
+                             f"1..{MAX_FEATURES} (keypoints per frame), got {n!r}")
+        for field_name in ("clahe", "mask_specular"):
+            v = getattr(self, field_name)
+            if not isinstance(v, bool | np.bool_):  # ('no' is truthy: CLAHE applied; review)
+                raise ValueError(f"{name(field_name, field_name)} must be True or False, got "
+                                 f"{v!r}")
         for field_name in ("orb_fast_threshold", "orb_fast_threshold_low"):
             t = getattr(self, field_name)
             if isinstance(t, bool) or not isinstance(t, int | np.integer) or not 1 <= t <= 255:
@@ -112,6 +121,12 @@ class FeatureOptions:
 
 
 C_INT_MAX = 2**31 - 1  # OpenCV's detectors take nfeatures as a C int
+# max_features' bound. OpenCV's ORB reserves memory for nfeatures keypoints per pyramid level
+# on every frame, whatever it finds: on this machine (21 GB free) 2^28 worked, 1e9 failed with
+# std::bad_alloc mid-run (a raw traceback), and 1e8 took 8.7 s for 30 SYN frames instead of 2 s;
+# 1e6 costs 0.08 s on a 400x400 noise frame (29 282 keypoints, all it has) and 1e7 1.0 s. No
+# frame gives a million keypoints worth keeping (SIFT and ORB find 1e3-1e5 on HD frames).
+MAX_FEATURES = 10**6
 REAL = int | float | np.integer | np.floating  # (np.float32 is not a float)
 # ORB detects nothing within edgeThreshold = patchSize = 31 px of the border: on a SYN frame
 # shrunk to a longer side of 64 px it found 0 keypoints, 96 px 31, 128 px 209 (review).
@@ -360,24 +375,38 @@ class FeatureExtractor:
             clahe = cv2.createCLAHE(float(self.options.clahe_clip_limit),
                                     (self.options.clahe_tiles, self.options.clahe_tiles))
             gray = clahe.apply(gray)
-        keypoints, descriptors = self._detector().detectAndCompute(gray, mask)
+        keypoints, descriptors = self._detect(self._detector(), gray, mask, frame_id)
         o = self.options
         if (binary and len(keypoints) < 0.9 * o.max_features
                 and o.orb_fast_threshold_low < o.orb_fast_threshold):
-            keypoints, descriptors = self._detector(o.orb_fast_threshold_low).detectAndCompute(
-                gray, mask)  # low contrast: more candidate corners
+            keypoints, descriptors = self._detect(self._detector(o.orb_fast_threshold_low),
+                                                  gray, mask, frame_id)  # more candidate corners
         if (not binary and len(keypoints) < o.sift_min_features
                 and o.sift_contrast_threshold_low < o.sift_contrast_threshold
                 and structure_to_noise(gray, mask) >= SIFT_RETRY_MIN_STRUCTURE):
-            keypoints, descriptors = self._detector(
+            keypoints, descriptors = self._detect(self._detector(
                 contrast_threshold=o.sift_contrast_threshold_low,
                 max_features=min(o.max_features, SIFT_RETRY_FEATURES_PER_MIN * max(
-                    o.sift_min_features, 1))).detectAndCompute(gray, mask)
+                    o.sift_min_features, 1))), gray, mask, frame_id)
         points = np.array([kp.pt for kp in keypoints], np.float64).reshape(-1, 2)
         if size != full_size:  # pixel centres: x_full + 0.5 = (x_small + 0.5) * W / w
             scale = np.array(full_size, np.float64) / np.array(size, np.float64)
             points = (points + 0.5) * scale - 0.5
         return Features(frame_id, points, descriptors, binary)
+
+    def _detect(self, detector, gray: np.ndarray, mask: np.ndarray | None, frame_id: int):
+        """detector.detectAndCompute, its cv2.error (e.g. std::bad_alloc: out of memory) a
+        ValueError naming the frame and the options that set the memory it needs (a raw
+        traceback with no "fusedmosaic: error:" line before; review)."""
+        try:
+            return detector.detectAndCompute(gray, mask)
+        except cv2.error as e:
+            o = self.options
+            raise ValueError(
+                f"frame {frame_id}: {o.detector.upper()} detection failed on the "
+                f"{gray.shape[1]}x{gray.shape[0]} image ({str(e).strip()}) with max_features "
+                f"(--max-features) {o.max_features}; fewer keypoints, or a smaller copy to "
+                f"detect in (max_image_side, --detect-max-side), need less memory") from e
 
     def _detection_size(self, full_size: tuple[int, int]) -> tuple[int, int]:
         side = self.options.max_image_side
