@@ -23,8 +23,17 @@ DEPTH_SAMPLE_FRAMES = 8
 # Counting a video's frames by decoding, this many undecodable frames in a row are taken as
 # damage inside the file (the frames after them still count); more, as its end.
 MAX_UNDECODABLE_RUN = 25
-# Containers whose frame count OpenCV estimates from the duration and the nominal rate
-ESTIMATED_COUNT_SUFFIXES = frozenset({".mkv", ".mka", ".webm"})
+# Containers whose frame count OpenCV estimates from the duration and the nominal rate (they
+# hold none: Matroska / WebM, MPEG transport and program streams)
+ESTIMATED_COUNT_SUFFIXES = frozenset({".mkv", ".mka", ".webm", ".ts", ".m2ts", ".mts", ".mpg",
+                                      ".mpeg", ".vob"})
+# ms; a seek has landed on the frame asked for when the decoded frame's CAP_PROP_POS_MSEC is
+# within this of that frame's stamp in the decoding pass (and within a quarter of the stamps'
+# smallest spacing). Both come from the same packet timestamps: equal to the bit on every
+# right landing of 40 random seeks each in H.264 / HEVC / MPEG-2 MP4, MKV and TS (review 46),
+# while a wrong landing is a frame interval off or more (TS: every seek into the first GOP,
+# frame 0 too, lands on frame G + 1; a killed recorder's AVI: anywhere).
+LANDING_TOLERANCE_MS = 0.01
 # FFmpeg's codes of 16-bit grey pixels (gray16le, gray16be; e.g. FFV1 video), as OpenCV reports
 # them in CAP_PROP_CODEC_PIXEL_FORMAT
 GREY16_PIXEL_FORMATS = (ord("Y") | ord("1") << 8 | 16 << 24, 16 | ord("1") << 16 | ord("Y") << 24)
@@ -137,7 +146,11 @@ class FrameSource(Sequence):
     8-bit frames). Other pixel types (float, 32-bit, signed) are refused.
 
     Thread-safe: a video is decoded sequentially under a lock (seek + decode are one step), seeking
-    only for jumps backwards or more than ``VIDEO_READ_AHEAD`` frames ahead.
+    only for jumps backwards or more than ``VIDEO_READ_AHEAD`` frames ahead. A seek's landing is
+    checked against the stamps of the decoding pass every video has when opened (the frame it
+    reached, not the one OpenCV reports); frame 0, frames a seek failed to reach and every
+    frame of a video whose stamps cannot tell its frames apart are reached by opening it again
+    and decoding forward.
     """
 
     def __init__(
@@ -170,7 +183,14 @@ class FrameSource(Sequence):
         self._clipped = False  # a 16-bit frame exceeded 2^bits_in_use - 1 (warned once)
         self.frame_rate: float | None = None
         self._seek_limit: int | None = None  # frames from here on are reached by decoding
+        # frames up to this one are reached by decoding from the start, not by a seek (frame 0
+        # never is; raised by a seek that landed elsewhere; the length: no seeking)
+        self._seek_floor = 0
+        self._missed_landings = 0  # seeks that landed on another frame than the one asked for
         self._times: np.ndarray | None = None  # presentation times (ms) from a decoding pass
+        # the stamps that check a seek's landing and their tolerance (ms), or None when they
+        # cannot (not one per frame, not strictly increasing); decided on the first seek
+        self._landing_stamps: tuple[np.ndarray, float] | None | bool = False
         self.counted_by = "its header"  # a video's frame count: its header's, or "decoding"
         self.blank_unreadable = blank_unreadable
         self.unreadable: dict[int, str] = {}  # with blank_unreadable: index -> why (see above)
@@ -190,11 +210,13 @@ class FrameSource(Sequence):
             # decode. Either way the frames are counted by decoding, as without a count.
             if self._length > 0:
                 last, beyond = self._probe_end(capture, self._length)
+                # closed at the end: the first read opens it again, at frame 0 (a seek to frame
+                # 0 is not made: in an MPEG transport stream it lands on the second keyframe)
+                self.close()
                 if beyond:  # OpenCV's seeks stop at the header's last frame: frames past it
                     # are decoded forward from there (slower random access, the right images)
                     self._seek_limit = self._length
                 if beyond or not last:
-                    self.close()
                     capture, self._length = self._open_capture(), 0
                 else:
                     self._check_decodes_in_order()
@@ -204,17 +226,10 @@ class FrameSource(Sequence):
                 self.counted_by = "decoding"
                 self.close()
                 if 0 < self._length < header:
-                    # (no sign tells a file cut short from one damaged in the middle when the
-                    # stamps are counted, as an AVI's: both decode fewer frames than it counts)
-                    why = ("a count estimated from the duration, as Matroska's, or a truncated "
-                           "file" if self.video.suffix.lower() in ESTIMATED_COUNT_SUFFIXES else
-                           "a truncated file, or frames damaged in the middle, which the "
-                           "decoder passes without a word: every frame after them is then read "
-                           "under an earlier frame's number, time and tracker or robot sample; "
-                           "check that the file was only cut short")
                     warnings.warn(
                         f"{self.video}: its header counts {header} frames but {self._length} "
-                        f"decode ({why}): the {self._length} are read", stacklevel=2)
+                        f"decode ({self._fewer_frames_why()}): the {self._length} are read",
+                        stacklevel=2)
         if self._length <= 0 and self.video is not None and header > 0:
             raise ValueError(
                 f"{self.video}: its header counts {header} frames ({_codec(self.video)}) but "
@@ -380,9 +395,38 @@ class FrameSource(Sequence):
             "frame's number (its time, its tracker or robot sample); repair the file, or give "
             "the frames that decode as frames/*.png with frames.csv")
 
+    def _fewer_frames_why(self) -> str:
+        """Why a video decodes fewer frames than its header counts, for the warning: the
+        possible causes, and where its stamps show frames lost in the middle when they do."""
+        if self.video.suffix.lower() not in ESTIMATED_COUNT_SUFFIXES:
+            # (no sign tells a file cut short from one damaged in the middle when the stamps
+            # are counted, as an AVI's: both decode fewer frames than it counts)
+            return ("a truncated file, or frames damaged in the middle, which the decoder "
+                    "passes without a word: every frame after them is then read under an "
+                    "earlier frame's number, time and tracker or robot sample; check that the "
+                    "file was only cut short")
+        why = ("a count estimated from the duration, as Matroska's and MPEG streams' are, a "
+               "truncated file, or frames lost in the middle")
+        frames = np.flatnonzero(np.isfinite(self._times))  # those that decode
+        t = self._times[frames]
+        steps = np.diff(t)
+        if steps.size > 1 and (steps > 0).all():
+            # a constant-rate file (its other intervals within 25 % of the median) whose stamps
+            # jump by over 1.5 intervals (a variable-rate file's stamps prove nothing)
+            interval = float(np.median(steps))
+            jump = steps > 1.5 * interval
+            rest = steps[~jump]
+            if jump.any() and rest.max() - rest.min() <= 0.25 * interval:
+                k = int(np.flatnonzero(jump)[0])
+                why += (f": its stamps jump from {t[k]:.6g} ms (frame {frames[k]}) to "
+                        f"{t[k + 1]:.6g} ms (frame {frames[k + 1]}), frames lost there; timed by "
+                        "its stamps (without frames.csv or --fps), the frames after keep their "
+                        "own times")
+        return why
+
     def _probe_end(self, capture: cv2.VideoCapture, count: int) -> tuple[bool, bool]:
-        """(frame count-1 decodes, frame count decodes too); the capture's position is then
-        unknown: the next read seeks."""
+        """(frame count-1 decodes, frame count decodes too); the capture is then at the end:
+        the caller closes it."""
         capture.set(cv2.CAP_PROP_POS_FRAMES, count - 1)
         self._next = -1
         # a seek may land on another frame (beyond an undecodable one): then not trusted
@@ -393,9 +437,35 @@ class FrameSource(Sequence):
         """A video's frame times as its container stamps them, s after the first frame, from
         one decoding pass (cached; OpenCV's CAP_PROP_POS_MSEC of each decoded frame): what a
         variable-frame-rate video holds instead of a rate. None for PNG frames, and when the
-        stamps are not usable (not finite, not strictly increasing, or not one per frame)."""
+        stamps are not usable (not one per frame, or those of the frames that decode not
+        strictly increasing). A frame that does not decode has no stamp: it is given a time
+        between its neighbours' (it is read as unreadable anyway), so that the frames after it
+        keep their own (a Matroska file with one frame lost in the middle was timed at its
+        frame rate: the frames after the loss got earlier frames' times and tracker samples,
+        15 mm off; review 46); before the first stamp, or after the last, one frame interval
+        apart (the frame rate's, else the stamps' median spacing)."""
         if self.video is None:
             return None
+        t = self._decoded_times()
+        finite = np.isfinite(t)
+        if t.size != self._length or not finite.any() or (np.diff(t[finite]) <= 0).any():
+            return None
+        if not finite.all():
+            k, known = np.arange(t.size), np.flatnonzero(finite)
+            if self.frame_rate is not None:
+                interval = 1e3 / self.frame_rate
+            elif known.size > 1:
+                interval = float(np.median(np.diff(t[known]) / np.diff(known)))
+            else:
+                return None
+            t = np.interp(k, known, t[known])  # (constant beyond the ends: extended below)
+            t += np.where(k < known[0], (k - known[0]) * interval, 0.0)
+            t += np.where(k > known[-1], (k - known[-1]) * interval, 0.0)
+        return (t - t[0]) / 1e3
+
+    def _decoded_times(self) -> np.ndarray:
+        """The decoding pass's stamps (ms; NaN for a frame that does not decode), made once
+        (every video has had it when opened; else here, with its own capture)."""
         if self._times is None:
             capture = cv2.VideoCapture(str(self.video))  # its own: the reads' stays where it is
             try:
@@ -403,47 +473,41 @@ class FrameSource(Sequence):
             finally:
                 capture.release()
             self._times = np.array(times, dtype=np.float64)
-        t = self._times
-        if t.size != self._length or not np.isfinite(t).all() or (np.diff(t) <= 0).any():
-            return None
-        return (t - t[0]) / 1e3
+        return self._times
 
     def _read_video(self, i: int) -> np.ndarray | None:
         """Frame i, or None when it does not decode (undecodable frames before it are passed:
-        each failed grab is one frame)."""
+        each failed grab is one frame). Frames are decoded forward from the start, or from a
+        seek whose landing is checked (_seek_start, _landed): OpenCV reports the frame asked
+        for whichever it reached (CAP_PROP_POS_FRAMES), and a seek may land elsewhere without
+        a word (an MPEG transport stream: every seek into the first GOP, frame 0 included,
+        lands on frame G + 1; an AVI left by a crashed recorder: anywhere), so every frame was
+        read as another (e_M 354 px for 0.22, exit 0; review 46)."""
         with self._lock:  # one cv2.VideoCapture: concurrent seek/decode crashes FFmpeg
             image = self._recent.pop(i, None)
             if image is not None:
                 return image
             capture = self._open_capture()
             seeked = None  # the frame a seek went to, until its landing is checked
-            rewound = False  # sought frame 0 (FFmpeg may fail to go back from the end)
             if self._next < 0 or not 0 <= i - self._next <= VIDEO_READ_AHEAD:
-                start = i if self._seek_limit is None else min(i, self._seek_limit - 1)
-                if not 0 <= start <= self._next <= i:  # else decoding on from here is shorter
+                start = self._seek_start(i)
+                if start < 0:  # from the start, unless decoding on from here gets there
+                    if not 0 <= self._next <= i:
+                        capture = self._reopen()
+                elif not start <= self._next <= i:  # else decoding on from here is shorter
                     capture.set(cv2.CAP_PROP_POS_FRAMES, start)
-                    self._next, seeked = start, start if start > 0 else None
-                    rewound = start == 0
+                    self._next = seeked = start
             while True:
                 ok, image = capture.read()
-                if seeked is not None and (
-                        not ok or capture.get(cv2.CAP_PROP_POS_FRAMES) != self._next + 1):
-                    # OpenCV's seek landed on another frame (it does beyond an undecodable one,
-                    # silently) or on an undecodable one (maybe not the one asked for): frames
-                    # from there on are reached by seeking to an earlier frame and decoding on
-                    self._seek_limit = seeked
-                    start = min(i, seeked - 1)
-                    capture.set(cv2.CAP_PROP_POS_FRAMES, start)
-                    self._next, seeked = start, start if start > 0 else None
-                    continue
-                seeked = None
-                if not ok and rewound and self._next == 0:
-                    # a seek back to frame 0 that does not decode (a one-frame video read
-                    # again): the capture is opened again, at the start
-                    capture.release()
-                    self._capture = None
-                    capture, rewound = self._open_capture(), False
-                    continue
+                if seeked is not None:
+                    if not (ok and self._landed(capture, seeked)):
+                        # landed on another frame, or on one that does not decode (the frame
+                        # asked for does: it has a stamp): decoded from the start instead
+                        self._missed(capture.get(cv2.CAP_PROP_POS_MSEC) if ok else None,
+                                     seeked)
+                        capture, seeked = self._reopen(), None
+                        continue
+                    seeked = None
                 if not ok:
                     if self._next >= i:
                         self._next = -1  # position unknown after a failed decode
@@ -457,6 +521,67 @@ class FrameSource(Sequence):
                 self._recent[self._next - 1] = image  # skipped: another thread may want it
                 if len(self._recent) > VIDEO_RECENT_FRAMES:
                     self._recent.popitem(last=False)
+
+    def _reopen(self) -> cv2.VideoCapture:
+        """The capture opened again, at frame 0 (what a seek to frame 0 does not do reliably:
+        an MPEG transport stream lands on its second keyframe; a one-frame video's end does
+        not seek back)."""
+        if self._capture is not None:
+            self._capture.release()
+            self._capture = None
+        return self._open_capture()
+
+    def _seek_start(self, i: int) -> int:
+        """The frame a seek for frame i goes to (i; the last frame before _seek_limit; the
+        nearest frame before with a stamp), or -1: frame i is reached by decoding from the start
+        (it is at or below _seek_floor, or no stamps can check a landing)."""
+        stamps = self._stamps_for_landing()
+        if stamps is None:
+            return -1
+        t = stamps[0]
+        start = i if self._seek_limit is None else min(i, self._seek_limit - 1)
+        while start > self._seek_floor and not np.isfinite(t[start]):
+            start -= 1  # a frame that does not decode: its landing cannot be checked
+        return start if start > self._seek_floor else -1
+
+    def _stamps_for_landing(self) -> tuple[np.ndarray, float] | None:
+        """(the decoding pass's stamps of the frames, ms; the landing tolerance), or None when
+        they cannot tell one frame from another: fewer than the frames, or those of the
+        frames that decode not strictly increasing (an MPEG program stream's last frames
+        stamped 0): such a video is never sought in."""
+        if self._landing_stamps is False:
+            t = self._decoded_times()[:self._length]
+            steps = np.diff(t[np.isfinite(t)])
+            usable = t.size == self._length and np.isfinite(t).any() and (steps > 0).all()
+            if not usable:
+                self._seek_floor = self._length
+            tolerance = min(LANDING_TOLERANCE_MS, float(steps.min()) / 4 if steps.size else
+                            LANDING_TOLERANCE_MS)
+            self._landing_stamps = (t, tolerance) if usable else None
+        return self._landing_stamps
+
+    def _landed(self, capture: cv2.VideoCapture, start: int) -> bool:
+        """The frame just decoded after a seek to ``start`` is that frame: its stamp
+        (CAP_PROP_POS_MSEC) is the decoding pass's for it."""
+        t, tolerance = self._landing_stamps
+        return abs(capture.get(cv2.CAP_PROP_POS_MSEC) - t[start]) <= tolerance
+
+    def _missed(self, stamp: float | None, start: int) -> None:
+        """A seek to ``start`` landed elsewhere (the decoded frame's stamp, None when it did
+        not decode): frames up to that one are reached from the start from now on (in an MPEG
+        transport stream, the first GOP: the seek landed on frame G + 1); after a second such
+        seek, every frame is (an AVI without its index, whose seeks land anywhere)."""
+        self._missed_landings += 1
+        if self._missed_landings > 1:
+            self._seek_floor = self._length
+            return
+        t, tolerance = self._landing_stamps
+        landed = start
+        if stamp is not None:
+            found = np.flatnonzero(np.abs(t - stamp) <= tolerance)
+            if found.size and found[0] > start:
+                landed = int(found[0]) - 1  # the frames before the one it landed on
+        self._seek_floor = max(self._seek_floor, landed)
 
     def _unreadable_message(self, name) -> str:
         if self.video is not None:
