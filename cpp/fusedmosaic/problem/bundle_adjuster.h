@@ -21,8 +21,13 @@
 //     the world origin to the plane) keeps its initial value. Skipped when two or more frames are
 //     constant, whose baseline already fixes the scale.
 // The constant-velocity prior is only approximately gauge-invariant and does not change this.
-// With EMT priors in the problem (use_emt and at least one measurement) the priors fix the gauge
-// and no constraint is added. Disconnected groups of frames keep their own relative freedom.
+// With EMT priors in the problem (use_emt and at least one measurement) no constraint is added.
+// The priors fix the gauge only with at least two measured frames whose centres differ (their
+// baseline sets the scale): one prior fixes its camera's 6 DoF but not the scale (the world
+// scaled about that camera's centre leaves its pose and every transfer H_l H_m^-1 unchanged).
+// With one measured frame the plane's distance then stays where it started (plane_relative_std
+// inf), or, with C_p, is held only weakly by C_p (Levenberg-Marquardt crawled to its iteration
+// limit; review 46). Disconnected groups of frames keep their own relative freedom.
 #pragma once
 
 #include <ceres/solver.h>

@@ -245,19 +245,48 @@ def add_robot_agreement(details: dict, source: str, pixel_size_um: float | None,
     details["robot_agreement"] = agreement
 
 
-def solver_warning(summary, max_iterations: int, what: str = "the adjustment") -> str | None:
+def solver_warning(summary, max_iterations: int, what: str = "the adjustment", *,
+                   knob: str = "max_iterations", uses_tracker: bool = True,
+                   noise_ratio: float | None = None) -> str | None:
     """A message when Ceres stopped without converging (iteration limit, or failure), else
-    None. ``summary`` is a SolveSummary (or its as_dict()) or a WindowStepSummary; a field it
-    lacks (e.g. the message of an older build's or a test's summary) reads as None."""
+    None. ``summary`` is a SolveSummary (or its as_dict(), with ba / ba-emt's
+    "continued_from" when Levenberg-Marquardt's stop was solved on with dogleg) or a
+    WindowStepSummary; a field it lacks (e.g. the message of an older build's or a test's
+    summary) reads as None. At the iteration limit the message names the likely cause: with
+    the run's tracker_agreement ``noise_ratio`` the tracker only when it disagrees (above
+    MAX_NOISE_RATIO), else the cost's conditioning, and ``knob``, the option that raises the
+    limit; without one (None: not judged) a disagreeing tracker as a common cause, and no
+    tracker when the cost has no tracker term (``uses_tracker`` False: ba)."""
     get = summary.get if isinstance(summary, dict) else (
         lambda key: getattr(summary, key, None))
     termination = get("termination")
     if termination in ("CONVERGENCE", "USER_SUCCESS", "NO_RESIDUALS", None):
         return None
     if termination == "NO_CONVERGENCE":
-        return (f"{what} stopped at its iteration limit ({max_iterations}) before converging: "
-                "the estimates are not at the cost's minimum (a tracker disagreeing with the "
-                "images is a common cause; else raise max_iterations)")
+        first = get("continued_from")
+        also = ""
+        if first and first.get("iterations") is not None and get("iterations") is not None:
+            also = (", and so did its continuation from there with Powell's dogleg "
+                    f"({get('iterations') - first['iterations']} more iterations)")
+        if noise_ratio is not None and not np.isfinite(noise_ratio):
+            noise_ratio = None
+        if not uses_tracker:
+            cause = f"raise {knob}"
+        elif noise_ratio is None:
+            cause = f"a tracker disagreeing with the images is a common cause; else raise {knob}"
+        elif noise_ratio > MAX_NOISE_RATIO:
+            cause = (f"the tracker disagrees with the images, {noise_ratio:.1f} x the EMT prior's "
+                     "noise in tracker_agreement: the likely cause, see its warning; else raise "
+                     f"{knob}")
+        else:
+            # (80 SYN frames tracked at the last 5 only, or 5 mm from the plane, with a tracker
+            # at 0.85 / 0.73 x its noise: Levenberg-Marquardt stopped at 100 iterations)
+            cause = (f"not the tracker, which agrees with the images at {noise_ratio:.2f} x the "
+                     "EMT prior's noise in tracker_agreement: the costs hold some directions only "
+                     "weakly, e.g. the scale and the plane when few frames are tracked or the "
+                     f"camera is close to the plane; raise {knob}")
+        return (f"{what} stopped at its iteration limit ({max_iterations}) before converging"
+                f"{also}: the estimates are not at the cost's minimum ({cause})")
     message = get("message")
     return f"{what} failed: Ceres {termination}" + (f": {message}" if message else "")
 
