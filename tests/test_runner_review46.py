@@ -43,3 +43,27 @@ def test_a_streamed_mosaic_that_cannot_be_written_names_outs_mosaic_png(pcle, tm
     assert f"{out / 'mosaic.png'}: the image could not be written (File too large" in err, err
     assert "fusedmosaic.tmp" not in err
     assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+@pytest.fixture(scope="module")
+def feto(tmp_path_factory):
+    root = tmp_path_factory.mktemp("runner46") / "feto"
+    assert main(["--quiet", "simulate", "fetoscopy", str(root), "--n-frames", "8",
+                 "--width", "160", "--height", "120", "--laps", "0.2"]) == 0
+    return root
+
+
+def test_plane_json_says_its_unit(feto, tmp_path):
+    """ba fixes no scale: plane.json's distance_mm was 1.0, in units of the first camera's
+    distance to the plane, with nothing saying so. Its "unit" says it (mm for ba-emt)."""
+    import json
+
+    units = {}
+    for method in ("ba", "ba-emt"):
+        out = tmp_path / method
+        assert main(["--quiet", "run", str(feto), "--method", method, "--out", str(out),
+                     "--no-report"]) == 0
+        units[method] = json.loads((out / "plane.json").read_text())["unit"]
+    assert units["ba-emt"] == "mm"
+    assert units["ba"].startswith("the first frame's camera frame, lengths in units of that "
+                                  "camera's distance to the plane") and "not mm" in units["ba"]

@@ -222,7 +222,11 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
                 w.write_json("plane.json", {"plane": plane.tolist(),
                                             "normal": (plane / np.linalg.norm(plane)).tolist(),
                                             "distance_mm": float(1.0 / np.linalg.norm(plane)),
-                                            "camera_plane_distance_mm": dist})
+                                            "camera_plane_distance_mm": dist,
+                                            # ba: no scale, the "_mm" figures in the first
+                                            # camera's distance to the plane (review 46)
+                                            "unit": "mm" if "world" not in result.details
+                                            else result.details["world"]})
             outputs = compose_outputs(w, dataset, result, G, blend=blend, canvas=canvas,
                                       video=video, out=out, progress=progress, timings=timings)
             report_json["mosaic"] = outputs["mosaic"]
