@@ -998,6 +998,9 @@ def test_a_startup_far_from_its_solution_converges(tmp_path):
     short = run_lba_emt(dataset, progress=False,
                         options=SequentialOptions(startup_max_iterations=100))
     assert any(w.startswith(stopped) for w in short.details["warnings"])
+    # (the option a user has: it said "raise max_iterations", the window steps' option)
+    assert any("raise SequentialOptions.startup_max_iterations" in w
+               for w in short.details["warnings"])
     result = run_lba_emt(dataset, progress=False)
     assert result.details["warnings"] == []
     errors = frame_errors(result.homographies, dataset.ground_truth, 300, 300)

@@ -2233,7 +2233,8 @@ def tracker_warning(mosaicker: SequentialMosaicker,
 def _solver_warnings(bootstrap, unconverged: list[str], steps: int, max_iterations: int,
                      startup_max_iterations: int) -> list[str]:
     """Messages for a start-up adjustment and window steps that did not converge."""
-    out = ([solver_warning(bootstrap, startup_max_iterations, "the start-up adjustment")]
+    out = ([solver_warning(bootstrap, startup_max_iterations, "the start-up adjustment",
+                           knob="SequentialOptions.startup_max_iterations")]
            if bootstrap else [])
     if unconverged:
         kinds = ", ".join(sorted(set(unconverged)))
