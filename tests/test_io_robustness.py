@@ -468,7 +468,9 @@ def test_bad_camera_yaml(tmp_path, body, match):
             "[1e12, 0, 15, 0, 1e12, 11, 0, 0, 1]",
             r"focal length fx=1e\+12, fy=1e\+12 px is over 320000 px",
         ),
-        ("[1e-4, 0, 200, 0, 1e-4, 200, 0, 0, 1]", r"numerically singular \(fx=0.0001"),
+        ("[1e-4, 0, 200, 0, 1e-4, 200, 0, 0, 1]",
+         r"focal length fx=0\.0001, fy=0\.0001 px is under 0\.873 px.* A focal length in mm\?"),
+        ("[480, 0, 1e9, 0, 480, 1e9, 0, 0, 1]", r"numerically singular \(fx=480"),
     ],
 )
 def test_camera_matrix_checked_when_a_pose_method_needs_it(tmp_path, data, match):

@@ -67,3 +67,34 @@ def test_plane_json_says_its_unit(feto, tmp_path):
     assert units["ba-emt"] == "mm"
     assert units["ba"].startswith("the first frame's camera frame, lengths in units of that "
                                   "camera's distance to the plane") and "not mm" in units["ba"]
+
+
+def test_run_does_not_score_in_another_grid(pcle, tmp_path, capsys):
+    """The robot starting late leaves frames 0-3 unplaced: frame 4 is the reference. With no
+    truth row for it, run scored its frame-4-grid output against the truth in frame 0's grid
+    (every e_j holding frame 4's offset: e_M 159.5 px for 0.46 on the review's data), where
+    evaluate refuses. report.json now has no figures and says why; so does the summary."""
+    import json
+    import shutil
+
+    import numpy as np
+
+    data = tmp_path / "late"
+    shutil.copytree(pcle, data)
+    frame_times = np.loadtxt(data / "frames.csv", delimiter=",", skiprows=1)[:, 1]
+    robot = (data / "robot.csv").read_text().splitlines()
+    (data / "robot.csv").write_text("\n".join(
+        [robot[0], *(r for r in robot[1:] if float(r.split(",")[0]) > frame_times[3] + 1e-3)])
+        + "\n")
+    truth = (data / "ground_truth.csv").read_text().splitlines()
+    (data / "ground_truth.csv").write_text("\n".join(  # (empty fields: no truth there)
+        [truth[0], *(r.split(",")[0] + "," * 9 if r.split(",")[0] in ("1", "2", "3", "4")
+                     else r for r in truth[1:])]) + "\n")
+    out = tmp_path / "o"
+    assert main(["run", str(data), "--method", "robot", "--out", str(out), "--no-report",
+                 "--allow-untracked"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["reference_frame"] == 4 and report["metrics"] is None
+    assert report["metrics_note"].startswith("not scored: the truth has no row for the "
+                                             "output's reference frame 4")
+    assert "(e_M not scored: the truth has no row" in capsys.readouterr().out

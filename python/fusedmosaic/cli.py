@@ -555,12 +555,18 @@ def _measure(value, digits: int) -> str:
 
 
 def _format_table(results: list[dict]) -> str:
+    from fusedmosaic.evaluation.metrics import evaluation_notes
+
     header = f"{'output':<40} {'placed':>7} {'e_M px':>9} {'max e_j':>9} {'drift':>7}"
     lines = [header, "-" * len(header)]
     for r in results:
         lines.append(f"{Path(r['output']).name[:40]:<40} {r['placed']:>4}/{r['frames']:<2} "
                      f"{_measure(r['e_M_px'], 3):>9} {_measure(r['max_e_j_px'], 3):>9} "
                      f"{_measure(r['drift_ratio'], 2):>7}")
+        if r.get("frames_scored", r["frames"]) < r["frames"]:
+            lines.append(f"  e_M over {r['frames_scored']} of {r['frames']} frames (placed, "
+                         "with a ground-truth homography)")
+        lines += [f"  {note}" for note in evaluation_notes(r)]
         if r.get("drift_ratio_note"):
             lines.append(f"  drift {_measure(r['drift_ratio'], 2)}: {r['drift_ratio_note']}")
         for key, which in (("position_all_um", "all "), ("position_sampled_um", "")):
@@ -688,8 +694,12 @@ def _sampled_indices(truth, sampled_ids: list[int]) -> np.ndarray:
 def _evaluation_md_notes(results: list[dict], wilcoxon: list[dict], labels: list[str]) -> list:
     """evaluation.md's notes beside its table: the drift ratio's notes, the µm position
     statistics (seed 004, Tables I-II) and the Wilcoxon tests."""
-    notes = [f"**Drift ratio ({label}):** {r['drift_ratio_note']}"
-             for label, r in zip(labels, results, strict=True) if r.get("drift_ratio_note")]
+    from fusedmosaic.evaluation.metrics import evaluation_notes
+
+    notes = [f"**{label}:** {note}" for label, r in zip(labels, results, strict=True)
+             for note in evaluation_notes(r)]
+    notes += [f"**Drift ratio ({label}):** {r['drift_ratio_note']}"
+              for label, r in zip(labels, results, strict=True) if r.get("drift_ratio_note")]
     rows = []
     for label, r in zip(labels, results, strict=True):
         for key, which in (("position_all_um", "all"), ("position_sampled_um", "evenly spaced")):

@@ -152,6 +152,30 @@ BOOTSTRAP_BLOCK_S = 0.25  # without still views, the bootstrap resamples blocks 
 # the 19 moves (3-6 moving frames), 0.46-2.3 ms; still views alone, inf. 2 ms: about one move
 # filmed at the simulator's pace (its moves turn 43 deg and travel 20 mm (medians) in 0.16 s).
 MAX_FILMED_MOTION_STD_S = 0.002
+# estimate_time_offset's coarse scan picks the basin only when its least lies this many times
+# below its median. Measured (checkerboard simulator, 40 Hz, 0.9 deg / 0.25 mm, roll 0, clocks
+# agreeing): the turns' scan 11-85 x on bench_time_offset_se's configurations (6 x 6 seeds),
+# 2.1-2.6 at tilt 12, 1.4-1.6 at tilt 8 and 1.09-1.38 at tilt 4-6, where its least lay 280-400
+# ms off on 12 of 27 seeds (the search stayed there: +288 / -302 ms applied, the board scale
+# then negative); the hand-eye cost's scan 25-44 x at tilt 4-8, every estimate within 0.6 ms
+# of 0 (std 0.3-0.5 ms), none applied (31 seeds).
+SCAN_CONTRAST = 2.0
+# ... over a search range of at least +-this: a narrower one holds a single basin (the hand-eye
+# cost's is ~25 ms wide at tilt 4, 3.5x its least at +-25 ms), so its scan is flat whatever the
+# motion (+-4 ms: 3 steps) and the search cannot stray far.
+SCAN_MIN_BOUND_S = 0.1
+# Basins of the scan compared by the hand-eye's cost: the lowest ones, more than
+# SCAN_BASIN_STEPS steps of 5 ms apart, and offset 0, those within SCAN_CONTRAST of its least.
+SCAN_CANDIDATES = 3
+SCAN_BASIN_STEPS = 3
+# The hand-eye's cost scanned over SCAN_VIEWS views (evenly spread; the search after it uses
+# all), each fit stopped after SCAN_NFEV evaluations (far from the offset a fit from the closed
+# form took ~30 iterations; stopped early its cost stays higher, further above the least; at the
+# offset it converges from the closed form): on the tilt 4-8 recordings above (140 views) the same
+# estimates as 60 views fully fitted, for a third of the estimate's work (residuals of 0.38 M
+# views evaluated against 1.13 M): the scan only picks the basin.
+SCAN_VIEWS = 30
+SCAN_NFEV = 10
 # The board's scale against the tracker's (tracker mm per board mm) refused when off by more
 # than this and by more than SCALE_SIGMAS standard errors: a wrong --square-mm, a board
 # printed scaled, or a tracker not in mm.
@@ -477,6 +501,7 @@ def calibrate_hand_eye(
     fit_scale: bool = False,
     start: HandEyeResult | None = None,
     linearise: bool = True,
+    max_nfev: int | None = None,
 ) -> HandEyeResult:
     """X = sensor_from_camera and B = tracker_from_board from A_k X C_k = B over views k (module
     doc). With ``reweight`` the fits after the first weight by the noise the residuals show
@@ -530,7 +555,7 @@ def calibrate_hand_eye(
     p = np.zeros(n_par)
     for attempt in range(6):
         fit = least_squares(residuals, p, args=(sigma,), method="trf", loss="huber",
-                            f_scale=HUBER_SIGMAS, x_scale="jac")
+                            f_scale=HUBER_SIGMAS, x_scale="jac", max_nfev=max_nfev)
         p = fit.x
         r = residuals(p)
         inlier = np.abs(r / sigma).max(axis=1) <= HUBER_SIGMAS
@@ -658,10 +683,18 @@ def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeR
     at every d in [-max_offset_s, max_offset_s] and with the noise of the first fit held (so the
     costs compare; the board's scale free as in ``first``). The range is scanned in ~5 ms steps
     (at least -bound, 0 and +bound) comparing the angles the scope turns between consecutive
-    views by the board and by the tracker (no hand-eye: cheap over any range; the hand-eye
-    refitted at the scan's best when that is not 0), the fit's cost is then compared in those
-    steps around the scan's best (widened while the best lies at its edge) and minimised by a
-    bounded search. An estimate within min(5 ms, a tenth of the bound) of the bound lies at it.
+    views by the board and by the tracker (no hand-eye: cheap over any range). When that scan's
+    least is not SCAN_CONTRAST times below its median (views that barely turn against the
+    tracker noise: its least falls on noise; a bound of SCAN_MIN_BOUND_S at least) the
+    hand-eye's cost is scanned instead, in 25 ms steps; when that is flat too, the offset is not
+    determined ("estimated" False, "reason" says so, 0 applied). The scan's lowest basins
+    (SCAN_CANDIDATES) and offset 0 that lie within SCAN_CONTRAST of its least are compared by
+    the hand-eye's cost, each fitted from its closed form ("scan_candidates" when more than
+    one; "scan" and "scan_contrast" say which scan and how clear its least), and the lowest is
+    searched: the hand-eye refitted there when it is not 0, the fit's cost compared in 5 ms
+    steps around it (widened while the best lies at its edge) and minimised by a bounded
+    search. An estimate within min(5 ms, a tenth of the bound) of
+    the bound lies at it.
     Standard error ("std_s"): the larger of the cost's curvature's (cost = chi^2 / 2: views
     independent, "std_curvature_s") and a bootstrap over BOOTSTRAP_BLOCK_S blocks of views by
     their frame ``times`` (s), linearised as bootstrap_hand_eye's with the offset a parameter
@@ -739,7 +772,79 @@ def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeR
         R = tracked(d)[:, :3, :3]
         return float(np.sum((_rotation_angles(np.swapaxes(R[:-1], 1, 2) @ R[1:]) - turned) ** 2))
 
-    i = int(np.argmin([mismatch(d) for d in grid]))
+    scan = np.array([mismatch(d) for d in grid])
+    zero = half  # grid[half] = 0
+    scanned = {"scan": "turns between views",
+               "scan_contrast": _contrast(scan)}
+
+    def fitted(k: int, views=slice(None), max_nfev=None) -> HandEyeResult | None:
+        # The hand-eye at grid[k] from its closed form, the noise of the fit at 0 held: costs
+        # that compare across offsets (from the fit at 0 instead, +400 ms ended at 15436, the
+        # closed form's 14843), None where the views do not determine it.
+        try:
+            return calibrate_hand_eye(tracked(grid[k])[views], C[views], rot_sigma_deg=sigma[0],
+                                      trans_sigma_mm=sigma[1], reweight=False,
+                                      fit_scale=fit_scale, linearise=False, max_nfev=max_nfev)
+        except ValueError:
+            return None
+
+    def refuse() -> None:  # no offset's views determine the hand-eye: its own refusal
+        calibrate_hand_eye(tracked(0.0), C, rot_sigma_deg=sigma[0], trans_sigma_mm=sigma[1],
+                           reweight=False, fit_scale=fit_scale, linearise=False)
+
+    if max_offset_s >= SCAN_MIN_BOUND_S and not scanned["scan_contrast"] >= SCAN_CONTRAST:
+        # The views turn too little against the tracker's noise for the scan to pick a basin
+        # (SCAN_CONTRAST): the hand-eye's cost in steps of 5 `fine` (25 ms; at tilt 4 its basin
+        # is 25 ms wide, 3.5x its least at +-25 ms) instead, which sees the translations too.
+        # Over SCAN_VIEWS views (all when those determine no hand-eye), SCAN_NFEV evaluations.
+        coarse = np.unique(np.r_[np.arange(zero % 5, grid.size, 5), 0, grid.size - 1])
+        views = np.unique(np.linspace(0, len(C) - 1, min(len(C), SCAN_VIEWS)).round().astype(int))
+        fits = {int(k): fitted(int(k), views, SCAN_NFEV) for k in coarse}
+        if all(f is None for f in fits.values()) and len(views) < len(C):
+            fits = {int(k): fitted(int(k)) for k in coarse}
+        costs = {k: f.cost for k, f in fits.items() if f is not None}
+        if not costs:
+            refuse()
+        keys = np.array(sorted(costs))
+        scan = np.array([costs[k] for k in keys])
+        scanned.update(scan="hand-eye cost (the turns' scan flat: least "
+                            f"{scanned['scan_contrast']:.2f} x below its median)",
+                       scan_contrast=_contrast(scan))
+        if not scanned["scan_contrast"] >= SCAN_CONTRAST:
+            return {"estimated": False, "applied_s": 0.0, "at_bound": False,
+                    "views": int(common.sum()), **scanned,
+                    "reason": (
+                        "not determined: over the search range neither how far the views turn "
+                        "nor the hand-eye's cost has a clear least (the scope barely moved "
+                        "against the tracker's noise); 0 applied. Film slow motion with the "
+                        "scope tilted and rolled over the board, or give the offset with "
+                        "--time-offset S")}
+        low = [int(keys[j]) for j in _low_points(scan, SCAN_CANDIDATES, 1)]
+        values = dict(zip(keys.tolist(), scan, strict=True))
+    else:
+        low = [int(k) for k in _low_points(scan, SCAN_CANDIDATES, SCAN_BASIN_STEPS)]
+        values = dict(enumerate(scan))
+    # The scan's basins it cannot tell from its best (within SCAN_CONTRAST of its least), offset
+    # 0 among them, are compared by the hand-eye's cost over all views and the lowest searched
+    # (a scan's least on noise: 14001 at +288 ms against 424 at 0). Basins the scan rules out
+    # are not fitted: the defaults' estimates as they were, at no cost.
+    if all(abs(k - zero) > SCAN_BASIN_STEPS for k in low):
+        low.append(zero)
+    candidates = [k for k in low if k in values and values[k] <= SCAN_CONTRAST * values[low[0]]]
+    costs = {}
+    if len(candidates) == 1:
+        costs[candidates[0]] = float(values[candidates[0]])  # (the scan's least: no rival)
+    else:
+        for k in candidates:
+            fit = fitted(k)
+            if fit is not None:
+                costs[k] = fit.cost
+        if not costs:
+            refuse()
+    i = min(costs, key=costs.get)
+    if len(costs) > 1:
+        scanned["scan_candidates"] = [{"offset_s": float(grid[k]), "cost": float(c)}
+                                      for k, c in sorted(costs.items())]
     if abs(grid[i]) > 2 * fine:  # the fits below start from a hand-eye fitted there
         first = calibrate_hand_eye(tracked(grid[i]), C, rot_sigma_deg=sigma[0],
                                    trans_sigma_mm=sigma[1], fit_scale=fit_scale,
@@ -770,7 +875,7 @@ def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeR
     at_bound = abs(abs(best) - max_offset_s) < at_bound_tolerance
     out = {"estimated": True, "estimate_s": float(best), "std_s": std,
            "std_curvature_s": std, "views": int(common.sum()), "applied_s": 0.0,
-           "at_bound": bool(at_bound), "search_bound_s": float(max_offset_s)}
+           "at_bound": bool(at_bound), "search_bound_s": float(max_offset_s), **scanned}
     motion_std, moving = filmed_motion_std(C, times[common], first.sensor_from_camera, sigma,
                                            None if still is None else still[common])
     out.update(std_filmed_motion_s=motion_std, frames_moving=moving)
@@ -864,6 +969,29 @@ def filmed_motion_std(cam_from_board: np.ndarray, times: np.ndarray,
     info = float(per_frame.sum())
     return float(1.0 / np.sqrt(info) if info > 0 else np.inf), int(np.sum(per_frame > 0))
 
+
+
+def _contrast(values: np.ndarray) -> float:
+    """How far a scan's least lies below its median: median / least (inf for a least of 0
+    below a positive median)."""
+    least, median = float(np.min(values)), float(np.median(values))
+    if least > 0:
+        return median / least
+    return float("inf") if median > least else 1.0
+
+
+def _low_points(values: np.ndarray, count: int, apart: int) -> list[int]:
+    """Indices of up to ``count`` local minima of ``values`` (an end counts when below its
+    neighbour), lowest first, each more than ``apart`` indices from a lower one kept."""
+    v = np.asarray(values, np.float64)
+    minima = np.flatnonzero((v <= np.r_[np.inf, v[:-1]]) & (v <= np.r_[v[1:], np.inf]))
+    kept: list[int] = []
+    for k in minima[np.argsort(v[minima], kind="stable")]:
+        if all(abs(int(k) - j) > apart for j in kept):
+            kept.append(int(k))
+        if len(kept) == count:
+            break
+    return kept
 
 
 def _offset_bound_note(samples, times: np.ndarray) -> str:
@@ -1445,7 +1573,8 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
             try:
                 offset = estimate_time_offset(tracker_at, poses, first, o.max_time_offset_s,
                                               times, still=held)
-                failed = "" if offset["estimated"] else (
+                # (a scan without a clear least is no failure: the offset not determined, 0)
+                failed = "" if offset["estimated"] or "scan" in offset else (
                     f"at least {MIN_HAND_EYE_VIEWS} views tracked at every offset are needed")
             except ValueError as exc:
                 failed = f"over them {exc}"
@@ -1465,7 +1594,8 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
                 f"; the clock offset was estimated at {1e3 * offset['estimate_s']:+.0f} +- "
                 f"{1e3 * offset['std_s']:.1f} ms (within +-{o.max_time_offset_s:g} s): if the "
                 "clocks differ by more or that is wrong, give the offset with --time-offset S "
-                "(or raise --max-time-offset)")
+                "(or raise --max-time-offset)") if offset["estimated"] else (
+                f"; the clock offset was {offset['reason']}")
             if offset["at_bound"]:
                 bound_hint = (
                     f"; the clock offset estimate ({1e3 * offset['estimate_s']:+.0f} ms) lies at "
@@ -1479,6 +1609,7 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
                         f"{1e3 * offset['std_s']:.1f} ms) lies at +-{o.max_time_offset_s:g} s "
                         "and the fit still improves beyond it; raise --max-time-offset (e.g. "
                         f"{2 * o.max_time_offset_s:g}) or give the offset with --time-offset S")
+        unshifted = first  # (the fit without the estimated offset: the refusals compare it)
         if offset["applied_s"] != shift:  # from the closed form: the fit at 0 may be far off
             A, valid = tracker_at(offset["applied_s"])
             first = calibrate_hand_eye(A, poses[valid], rot_sigma_deg=first.tracker_sigma[0],
@@ -1505,18 +1636,59 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
                                clusters)
     n = len(A_fit)
 
+    def without_offset() -> HandEyeResult | None:
+        # The fit of the refused one's kind (still views' samples, or all frames interpolated)
+        # without the estimated offset applied; None without one applied or when it fails.
+        if not (offset.get("estimated") and offset["applied_s"]):
+            return None
+        if mode == "interpolated":
+            return unshifted
+        at_zero = _still_view_samples(samples, views, shift, K, dist, o)
+        try:
+            return None if at_zero is None else calibrate_hand_eye(
+                at_zero[0], at_zero[1], rot_sigma_deg=o.rot_sigma_deg,
+                trans_sigma_mm=o.trans_sigma_mm, fit_scale=True)
+        except ValueError:
+            return None
+
+    def offset_suspect(without: str) -> str:
+        # An estimated offset applied pairs each view with the tracker at another time: a wrong
+        # one (a scan's least on noise: +288 ms for clocks that agree) makes the tracker and
+        # the board disagree or the scale come out wrong (-0.056 against 1.013 without it), so
+        # the refusals name it first when the same fit without it has no such fault (`without`
+        # says what it has; "" when it has the fault too: quaternions w, x, y, z with +7 ms
+        # applied).
+        if not without:
+            return ""
+        return (f"the clock offset applied ({1e3 * offset['estimate_s']:+.0f} +- "
+                f"{1e3 * offset['std_s']:.1f} ms, estimated within +-{o.max_time_offset_s:g} "
+                f"s): without it {without}; calibrate again with --time-offset 0 (or the "
+                "offset, if known)")
+
+    def agrees(fit: HandEyeResult) -> bool:
+        return (fit.inlier.size - int(fit.inlier.sum()) <= 0.5 * fit.inlier.size
+                and fit.tracker_sigma[0] <= MAX_TRACKER_SIGMA[0]
+                and fit.tracker_sigma[1] <= MAX_TRACKER_SIGMA[1])
+
     def check_agreement(fit: HandEyeResult) -> None:
         outliers = n - int(fit.inlier.sum())
-        if (outliers <= 0.5 * n and fit.tracker_sigma[0] <= MAX_TRACKER_SIGMA[0]
-                and fit.tracker_sigma[1] <= MAX_TRACKER_SIGMA[1]):
+        if agrees(fit):
             return
         # The residuals, not fit.tracker_sigma: with most samples beyond 3 sigma that stays
         # the prior (--rot-sigma / --trans-sigma; it read 1.00 deg / 1.00 mm).
         rms = [float(np.sqrt(np.mean(r ** 2) / 3)) for r in (fit.rotation_residual_deg,
                                                                fit.translation_residual_mm)]
+        alt = without_offset()
+        clock = offset_suspect(
+            f"they agree (the tracker's noise seen {alt.tracker_sigma[0]:.2f} deg / "
+            f"{alt.tracker_sigma[1]:.2f} mm per axis)" if alt is not None and agrees(alt)
+            else "")
         # A lens model that does not fit biases every board pose: the first suspect then
         suspect = "" if not model_warning else (
-            f"Suspect the camera model first: {model_warning}. Otherwise check")
+            f"Suspect the camera model first: {model_warning}"
+            + (f"; then {clock}" if clock else "") + ". Otherwise check")
+        if clock and not suspect:
+            suspect = f"Suspect first {clock}. Otherwise check"
         raise ValueError(
             f"{source}: the tracker and the board disagree: {outliers} of {n} "
             f"{'tracker samples' if mode == 'still' else 'views'} beyond 3 sigma, RMS "
@@ -1524,7 +1696,7 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
             f"{suspect or 'Check'} that tracking.csv holds tracker_from_sensor (not its "
             "inverse) with quaternions x, y, z, w and translations in mm, the board's "
             "--square-mm, and the "
-            f"frame times (frames.csv, or --fps without it){bound_hint}")
+            f"frame times (frames.csv, or --fps without it){'' if clock else bound_hint}")
 
     check_agreement(free)
     scale_boot = bootstrap_hand_eye(free, clusters, replicates=BOOTSTRAP_REPLICATES)
@@ -1533,14 +1705,19 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
     scale = {"ratio": free.scale, "std": scale_std, "square_mm_implied": o.square_mm * free.scale,
              "applied": bool(significant)}
     if significant and abs(free.scale - 1) > MAX_SCALE_DEVIATION:
+        alt = without_offset()
+        suspect = offset_suspect(
+            f"the tracker's motions are {alt.scale:.4g} x the board's"
+            if alt is not None and abs(alt.scale - 1) <= MAX_SCALE_DEVIATION else "")
         unit = (" (x 0.001: metres?)" if 0.0005 < free.scale < 0.002 else
                 " (x 0.1: cm?)" if 0.05 < free.scale < 0.2 else "")
         raise ValueError(
             f"{source}: the tracker's motions are {free.scale:.4g} +- {scale_std:.2g} x those "
             f"the board gives{unit}, where 1 is expected: by the tracker the board's squares "
-            f"measure {o.square_mm * free.scale:.3g} mm, not {o.square_mm:g} mm. Check the "
-            "square size (--square-mm, a printed board's scaling) and that tracking.csv's "
-            f"translations are in mm{bound_hint}")
+            f"measure {o.square_mm * free.scale:.3g} mm, not {o.square_mm:g} mm. "
+            + (f"Suspect first {suspect}. Otherwise check" if suspect else "Check")
+            + " the square size (--square-mm, a printed board's scaling) and that "
+            f"tracking.csv's translations are in mm{'' if suspect else bound_hint}")
     # A scale that differs from 1 by a little, but significantly (a board printed scaled by
     # 1-3 %, a tracker's own scale error), is kept: the hand-eye is then in the tracker's mm,
     # which is what the tracked poses are composed with.

@@ -119,8 +119,9 @@ def truth_in_reference(G_est: np.ndarray, G_true: np.ndarray) -> tuple[np.ndarra
     frame r the truth is re-based to it (inv(G_true[r]) @ G_true, normalised), frame 0
     included: a truth given in another grid (frame 0 not the identity, e.g. positions in a
     microscope image, seed 004 Sec. IV-A) scores the same as one in frame 0's. Without a row
-    for r the truth is returned as it is, with r = 0 (for r != 0 the score then holds frame r's
-    true offset on every frame: evaluate_output refuses that case)."""
+    for r the truth is returned as it is, with r = 0: for r != 0 a score against it holds frame
+    r's true offset on every frame, so scoring goes through scoring_truth, which refuses that
+    case (kept for callers that only draw the truth)."""
     G_true = np.asarray(G_true, np.float64)
     r = reference_frame(G_est)
     if not np.isfinite(G_true[r]).all():
@@ -128,6 +129,51 @@ def truth_in_reference(G_est: np.ndarray, G_true: np.ndarray) -> tuple[np.ndarra
     if np.array_equal(G_true[r], np.eye(3)):  # already in r's grid: bit for bit as it was
         return G_true, r
     return _rebased(G_true, r), r
+
+
+def unscorable_reference(G_est: np.ndarray, G_true: np.ndarray, frame_ids=None,
+                         output: str = "the output") -> str | None:
+    """Why G_est cannot be scored against G_true (None when it can): its reference frame r
+    (reference_frame) is not frame 0 and the truth has no row for it, so the truth cannot be
+    taken to r's grid, and scored in frame 0's grid every e_j would hold frame r's true offset
+    (a run's e_M of 159.5 px for 0.46 px). frame_ids names the frame (default: its index),
+    `output` what writes it as the identity."""
+    r = reference_frame(G_est)
+    if r == 0 or np.isfinite(np.asarray(G_true, np.float64)[r]).all():
+        return None
+    k = r if frame_ids is None else int(np.asarray(frame_ids)[r])
+    return (f"the truth has no row for the output's reference frame {k} (the frame {output} "
+            "writes as the identity, frame 0 being unplaced): the truth cannot be taken to the "
+            "output's grid, and scored in another grid every e_j would hold that frame's "
+            "offset")
+
+
+def scoring_truth(G_est: np.ndarray, G_true: np.ndarray, frame_ids=None,
+                  output: str = "the output") -> tuple[np.ndarray | None, int, str | None]:
+    """truth_in_reference for scoring: (the truth in the estimate's reference grid, r, None),
+    or (None, r, why) when it cannot be taken there (unscorable_reference): the scores are then
+    undefined, not numbers in another grid."""
+    why = unscorable_reference(G_est, G_true, frame_ids, output)
+    if why is not None:
+        return None, reference_frame(G_est), why
+    G, r = truth_in_reference(G_est, G_true)
+    return G, r, None
+
+
+def run_metrics(G_est: np.ndarray, G_true: np.ndarray, width: int, height: int,
+                frame_ids=None) -> dict:
+    """report.json's scores of a run against its dataset's truth: {"metrics": {e_M_px,
+    drift_ratio, max_e_j_px, frames_scored}}, or {"metrics": None, "metrics_note": why} when
+    the output's reference frame has no truth row (scoring_truth; `evaluate` refuses it
+    alike)."""
+    G_ref, r, why = scoring_truth(G_est, G_true, frame_ids, "homographies.csv")
+    if why is not None:
+        return {"metrics": None, "metrics_note": f"not scored: {why}"}
+    errors = frame_errors(G_est, G_ref, width, height)
+    return {"metrics": {
+        "e_M_px": mosaic_error(errors), "drift_ratio": drift_ratio(errors, r),
+        "max_e_j_px": float(np.nanmax(errors)) if np.isfinite(errors).any() else None,
+        "frames_scored": int((~np.isnan(errors)).sum())}}  # placed, with ground truth
 
 
 def drift_note(errors: np.ndarray, frame_ids=None, reference: int | None = 0) -> str | None:
@@ -198,22 +244,32 @@ def positions_px(G: np.ndarray, width: int, height: int) -> np.ndarray:
 
 def position_errors_um(G_est: np.ndarray, G_true: np.ndarray, width: int, height: int,
                        pixel_size_um: float) -> np.ndarray:
-    """Per-frame distance (µm) between estimated and true image positions (seed 004, IV-B)."""
+    """Per-frame distance (µm) between estimated and true image positions (seed 004, IV-B):
+    NaN where either homography is missing, inf where both exist but the estimate sends the
+    frame's centre to infinity (as frame_errors: placed unusably, not unplaced)."""
     if not pixel_size_um or pixel_size_um <= 0 or not np.isfinite(pixel_size_um):
         raise ValueError(f"pixel_size_um must be a positive number, got {pixel_size_um}")
-    d = positions_px(G_est, width, height) - positions_px(G_true, width, height)
-    return np.linalg.norm(d, axis=1) * pixel_size_um
+    G_est, G_true = _check_stack(G_est, "G_est"), _check_stack(G_true, "G_true")
+    with np.errstate(over="ignore", invalid="ignore"):
+        d = positions_px(G_est, width, height) - positions_px(G_true, width, height)
+        dist = np.linalg.norm(d, axis=1) * pixel_size_um
+    both = np.isfinite(G_est).all(axis=(1, 2)) & np.isfinite(G_true).all(axis=(1, 2))
+    return np.where(both, np.where(np.isfinite(dist), dist, np.inf), np.nan)
 
 
 @dataclass
 class PositionStats:
-    """Table I/II statistics of seed 004, in µm."""
+    """Table I/II statistics of seed 004, in µm. std is the population standard deviation
+    (ddof 0, divided by n; recorded as std_ddof): the paper does not say which, and its
+    authors' tools (MATLAB) default to the sample one (n - 1), sqrt(n / (n - 1)) = 1.04x larger
+    at n = 13: compare like with like."""
 
     n: int
     mean: float
     max: float
     std: float
     median: float
+    std_ddof: int = 0
 
 
 def _json_stats(s: PositionStats) -> dict:
@@ -240,10 +296,18 @@ def position_sample(G_true: np.ndarray, n: int) -> np.ndarray:
 
 
 def position_stats(errors_um: np.ndarray, frames: np.ndarray | None = None) -> PositionStats:
-    e = errors_um if frames is None else errors_um[frames]
-    e = e[np.isfinite(e)]
+    """The statistics of the errors (µm) of the placed frames (NaN: unplaced, or no truth,
+    left out) among `frames` (default all). A frame placed at infinity (inf) counts, as its
+    e_j counts against e_M: mean, max and std are then inf (n counting it), the median as it
+    falls. std: ddof 0 (PositionStats)."""
+    e = np.asarray(errors_um, np.float64)
+    e = e if frames is None else e[frames]
+    e = e[~np.isnan(e)]
     if len(e) == 0:
         return PositionStats(0, *([float("nan")] * 4))
+    if np.isinf(e).any():  # (np.std would warn: inf - inf)
+        return PositionStats(len(e), float("inf"), float("inf"), float("inf"),
+                             float(np.median(e)))
     return PositionStats(len(e), float(e.mean()), float(e.max()), float(e.std()),
                          float(np.median(e)))
 
@@ -310,6 +374,38 @@ def check_positions_n(positions_n, what: str = "positions") -> None:
                          f"got {positions_n!r}")
 
 
+def evaluation_notes(result: dict) -> list[str]:
+    """What an evaluate_output result holds beside its table's figures, as sentences (for the
+    terminal and evaluation.md): the dead-reckoned frames with e_M without them, the frames
+    whose centre lands at infinity, and the grid scored in when the output's reference frame is
+    not frame 0. (How many frames e_M is over is "frames_scored"; report.write_report says it
+    when fewer than all.)"""
+    notes = []
+    dead = result.get("dead_reckoned")
+    if dead:
+        without = result.get("e_M_px_without_dead_reckoned")
+        notes.append(
+            f"{len(dead)} of the placed frames dead-reckoned (placed with no anchor: "
+            f"{_listed(dead)}); e_M without them: "
+            + ("undefined (no other frame scored)" if without is None else f"{without:.3f} px"))
+    inf = result.get("position_at_infinity")
+    if inf:
+        notes.append(f"{_listed(inf)} placed with the centre at infinity: counted in the µm "
+                     "position statistics, whose mean, max and std are then inf")
+    ref = result.get("reference_frame", 0)
+    if ref != 0:
+        notes.append(f"scored in frame {ref}'s pixel grid: the output's reference frame (the "
+                     "one it writes as the identity; frame 0 unplaced), the truth taken to it")
+    return notes
+
+
+def _listed(frames: list[int], first: int = 8) -> str:
+    """'frames 3, 4, 5' (the first `first` of more, then '... (N in all)')."""
+    shown = ", ".join(map(str, frames[:first]))
+    more = f", ... ({len(frames)} in all)" if len(frames) > first else ""
+    return f"frame{'s' if len(frames) != 1 else ''} {shown}{more}"
+
+
 # Keys of evaluate_output's result that every version wrote: how `evaluate` recognises an
 # evaluation JSON of an older version (no manifest record) as its own, not a user's file.
 RESULT_KEYS = ("output", "truth", "frames", "e_M_px", "e_j_px")
@@ -336,7 +432,10 @@ def evaluate_output(out_dir: str | Path, truth_root, *,
     The result is ready for JSON: a measure that is undefined is None (null), not NaN — e_M_px
     and max_e_j_px with no scored frame, e_j_px of an unplaced frame, drift_ratio when a
     quarter of the sequence has no placed frame (then "drift_ratio_note" says why). A frame
-    placed at infinity keeps e_j inf (it counts against e_M).
+    placed at infinity keeps e_j inf (it counts against e_M; "placed_at_infinity" names it,
+    as "position_at_infinity" names those whose centre lands at infinity: counted, inf, in the
+    µm statistics). "frames_scored": the frames e_M is over (placed, with a ground-truth
+    homography); evaluation_notes words the other keys.
 
     The truth is taken to the grid of the output's reference frame (truth_in_reference); an
     output whose reference is a frame r != 0 the truth has no row for is refused (ValueError):
@@ -389,14 +488,9 @@ def evaluate_output(out_dir: str | Path, truth_root, *,
                          f"(missing {listed(missing)}, unexpected {listed(extra)})")
     G_est = G_est[np.argsort(ids)]
     w, h = dataset.camera.width, dataset.camera.height
-    r_est = reference_frame(G_est)
-    if r_est != 0 and not np.isfinite(dataset.ground_truth[r_est]).all():
-        raise ValueError(
-            f"{truth_root / 'ground_truth.csv'}: the truth has no row for the output's "
-            f"reference frame {truth_ids[r_est]} (the frame {est_path} writes as the identity): "
-            "the truth cannot be taken to the output's grid, and scored in another grid every "
-            "e_j would hold that frame's offset")
-    G_true, r = truth_in_reference(G_est, dataset.ground_truth)
+    G_true, r, why = scoring_truth(G_est, dataset.ground_truth, truth_ids, str(est_path))
+    if why is not None:
+        raise ValueError(f"{truth_root / 'ground_truth.csv'}: {why}")
     errors = frame_errors(G_est, G_true, w, h)
     placed = np.isfinite(G_est).all(axis=(1, 2))
     scored = ~np.isnan(errors)
@@ -408,6 +502,9 @@ def evaluate_output(out_dir: str | Path, truth_root, *,
         "placed": int(placed.sum()),
         "unplaced": int((~placed).sum()),
         "e_M_px": mosaic_error(errors) if scored.any() else None,
+        # e_M is over these: placed and with a ground-truth homography (a sparse truth: fewer
+        # than placed)
+        "frames_scored": int(scored.sum()),
         "max_e_j_px": float(np.nanmax(errors)) if scored.any() else None,
         "drift_ratio": None if np.isnan(drift) else drift,  # (inf: null in the JSON file)
         "e_j_px": [None if np.isnan(e) else float(e) for e in errors],
@@ -453,6 +550,8 @@ def evaluate_output(out_dir: str | Path, truth_root, *,
         err_um = position_errors_um(G_est, G_true, w, h,
                                     dataset.camera.pixel_size_um)
         result["position_errors_um"] = [None if not np.isfinite(e) else float(e) for e in err_um]
+        if np.isinf(err_um).any():  # counted in the statistics (inf), null in the list
+            result["position_at_infinity"] = [int(k) for k in truth_ids[np.isinf(err_um)]]
         result["position_all_um"] = _json_stats(position_stats(err_um))
         if positions_n:
             sampled = position_sample(dataset.ground_truth, positions_n)

@@ -235,11 +235,14 @@ def _x(truth: TruthRecord | None, n: int) -> np.ndarray:
     return truth.frame_ids if truth is not None and len(truth.frame_ids) == n else np.arange(n)
 
 
-def plot_errors(path: Path, runs: list[RunRecord], errors: list[np.ndarray],
+def plot_errors(path: Path, runs: list[RunRecord], errors: list[np.ndarray | None],
                 truth: TruthRecord) -> None:
+    """e_j per frame of each run; a run not scored (errors None) is left out."""
     fig, ax = _figure()
     ax = ax[0, 0]
     for i, (run, e) in enumerate(zip(runs, errors, strict=True)):
+        if e is None:
+            continue
         e_m = np.nanmean(e) if np.isfinite(e).any() else np.nan
         ax.plot(_x(truth, len(e)), e, color=COLOURS[i % len(COLOURS)], lw=1.2,
                 label=f"{run.label} (e_M = {e_m:.2f} px)")
@@ -400,7 +403,7 @@ def write_report(directory: str | Path, runs: list[RunRecord], truth: TruthRecor
         drift_ratio,
         frame_errors,
         mosaic_error,
-        truth_in_reference,
+        scoring_truth,
     )
 
     directory = Path(directory)
@@ -412,17 +415,32 @@ def write_report(directory: str | Path, runs: list[RunRecord], truth: TruthRecor
         lines += [f"Dataset: `{truth.root}`", ""]
     errors = None
     references = [0] * len(runs)  # each estimate's reference frame (left out of the drift)
+    scoring = []  # what the table's figures are over, said below it
     if truth is not None and truth.homographies is not None:
         errors = []
         for i, r in enumerate(runs):
-            G_true, references[i] = truth_in_reference(r.homographies, truth.homographies)
-            errors.append(frame_errors(r.homographies, G_true, truth.width, truth.height))
+            G_true, references[i], why = scoring_truth(r.homographies, truth.homographies,
+                                                       truth.frame_ids, "homographies.csv")
+            if why is not None:  # no figures ("–"), not figures in another grid
+                errors.append(None)
+                scoring.append(f"**e_M ({r.label}):** not scored: {why}")
+                continue
+            e = frame_errors(r.homographies, G_true, truth.width, truth.height)
+            errors.append(e)
+            placed = np.isfinite(r.homographies).all(axis=(1, 2))
+            scored = int((~np.isnan(e)).sum())
+            if scored < len(e):  # e_M is over the frames placed and with a truth: say so
+                without = int((placed & np.isnan(e)).sum())
+                scoring.append(
+                    f"**e_M ({r.label}):** over {scored} of the {len(e)} frames, those placed "
+                    "and with a ground-truth homography"
+                    + (f" ({without} placed without one)" if without else ""))
     header = ("| method | output | frames placed | e_M (px) | max e_j (px) | drift "
               "| sum of stage times (s) |")
     lines += [header, "|---|---|---|---|---|---|---|"]
     for i, run in enumerate(runs):
         placed = int(np.isfinite(run.homographies).all(axis=(1, 2)).sum())
-        e = errors[i] if errors is not None else None
+        e = errors[i] if errors is not None else None  # (None: not scored)
         em = mosaic_error(e) if e is not None else None
         mx = float(np.nanmax(e)) if e is not None and np.isfinite(e).any() else None
         dr = drift_ratio(e, references[i]) if e is not None else None
@@ -430,7 +448,7 @@ def write_report(directory: str | Path, runs: list[RunRecord], truth: TruthRecor
         lines.append(f"| {run.label} | `{run.output or '.'}` | {placed}/{len(run.homographies)} "
                      f"| {_fmt(em)} | {_fmt(mx)} | {_fmt(dr, 2)} | {_fmt(total, 1)} |")
     lines.append("")
-    for note in notes or []:
+    for note in [*scoring, *(notes or [])]:
         lines += [note, ""]
     if mosaic:
         lines += ["## Mosaic", "", f"![mosaic]({mosaic})", ""]
@@ -440,7 +458,7 @@ def write_report(directory: str | Path, runs: list[RunRecord], truth: TruthRecor
     def figure(fname: str, heading: str, caption: str) -> None:
         lines.extend([f"## {heading}", "", caption, "", f"![{heading}]({plots_dir}/{fname})", ""])
 
-    if errors is not None:
+    if errors is not None and any(e is not None for e in errors):
         plot_errors(plots / "errors.png", runs, errors, truth)
         figure("errors.png", "Error per frame",
                "e_j: mean distance over a 100 x 100 grid between each frame's estimated and true "

@@ -33,6 +33,19 @@ K_LAYOUT_TOLERANCE = 1e-6
 # Generous sanity bound, not a tuned one: a focal length over 10^4 image sizes is a field of view
 # under 0.006 degrees, i.e. a unit error (e.g. fx in µm or nm), not an endoscope.
 MAX_FOCAL_IMAGE_SIZES = 1e4
+# The opposite unit error, a focal length in mm (2.4 for a 480 px lens), is a focal length of a
+# few px: a field of view no lens has. Bounds on the angle of the frame's corner rays from the
+# optical axis (r = half the frame's diagonal, from the image centre): pinhole, tan(angle) =
+# r / f, 87.5 deg (a 175 deg diagonal field of view; the fetoscopy simulator accepts corner rays
+# up to 87.1 deg, so none of its cameras is refused); fisheye, angle = r / f (equidistant),
+# 360 deg (a fisheye sees up to ~140 deg from the axis at its image circle's edge, a 280 deg
+# lens; a wide frame's corners beyond the circle ~290 deg). A 4.8 mm focal length given for a
+# 480 px lens (fx = 4.8) is refused by either: corner rays 89.2 deg (pinhole) or 4050 deg
+# (fisheye) from the axis.
+MAX_CORNER_ANGLE_DEG = {"pinhole": 87.5, "fisheye": 360.0}
+# fx / fy: square pixels give 1; anamorphic lenses and video pixel aspects stay within ~3. Beyond
+# this one axis of K is in other units than the other (or mistyped).
+MAX_FOCAL_ASPECT = 5.0
 _KEYS = "image_width, image_height[, camera_matrix, ...]"  # named in parse errors
 # The keys read_camera_yaml reads (write_camera_yaml writes only these).
 CAMERA_KEYS = ("image_width", "image_height", "camera_matrix", "distortion_coefficients",
@@ -189,6 +202,24 @@ class Camera:
                 f"{where}: focal length fx={fx:g}, fy={fy:g} px is over {max_focal:g} px "
                 f"({MAX_FOCAL_IMAGE_SIZES:g} image sizes, a field of view under 0.006 degrees)"
             )
+        min_focal = self.min_focal_px()
+        if min(fx, fy) < min_focal:
+            angle = MAX_CORNER_ANGLE_DEG[self.lens_model]
+            raise ValueError(
+                f"{where}: focal length fx={fx:g}, fy={fy:g} px is under {min_focal:.3g} px, "
+                f"which puts the {self.width}x{self.height} frame's corners over {angle:g} deg "
+                f"from the optical axis (a field of view over {2 * angle:g} deg): beyond any "
+                f"{self.lens_model} lens. A focal length in mm? camera.yaml wants pixels (fx = "
+                "focal length / pixel pitch, both in mm)"
+            )
+        if max(fx / fy, fy / fx) > MAX_FOCAL_ASPECT:
+            raise ValueError(
+                f"{where}: fx={fx:g} and fy={fy:g} px differ by a factor "
+                f"{max(fx, fy) / min(fx, fy):.3g} "
+                f"(at most {MAX_FOCAL_ASPECT:g}: pixels that much taller than wide, or wider, "
+                "are no camera's): one of them in other units (mm?) or mistyped; camera.yaml "
+                "wants both in pixels"
+            )
         # The C++ core's invertibility test (SlidingWindow): |det K| > 1e-12 |K|_F^3.
         if not abs(np.linalg.det(K)) > 1e-12 * np.linalg.norm(K) ** 3:
             raise ValueError(
@@ -196,6 +227,13 @@ class Camera:
                 f"cx={K[0, 2]:g}, cy={K[1, 2]:g})"
             )
         return K
+
+    def min_focal_px(self) -> float:
+        """The smallest focal length (px) _checked_camera_matrix accepts for this frame size and
+        lens model (MAX_CORNER_ANGLE_DEG)."""
+        corner = 0.5 * float(np.hypot(self.width, self.height))
+        angle = np.deg2rad(MAX_CORNER_ANGLE_DEG[self.lens_model])
+        return corner / (np.tan(angle) if self.lens_model == "pinhole" else angle)
 
     @property
     def size(self) -> tuple[int, int]:
