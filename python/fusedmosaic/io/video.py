@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import bisect
 import math
 import re
 import threading
@@ -546,13 +547,18 @@ class FrameSource(Sequence):
 
     def _stamps_for_landing(self) -> tuple[np.ndarray, float] | None:
         """(the decoding pass's stamps of the frames, ms; the landing tolerance), or None when
-        they cannot tell one frame from another: fewer than the frames, or those of the
-        frames that decode not strictly increasing (an MPEG program stream's last frames
-        stamped 0): such a video is never sought in."""
+        they cannot tell one frame from another: fewer than the frames, or none left once the
+        stamps out of order are set aside: such a video is never sought in. The stamps kept
+        are a longest strictly increasing run of them (in frame order); the others (an MPEG
+        program stream's or a B-frame AVI's last frame stamped 0) are unknown, their frames
+        reached from a stamped frame before them (one such stamp stopped all seeking: 20
+        random reads of a 1500-frame AVI took 0.95 s, 0.04 s with it set aside; review 46)."""
         if self._landing_stamps is False:
-            t = self._decoded_times()[:self._length]
-            steps = np.diff(t[np.isfinite(t)])
-            usable = t.size == self._length and np.isfinite(t).any() and (steps > 0).all()
+            t = self._decoded_times()[:self._length].astype(np.float64)
+            ordered = _longest_increasing(t)
+            t = np.where(ordered, t, np.nan)
+            steps = np.diff(t[ordered])
+            usable = t.size == self._length and bool(ordered.any())
             if not usable:
                 self._seek_floor = self._length
             tolerance = min(LANDING_TOLERANCE_MS, float(steps.min()) / 4 if steps.size else
@@ -792,3 +798,25 @@ def write_frames(frames_dir: str | Path, images: Iterable[np.ndarray]) -> int:
             raise ValueError(f"{path}: the image could not be written (a full disk, or no "
                              "write permission there?)")
     return count
+
+
+def _longest_increasing(t: np.ndarray) -> np.ndarray:
+    """(N,) bool: the finite entries of `t` in a longest strictly increasing subsequence
+    (patience sorting, O(N log N))."""
+    tails: list[float] = []  # the least last value of an increasing run of each length
+    tail_at: list[int] = []  # its index
+    previous = np.full(t.size, -1)
+    for i in np.flatnonzero(np.isfinite(t)):
+        k = bisect.bisect_left(tails, t[i])
+        if k == len(tails):
+            tails.append(t[i])
+            tail_at.append(int(i))
+        else:
+            tails[k], tail_at[k] = t[i], int(i)
+        previous[i] = tail_at[k - 1] if k else -1
+    keep = np.zeros(t.size, bool)
+    i = tail_at[-1] if tail_at else -1
+    while i >= 0:
+        keep[i] = True
+        i = previous[i]
+    return keep
