@@ -191,7 +191,8 @@ void BindSlidingWindow(py::module_& m) {
            "hold_plane"_a = false, py::call_guard<py::gil_scoped_release>(),
            "Re-estimates the last frames (GIL released), e.g. after gating a tracker sample,\n"
            "each started again as a step starts it: from its tracker sample, or the constant-\n"
-           "velocity prediction without one or when the sample is gated (sigma scale > 1);\n"
+           "velocity prediction without one or when the sample is gated (sigma scale > 1; a\n"
+           "frame add_frame gave an initial pose but no sample: the prediction too);\n"
            "frame_ids, distinct, must hold every frame from the first of them on (the last\n"
            "step's, and any added since), with no pending frame before them; keyframe_ids\n"
            "fixed frames not among them. ValueError (IndexError: an unknown id) else, with\n"

@@ -160,7 +160,8 @@ class SlidingWindow {
   WindowStepSummary Step(const std::vector<int>& keyframe_ids, bool hold_plane = false);
   // Re-runs the last step's problem after SetEmtSigmaScale (gating) and refixes its cameras,
   // each started again as Step starts it: at its tracker sample, or at the constant-velocity
-  // prediction when it has none or its sample is gated (sigma scale > 1); the plane where it is.
+  // prediction when it has none or its sample is gated (sigma scale > 1), also when AddFrame
+  // gave it an initial pose (not kept); the plane where it is.
   // frame_ids must be distinct and hold every frame from the first of them on (the last step's
   // cameras, and any added since), with no pending frame before them: std::invalid_argument
   // otherwise, with nothing changed.
