@@ -1,6 +1,7 @@
 """Fault injection shared by the robustness tests (not a test module)."""
 
 import contextlib
+import resource
 import signal
 
 
@@ -31,3 +32,15 @@ def signal_handler(sig, handler):
         yield
     finally:
         signal.signal(sig, before)
+
+
+@contextlib.contextmanager
+def file_size_limit(limit: int):
+    """Files can grow to `limit` bytes at most (RLIMIT_FSIZE): a write beyond fails with EFBIG
+    (Python ignores SIGXFSZ), as a full disk fails it. Restored on exit."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (limit, hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))

@@ -7,15 +7,14 @@ field-of-view mask is named as such."""
 
 from __future__ import annotations
 
-import contextlib
 import os
 import re
-import resource
 import tracemalloc
 
 import cv2
 import numpy as np
 import pytest
+from _faults import file_size_limit
 
 from fusedmosaic.compositing import (
     BlendOptions,
@@ -44,18 +43,6 @@ def _smooth(h: int, w: int, channels: int = 3, seed: int = 0) -> np.ndarray:
     small = rng.integers(0, 256, (max(1, h // 8), max(1, w // 8), channels)).astype(np.uint8)
     image = cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC)
     return image.reshape(h, w, channels)
-
-
-@contextlib.contextmanager
-def _file_size_limit(limit: int):
-    """Files can grow to `limit` bytes at most (RLIMIT_FSIZE): a write beyond fails with EFBIG
-    (Python ignores SIGXFSZ), as a full disk fails it. Restored on exit."""
-    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
-    resource.setrlimit(resource.RLIMIT_FSIZE, (limit, hard))
-    try:
-        yield
-    finally:
-        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
 
 
 # -- 1: the over-budget stray search -----------------------------------------------------------
@@ -264,7 +251,7 @@ def test_write_image_cut_short_is_an_error_naming_the_file(tmp_path):
     image = _smooth(300, 400)
     size = len(cv2.imencode(".png", image)[1])
     out = tmp_path / "out"
-    with _file_size_limit(size - 300), pytest.raises(
+    with file_size_limit(size - 300), pytest.raises(
             ValueError, match=rf"^{out / 'mosaic.png'}: the image could not be written \(File "
                               r"too large: a full disk, or no write permission in "):
         with OutputWriter(out, record="review") as w:
@@ -284,7 +271,7 @@ def test_recorded_frame_cut_short_is_an_error(tmp_path):
     image = _smooth(150, 200)
     size = len(cv2.imencode(".png", image, PNG_COMPRESSED)[1])
     recorder = DatasetRecorder(tmp_path / "rec", camera)
-    with _file_size_limit(size - 300):
+    with file_size_limit(size - 300):
         recorder.add_sample(0.0, np.eye(4))
         recorder.add_frame(image, 0.0)
         with pytest.raises(ValueError, match=r"rec: no frame could be written: .*"
@@ -362,7 +349,7 @@ def test_streamed_png_write_error_names_the_file(tmp_path, where):
         image = np.random.default_rng(0).integers(0, 256, (700, 700, 3)).astype(np.uint8)
     else:  # a small image, written at close()
         image = np.full((100, 100, 3), 7, np.uint8)
-    with _file_size_limit(40), pytest.raises(OSError) as caught:
+    with file_size_limit(40), pytest.raises(OSError) as caught:
         with PngStreamWriter(path, image.shape[1], image.shape[0], 3) as png:
             png.write_rows(image)
             assert where == "close"  # (write_rows raised otherwise)

@@ -1,24 +1,10 @@
 """Review 46 (lead): the run's outputs as the CLI reports them."""
 
-import resource
-from contextlib import contextmanager
-
 import pytest
+from _faults import file_size_limit
 
 from fusedmosaic.cli import main
 from fusedmosaic.simulation import PcleOptions, simulate_pcle
-
-
-@contextmanager
-def file_size_limit(limit: int):
-    """Files can grow to `limit` bytes at most (RLIMIT_FSIZE): a write beyond fails with EFBIG
-    (Python ignores SIGXFSZ), as on a full disk."""
-    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
-    resource.setrlimit(resource.RLIMIT_FSIZE, (limit, hard))
-    try:
-        yield
-    finally:
-        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
 
 
 @pytest.fixture(scope="module")
