@@ -223,8 +223,7 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
                                             "camera_plane_distance_mm": dist,
                                             # ba: no scale, the "_mm" figures in the first
                                             # camera's distance to the plane (review 46)
-                                            "unit": "mm" if "world" not in result.details
-                                            else result.details["world"]})
+                                            "unit": result.details.get("world", "mm")})
             outputs = compose_outputs(w, dataset, result, G, blend=blend, canvas=canvas,
                                       video=video, out=out, progress=progress, timings=timings)
             report_json["mosaic"] = outputs["mosaic"]

@@ -311,18 +311,13 @@ WindowStepSummary SlidingWindow::Redo(const std::vector<int>& frame_ids,
   CheckKeyframes(keyframe_ids, ids, "redo");  // (before anything changes)
   for (int id : ids) {
     Frame& f = frames_.at(id);
-    // Started again as a step starts them, not from the solve being redone: from the tracker
-    // sample, or the constant-velocity prediction (InitialisePending) for a frame without one
-    // and for a gated sample (down-weighted: it disagreed with the images, no starting point).
+    // Started again as a step starts them (InitialisePending), not from the solve being redone:
+    // from the tracker sample, or the constant-velocity prediction for a frame without one and
+    // for a gated sample (down-weighted: it disagreed with the images, no starting point).
     // A sample 124 deg off, gated, redone from its sample and from the first solve's poses of
     // the untracked frames beside it, settled far from the images: every later frame 100-1e5 px
     // off, all "placed".
-    if (f.emt_measurement && f.emt_sigma_scale <= 1.0) {
-      Eigen::Map<Pose>(f.pose.data()) = *f.emt_measurement;
-      f.has_initial = true;
-    } else {
-      f.has_initial = false;
-    }
+    f.has_initial = false;
     f.fixed = false;
   }
   return Solve(ids, keyframe_ids, hold_plane);
