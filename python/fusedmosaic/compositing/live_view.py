@@ -66,6 +66,7 @@ import numpy as np
 from fusedmosaic.compositing.blending import BlendOptions
 from fusedmosaic.compositing.canvas import CanvasTooLargeError
 from fusedmosaic.compositing.incremental import IncrementalCanvas
+from fusedmosaic.io.output import write_image_file
 
 _STOP = object()
 MAX_QUEUED = 100  # frames waiting for the worker (memory bound: ~50 MB at 400x400 colour)
@@ -284,12 +285,9 @@ class LiveMosaicView:
         if self.preview is not None:
             tmp = self.preview.with_name(f".{self.preview.name}.{os.getpid()}.tmp.png")
             try:
-                ok, data = cv2.imencode(".png", view, [cv2.IMWRITE_PNG_COMPRESSION, 1])
-                if not ok:
-                    raise OSError("PNG encoding failed")
-                tmp.write_bytes(data.tobytes())
+                write_image_file(tmp, view, [cv2.IMWRITE_PNG_COMPRESSION, 1])
                 os.replace(tmp, self.preview)
-            except (OSError, cv2.error) as exc:
+            except (OSError, ValueError) as exc:  # (ValueError: ImageEncodingError)
                 tmp.unlink(missing_ok=True)
                 self._problem(f"{self.preview}: not written: "
                               f"{getattr(exc, 'strerror', None) or exc}", frame=frame)

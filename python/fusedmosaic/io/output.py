@@ -451,22 +451,12 @@ class OutputWriter:
     def write_image(self, name: str, image: np.ndarray) -> Path:
         """Writes `image` in the format its name's extension says (OpenCV's encoders)."""
         path = self.path(name)
-        # Encoded in memory and written by Python, whose close() reports a failed last write:
-        # cv2.imwrite does not check it, and a mosaic.png cut 300 bytes short (a file size
-        # limit, as on a full disk) was committed with exit 0 (review 46).
         try:
-            ok, data = cv2.imencode(PurePath(name).suffix, image)
-        except cv2.error as exc:  # (OpenCV's text without its source file and function)
-            what = re.sub(r" in function .*$", "",
-                          re.sub(r"^.*error: \([^)]*\) ", "", str(exc).strip()))
-            raise ValueError(f"{self.out_dir / name}: the image could not be encoded ({what})"
+            write_image_file(path, image)
+        except ImageEncodingError as exc:
+            raise ValueError(f"{self.out_dir / name}: the image could not be encoded{exc.reason}"
                              ) from None
-        if not ok:
-            raise ValueError(f"{self.out_dir / name}: the image could not be encoded")
-        try:
-            path.write_bytes(data.tobytes())
         except OSError as exc:
-            path.unlink(missing_ok=True)
             raise ValueError(f"{self.out_dir / name}: the image could not be written "
                              f"({exc.strerror or exc}: a full disk, or no write permission in "
                              f"{self.out_dir}?)") from None
@@ -476,6 +466,38 @@ class OutputWriter:
         path = self.path(name)
         path.write_text(text)
         return path
+
+
+class ImageEncodingError(ValueError):
+    """OpenCV could not encode an image; `reason` is its text (" (…)") or empty."""
+
+    def __init__(self, path: Path, reason: str = "") -> None:
+        super().__init__(f"{path}: the image could not be encoded{reason}")
+        self.reason = reason
+
+
+def write_image_file(path: str | Path, image: np.ndarray, params: Iterable[int] = ()) -> None:
+    """`image` encoded by OpenCV in the format of `path`'s extension, in memory, and written by
+    Python, whose close() reports a failed last write: cv2.imwrite does not check it, and a
+    mosaic.png cut 300 bytes short (a file size limit, as on a full disk) was committed with
+    exit 0 (review 46). Nothing is left at `path` when it fails. Raises ImageEncodingError if the
+    image cannot be encoded, OSError (errno, strerror and `path` as its filename) if it cannot
+    be written. The one encoder of OUT's images, the live recorder's frames and the live preview."""
+    path = Path(path)
+    try:
+        ok, data = cv2.imencode(path.suffix, image, list(params))
+    except cv2.error as exc:  # (OpenCV's text without its source file and function)
+        raise ImageEncodingError(path, " ({})".format(re.sub(
+            r" in function .*$", "", re.sub(r"^.*error: \([^)]*\) ", "", str(exc).strip())))
+        ) from None
+    if not ok:
+        raise ImageEncodingError(path)
+    try:
+        path.write_bytes(data.tobytes())
+    except OSError as exc:
+        with contextlib.suppress(OSError):  # (not left cut short)
+            path.unlink(missing_ok=True)
+        raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from None
 
 
 def to_jsonable(obj: Any) -> Any:

@@ -63,6 +63,7 @@ from scipy.spatial.transform import Rotation
 from fusedmosaic.io._table import format_float
 from fusedmosaic.io.calibration import Camera, write_camera_yaml
 from fusedmosaic.io.dataset import _replace_dir, staging_folder
+from fusedmosaic.io.output import ImageEncodingError, write_image_file
 from fusedmosaic.io.tracking import ROBOT_COLUMNS, TRACKING_COLUMNS, write_hand_eye
 
 __all__ = ["DatasetRecorder", "recover_unfinished_recordings", "stop_signals_deferred"]
@@ -341,18 +342,14 @@ class DatasetRecorder:
 
 
 def _write_png(path: Path, image: np.ndarray, params: list[int]) -> None:
-    """`image` encoded as PNG in memory and written by Python, whose close() reports a failed
-    last write: cv2.imwrite does not check it, and a PNG cut short by a full disk (mosaic.png,
-    review 46) passed as written. OSError naming `path` if it cannot be written."""
-    ok, data = cv2.imencode(".png", image, params)
-    if not ok:
-        raise OSError(f"{path}: PNG encoding failed")
+    """`image` written as a PNG at `path` (io.output.write_image_file); OSError naming `path` if
+    it cannot be encoded or written."""
     try:
-        path.write_bytes(data)
+        write_image_file(path, image, params)
+    except ImageEncodingError as exc:
+        raise OSError(str(exc)) from None
     except OSError as exc:
-        with contextlib.suppress(OSError):  # (hidden, not a frame: not kept cut short)
-            path.unlink(missing_ok=True)
-        raise OSError(exc.errno, f"{path}: {exc.strerror or exc}") from None
+        raise OSError(exc.errno, f"{path}: {exc.strerror}") from None
 
 
 def _describe(exc: BaseException) -> str:
