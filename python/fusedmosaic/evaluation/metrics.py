@@ -392,10 +392,11 @@ def evaluation_notes(result: dict) -> list[str]:
     if inf:
         notes.append(f"{_listed(inf)} placed with the centre at infinity: counted in the µm "
                      "position statistics, whose mean, max and std are then inf")
-    ref = result.get("reference_frame", 0)
-    if ref != 0:
+    ref, first = result.get("reference_frame", 0), result.get("first_frame", 0)
+    if ref != first:  # (ids, not indices: a dataset's frames may start at id 100)
         notes.append(f"scored in frame {ref}'s pixel grid: the output's reference frame (the "
-                     "one it writes as the identity; frame 0 unplaced), the truth taken to it")
+                     f"one it writes as the identity; frame {first} unplaced), the truth taken "
+                     "to it")
     return notes
 
 
@@ -509,6 +510,7 @@ def evaluate_output(out_dir: str | Path, truth_root, *,
         "drift_ratio": None if np.isnan(drift) else drift,  # (inf: null in the JSON file)
         "e_j_px": [None if np.isnan(e) else float(e) for e in errors],
         "reference_frame": int(truth_ids[r]),
+        "first_frame": int(truth_ids[0]),  # (reference_frame is another when it is unplaced)
     }
     if why is not None:
         result["drift_ratio_note"] = why
