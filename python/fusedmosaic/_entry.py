@@ -13,6 +13,17 @@ import sys
 import threading
 
 
+class OutputsWrittenInterrupt(KeyboardInterrupt):
+    """An interrupt (Ctrl-C, SIGTERM, SIGHUP) that arrived while io.output.OutputWriter moved
+    its outputs into ``out_dir``, held until they all were and delivered then: the outputs are
+    complete, and the command says so rather than 'interrupted' alone, which tells that nothing
+    was left. (Here, not in io.output, so that cli.main tells it without loading OpenCV.)"""
+
+    def __init__(self, out_dir) -> None:
+        super().__init__(str(out_dir))
+        self.out_dir = out_dir
+
+
 @contextlib.contextmanager
 def signals_as_interrupt():
     """SIGTERM / SIGHUP (a closed terminal, `timeout`, a scheduler's stop) end any command as

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import re
 import sys
 import time
@@ -14,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fusedmosaic._entry import signals_as_interrupt
+from fusedmosaic._entry import OutputsWrittenInterrupt, signals_as_interrupt
 
 
 # --------------------------------------------------------------------------------------------
@@ -283,6 +284,9 @@ def _lba_overrides(args: argparse.Namespace) -> dict:
     """lba-emt's overrides from --loop-pairs and --guided-sift."""
     out = {}
     if args.guided_sift:
+        if getattr(args, "detector", None) == "orb":  # (recorded in report.json as if used)
+            raise ValueError("--guided-sift applies to --detector sift (ORB's matching is "
+                             "guided already)")
         from fusedmosaic.registration.pairs import MatchOptions
 
         out["matching"] = MatchOptions(guided_sift=True)
@@ -666,8 +670,9 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             from fusedmosaic.evaluation.report import EVALUATION_TITLE, write_report
 
             runs, truth = loaded
-            write_report(w.path(md_path.name).parent, runs, truth, name=md_path.name,
-                         title=EVALUATION_TITLE, plots_dir=plots, notes=notes)
+            with w.named_errors(md_path.name, "the report") as staged:
+                write_report(staged.parent, runs, truth, name=md_path.name,
+                             title=EVALUATION_TITLE, plots_dir=plots, notes=notes)
     _say(args, f"wrote {json_path}")
     if loaded is not None:
         _say(args, f"wrote {md_path} (plots in {md_path.parent / plots})")
@@ -963,8 +968,9 @@ def _demo_into(args: argparse.Namespace, root: Path) -> int:
                       expects=["mosaic_seams.png"] * (plan is not None) + ["evaluation.json"]
                       ) as w:
         if plan is not None and plan.pixels > canvas.in_memory_pixels:
-            write_mosaic_png(w.path("mosaic_seams.png"), frames, G, cam.width, cam.height,
-                             mask=mask, blend=seams_blend, canvas=canvas, plan=plan)
+            with w.named_errors("mosaic_seams.png", "the image") as staged:
+                write_mosaic_png(staged, frames, G, cam.width, cam.height, mask=mask,
+                                 blend=seams_blend, canvas=canvas, plan=plan)
         elif plan is not None:
             w.write_image("mosaic_seams.png", render_mosaic(
                 frames, G, cam.width, cam.height, mask=mask, blend=seams_blend, plan=plan,
@@ -1020,14 +1026,31 @@ def _progress(args: argparse.Namespace) -> bool:
 
 def _say(args: argparse.Namespace, text: str) -> None:
     if not getattr(args, "quiet", False):
-        print(text)
+        _print_out(text)
+
+
+def _print_out(text: str) -> None:
+    """`text` on stdout, at once. A reader that went away (`fusedmosaic run ... | head -1`) is
+    no error: stdout only informs, the outputs are files and the exit status says whether they
+    were written (the summary of a complete run into a closed pipe was "error: Broken pipe",
+    exit 1; review 47). From there stdout goes to the null device, and the command goes on."""
+    try:
+        print(text, flush=True)
+    except BrokenPipeError:
+        null = os.open(os.devnull, os.O_WRONLY)
+        try:  # (fd 1 itself, so that the text still buffered is flushed there at exit)
+            os.dup2(null, sys.stdout.fileno())
+        except (OSError, ValueError):  # stdout is no file (replaced by a caller)
+            sys.stdout = open(os.devnull, "w")  # noqa: SIM115 (open until exit)
+        finally:
+            os.close(null)
 
 
 def _say_summary(args: argparse.Namespace, summary: str) -> None:
     """A run's summary; under --quiet its warnings (the checks after the fusion: a tracker or
     robot in another convention) still reach stderr, as every other warning does."""
     if not getattr(args, "quiet", False):
-        print(summary)
+        _print_out(summary)
         return
     from fusedmosaic.runner import WARNING_LINE
 
@@ -1472,9 +1495,19 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:  # bad input: one clear line, no traceback
         print(f"fusedmosaic: error: {exc}", file=sys.stderr)
         return 2
-    except OSError as exc:  # the file system refused (full disk, permissions, ...)
+    except OSError as exc:  # the file system refused (full disk, permissions, ...): exit 1,
+        # for every output alike (io.output.OutputWriter.named_errors says why); 2 is for an
+        # input or command line to change
         print(f"fusedmosaic: error: {_os_error(exc)}", file=sys.stderr)
         return 1
+    except OutputsWrittenInterrupt as exc:
+        # held while the outputs were moved in, delivered once they all were: said, as
+        # nothing was abandoned. Still 130, the status of an interrupted command: a shell
+        # script stops at the user's Ctrl-C only when the command reports it (with 0, a loop
+        # over datasets went on to the next one)
+        print(f"fusedmosaic: interrupted after the outputs were written to {exc.out_dir}",
+              file=sys.stderr)
+        return 130
     except KeyboardInterrupt:  # the outputs are written atomically: nothing partial is left
         print("fusedmosaic: interrupted", file=sys.stderr)
         return 130

@@ -15,6 +15,7 @@ import numpy as np
 from fusedmosaic import methods
 from fusedmosaic.io.dataset import check_fps
 from fusedmosaic.io.output import (
+    OutputsWrittenInterrupt,
     OutputWriter,
     is_under,
     missing_folders,
@@ -151,17 +152,8 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
             # nothing created yet: a run that fails, is interrupted or skips the video leaves no
             # empty folder behind (OutputWriter.external_path creates it and removes it on failure)
             check_output_dir(Path(video).parent, "video's folder", create_parent=False)
-        expects = ["homographies.csv", "mosaic.png", "report.json"]
-        if report:
-            expects += ["report.md", "plots/"]
-        if video is not None and is_under(video, out):
-            expects.append(Path(video).resolve().relative_to(out.resolve()).as_posix())
-        older = older_run_outputs(out)
-        # a file of a run's name that no fusedmosaic run wrote is the user's: refused, not replaced
-        with OutputWriter(out, record="run", stale_after_run=True, new_run=True, expects=expects,
-                          replaces=older, foreign="refuse",
-                          older=[*RUN_FILES, "plots/"] if older else []) as w:
-            w.check_ours(*(f for f in RUN_FILES if report or f != "report.md"))
+        with run_output_writer(out, report=report, video=video) as w:
+            w.check_ours(*run_output_names(report))
             result = run_method(dataset, progress=progress, options=options)
             add_streamed_checks(result, dataset, method, options)
             if method in READS_NO_IMAGE and not stop_on_unreadable:
@@ -232,12 +224,16 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
             report_json["warnings"] = list(result.details.get("warnings", []))
             if report:
                 t0 = time.perf_counter()
-                write_run_report(w, dataset, method, result, G, outputs, timings)
+                with w.named_errors("report.md", "the report"):  # (matplotlib's, Python's)
+                    write_run_report(w, dataset, method, result, G, outputs, timings)
                 timings["report"] = time.perf_counter() - t0
             report_json["outputs"] = sorted({*w.written(), "report.json"})
             w.write_json("report.json", report_json)
-    return _summary(method, G, out, report_json, outputs, report,
-                    shown=[*shown_warnings, *heard.texts])
+    try:
+        return _summary(method, G, out, report_json, outputs, report,
+                        shown=[*shown_warnings, *heard.texts])
+    except KeyboardInterrupt:  # (the outputs are in OUT: said, not 'interrupted' alone)
+        raise OutputsWrittenInterrupt(out) from None
 
 
 UNREADABLE_STATUS = "unplaced: its image cannot be read"
@@ -439,6 +435,45 @@ def _named_by_earlier_run(path: Path, out: Path, lookup) -> bool:
 # What a run may write in OUT besides plots/ and a creation video inside it.
 RUN_FILES = ("homographies.csv", "poses.csv", "plane.json", "mosaic.png", "report.json",
              "report.md")
+# The plots a run's report.md may show (evaluation.report.write_report's names, in its
+# PLOTS_DIR): checked for a user's file before the computation, as RUN_FILES (one was first
+# refused when the outputs were moved in, after the whole computation; review 47).
+RUN_PLOTS = ("errors.png", "poses.png", "plane.png", "distance.png", "trajectory.png",
+             "timing.png")
+
+
+def run_output_names(report: bool = True) -> list[str]:
+    """The files (relative to OUT) a run may write there, besides a creation video."""
+    if not report:
+        return [f for f in RUN_FILES if f != "report.md"]
+    return [*RUN_FILES, *(f"plots/{name}" for name in RUN_PLOTS)]
+
+
+def run_output_writer(out: str | Path, *, report: bool = True,
+                      video: str | Path | None = None) -> OutputWriter:
+    """The OutputWriter of a run's outputs in `out`: it records them as the "run" set, replaces
+    the earlier run's (and the evaluations of it), and refuses a file of a run's name that no
+    fusedmosaic run wrote (the user's) rather than replace it."""
+    out = Path(out)
+    expects = ["homographies.csv", "mosaic.png", "report.json"]
+    if report:
+        expects += ["report.md", "plots/"]
+    if video is not None and is_under(video, out):
+        expects.append(Path(video).resolve().relative_to(out.resolve()).as_posix())
+    older = older_run_outputs(out)
+    return OutputWriter(out, record="run", stale_after_run=True, new_run=True, expects=expects,
+                        replaces=older, foreign="refuse",
+                        older=[*RUN_FILES, "plots/"] if older else [])
+
+
+def check_run_destination(out: str | Path, *, report: bool = True,
+                          video: str | Path | None = None) -> None:
+    """What run_dataset checks in `out` before its computation (a folder or a user's file where
+    one of its outputs goes), creating nothing: for a live session, before it connects (a
+    user's report.md in OUT refused the outputs once the session was over; review 47)."""
+    w = run_output_writer(out, report=report, video=video)
+    w.check_expected()
+    w.check_ours(*run_output_names(report))
 
 
 def older_run_outputs(out: Path) -> list[str]:
@@ -596,8 +631,9 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
         timings["gain_compensation"] = time.perf_counter() - t0
         t0 = time.perf_counter()
     tiled = plan.pixels > canvas.in_memory_pixels
-    staged = w.path("mosaic.png")
-    try:
+    # a write error names OUT's mosaic.png, not the staging copy the streamed writers write
+    # (review 46); an OSError exits 1, as every output the file system refuses (review 47)
+    with w.named_errors("mosaic.png", "the image") as staged:
         if tiled:
             _, covered = write_mosaic_png(staged, frames, G, cam.width, cam.height, mask=mask,
                                           blend=blend, canvas=canvas, gains=gains, plan=plan,
@@ -612,13 +648,6 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
             else:
                 w.write_image("mosaic.png", rendered.image)
             covered = float(rendered.covered.mean())
-    except OSError as exc:
-        if exc.filename != str(staged):
-            raise
-        # the streamed writers name the file they write, the output folder's staging copy: the
-        # error names OUT's mosaic.png, as write_image's does (review 46)
-        raise ValueError(f"{w.out_dir / 'mosaic.png'}: the image could not be written "
-                         f"({exc.strerror or exc}: a full disk?)") from None
     highlights = None  # (not shared with the video's incremental canvas)
     timings["compose_mosaic"] = time.perf_counter() - t0
     info = {
@@ -1345,6 +1374,8 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     try:
         try:
             check_output_dir(out, "output folder")
+            # a user's file where an output goes is refused now, not once the session is over
+            check_run_destination(out, report=report, video=video)
             if preview is not None or serve_mosaic is not None:  # before connecting
                 view, server = _live_view(camera, method, record, preview, serve_mosaic,
                                           view_interval_s, say, blend,
@@ -1468,18 +1499,28 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                 f"recording is kept in {record}")
         inform(f"live session ended ({session.stopped_by}): writing the outputs to {out} "
                "(Ctrl-C twice abandons them)")
-        writing = time.time()
+
+        def rerun(where) -> str:
+            return f"fusedmosaic run {record} --method {method} --out {where} --allow-untracked"
+
         try:
             summary = run_dataset(record, method, out, result=result, allow_untracked=True,
                                   progress=progress, blend=blend, canvas=canvas, video=video,
                                   report=report, shown_warnings=[*told, *heard.texts])
-        except KeyboardInterrupt:
-            written = Path(out, "homographies.csv")  # (the commit defers a Ctrl-C to its end)
-            inform(f"live session: interrupted once the outputs were in {out}"
-                   if written.is_file() and written.stat().st_mtime >= writing - 1.0 else
-                   f"live session: outputs abandoned; the recording is kept in {record} "
-                   f"(fusedmosaic run {record} --method {method} --out {out} --allow-untracked)")
+        except OutputsWrittenInterrupt:  # (the commit holds a Ctrl-C until it is done)
+            inform(f"live session: interrupted once the outputs were in {out}")
             raise
+        except KeyboardInterrupt:
+            inform(f"live session: outputs abandoned; the recording is kept in {record} "
+                   f"({rerun(out)})")
+            raise
+        except ValueError as exc:  # (e.g. a user's file put in OUT during the session)
+            raise ValueError(f"{exc}; the live outputs are not written, the recording is kept "
+                             f"in {record} ({rerun('OUT2')})") from None
+        except OSError as exc:  # the file system refused: OSError still (exit 1), named
+            kept = f"the recording is kept in {record} ({rerun(out)})"
+            raise OSError(exc.errno, f"{exc.strerror or exc}; the live outputs are not "
+                                     f"written, {kept}", exc.filename) from None
     finally:
         guard.stop()
     span = recorder.valid_sample_span()

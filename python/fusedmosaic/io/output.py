@@ -23,6 +23,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from fusedmosaic._entry import OutputsWrittenInterrupt  # (raised by OutputWriter)
 from fusedmosaic.io.homographies import write_homographies_csv, write_poses_csv
 
 # {"written_by": "fusedmosaic", "format": 1, "sets": {KEY: {"files": [...], "stale_after_run":
@@ -244,10 +245,7 @@ class OutputWriter:
         self._created = missing_folders(self.out_dir)
         try:
             check_output_dir(self.out_dir)  # (creates OUT's parent)
-            for name in self.expects:  # a user's folder named like one of our files (or reverse)
-                self._check_kind(self.out_dir / name.rstrip("/"), name.endswith("/"))
-                if not name.endswith("/"):
-                    self._check_ours(PurePath(name))
+            self.check_expected()
             if self.out_dir.is_dir():
                 where, prefix = self.out_dir, TEMP_TAG
             else:
@@ -269,6 +267,16 @@ class OutputWriter:
             raise ValueError(
                 f"{target}: is a folder; the output needs a file of that name (remove or rename it)"
             )
+
+    def check_expected(self) -> None:
+        """The ``expects`` names against what OUT holds (a user's folder named like one of our
+        files or the reverse; with foreign="refuse", a user's file): ValueError naming it.
+        Creates nothing and needs no ``with``: ``__enter__`` runs it, and a caller that writes
+        long after it knows OUT (a live session, before it connects) can run it first."""
+        for name in self.expects:
+            self._check_kind(self.out_dir / name.rstrip("/"), name.endswith("/"))
+            if not name.endswith("/"):
+                self._check_ours(PurePath(name))
 
     def check_ours(self, *names: str) -> None:
         """With foreign="refuse": ValueError when a file OUT/name exists that nobody recorded
@@ -298,19 +306,25 @@ class OutputWriter:
         external, self._external = self._external, []
         folders, self._external_dirs = self._external_dirs, []
         created, self._created = self._created, []
-        with _interrupts_deferred():  # Ctrl-C here would leave a half-moved set or the temp
-            committed = False
-            try:
-                if exc_type is None:
-                    self._commit(tmp, external)
-                    committed = True
-            finally:
-                shutil.rmtree(tmp, ignore_errors=True)
-                for temp, _ in external:
-                    temp.unlink(missing_ok=True)
-                # created for a file outside OUT that did not land, and (on failure) OUT's
-                # parents that __enter__ created: only if empty, someone else's file keeps them
-                remove_created_folders([*folders, *([] if committed else created)])
+        committed = False
+        try:
+            with _interrupts_deferred():  # an interrupt here would leave a half-moved set
+                try:
+                    if exc_type is None:
+                        self._commit(tmp, external)
+                        committed = True
+                finally:
+                    shutil.rmtree(tmp, ignore_errors=True)
+                    for temp, _ in external:
+                        temp.unlink(missing_ok=True)
+                    # created for a file outside OUT that did not land, and (on failure) OUT's
+                    # parents that __enter__ created: only if empty, someone else's file keeps
+                    # them
+                    remove_created_folders([*folders, *([] if committed else created)])
+        except KeyboardInterrupt:  # held during the commit, delivered after it
+            if committed:
+                raise OutputsWrittenInterrupt(self.out_dir) from None
+            raise
 
     def _commit(self, tmp: Path, external: list[tuple[Path, Path]]) -> None:
         moves: list[tuple[Path, Path]] = []  # planned first: fail before moving anything
@@ -432,39 +446,68 @@ class OutputWriter:
         self._external.append((temp, target))
         return temp
 
-    def write_homographies(self, frame_ids, H, name: str = "homographies.csv") -> Path:
+    # Every write_* (and a caller writing at path() itself, through named_errors) fails with an
+    # OSError naming OUT/name when the file system refuses the write: Python's write errors
+    # carry no file name (a full disk on homographies.csv said only "error: File too large"),
+    # and the staged copy's name means nothing to the user. OSError, not ValueError: the
+    # command's input was right and the same command succeeds once there is room or permission;
+    # the CLI exits 1 for it, as for a --video that does not read back (README), and 2 for an
+    # input or a command line to change (review 47: mosaic.png's refusal was a ValueError, exit
+    # 2, the other files' exit 1).
+
+    @contextlib.contextmanager
+    def named_errors(self, name: str, what: str = "") -> Iterator[Path]:
+        """The staged path of ``name`` (relative to OUT), for a caller that writes it itself: an
+        OSError of a write inside the block removes what it left there and is raised again
+        naming OUT/name, or OUT/<the staged file it names> (a report's plot). An OSError naming
+        a file outside the staging folder (a frame being read) passes as it is. what: the
+        file's kind for the message ("the image", "the report")."""
         path = self.path(name)
-        write_homographies_csv(path, frame_ids, H)
+        tmp = self._tmp
+        try:
+            yield path
+        except OSError as exc:
+            staged = None if exc.filename is None else _relative_or_none(exc.filename, tmp)
+            if exc.filename is not None and staged is None:
+                raise
+            with contextlib.suppress(OSError):  # (a partial file does not wait for the commit)
+                path.unlink(missing_ok=True)
+            raise OSError(exc.errno, f"{what + ' ' if what else ''}could not be written "
+                                     f"({exc.strerror or exc}: a full disk, or no write "
+                                     f"permission in {self.out_dir}?)",
+                          str(self.out_dir / (staged or name))) from None
+
+    def write_homographies(self, frame_ids, H, name: str = "homographies.csv") -> Path:
+        with self.named_errors(name) as path:
+            write_homographies_csv(path, frame_ids, H)
         return path
 
     def write_poses(self, frame_ids, poses, name: str = "poses.csv") -> Path:
-        path = self.path(name)
-        write_poses_csv(path, frame_ids, poses)
+        with self.named_errors(name) as path:
+            write_poses_csv(path, frame_ids, poses)
         return path
 
     def write_json(self, name: str, obj: Any) -> Path:
         """Write JSON; numpy arrays/scalars and paths are converted, NaN and inf become null."""
-        path = self.path(name)
-        path.write_text(json.dumps(to_jsonable(obj), indent=2, allow_nan=False) + "\n")
+        text = json.dumps(to_jsonable(obj), indent=2, allow_nan=False) + "\n"
+        with self.named_errors(name) as path:
+            path.write_text(text)
         return path
 
     def write_image(self, name: str, image: np.ndarray) -> Path:
-        """Writes `image` in the format its name's extension says (OpenCV's encoders)."""
-        path = self.path(name)
-        try:
-            write_image_file(path, image)
-        except ImageEncodingError as exc:
-            raise ValueError(f"{self.out_dir / name}: the image could not be encoded{exc.reason}"
-                             ) from None
-        except OSError as exc:
-            raise ValueError(f"{self.out_dir / name}: the image could not be written "
-                             f"({exc.strerror or exc}: a full disk, or no write permission in "
-                             f"{self.out_dir}?)") from None
+        """Writes `image` in the format its name's extension says (OpenCV's encoders); an image
+        OpenCV cannot encode is a ValueError naming OUT/name."""
+        with self.named_errors(name, "the image") as path:
+            try:
+                write_image_file(path, image)
+            except ImageEncodingError as exc:
+                raise ValueError(f"{self.out_dir / name}: the image could not be encoded"
+                                 f"{exc.reason}") from None
         return path
 
     def write_text(self, name: str, text: str) -> Path:
-        path = self.path(name)
-        path.write_text(text)
+        with self.named_errors(name) as path:
+            path.write_text(text)
         return path
 
 
@@ -517,6 +560,14 @@ def to_jsonable(obj: Any) -> Any:
     return obj
 
 
+def _relative_or_none(path: str | Path, folder: Path) -> str | None:
+    """``path`` relative to ``folder`` (POSIX separators), None when it is not inside it."""
+    try:
+        return Path(path).relative_to(folder).as_posix()
+    except ValueError:
+        return None
+
+
 def _is_relative_inside(relative: PurePath) -> bool:
     """A relative path that stays inside the folder it is relative to."""
     return bool(relative.parts) and not relative.is_absolute() and ".." not in relative.parts
@@ -553,21 +604,40 @@ def _remove_stale_temps(folder: Path, prefix: str) -> None:
             shutil.rmtree(entry, ignore_errors=True)
 
 
+# The signals that end a command as Ctrl-C does (_entry.signals_as_interrupt: SIGTERM from
+# `timeout` or a scheduler, SIGHUP from a closed terminal): all three are held during a commit.
+DEFERRED_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP")
+                         if hasattr(signal, name))
+
+
 @contextlib.contextmanager
 def _interrupts_deferred() -> Iterator[None]:
-    """SIGINT during the block is delivered (as KeyboardInterrupt) after it, so a commit or a
-    clean-up is never cut in half. Only the main thread can set handlers; elsewhere a no-op."""
+    """SIGINT, SIGTERM and SIGHUP during the block are delivered after it, each once, to the
+    handler the block replaced, so a commit or a clean-up is never cut in half: SIGTERM alone
+    unlinked an earlier run's files, moved 2 of the new ones in and left the manifest unwritten
+    (review 47). A signal ignored (SIG_IGN: nohup, a background job's SIGINT) or handled
+    outside Python stays as it was. Delivered to SIG_DFL: SIGINT raises KeyboardInterrupt (as
+    Python's own handler), SIGTERM / SIGHUP are raised again and end the process as they would
+    have, the block done. Only the main thread can set handlers; elsewhere a no-op."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     received: list[int] = []
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: received.append(signum))
+    previous = {}
+    for sig in DEFERRED_SIGNALS:
+        handler = signal.getsignal(sig)
+        if handler is not signal.SIG_IGN and handler is not None:
+            previous[sig] = signal.signal(sig, lambda signum, frame: received.append(signum))
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
-    if received:
-        if callable(previous):
-            previous(signal.SIGINT, None)
-        elif previous == signal.SIG_DFL:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    for sig in dict.fromkeys(received):  # (in the order heard; a second of a kind adds nothing)
+        handler = previous[sig]
+        if callable(handler):
+            handler(sig, None)
+        elif sig == signal.SIGINT:
             raise KeyboardInterrupt
+        else:
+            signal.raise_signal(sig)
