@@ -44,13 +44,17 @@ def test_plane_json_says_its_unit(feto, tmp_path):
     distance to the plane, with nothing saying so. Its "unit" says it (mm for ba-emt)."""
     import json
 
-    units = {}
+    units, keys = {}, {}
     for method in ("ba", "ba-emt"):
         out = tmp_path / method
         assert main(["--quiet", "run", str(feto), "--method", method, "--out", str(out),
                      "--no-report"]) == 0
-        units[method] = json.loads((out / "plane.json").read_text())["unit"]
+        plane = json.loads((out / "plane.json").read_text())
+        units[method], keys[method] = plane["unit"], sorted(plane)
     assert units["ba-emt"] == "mm"
+    # (review 47: ba's keys said mm beside a unit saying not mm)
+    assert keys["ba-emt"] == ["camera_plane_distance_mm", "distance_mm", "normal", "plane", "unit"]
+    assert keys["ba"] == ["camera_plane_distance", "distance", "normal", "plane", "unit"]
     assert units["ba"].startswith("the first frame's camera frame, lengths in units of that "
                                   "camera's distance to the plane") and "not mm" in units["ba"]
 

@@ -209,13 +209,16 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
                 plane = np.asarray(result.plane, float)
                 dist = [None if not np.isfinite(p).all() else _core.camera_plane_distance(p, plane)
                         for p in (result.poses if result.poses is not None else [])]
+                # ba: no scale, lengths in the first camera's distance to the plane (review
+                # 46), so its keys do not say mm (a script reading distance_mm got a plane 1 mm
+                # away; review 47)
+                unit = result.details.get("world", "mm")
+                mm = "_mm" if unit == "mm" else ""
                 w.write_json("plane.json", {"plane": plane.tolist(),
                                             "normal": (plane / np.linalg.norm(plane)).tolist(),
-                                            "distance_mm": float(1.0 / np.linalg.norm(plane)),
-                                            "camera_plane_distance_mm": dist,
-                                            # ba: no scale, the "_mm" figures in the first
-                                            # camera's distance to the plane (review 46)
-                                            "unit": result.details.get("world", "mm")})
+                                            f"distance{mm}": float(1.0 / np.linalg.norm(plane)),
+                                            f"camera_plane_distance{mm}": dist,
+                                            "unit": unit})
             outputs = compose_outputs(w, dataset, result, G, blend=blend, canvas=canvas,
                                       video=video, out=out, progress=progress, timings=timings)
             report_json["mosaic"] = outputs["mosaic"]
