@@ -500,9 +500,12 @@ def test_a_late_tracker_startup_is_tried_on_a_short_iteration_budget(monkeypatch
     towards a plane refused anyway (400x400, 73 frames: 6 s an attempt, 16 s over 4 frames).
     While a refusal only makes it wait, an attempt is first solved with
     startup_trial_iterations: a plane still too uncertain then is refused at once, else it is
-    solved on. Here (startup_max_plane_std 0.1) attempts at 46 and 47 frames are refused after
-    11 iterations (std 0.135, 0.102), the one at 48 is solved on (0.087): the same mosaic as
-    with full attempts (e_M 1.636 px both: 40 frames placed through their pairs alone).
+    solved on. Here (startup_max_plane_std 0.1) the first attempt is refused after 10
+    iterations (std 0.101), the next is solved on (0.086). A trial's std is not the converged
+    one: that first attempt, solved in full, converges at 0.097 and is taken, so the trial
+    can start one frame later than full attempts, never more here (e_M 0.81 and 0.95 px, 40
+    frames placed through their pairs alone; with the simulator's noise truncated rather than
+    rounded, before session 47, both waited to the same frame: 1.636 px both).
     Measured with Levenberg-Marquardt: the start-up's default dogleg converges on each attempt
     within the trial's 10 iterations here (startup_trust_region), leaving no short attempt."""
     n, late = 60, 40
@@ -517,7 +520,7 @@ def test_a_late_tracker_startup_is_tried_on_a_short_iteration_budget(monkeypatch
         return ba, summary
 
     monkeypatch.setattr(SequentialMosaicker, "_solve_startup", recorded)
-    errors = {}
+    errors, started = {}, {}
     for trial in (10, 300):
         solves.clear()
         m = SequentialMosaicker(scene.camera, SequentialOptions(
@@ -527,6 +530,8 @@ def test_a_late_tracker_startup_is_tried_on_a_short_iteration_budget(monkeypatch
         for k in range(n):
             m.add_frame(scene.frames[k], scene.timestamps[k], tracker[k])
             results.update({f.frame_id: f for f in m.finalized()})
+            if m.bootstrap_summary is not None and trial not in started:
+                started[trial] = k
         G = scene.finish(m, results)
         errors[trial] = frame_errors(G, scene.truth, SIZE, SIZE).mean()
         assert errors[trial] < 2.0, (trial, errors[trial])
@@ -535,7 +540,7 @@ def test_a_late_tracker_startup_is_tried_on_a_short_iteration_budget(monkeypatch
         short = [s for s in solves[:-1]
                  if s["iterations"] <= trial + 1 and s["termination"] == "NO_CONVERGENCE"]
         assert bool(short) == (trial == 10), solves  # refused after a short attempt
-    assert abs(errors[10] - errors[300]) < 0.01, errors
+    assert late < started[300] <= started[10] <= started[300] + 1, started
 
 
 @pytest.fixture

@@ -47,23 +47,43 @@ def option(default, help_text: str, choices: tuple | None = None):
 
 
 def check_types(options, whole: tuple[str, ...] = ()) -> None:
-    """Raise ValueError naming the first field of ``options`` that is not a number where one is
-    meant: each field of ``whole`` (frame counts, sizes) must be a whole number, and an integral
-    float there (200.0 from a config file or W / 2) is converted to int in place; every field
-    declared float must be a real number. bools are refused for both (True is 1 to Python, not
-    a size). Run first by validate, before any comparison: text or 200.5 gave TypeErrors or
-    cv2.error deep inside rendering (review 44)."""
+    """Raise ValueError naming the first field of ``options`` that is not of its type: each
+    field of ``whole`` (frame counts, sizes) must be a whole number, and an integral float
+    there (200.0 from a config file or W / 2) is converted to int in place; every field
+    declared float must be a real number; bool fields True or False; list fields a list (or
+    tuple, or 1-D array; None where the field allows it), of real numbers for list[float]
+    (list[int] fields hold frame indices, which check_frame_list checks). bools are refused as
+    numbers (True is 1 to Python, not a size). Run first by validate, before any comparison:
+    text or 200.5 gave TypeErrors or cv2.error deep inside rendering (review 44); a scalar for
+    a list, "'int' object is not iterable", and contact_loss="no" simulated contact loss
+    (review 47)."""
     cls = type(options).__name__
     for f in fields(options):
         value = getattr(options, f.name)
-        declared = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", "")
-        number = isinstance(value, numbers.Real) and not isinstance(value, bool)
+        # "float", "bool", "list[int] | None", as written (a string under postponed
+        # annotations, else the class or the typing expression)
+        declared = (f.type if isinstance(f.type, str) else f.type.__name__
+                    if f.type in (bool, float, int, str) else str(f.type))
+        number = _is_number(value)
         if f.name in whole:
             if not (number and math.isfinite(value) and value == int(value)):
                 raise ValueError(f"{cls}.{f.name}: must be a whole number, got {value!r}")
             setattr(options, f.name, int(value))
         elif declared == "float" and not number:
             raise ValueError(f"{cls}.{f.name}: must be a number, got {value!r}")
+        elif declared == "bool" and not isinstance(value, (bool, np.bool_)):
+            raise ValueError(f"{cls}.{f.name}: must be True or False, got {value!r}")
+        elif declared.startswith("list[") and not (value is None and "None" in declared):
+            of = "numbers" if declared.startswith("list[float]") else "frame indices"
+            if not (isinstance(value, (list, tuple))
+                    or (isinstance(value, np.ndarray) and value.ndim == 1)) or (
+                    of == "numbers" and not all(_is_number(v) for v in value)):
+                raise ValueError(f"{cls}.{f.name}: expected a list of {of}, got {value!r}")
+
+
+def _is_number(value) -> bool:
+    """A real number, not a bool."""
+    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
 
 
 def check_finite(options) -> None:

@@ -92,7 +92,8 @@ class FetoscopyOptions:
     distance_mm: float = _opt(30.0, "camera-plane distance (perpendicular, mm)")
     laps: float = _opt(4.0, "syn: laps of the circle in --n-frames frames (paper 000 Fig. 1: "
                             "four laps in 152 frames; fewer frames, same laps: faster motion, "
-                            "where demo --frames keeps SYN's pace)")
+                            "where demo --frames keeps SYN's pace); negative: the same circle "
+                            "the other way round, 0: the camera rests")
     radius_mm: float = _opt(15.0, "syn: circle radius; handheld: extent of the random path")
     step_px: float = _opt(
         30.0, "handheld: rms image motion per frame, px (keeps ~90 percent overlap)"
@@ -456,12 +457,15 @@ class FetoscopyScene:
             return np.zeros((h, w, 3), np.uint8)
         img = self._base(k)
         light = self.specular_light(k, img)
+        # rounded to grey levels, as the checkerboard's frames: truncating made every noisy
+        # frame 0.5 grey levels darker than its scene (review 47)
         if light is not None:
-            img = np.clip(img + light[:, :, None], 0, 255).astype(np.uint8)
+            img = np.clip(np.rint(img + light[:, :, None]), 0, 255).astype(np.uint8)
         sigma = self.options.image_noise_sigma
         if noise and sigma > 0:
             rng = np.random.default_rng([self.options.seed, 1, k])
-            img = np.clip(img + rng.normal(0.0, sigma, img.shape), 0, 255).astype(np.uint8)
+            img = np.clip(np.rint(img + rng.normal(0.0, sigma, img.shape)), 0,
+                          255).astype(np.uint8)
         mask = self.fov_mask()
         if mask is not None:
             img[~mask] = 0
@@ -564,30 +568,23 @@ def generate_fetoscopy(options: FetoscopyOptions | None = None) -> FetoscopyScen
     K, R_p, P0, plane, traj, timestamps, poses = _geometry(o)
     G = frame_to_reference_truth(poses, plane, K)
 
-    ideal = None if o.lens_distortion is None else _ideal_pixels(o, K)
-    corners = _view_outline(o, K, ideal)
+    # Through a lens, the view and the texture are checked first on the frame's border pixels
+    # alone (with the fold check; milliseconds), then on the grid's outline, which lies at most
+    # 1/3 px beyond them: the grid takes ~4.5 us a pixel (9 s at 1920x1080), and a request
+    # refused for its texture took a minute and gigabytes to reach that error (review 47).
+    ideal = None
+    corners = _view_outline(o, K, None, border_only=True, checked=True)
     _check_view(o, _view_cosines(poses, plane, K, corners))
     lo, s, size = _texture_box(o, K, R_p, P0, poses, corners)
-    cls = "FetoscopyOptions"
-    if not np.prod(size) <= MAX_TEXTURE_PX:
-        lead, remedy = _size_remedies(o, lambda box: float(np.prod(box[2])))
-        raise ValueError(
-            f"{cls}.{lead}: the camera path needs a {size[0]:.3g}x"
-            f"{size[1]:.3g} px texture (its pixels as fine as a frame's: {cls}.focal_factor x "
-            f"{cls}.width px per {cls}.distance_mm); at most {MAX_TEXTURE_PX:.3g} px: {remedy}"
-        )
+    _check_texture(o, size, s)
+    if o.lens_distortion is not None:
+        ideal = _ideal_pixels(o, K)
+        corners = _view_outline(o, K, ideal)
+        _check_view(o, _view_cosines(poses, plane, K, corners))
+        lo, s, size = _texture_box(o, K, R_p, P0, poses, corners)
+        _check_texture(o, size, s)
     tex_w, tex_h = (int(v) for v in size)
     vessel_width = _vessel_width_px(s)
-    seconds, gigabytes = placenta_texture_cost((tex_h, tex_w), vessel_width)
-    if seconds > MAX_TEXTURE_SECONDS or gigabytes > MAX_TEXTURE_GB:
-        lead, remedy = _size_remedies(o, _texture_cost_ratio)
-        raise ValueError(
-            f"{cls}.{lead}: the camera path needs a {tex_w}x{tex_h} px texture with "
-            f"{vessel_width:.3g} px vessels (its pixels as fine as a frame's: {cls}.focal_factor "
-            f"x {cls}.width px per {cls}.distance_mm), which takes about {seconds:.0f} s and "
-            f"{gigabytes:.2g} GB to draw; at most {MAX_TEXTURE_SECONDS:g} s and "
-            f"{MAX_TEXTURE_GB:g} GB (textures.placenta_texture_cost): {remedy}"
-        )
     O = P0 + lo[0] * R_p[:, 0] + lo[1] * R_p[:, 1]
     texture = placenta_texture(
         (tex_h, tex_w),
@@ -670,20 +667,48 @@ def _geometry(o: FetoscopyOptions) -> tuple:
     return K, R_p, P0, plane, traj, timestamps, poses
 
 
+def _check_texture(o: FetoscopyOptions, size: np.ndarray, s: float) -> None:
+    """ValueError naming the likely cause when the texture of ``size`` (width, height) px at
+    ``s`` mm/px is over MAX_TEXTURE_PX, or would take over MAX_TEXTURE_SECONDS or
+    MAX_TEXTURE_GB to draw."""
+    cls = "FetoscopyOptions"
+    if not np.prod(size) <= MAX_TEXTURE_PX:
+        lead, remedy = _size_remedies(o, lambda box: float(np.prod(box[2])))
+        raise ValueError(
+            f"{cls}.{lead}: the camera path needs a {size[0]:.3g}x"
+            f"{size[1]:.3g} px texture (its pixels as fine as a frame's: {cls}.focal_factor x "
+            f"{cls}.width px per {cls}.distance_mm); at most {MAX_TEXTURE_PX:.3g} px: {remedy}"
+        )
+    tex_w, tex_h = (int(v) for v in size)
+    vessel_width = _vessel_width_px(s)
+    seconds, gigabytes = placenta_texture_cost((tex_h, tex_w), vessel_width)
+    if seconds > MAX_TEXTURE_SECONDS or gigabytes > MAX_TEXTURE_GB:
+        lead, remedy = _size_remedies(o, _texture_cost_ratio)
+        raise ValueError(
+            f"{cls}.{lead}: the camera path needs a {tex_w}x{tex_h} px texture with "
+            f"{vessel_width:.3g} px vessels (its pixels as fine as a frame's: {cls}.focal_factor "
+            f"x {cls}.width px per {cls}.distance_mm), which takes about {seconds:.0f} s and "
+            f"{gigabytes:.2g} GB to draw; at most {MAX_TEXTURE_SECONDS:g} s and "
+            f"{MAX_TEXTURE_GB:g} GB (textures.placenta_texture_cost): {remedy}"
+        )
+
+
 def _view_outline(o: FetoscopyOptions, K: np.ndarray, ideal: np.ndarray | None,
-                  border_only: bool = False) -> np.ndarray:
+                  border_only: bool = False, checked: bool = False) -> np.ndarray:
     """(3, P) homogeneous ideal pixels outlining what a frame shows (its corners; through a
     lens, the ideal pixels of its border, beyond the corners for a barrel lens): the whole
     frame, FOV mask or not, which the renderer warps (the mask blacks it afterwards) and the
     texture box covers, so _check_view refuses a corner past the horizon too. ideal: the
     scene's ideal pixel grid (_ideal_pixels); with ``border_only`` (and no grid) the lens's
-    border is undistorted alone, pixel by pixel (cheap, for the remedies' estimates)."""
+    border is undistorted alone, pixel by pixel (cheap: the remedies' estimates, and
+    generate_fetoscopy's first checks), and with ``checked`` refused as _ideal_pixels refuses
+    a lens that folds over there."""
     if o.lens_distortion is None:
         return np.array([[0, 0, 1], [o.width - 1, 0, 1], [0, o.height - 1, 1],
                          [o.width - 1, o.height - 1, 1.0]]).T
     if ideal is None and border_only:
         border = ideal_border(K, np.asarray(o.lens_distortion, np.float64), o.lens_model,
-                              o.width, o.height)
+                              o.width, o.height, _LENS_OPTION if checked else None)
     else:
         border = np.concatenate([ideal[0], ideal[-1], ideal[:, 0], ideal[:, -1]])
     return np.hstack([border, np.ones((len(border), 1))]).T
@@ -893,13 +918,14 @@ def _untracked_frames(timestamps: np.ndarray, t_tr: np.ndarray,
 # Raw pixels are rendered as the mean of LENS_SUPERSAMPLE^2 samples: a barrel lens compresses
 # the periphery, where one sample per pixel would alias (a lens integrates over the pixel).
 LENS_SUPERSAMPLE = 3
+_LENS_OPTION = "FetoscopyOptions.lens_distortion"  # what a lens that folds over is blamed on
 
 
 def _ideal_pixels(o: FetoscopyOptions, K: np.ndarray) -> np.ndarray:
     """(S H, S W, 2) ideal pixel of every raw sub-pixel sample (S = LENS_SUPERSAMPLE) through
     the lens; refuses a lens whose model folds over within the frame (_lens.ideal_pixel_grid)."""
     return ideal_pixel_grid(K, np.asarray(o.lens_distortion, np.float64), o.lens_model,
-                            o.width, o.height, LENS_SUPERSAMPLE, "FetoscopyOptions.lens_distortion")
+                            o.width, o.height, LENS_SUPERSAMPLE, _LENS_OPTION)
 
 
 # --------------------------------------------------------------------------------------------

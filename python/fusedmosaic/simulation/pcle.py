@@ -464,6 +464,12 @@ class PcleScene:
         """Frame k, (H, W) gray uint8: tissue x contrast seen through the fibre bundle, faded into
         fibre-bundle noise as contact is lost, plus seeded Gaussian noise (the same for a given
         seed and k, whatever the order of calls)."""
+        # rounded to grey levels, as the checkerboard's frames: truncating made every frame 0.5
+        # grey levels darker than its scene (review 47)
+        return np.clip(np.rint(self.grey_levels(k)), 0, 255).astype(np.uint8)
+
+    def grey_levels(self, k: int) -> np.ndarray:
+        """Frame k before render rounds it to uint8: (H, W) float32 grey levels, unclipped."""
         if not 0 <= k < self.n_frames:
             raise IndexError(f"frame {k} outside 0..{self.n_frames - 1}")
         o = self.options
@@ -479,7 +485,7 @@ class PcleScene:
             img += rng.normal(0.0, o.image_noise_sigma, img.shape).astype(np.float32)
         if o.fov_mask_radius > 0:
             img[~self.fov_mask()] = 0.0
-        return np.clip(img, 0, 255).astype(np.uint8)
+        return img
 
     def fov_mask(self) -> np.ndarray:
         """(H, W) bool: inside the circular field of view (all True without one), as
