@@ -211,8 +211,11 @@ def test_a_stray_frame_is_left_out_not_the_mosaic(scene, tmp_path):
     np.testing.assert_array_equal(
         image, render_mosaic([f for k, f in enumerate(frames) if k != 12], without, SIZE,
                              SIZE).image)
-    # within the budget a far frame is kept (as the live canvas keeps it)
-    assert plan_canvas(G, SIZE, SIZE, max_pixels=20_000_000).use.all()
+    # within the budget too, as README says (it was kept there: a 42111 x 2085 mosaic, 99 %
+    # black, for one tracker glitch; review 47). The live canvas keeps it while within budget.
+    within = plan_canvas(G, SIZE, SIZE, max_pixels=20_000_000)
+    assert not within.use[12] and within.use.sum() == len(G) - 1
+    assert within.skipped[12].startswith("stray")
 
 
 def test_far_frames_are_judged_by_their_shape():

@@ -619,8 +619,7 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
             f"{out}: frame(s) {methods.listed_ids(dataset.frame_ids[strays])} left out of "
             f"mosaic.png{' and the video' if video is not None else ''}: each lands far from "
             "all the other "
-            "frames, and the canvas with it would exceed --max-canvas-pixels (a placement "
-            "glitch?); homographies.csv has it as estimated (report.json mosaic.skipped_frames)",
+            "frames (more than 10 footprint diagonals: a placement glitch?); homographies.csv has it as estimated (report.json mosaic.skipped_frames)",
             stacklevel=3)
     gains = None
     # Each frame's specular highlights found once for the gains and the mosaic, not twice
