@@ -19,6 +19,7 @@ import numpy as np
 
 from fusedmosaic.compositing.blending import BlendOptions, as_blend_options, fov_mask_bool
 from fusedmosaic.compositing.incremental import IncrementalCanvas
+from fusedmosaic.io._paths import opencv_path
 from fusedmosaic.io.output import temp_beside
 
 OUTLINE_BGR = (0, 255, 0)  # the current frame's outline: green
@@ -69,6 +70,9 @@ class MosaicVideoWriter:
         if not fps > 0:
             raise ValueError(f"video fps must be > 0, got {fps}")
         check_video_suffix(path)
+        # (before any folder is made; the temporary name beside it, written and read back by
+        # OpenCV, is then UTF-8 too)
+        opencv_path(path, "write a video")
         self.path = Path(path)
         x0, y0, x1, y1 = bounds
         self.scale = min(1.0, max_side / max(x1 - x0, y1 - y0))

@@ -39,16 +39,24 @@ MAX_PLANE_RELATIVE_STD = 0.25
 # triples of tracked frames, not judged.
 MAX_MOTION_DEPARTURE = 3.0
 MIN_MOTION_TRIPLES = 8
-CONVENTIONS = ("tracking.csv holds tracker_from_sensor (not its inverse) with quaternions x, y, "
-               "z, w and translations in mm, and hand_eye.txt holds sensor_from_camera (not its "
-               "inverse)")
+TRACKING_CONVENTIONS = ("tracking.csv holds tracker_from_sensor (not its inverse) with "
+                        "quaternions x, y, z, w and translations in mm")
+CONVENTIONS = TRACKING_CONVENTIONS + ", and hand_eye.txt holds sensor_from_camera (not its inverse)"
 # ... and the clocks: video frames timed at a wrong rate (a header's 30 fps for 25) pair the
 # frames with other samples, read as the same disagreement (ba-emt 7.9 x the noise).
-CONVENTIONS_AND_TIMING = (CONVENTIONS + ", and that the frames' times match the tracker's "
-                          "(frames.csv or --fps, --tracker-time-offset)")
+TIMING = (", and that the frames' times match the tracker's (frames.csv or --fps, "
+          "--tracker-time-offset)")
+CONVENTIONS_AND_TIMING = CONVENTIONS + TIMING
 # What to do about a tracker that disagrees with the images: {} names how to give its noise.
 TRACKER_NOISE_ADVICE = ("If the tracker is that noisy, give its noise ({}); otherwise check that "
                         + CONVENTIONS_AND_TIMING)
+# ... for a dataset without hand_eye.txt: the advice above blamed the contents of a file that is
+# not there (a hand_eye.txt saved as hand_eye.txt.txt; review 47)
+NO_HAND_EYE_ADVICE = ("There is no hand_eye.txt: the hand-eye transform was taken as the "
+                      "identity (the camera at the tracker's sensor); if the camera is not there, "
+                      "give sensor_from_camera as hand_eye.txt (calibrate measures it). If the "
+                      "tracker is that noisy, give its noise ({}); otherwise check that "
+                      + TRACKING_CONVENTIONS + TIMING)
 
 
 def default_emt_sigma() -> np.ndarray:
@@ -69,12 +77,13 @@ def check_emt_sigma(sigma, what: str = "emt_sigma") -> tuple[float, ...]:
 def tracker_agreement(poses: np.ndarray, tracker_poses: np.ndarray, tracker_valid: np.ndarray,
                       plane, emt_sigma=None, *, source: str = "tracking.csv",
                       plane_relative_std: float | None = None,
-                      registered_pairs: int | None = None) -> dict:
+                      registered_pairs: int | None = None, hand_eye_given: bool = True) -> dict:
     """How far the estimated cam_from_world poses (N, 6) lie from the tracker's (N, 6; valid
     (N,)), per axis, against the prior's noise ``emt_sigma`` (None: the default), how far the
     plane lies from the cameras, and whether the images observe it (``plane_relative_std``, of
     ``registered_pairs``; None: not judged). Returns the figures and "warnings" (messages
-    naming ``source``; empty when all is plausible)."""
+    naming ``source``; empty when all is plausible). ``hand_eye_given`` False: the tracker's
+    poses had no hand_eye.txt (the identity), which a disagreement's advice then says."""
     sigma = default_emt_sigma() if emt_sigma is None else np.asarray(emt_sigma, np.float64)
     poses = np.asarray(poses, np.float64)
     tracker_poses = np.asarray(tracker_poses, np.float64)
@@ -108,8 +117,8 @@ def tracker_agreement(poses: np.ndarray, tracker_poses: np.ndarray, tracker_vali
             f"from the tracker's by {rotation_deg:.2f} deg / {translation_mm:.2f} mm per axis "
             f"(median over {out['frames']} frames), {ratio:.1f} x the noise the EMT prior "
             f"assumes ({np.degrees(sigma[:3].max()):.2g} deg / {sigma[3:].max():.2g} mm). "
-            + TRACKER_NOISE_ADVICE.format("--tracker-rot-sigma / --tracker-trans-sigma; "
-                                          "calibrate measures it")
+            + (TRACKER_NOISE_ADVICE if hand_eye_given else NO_HAND_EYE_ADVICE).format(
+                "--tracker-rot-sigma / --tracker-trans-sigma; calibrate measures it")
             + ". The mosaic follows the images; poses.csv and plane.json are unreliable")
     if plane is not None and np.isfinite(plane).all() and np.linalg.norm(plane) > 0:
         distance = float(np.median([_core.camera_plane_distance(x, np.asarray(plane, float))
@@ -212,7 +221,8 @@ def add_tracker_agreement(details: dict, poses: np.ndarray, dataset, plane,
     agreement = tracker_agreement(poses, dataset.cam_from_world, dataset.pose_valid, plane,
                                   emt_sigma, source=source,
                                   plane_relative_std=None if std is None or np.isnan(std) else std,
-                                  registered_pairs=details.get("pairs", {}).get("registered"))
+                                  registered_pairs=details.get("pairs", {}).get("registered"),
+                                  hand_eye_given=getattr(dataset, "hand_eye_file", "") is not None)
     warnings = agreement.pop("warnings")
     if motion_sigma is not None:
         samples = np.where(np.asarray(dataset.pose_valid, bool)[:, None],

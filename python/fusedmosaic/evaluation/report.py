@@ -508,5 +508,7 @@ def write_report(directory: str | Path, runs: list[RunRecord], truth: TruthRecor
             lines += [f"## Frames left out of the mosaic ({run.label})", ""]
             lines += [f"- frame {k}: {why}" for k, why in sorted(run.skipped.items())] + [""]
     path = directory / name
-    path.write_text("\n".join(lines))
+    # (surrogateescape: a dataset folder whose name is not UTF-8 is written back as its bytes;
+    # it raised UnicodeEncodeError, review 47)
+    path.write_text("\n".join(lines), encoding="utf-8", errors="surrogateescape")
     return path

@@ -463,7 +463,7 @@ def read_camera_yaml(path: str | Path) -> Camera:
                          "UTF-8 (OpenCV FileStorage reads UTF-8 or ASCII)")
     bom = data.startswith(b"\xef\xbb\xbf")  # a UTF-8 BOM (Windows editors): OpenCV can't
     body = data[3 if bom else 0:]
-    text = None  # parsed from memory when set (else OpenCV reads the file)
+    text = None  # the text as OpenCV is to parse it, when it is not the file's as it stands
     if bom:
         try:
             text = body.decode("utf-8")
@@ -480,12 +480,11 @@ def read_camera_yaml(path: str | Path) -> Camera:
         if indented != source:
             text = indented
     fmt = _FORMAT_NAMES[_format_flag(body)]
+    # parsed from memory, the file never opened by OpenCV: it crashed on a name that is not
+    # UTF-8 (io._paths)
     try:
-        if text is not None:  # parsed from memory
-            fs = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY
-                                 | _format_flag(body))
-        else:
-            fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        fs = cv2.FileStorage(_decoded(body) if text is None else text,
+                             cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY | _format_flag(body))
         opened = fs.isOpened() and fs.root().isMap()
     except (cv2.error, SystemError) as e:  # SystemError wraps a cv2.error from the constructor
         raise ValueError(f"{path}: cannot parse as OpenCV FileStorage {fmt}{_where(e)}") from None
@@ -768,12 +767,10 @@ def _read_camera(fs: cv2.FileStorage, path: Path, unknown: Sequence[str] = ()) -
 def write_camera_yaml(path: str | Path, camera: Camera) -> None:
     """Write ``camera`` as OpenCV FileStorage YAML (readable by cv2 and read_camera_yaml).
     OSError naming ``path`` when it cannot be written (OpenCV said only 'Emitter is not
-    available')."""
-    with open(path, "w"):  # the OSError of a missing folder, a directory, no permission
-        pass
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
-    if not fs.isOpened():
-        raise OSError(f"{path}: cannot be opened for writing")
+    available'). The text is composed in memory (byte for byte what OpenCV writes to a file)
+    and written by Python: OpenCV crashed on a name that is not UTF-8 (io._paths)."""
+    fs = cv2.FileStorage("", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY
+                         | cv2.FILE_STORAGE_FORMAT_YAML)
     try:
         fs.write("image_width", int(camera.width))
         fs.write("image_height", int(camera.height))
@@ -790,5 +787,10 @@ def write_camera_yaml(path: str | Path, camera: Camera) -> None:
             fs.write("pixel_size_um", float(camera.pixel_size_um))
         if camera.fov_mask_radius is not None:
             fs.write("fov_mask_radius", float(camera.fov_mask_radius))
+        text = fs.releaseAndGetString()
     finally:
         fs.release()
+    try:
+        Path(path).write_bytes(text.encode("utf-8"))
+    except OSError as error:  # (a failed write or close carries no file name)
+        raise OSError(error.errno, error.strerror or str(error), str(path)) from None

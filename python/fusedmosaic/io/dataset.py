@@ -50,6 +50,7 @@ class Dataset:
     """A dataset read from disk; per-frame arrays are aligned with ``frame_ids``.
 
     hand_eye : (4, 4) sensor_from_camera (identity when hand_eye.txt is absent or left out).
+    hand_eye_file : the hand_eye.txt read; None when absent or left out (hand_eye the identity).
     cam_from_world, pose_valid : EM-tracker camera poses interpolated at the frame times (N, 6)
         and their validity (N,); None without tracking.csv. Invalid frames have NaN poses.
     robot_xy_um, robot_valid : robot positions at the frame times (N, 2) µm and validity (N,).
@@ -77,6 +78,7 @@ class Dataset:
     robot_file: str = "robot.csv"
     frame_times: str = "frames.csv"
     ignored: dict[str, str] = field(default_factory=dict)
+    hand_eye_file: Path | None = None
 
     def __len__(self) -> int:
         return self.frame_ids.size
@@ -154,6 +156,7 @@ def read_dataset(
         raise ValueError(f"{root}: dataset folder not found")
     robot_file = "robot.csv" if robot_file is None else robot_file
     check_robot_file_name(robot_file, root)
+    _check_near_names(root, robot_file)
     camera = read_camera_yaml(root / "camera.yaml")
     frames = FrameSource.open(root, expected_size=camera.size, size_source=camera.source,
                               blank_unreadable=blank_unreadable)
@@ -180,7 +183,7 @@ def _read_tracking(dataset: Dataset, allow_untracked: bool, tracker_time_offset:
     root = dataset.root
     hand_eye_path, tracking_path = root / "hand_eye.txt", root / "tracking.csv"
     try:
-        hand_eye = read_hand_eye(hand_eye_path) if hand_eye_path.exists() else np.eye(4)
+        hand_eye = read_hand_eye(hand_eye_path) if hand_eye_path.exists() else None
     except ValueError as error:
         if not lenient:
             raise
@@ -189,7 +192,9 @@ def _read_tracking(dataset: Dataset, allow_untracked: bool, tracker_time_offset:
             dataset.ignored["tracking.csv"] = (f"{tracking_path}: left out with hand_eye.txt "
                                                "(the camera poses need both)")
         return
-    dataset.hand_eye = hand_eye
+    if hand_eye is not None:
+        dataset.hand_eye, dataset.hand_eye_file = hand_eye, hand_eye_path
+    hand_eye = dataset.hand_eye
     if not tracking_path.exists():
         return
     try:
@@ -210,6 +215,67 @@ def _read_tracking(dataset: Dataset, allow_untracked: bool, tracker_time_offset:
         dataset.ignored["tracking.csv"] = str(error)
         return
     dataset.tracking, dataset.cam_from_world, dataset.pose_valid = tracking, poses, valid
+
+
+# The dataset's files read when present, and what reading it without one means: a file there
+# with a near name (another case, '-' or ' ' for '_', an extension more: Windows hides a known
+# one, hand_eye.txt.txt) is named in a warning (a misnamed hand_eye.txt was dropped without a
+# word: poses.csv shifted by the hand-eye, the tracker warning blaming a file not there;
+# review 47). frames/ and video.* get the same hint in FrameSource.open's error.
+OPTIONAL_FILES = {
+    "frames.csv": "the frames are timed by their number and a frame rate",
+    "tracking.csv": "the dataset has no tracker poses",
+    "hand_eye.txt": "the hand-eye transform is the identity (the camera at the tracker's sensor)",
+}
+
+
+def near_names(folder: Path, name: str) -> list[str]:
+    """The files in ``folder`` (not hidden) whose name is nearly ``name``: the same but for the
+    case, '-', ' ' or nothing for '_', a further extension or none, .yml for .yaml."""
+    def plain(text: str) -> str:
+        return re.sub(r"[-_ ]", "", text.lower())
+    full, stem = plain(name), plain(PurePath(name).stem)
+    alike = {full, stem} | ({stem + ".yml"} if full.endswith(".yaml") else set())
+    try:
+        entries = sorted(folder.iterdir())
+    except OSError:
+        return []
+    return [p.name for p in entries if p.name != name and not p.name.startswith(".")
+            and (plain(p.name) in alike or plain(p.name).startswith(full + "."))
+            and p.is_file()]
+
+
+def _check_near_names(root: Path, robot_file: str) -> None:
+    """camera.yaml absent but a near name present: ValueError naming it; for the optional
+    files and the robot file, a warning."""
+    near = near_names(root, "camera.yaml") if not (root / "camera.yaml").exists() else []
+    if near:
+        raise ValueError(f"{root / 'camera.yaml'}: file not found, but {_named_files(near)} "
+                         f"{_is_there(near)}: {_rename(near, 'camera.yaml')} (the names are "
+                         "exact and case-sensitive)")
+    optional = {**OPTIONAL_FILES, robot_file: "the dataset has no robot positions"}
+    for name, without in optional.items():
+        path = root / name
+        near = [] if path.exists() else near_names(path.parent, path.name)
+        if near:
+            shown = [str(PurePath(name).with_name(n)) for n in near]  # (robot file: sub/...)
+            warnings.warn(
+                f"{path}: not found, but {_named_files(shown)} {_is_there(near)}; without "
+                f"{name}, {without}: if {'it is' if len(near) == 1 else 'one of them is'} that "
+                f"file, {_rename(near, name)} (the names are exact and case-sensitive)",
+                stacklevel=3)
+
+
+def _named_files(names: list[str]) -> str:
+    return " and ".join(names) if len(names) <= 2 else f"{', '.join(names[:-1])} and {names[-1]}"
+
+
+def _is_there(names: list[str]) -> str:
+    return "is there" if len(names) == 1 else "are there"
+
+
+def _rename(names: list[str], name: str) -> str:
+    return f"rename {'it' if len(names) == 1 else 'that one'} to {name}"
 
 
 def check_robot_file_name(robot_file: str, root: str | Path) -> None:
@@ -311,7 +377,9 @@ class FileNumbers:
         if numbers is None:
             return None
         steps = np.diff(numbers)
-        if np.any(steps <= 0) or np.median(steps) != 1:  # f01.png and f1.png; timestamps
+        # (equal numbers, f01.png and f1.png, FrameSource.open refuses; FrameSource(paths)
+        # may hold them); timestamps
+        if np.any(steps <= 0) or np.median(steps) != 1:
             return None
         gaps = tuple(int(i) + 1 for i in np.flatnonzero(steps > 1))
         paths = frames.paths
