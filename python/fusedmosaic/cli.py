@@ -180,7 +180,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         from fusedmosaic.estimation.motion import motion_sigma_from_recording
 
         overrides["motion_sigma"] = tuple(motion_sigma_from_recording(args.motion_sigma_from))
-    overrides.update(_emt_sigma(args))
+    overrides.update(_emt_sigma(args) | _visual_sigma(args))
     if args.flat_field:
         if args.method not in ("ncc", "kalman-robot"):
             raise ValueError(f"--flat-field applies to ncc and kalman-robot, not {args.method}")
@@ -284,6 +284,19 @@ def _emt_sigma(args: argparse.Namespace) -> dict:
             raise ValueError(f"{flag} must be a standard deviation > 0, got {value}")
         sigma[axes] = value * scale
     return {"emt_sigma": tuple(float(v) for v in sigma)}
+
+
+def _visual_sigma(args: argparse.Namespace) -> dict:
+    """{"sigma_v_px": px} from --visual-sigma, {} without it; only ba-emt and lba-emt weigh the
+    images against a prior (ba's visual cost alone does not depend on it)."""
+    if args.visual_sigma is None:
+        return {}
+    if args.method not in ("ba-emt", "lba-emt"):
+        raise ValueError(f"--visual-sigma applies to ba-emt and lba-emt, not {args.method}")
+    if not (np.isfinite(args.visual_sigma) and args.visual_sigma > 0):
+        raise ValueError(f"--visual-sigma must be a standard deviation > 0 (px), got "
+                         f"{args.visual_sigma}")
+    return {"sigma_v_px": float(args.visual_sigma)}
 
 
 def _lba_overrides(args: argparse.Namespace) -> dict:
@@ -444,7 +457,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
         from fusedmosaic.estimation.motion import motion_sigma_from_recording
 
         overrides["motion_sigma"] = tuple(motion_sigma_from_recording(args.motion_sigma_from))
-    overrides.update(_emt_sigma(args))
+    overrides.update(_emt_sigma(args) | _visual_sigma(args))
     features = _feature_options(args)
     if features is not None:
         overrides["features"] = features
@@ -452,7 +465,8 @@ def _cmd_live(args: argparse.Namespace) -> int:
         options = SequentialOptions.preset(args.preset or "syn", **overrides)
     elif overrides or args.preset is not None:
         raise ValueError("--preset / --loop-pairs / --guided-sift / --motion-sigma-from / "
-                         f"--tracker-*-sigma / feature flags apply to lba-emt, not {args.method}")
+                         f"--tracker-*-sigma / --visual-sigma / feature flags apply to lba-emt, "
+                         f"not {args.method}")
     else:
         options = None
     check_live_limits(args.max_frames, args.duration, args.frame_timeout,
@@ -1372,6 +1386,12 @@ def _add_lba_flags(parser: argparse.ArgumentParser, methods: str = "ba-emt / lba
     parser.add_argument("--tracker-trans-sigma", type=float, metavar="MM",
                         help=f"{methods}: the tracker's translation noise per axis, mm "
                              "(default: the paper's 1 mm)")
+    parser.add_argument("--visual-sigma", type=float, metavar="PX",
+                        help=f"{methods}: the keypoints' noise per axis in pixels, the visual "
+                             "cost's (default: the paper's 1 px, which goes with its 1 deg / 1 mm "
+                             "tracker noise); give it with a measured tracker noise "
+                             "(--calibration, --tracker-*-sigma): the simulator's keypoints are "
+                             "~0.1 px off")
     parser.add_argument("--calibration", metavar="CALIB.json",
                         help=f"tracked methods: the tracker time offset and ({methods}) "
                              "the tracker noise per axis that calibrate measured on a "
@@ -1494,6 +1514,13 @@ def main(argv: list[str] | None = None) -> int:
             print(f"fusedmosaic: error: {name} is an empty path (an unset shell variable?)",
                   file=sys.stderr)
             return 2
+        if dest == "video" and isinstance(value, str):  # (before the computation, not after)
+            from fusedmosaic.io._paths import is_utf8, not_utf8_message
+
+            if not is_utf8(value):
+                print("fusedmosaic: error: " + not_utf8_message(
+                    value, "OpenCV cannot write a video by such a name"), file=sys.stderr)
+                return 2
     try:
         with warnings.catch_warnings(), signals_as_interrupt():
             warnings.showwarning = _show_warning
