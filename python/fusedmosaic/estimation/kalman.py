@@ -36,7 +36,8 @@ Reading choices where the paper leaves room (all configurable in :class:`KalmanO
   simulator's circle / spiral it made #3 worse (10.2 -> 12.8 / 10.8 -> 13.5 µm at the paper's
   n frames) and flagged fewer event frames (c_img < 0.5: 53 -> 50 % / 60 -> 56 %): not used.
   Histories keep the last n *valid* samples with their step indices (failed registrations are
-  skipped) and the angle history skips displacements too short to have a direction.
+  skipped; a caller adds one it left out of the fusion with ``RobotKalmanFilter.record``) and
+  the angle history skips displacements too short to have a direction.
 - Eq. 14 compares N(i) with f(h_N) scale-free, as Eq. 17 compares the image and robot speeds:
   deviation ``1 - min(N', f') / max(N', f')`` (``N' = N + speed_floor``), so one ``(k, x_r)``
   works across scanning speeds and a stop is as unusual as a jump (the relative deviation
@@ -480,6 +481,12 @@ class RobotKalmanFilter:
         """Number of updates so far (the index of the last frame placed)."""
         return self._step
 
+    @property
+    def warming_up(self) -> bool:
+        """True while the next update with an image displacement uses the initial confidences
+        of Sec. II-B (its FilterStep.warmup): the history holds fewer than min_history values."""
+        return len(self._norm) < self.options.min_history
+
     def _history(
         self, stored: deque[tuple[int, float]], current: float, step: int
     ) -> tuple[list[int], list[float]]:
@@ -491,6 +498,25 @@ class RobotKalmanFilter:
             offsets.append(0)
             values.append(current)
         return offsets, values
+
+    def record(self, dx_image, intervals: float = 1.0) -> None:
+        """Add the image displacement of the last :meth:`update`'s step, made without it (a
+        registration the caller left out), to the histories of Eq. 13-14, as that update would
+        have (still ones left out with ``speed_history_skips_still``); nothing else changes."""
+        opt = self.options
+        step = self._step
+        dx = _as_vector2(dx_image, "dx_image", step)
+        if not np.isfinite(dx).all():
+            return
+        if not (np.isfinite(intervals) and intervals > 0):
+            raise ValueError(f"intervals must be a number > 0, got {intervals}")
+        norm = float(np.hypot(dx[0], dx[1]))
+        if step == 0 or (self._norm and self._norm[-1][0] == step) or (
+                opt.speed_history_skips_still and norm < opt.angle_min_norm):
+            return  # (no step yet, its update had the image, or a still step)
+        self._norm.append((step, norm / intervals))
+        if norm >= opt.angle_min_norm:
+            self._alpha.append((step, float(np.arctan2(dx[1], dx[0]))))
 
     def update(self, dx_image, dx_robot, c_match: float, intervals: float = 1.0) -> FilterStep:
         """Place the next frame.

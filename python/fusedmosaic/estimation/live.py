@@ -226,7 +226,10 @@ def _streamed_result(method: str, status: list, finals: dict, plane, details: di
     return MethodResult(G, status, poses=poses, plane=None if plane is None else np.asarray(plane),
                         timings={"processing": processing_s}, parameters=parameters,
                         details=details, blend="linear" if method == "lba-emt" else "average",
-                        undistorted=method == "lba-emt", mask_specular=method == "lba-emt")
+                        undistorted=method == "lba-emt", mask_specular=method == "lba-emt",
+                        # robot places every frame from its samples, frame 0 ("placed") too:
+                        # run checks them all for a black image, as offline (translation._run)
+                        images_seen=method != "robot")
 
 
 def _lba_checks(mosaicker, frame_name=None) -> dict:
@@ -250,11 +253,13 @@ def _translation_checks(method: str, origin_frames: dict, ids: list, results: li
     registrations disagree), with a robot the frames without a sample (``no_sample``: their
     ids; none within ``max_age`` s before the frame, None: the source's bound; ``dropped``:
     how many of them because the source no longer kept their samples, and what it keeps) and
-    their warning; ids / results: the id /
+    their warning, for kalman-robot the warning when the robot placed most frames that had a
+    registration (translation.add_unused_registrations); ids / results: the id /
     FrameResult of each frame given to the mosaicker, in order."""
     from fusedmosaic.estimation.translation import (
         add_frames_without_robot_sample,
         add_inconsistency,
+        add_unused_registrations,
         origin_warnings,
     )
 
@@ -269,6 +274,8 @@ def _translation_checks(method: str, origin_frames: dict, ids: list, results: li
             why += (f"; for {dropped[0]} of them, the samples of their time were no longer "
                     f"kept ({dropped[1]})")
         add_frames_without_robot_sample(checks, no_sample, len(ids), estimate, robot_name, why)
+    if estimate == "fused":
+        add_unused_registrations(checks, results, ids)
     return checks
 
 

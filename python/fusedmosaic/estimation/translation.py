@@ -46,14 +46,16 @@ frames whose image was trusted (``c_img >= 0.5``), floored at ``robot_sigma_floo
 ``robot_sigma_min_frames`` such frames exist the robot is uninformative (``sigma_r0 = inf``,
 ``robot_unknown_at_start``: the paper relies on the image at the start, Sec. II-B; else
 ``KalmanOptions.sigma_robot0`` is used), except on a frame whose registration the filter does
-not trust (``c_img < robot_sigma_c_img``, e.g. a contact loss in the first frames), which uses
-``KalmanOptions.sigma_robot0``: an infinite ``sigma_r0`` would let a registration of
-confidence ~0.1 place it. Trust in the filter's warm-up: there c_img is the initial
-``c_img0 = 1`` of Sec. II-B, whatever the registration, so a registration is trusted when its
-``c_match`` reaches ``warmup_overlap_c_match`` (the frames visibly overlap; a fibre-pattern lock
-at 0 px scores ~0.5); this judgement decides the ``sigma_r0`` samples, the fallback above and
-both gates below. A recording starting inside a contact loss had its lock placed 40 px off for
-good, all frames (e_M 38.8 px, robot 0.02). A robot sampled more slowly than the frames
+not trust (``c_img < robot_sigma_c_img``, e.g. a contact loss in the first frames): an infinite
+``sigma_r0`` would let a registration of confidence ~0.1 place it, so the registration is left
+out and the robot places the frame ("Image gating" below). Trust in the filter's warm-up: there
+c_img is the initial ``c_img0 = 1`` of Sec. II-B, whatever the registration, so a registration
+is trusted when its ``c_match`` reaches ``warmup_overlap_c_match`` or its SSIM gains at least
+``warmup_ssim_margin`` over the same pair's SSIM at 0 px (the frames visibly overlap at the
+shift found; a fibre-pattern lock lands at 0 px and gains nothing); this judgement decides the
+``sigma_r0`` samples and both gates below. A recording starting inside a contact loss had its
+lock placed 40 px off for good, all frames (e_M 38.8 px, robot 0.02). A robot sampled more
+slowly than the frames
 (``robot_xy_um`` None between samples) feeds the estimate with displacements spanning up to
 ``robot_sigma_max_span`` frames. With ``adaptive_robot_sigma=False`` the filter is the paper's
 with fixed ``sigma_robot0``.
@@ -79,24 +81,34 @@ larger jump stays a glitch however long the dropout), and a re-acquisition spann
 in its warm-up (``c_img`` is the initial ``c_img0``, no judgement) and no registration has
 agreed with the robot yet, a registration disagreeing beyond the bounds does not veto the
 robot: the robot places the frame, as for an inconsistent registration (a fast scan whose
-frames do not overlap, its registrations locking on the fibre pattern), unless the aligned
-overlap's c_match reaches ``warmup_overlap_c_match`` (the frames visibly overlap: the robot is
-gated, e.g. a glitch at frame 1). Such a frame adds no
-image step to the filter's history, so the warm-up would never end: after ``robot_gate_rebase``
-such registrations in a row (a robot disagreeing with every frame, e.g. in the wrong units),
-they are believed over the robot, as ``robot_gate_rebase`` gated frames in a row make the robot
-believed over them: the robot is judged (gated) from then on.
+frames do not overlap, its registrations locking on the fibre pattern), unless the frames
+visibly overlap (the warm-up's trust, above: the robot is gated, e.g. a glitch at frame 1).
+Such a frame adds no image step to the filter's history, so the warm-up would never end: after
+``robot_gate_rebase`` such registrations in a row (a robot disagreeing with every frame, e.g. in
+the wrong units), they are believed over the robot, as ``robot_gate_rebase`` gated frames in a
+row make the robot believed over them: the robot is judged (gated) from then on.
 
 Image gating (not in the paper), the converse: a registration the filter does not trust
-(``c_img < robot_sigma_c_img``; in the warm-up ``c_match < warmup_overlap_c_match``) that
-differs from the robot displacement by more than ``image_gate_sigmas`` of the robot's standard
-deviations (``sigma_r0 / sqrt(c_rob)``, Eq. 9, per axis) is left out: the robot places the
-frame (``c_img = 0``, ``prior-only``). Eqs. 7-8 are a weighted mean, so a confident robot of
-small ``sigma_r0`` already outweighs such a registration; a robot whose ``sigma_r0`` is of the
-order of ``sigma_i0`` (a robot sampled more slowly than the frames, interpolated: its
-interpolation error) did not, and each registration locked on the fibre pattern (contact loss)
-or on stuck tissue (stick-slip) pulled its frame several pixels off for good. Never before
-``sigma_r0`` is known.
+(``c_img < robot_sigma_c_img``; in the warm-up, the trust of "Robot noise" above) that differs
+from the robot displacement by more than ``image_gate_sigmas`` of the robot's standard
+deviations (``sigma_r0 / sqrt(c_rob)``, Eq. 9, per axis) is left out: the robot places the frame
+(``c_img = 0``, ``prior-only``, ``FrameResult.image_gated``). Eqs. 7-8 are a weighted mean, so
+a confident robot of small ``sigma_r0`` already outweighs such a registration; a robot whose
+``sigma_r0`` is of the order of ``sigma_i0`` (a robot sampled more slowly than the frames,
+interpolated: its interpolation error) did not, and each registration locked on the fibre
+pattern (contact loss) or on stuck tissue (stick-slip) pulled its frame several pixels off for
+good. The bound needs a measured ``sigma_r0`` (or a fixed one, ``adaptive_robot_sigma=False``):
+before that, with ``robot_unknown_at_start``, an untrusted registration is left out whatever its
+disagreement (see "Robot noise"), and otherwise none is. (It was measured against the
+placeholder ``KalmanOptions.sigma_robot0`` = 1 px, 3.2 px in the warm-up: with image noise
+sigma 12-20 grey levels every correct registration of SSIM < 0.65 was gated, none fed the
+filter, so no ``sigma_r0`` sample came and the warm-up never ended, and kalman-robot kept the
+noisy robot's error, 91-165 µm against ncc's 0.3; review 47.) A registration left out in the
+warm-up still enters the filter's histories (``RobotKalmanFilter.record``): the warm-up ends
+after ``KalmanOptions.min_history`` image steps that are not still (a lock at 0 px is), and
+c_img judges from then on. A run warns when the robot placed most frames that had a
+registration (``MAX_UNUSED_FRACTION``); report.json keeps the ``c_match`` of a registration
+left out.
 
 Origin. Frame 0 is the reference (0, 0). When frame 0 is blank, X_m starts at the first
 textured frame, put at frame 0's position, and X_f, when frame 0 is blank and has no robot
@@ -177,7 +189,11 @@ class RobotPriorOptions:
 
     # Central template side as a fraction of the frame: 3/5, paper 004 Sec. III-D.
     template_fraction: float = 0.6
-    # Coarse-to-fine NCC search (ncc.py): the same peak as the exhaustive search, ~2.5x faster.
+    # Coarse-to-fine NCC search (ncc.py), ~2.5x faster than the exhaustive one (0). Usually the
+    # same peak; not always: on 76 of 490 consecutive pairs (simulator circle and spiral, seeds
+    # 0-1, 256x224) the two differ by > 1 px, mostly in contact losses, where the exhaustive
+    # search locks on the fibre pattern at 0 px more often (closer to the truth: levels 2 on
+    # 53, levels 0 on 22; review 47).
     pyramid_levels: int = 2
     # Gaussian pre-blur (px) before NCC; 0 = raw frames, as the paper registers them.
     presmooth_sigma: float = 0.0
@@ -276,11 +292,25 @@ class RobotPriorOptions:
     # seeds 3, 5, 8) have c_match <= 0.50 (fibre-pattern locks at 0 px: 0.48-0.50); frames
     # 1-3 of the simulator's scans 0.77-0.87 (circle seed 0, spiral seed 1, 256x224 seed 0).
     # Before, a +5 mm robot glitch at frame 1 placed frame 1 at the glitch (256x224, 120
-    # frames: e_M 39.4 px, 10.5 without the glitch). > 1: never (the robot places the frame).
-    # The same level judges every warm-up registration (RobotPriorMosaicker._trusted): below
-    # it, it gives no sigma_r0 sample, can be image-gated and, with sigma_r0 still unknown,
-    # meets the robot at KalmanOptions.sigma_robot0. 0: every warm-up registration trusted.
+    # frames: e_M 39.4 px, 10.5 without the glitch). > 1 and warmup_ssim_margin None: never
+    # (the robot places the frame).
+    # The same level judges every warm-up registration (RobotPriorMosaicker._trusted), with
+    # warmup_ssim_margin: below both, it gives no sigma_r0 sample and can be image-gated; with
+    # sigma_r0 still unknown it is left out (the robot places the frame). 0: every warm-up
+    # registration trusted.
     warmup_overlap_c_match: float = 0.65
+    # ... or when its SSIM (raw, at the NCC shift) exceeds the same pair's SSIM at 0 px by at
+    # least this: the shift aligns the frames better than leaving them in place, where a
+    # fibre-pattern lock lands. The absolute level alone is a noise level: with image noise
+    # sigma 12-20 grey levels correct overlaps score 0.46-0.60, all were distrusted and
+    # kalman-robot followed the noisy robot (256x224 px, 80 frames: 90.7-164.5 µm, ncc 0.3;
+    # review 47). Measured on consecutive pairs of 23 simulated scans: the 253 registrations
+    # more than 3 px off (contact losses, stick-slip, 600 µm/frame scans whose frames do not
+    # overlap) gain at most 0 (a lock at 0 px exactly 0, the others lose); correct ones at
+    # image noise sigma 12-28 gain >= 0.23 (0.43 at sigma 12). Now 6.8-7.1 µm at sigma 12-20
+    # (6.6 at the default sigma 4), 2.1 at 512x448 and sigma 28 (before 293); the default circle
+    # and spiral as before (0.1 or 0.3: the same to 0.2 µm). None: the absolute level alone.
+    warmup_ssim_margin: float | None = 0.2
 
     def __post_init__(self) -> None:
         if not isinstance(self.kalman, KalmanOptions):
@@ -379,6 +409,13 @@ class RobotPriorOptions:
                 "RobotPriorOptions.warmup_overlap_c_match must be a number >= 0, got "
                 f"{self.warmup_overlap_c_match}"
             )
+        if self.warmup_ssim_margin is not None and not (
+                np.isfinite(self.warmup_ssim_margin) and self.warmup_ssim_margin > 0.0):
+            # (0 would trust a lock at 0 px, whose two SSIMs are the same number)
+            raise ValueError(
+                "RobotPriorOptions.warmup_ssim_margin must be a finite number > 0 or None, got "
+                f"{self.warmup_ssim_margin}"
+            )
         if self.robot_gate_rebase < 1:
             raise ValueError(
                 f"RobotPriorOptions.robot_gate_rebase must be >= 1, got {self.robot_gate_rebase}"
@@ -424,8 +461,9 @@ class FrameResult:
         frame could not be placed.
     homography : (3, 3) frame -> reference translation, all-NaN when unplaced.
     status : ``placed`` (image evidence used), ``prior-only`` (placed from the robot alone) or
-        ``unplaced: <reason>``; frame 0, the reference, is always ``placed`` (so with
-        ``estimate="robot"`` every later frame is ``prior-only``).
+        ``unplaced: <reason>``; frame 0, the reference, is ``placed`` (so with
+        ``estimate="robot"`` every later frame is ``prior-only``), or ``prior-only`` when it is
+        blank (image and fused estimates: placed at the origin, with no image content).
     c_img, c_rob, c_angle, c_speed, c_match, c_sp : the confidences of Eqs. 13-18 for the fused
         estimate (NaN when not computed: frame 0, other estimates, missing inputs); ``c_match``
         is also given for the image estimate. ``c_img`` and ``c_rob`` are the weights of Eqs.
@@ -644,6 +682,8 @@ class RobotPriorMosaicker:
         self._unjudged_in_a_row = 0
         self._innovations: deque[np.ndarray] = deque(maxlen=self.options.robot_sigma_window)
         self._spacings: deque[float] = deque(maxlen=_SPACING_WINDOW)  # recent frame spacings, s
+        # The timestamp of the last frame the fused estimate placed: X_f(i-1) of the next step.
+        self._placed_timestamp = -np.inf
         self._kf = RobotKalmanFilter(self.options.kalman) if self.estimate == "fused" else None
 
     @property
@@ -829,7 +869,7 @@ class RobotPriorMosaicker:
     _STATE = ("_count", "_last_timestamp", "_anchor", "_robot_origin_um", "_image_origin",
               "_robot_origin", "_fused_origin", "_robot_anchor",
               "_steps_without_robot", "_gated_in_a_row", "_unjudged_in_a_row", "_innovations",
-              "_intensity", "_spacings")
+              "_intensity", "_spacings", "_placed_timestamp")
 
     def _state(self) -> dict:
         state = {name: copy.copy(getattr(self, name)) for name in self._STATE}
@@ -862,6 +902,7 @@ class RobotPriorMosaicker:
         nan = float("nan")
         conf = dict.fromkeys(CONFIDENCES, nan)
         score, sigma_r = nan, nan
+        ssim_gain = nan  # (SSIM at the NCC shift) - (at 0 px), computed in the warm-up only
         dx_img_f, dx_rob_f = _NAN2, _NAN2
         robot_gated = image_gated = False
 
@@ -909,17 +950,26 @@ class RobotPriorMosaicker:
                     why_no_image = (f"NCC registration against frame {self._anchor.index}: "
                                     "forward and backward directions disagree")
                 if np.isfinite(dx).all():
-                    conf["c_match"] = aligned_overlap_ssim(
-                        self._anchor.image[square], image32[square], dx,
+                    pair = (self._anchor.image[square], image32[square])
+                    ssim_options = {
                         # 8-bit frames: SSIM's constants for the 0-255 range, as for uint8 input
-                        data_range=(255.0 if self._anchor.uint8 and gray.dtype == np.uint8
-                                    else None),
-                        downsample=self.options.ssim_downsample,
-                        prepared=True,
-                    )
+                        "data_range": (255.0 if self._anchor.uint8 and gray.dtype == np.uint8
+                                       else None),
+                        "downsample": self.options.ssim_downsample,
+                        "prepared": True,
+                    }
+                    ssim = aligned_overlap_ssim(*pair, dx, **ssim_options)
+                    conf["c_match"] = ssim
                     if self.options.c_match_normalize is not None:
                         slope, level = self.options.c_match_normalize
                         conf["c_match"] = normalize(1.0 - conf["c_match"], slope, level)
+                    if (self._kf is not None and self._kf.warming_up
+                            and self.options.warmup_ssim_margin is not None
+                            and not conf["c_match"] >= self.options.warmup_overlap_c_match):
+                        # what the shift gains over leaving the frames in place (_trusted):
+                        # only in the warm-up, where c_img judges nothing
+                        ssim_gain = ssim - aligned_overlap_ssim(*pair, np.zeros(2),
+                                                                **ssim_options)
                     timings["ssim"] = time.perf_counter() - t1
                 else:
                     why_no_image = (
@@ -945,7 +995,13 @@ class RobotPriorMosaicker:
             # unplaced as the frames up to that one: it is the reference (runner warns).
             position, status = _NAN2, "unplaced: no robot sample at this frame"
         elif i == 0:
-            position, status = np.zeros(2), "placed"  # the reference defines the origin
+            # The reference defines the origin. Blank, it is placed without having been seen:
+            # prior-only, as every later blank frame, so that run reads it and leaves a black
+            # one out of the mosaic ("placed" told run it had content: a black frame 0 was
+            # pasted, 8 % darker tissue under it; every frame black, a black mosaic.png; review
+            # 47). (X_r's frame 0 is "placed": run knows that method sees no image.)
+            status = "prior-only" if self.estimate != "robot" and not textured else "placed"
+            position = np.zeros(2)
             if self.estimate == "fused" and usable:
                 self._fused_origin = 0
         elif self.estimate == "image":
@@ -994,7 +1050,7 @@ class RobotPriorMosaicker:
                 verdict = None
                 if image_ok and robot_ok:
                     verdict = self._robot_glitch(kf, dx_img_f, dx_rob_f, c_match, sigma_r,
-                                                 intervals)
+                                                 intervals, ssim_gain)
                     robot_gated = verdict == "glitch"
                     if verdict == "unjudged":  # as an inconsistent registration: the robot
                         image_ok, dx_img_f, c_match = False, _NAN2, 0.0  # places the frame
@@ -1003,30 +1059,27 @@ class RobotPriorMosaicker:
                 elif not self._streak_judged():
                     self._unjudged_in_a_row = 0
                 dx_rob_used = _NAN2 if robot_gated else dx_rob_f
-                unknown = (image_ok and robot_ok and not robot_gated and np.isinf(sigma_r)
-                           and np.isfinite(self.options.kalman.sigma_robot0))
-                saved = kf.snapshot() if unknown else None
                 before = kf.snapshot() if image_ok and robot_ok and not robot_gated else None
+                warm = kf.warming_up
                 step = kf.update(dx_img_f, dx_rob_used, c_match, intervals)
-                if unknown and not self._trusted(step, c_match):
-                    # sigma_r0 not measured yet and the image not trusted at this frame (a
-                    # contact loss in the first frames; in the warm-up judged by c_match, see
-                    # _trusted): relying on the image (sigma_r0 = inf) would let such a
-                    # registration place the frame, and the robot anchor and every later
-                    # position would keep its error for good; KalmanOptions.sigma_robot0, the
-                    # paper's fixed filter, weighs the two by c_img and c_rob instead, and the
-                    # image gate below can then leave a gross outlier out.
-                    kf.restore(saved)
-                    sigma_r = self.options.kalman.sigma_robot0
-                    kf.options = replace(kf.options, sigma_robot0=sigma_r)
-                    step = kf.update(dx_img_f, dx_rob_used, c_match, intervals)
-                if before is not None and self._image_outlier(step, c_match, dx_img_f,
-                                                              dx_rob_used):
+                if before is not None and self._left_out(step, c_match, dx_img_f, dx_rob_used,
+                                                         sigma_r, ssim_gain):
                     kf.restore(before)  # the robot places the frame (c_img = 0)
                     image_ok, c_match, image_gated = False, 0.0, True
                     step = kf.update(_NAN2, dx_rob_used, c_match, intervals)
+                    if warm:
+                        # Its step still enters the histories of Eq. 13-14: the warm-up ends
+                        # after min_history steps whatever their fate, and c_img judges from
+                        # then on. Left out of them, gated registrations kept the filter in
+                        # its warm-up for good, where nothing could trust them (review 47).
+                        kf.record(dx_img_f, intervals)
+                computed = conf["c_match"]
                 for name in CONFIDENCES:
                     conf[name] = float(getattr(step, name))
+                if np.isnan(conf["c_match"]):
+                    # a registration left out (gated, unjudged, inconsistent): its SSIM, when
+                    # computed, still says why (report.json had null for every gated frame)
+                    conf["c_match"] = computed
                 x_f = position = step.position
                 status = "placed" if image_ok else "prior-only"
                 if (
@@ -1035,12 +1088,14 @@ class RobotPriorMosaicker:
                     and not robot_gated
                     # a re-acquisition after a dropout spans many steps, and their drift
                     and self._steps_without_robot < self.options.robot_sigma_max_span
-                    and self._trusted(step, c_match)
+                    and self._trusted(step, c_match, ssim_gain)
                 ):
                     self._innovations.append(dx_rob_f - dx_img_f)
             timings["filter"] = time.perf_counter() - t0
 
         placed = bool(np.isfinite(position).all())
+        if self.estimate == "fused" and placed:
+            self._placed_timestamp = t  # X_f(i-1) of the next step (_frame_intervals)
         if (
             placed
             and gray is not None
@@ -1095,37 +1150,70 @@ class RobotPriorMosaicker:
         if not np.isfinite(self._last_timestamp):
             return 1.0
         spacing = t - self._last_timestamp
+        since = t - self._placed_timestamp if np.isfinite(self._placed_timestamp) else spacing
         intervals = 1.0
         if self._spacings:
-            intervals = max(1.0, float(round(spacing / float(np.median(self._spacings)))))
+            intervals = max(1.0, float(round(since / float(np.median(self._spacings)))))
         self._spacings.append(spacing)
         return intervals
 
-    def _trusted(self, step, c_match: float) -> bool:
+    def _trusted(self, step, c_match: float, ssim_gain: float = float("nan")) -> bool:
         """Whether the registration of `step` (a filter update) is trusted: the judgement behind
-        the sigma_r0 samples, the unknown-sigma_r0 fallback and both gates. Once the filter
-        computes its confidences, c_img >= robot_sigma_c_img (the 0.5 level of Eq. 15). In
-        its warm-up c_img is the initial c_img0 of Sec. II-B, which judges nothing (it is 1
-        whatever the registration), so the one confidence that is computed judges it: its
-        c_match (SSIM of the aligned overlap) must reach warmup_overlap_c_match, the level at
-        which the frames visibly overlap, as for robot gating in the warm-up (a fibre-pattern
-        lock at 0 px scores 0.48-0.50). Taken as trusted, a lock in the first frames of a
-        recording that starts in a contact loss was placed 40 px off (sigma_r0 still inf), an
-        offset every later position kept (44 frames: e_M 38.8 px, the robot's 0.02), and locks
-        after good frames fed their 40 px disagreement into the sigma_r0 estimate (e_M 71 px).
+        the sigma_r0 samples and both gates. Once the filter computes its confidences, c_img >=
+        robot_sigma_c_img (the 0.5 level of Eq. 15). In its warm-up c_img is the initial
+        c_img0 of Sec. II-B, which judges nothing (it is 1 whatever the registration), so the
+        one confidence that is computed judges it (_overlaps): its c_match (SSIM of the aligned
+        overlap) must reach warmup_overlap_c_match, the level at which the frames visibly
+        overlap, as for robot gating in the warm-up (a fibre-pattern lock at 0 px scores
+        0.48-0.50), or gain warmup_ssim_margin over the pair's SSIM at 0 px (ssim_gain, NaN
+        when not computed). Taken as trusted, a lock in the first frames of a recording that
+        starts in a contact loss was placed 40 px off (sigma_r0 still inf), an offset every
+        later position kept (44 frames: e_M 38.8 px, the robot's 0.02), and locks after good
+        frames fed their 40 px disagreement into the sigma_r0 estimate (e_M 71 px).
         """
         if step.warmup:
-            return c_match >= self.options.warmup_overlap_c_match
+            return self._overlaps(c_match, ssim_gain)
         return step.c_img >= self.options.robot_sigma_c_img
 
-    def _image_outlier(self, step, c_match: float, dx_image, dx_robot) -> bool:
+    def _overlaps(self, c_match: float, ssim_gain: float) -> bool:
+        """The warm-up's judgement of a registration (_trusted): its c_match reaches
+        warmup_overlap_c_match, or its SSIM gains at least warmup_ssim_margin over the same
+        pair's at 0 px (ssim_gain; NaN when not computed)."""
+        margin = self.options.warmup_ssim_margin
+        return bool(c_match >= self.options.warmup_overlap_c_match
+                    or (margin is not None and ssim_gain >= margin))
+
+    def _sigma_measured(self) -> bool:
+        """sigma_r0 is the online estimate (robot_sigma_min_frames samples), or fixed by the
+        user (adaptive_robot_sigma False), not a placeholder."""
+        o = self.options
+        return not o.adaptive_robot_sigma or len(self._innovations) >= o.robot_sigma_min_frames
+
+    def _left_out(self, step, c_match: float, dx_image, dx_robot, sigma_r: float,
+                  ssim_gain: float) -> bool:
+        """Whether the registration of `step` (a filter update with both displacements) is
+        left out, the robot placing the frame (module docstring, "Image gating"): before
+        sigma_r0 is measured (sigma_r inf, robot_unknown_at_start) when the filter does not
+        trust it (:meth:`_trusted`), after that when it is an outlier (:meth:`_image_outlier`).
+        The first was a fallback to KalmanOptions.sigma_robot0, a guess the image gate then
+        measured the registration against (1 px: gated beyond 3.2 px), whatever the robot's
+        noise (review 47)."""
+        if np.isinf(sigma_r) and np.isfinite(self.options.kalman.sigma_robot0):
+            # relying on the image (sigma_r0 = inf) would let an untrusted registration (a
+            # contact loss in the first frames) place the frame, and the robot anchor and every
+            # later position would keep its error for good
+            return not self._trusted(step, c_match, ssim_gain)
+        return self._image_outlier(step, c_match, dx_image, dx_robot, ssim_gain)
+
+    def _image_outlier(self, step, c_match: float, dx_image, dx_robot,
+                       ssim_gain: float = float("nan")) -> bool:
         """True when the registration of `step` (a filter update with both displacements) is
         not trusted (:meth:`_trusted`) and differs from the robot displacement on an axis by
         more than image_gate_sigmas x the robot's standard deviation under Eq. 9,
         sigma_r0 / sqrt(c_rob) (module docstring, "Image gating"). Never before sigma_r0 is
-        known (an infinite prior variance)."""
+        measured (_sigma_measured), nor with an infinite prior variance."""
         k = self.options.image_gate_sigmas
-        if k is None or self._trusted(step, c_match):
+        if k is None or not self._sigma_measured() or self._trusted(step, c_match, ssim_gain):
             return False
         if not np.isfinite(step.prior_variance):
             return False
@@ -1138,7 +1226,7 @@ class RobotPriorMosaicker:
         return self._unjudged_in_a_row >= self.options.robot_gate_rebase
 
     def _robot_glitch(self, kf, dx_image, dx_robot, c_match: float, sigma_r: float,
-                      intervals: float = 1.0):
+                      intervals: float = 1.0, ssim_gain: float = float("nan")):
         """"glitch" when the robot displacement is a gross outlier next to a trusted
         registration (module docstring, "Robot gating"), else None. The image confidence c_img
         (Eq. 16) does not depend on the robot; it is read from a trial update of a copy of the
@@ -1149,10 +1237,11 @@ class RobotPriorMosaicker:
         frames do not overlap keeps the filter in warm-up (its registrations fail or lock on the
         fibre pattern at ~0 px); such locks vetoed the correct robot and placed 4 of 30 frames
         550-670 px off (seed 8, 600 µm/frame: 84.6 px mean, the robot alone 4.2). The frame is
-        then placed by the robot, as for an inconsistent registration; unless its c_match is
-        at least warmup_overlap_c_match: the frames visibly overlap (a fibre-pattern lock scores
-        ~0.5), so the registration is believed and the robot gated (a +5 mm robot glitch at
-        frame 1 placed that frame at the glitch).
+        then placed by the robot, as for an inconsistent registration; unless the frames
+        visibly overlap (_overlaps: c_match at least warmup_overlap_c_match, a fibre-pattern
+        lock scores ~0.5, or the SSIM gain over 0 px at least warmup_ssim_margin), so the
+        registration is believed and the robot gated (a +5 mm robot glitch at frame 1 placed
+        that frame at the glitch).
         Only up to robot_gate_rebase such frames in a row (_streak_judged): an unjudged frame
         adds no image step to the filter's history, so a robot that disagrees on every frame
         (in the wrong units: 10 x the image steps) kept the filter in warm-up for good and
@@ -1180,12 +1269,12 @@ class RobotPriorMosaicker:
             return None
         trial = copy.deepcopy(kf).update(dx_image, _NAN2, c_match, intervals)
         if trial.warmup and not self._innovations and not self._streak_judged():
-            if c_match >= self.options.warmup_overlap_c_match:
+            if self._overlaps(c_match, ssim_gain):
                 return "glitch"  # the frames overlap: the registration is no lock
             return "unjudged"
         if trial.warmup and not self._innovations:  # a streak: believed over the robot
             return "glitch"
-        return "glitch" if self._trusted(trial, c_match) else None
+        return "glitch" if self._trusted(trial, c_match, ssim_gain) else None
 
 
 # -- batch methods (`fusedmosaic run --method ncc|robot|kalman-robot`) ---------------------------
@@ -1284,6 +1373,7 @@ def _run(
             dataset.robot_file, "outside its time span, or in a gap longer than 3x its typical "
             "sample spacing")
     if estimate == "fused":  # robot and images both seen: do they move alike?
+        add_unused_registrations(details, results, dataset.frame_ids)
         add_robot_agreement(details, str(dataset.root / dataset.robot_file),
                             mosaicker.pixel_size_um, dataset.frame_times)
     parameters = {
@@ -1349,6 +1439,41 @@ def add_inconsistency(details: dict, results: list, ids, estimate: str) -> None:
             "frames likely do not overlap (a scan too fast for the frame rate) or lack texture; "
             "X_m places them anyway and is unreliable (kalman-robot places them by the robot; "
             "report.json ncc_inconsistent)")
+
+
+# Registrations the fused estimate did not use (the robot placed their frames: left out by the
+# image gate, directions that disagree, or unjudged in the warm-up), of those made, above which
+# a kalman-robot run warns: X_f is then mostly the robot's chain. The simulator's scans with
+# robot.csv (contact loss, stick-slip; circle and spiral, seeds 0-3, 512x448 and 256x224) have
+# 22-34 %, with robot_noisy.csv 3-6 %; a 256x224 scan whose probe is lifted after frame 0 100 %,
+# a scan too fast for its frames to overlap (600 µm/frame) 100 %. Before review 47, image noise
+# sigma 20 had 42 of 79 correct registrations image-gated (the robot's 165 µm kept, ncc 0.3),
+# at 512x448 all 59, without a word.
+MAX_UNUSED_FRACTION = 0.5
+
+
+def add_unused_registrations(details: dict, results: list, ids) -> None:
+    """A warning (appended to details["warnings"]) when the robot placed more than
+    MAX_UNUSED_FRACTION of the frames whose registration was made (ncc_consistent not None)
+    in `results` (FrameResults of the fused estimate, None for a frame not processed;
+    ids[r.index]: a frame's id), with why."""
+    made = [r for r in results if r is not None and r.ncc_consistent is not None]
+    unused = [r for r in made if r.status == "prior-only"]
+    if not made or not len(unused) > MAX_UNUSED_FRACTION * len(made):
+        return
+    gated = sum(r.image_gated for r in unused)
+    inconsistent = sum(not r.ncc_consistent and not r.image_gated for r in unused)
+    why = [f"{n} {what}" for n, what in (
+        (gated, "left out by the image gate (report.json image_gated)"),
+        (inconsistent, "with forward and backward directions that disagree (ncc_inconsistent)"),
+        (len(unused) - gated - inconsistent, "disagreeing with the robot in the filter's "
+         "warm-up, before anything could judge them")) if n]
+    details["warnings"].append(
+        f"{len(unused)} of {len(made)} NCC registrations were not used, the robot placing their "
+        f"frames (frames {listed_ids(int(ids[r.index]) for r in unused)}): {', '.join(why)}. "
+        "Consecutive frames likely do not overlap or lack texture (a contact loss, a scan too "
+        "fast for the frame rate): X_f is mostly the robot's chain (compare --method ncc; "
+        "report.json confidences c_match)")
 
 
 def no_robot_sample_error(source: str, n: int, why: str) -> ValueError:

@@ -304,7 +304,9 @@ def register_ncc(
     pyramid_levels : int
         Coarse-to-fine search: exhaustive NCC at resolution 1/2**levels, then a full-resolution
         window of radius 2**levels + ``refine_radius`` pixels around the up-scaled coarse peak.
-        0 = exhaustive full-resolution search (slower, ~2.5x at 512x448). Levels that would make
+        0 = exhaustive full-resolution search (slower, ~2.5x at 512x448). Usually the same peak,
+        but not always: at low contrast (a contact loss) the two can find different ones, the
+        exhaustive search more often the fibre-pattern lock at 0 px. Levels that would make
         the template smaller than 16 px are dropped.
     refine_radius : int
         Extra radius (px) of the full-resolution refinement window.
