@@ -343,8 +343,8 @@ def test_lba_emt_flags_refused_for_kalman_robot_before_connecting(syn, tmp_path,
                  "--transform", "SensorToTracker", "--record", str(tmp_path / "rec"),
                  "--out", str(tmp_path / "out"), "--method", "kalman-robot",
                  "--guided-sift"]) == 2
-    assert ("--guided-sift / --motion-sigma-from / --tracker-*-sigma / feature flags apply to "
-            "lba-emt, not kalman-robot") in capsys.readouterr().err
+    assert ("--guided-sift / --motion-sigma-from / --tracker-*-sigma / --visual-sigma / feature "
+            "flags apply to lba-emt, not kalman-robot") in capsys.readouterr().err
     assert not (tmp_path / "rec").exists() and not (tmp_path / "out").exists()
 
 

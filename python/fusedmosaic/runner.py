@@ -618,8 +618,8 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
         warnings.warn(
             f"{out}: frame(s) {methods.listed_ids(dataset.frame_ids[strays])} left out of "
             f"mosaic.png{' and the video' if video is not None else ''}: each lands far from "
-            "all the other "
-            "frames (more than 10 footprint diagonals: a placement glitch?); homographies.csv has it as estimated (report.json mosaic.skipped_frames)",
+            "all the other frames (more than 10 footprint diagonals: a placement glitch?); "
+            "homographies.csv has it as estimated (report.json mosaic.skipped_frames)",
             stacklevel=3)
     gains = None
     # Each frame's specular highlights found once for the gains and the mosaic, not twice
