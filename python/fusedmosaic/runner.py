@@ -1517,8 +1517,10 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                    f"({rerun(out)})")
             raise
         except ValueError as exc:  # (e.g. a user's file put in OUT during the session)
+            # another OUT helps only when OUT refused (the data refused: run it as it is)
+            where = "OUT2" if str(exc).startswith((f"{out}/", f"{out}:")) else out
             raise ValueError(f"{exc}; the live outputs are not written, the recording is kept "
-                             f"in {record} ({rerun('OUT2')})") from None
+                             f"in {record} ({rerun(where)})") from None
         except OSError as exc:  # the file system refused: OSError still (exit 1), named
             kept = f"the recording is kept in {record} ({rerun(out)})"
             raise OSError(exc.errno, f"{exc.strerror or exc}; the live outputs are not "

@@ -1144,9 +1144,11 @@ class RobotPriorMosaicker:
         )
 
     def _frame_intervals(self, t: float) -> float:
-        """Frame intervals since the previous frame given, in whole ones of the median spacing
-        of the recent frames (1 for the first two and for timing jitter; 2 after a frame a live
-        stream dropped): the Kalman filter judges the image step per interval (kalman.py)."""
+        """Frame intervals since the last frame the filter placed (X_f(i-1), which the image
+        and robot steps are taken against: 2 after an unplaced frame), in whole ones of the
+        median spacing of the recent frames (1 for the first two and for timing jitter; 2 after
+        a frame a live stream dropped): the Kalman filter judges the image step per interval
+        (kalman.py)."""
         if not np.isfinite(self._last_timestamp):
             return 1.0
         spacing = t - self._last_timestamp
