@@ -68,6 +68,8 @@ from fusedmosaic.cli import main
 sig, how, data, out = getattr(signal, sys.argv[1]), sys.argv[2], sys.argv[3], sys.argv[4]
 if how == "ignored":  # (nohup: SIGHUP; a scheduler's job may ignore SIGTERM)
     signal.signal(sig, signal.SIG_IGN)
+else:  # (not inherited ignored: under nohup, SIGHUP is, and the command then leaves it so)
+    signal.signal(sig, signal.SIG_DFL)
 real, moved = os.replace, []
 def replace(src, dst):
     real(src, dst)
