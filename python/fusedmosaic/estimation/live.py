@@ -553,9 +553,9 @@ def live_session(source, camera, *, method: str = "lba-emt", hand_eye=None, opti
     if session.processed and not warned:  # a short session: said at its end
         _warn_without_samples(source, method, None)
     if session.processed and method == "lba-emt":
-        from fusedmosaic.io.recorder import stop_signals_deferred
+        from fusedmosaic.io.output import signals_deferred
 
-        with stop_signals_deferred():  # a second Ctrl-C / SIGTERM waits for the last step
+        with signals_deferred():  # a second Ctrl-C / SIGTERM waits for the last step
             take(mosaicker.flush())
     session.plane = getattr(mosaicker, "plane", None)
     session.origin_frames = getattr(mosaicker, "origin_frames", None)

@@ -308,7 +308,7 @@ class OutputWriter:
         created, self._created = self._created, []
         committed = False
         try:
-            with _interrupts_deferred():  # an interrupt here would leave a half-moved set
+            with signals_deferred():  # an interrupt here would leave a half-moved set
                 try:
                     if exc_type is None:
                         self._commit(tmp, external)
@@ -605,20 +605,21 @@ def _remove_stale_temps(folder: Path, prefix: str) -> None:
 
 
 # The signals that end a command as Ctrl-C does (_entry.signals_as_interrupt: SIGTERM from
-# `timeout` or a scheduler, SIGHUP from a closed terminal): all three are held during a commit.
+# `timeout` or a scheduler, SIGHUP from a closed terminal): signals_deferred holds all three.
 DEFERRED_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP")
                          if hasattr(signal, name))
 
 
 @contextlib.contextmanager
-def _interrupts_deferred() -> Iterator[None]:
+def signals_deferred() -> Iterator[None]:
     """SIGINT, SIGTERM and SIGHUP during the block are delivered after it, each once, to the
-    handler the block replaced, so a commit or a clean-up is never cut in half: SIGTERM alone
-    unlinked an earlier run's files, moved 2 of the new ones in and left the manifest unwritten
-    (review 47). A signal ignored (SIG_IGN: nohup, a background job's SIGINT) or handled
-    outside Python stays as it was. Delivered to SIG_DFL: SIGINT raises KeyboardInterrupt (as
-    Python's own handler), SIGTERM / SIGHUP are raised again and end the process as they would
-    have, the block done. Only the main thread can set handlers; elsewhere a no-op."""
+    handler the block replaced, so a commit, a recording's finish or a session's last step is
+    never cut in half: SIGTERM alone unlinked an earlier run's files, moved 2 of the new ones in
+    and left the manifest unwritten (review 47). A signal ignored (SIG_IGN: nohup, a background
+    job's SIGINT) or handled outside Python stays as it was. Delivered to SIG_DFL: SIGINT
+    raises KeyboardInterrupt (as Python's own handler), SIGTERM / SIGHUP are raised again and
+    end the process as they would have, the block done. Only the main thread can set handlers;
+    elsewhere a no-op."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return

@@ -47,13 +47,11 @@ import json
 import os
 import queue
 import shutil
-import signal
 import socket
 import sys
 import threading
 import time
 import warnings
-from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -63,15 +61,14 @@ from scipy.spatial.transform import Rotation
 from fusedmosaic.io._table import format_float
 from fusedmosaic.io.calibration import Camera, write_camera_yaml
 from fusedmosaic.io.dataset import _replace_dir, staging_folder
-from fusedmosaic.io.output import ImageEncodingError, write_image_file
+from fusedmosaic.io.output import ImageEncodingError, signals_deferred, write_image_file
 from fusedmosaic.io.tracking import ROBOT_COLUMNS, TRACKING_COLUMNS, write_hand_eye
 
-__all__ = ["DatasetRecorder", "recover_unfinished_recordings", "stop_signals_deferred"]
+__all__ = ["DatasetRecorder", "recover_unfinished_recordings"]
 
 # In a recording's staging folder while its session runs; locked (flock) by that process, so a
 # folder whose lock can be taken belongs to a session that ended without finishing.
 MARKER = ".fusedmosaic-recording.json"
-STOP_SIGNALS = ("SIGINT", "SIGTERM", "SIGHUP")  # what ends a live session (the CLI's)
 # The frames waiting to be written, at most (their arrays' bytes): 43 frames of 1920x1080 colour,
 # 1.7 s of a 25 frames/s stream: a short stall of the disk passes without a frame lost, in memory
 # a theatre PC spares (the former bound, 64 frames, was 400 MB at 1080p and could not drop).
@@ -248,7 +245,7 @@ class DatasetRecorder:
         frame or sample could not be written (e.g. a full disk), the frames written before are
         kept all the same and ValueError says so; when even the rename fails, the recording stays
         in the staging folder, named in the error. Calling it again returns the folder."""
-        with stop_signals_deferred():
+        with signals_deferred():
             if self._finished:
                 return self.root
             self._queue.put(None)
@@ -380,37 +377,6 @@ def _write_marker(path: Path, root: Path, robot: bool) -> int:
         os.close(fd)
         raise
     return fd
-
-
-@contextlib.contextmanager
-def stop_signals_deferred() -> Iterator[None]:
-    """SIGINT, SIGTERM and SIGHUP arriving during the block are handled after it, as they
-    would have been (the CLI turns the last two into KeyboardInterrupt; by default they end the
-    process): a recording is never cut in half. Signals ignored stay ignored. Only the main
-    thread can set handlers; elsewhere a no-op."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    received: list[int] = []
-    previous = {}
-    for name in STOP_SIGNALS:
-        sig = getattr(signal, name, None)
-        if sig is None or signal.getsignal(sig) in (signal.SIG_IGN, None):
-            continue
-        previous[sig] = signal.signal(sig, lambda signum, frame: received.append(signum))
-    try:
-        yield
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-    for sig in dict.fromkeys(received):  # each signal once, in the order they came
-        handler = previous[sig]
-        if callable(handler):
-            handler(sig, None)
-        elif sig == signal.SIGINT:
-            raise KeyboardInterrupt
-        else:
-            signal.raise_signal(sig)  # the default action, now that the recording is safe
 
 
 def recover_unfinished_recordings(folder: str | Path, name: str | None = None) -> list[str]:
