@@ -51,16 +51,14 @@ def _check_dataset_target(out: str, overwrite: bool) -> None:
     """The dataset folder simulate / import write: absent or empty, or with --overwrite an
     earlier dataset; checked before any work, with the messages naming the flag. Creates
     nothing (write_dataset creates the folder and its parents)."""
-    from fusedmosaic.io.dataset import check_replaceable_dataset
+    from fusedmosaic.io.dataset import check_not_current_folder, check_replaceable_dataset
     from fusedmosaic.io.output import check_output_dir
 
     target = check_output_dir(out, "dataset folder", create_parent=False)
-    here = Path.cwd().resolve()
-    if target.is_dir() and (target.resolve() == here or target.resolve() in here.parents):
-        # (even empty: the dataset is written beside it and renamed over it, which left the
-        # shell in a deleted folder, "0.0 MB" said, and simulate fetoscopy failing on
-        # ./camera.yaml after writing it: review 47)
-        check_replaceable_dataset(target)
+    if target.is_dir():  # (even empty: renamed over, the current folder left the shell in a
+        # deleted folder, "0.0 MB" said, and simulate fetoscopy failing on ./camera.yaml after
+        # writing it: review 47)
+        check_not_current_folder(target)
     if target.is_dir() and any(target.iterdir()):
         if not overwrite:
             raise ValueError(f"{target}: exists and is not empty (choose another folder, or pass "

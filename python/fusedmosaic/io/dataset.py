@@ -757,15 +757,22 @@ def created_mode(bits: int) -> int:
     return bits & ~umask
 
 
+def check_not_current_folder(root: str | Path) -> None:
+    """A dataset is written beside its folder and renamed over it: ValueError naming `root`
+    when that folder is the current one or holds it (the shell would be left in a deleted
+    folder)."""
+    here, target = Path.cwd().resolve(), Path(root).resolve()
+    if target == here or target in here.parents:
+        what = "is the current folder" if target == here else f"holds the current folder {here}"
+        raise ValueError(f"{root}: refusing to overwrite: it {what}; choose a new folder")
+
+
 def check_replaceable_dataset(root: str | Path) -> None:
     """overwrite replaces a whole folder, so only an earlier dataset: never the current folder
     or one that holds it, nor a folder without camera.yaml or simulation.json (the user's files,
     a project, a home folder). ValueError naming the folder otherwise."""
     root = Path(root)
-    here, target = Path.cwd().resolve(), root.resolve()
-    if target == here or target in here.parents:
-        what = "is the current folder" if target == here else f"holds the current folder {here}"
-        raise ValueError(f"{root}: refusing to overwrite: it {what}; choose a new folder")
+    check_not_current_folder(root)
     if not root.is_dir() or not any(
         (root / n).is_file() for n in ("camera.yaml", "simulation.json")
     ):
