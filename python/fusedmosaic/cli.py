@@ -259,7 +259,8 @@ def _tracker_calibration(args: argparse.Namespace, methods) -> None:
                      "per axis")
             if getattr(args, "visual_sigma", None) is None:  # (bench/bench_visual_sigma.py)
                 said += ("; the keypoints keep the paper's 1 px, which goes with its looser "
-                         "1 deg / 1 mm: give their noise with --visual-sigma (README)")
+                         "1 deg / 1 mm: give their noise with --visual-sigma (a run's "
+                         "report.json visual_agreement.robust_std_px measures it; README)")
         _say(args, f"from {args.calibration}: {said}")
     if args.tracker_time_offset is None:
         args.tracker_time_offset = 0.0
@@ -1404,7 +1405,8 @@ def _add_lba_flags(parser: argparse.ArgumentParser, methods: str = "ba-emt / lba
                              "cost's (default: the paper's 1 px, which goes with its 1 deg / 1 mm "
                              "tracker noise); give it with a measured tracker noise "
                              "(--calibration, --tracker-*-sigma): the simulator's keypoints are "
-                             "~0.1 px off")
+                             "~0.1 px off; report.json visual_agreement.robust_std_px measures "
+                             "it on a recording")
     parser.add_argument("--calibration", metavar="CALIB.json",
                         help=f"tracked methods: the tracker time offset and ({methods}) "
                              "the tracker noise per axis that calibrate measured on a "

@@ -19,10 +19,12 @@ from tqdm import tqdm
 
 from fusedmosaic import _core
 from fusedmosaic.estimation.consistency import (
+    TransferResiduals,
     add_tracker_agreement,
     check_emt_sigma,
     solver_warning,
     tracker_agreement,
+    visual_agreement,
 )
 from fusedmosaic.estimation.motion import (
     MOTION_GATE_CHI2,
@@ -663,6 +665,14 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
         details["motion_released"] = sorted({*breaks, *solver["motion_released_ids"]})
         details["tracker_glitches"] = [int(k) for k in glitches]
     details["warnings"] = []
+    if solver["termination"] != "FAILURE":  # (the keypoints' noise, for --visual-sigma)
+        residuals = TransferResiduals()
+        for l, m, pl, pm in pairs:
+            residuals.add(poses[l], poses[m], plane, pl, pm, K)
+        agreement = visual_agreement(residuals, o.sigma_v_px, source=str(dataset.root),
+                                     knob="--visual-sigma" if use_emt else None)
+        details["warnings"] += agreement.pop("warnings")
+        details["visual_agreement"] = agreement
     if use_emt and solver["termination"] == "FAILURE":
         # the poses are where the failed solve left them (the tracker's, at first): their
         # agreement, 0.0 on every axis, read as perfect (e_M 117 px; helper fuzz 32)

@@ -180,7 +180,8 @@ def replay_live(dataset, method: str, *, options=None, progress: bool = True,
         "processing_time": "measured" if processing_time is None else "given"}}
     if method == "lba-emt":  # (the mosaicker numbers the frames it was given)
         details.update(_lba_checks(stream.mosaicker,
-                                   lambda i: int(dataset.frame_ids[processed[i]])))
+                                   lambda i: int(dataset.frame_ids[processed[i]]),
+                                   str(dataset.root)))
     if method in TRANSLATION_ESTIMATES:  # a chain starting after frame 0 warns as offline
         ids = [int(dataset.frame_ids[k]) for k in processed]
         details.update(_translation_checks(
@@ -232,16 +233,19 @@ def _streamed_result(method: str, status: list, finals: dict, plane, details: di
                         images_seen=method != "robot")
 
 
-def _lba_checks(mosaicker, frame_name=None) -> dict:
+def _lba_checks(mosaicker, frame_name=None, source: str = "the stream") -> dict:
     """report.json entries of a streamed lba-emt run that the offline one has: the plane's
     relative std and the registered pairs (for consistency.tracker_agreement's plane check),
-    and the start-up's and window steps' solver warnings, and the tracker's (frame_name: the
-    mosaicker's frame number -> the frame's id, which the tracker warning names)."""
+    the visual residuals' agreement with sigma_v, and the start-up's and window steps' solver
+    warnings, and the tracker's (frame_name: the mosaicker's frame number -> the frame's id,
+    which the tracker warning names; source: the images, named by the visual warning)."""
     from fusedmosaic.estimation.sequential import live_solver_warnings, observed_plane_std
 
+    agreement = mosaicker.visual_agreement(source=source)
     return {"plane_relative_std": observed_plane_std(mosaicker),
             "pairs": {"registered": mosaicker.pair_counts["registered"]},
-            "warnings": live_solver_warnings(mosaicker, frame_name)}
+            "visual_agreement": agreement,
+            "warnings": agreement.pop("warnings") + live_solver_warnings(mosaicker, frame_name)}
 
 
 def _translation_checks(method: str, origin_frames: dict, ids: list, results: list,

@@ -76,10 +76,12 @@ from fusedmosaic.estimation.consistency import (
     CONVENTIONS_AND_TIMING,
     MAX_NOISE_RATIO,
     TRACKER_NOISE_ADVICE,
+    TransferResiduals,
     add_tracker_agreement,
     check_emt_sigma,
     solver_warning,
     tracker_agreement,
+    visual_agreement,
 )
 from fusedmosaic.estimation.guard import exclusive_call
 from fusedmosaic.estimation.keyframes import KeyframeIndex
@@ -582,6 +584,9 @@ class SequentialMosaicker:
         # _save copies shallowly), so that forgetting frames touches only their pairs
         self._mirror_pair_index: dict[int, tuple[tuple[int, int], ...]] = {}
         self._mirror_plane: np.ndarray | None = None
+        # the transfer residuals of the pairs the window has forgotten, at their final poses
+        # (visual_agreement: the keypoints' noise, for sigma_v_px)
+        self._forgotten_residuals = TransferResiduals()
         self._window_touched = False
         self._lock = getattr(self, "_lock", None) or threading.Lock()  # reset() keeps it
         self._broken: str | None = None  # why the mosaicker is unusable (failed restoration)
@@ -822,6 +827,7 @@ class SequentialMosaicker:
               "_boot_matches", "_loop_feats",
               "_loop_centroids", "_loop_G", "_pair_H", "_recent_G", "_poses", "pair_counts",
               "_mirror_frames", "_mirror_pairs", "_mirror_pair_index", "_mirror_plane",
+              "_forgotten_residuals",
               "_implausible_run",
               "_world", "_times", "_intervals", "_unanchored", "bootstrap_summary",
               "_samples", "_motion_history", "_tracker_verdicts", "_tracker_episode")
@@ -924,6 +930,12 @@ class SequentialMosaicker:
         index = self._mirror_pair_index
         # (through the index: rebuilding _mirror_pairs without the forgotten frames' pairs cost
         # 0.49 ms an eviction at ~5000 pairs, every 5 frames once the window is full; review)
+        residuals = self._forgotten_residuals.copy()
+        for k in gone:
+            for key in index.get(k, ()):
+                if key in self._mirror_pairs:
+                    self._add_residuals(residuals, key)
+        self._forgotten_residuals = residuals
         for k in gone:
             self._mirror_frames.pop(k, None)
             for key in index.pop(k, ()):
@@ -931,6 +943,26 @@ class SequentialMosaicker:
                 other = key[0] if key[1] == k else key[1]
                 if other in index:
                     index[other] = tuple(x for x in index[other] if x != key)
+
+    def _add_residuals(self, residuals: TransferResiduals, key: tuple[int, int]) -> None:
+        """The pair `key`'s transfer residuals into `residuals` when both its frames are fixed
+        (solved; a pending frame sits at its starting pose)."""
+        frames = self._mirror_frames
+        if self._mirror_plane is None or not all(k in frames and frames[k][3] for k in key):
+            return
+        pl, pm = self._mirror_pairs[key]
+        residuals.add(frames[key[0]][0], frames[key[1]][0], self._mirror_plane, pl, pm, self.K)
+
+    def visual_agreement(self, *, source: str = "the stream") -> dict:
+        """consistency.visual_agreement of the registered pairs' transfer residuals (Eq. 13)
+        at their final poses: those the window forgot, and those it holds between solved
+        frames; each pair counted once. Its "robust_std_px" measures the keypoints' noise
+        (SequentialOptions.sigma_v_px); a warning when it is over MAX_NOISE_RATIO x that."""
+        residuals = self._forgotten_residuals.copy()
+        for key in self._mirror_pairs:
+            self._add_residuals(residuals, key)
+        return visual_agreement(residuals, self.options.sigma_v_px, source=source,
+                                knob="--visual-sigma")
 
     # ------------------------------------------------------------------------- the frame step
     def _plausible(self, timestamp: float, pose: np.ndarray) -> str:
@@ -2317,6 +2349,9 @@ def run_lba_emt(dataset, *, progress: bool = True,
     details["warnings"] = _solver_warnings(mosaicker.bootstrap_summary, unconverged,
                                            len(step_times), o.max_iterations,
                                            o.startup_max_iterations)
+    agreement = mosaicker.visual_agreement(source=str(dataset.root))
+    details["warnings"] += agreement.pop("warnings")
+    details["visual_agreement"] = agreement
     if dataset.cam_from_world is not None:
         add_tracker_agreement(details, poses, dataset, mosaicker.plane, o.emt_sigma,
                               o.motion_sigma)
