@@ -488,8 +488,6 @@ def _cmd_live(args: argparse.Namespace) -> int:
               "camera (sensor_from_camera the identity); a sensor mounted off the camera "
               "places every frame off, and the recording keeps no hand_eye.txt: give "
               "calibrate's hand_eye.txt", file=sys.stderr)
-    _say(args, f"live: connecting to {args.address} (Ctrl-C ends the session and writes the "
-               "outputs)")
     summary = run_igtl(args.address, args.out, record=args.record, camera=args.camera,
                        transform_device=args.transform, image_device=args.image_device,
                        hand_eye=args.hand_eye, rgb=not args.bgr, options=options,

@@ -1388,6 +1388,10 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
             recorder = DatasetRecorder(record, camera, hand_eye, overwrite=overwrite_record,
                                        robot=method != "lba-emt", tracker_time_offset=offset,
                                        source=f"live session from {address}")
+            # (said once OUT, the recording and the view are usable: before, it read as if a
+            # refused OUT had connected; review 47)
+            inform(f"live: connecting to {address} (Ctrl-C ends the session and writes the "
+                   "outputs)")
             with IgtlSource(address, transform_device=transform_device, image_device=image_device,
                             rgb=rgb, orientation_required=method == "lba-emt",
                             on_frame=on_frame, on_sample=on_sample) as src:

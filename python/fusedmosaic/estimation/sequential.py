@@ -2349,7 +2349,7 @@ def run_lba_emt(dataset, *, progress: bool = True,
     details["warnings"] = _solver_warnings(mosaicker.bootstrap_summary, unconverged,
                                            len(step_times), o.max_iterations,
                                            o.startup_max_iterations)
-    agreement = mosaicker.visual_agreement(source=str(dataset.root))
+    agreement = mosaicker.visual_agreement(source=str(getattr(dataset, "root", "the frames")))
     details["warnings"] += agreement.pop("warnings")
     details["visual_agreement"] = agreement
     if dataset.cam_from_world is not None:
