@@ -60,8 +60,31 @@ def build(build_dir: Path) -> dict:
 # -- the same files through the Python bindings ----------------------------------------------
 
 
+def _ids_and_hold(path, line: int, name: str, rest: list[str], lists: int) -> tuple:
+    """`lists` id lists ("n id1..idn" each), then the optional "hold" (the step holds pi,
+    SlidingWindow.step's hold_plane), as solver_bench.cc reads them: (list, ..., hold)."""
+    out, j = [], 0
+    try:
+        for _ in range(lists):
+            n = int(rest[j])
+            if n < 0 or len(rest) < j + 1 + n:
+                raise ValueError
+            out.append([int(x) for x in rest[j + 1 : j + 1 + n]])
+            j += 1 + n
+    except (ValueError, IndexError):
+        raise ValueError(f"{path}:{line}: {name}: expected {lists} id list(s) 'n id1..idn', "
+                         f"got {' '.join(rest)!r}") from None
+    tail = rest[j:]
+    if tail not in ([], ["hold"]):
+        raise ValueError(f"{path}:{line}: {name}: expected 'hold' or the end of the line, got "
+                         f"{' '.join(tail)!r}")
+    return (*out, tail == ["hold"])
+
+
 def load_problem(path: Path) -> dict:
-    """Parses a problem log (format: bench/cpp/solver_bench.cc) into header + call list."""
+    """Parses a problem log (format: bench/cpp/solver_bench.cc) into header + call list.
+    Raises ValueError (file:line) on a record it does not know: a replay that skipped it would
+    solve another problem than the recorded run did, silently."""
     lines = Path(path).read_text().splitlines()
     head = lines[0].split()
     if head[:2] != ["fusedmosaic-problem", "1"]:
@@ -107,13 +130,12 @@ def load_problem(path: Path) -> dict:
             # optional C_p timing (motion_ratio motion_sigma_scale; older logs: 1 1)
             timing = tuple(float(x) for x in rest[j + 2 : j + 4]) or (1.0, 1.0)
             p["calls"].append((name, (k, init, emt, rest[j + 1] == "1", *timing)))
-        elif name in ("step", "forget"):
-            p["calls"].append((name, ([int(x) for x in rest[1:]],)))
-        elif name == "redo":
-            nf = int(rest[0])
-            p["calls"].append(
-                (name, ([int(x) for x in rest[1 : 1 + nf]], [int(x) for x in rest[2 + nf :]]))
-            )
+        elif name == "step":  # (keyframe ids, hold)
+            p["calls"].append((name, _ids_and_hold(path, i, name, rest, 1)))
+        elif name == "redo":  # (frame ids, keyframe ids, hold)
+            p["calls"].append((name, _ids_and_hold(path, i, name, rest, 2)))
+        elif name == "forget":
+            p["calls"].append((name, (_ids_and_hold(path, i, name, rest, 1)[0],)))
         elif name == "set_plane":
             p["calls"].append((name, (np.array(rest, float),)))
         elif name == "set_emt_sigma_scale":
@@ -122,8 +144,17 @@ def load_problem(path: Path) -> dict:
             p["expect"][int(rest[0])] = np.array(rest[1:], float)
         elif name == "expect":
             p["calls"].append((name, (int(rest[0]), np.array(rest[1:], float))))
-        elif name in ("solve", "expect_plane", "set_pose", "set_constant_frame"):
+        elif name == "set_pose":
+            p["calls"].append((name, (int(rest[0]), np.array(rest[1:], float))))
+        elif name == "set_constant_frame":
+            p["calls"].append((name, (int(rest[0]), rest[1] == "1")))
+        elif name in ("solve", "expect_plane"):
             p["calls"].append((name, tuple(rest)))
+        else:
+            raise ValueError(
+                f"{path}:{i}: unknown record {name!r}; a replay without it would solve "
+                "another problem than the recorded run"
+            )
     return p
 
 
@@ -166,6 +197,10 @@ def python_replay(p: dict, repeats: int) -> dict:
                     ba.add_pair(*a)
                 elif name == "set_plane":
                     ba.set_plane(a[0])
+                elif name == "set_pose":
+                    ba.set_pose(*a)
+                elif name == "set_constant_frame":
+                    ba.set_constant_frame(*a)
             t0 = time.perf_counter()
             s = ba.solve()
             solve_wall.append(time.perf_counter() - t0)
@@ -198,7 +233,7 @@ def python_replay(p: dict, repeats: int) -> dict:
                 diff = max(diff, float(np.abs(w.pose(a[0]) - a[1]).max()))
             elif name in ("step", "redo"):
                 t0 = time.perf_counter()
-                s = w.step(a[0]) if name == "step" else w.redo(a[0], a[1])
+                s = w.step(*a) if name == "step" else w.redo(*a)
                 dt = time.perf_counter() - t0
                 if name == "redo":
                     steps[-1] += dt

@@ -12,6 +12,8 @@ through --work):
 With --others, the other helpers' benchmarks run too (solvers, pcle_core, sequential,
 compositing, offline, lba_experiments; minutes each); their latest results are linked from the
 summary anyway.
+With --only, the stages not run keep the record of the run that produced them (summary.json
+"runs"), and summary.md says per stage which run that was.
 
     python bench/run_all.py            # full: <= 20 min on 2 cores; results in bench/results/
     python bench/run_all.py --quick    # smoke run (60-frame sequences), results in
@@ -108,7 +110,146 @@ def run_stage(name: str, cmd: list[str], log_dir: Path) -> dict:
         rc = proc.wait()
     wall = time.perf_counter() - t0
     print(f"=== {name}: {'ok' if rc == 0 else f'FAILED (exit {rc})'} in {wall:.0f} s", flush=True)
-    return {"stage": name, "exit_code": rc, "seconds": wall, "log": str(log_dir / f"{name}.log")}
+    return {"stage": name, "exit_code": rc, "seconds": wall, "log": str(log_dir / f"{name}.log"),
+            "finished": _now()}
+
+
+def _now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+# -- the runs behind the results -------------------------------------------------------------
+
+
+def previous_runs(old: dict | None) -> list[dict]:
+    """The run records of an earlier summary.json: its "runs", or the single "run" that
+    summaries written before "runs" held."""
+    if not old:
+        return []
+    if old.get("runs") is not None:
+        return list(old["runs"])
+    return [old["run"]] if old.get("run") else []
+
+
+def merge_runs(previous: list[dict], run: dict) -> list[dict]:
+    """The runs that produced the results folder's stages, oldest first: `run`'s stages replace
+    the same stages of the earlier runs, whose other stages keep their run's record (with
+    --only, the stages not rerun are still the earlier run's); a run left without stages, or of
+    the other kind (quick or full), is dropped."""
+    now = {st["stage"] for st in run["stages"]}
+    out = []
+    for r in previous:
+        if bool(r.get("quick")) != bool(run.get("quick")):
+            continue
+        kept = [st for st in r.get("stages", []) if st["stage"] not in now]
+        if kept:
+            out.append({**r, "stages": kept})
+    return out + [run]
+
+
+def stage_runs(runs: list[dict]) -> dict[str, dict]:
+    """stage -> the record of the run that produced it (the last one that ran it)."""
+    return {st["stage"]: r for r in runs for st in r.get("stages", [])}
+
+
+def from_other_runs(runs: list[dict], stages: dict[str, str],
+                    unrecorded: dict[str, str] | None = None) -> str:
+    """"" when the stages named ({label: stage}) come from one run, else a sentence saying
+    which run (finished at) each label's figures come from (`unrecorded`: stages no run
+    record names, unrecorded_stages)."""
+    by = stage_runs(runs)
+    found = {label: f"the run finished {by[st].get('finished')}" for label, st in stages.items()
+             if st in by}
+    # (which earlier run each unrecorded stage came from is not known: taken as one)
+    found.update({label: "an earlier run with no record"
+                  for label, st in stages.items() if st in (unrecorded or {})})
+    if len(set(found.values())) <= 1:
+        return ""
+    return " Figures from different runs: " + "; ".join(
+        f"{label} from {when}" for label, when in found.items()) + "."
+
+
+# The JSON each stage of MINE writes (a stage without a run record is dated by it).
+STAGE_JSON = {"table1": "table1.json", "latency": "latency.json", "cpp": "cpp_solvers.json",
+              "pcle_cases": "pcle_cases.json", "peers": "peers.json"}
+
+
+def unrecorded_stages(results: Path, runs: list[dict]) -> dict[str, str]:
+    """The stages whose JSON is in `results` but in no run record (a run from before
+    summary.json kept the earlier runs of --only): stage -> its JSON's date (written_at)."""
+    by = stage_runs(runs)
+    return {
+        stage: f"{written_at(results / name):%Y-%m-%d %H:%M} UTC"
+        for stage, name in STAGE_JSON.items()
+        if stage not in by and (results / name).is_file()
+    }
+
+
+def runs_phrase(runs: list[dict], unrecorded: dict[str, str] | None = None) -> str:
+    """What produced the results, for the README line: one run's minutes, or per run its
+    stages, command, end and minutes (and the stages no run record names, with their JSON's
+    date)."""
+    if len(runs) == 1 and not unrecorded:
+        return f"{runs[0]['total_s'] / 60:.0f} min"
+    parts = [
+        f"{', '.join(st['stage'] for st in r['stages'])} from `{_command(r)}` finished "
+        f"{r.get('finished')} ({r['total_s'] / 60:.1f} min)"
+        for r in runs
+    ]
+    if unrecorded:
+        dates = sorted(unrecorded.values())
+        parts.append(
+            f"{', '.join(unrecorded)} from earlier runs with no record (their JSON written or "
+            f"committed {dates[0]}" + (f" to {dates[-1]})" if dates[-1] != dates[0] else ")")
+        )
+    return "stages from different runs: " + "; ".join(parts)
+
+
+def _command(run: dict) -> str:
+    return run.get("command") or "python bench/run_all.py"
+
+
+def runs_markdown(runs: list[dict], unrecorded: dict[str, str] | None = None) -> list[str]:
+    """summary.md's lines on the run(s) behind the figures: one run's stage times, or, when
+    stages come from several runs (run_all --only), per stage the run that produced it;
+    `unrecorded`: stages no run record names, with their JSON's date."""
+    if not runs and not unrecorded:
+        return []
+    if len(runs) == 1 and not unrecorded:
+        run = runs[0]
+        return [
+            f"Total run time {run['total_s'] / 60:.1f} min (budget {BUDGET_S // 60} min): "
+            + ", ".join(
+                f"{st['stage']} {st['seconds']:.0f} s"
+                + ("" if st["exit_code"] == 0 else " **failed**")
+                for st in run["stages"]
+            )
+            + ".",
+            "",
+        ]
+    rows = [
+        [
+            st["stage"],
+            st.get("finished") or r.get("finished"),
+            f"`{_command(r)}` (finished {r.get('finished')}, {r['total_s'] / 60:.1f} min)",
+            f"{st['seconds']:.0f}" + ("" if st["exit_code"] == 0 else " **failed**"),
+        ]
+        for r in runs
+        for st in r["stages"]
+    ] + [
+        [stage, f"(its JSON written or committed {when})",
+         "an earlier run, no record in summary.json", "–"]
+        for stage, when in (unrecorded or {}).items()
+    ]
+    return (
+        [
+            "The stages come from different runs (each stage's figures from the last run "
+            f"that ran it; budget {BUDGET_S // 60} min per run):",
+            "",
+        ]
+        + md_table(["stage", "stage finished (UTC)", "run", "stage s"], rows)
+        + [""]
+    )
 
 
 # -- summary ---------------------------------------------------------------------------------
@@ -156,25 +297,59 @@ def headline(t1, lat, peers, cpp) -> dict:
                 h[f"lba_emt_over_ba_emt_e_M_{seq}"] = ratio(a["e_M_px"], b["e_M_px"])
                 h[f"e_M_px_{seq}"] = {"lba-emt": a["e_M_px"], "ba-emt": b["e_M_px"]}
     if lat and peers:
+        # Like for like: registration against registration. lba-emt's time is add_frame's
+        # (features, matching, window step, keyframes; it composes no mosaic), so the
+        # Stitcher's is estimateTransform() alone, without composePanorama() (seams, blending:
+        # 40 % of its stitch() on SYN; the whole stitch() made the ratio 17.9x, not 10.8x).
         for seq, r in lat.get("lba-emt", {}).items():
             st = [
                 p
                 for p in peers["rows"]
                 if p["sequence"] == seq and p["peer"].startswith("cv2.Stitcher")
             ]
-            lba_ms = 1e3 / r["frames_per_s"]["all"]
-            if st and st[0].get("time_per_frame_ms"):
-                h[f"stitcher_over_lba_emt_time_per_frame_{seq}"] = {
-                    "lba_emt_ms_per_frame": lba_ms,
-                    "stitcher_ms_per_frame": st[0]["time_per_frame_ms"],
-                    "ratio": st[0]["time_per_frame_ms"] / lba_ms,
-                }
-            elif st:
-                h[f"stitcher_over_lba_emt_time_per_frame_{seq}"] = {
-                    "lba_emt_ms_per_frame": lba_ms,
-                    "stitcher": st[0]["status"],
-                }
+            if not st:
+                continue
+            st = st[0]
+            out = {"lba_emt_ms_per_frame": 1e3 / r["frames_per_s"]["all"]}
+            if st.get("success", True) and st.get("registration_s") is not None:
+                n = st["frames"]
+                out["stitcher_registration_ms_per_frame"] = 1e3 * st["registration_s"] / n
+                if st.get("compositing_s") is not None:
+                    out["stitcher_compositing_ms_per_frame"] = 1e3 * st["compositing_s"] / n
+                out["ratio"] = out["stitcher_registration_ms_per_frame"] / out[
+                    "lba_emt_ms_per_frame"
+                ]
+            else:
+                out["stitcher"] = (
+                    st.get("status") if not st.get("success", True)
+                    else "no registration time recorded (peers.json older than its split)"
+                )
+            h[f"stitcher_registration_over_lba_emt_{seq}"] = out
     return h
+
+
+def stitcher_headline(seq: str, s: dict) -> str:
+    """The headline sentence comparing lba-emt's and cv2.Stitcher's registration time per
+    frame (s: headline()'s stitcher_registration_over_lba_emt_<seq>)."""
+    lba = (
+        f"lba-emt {s['lba_emt_ms_per_frame']:.0f} ms (add_frame streamed, all frames: features, "
+        "matching, window step; no mosaic)"
+    )
+    if "ratio" not in s:
+        return f"Registration time per frame, {SEQ_TITLE[seq]}: {lba}; cv2.Stitcher SCANS: " \
+            f"{s['stitcher']}."
+    comp = s.get("stitcher_compositing_ms_per_frame")
+    return (
+        f"Registration time per frame, {SEQ_TITLE[seq]}: {lba} vs cv2.Stitcher SCANS "
+        f"{s['stitcher_registration_ms_per_frame']:.0f} ms (estimateTransform: features, "
+        f"all-pairs matching, bundle adjustment) -> lba-emt {_x(s['ratio'])} faster at "
+        "registration"
+        + (
+            f"; compositing is left out on both sides (the Stitcher's composePanorama, seams "
+            f"and blending: {comp:.0f} ms more per frame)."
+            if comp is not None else "."
+        )
+    )
 
 
 def textured_e_M(t1: dict, seq: str, name: str) -> float | None:
@@ -196,6 +371,12 @@ def sequential_budgets_line(seq: dict | None) -> str | None:
     except (KeyError, TypeError):
         return None
     sift = ((seq.get("throughput") or {}).get("sift") or {}).get("frames_per_s_steady")
+    # the wall time's p95 growth is the budget; the CPU time's beside it (less load-sensitive)
+    cpu_growth = ((seq.get("long") or {}).get("p95_latency_growth") or {}).get(
+        "process_cpu_time", (seq.get("cpu_diagnostics") or {}).get("latency_growth_cpu"))
+    memory = ((seq.get("long") or {}).get("memory") or {}).get("at_frames") or {}
+    peaks = [f"+{a['peak_rss_over_baseline_mb']:.0f} MB at {n} frames"
+             for n, a in memory.items() if a.get("peak_rss_over_baseline_mb") is not None]
     return (
         f"lba-emt live budgets (`python bench/bench_sequential.py`, its own latest run: "
         f"[bench/results/sequential.md](bench/results/sequential.md)): window step median "
@@ -203,7 +384,11 @@ def sequential_budgets_line(seq: dict | None) -> str | None:
         f"ORB {v['orb_frames_per_s']:.1f} frames/s (>= 25)"
         + (f", SIFT {sift:.1f}" if sift else "")
         + f"; 3300 frames: drift ratio {v['drift_ratio']:.2f} (<= 1.3), {v['unplaced']} "
-        f"unplaced, p95 latency growth {v['latency_growth']:.2f} (<= 1.2)."
+        f"unplaced, p95 latency growth {v['latency_growth']:.2f} (wall time, <= 1.2"
+        + (f"; process CPU time {cpu_growth:.2f}" if cpu_growth is not None else "")
+        + ")"
+        + (f"; peak RSS over the baseline before streaming {', '.join(peaks)}" if peaks else "")
+        + "."
     )
 
 
@@ -222,8 +407,10 @@ def written_at(path: Path) -> datetime:
     return datetime.fromtimestamp(path.stat().st_mtime, timezone.utc)
 
 
-def summary_markdown(results: Path, run: dict | None) -> tuple[str, str, dict]:
-    """(summary.md text, README section text, headline dict) from the JSON in `results`."""
+def summary_markdown(results: Path, runs: list[dict] | dict | None) -> tuple[str, str, dict]:
+    """(summary.md text, README section text, headline dict) from the JSON in `results`;
+    `runs`: the run records behind them (merge_runs; one run's record is taken as a list)."""
+    runs = [runs] if isinstance(runs, dict) else list(runs or [])
     t1 = load(results, "table1.json")
     lat = load(results, "latency.json")
     peers = load(results, "peers.json")
@@ -238,13 +425,20 @@ def summary_markdown(results: Path, run: dict | None) -> tuple[str, str, dict]:
         f"OpenCV {m.get('opencv')}"
     )
     L: list[str] = ["# fusedmosaic benchmarks (issue 7)", ""]
-    when = (run or {}).get("finished") or datetime.now(timezone.utc).isoformat(timespec="seconds")
+    when = runs[-1].get("finished") if runs else None
+    unrecorded = unrecorded_stages(results, runs)
+    one = (
+        "every figure is one measurement of this run"
+        if len(runs) <= 1 and not unrecorded
+        else "every figure is one measurement of the run its stage names below"
+    )
     L += [
-        f"Generated by `python bench/run_all.py{' --quick' if quick else ''}` on {when}.",
+        f"Generated by `python bench/run_all.py{' --quick' if quick else ''}`"
+        + (f"; latest run finished {when}." if when else f" on {_now()}."),
         "",
         f"**Machine**: {machine_line}. Load average at the start of table1: "
-        f"{m.get('load_average')} (other processes share the 2 cores; every figure is one "
-        f"measurement of this run, nothing copied or estimated).",
+        f"{m.get('load_average')} (other processes share the 2 cores; {one}, nothing copied "
+        "or estimated).",
         "",
     ]
     if quick:
@@ -253,17 +447,7 @@ def summary_markdown(results: Path, run: dict | None) -> tuple[str, str, dict]:
             "everything runs, they are not the benchmark.",
             "",
         ]
-    if run:
-        L += [
-            f"Total run time {run['total_s'] / 60:.1f} min (budget {BUDGET_S // 60} min): "
-            + ", ".join(
-                f"{s['stage']} {s['seconds']:.0f} s"
-                + ("" if s["exit_code"] == 0 else " **failed**")
-                for s in run["stages"]
-            )
-            + ".",
-            "",
-        ]
+    L += runs_markdown(runs, unrecorded)
 
     # headline
     L += ["## Headline", ""]
@@ -278,17 +462,12 @@ def summary_markdown(results: Path, run: dict | None) -> tuple[str, str, dict]:
                 f"{PAPER_MACHINE})."
             )
     for seq in ("syn", "handheld"):
-        s = h.get(f"stitcher_over_lba_emt_time_per_frame_{seq}")
-        if s and "ratio" in s:
+        s = h.get(f"stitcher_registration_over_lba_emt_{seq}")
+        if s:
             hl.append(
-                f"Time per frame, {SEQ_TITLE[seq]}: lba-emt {s['lba_emt_ms_per_frame']:.0f}"
-                f" ms (streamed, end to end) vs cv2.Stitcher SCANS "
-                f"{s['stitcher_ms_per_frame']:.0f} ms -> lba-emt {_x(s['ratio'])} faster."
-            )
-        elif s:
-            hl.append(
-                f"Time per frame, {SEQ_TITLE[seq]}: lba-emt {s['lba_emt_ms_per_frame']:.0f}"
-                f" ms; cv2.Stitcher SCANS: {s['stitcher']}."
+                stitcher_headline(seq, s)
+                + from_other_runs(runs, {"lba-emt": "latency", "cv2.Stitcher": "peers"},
+                                  unrecorded)
             )
     for seq in ("syn", "handheld", "syn-black", "handheld-black"):
         r = h.get(f"lba_emt_over_ba_emt_e_M_{seq}")
@@ -479,7 +658,13 @@ def summary_markdown(results: Path, run: dict | None) -> tuple[str, str, dict]:
             "panorama's resampling and blending). OpenCV chain: SIFT + BFMatcher ratio "
             "0.75 + findHomography RANSAC 3 px, chained to the last placed frame. "
             "Ours: lba-emt time per frame from the streamed run (latency stage), "
-            "ba-emt-guided from its method stages.",
+            "ba-emt-guided from its method stages."
+            + from_other_runs(
+                runs,
+                {"the peers": "peers", "lba-emt (streamed)": "latency",
+                 "ba-emt-guided and the e_M of ours": "table1"},
+                unrecorded,
+            ),
             "",
         ]
     L += ["## Peers on the same frames", ""] + (peer_md or ["(peers.json missing)", ""])
@@ -614,7 +799,13 @@ def summary_markdown(results: Path, run: dict | None) -> tuple[str, str, dict]:
             "ba-emt EMT-guided; the lba-emt window call log) and replayed by "
             "bench/cpp/solver_bench.cc (std::chrono, links fusedmosaic_core) and through "
             f"the Python bindings, alternating, {cpp.get('repeats')} rounds. Max pose "
-            "diff = largest difference from the poses of the recorded run." + built,
+            "diff = largest difference from the poses of the recorded run." + built
+            + from_other_runs(
+                runs,
+                {"the replays (of the problem files there were then)": "cpp",
+                 "'in the pipeline run s'": "table1"},
+                unrecorded,
+            ),
             "",
         ]
     L += ["## C++ solver core (no Python in the loop)", ""] + (
@@ -687,7 +878,9 @@ def summary_markdown(results: Path, run: dict | None) -> tuple[str, str, dict]:
         "",
         f"Measured by `python bench/run_all.py` (what `make bench` runs; "
         f"{'QUICK smoke run, ' if quick else ''}"
-        f"{(run or {}).get('total_s', 0) / 60:.0f} min) on {machine_line}. Full tables, the "
+        f"{runs_phrase(runs, unrecorded) if runs else 'run time not recorded'}) on "
+        f"{machine_line}. "
+        "Full tables, the "
         "paper's figures beside ours and the method notes: "
         "[bench/results/summary.md](bench/results/summary.md).",
         "",
@@ -888,6 +1081,7 @@ def main(argv=None) -> int:
         help="only rebuild summary.md (and README unless --quick) from the JSON",
     )
     ap.add_argument("--no-readme", action="store_true")
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = ap.parse_args(argv)
     results = args.results or (QUICK_ROOT / "results" if args.quick else RESULTS)
     work = args.work or (QUICK_ROOT / "work" if args.quick else DEFAULT_WORK)
@@ -896,6 +1090,7 @@ def main(argv=None) -> int:
     # 10 min; a run that does not finish is killed and reported as such.
     results.mkdir(parents=True, exist_ok=True)
     run = None
+    runs = previous_runs(load(results, "summary.json"))
     if not args.summary_only:
         stages = (
             list(args.only) if args.only else list(MINE) + (list(OTHERS) if args.others else [])
@@ -917,15 +1112,14 @@ def main(argv=None) -> int:
             "quick": args.quick,
             "stages": done,
             "total_s": time.perf_counter() - t0,
-            "finished": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "finished": _now(),
+            "command": " ".join(["python bench/run_all.py", *argv]),
             "machine": machine_info(),
         }
-    else:
-        old = load(results, "summary.json")
-        run = (old or {}).get("run")
-    summary, readme, h = summary_markdown(results, run)
+        runs = merge_runs(runs, run)
+    summary, readme, h = summary_markdown(results, runs)
     (results / "summary.md").write_text(summary)
-    write_json(results / "summary.json", {"run": run, "headline": h})
+    write_json(results / "summary.json", {"runs": runs, "headline": h})
     print(f"\nwrote {results / 'summary.md'}")
     if not args.quick and not args.no_readme:
         update_readme(readme)
