@@ -117,7 +117,10 @@ def lba_latency(data: Path, base: str, log: Path | None) -> dict:
             "drift_ratio": drift_ratio(e),
             "unplaced": int((~np.isfinite(e)).sum()),
         },
-        "window_log": str(log) if (log is not None and costs is not None) else None,
+        "window_log": (str(log) if (log is not None and costs is not None
+                                    and rec.not_logged is None) else None),
+        # why no log was written (calls the replays cannot reproduce), else None
+        "window_log_not_written": rec.not_logged,
     }
 
 
