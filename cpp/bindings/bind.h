@@ -16,6 +16,7 @@ void BindResiduals(pybind11::module_& m);
 void BindProblem(pybind11::module_& m);
 void BindSlidingWindow(pybind11::module_& m);
 void BindRegistration(pybind11::module_& m);
+void BindIo(pybind11::module_& m);
 
 using RowMatrixXd = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
 

@@ -28,4 +28,5 @@ PYBIND11_MODULE(_core, m) {
   fusedmosaic::bindings::BindProblem(m);
   fusedmosaic::bindings::BindSlidingWindow(m);
   fusedmosaic::bindings::BindRegistration(m);
+  fusedmosaic::bindings::BindIo(m);
 }

@@ -132,6 +132,13 @@ def evaluate_visual_transfer(
     (mu - p_l) / sigma_v interleaved x, y per point.
     """
 
+def crc64(data: Any) -> int:
+    """CRC-64/ECMA-182 of a contiguous buffer (bytes, bytearray, memoryview, a C-contiguous
+    array), OpenIGTLink's message body check: polynomial 0x42F0E1EBA9EA3693, MSB first, initial
+    value 0, no final xor. The GIL is released while it runs. TypeError for what is not a
+    contiguous buffer.
+    """
+
 def match_hamming(
     query: _ArrayLike, train: _ArrayLike, ratio: float = 0.8
 ) -> tuple[_IntArray, _IntArray, _IntArray]:
