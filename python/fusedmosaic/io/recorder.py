@@ -11,8 +11,9 @@ cut of the process, a crash) loses at most the frame being written:
 - every tracker sample is appended to tracking.csv as it arrives (at the tracker's own rate;
   samples the sender flagged or that are not rigid as valid=0), or for a robot its valid
   positions to robot.csv (µm);
-- each row is one unbuffered write (nothing waits in a buffer of this process; no fsync, so a
-  crash of the machine itself may lose the last seconds the OS had not yet written).
+- each row is appended unbuffered (nothing waits in a buffer of this process; no fsync, so a
+  crash of the machine itself may lose the last seconds the OS had not yet written), whole or
+  not at all: a write cut short (a full disk takes part of a row, then fails) is taken back.
 
 The recording does not hold up a live session: it may skip frames, the live view does not fall
 behind for it. `add_frame` never waits for the disk (the OpenIGTLink receiver calls it: a
@@ -31,8 +32,10 @@ lossless either way, `frames_uncompressed` counts them. With the CPU and disk to
 frame is recorded.
 
 `finish` renames the folder into place atomically; SIGINT / SIGTERM / SIGHUP arriving meanwhile
-are handled after it, and a failure keeps the frames written (a recording that holds a frame is
-never deleted); `abort` discards it. A lock file in the staging folder
+are handled after it, and a failure keeps the frames written, a readable dataset (a recording
+that holds a frame is never deleted; a tracker sample that cannot be written stops the samples
+and the frames received after it, the frames already waiting are still written); `abort`
+discards it. A lock file in the staging folder
 (``.fusedmosaic-recording.json``, locked while its process lives) tells a later recorder in the
 same folder that a session ended without finishing: `recover_unfinished_recordings` renames such
 a folder into a dataset ``NAME.recovered-START`` beside it and says so. The recording can then
@@ -42,6 +45,7 @@ be mosaicked offline with any method (``fusedmosaic run DATA --method ba-emt``).
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import json
 import os
@@ -137,7 +141,11 @@ class DatasetRecorder:
         self._last_sample = -np.inf
         self._lock = threading.Lock()
         self._queue: queue.Queue = queue.Queue()  # bounded by _max_bytes in add_frame
-        self._error: BaseException | None = None
+        self._error: BaseException | None = None  # a frame's (the frames stop there)
+        # tracking.csv's / robot.csv's: the samples stop there, and the frames received after it
+        # (the frames already waiting are written: they were all lost to a failed sample, and
+        # the recording deleted as "no frame could be written", frames never tried; review 48)
+        self._samples_error: BaseException | None = None
         self._discard = False
         self._finished = False
         self._samples_fd: int | None = None
@@ -172,8 +180,8 @@ class DatasetRecorder:
         (counted in `frames_not_recorded`). Never waits for the disk."""
         size = image.nbytes
         with self._lock:
-            if self._error is not None:
-                raise self._error
+            if self._error is not None or self._samples_error is not None:
+                raise self._error or self._samples_error
             if self._queued_bytes and self._queued_bytes + size > self._max_bytes:  # (a frame
                 # larger than the bound is taken when nothing waits)
                 self.frames_not_recorded += 1
@@ -201,7 +209,8 @@ class DatasetRecorder:
             q = Rotation.from_matrix(M[:3, :3]).as_quat()  # ~50 µs: 2 ms/s at 40 Hz
             row = [format_float(t), *(format_float(v) for v in (*M[:3, 3], *q)), "1"]
         with self._lock:
-            if self._error is not None or self._finished or self._discard:
+            if (self._error is not None or self._samples_error is not None or self._finished
+                    or self._discard):
                 return
             if not t > self._last_sample:  # tracking.csv is in time order
                 self.samples_skipped += 1
@@ -211,13 +220,17 @@ class DatasetRecorder:
                     name, columns = (("robot.csv", ROBOT_COLUMNS) if self.robot else
                                      ("tracking.csv", [*TRACKING_COLUMNS, "valid"]))
                     self._samples_fd = _open_table(self._tmp / name, columns)
-                os.write(self._samples_fd, (",".join(row) + "\n").encode())
+                _append_row(self._samples_fd, (",".join(row) + "\n").encode(),
+                            self._samples_name())
             except OSError as exc:  # e.g. a full disk: the recording stops growing here
-                self._error = exc
+                self._samples_error = exc
                 return
             self._last_sample = t
             if M is not None:
                 self._valid_span = [self._valid_span[0] if self._valid_span else t, t]
+
+    def _samples_name(self) -> str:
+        return "robot.csv" if self.robot else "tracking.csv"
 
     def valid_sample_span(self) -> tuple[float, float] | None:
         """(first, last) time of the valid tracker samples recorded; None without any."""
@@ -243,19 +256,30 @@ class DatasetRecorder:
         """Waits for the frames to be written and renames the recording into place; returns its
         folder. SIGINT / SIGTERM / SIGHUP arriving meanwhile are handled once it is done. When a
         frame or sample could not be written (e.g. a full disk), the frames written before are
-        kept all the same and ValueError says so; when even the rename fails, the recording stays
-        in the staging folder, named in the error. Calling it again returns the folder."""
+        kept all the same, a dataset, and ValueError says how many and what failed; when even
+        the rename fails, the recording stays in the staging folder, named in the error. Calling
+        it again returns the folder."""
         with signals_deferred():
             if self._finished:
                 return self.root
             self._queue.put(None)
             self._writer.join()
             self._close_files(keep_marker=True)
-            error = self._error
-            if self.frames_written == 0 and error is not None:
+            failed = self._failures()
+            if failed:  # (each row is whole and each frame has its row: this checks it again, as
+                # recovering a killed session's does, so the folder kept is a dataset whatever
+                # the write that failed left)
+                try:
+                    self.frames_written = min(self.frames_written, _repair(self._tmp))
+                except OSError as exc:
+                    failed += f"; the recording could not be checked ({_describe(exc)})"
+            if self.frames_written == 0 and failed:
                 self.abort()
+                if self._error is None:  # (the samples failed before a frame was received)
+                    raise ValueError(f"recording {self.root}: {failed}, before a frame was "
+                                     "received; nothing is kept") from None
                 raise ValueError(f"recording {self.root}: no frame could be written: "
-                                 f"{_describe(error)}") from None
+                                 f"{failed}") from None
             try:
                 _replace_dir(self._tmp, self.root)
             except OSError as exc:
@@ -265,10 +289,19 @@ class DatasetRecorder:
             self._finished = True
             (self.root / MARKER).unlink(missing_ok=True)
             self._close_files()
-        if error is not None:
+        if failed:
             raise ValueError(f"recording {self.root}: stopped after {self.frames_written} "
-                             f"frame(s) ({_describe(error)}); those are kept there") from None
+                             f"frame(s) ({failed}); those are kept there") from None
         return self.root
+
+    def _failures(self) -> str:
+        """What could not be written, for the user ("" when nothing failed)."""
+        said = []
+        if self._samples_error is not None:
+            said.append(_describe(self._samples_error))
+        if self._error is not None:
+            said.append(_describe(self._error))
+        return "; ".join(said)
 
     def abort(self) -> None:
         """Discards the recording (the frames still queued are not written)."""
@@ -331,11 +364,17 @@ class DatasetRecorder:
         self._cost[mode] = cost if not self._cost[mode] else 0.75 * self._cost[mode] + 0.25 * cost
         if store:
             self._since_stored = 0
-        os.replace(part, part.with_name(name))
-        with self._lock:
-            os.write(self._frames_fd, f"{k},{format_float(t)}\n".encode())
-            self.frames_written += 1
-            self.frames_uncompressed += store
+        try:
+            os.replace(part, part.with_name(name))
+            with self._lock:
+                _append_row(self._frames_fd, f"{k},{format_float(t)}\n".encode(), "frames.csv")
+                self.frames_written += 1
+                self.frames_uncompressed += store
+        except BaseException:  # no frame without its row (read_dataset refuses the folder)
+            for path in (part, part.with_name(name)):
+                with contextlib.suppress(OSError):
+                    path.unlink(missing_ok=True)
+            raise
 
 
 def _write_png(path: Path, image: np.ndarray, params: list[int]) -> None:
@@ -354,14 +393,38 @@ def _describe(exc: BaseException) -> str:
 
 
 def _open_table(path: Path, header: list[str]) -> int:
-    """A new CSV file with its header, open for appending rows (one unbuffered write each)."""
+    """A new CSV file with its header, open for appending rows (`_append_row`); not left
+    behind if the header cannot be written."""
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_APPEND, 0o666)
     try:
-        os.write(fd, (",".join(header) + "\n").encode())
+        _append_row(fd, (",".join(header) + "\n").encode(), path.name)
     except BaseException:
         os.close(fd)
+        with contextlib.suppress(OSError):
+            path.unlink()
         raise
     return fd
+
+
+def _append_row(fd: int, row: bytes, name: str) -> None:
+    """Appends `row` to the table open at `fd` (O_APPEND), whole or not at all: a write cut short
+    is continued, and when one fails the table is cut back to where the row began. (A full disk,
+    or a file size limit, takes part of the row and fails the next write: the table ended in half
+    a row, '41,170', and the recording kept was no dataset; review 48.) OSError naming `name`."""
+    start = os.fstat(fd).st_size
+    done = 0
+    try:
+        while done < len(row):
+            n = os.write(fd, row[done:])
+            if n <= 0:  # (not expected of a regular file: not looped on)
+                raise OSError(errno.EIO, "the write wrote nothing")
+            done += n
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
+            os.ftruncate(fd, start)
+        if isinstance(exc, OSError):
+            raise OSError(exc.errno, f"{name}: {exc.strerror or exc}") from None
+        raise
 
 
 def _write_marker(path: Path, root: Path, robot: bool) -> int:
