@@ -60,11 +60,17 @@ class KeyframeIndex:
         self.rng.bit_generator.state = rng_state
 
     def add(self, frame_id: int, centroid: np.ndarray) -> list[int]:
-        """Adds an estimated frame's centroid (reference pixels). Returns frame ids to forget."""
+        """Adds an estimated frame's centroid (reference pixels). Returns frame ids to forget.
+        A centroid that is not finite (its outline projects to infinity) is skipped: that frame
+        is no keyframe. Stored, it made every later select() raise in K-means, and the block
+        stayed until crowding evicted it (review)."""
+        centroid = np.asarray(centroid, float)
+        if not np.isfinite(centroid).all():
+            return []
         if self._open is None:
             self._open = _Block([], [])
         self._open.frame_ids.append(frame_id)
-        self._open.centroids.append(np.asarray(centroid, float))
+        self._open.centroids.append(centroid)
         if len(self._open.frame_ids) < self.block_size:
             return []
         self._open.centroid = np.mean(self._open.centroids, axis=0)

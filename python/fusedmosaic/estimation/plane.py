@@ -158,15 +158,21 @@ def plane_facing(poses: np.ndarray, distance_mm: float) -> np.ndarray:
     return -axis / float(axis @ point)
 
 
+# World units (mm): two cameras' centres nearer than this give plane_from_pair no baseline (|t| of
+# l_from_m is the distance between the centres): their homography does not depend on the plane.
+MIN_PAIR_BASELINE = 1e-9
+
+
 def plane_from_pair(H_lm: np.ndarray, K: np.ndarray, cam_l: np.ndarray,
                     cam_m: np.ndarray) -> np.ndarray | None:
-    """pi (world) from one homography and two cam_from_world poses; None if ill-posed."""
+    """pi (world) from one homography and two cam_from_world poses; None if ill-posed: the
+    centres within MIN_PAIR_BASELINE, or a plane through the world's origin (no pi = n / d)."""
     Kinv = np.linalg.inv(K)
     Hn = Kinv @ H_lm @ K
     rel = _core.compose_poses(cam_l, _core.invert_pose(cam_m))  # l_from_m
     R = _core.rotation_from_angle_axis(rel[:3])
     t = rel[3:]
-    if np.linalg.norm(t) < 1e-9:
+    if np.linalg.norm(t) < MIN_PAIR_BASELINE:
         return None
     # Unknowns u = [s, pi_x, pi_y, pi_z]: s Hn_ij + t_i pi_j = R_ij.
     A = np.zeros((9, 4))
@@ -196,8 +202,9 @@ def estimate_plane(pairs, poses: np.ndarray, K: np.ndarray, *, max_pairs: int = 
                    source: str | None = None) -> np.ndarray:
     """Plane pi from registered pairs (PairMatch, frame ids index `poses`) and tracker poses.
 
-    Raises ValueError when no registered pair with valid poses is available (the message starts
-    with `source`, e.g. the dataset's folder, when given)."""
+    Raises ValueError when no registered pair with valid poses is available, or when none of
+    them gives a plane, with why (the message starts with `source`, e.g. the dataset's folder,
+    when given)."""
     where = f"{source}: " if source else ""
     usable = [p for p in pairs if p.ok and np.isfinite(poses[p.frame_l]).all()
               and np.isfinite(poses[p.frame_m]).all()]
@@ -209,9 +216,24 @@ def estimate_plane(pairs, poses: np.ndarray, K: np.ndarray, *, max_pairs: int = 
                for p in usable for k in (p.frame_l, p.frame_m)}
     baseline = np.array([np.linalg.norm(centres[p.frame_l] - centres[p.frame_m])
                          for p in usable])
-    chosen = [usable[i] for i in np.argsort(-baseline)[:max_pairs]]
+    widest = np.argsort(-baseline)[:max_pairs]
+    chosen = [usable[i] for i in widest]
     estimates = [plane_from_pair(p.H_lm, K, poses[p.frame_l], poses[p.frame_m]) for p in chosen]
     estimates = np.array([e for e in estimates if e is not None and np.isfinite(e).all()])
     if len(estimates) == 0:
-        raise ValueError(f"{where}cannot estimate the plane: every pair was degenerate")
+        # Why, which the caller cannot tell: a tracker that froze (resending its last pose) put
+        # every pair's cameras at one position, and this said only "every pair was degenerate"
+        # (lba-emt then named no file either; review).
+        still = int(np.sum(baseline[widest] < MIN_PAIR_BASELINE))
+        if still == len(chosen):
+            why = (f"the tracker poses of every registered pair ({len(usable)}) put its two "
+                   "cameras at the same position, so no pair has a baseline the plane's "
+                   "distance could be measured by (a frozen tracker resending one pose, or a "
+                   "camera held perfectly still)")
+        else:
+            why = (f"of the {len(chosen)} registered pairs with the widest baselines, "
+                   f"{still} have their two tracker poses at the same position and "
+                   f"{len(chosen) - still} give no finite plane (a plane through the world's "
+                   "origin, or non-finite poses or homographies)")
+        raise ValueError(f"{where}cannot estimate the plane: {why}")
     return _robust_combine(estimates)

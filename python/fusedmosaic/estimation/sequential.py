@@ -100,6 +100,7 @@ from fusedmosaic.estimation.motion import (
 from fusedmosaic.estimation.plane import (
     MAX_NOMINAL_PARALLAX,
     MIN_BASELINE_RATIO,
+    MIN_PAIR_BASELINE,
     baseline_ratio,
     camera_baseline_mm,
     estimate_plane,
@@ -109,9 +110,13 @@ from fusedmosaic.estimation.plane import (
 )
 from fusedmosaic.estimation.world import (
     WorldAlignment,
+    origin_near_plane,
     plane_from_aligned,
+    plane_to_aligned,
     poses_from_aligned,
     poses_to_aligned,
+    same_world,
+    tracked_world,
     world_alignment,
 )
 from fusedmosaic.io.tracking import MAX_TRANSLATION_MM, check_stream_timestamp
@@ -656,6 +661,11 @@ class SequentialMosaicker:
         self.step_summaries: deque = deque(maxlen=o.history_steps)
         # the last window step's summary, kept whatever history_steps (0 keeps none above)
         self.last_step_summary = None
+        # the last window step's solve time (s): the C++ step_time_s of each of its solves
+        # summed, the first and any redo (a gated sample's, a failed step's recovery); its
+        # summary has the last one's only
+        self.last_step_solve_s = 0.0
+        self._step_solve_s = 0.0  # (the step's so far)
         self.num_steps = 0
         # Frames handed out unplaced because the plane passes through their camera centre:
         # they never join the keyframe reservoir, so they are forgotten by the C++ window once
@@ -838,6 +848,7 @@ class SequentialMosaicker:
         saved["_recent"] = deque(self._recent, maxlen=self._recent.maxlen)
         saved["step_summaries"] = deque(self.step_summaries, maxlen=self.step_summaries.maxlen)
         saved["last_step_summary"] = self.last_step_summary  # (read-only: never mutated)
+        saved["last_step_solve_s"] = self.last_step_solve_s
         saved["_pending"] = [dict(p, timings=dict(p["timings"])) for p in self._pending]
         saved["rng"] = self.rng.bit_generator.state
         saved["keyframes"] = self.keyframes.snapshot()
@@ -908,6 +919,7 @@ class SequentialMosaicker:
         """window.step / redo; afterwards the solved frames are fixed at their new poses."""
         self._window_touched = True
         summary = summary_call(*args)
+        self._step_solve_s += summary.step_time_s
         self._mark_motion_gated(ids, summary.motion_released_ids)
         for k in ids:
             _, emt, scale, _, timing = self._mirror_frames[k]
@@ -1019,6 +1031,16 @@ class SequentialMosaicker:
         world = world_alignment(raw)
         if world is None and self._world is None:
             return sample
+        self._move_startup(world)
+        sample = poses_to_aligned(raw, world)
+        R = _core.rotation_from_angle_axis(sample[:3])
+        self._trusted = (timestamp, -R.T @ sample[3:], R)
+        return sample
+
+    def _move_startup(self, world: WorldAlignment | None) -> None:
+        """During the start-up: its samples (pending, the glitch filter's reference and the
+        recent ones) moved from the current world into `world`, which becomes the current one.
+        The provisional plane and the samples' departures, of the old world, are dropped."""
 
         def move(pose):
             return None if pose is None else poses_to_aligned(
@@ -1028,11 +1050,49 @@ class SequentialMosaicker:
                               departure=None)  # (from samples in the old world)
                          for p in self._pending]
         self._samples = {i: move(z) for i, z in self._samples.items()}
+        if self._trusted is not None:
+            t0, centre, R = self._trusted
+            pose = move(np.concatenate([_core.angle_axis_from_rotation(R), -R @ centre]))
+            R = _core.rotation_from_angle_axis(pose[:3])
+            self._trusted = (t0, -R.T @ pose[3:], R)
         self._world, self._startup_plane = world, None
-        sample = poses_to_aligned(raw, world)
-        R = _core.rotation_from_angle_axis(sample[:3])
-        self._trusted = (timestamp, -R.T @ sample[3:], R)
-        return sample
+
+    def _recentre_near_plane(self, usable: list) -> bool:
+        """Before the start-up adjusts: when the plane of its registered pairs with tracker
+        poses (`usable`) lies near the world's origin (world.origin_near_plane: pi = n / d is
+        then ill-conditioned), the world becomes tracked_world's of the start-up's tracked
+        cameras, centred on one (as ba-emt's), and the start-up's samples move into it, their
+        departures from constant velocity judged again there; True then. The world was
+        decided by the first tracker sample, before any plane (module world.py). The plane is
+        estimated in that centred world, where it is well-conditioned whatever the tracker's
+        origin (in the tracker's a plane through its origin has no pi)."""
+        _, table = self._pending_tracker_poses()
+        raw = poses_from_aligned(table, self._world)
+        centred = tracked_world(raw, recentre=True)
+        if same_world(centred, self._world):
+            return False
+        aligned = poses_to_aligned(raw, centred)
+        try:
+            plane = estimate_plane(self._renumbered(usable), aligned, self.K)
+        except ValueError:  # no pair has a baseline: the plane the start-up will assume
+            plane = plane_facing(aligned[np.isfinite(aligned).all(axis=1)],
+                                 self.options.nominal_plane_distance_mm)
+        with np.errstate(divide="ignore", invalid="ignore"):  # (not finite: through it)
+            here = plane_to_aligned(plane_from_aligned(plane, centred), self._world)
+        if not origin_near_plane(table, here):
+            return False
+        self._move_startup(centred)
+        samples = {p["id"]: p["tracker"] for p in self._pending if p["tracker"] is not None}
+        times = {p["id"]: p["timestamp"] for p in self._pending}
+        for p in self._pending:  # (new dicts, from _move_startup)
+            k = p["id"]
+            if k in samples and k - 1 in samples and k - 2 in samples:
+                timing = self._timing(k, times)
+                if np.isfinite(timing[1]):
+                    p["departure"] = tracker_motion_departure(
+                        samples[k - 2], samples[k - 1], samples[k], self._costs.motion_sigma,
+                        self._costs.emt_sigma, timing)
+        return True
 
     def _add_frame(self, k, image, timestamp, tracker_pose) -> FrameResult:
         self._next_id += 1
@@ -1465,13 +1525,22 @@ class SequentialMosaicker:
         structure tied to 2 samples leaves (the homographies within 0.02 px after 12); the
         nominal start converged in 4-23 to the ~1300 of the visual noise."""
         usable = [m for m in self._boot_matches if m.frame_l in tracked and m.frame_m in tracked]
-        planes = [estimate_plane(self._renumbered(usable), table, self.K)]
-        if self._startup_untracked():  # (all tracked: nothing is chained through the plane)
+        degenerate = None
+        try:
+            planes = [estimate_plane(self._renumbered(usable), table, self.K)]
+        except ValueError as exc:
+            # No pair has a baseline, and the images show no parallax (else _stuck_tracker
+            # refused the start-up): a camera held still, or a frozen tracker on one, given the
+            # nominal plane below as a camera held still with a noisy tracker gets it.
+            planes, degenerate = [], exc
+        if not planes or self._startup_untracked():  # (all tracked: nothing is chained)
             samples = np.array([tracked[k] for k in ids if k in tracked])
             with np.errstate(divide="ignore", invalid="ignore"):  # (checked below)
                 nominal = plane_facing(samples, self.options.nominal_plane_distance_mm)
-            if np.isfinite(nominal).all():  # (not through the tracker's origin)
+            if np.isfinite(nominal).all():  # (not through the world's origin)
                 planes.append(nominal)
+        if not planes:  # (the nominal plane through the origin: _recentre_near_plane moves it)
+            raise degenerate
         rows = self._startup_rows()
         boot = self._renumbered(self._boot_matches)
         starts = [(plane, fill_missing_poses(chain_missing_poses(
@@ -1492,27 +1561,60 @@ class SequentialMosaicker:
                         [probe.pose(k) for k in ids])
         return best[1], best[2]
 
-    def _std_refusal(self, std: float, pairs: int, tracked: dict) -> str:
-        """Why a start-up plane of relative std `std` from `pairs` registered pairs is refused
-        (`tracked`: the samples it used, for _units_hint)."""
-        return (f"the plane the start-up estimated from {pairs} registered pairs has a "
+    def _stuck_tracker(self, usable: list, tracked: dict) -> str | None:
+        """Why the start-up refuses its tracker samples, or None: when the two samples of every
+        registered pair with tracker poses (`usable`) lie at one position (no pair has a
+        baseline, plane.MIN_PAIR_BASELINE) while the images show parallax
+        (homography_parallax above MAX_NOMINAL_PARALLAX): the camera moved, the tracker did
+        not. Without parallax either, it is a camera held still, given the nominal plane
+        (_initial_plane, _bootstrap). Before, both raised "cannot estimate the plane: every
+        pair was degenerate" out of add_frame at every frame from the start-up's on."""
+        centres = {k: -_core.rotation_from_angle_axis(z[:3]).T @ z[3:]
+                   for k, z in tracked.items()}
+        if any(np.linalg.norm(centres[m.frame_l] - centres[m.frame_m]) >= MIN_PAIR_BASELINE
+               for m in usable):
+            return None
+        parallax = homography_parallax(usable, self.K)
+        if not parallax > MAX_NOMINAL_PARALLAX:
+            return None
+        frames = sorted({k for m in usable for k in (m.frame_l, m.frame_m)})
+        return (f"the tracker did not move while the camera did: the tracker samples of the "
+                f"{len(frames)} start-up frames of its {len(usable)} registered pairs put "
+                "every pair's two cameras at the same position, yet the images show parallax "
+                f"({parallax:.2g} of the depth, 90th percentile; a camera held still shows "
+                "none). The tracker is frozen: it resends its last pose (a stalled stream, or "
+                "a sensor it no longer sees); check that tracker_pose is a live sample for "
+                "each frame")
+
+    def _std_refusal(self, std: float, usable: list, tracked: dict) -> str:
+        """Why a start-up plane of relative std `std` from the registered pairs `usable` is
+        refused (`tracked`: the samples it used, for _units_hint)."""
+        return (f"the plane the start-up estimated from {len(usable)} registered pairs has a "
                 + ("relative standard deviation that the images leave unbounded (too few "
                    "pairs, or pairs that do not see it)" if np.isinf(std) else
                    f"relative standard deviation of {std:.2g}")
                 + f" (startup_max_plane_std {self.options.startup_max_plane_std:g})"
-                + self._units_hint(pairs, tracked))
+                + self._units_hint(usable, tracked))
 
-    @staticmethod
-    def _units_hint(pairs: int, tracked: dict) -> str:
+    def _units_hint(self, usable: list, tracked: dict, still: bool = True) -> str:
         """For a refused start-up: "; ... in mm?" when at least CONTRADICTING_PAIRS pairs
-        registered but the tracked camera centres lie within UNITS_BASELINE_MM of each other
-        (a tracker in metres: an 80-frame start-up on the SYN circle, 1131 pairs, was refused
-        as "too few pairs, or pairs that do not see it", its 33 mm of baseline read 0.033)."""
-        if pairs < CONTRADICTING_PAIRS or len(tracked) < 2:
+        (`usable`) registered but the tracked camera centres lie within UNITS_BASELINE_MM of
+        each other (a tracker in metres: an 80-frame start-up on the SYN circle, 1131 pairs, was
+        refused as "too few pairs, or pairs that do not see it", its 33 mm of baseline read
+        0.033), and the images show parallax. Without (homography_parallax at most
+        MAX_NOMINAL_PARALLAX) the camera was held still, which it says instead when `still`
+        (a still camera's noise-free samples, 0 mm apart, were asked whether they were in mm)."""
+        if len(usable) < CONTRADICTING_PAIRS or len(tracked) < 2:
             return ""
         spread = camera_baseline_mm(np.array(list(tracked.values())))
         if not spread < UNITS_BASELINE_MM:
             return ""
+        if not homography_parallax(usable, self.K) > MAX_NOMINAL_PARALLAX:
+            return (f"; its tracked camera centres lie within {spread:.2g} mm of each other "
+                    "and the images show no parallax: a camera held still, whose plane the "
+                    "images cannot place (assumed nominal_plane_distance_mm away once the "
+                    "start-up holds startup_wait_frames frames or the sequence ends)"
+                    if still else "")
         return (f"; yet its tracked camera centres lie within {spread:.2g} mm of each other: "
                 "are the tracker's translations in mm? (metres give a 1000x smaller baseline)")
 
@@ -1615,6 +1717,12 @@ class SequentialMosaicker:
         if not usable:
             return False
         refused_pairs = len(usable)  # (counted as _startup_due counts them)
+        self._startup_problem = self._stuck_tracker(usable, tracked)
+        if self._startup_problem:  # (no solve: tried again when the pairs grow)
+            self._startup_refused = (refused_pairs, len(self._pending), self._next_id)
+            return False
+        if self._recentre_near_plane(usable):
+            tracked, table = self._pending_tracker_poses()
         o = self.options
         # frames with a registered pair: the checks below look at these only (a black frame
         # or one looking away while the scope goes in sees no plane, and proves nothing)
@@ -1673,7 +1781,7 @@ class SequentialMosaicker:
                     if not summary["plane_relative_std"] <= limit:
                         self._startup_refused = (refused_pairs, len(ids), self._next_id)
                         self._startup_problem = self._std_refusal(
-                            summary["plane_relative_std"], len(usable), tracked
+                            summary["plane_relative_std"], usable, tracked
                         ) + self._disagreement(ba, tracked)
                         return False
                     ba, summary = self._solve_startup(ids, tracked, table, timing, start=ba)
@@ -1741,14 +1849,14 @@ class SequentialMosaicker:
                        "percentile), so the tracker's poses likely contradict them: check that "
                        f"{CONVENTIONS_AND_TIMING}")
             else:
+                held = (baseline_ratio(checked_poses, np.asarray(ba.plane()))
+                        < MIN_BASELINE_RATIO)
                 why = ("too few pairs or too short a baseline to initialise it (the start-up "
                        "cameras' centres lie within "
                        f"{camera_baseline_mm(checked_poses):.3g} mm of each other" + (
                            "; a camera held still or only turning about its axis gives the "
-                           "images no parallax"
-                           if baseline_ratio(checked_poses, np.asarray(ba.plane()))
-                           < MIN_BASELINE_RATIO else "") + ")"
-                       + self._units_hint(len(usable), tracked))
+                           "images no parallax" if held else "") + ")"
+                       + self._units_hint(usable, tracked, still=not held))
             self._startup_problem = (
                 f"the plane the start-up estimated from {len(usable)} registered pairs is not "
                 f"in front of frames {behind[:5]}{' ...' if len(behind) > 5 else ''}: {why}"
@@ -1763,7 +1871,7 @@ class SequentialMosaicker:
         if limit > 0 and not std <= limit and (
                 np.isinf(std) or not must_decide):
             self._startup_refused = (refused_pairs, len(ids), self._next_id)
-            self._startup_problem = (self._std_refusal(std, len(usable), tracked)
+            self._startup_problem = (self._std_refusal(std, usable, tracked)
                                      + self._disagreement(ba, tracked))
             return False
         self.bootstrap_summary = summary
@@ -1846,6 +1954,7 @@ class SequentialMosaicker:
         glitched = [p["id"] for p in self._pending if p.get("motion_glitch")]
         tracked = {p["id"] for p in self._pending if p["tracker"] is not None} - set(glitched)
         hold = not (visual or tracked)
+        self._step_solve_s = 0.0  # (every solve of the step: _win_solved adds each)
         if any(p["held"] for p in self._pending):  # frames held back by the last step
             summary = self._win_solved(ids, self.window.redo, ids, keyframe_ids, hold)
         else:
@@ -1868,11 +1977,16 @@ class SequentialMosaicker:
         self._trust_the_estimate(gated)
         self.step_summaries.append(summary)
         self.last_step_summary = summary
+        # Each frame's window_solve: its share of all the step's solves. The last summary's
+        # time alone left out the first solve of every step redone for a gated sample (SYN
+        # 200 frames, tracker noise x 4: 54 of 54 steps redone, the frames' window_solve
+        # summed to 136 of the 292 ms solved; review).
+        self.last_step_solve_s = self._step_solve_s
         self.num_steps += 1
         self._plane = np.asarray(self.window.plane())
         gated += [k for k in glitched if k not in gated]
         self._finalize(ids, [self.window.pose(k) for k in ids], gated,
-                       summary.step_time_s / len(ids), t_kf / len(ids), final_step, anchored,
+                       self._step_solve_s / len(ids), t_kf / len(ids), final_step, anchored,
                        failed)
 
     def _trust_the_estimate(self, gated) -> None:
@@ -2031,12 +2145,15 @@ class SequentialMosaicker:
             if self._reference_pose is None:
                 self._reference_pose, self._reference_id = reference, k
             centroid = self._centroid(G)
+            # (KeyframeIndex.add skips a centroid that is not finite: an outline point that G
+            # sends to infinity; stored, it made every later K-means raise; review)
             forget += self.keyframes.add(k, centroid)
             dead_reckoned = anchored is not None and k not in anchored
             solver_failed = k in failed
             if dead_reckoned or solver_failed:
                 self._unanchored = self._unanchored | {k}
-            elif k % self.options.frames_per_cluster == self.options.frames_per_cluster // 2:
+            elif (k % self.options.frames_per_cluster == self.options.frames_per_cluster // 2
+                  and np.isfinite(centroid).all()):
                 feats = p.pop("features", None)
                 if feats is not None and len(feats):
                     self._loop_feats[k] = feats
@@ -2293,7 +2410,7 @@ def run_lba_emt(dataset, *, progress: bool = True,
         """Results made final by the last call, and the time of its step (at most one)."""
         if mosaicker.num_steps > len(step_times):
             summary = mosaicker.last_step_summary  # (step_summaries may keep none)
-            step_times.append(summary.step_time_s)
+            step_times.append(mosaicker.last_step_solve_s)  # (with its redo, if any)
             plane_steps.append((summary.plane_relative_std, summary.plane_held))
             if solver_warning(summary, o.max_iterations):
                 unconverged.append(summary.termination)

@@ -192,7 +192,11 @@ def measure_sequential(frames: int, detector: str = "orb", seed: int = 0) -> dic
     latency = np.zeros(frames)
     G = np.full((frames, 3, 3), np.nan)
 
+    steps: list[float] = []  # each window step's solve time, with its redo if any
+
     def collect(results) -> None:
+        if mosaicker.num_steps > len(steps):  # (step_summaries keep the last solve only)
+            steps.append(mosaicker.last_step_solve_s)
         for r in results:
             G[r.frame_id] = r.homography
 
@@ -206,7 +210,6 @@ def measure_sequential(frames: int, detector: str = "orb", seed: int = 0) -> dic
     collect(mosaicker.flush())
     latency[-1] += time.perf_counter() - t
     steady = latency[options.bootstrap_frames + STEADY_AFTER_STARTUP:]
-    steps = [s.step_time_s for s in mosaicker.step_summaries]
     errors = frame_errors(G, scene.homographies, *scene.size)
     return {
         "frames": frames, "size": list(scene.size), "detector": detector,
