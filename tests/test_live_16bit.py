@@ -199,6 +199,8 @@ def test_a_frame_of_another_size_is_refused_without_blaming_a_pixel_type(pcle, t
     """camera.yaml gives a size, no pixel type: the reason names the sizes only."""
     events = _stream(pcle, lambda k, im: (im if k < 10 else im[:100, :120]).astype(np.uint16))
     assert _live(pcle, tmp_path, events) == 0
-    why = "a 120x100 image, camera.yaml says 192x160 (width x height)"
-    assert _report(tmp_path)["live"]["source"]["frames_refused"] == {why: N - 10}
-    assert why in capsys.readouterr().err
+    why = "an image of another size than camera.yaml's 192x160 (width x height)"
+    source = _report(tmp_path)["live"]["source"]
+    assert source["frames_refused"] == {why: N - 10}
+    assert source["frames_refused_details"] == {why: "a 120x100 image"}
+    assert f"{why}: a 120x100 image" in capsys.readouterr().err

@@ -980,28 +980,34 @@ def _pixels(dtype) -> str:
     return f"{np.dtype(dtype).itemsize * 8}-bit"
 
 
-def _live_image_problem(image: np.ndarray, camera, first: tuple | None) -> str | None:
+def _live_image_problem(image: np.ndarray, camera,
+                        first: tuple | None) -> tuple[str, str | None] | None:
     """Why a received frame (io.igtl: alpha dropped) is refused, None if it is not: its pixel
     type, layout, size against camera.yaml's, or its kind (gray / colour, 8 / 16-bit) against
-    the first frame accepted, `first` (ndim, dtype): a recording is all one kind. Nothing that
-    changes from frame to frame (report.json counts frames per reason)."""
+    the first frame accepted, `first` (ndim, dtype): a recording is all one kind. Returned as
+    (the kind of problem, this frame's figures or None): report.json counts frames per kind,
+    and a kind holds nothing that changes from frame to frame. A stream changing size made a
+    kind per size, each told and counted apart: 100 in 100 frames (review). (A pixel type
+    stays in its kind's text: pyigtl decodes eight.)"""
     if image.dtype not in (np.uint8, np.uint16):
-        return f"a {image.dtype} image, expected 8- or 16-bit unsigned pixels (uint8, uint16)"
+        return (f"a {image.dtype} image, expected 8- or 16-bit unsigned pixels (uint8, uint16)",
+                None)
     if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] != 3):
-        return (f"an image of shape {'x'.join(map(str, image.shape))}, expected a gray (rows x "
-                "columns) or colour (rows x columns x 3, or 4 with alpha) image")
+        return ("an image neither gray (rows x columns) nor colour (rows x columns x 3, or 4 "
+                "with alpha)", f"shape {'x'.join(map(str, image.shape))}")
     if image.shape[:2] != (camera.height, camera.width):
-        return (f"a {image.shape[1]}x{image.shape[0]} image, camera.yaml says "
-                f"{camera.width}x{camera.height} (width x height)")
+        return (f"an image of another size than camera.yaml's {camera.width}x{camera.height} "
+                "(width x height)", f"a {image.shape[1]}x{image.shape[0]} image")
     if first is None:
         return None
     ndim, dtype = first
     if image.ndim != ndim:
         return (f"a {'colour' if image.ndim == 3 else 'gray'} image after "
-                f"{'colour' if ndim == 3 else 'gray'} ones (a recording is one or the other)")
+                f"{'colour' if ndim == 3 else 'gray'} ones (a recording is one or the other)",
+                None)
     if image.dtype != dtype:
         return (f"a {_pixels(image.dtype)} image after {_pixels(dtype)} ones (a "
-                "recording is all 8-bit or all 16-bit)")
+                "recording is all 8-bit or all 16-bit)", None)
     return None
 
 
@@ -1160,7 +1166,14 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
         takes_samples,
     )
     from fusedmosaic.io.calibration import Camera, read_camera_yaml
-    from fusedmosaic.io.igtl import STAMP_JUMP_CONFIRM, IgtlSource, StampJumps, format_address
+    from fusedmosaic.io.igtl import (
+        MAX_PROBLEM_KINDS,
+        OTHER_PROBLEMS,
+        STAMP_JUMP_CONFIRM,
+        IgtlSource,
+        StampJumps,
+        format_address,
+    )
     from fusedmosaic.io.recorder import DatasetRecorder
     from fusedmosaic.io.tracking import check_stream_timestamp, check_time_offset, hand_eye_matrix
 
@@ -1225,8 +1238,9 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                 and not is_blank(image, r.status)):
             view.add(image, r.homography)
 
-    rejected: dict[str, int] = {}  # why -> frames refused
+    rejected: dict[str, int] = {}  # why (its kind) -> frames refused
     first_refused: dict[str, int] = {}  # why -> the first such frame (the source's count)
+    refused_details: dict[str, str] = {}  # why -> the first such frame's figures (its size)
     after_limit = 0  # frames received once max_frames were recorded (not recorded)
     not_recorded: list[int] = []  # received frames the recorder had no room for (the first)
     backlog = _ReceiveBacklog()
@@ -1253,7 +1267,7 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
             after_limit += 1
             return False
         # pixel type, layout, size, kind against the first frame's
-        problem = _live_image_problem(image, camera, first)
+        problem, detail = _live_image_problem(image, camera, first) or (None, None)
         if problem is None and frame.timestamp == 0:  # (after stamped ones: io.igtl passes
             # it on; accepted after refused ones, it made every later frame 'a day after' it)
             problem = "no timestamp (0): the sender did not stamp it"
@@ -1285,12 +1299,18 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                         "one recorded is refused: end the session and start a new one (another "
                         "--record) to go on")
         if problem is not None:
+            if problem not in rejected and len(rejected) >= MAX_PROBLEM_KINDS:
+                # (bounded however long the session, as io.igtl counts its problems)
+                problem, detail = OTHER_PROBLEMS, problem + (f": {detail}" if detail else "")
             rejected[problem] = rejected.get(problem, 0) + 1
             if problem not in first_refused:  # told once per reason, then counted (a stream
                 # changing size was refused frame after frame without a word; audit)
                 first_refused[problem] = frame.index
+                if detail is not None:
+                    refused_details[problem] = detail
                 warn_from_receiver(f"live session: received frame {frame.index} refused, "
-                                   f"neither processed nor recorded: {problem}; such frames are "
+                                   f"neither processed nor recorded: {problem}"
+                                   f"{f': {detail}' if detail else ''}; such frames are "
                                    "counted (report.json live frames_refused)")
             return False
         if first is None and scale.given and image.dtype == np.uint8:
@@ -1352,8 +1372,13 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                                           else ": choose one with --image-device"))
 
     def refused() -> str:
-        return "".join(f"; frames refused: {n} x {why} (first: received frame "
-                       f"{first_refused[why]})" for why, n in rejected.items()) + other_images()
+        return "".join(f"; frames refused: {n} x {why} ({first_text(why)})"
+                       for why, n in rejected.items()) + other_images()
+
+    def first_text(why: str) -> str:
+        """'first: received frame 3, a 120x100 image': a refusal kind's first frame."""
+        detail = refused_details.get(why)
+        return f"first: received frame {first_refused[why]}" + (f", {detail}" if detail else "")
 
     def samples_heard(src) -> str:
         if src is None or transform_device is None:
@@ -1417,13 +1442,14 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
                            # the recording's samples are on the video's clock (stamped - offset)
                            "tracker_time_offset_s": offset,
                            "frames_received": src.received,
-                           # IMAGE messages failing their CRC64, dropped (None: not checked)
-                           "frames_corrupted": (src.corrupted_frames if src.frames_crc_checked
-                                                else None),
+                           # IMAGE messages failing their CRC64, dropped
+                           "frames_corrupted": src.corrupted_frames,
                            # IMAGE messages that could not be decoded, dropped (why -> count)
                            "frames_undecodable": dict(src.undecodable_frames),
                            "frames_refused": dict(rejected),
                            "frames_refused_first": dict(first_refused),
+                           # why -> the first such frame's figures (e.g. its size), where any
+                           "frames_refused_details": dict(refused_details),
                            # frames the recorder had no room for: neither recorded nor processed
                            "frames_not_recorded": recorder.frames_not_recorded,
                            "frames_not_recorded_first": not_recorded[0] if not_recorded else None,
@@ -1556,7 +1582,7 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     if rejected:
         lines.append(f"  frames  {sum(rejected.values())} received frame(s) refused, neither "
                      "processed nor recorded" + "".join(
-                         f"; {n} x {why} (first: received frame {first_refused[why]})"
+                         f"; {n} x {why} ({first_text(why)})"
                          for why, n in rejected.items()) + other_images())
     if scale.converted:
         lines.append(f"  frames  16-bit, mosaicked live as {scale.bits}-bit data (from "
