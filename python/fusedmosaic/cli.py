@@ -1253,7 +1253,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_tracked_camera_flags(
         live, transform="TRANSFORM (or POSITION: position + quaternion) device of the sensor on "
                         "the endoscope, tracker_from_sensor in mm, e.g. SensorToTracker (name "
-                        "it so: a sender that streams TrackerToSensor instead is inverted); "
+                        "it so: a sender that streams TrackerToSensor instead is inverted; "
+                        "SensorToTrackerTransform is taken too; names over OpenIGTLink's 20 "
+                        "bytes are matched by their IGTL_DEVICE_NAME metadata); "
                         "kalman-robot / robot: the robot's; required except for ncc (images "
                         "alone; given, its samples are recorded as robot.csv)",
         default=None, transform_required=False)
