@@ -219,16 +219,19 @@ def test_drift_fig8(drift_results):
 
 
 def test_lba_close_to_ba_emt(drift_results):
-    # The issue asks <= 1.25x. Measured by bench/bench_lba_experiments.py on SYN 152, seeds 0-3:
-    # 1.50 / 1.98 / 0.54 / 1.02 x ba-emt (all pairs), ratio of the means 1.28, all under 0.15 px.
-    # Even BA+EMT over only the frames seen so far (a causal method with a full adjustment per
-    # step) is 1.18 / 1.51 / 0.79 / 1.05 x. The bound asserted here is the weaker 2x; the 1.25x
-    # goal is not met on every seed (see the issue note).
+    # The issue asks <= 1.25x. Measured by bench/bench_lba_experiments.py on SYN 152, seeds 0-3
+    # (defaults, session 48): 1.58 / 1.85 / 0.68 / 0.74 x ba-emt (all pairs), ratio of the means
+    # 1.19, all under 0.14 px. Even BA+EMT over only the frames seen so far (a causal method with
+    # a full adjustment per step) is 1.25 / 1.42 / 0.94 / 0.96 x. The bound asserted here is the
+    # weaker 2x; the 1.25x goal is not met on every seed (see the issue note).
     assert drift_results["lba-emt"]["e_M_px"] <= 2.0 * drift_results["ba-emt"]["e_M_px"]
 
 
 def test_emt_noise_fig9(work):
-    """Seven EMT noise multipliers over 17 frames: LBA stays flat, EMT+true plane grows."""
+    """Seven EMT noise multipliers over 17 frames: LBA stays flat, EMT+true plane grows.
+
+    On seed 11 (one seed: the max/min <= 2 holds on 5 of seeds 0-7 and 11 with the defaults,
+    bench/bench_lba_experiments.py, session 48; 'below EMT from nu = 1' on all 9)."""
     nus = [0.25, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0]
     lba, emt = [], []
     from fusedmosaic.estimation.bundle import run_emt
