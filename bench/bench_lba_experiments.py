@@ -13,7 +13,7 @@ simulator (issue 4, item 5). The suite runs short versions (tests/test_sequentia
    adjustment of everything seen so far would reach (the paper's assumption (ii) without LBA's
    window), against which lba-emt's e_M can be read.
 2. EMT noise (Fig. 9): 17 frames (a 6-frame start-up bundle adjustment so most frames go through
-   the window), noise multipliers nu = 0.25 ... 4: lba-emt (paper's and estimated Sigma_p) vs the
+   the window), noise multipliers nu = 0.25 ... 4: lba-emt (the three configurations) vs the
    EMT poses with the true plane, over the seeds --fig9-seeds (default 0-7 and 11: the first
    eight seeds, Fig. 8's 0-3 among them, and 11, the one seed of the earlier single-seed runs and
    of tests/test_sequential.py, kept so the two can be compared; no seed was picked or dropped by
@@ -32,12 +32,17 @@ simulator (issue 4, item 5). The suite runs short versions (tests/test_sequentia
    (bench/results/fig10/).
 
 Done when (issue 4, item 5), evaluated by done_when() into the JSON's "done_when" and the
-markdown's first table, for both configurations side by side, neither chosen as the headline:
+markdown's first table, for three configurations side by side, none chosen as the headline:
 "defaults" (what the package ships: the paper's appendix Sigma_p, SequentialOptions() /
-BundleOptions()) and "sec42" (the paper's Sec. 4.2 protocol: Sigma_p estimated from an
-independent sequence, what `--motion-sigma-from` does). Per seed, with "holds on k of n seeds":
-the two differ most on Fig. 10 (black frames 18.5 px off with the defaults, 0.56 px with the
-estimated Sigma_p, session 47's run).
+BundleOptions()), "sec42" (the paper's Sec. 4.2 protocol: Sigma_p estimated from an
+independent sequence, what `--motion-sigma-from` does) and "measured-sigma-v" (the defaults,
+with the visual cost's sigma_v set to what a defaults run measured on the same recording,
+report.json visual_agreement.robust_std_px, as README tells users to give it back with
+--visual-sigma: two runs per recording, nothing taken from the truth). Per seed, with "holds on
+k of n seeds": defaults and sec42 differ most on Fig. 10 (black frames 18.5 px off with the
+defaults, 0.56 px with the estimated Sigma_p, session 47's run); the measured sigma_v (~0.09 px
+against the paper's 1 px) flattens Fig. 9 (max/min 1.00-1.02 on all of seeds 0-7, 11-13 in a
+session-48 trial, against 1.39-6.60 with the defaults).
 
     python bench/bench_lba_experiments.py [--seeds 4] [--fig9-seeds 0 1 ... 11] [--quick]
                                           [--out bench/results/lba_experiments.json]
@@ -89,6 +94,13 @@ def syn(n: int, seed: int, **kw) -> FetoscopyOptions:
 def independent_sigma(n: int, seed: int) -> tuple:
     """Sigma_p from an independent SYN sequence (another seed), as the paper's Sec. 4.2."""
     return tuple(estimate_motion_sigma(generate_fetoscopy(syn(n, seed + 100)).poses))
+
+
+def measured_sigma_v(res) -> float:
+    """The keypoints' noise a run measured on its recording (report.json
+    visual_agreement.robust_std_px: its inlier transfer residuals' robust std), what README
+    says to give back with --visual-sigma."""
+    return float(res.details["visual_agreement"]["robust_std_px"])
 
 
 def errors(ds, res) -> np.ndarray:
@@ -156,24 +168,31 @@ def drift(work: Path, seeds: int, n: int) -> list[dict]:
         row: dict = {"seed": seed}
         e = errors(ds, run_pairwise(ds, progress=False))
         row["pairwise"] = {"e_M_px": mosaic_error(e), "drift_ratio": drift_ratio(e)}
-        for label, sigma in (("paper", None), ("estimated", est)):
-            for method, res in (
-                ("lba-emt", run_lba_emt(ds, progress=False,
-                                        options=SequentialOptions(motion_sigma=sigma))),
-                ("ba-emt", run_ba_emt(ds, progress=False,
-                                      options=BundleOptions(motion_sigma=sigma))),
-            ):
+        defaults: dict = {}  # method -> its defaults run (whose report measures sigma_v)
+        for label, sigma in (("paper", None), ("estimated", est), ("measured", None)):
+            for method in ("lba-emt", "ba-emt"):
+                # (measured: the defaults with the sigma_v their own run measured)
+                sv = {} if label != "measured" else {"sigma_v_px": measured_sigma_v(
+                    defaults[method])}
+                res = (run_lba_emt(ds, progress=False,
+                                   options=SequentialOptions(motion_sigma=sigma, **sv))
+                       if method == "lba-emt" else
+                       run_ba_emt(ds, progress=False,
+                                  options=BundleOptions(motion_sigma=sigma, **sv)))
+                if label == "paper":
+                    defaults[method] = res
                 e = errors(ds, res)
                 row[f"{method} {label}"] = {
                     "e_M_px": mosaic_error(e), "drift_ratio": drift_ratio(e),
-                    "e_M_without_global_px": global_part_removed(ds, res)}
+                    "e_M_without_global_px": global_part_removed(ds, res), **sv}
             row[f"ratio {label}"] = ratio(row[f"lba-emt {label}"]["e_M_px"],
                                           row[f"ba-emt {label}"]["e_M_px"])
         causal = causal_ba_emt(ds, SequentialOptions().bootstrap_frames)
         row["causal ba-emt paper"] = {"e_M_px": causal,
                                       "ratio_to_ba": ratio(causal, row["ba-emt paper"]["e_M_px"])}
         print(f"drift seed {seed}: lba/ba paper {row['ratio paper']:.2f}, "
-              f"estimated {row['ratio estimated']:.2f}, causal ba/ba "
+              f"estimated {row['ratio estimated']:.2f}, measured sigma_v "
+              f"{row['ratio measured']:.2f}, causal ba/ba "
               f"{row['causal ba-emt paper']['ratio_to_ba']:.2f}", flush=True)
         rows.append(row)
     return rows
@@ -199,18 +218,24 @@ def emt_noise(work: Path, seeds) -> list[dict]:
             ds = read_dataset(root)
             plane = np.array(json.loads((root / "truth_plane.json").read_text())["plane"])
             row: dict = {"nu": nu}
-            for label, sigma in (("paper", None), ("estimated", est)):
+            first = None  # the defaults run, whose report measures sigma_v
+            for label, sigma in (("paper", None), ("estimated", est), ("measured", None)):
+                sv = {} if label != "measured" else {"sigma_v_px": measured_sigma_v(first)}
                 res = run_lba_emt(ds, progress=False, options=SequentialOptions(
-                    bootstrap_frames=FIG9_BOOTSTRAP, motion_sigma=sigma))
+                    bootstrap_frames=FIG9_BOOTSTRAP, motion_sigma=sigma, **sv))
+                if label == "paper":
+                    first = res
                 row[f"lba-emt {label} e_M_px"] = mosaic_error(errors(ds, res))
+                if sv:
+                    row["measured sigma_v_px"] = sv["sigma_v_px"]
             row["emt true plane e_M_px"] = mosaic_error(
                 errors(ds, run_emt(ds, progress=False, plane=plane)))
             rows.append(row)
         out.append({"seed": seed, "estimated_sigma_p": list(est), "rows": rows})
         flat = {lab: _max_over_min([r[f"lba-emt {lab} e_M_px"] for r in rows])
-                for lab in ("paper", "estimated")}
+                for lab in ("paper", "estimated", "measured")}
         print(f"emt noise seed {seed}: lba-emt max/min paper {fmt(flat['paper'])}, estimated "
-              f"{fmt(flat['estimated'])}", flush=True)
+              f"{fmt(flat['estimated'])}, measured sigma_v {fmt(flat['measured'])}", flush=True)
     return out
 
 
@@ -240,7 +265,15 @@ CONFIGS = {  # done_when's configurations -> (key suffix in the runs' results, d
     "sec42": ("estimated", "paper Sec. 4.2 protocol: Sigma_p estimated from an independent "
                            "sequence of the same kind (seed + 100, true poses), as "
                            "`--motion-sigma-from` does; other options default"),
+    "measured-sigma-v": ("measured", "the defaults with the visual cost's sigma_v measured on "
+                                     "the recording itself: report.json "
+                                     "visual_agreement.robust_std_px of a defaults run, given "
+                                     "back with `--visual-sigma` (README; ba-emt and lba-emt "
+                                     "each its own)"),
 }
+# what each configuration's key means in run names and headings
+SETTING = {"paper": "paper Sigma_p", "estimated": "estimated Sigma_p",
+           "measured": "paper Sigma_p, measured sigma_v"}
 DRIFT_RATIO_MAX = 1.3  # issue 4: lba-emt drift ratio <= 1.3 ...
 PAIRWISE_DRIFT_MIN = 2.0  # ... while pairwise > 2
 LBA_OVER_BA_MAX = 1.25  # lba-emt e_M <= 1.25 x ba-emt e_M
@@ -259,7 +292,7 @@ def per_seed(values, holds) -> dict:
 
 def _black_row(res: dict, label: str) -> dict | None:
     """Fig. 10's lba-emt row as shipped (prior-only frames held) with `label`'s Sigma_p."""
-    name = f"lba-emt, held, {label} Sigma_p"
+    name = f"lba-emt, held, {SETTING[label]}"
     return next((r for r in res["black"]["rows"] if r["run"] == name), None)
 
 
@@ -271,8 +304,14 @@ def done_when(res: dict) -> dict:
     criteria = []
 
     def add(key, experiment, criterion, entry):
+        def one(c, lab):
+            try:
+                return entry(c, lab)
+            except KeyError:  # (a result from before the configuration existed)
+                return {"not_run": "not in this result"}
+
         criteria.append({"id": key, "experiment": experiment, "criterion": criterion,
-                         **{c: entry(c, lab) for c, (lab, _) in CONFIGS.items()}})
+                         **{c: one(c, lab) for c, (lab, _) in CONFIGS.items()}})
 
     fig8 = f"Fig. 8, SYN {res['drift_frames']} frames"
     add("fig8_lba_drift_ratio", fig8, f"lba-emt drift ratio <= {DRIFT_RATIO_MAX}",
@@ -405,23 +444,29 @@ def black_frames(work: Path, n: int, results: Path) -> dict:
     _, truth = read_poses_csv(root / "truth_poses.csv")
     plane = np.array(json.loads((root / "truth_plane.json").read_text())["plane"])
     out: dict = {"frames": n, "black_frames": black, "estimated_sigma_p": list(est), "rows": []}
-    for label, sigma in (("paper", None), ("estimated", est)):
-        runs = [(f"lba-emt, fixed at once, {label} Sigma_p", run_lba_emt(
+    defaults: list = []  # the paper rows' runs, whose reports measure sigma_v
+    for label, sigma in (("paper", None), ("estimated", est), ("measured", None)):
+        sv = ([{}] * 3 if label != "measured" else
+              [{"sigma_v_px": measured_sigma_v(r)} for r in defaults])
+        runs = [(f"lba-emt, fixed at once, {SETTING[label]}", run_lba_emt(
                     ds, progress=False, options=SequentialOptions(
-                        motion_sigma=sigma, hold_prior_only_steps=0))),
-                (f"lba-emt, held, {label} Sigma_p", run_lba_emt(
-                    ds, progress=False, options=SequentialOptions(motion_sigma=sigma))),
-                (f"ba-emt, {label} Sigma_p", run_ba_emt(
-                    ds, progress=False, options=BundleOptions(motion_sigma=sigma)))]
-        for name, res in runs:
+                        motion_sigma=sigma, hold_prior_only_steps=0, **sv[0]))),
+                (f"lba-emt, held, {SETTING[label]}", run_lba_emt(
+                    ds, progress=False, options=SequentialOptions(motion_sigma=sigma,
+                                                                  **sv[1]))),
+                (f"ba-emt, {SETTING[label]}", run_ba_emt(
+                    ds, progress=False, options=BundleOptions(motion_sigma=sigma, **sv[2])))]
+        if label == "paper":
+            defaults = [r for _, r in runs]
+        for (name, res), given in zip(runs, sv, strict=True):
             e = errors(ds, res)
             out["rows"].append({
                 "run": name, "placed": int(np.isfinite(e).sum()),
                 "black e_M_px": float(np.nanmean(e[mask])),
                 "textured e_M_px": float(np.nanmean(e[~mask])),
                 "ratio": ratio(float(np.nanmean(e[mask])), float(np.nanmean(e[~mask]))),
-                "worst black e_j_px": float(np.nanmax(e[mask]))})
-        out["rows"].append({"run": f"floor: C_EMT + C_p, true textured poses, {label} Sigma_p",
+                "worst black e_j_px": float(np.nanmax(e[mask])), **given})
+        out["rows"].append({"run": f"floor: C_EMT + C_p, true textured poses, {SETTING[label]}",
                             "black e_M_px": black_floor(ds, truth, plane, set(black), sigma)})
     # Fig. 10b-c: the run's report plots the plane and pose components against truth and EMT.
     report_dir = work / "fig10_run"
@@ -443,6 +488,8 @@ def markdown(res: dict) -> str:
     lines += done_when_markdown(res.get("done_when") or done_when(res)) + [""]
     lines += [f"## Drift (Fig. 8): SYN {res['drift_frames']} frames, per seed"]
     for conf, (label, _) in CONFIGS.items():
+        if any(f"lba-emt {label}" not in r for r in res["drift"]):
+            continue  # (not run in this result)
         rows = []
         for r in res["drift"]:
             lba, ba = r[f"lba-emt {label}"], r[f"ba-emt {label}"]
@@ -450,7 +497,7 @@ def markdown(res: dict) -> str:
                          fmt(r[f"ratio {label}"]), fmt(lba["e_M_without_global_px"], 3),
                          fmt(ba["e_M_without_global_px"], 3), fmt(lba["drift_ratio"]),
                          fmt(r["pairwise"]["drift_ratio"])])
-        lines += ["", f"**{conf}** ({label} Sigma_p):", ""]
+        lines += ["", f"**{conf}** ({SETTING[label]}):", ""]
         lines += md_table(["seed", "lba-emt e_M", "ba-emt e_M", "lba/ba", "lba e_M w/o global",
                            "ba e_M w/o global", "lba drift", "pairwise drift"], rows)
     lines += ["", "Causal reference, paper Sigma_p (defaults; frames a..b-1 from BA+EMT over the "
@@ -464,8 +511,10 @@ def markdown(res: dict) -> str:
                         fmt(ratio(r["lba-emt paper"]["e_M_px"],
                                   r["causal ba-emt paper"]["e_M_px"]))] for r in res["drift"]])
     for conf, (label, _) in CONFIGS.items():
-        s = res["drift_summary"][label]
-        lines.append(f"\nMean over seeds, {conf} ({label} Sigma_p): lba-emt {s['lba']:.3f} px, "
+        s = res["drift_summary"].get(label)
+        if not s:
+            continue
+        lines.append(f"\nMean over seeds, {conf} ({SETTING[label]}): lba-emt {s['lba']:.3f} px, "
                      f"ba-emt {s['ba']:.3f} px, ratio of means {s['ratio_of_means']:.2f}; "
                      f"without the global part {s['lba_wo']:.3f} vs {s['ba_wo']:.3f} px "
                      f"({s['ratio_wo']:.2f}).")
@@ -496,14 +545,16 @@ def markdown(res: dict) -> str:
     lines += ["", f"## Loss of visual content (Fig. 10): {b['frames']} frames, black "
               f"{b['black_frames']}"]
     for conf, (label, _) in CONFIGS.items():
-        lines += ["", f"**{conf}** ({label} Sigma_p; lba-emt, held is the shipped "
+        if not any(r["run"].endswith(f", {SETTING[label]}") for r in b["rows"]):
+            continue
+        lines += ["", f"**{conf}** ({SETTING[label]}; lba-emt, held is the shipped "
                   "hold_prior_only_steps):", ""]
         lines += md_table(["run", "placed", "black e_M px", "textured e_M px", "black/textured",
                            "worst black px"],
                           [[r["run"], r.get("placed", "–"), fmt(r["black e_M_px"], 3),
                             fmt(r.get("textured e_M_px"), 3), fmt(r.get("ratio")),
                             fmt(r.get("worst black e_j_px"))]
-                           for r in b["rows"] if r["run"].endswith(f", {label} Sigma_p")])
+                           for r in b["rows"] if r["run"].endswith(f", {SETTING[label]}")])
     lines += ["", "Plots of the sec42 (estimated Sigma_p) lba-emt run (plane and pose against "
               "truth and the tracker): " + ", ".join(b["plots"])]
     return "\n".join(lines) + "\n"
@@ -541,7 +592,7 @@ def main() -> None:
     res["drift_frames"] = n
     res["drift"] = drift(work, seeds, n)
     res["drift_summary"] = {}
-    for label in ("paper", "estimated"):
+    for label in ("paper", "estimated", "measured"):
         mean = {k: float(np.mean([r[f"{m} {label}"][f] for r in res["drift"]]))
                 for k, m, f in (("lba", "lba-emt", "e_M_px"), ("ba", "ba-emt", "e_M_px"),
                                 ("lba_wo", "lba-emt", "e_M_without_global_px"),
