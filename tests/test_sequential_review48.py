@@ -242,6 +242,10 @@ def test_a_frame_without_a_finite_centroid_does_not_jam_later_steps(scene, monke
     assert len(m.keyframes) > options.num_clusters  # (K-means ran on them)
     assert 10 not in ids and 11 in ids and np.isfinite(centroids).all()
     assert 10 not in m._loop_centroids and 13 in m._loop_centroids
+    # in no keyframe block, it left the window as an orphan once unused; it stayed to the end,
+    # with its pairs, before (review Z)
+    assert 10 not in m._mirror_frames and {9, 11} <= set(m._mirror_frames)  # (no eviction)
+    assert not any(10 in key for key in m._mirror_pairs)
 
 
 # ------------------------------------ R finding M5: window_solve with the step's redo

@@ -13,7 +13,7 @@ import pytest
 from fusedmosaic.cli import main
 from fusedmosaic.estimation import bundle
 from fusedmosaic.estimation.consistency import TransferResiduals, visual_agreement
-from fusedmosaic.estimation.sequential import run_lba_emt
+from fusedmosaic.estimation.sequential import SequentialOptions, run_lba_emt
 from fusedmosaic.io import read_dataset
 from fusedmosaic.io.calibration import read_camera_yaml, write_camera_yaml
 from fusedmosaic.simulation import FetoscopyOptions, simulate_fetoscopy
@@ -145,3 +145,24 @@ def test_live_replay_reports_it(syn, tmp_path):
                  "--no-report", "--live"]) == 0
     agreement = json.loads((out / "report.json").read_text())["visual_agreement"]
     assert agreement["points"] > 1000 and 0.05 < agreement["robust_std_px"] < 0.2
+
+
+def test_lba_emt_counts_each_registered_pair_once(tmp_path):
+    """The keyframe index forgets blocks of consecutive frames; their pairs among themselves
+    were counted under both frames (review Z: 888 pairs said for 601 registered)."""
+    root = tmp_path / "evicting"
+    simulate_fetoscopy(root, FetoscopyOptions(n_frames=120, laps=120 / 37.5, width=200,
+                                              height=200))
+    result = run_lba_emt(read_dataset(root), progress=False,
+                         options=SequentialOptions(max_keyframe_blocks=3))
+    assert result.details["visual_agreement"]["pairs"] == \
+        result.details["pairs"]["registered"]
+    assert result.details["pairs"]["registered"] > 300  # (the blocks were evicted: 601)
+
+
+def test_a_pair_with_an_unplaced_frame_is_left_out():
+    acc = TransferResiduals()
+    K, plane = np.eye(3), np.array([0.0, 0.0, -1.0])
+    acc.add(np.full(6, np.nan), np.zeros(6), plane, np.zeros((3, 2)), np.zeros((3, 2)), K)
+    acc.add(np.zeros(6), np.zeros(6), np.full(3, np.nan), np.zeros((3, 2)), np.zeros((3, 2)), K)
+    assert acc.points == acc.pairs == 0

@@ -136,7 +136,7 @@ def crc64(data: Any) -> int:
     """CRC-64/ECMA-182 of a contiguous buffer (bytes, bytearray, memoryview, a C-contiguous
     array), OpenIGTLink's message body check: polynomial 0x42F0E1EBA9EA3693, MSB first, initial
     value 0, no final xor. The GIL is released while it runs. TypeError for what is not a
-    contiguous buffer.
+    buffer (a str); ValueError / BufferError for one that is not contiguous.
     """
 
 def match_hamming(

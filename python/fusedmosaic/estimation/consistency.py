@@ -258,7 +258,10 @@ class TransferResiduals:
 
     def add(self, cam_l, cam_m, plane, points_l, points_m, camera_matrix) -> None:
         """One pair's residuals at cam_l / cam_m (cam_from_world, (6,)) and ``plane``; the
-        non-finite ones (a camera on the plane) are left out."""
+        non-finite ones (a camera on the plane) are left out, and a pair whose poses or plane
+        are not finite (an unplaced frame) as a whole."""
+        if not all(np.isfinite(np.asarray(x, np.float64)).all() for x in (cam_l, cam_m, plane)):
+            return
         transferred = _core.transfer_points(np.asarray(points_m, np.float64), cam_l, cam_m,
                                             plane, camera_matrix)
         d = transferred - np.asarray(points_l, np.float64)

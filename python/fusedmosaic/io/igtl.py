@@ -361,9 +361,13 @@ class IgtlSource:
         self.host, self.port = parse_address(address)
         self.where = f"OpenIGTLink {format_address(self.host, self.port)}"
         # (the .mha field name, as import takes it: its device is the name without the suffix)
-        self.transform_device = _device_of_field(transform_device)
-        self._inverse_device = (None if transform_device is None else
-                                inverse_device_name(self.transform_device, self.where))
+        # the name as given and, for 'XToYTransform' (the .mha field name, as import takes it),
+        # 'XToY' too: a device really named '...Transform' (Slicer names devices after its
+        # transform nodes) stays reachable (review Z); the inverse of each
+        self.transform_device = transform_device
+        self._devices = _device_names(transform_device)
+        self._inverse_devices = tuple(inverse_device_name(name, self.where)
+                                      for name in self._devices)
         self.image_device = image_device
         self.rgb = rgb
         self.orientation_required = orientation_required
@@ -652,9 +656,10 @@ class IgtlSource:
         its inverse, None when neither (or no transform device is asked for)."""
         if self.transform_device is None:
             return None
-        if _is_device(device, full, self.transform_device):
+        if any(_is_device(device, full, name) for name in self._devices):
             return False
-        return True if _is_device(device, full, self._inverse_device) else None
+        return True if any(_is_device(device, full, name)
+                           for name in self._inverse_devices) else None
 
     def _ignore(self, device: str) -> None:
         """Lists a device heard and not read in `ignored_devices`, up to MAX_PROBLEM_KINDS
@@ -783,14 +788,21 @@ class IgtlSource:
             self.on_sample(sample)  # invalid ones too: the recording keeps the dropout
 
 
-def _device_of_field(name: str | None) -> str | None:
-    """A requested transform device: 'SensorToTrackerTransform' (the .mha field name, as
-    import's --transform takes it: io.plus._transform_field) -> 'SensorToTracker', PLUS's
-    device of that field; other names as they are."""
+def _device_names(name: str | None) -> tuple[str, ...]:
+    """The devices a requested transform device names: itself and, for
+    'SensorToTrackerTransform' (the .mha field name, as import's --transform takes it:
+    io.plus._transform_field), 'SensorToTracker', PLUS's device of that field; () for None."""
+    if name is None:
+        return ()
     suffix = "Transform"
-    if name is not None and name.endswith(suffix) and len(name) > len(suffix):
-        return name[:-len(suffix)]
-    return name
+    if name.endswith(suffix) and len(name) > len(suffix):
+        stripped = name[:-len(suffix)]
+        try:  # (a stripped name that is no <From>To<To> is not PLUS's)
+            inverse_device_name(stripped)
+        except ValueError:
+            return (name,)
+        return (name, stripped)
+    return (name,)
 
 
 def _full_name(message) -> str | None:
