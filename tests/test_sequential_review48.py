@@ -5,13 +5,12 @@ when they do not (before, both raised "every pair was degenerate" out of add_fra
 keyframe centroid that is not finite is skipped; a frame's window_solve counts every solve of
 its step. Small frames (200x200) and an 8-frame start-up keep every run to a few seconds."""
 
-import csv
 import re
-import shutil
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from test_bundle_review44 import tracking_variant  # a dataset copy with tracking.csv changed
 from test_sequential_robustness import SIZE, Scene  # the 24-frame SYN scene of 200 px frames
 
 from fusedmosaic import _core
@@ -104,17 +103,6 @@ def base(work):
                                                                height=SIZE, laps=N / 37.5))
 
 
-def tracking_variant(src, dst, change):
-    """A copy of dataset src whose tracking.csv rows (lists of strings) pass through change."""
-    shutil.copytree(src, dst)
-    path = dst / "tracking.csv"
-    with path.open(newline="") as f:
-        rows = list(csv.reader(f))
-    with path.open("w", newline="") as f:
-        csv.writer(f).writerows([rows[0], *change(rows[1:])])
-    return read_dataset(dst)
-
-
 def mean_error(result, dataset):
     G = result.homographies
     truth = rereferenced(dataset.ground_truth, 0)
@@ -131,7 +119,7 @@ def test_the_offline_run_recentres_a_world_whose_origin_is_near_the_plane(base, 
             r[3] = repr(float(r[3]) - 29.8)
         return rows
 
-    near = tracking_variant(base, work / "near", shift)
+    near = read_dataset(tracking_variant(base, work / "near", shift))
     reference = run_lba_emt(read_dataset(base), progress=False)
     r = run_lba_emt(near, progress=False)
     assert r.details["warnings"] == [] and r.details["plane_relative_std"] < 0.05
