@@ -17,6 +17,8 @@ hand_eye.txt inverted ~4 for a 60 deg / 20 mm hand-eye, but ~1 for the simulator
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 
 from fusedmosaic import _core
@@ -276,10 +278,8 @@ class TransferResiduals:
         self.sum_squares += float(np.sum(r**2))
 
     def copy(self) -> TransferResiduals:
-        other = TransferResiduals()
-        other.counts, other.points, other.pairs = self.counts, self.points, self.pairs
-        other.sum_squares = self.sum_squares
-        return other
+        """A snapshot (add replaces, never mutates, what it holds)."""
+        return copy.copy(self)
 
     def robust_std(self) -> float:
         """1.4826 x the median |r| (the bin's geometric centre, within 0.5 %); NaN when

@@ -942,12 +942,11 @@ class SequentialMosaicker:
         index = self._mirror_pair_index
         # (through the index: rebuilding _mirror_pairs without the forgotten frames' pairs cost
         # 0.49 ms an eviction at ~5000 pairs, every 5 frames once the window is full; review)
-        residuals = self._forgotten_residuals.copy()
         # (each pair once: the keyframe index forgets a block of consecutive frames, whose
-        # pairs among themselves appear under both frames; 8940 counted for 8340 pairs)
+        # pairs among themselves appear under both frames; 8940 counted for 8340 pairs. add()
+        # replaces the accumulator's arrays, so _save's shallow copy stays the snapshot)
         for key in {key for k in gone for key in index.get(k, ()) if key in self._mirror_pairs}:
-            self._add_residuals(residuals, key)
-        self._forgotten_residuals = residuals
+            self._add_residuals(self._forgotten_residuals, key)
         for k in gone:
             self._mirror_frames.pop(k, None)
             for key in index.pop(k, ()):
