@@ -497,6 +497,11 @@ class WindowRecorder:
             self.log.line("set_plane " + _pose(plane))
         return self._window.set_plane(plane)
 
+    def set_sigma_v(self, sigma_v_px):
+        if self.log:
+            self.log.line(f"set_sigma_v {float(sigma_v_px)!r}")
+        return self._window.set_sigma_v(sigma_v_px)
+
     def set_emt_sigma_scale(self, k, scale):
         if self.log:
             self.log.line(f"set_emt_sigma_scale {int(k)} {float(scale)!r}")

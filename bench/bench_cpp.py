@@ -140,6 +140,8 @@ def load_problem(path: Path) -> dict:
             p["calls"].append((name, (np.array(rest, float),)))
         elif name == "set_emt_sigma_scale":
             p["calls"].append((name, (int(rest[0]), float(rest[1]))))
+        elif name == "set_sigma_v":
+            p["calls"].append((name, (float(rest[0]),)))
         elif name == "expect" and p["kind"] == "ba":
             p["expect"][int(rest[0])] = np.array(rest[1:], float)
         elif name == "expect":
@@ -227,6 +229,8 @@ def python_replay(p: dict, repeats: int) -> dict:
                 w.set_plane(a[0])
             elif name == "set_emt_sigma_scale":
                 w.set_emt_sigma_scale(*a)
+            elif name == "set_sigma_v":
+                w.set_sigma_v(*a)
             elif name == "forget":
                 w.forget(a[0])
             elif name == "expect":

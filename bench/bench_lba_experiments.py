@@ -33,16 +33,15 @@ simulator (issue 4, item 5). The suite runs short versions (tests/test_sequentia
 
 Done when (issue 4, item 5), evaluated by done_when() into the JSON's "done_when" and the
 markdown's first table, for three configurations side by side, none chosen as the headline:
-"defaults" (what the package ships: the paper's appendix Sigma_p, SequentialOptions() /
-BundleOptions()), "sec42" (the paper's Sec. 4.2 protocol: Sigma_p estimated from an
-independent sequence, what `--motion-sigma-from` does) and "measured-sigma-v" (the defaults,
-with the visual cost's sigma_v set to what a defaults run measured on the same recording,
-report.json visual_agreement.robust_std_px, as README tells users to give it back with
---visual-sigma: two runs per recording, nothing taken from the truth). Per seed, with "holds on
-k of n seeds": defaults and sec42 differ most on Fig. 10 (black frames 18.5 px off with the
-defaults, 0.56 px with the estimated Sigma_p, session 47's run); the measured sigma_v (~0.09 px
-against the paper's 1 px) flattens Fig. 9 (max/min 1.00-1.02 on all of seeds 0-7, 11-13 in a
-session-48 trial, against 1.39-6.60 with the defaults).
+"defaults" (what the package ships: the paper's appendix Sigma_p and the visual sigma_v
+measured on the recording, sigma_v_px "auto", SequentialOptions() / BundleOptions()), "sec42"
+(the paper's Sec. 4.2 protocol: Sigma_p estimated from an independent sequence, what
+`--motion-sigma-from` does) and "paper-sigma-v" (the defaults with the paper's sigma_v = 1 px,
+`--visual-sigma 1`, the default before session 49). Per seed, with "holds on k of n seeds":
+defaults and sec42 differ most on Fig. 10 (black frames 18.5 px off with the appendix Sigma_p,
+0.56 px with the estimated one, session 47's run); the paper's 1 px (~11 x the simulated
+keypoints' 0.09 px) lets the tracker's noise into Fig. 9 (max/min 1.39-3.66 over seeds 0-7 and
+11 in session 48, 1.00-1.02 with the sigma_v measured).
 
     python bench/bench_lba_experiments.py [--seeds 4] [--fig9-seeds 0 1 ... 11] [--quick]
                                           [--out bench/results/lba_experiments.json]
@@ -96,11 +95,12 @@ def independent_sigma(n: int, seed: int) -> tuple:
     return tuple(estimate_motion_sigma(generate_fetoscopy(syn(n, seed + 100)).poses))
 
 
-def measured_sigma_v(res) -> float:
-    """The keypoints' noise a run measured on its recording (report.json
-    visual_agreement.robust_std_px: its inlier transfer residuals' robust std), what README
-    says to give back with --visual-sigma."""
-    return float(res.details["visual_agreement"]["robust_std_px"])
+PAPER_SIGMA_V = {"sigma_v_px": 1.0}  # the paper's (Sec. 4.2); "paper-sigma-v"
+
+
+def sigma_v_used(res) -> float:
+    """The visual cost's sigma_v a run used (report.json visual_sigma.sigma_v_px)."""
+    return float(res.details["visual_sigma"]["sigma_v_px"])
 
 
 def errors(ds, res) -> np.ndarray:
@@ -168,31 +168,27 @@ def drift(work: Path, seeds: int, n: int) -> list[dict]:
         row: dict = {"seed": seed}
         e = errors(ds, run_pairwise(ds, progress=False))
         row["pairwise"] = {"e_M_px": mosaic_error(e), "drift_ratio": drift_ratio(e)}
-        defaults: dict = {}  # method -> its defaults run (whose report measures sigma_v)
-        for label, sigma in (("paper", None), ("estimated", est), ("measured", None)):
+        for label, sigma in (("paper", None), ("estimated", est), ("sigma1", None)):
             for method in ("lba-emt", "ba-emt"):
-                # (measured: the defaults with the sigma_v their own run measured)
-                sv = {} if label != "measured" else {"sigma_v_px": measured_sigma_v(
-                    defaults[method])}
+                sv = PAPER_SIGMA_V if label == "sigma1" else {}
                 res = (run_lba_emt(ds, progress=False,
                                    options=SequentialOptions(motion_sigma=sigma, **sv))
                        if method == "lba-emt" else
                        run_ba_emt(ds, progress=False,
                                   options=BundleOptions(motion_sigma=sigma, **sv)))
-                if label == "paper":
-                    defaults[method] = res
                 e = errors(ds, res)
                 row[f"{method} {label}"] = {
                     "e_M_px": mosaic_error(e), "drift_ratio": drift_ratio(e),
-                    "e_M_without_global_px": global_part_removed(ds, res), **sv}
+                    "e_M_without_global_px": global_part_removed(ds, res),
+                    "sigma_v_px": sigma_v_used(res)}
             row[f"ratio {label}"] = ratio(row[f"lba-emt {label}"]["e_M_px"],
                                           row[f"ba-emt {label}"]["e_M_px"])
         causal = causal_ba_emt(ds, SequentialOptions().bootstrap_frames)
         row["causal ba-emt paper"] = {"e_M_px": causal,
                                       "ratio_to_ba": ratio(causal, row["ba-emt paper"]["e_M_px"])}
         print(f"drift seed {seed}: lba/ba paper {row['ratio paper']:.2f}, "
-              f"estimated {row['ratio estimated']:.2f}, measured sigma_v "
-              f"{row['ratio measured']:.2f}, causal ba/ba "
+              f"estimated {row['ratio estimated']:.2f}, paper sigma_v "
+              f"{row['ratio sigma1']:.2f}, causal ba/ba "
               f"{row['causal ba-emt paper']['ratio_to_ba']:.2f}", flush=True)
         rows.append(row)
     return rows
@@ -218,24 +214,21 @@ def emt_noise(work: Path, seeds) -> list[dict]:
             ds = read_dataset(root)
             plane = np.array(json.loads((root / "truth_plane.json").read_text())["plane"])
             row: dict = {"nu": nu}
-            first = None  # the defaults run, whose report measures sigma_v
-            for label, sigma in (("paper", None), ("estimated", est), ("measured", None)):
-                sv = {} if label != "measured" else {"sigma_v_px": measured_sigma_v(first)}
+            for label, sigma in (("paper", None), ("estimated", est), ("sigma1", None)):
+                sv = PAPER_SIGMA_V if label == "sigma1" else {}
                 res = run_lba_emt(ds, progress=False, options=SequentialOptions(
                     bootstrap_frames=FIG9_BOOTSTRAP, motion_sigma=sigma, **sv))
-                if label == "paper":
-                    first = res
                 row[f"lba-emt {label} e_M_px"] = mosaic_error(errors(ds, res))
-                if sv:
-                    row["measured sigma_v_px"] = sv["sigma_v_px"]
+                row[f"lba-emt {label} sigma_v_px"] = sigma_v_used(res)
             row["emt true plane e_M_px"] = mosaic_error(
                 errors(ds, run_emt(ds, progress=False, plane=plane)))
             rows.append(row)
         out.append({"seed": seed, "estimated_sigma_p": list(est), "rows": rows})
         flat = {lab: _max_over_min([r[f"lba-emt {lab} e_M_px"] for r in rows])
-                for lab in ("paper", "estimated", "measured")}
-        print(f"emt noise seed {seed}: lba-emt max/min paper {fmt(flat['paper'])}, estimated "
-              f"{fmt(flat['estimated'])}, measured sigma_v {fmt(flat['measured'])}", flush=True)
+                for lab in ("paper", "estimated", "sigma1")}
+        print(f"emt noise seed {seed}: lba-emt max/min defaults {fmt(flat['paper'])}, estimated "
+              f"Sigma_p {fmt(flat['estimated'])}, paper sigma_v {fmt(flat['sigma1'])}",
+              flush=True)
     return out
 
 
@@ -260,20 +253,18 @@ def _max_over_min(values) -> float | None:
 # -- Done when (issue 4, item 5) --------------------------------------------------------------
 
 CONFIGS = {  # done_when's configurations -> (key suffix in the runs' results, description)
-    "defaults": ("paper", "shipped defaults: the paper's appendix Sigma_p, SequentialOptions() / "
+    "defaults": ("paper", "shipped defaults: the paper's appendix Sigma_p, sigma_v measured on "
+                          "the recording (sigma_v_px 'auto'), SequentialOptions() / "
                           "BundleOptions()"),
     "sec42": ("estimated", "paper Sec. 4.2 protocol: Sigma_p estimated from an independent "
                            "sequence of the same kind (seed + 100, true poses), as "
                            "`--motion-sigma-from` does; other options default"),
-    "measured-sigma-v": ("measured", "the defaults with the visual cost's sigma_v measured on "
-                                     "the recording itself: report.json "
-                                     "visual_agreement.robust_std_px of a defaults run, given "
-                                     "back with `--visual-sigma` (README; ba-emt and lba-emt "
-                                     "each its own)"),
+    "paper-sigma-v": ("sigma1", "the defaults with the paper's sigma_v = 1 px (Sec. 4.2; "
+                                "`--visual-sigma 1`), the default before session 49"),
 }
 # what each configuration's key means in run names and headings
 SETTING = {"paper": "paper Sigma_p", "estimated": "estimated Sigma_p",
-           "measured": "paper Sigma_p, measured sigma_v"}
+           "sigma1": "paper Sigma_p, paper sigma_v 1 px"}
 DRIFT_RATIO_MAX = 1.3  # issue 4: lba-emt drift ratio <= 1.3 ...
 PAIRWISE_DRIFT_MIN = 2.0  # ... while pairwise > 2
 LBA_OVER_BA_MAX = 1.25  # lba-emt e_M <= 1.25 x ba-emt e_M
@@ -444,10 +435,8 @@ def black_frames(work: Path, n: int, results: Path) -> dict:
     _, truth = read_poses_csv(root / "truth_poses.csv")
     plane = np.array(json.loads((root / "truth_plane.json").read_text())["plane"])
     out: dict = {"frames": n, "black_frames": black, "estimated_sigma_p": list(est), "rows": []}
-    defaults: list = []  # the paper rows' runs, whose reports measure sigma_v
-    for label, sigma in (("paper", None), ("estimated", est), ("measured", None)):
-        sv = ([{}] * 3 if label != "measured" else
-              [{"sigma_v_px": measured_sigma_v(r)} for r in defaults])
+    for label, sigma in (("paper", None), ("estimated", est), ("sigma1", None)):
+        sv = [PAPER_SIGMA_V if label == "sigma1" else {}] * 3
         runs = [(f"lba-emt, fixed at once, {SETTING[label]}", run_lba_emt(
                     ds, progress=False, options=SequentialOptions(
                         motion_sigma=sigma, hold_prior_only_steps=0, **sv[0]))),
@@ -456,16 +445,15 @@ def black_frames(work: Path, n: int, results: Path) -> dict:
                                                                   **sv[1]))),
                 (f"ba-emt, {SETTING[label]}", run_ba_emt(
                     ds, progress=False, options=BundleOptions(motion_sigma=sigma, **sv[2])))]
-        if label == "paper":
-            defaults = [r for _, r in runs]
-        for (name, res), given in zip(runs, sv, strict=True):
+        for name, res in runs:
             e = errors(ds, res)
             out["rows"].append({
                 "run": name, "placed": int(np.isfinite(e).sum()),
                 "black e_M_px": float(np.nanmean(e[mask])),
                 "textured e_M_px": float(np.nanmean(e[~mask])),
                 "ratio": ratio(float(np.nanmean(e[mask])), float(np.nanmean(e[~mask]))),
-                "worst black e_j_px": float(np.nanmax(e[mask])), **given})
+                "worst black e_j_px": float(np.nanmax(e[mask])),
+                "sigma_v_px": sigma_v_used(res)})
         out["rows"].append({"run": f"floor: C_EMT + C_p, true textured poses, {SETTING[label]}",
                             "black e_M_px": black_floor(ds, truth, plane, set(black), sigma)})
     # Fig. 10b-c: the run's report plots the plane and pose components against truth and EMT.
@@ -592,7 +580,7 @@ def main() -> None:
     res["drift_frames"] = n
     res["drift"] = drift(work, seeds, n)
     res["drift_summary"] = {}
-    for label in ("paper", "estimated", "measured"):
+    for label in ("paper", "estimated", "sigma1"):
         mean = {k: float(np.mean([r[f"{m} {label}"][f] for r in res["drift"]]))
                 for k, m, f in (("lba", "lba-emt", "e_M_px"), ("ba", "ba-emt", "e_M_px"),
                                 ("lba_wo", "lba-emt", "e_M_without_global_px"),

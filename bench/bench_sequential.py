@@ -52,6 +52,7 @@ import cv2
 import numpy as np
 
 from fusedmosaic import _core
+from fusedmosaic.estimation.consistency import starting_sigma_v
 from fusedmosaic.estimation.sequential import SequentialMosaicker, SequentialOptions
 from fusedmosaic.evaluation.benchmark import SYN_FRAMES_PER_LAP, syn_stream
 from fusedmosaic.evaluation.metrics import drift_ratio, frame_errors
@@ -81,7 +82,8 @@ VARIANTS = {
 }
 # Calls of the C++ window that change its state; replayed for the solver comparison.
 STATE_CALLS = ("add_frame", "add_pair", "set_plane", "step", "redo", "forget",
-               "set_emt_sigma_scale", "drop_emt_measurement", "set_motion_timing")
+               "set_emt_sigma_scale", "drop_emt_measurement", "set_motion_timing",
+               "set_sigma_v")
 # The times of a step record that add up over its solves (a gating redo's to its step's).
 SUMMED = ("step_ms", "solve_ms", "cpu_ms", "evaluation_ms", "linear_solver_ms",
           "preprocessor_ms", "iterations")
@@ -332,8 +334,8 @@ def replay(camera_matrix, calls, options: SequentialOptions, *, solver: str, thr
     """Re-runs recorded window calls on a fresh SlidingWindow configured like the mosaicker's,
     with the given linear solver, Ceres threads, fold_fixed_cameras and condense_pairs."""
     o = options
-    costs = _core.BundleAdjusterOptions(
-        sigma_v_px=o.sigma_v_px, loss=o.loss, linear_solver=solver,
+    costs = _core.BundleAdjusterOptions(  # (sigma_v "auto": the recorded set_sigma_v sets it)
+        sigma_v_px=starting_sigma_v(o.sigma_v_px), loss=o.loss, linear_solver=solver,
         max_iterations=o.max_iterations, function_tolerance=1e-6, num_threads=threads,
         condense_pairs=condense)
     if getattr(o, "motion_sigma", None) is not None:

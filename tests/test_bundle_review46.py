@@ -68,7 +68,9 @@ def test_levenberg_marquardt_at_its_limit_is_continued_with_dogleg(scenes, scene
     max_iterations" (a setting the CLI lacks). Now it is continued from there with dogleg to the
     minimum dogleg alone reaches, and the report says so."""
     dataset = scenes[scene]
-    r = run_ba_emt(dataset, progress=False)
+    # (the paper's sigma_v: "auto" solves again from the continuation's end with its own,
+    # test_auto_sigma_v_after_the_continuation)
+    r = run_ba_emt(dataset, progress=False, options=BundleOptions(sigma_v_px=1.0))
     solver = r.details["solver"]
     first = solver["continued_from"]
     assert first["trust_region"] == "levenberg_marquardt"
@@ -80,7 +82,8 @@ def test_levenberg_marquardt_at_its_limit_is_continued_with_dogleg(scenes, scene
     assert "world" not in r.details  # (ba-emt's: the tracker's, in mm)
     assert r.details["tracker_agreement"]["noise_ratio"] < MAX_NOISE_RATIO
     # the minimum: dogleg from the start ends at the same cost and poses
-    alone = run_ba_emt(dataset, progress=False, options=BundleOptions(trust_region="dogleg"))
+    alone = run_ba_emt(dataset, progress=False,
+                       options=BundleOptions(trust_region="dogleg", sigma_v_px=1.0))
     assert alone.details["solver"]["termination"] == "CONVERGENCE"
     assert "continued_from" not in alone.details["solver"]
     assert solver["final_cost"] == pytest.approx(alone.details["solver"]["final_cost"],
@@ -92,6 +95,27 @@ def test_levenberg_marquardt_at_its_limit_is_continued_with_dogleg(scenes, scene
     # session 47)
     assert e_M(r, dataset) < 0.75
     if scene == "near":  # the plane 2.15 mm from the cameras for 2.0 (2.28 where LM stopped)
+        assert plane_distance(r.poses, r.plane) == pytest.approx(truth_plane_distance(dataset),
+                                                                 rel=0.1)
+
+
+@pytest.mark.parametrize("scene", ["late", "near"])
+def test_auto_sigma_v_after_the_continuation(scenes, scene):
+    """sigma_v "auto" (the default, session 49) on the scenes where Levenberg-Marquardt stops at
+    its limit: measured at the dogleg continuation's end, solved again from there with it, the
+    continuation still reported; e_M as with 1 px, the plane where the truth is."""
+    dataset = scenes[scene]
+    r = run_ba_emt(dataset, progress=False)
+    solver = r.details["solver"]
+    assert solver["continued_from"]["termination"] == "NO_CONVERGENCE"
+    assert solver["sigma_v_from"]["trust_region"] == "dogleg"
+    assert solver["sigma_v_from"]["sigma_v_px"] == 1.0
+    assert solver["termination"] == "CONVERGENCE"
+    used = r.details["visual_sigma"]
+    assert used["mode"] == "auto" and 0.05 < used["sigma_v_px"] < 0.2
+    assert not any("iteration limit" in w for w in r.details["warnings"])
+    assert e_M(r, dataset) < 0.75
+    if scene == "near":
         assert plane_distance(r.poses, r.plane) == pytest.approx(truth_plane_distance(dataset),
                                                                  rel=0.1)
 

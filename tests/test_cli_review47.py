@@ -48,20 +48,33 @@ def tracked(tmp_path_factory):
 def test_visual_sigma_reaches_the_solver(tracked, tmp_path):
     import json
 
-    sigma = {}
-    for name, extra in (("default", []), ("given", ["--visual-sigma", "0.25"])):
+    sigma, used = {}, {}
+    for name, extra in (("default", []), ("given", ["--visual-sigma", "0.25"]),
+                        ("auto", ["--visual-sigma", "auto"])):
         out = tmp_path / name
         assert main(["--quiet", "run", str(tracked), "--method", "ba-emt", "--out", str(out),
                      "--no-report", "--detector", "orb", *extra]) == 0
-        sigma[name] = json.loads((out / "report.json").read_text())["parameters"]["sigma_v_px"]
-    assert sigma == {"default": 1.0, "given": 0.25}
+        report = json.loads((out / "report.json").read_text())
+        sigma[name] = report["parameters"]["sigma_v_px"]
+        used[name] = report["visual_sigma"]
+    assert sigma == {"default": "auto", "given": 0.25, "auto": "auto"}
+    assert used["given"] == {"mode": "given", "sigma_v_px": 0.25}
+    # auto (session 49): measured on the recording, ORB's keypoints (integer pixels of pyramid
+    # levels) well off the paper's 1 px, and the adjustment solved again with it
+    assert used["default"] == used["auto"]
+    assert used["default"]["mode"] == "auto"
+    assert used["default"]["sigma_v_px"] == used["default"]["measured_px"]
+    assert 0.2 < used["default"]["sigma_v_px"] < 0.9
 
 
 @pytest.mark.parametrize("method, value, message", [
     ("ba", "0.1", "--visual-sigma applies to ba-emt and lba-emt, not ba"),
     ("pairwise", "0.1", "--visual-sigma applies to ba-emt and lba-emt, not pairwise"),
-    ("lba-emt", "nan", r"--visual-sigma must be a standard deviation > 0 \(px\), got nan"),
-    ("ba-emt", "0", r"--visual-sigma must be a standard deviation > 0 \(px\), got 0.0"),
+    ("lba-emt", "nan",
+     r"--visual-sigma must be 'auto' or a standard deviation > 0 \(px\), got 'nan'"),
+    ("ba-emt", "0", r"--visual-sigma must be 'auto' or a standard deviation > 0 \(px\), got '0'"),
+    ("ba-emt", "measured",
+     r"--visual-sigma must be 'auto' or a standard deviation > 0 \(px\), got 'measured'"),
 ])
 def test_visual_sigma_refused(tracked, tmp_path, capsys, method, value, message):
     import re

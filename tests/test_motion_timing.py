@@ -351,19 +351,21 @@ def test_a_scope_spun_in_does_not_turn_the_mosaic(tmp_path, method):
     at the stop, pulled the textured frames: ba-emt 15.8 px e_M (43 px worst), lba-emt 584 px,
     against 1.43 / 1.71 px with five black frames tracked still at frame 0's pose (0.92 / 0.61
     without any: they take start-up places). The motion gate releases it: within 0.5 px of the
-    still ones (measured ba-emt 1.44, lba-emt 1.69 px)."""
+    still ones (measured ba-emt 1.44, lba-emt 1.69 px). (Measured with the paper's sigma_v of 1
+    px; with the one measured on the recording, the default since session 49, the images
+    resist C_p 120 x more: ba-emt 3.4 px without the gate. The scenario's check is made at 1 px.)"""
     root = simulate_fetoscopy(tmp_path / "syn", FetoscopyOptions(
         n_frames=24, width=200, height=200, laps=24 / 37.5, seed=3))
     ds = read_dataset(root)
 
-    def e_M(lead, gate):
+    def e_M(lead, gate, sigma_v="auto"):
         data = _spun_in(ds, lead)
         if method == "ba-emt":
-            res = run_ba_emt(data, progress=False, options=BundleOptions(motion_gate_chi2=gate,
-                                                                         features=FEW))
+            res = run_ba_emt(data, progress=False, options=BundleOptions(
+                motion_gate_chi2=gate, features=FEW, sigma_v_px=sigma_v))
         else:
             res = run_lba_emt(data, progress=False, options=SequentialOptions(
-                bootstrap_frames=8, motion_gate_chi2=gate, features=FEW))
+                bootstrap_frames=8, motion_gate_chi2=gate, features=FEW, sigma_v_px=sigma_v))
         released = res.details["motion_released"]  # in the report: the frames at the stop
         assert (released and max(released) <= len(lead) + 1) if np.isfinite(gate) and any(
             lead) else released == []
@@ -372,7 +374,10 @@ def test_a_scope_spun_in_does_not_turn_the_mosaic(tmp_path, method):
 
     still = e_M([0] * 5, MOTION_GATE_CHI2)
     assert e_M([150, 120, 90, 60, 30], MOTION_GATE_CHI2) < still + 0.5
-    assert e_M([150, 120, 90, 60, 30], np.inf) > still + 10.0  # the gate is what does it
+    # the gate is what does it (at the paper's sigma_v, where C_p pulls the images hardest)
+    paper_still = e_M([0] * 5, MOTION_GATE_CHI2, 1.0)
+    assert e_M([150, 120, 90, 60, 30], MOTION_GATE_CHI2, 1.0) < paper_still + 0.5
+    assert e_M([150, 120, 90, 60, 30], np.inf, 1.0) > paper_still + 10.0
 
 
 @pytest.mark.parametrize("glitched", [[13], [13, 14]])

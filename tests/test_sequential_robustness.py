@@ -227,7 +227,10 @@ def test_a_glitch_on_a_black_frame_is_the_sample_not_the_motion(scene, glitched,
     keeps every C_p and gates the samples. Measured e_M / worst: 0.60 / 3.9 px against 2.79 /
     27.4 px without the gate ([13]); 1.25 / 10.5 against 6.82 / 52.6 px ([13, 14]). Inside a
     16-frame start-up, which leaves them out: 0.47 / 0.9 against 1.19 / 9.2 px ([9]), 0.50 /
-    0.9 against 2.74 / 23.3 px ([9, 10]); not gated there before, the same as without."""
+    0.9 against 2.74 / 23.3 px ([9, 10]); not gated there before, the same as without.
+    (Measured with the paper's sigma_v of 1 px, where the comparison with the gate off is
+    made: with the sigma_v measured on the recording, the default since session 49, the images
+    resist the glitch more even without the gate.)"""
     frames = list(scene.frames)
     tracker = scene.tracker.copy()
     R = _core.rotation_from_angle_axis(np.array([np.deg2rad(20.0), 0.0, 0.0]))
@@ -236,9 +239,9 @@ def test_a_glitch_on_a_black_frame_is_the_sample_not_the_motion(scene, glitched,
         tracker[k, :3] = _core.angle_axis_from_rotation(
             R @ _core.rotation_from_angle_axis(tracker[k, :3]))
 
-    def run(gate):
-        m = SequentialMosaicker(scene.camera, SequentialOptions(bootstrap_frames=startup,
-                                                                motion_gate_chi2=gate))
+    def run(gate, sigma_v="auto"):
+        m = SequentialMosaicker(scene.camera, SequentialOptions(
+            bootstrap_frames=startup, motion_gate_chi2=gate, sigma_v_px=sigma_v))
         out = {}
         for k in range(N):
             m.add_frame(frames[k], scene.timestamps[k], tracker[k])
@@ -247,12 +250,13 @@ def test_a_glitch_on_a_black_frame_is_the_sample_not_the_motion(scene, glitched,
         G = np.stack([out[k].homography for k in range(N)])
         return frame_errors(G, scene.truth, SIZE, SIZE), out
 
-    on, out = run(22.46)
-    off, _ = run(np.inf)
-    assert not any(r.motion_released for r in out.values())
-    assert set(glitched) <= {k for k, r in out.items() if r.tracker_gated}
+    for sigma_v in ("auto", 1.0):
+        on, out = run(22.46, sigma_v)
+        assert not any(r.motion_released for r in out.values())
+        assert set(glitched) <= {k for k, r in out.items() if r.tracker_gated}
+        assert on.max() < 15.0  # px
+    off, _ = run(np.inf, 1.0)
     assert on.mean() < 0.5 * off.mean() and on.max() < 0.5 * off.max()
-    assert on.max() < 15.0  # px
 
 
 def test_no_motion_prior_released_on_a_steady_scan(scene):
@@ -574,9 +578,10 @@ def test_a_forced_late_tracker_startup_converges_at_the_windows_tolerance(tmp_pa
     used = trust_regions
     for trust_region in ("levenberg_marquardt", "dogleg"):
         used.clear()
+        # (the paper's sigma_v, with which the costs were measured; "auto" solves again)
         m = SequentialMosaicker(ds.camera, SequentialOptions(startup_max_iterations=200,
                                                              startup_trust_region=trust_region,
-                                                             features=FEW))
+                                                             features=FEW, sigma_v_px=1.0))
         for k in range(len(ds)):
             m.add_frame(ds.frames[k], float(ds.timestamps[k]),
                         ds.cam_from_world[k] if ds.pose_valid[k] else None)

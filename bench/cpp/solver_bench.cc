@@ -30,6 +30,7 @@
 //   solve                     (ba)
 //   step nk k1..knk           redo nf f1..fnf nk k1..knk      forget n id1..idn
 //   set_emt_sigma_scale id s  set_constant_frame id 0|1       set_pose id x1..x6
+//   set_sigma_v px            (window)
 //   expect id x1..x6          expect_plane p1 p2 p3           (poses after the last solve/step)
 //   end
 #include <algorithm>
@@ -234,6 +235,8 @@ Problem Load(const std::string& path) {
       int id = 0;
       if (!(in >> id >> c.value)) Fail(path, line, name + ": expected id scale");
       c.ids = {id};
+    } else if (name == "set_sigma_v") {
+      if (!(in >> c.value)) Fail(path, line, name + ": expected px");
     } else if (name == "set_constant_frame") {
       int id = 0, constant = 1;
       if (!(in >> id >> constant)) Fail(path, line, name + ": expected id 0|1");
@@ -397,6 +400,8 @@ std::string RunWindow(const Problem& p, int repeats) {
         window.SetPlane(c.plane);
       } else if (c.name == "set_emt_sigma_scale") {
         window.SetEmtSigmaScale(c.ids[0], c.value);
+      } else if (c.name == "set_sigma_v") {
+        window.SetSigmaV(c.value);
       } else if (c.name == "forget") {
         window.Forget(c.ids);
       } else if (c.name == "expect") {

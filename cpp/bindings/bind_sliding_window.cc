@@ -156,6 +156,11 @@ void BindSlidingWindow(py::module_& m) {
           "    long gap, the camera starting at the preceding one; see BundleAdjuster)")
       .def("set_emt_sigma_scale", &SlidingWindow::SetEmtSigmaScale, "frame_id"_a, "scale"_a,
            py::call_guard<py::gil_scoped_release>())
+      .def("set_sigma_v", &SlidingWindow::SetSigmaV, "sigma_v_px"_a,
+           py::call_guard<py::gil_scoped_release>(),
+           "The visual cost's sigma_v (px, finite, > 0) from the next step or redo on (every\n"
+           "pair held is weighed by it then).")
+      .def_property_readonly("sigma_v_px", &SlidingWindow::sigma_v_px)
       .def("drop_emt_measurement", &SlidingWindow::DropEmtMeasurement, "frame_id"_a,
            py::call_guard<py::gil_scoped_release>(),
            "Drops a frame's tracker measurement (an unusable sample, e.g. one putting the camera\n"

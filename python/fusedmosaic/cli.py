@@ -257,10 +257,6 @@ def _tracker_calibration(args: argparse.Namespace, methods) -> None:
             args.tracker_trans_sigma = cal.trans_sigma_mm
             said += (f", tracker noise {cal.rot_sigma_deg:.3g} deg / {cal.trans_sigma_mm:.3g} mm "
                      "per axis")
-            if getattr(args, "visual_sigma", None) is None:  # (bench/bench_visual_sigma.py)
-                said += ("; the keypoints keep the paper's 1 px, which goes with its looser "
-                         "1 deg / 1 mm: give their noise with --visual-sigma (a run's "
-                         "report.json visual_agreement.robust_std_px measures it; README)")
         _say(args, f"from {args.calibration}: {said}")
     if args.tracker_time_offset is None:
         args.tracker_time_offset = 0.0
@@ -290,16 +286,23 @@ def _emt_sigma(args: argparse.Namespace) -> dict:
 
 
 def _visual_sigma(args: argparse.Namespace) -> dict:
-    """{"sigma_v_px": px} from --visual-sigma, {} without it; only ba-emt and lba-emt weigh the
-    images against a prior (ba's visual cost alone does not depend on it)."""
+    """{"sigma_v_px": px or "auto"} from --visual-sigma, {} without it (the options' "auto");
+    only ba-emt and lba-emt weigh the images against a prior (ba's visual cost alone does not
+    depend on it)."""
     if args.visual_sigma is None:
         return {}
     if args.method not in ("ba-emt", "lba-emt"):
         raise ValueError(f"--visual-sigma applies to ba-emt and lba-emt, not {args.method}")
-    if not (np.isfinite(args.visual_sigma) and args.visual_sigma > 0):
-        raise ValueError(f"--visual-sigma must be a standard deviation > 0 (px), got "
-                         f"{args.visual_sigma}")
-    return {"sigma_v_px": float(args.visual_sigma)}
+    if args.visual_sigma == "auto":
+        return {"sigma_v_px": "auto"}
+    try:
+        value = float(args.visual_sigma)
+    except ValueError:
+        value = None
+    if value is None or not (np.isfinite(value) and value > 0):
+        raise ValueError(f"--visual-sigma must be 'auto' or a standard deviation > 0 (px), got "
+                         f"{args.visual_sigma!r}")
+    return {"sigma_v_px": value}
 
 
 def _lba_overrides(args: argparse.Namespace) -> dict:
@@ -1400,13 +1403,12 @@ def _add_lba_flags(parser: argparse.ArgumentParser, methods: str = "ba-emt / lba
     parser.add_argument("--tracker-trans-sigma", type=float, metavar="MM",
                         help=f"{methods}: the tracker's translation noise per axis, mm "
                              "(default: the paper's 1 mm)")
-    parser.add_argument("--visual-sigma", type=float, metavar="PX",
+    parser.add_argument("--visual-sigma", metavar="PX|auto",
                         help=f"{methods}: the keypoints' noise per axis in pixels, the visual "
-                             "cost's (default: the paper's 1 px, which goes with its 1 deg / 1 mm "
-                             "tracker noise); give it with a measured tracker noise "
-                             "(--calibration, --tracker-*-sigma): the simulator's keypoints are "
-                             "~0.1 px off; report.json visual_agreement.robust_std_px measures "
-                             "it on a recording")
+                             "cost's sigma_v (default auto: measured on the recording, by ba-emt "
+                             "over all frames, by lba-emt at its start-up, from the registered "
+                             "points' transfer residuals; report.json visual_sigma; the paper "
+                             "used 1 px)")
     parser.add_argument("--calibration", metavar="CALIB.json",
                         help=f"tracked methods: the tracker time offset and ({methods}) "
                              "the tracker noise per axis that calibrate measured on a "

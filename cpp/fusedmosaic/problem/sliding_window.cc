@@ -154,6 +154,20 @@ void SlidingWindow::SetEmtSigmaScale(int frame_id, double scale) {
   FindFrame(frame_id, "set_emt_sigma_scale").emt_sigma_scale = scale;
 }
 
+void SlidingWindow::SetSigmaV(double sigma_v_px) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (!(std::isfinite(sigma_v_px) && sigma_v_px > 0.0)) {
+    throw std::invalid_argument("sigma_v_px: must be finite and > 0, got " +
+                                FormatDouble(sigma_v_px));
+  }
+  options_.costs.sigma_v_px = sigma_v_px;
+}
+
+double SlidingWindow::sigma_v_px() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return options_.costs.sigma_v_px;
+}
+
 void SlidingWindow::DropEmtMeasurement(int frame_id) {
   std::lock_guard<std::mutex> lock(mutex_);
   Frame& frame = FindFrame(frame_id, "drop_emt_measurement");
@@ -534,7 +548,8 @@ WindowStepSummary SlidingWindow::SolveStep(const std::vector<int>& free_ids,
                                    released.end());
     solve(/*first=*/false);
   }
-  const double limit = options_.plane_max_relative_std;
+  // (the limit is stated for sigma_v = 1 px: see SlidingWindowOptions::plane_max_relative_std)
+  const double limit = options_.plane_max_relative_std * c.sigma_v_px;
   if (plane_free && limit > 0.0 && !failed()) {
     std::vector<double*> free_poses;
     for (int id : free_ids) free_poses.push_back(frames_.at(id).pose.data());

@@ -60,6 +60,11 @@ struct SlidingWindowOptions {
   // at its value before the step. Measured in normal operation (SYN, hand-held, with and
   // without black frames): 0.0004 to 0.0104. 0 disables the gate and its cost (one more
   // Jacobian evaluation per step, ~0.6 ms on SYN); plane_relative_std is then NaN.
+  // The value is for costs.sigma_v_px = 1 px (the paper's, with which it was measured); the
+  // step compares with it x sigma_v_px / 1 px: pi is observed through C_v alone, so its std
+  // scales with sigma_v. On the weak-texture scene with sigma_v 0.085 px (measured by the
+  // start-up), 0.02 held 3 steps (a frame 54 px off, the tracker alone 35 px), 0.02 x 0.085 the
+  // 37 that 0.02 holds at 1 px (27 px).
   double plane_max_relative_std = 0.02;
 
   void Validate() const;
@@ -141,6 +146,11 @@ class SlidingWindow {
                 double motion_ratio = 1.0, double motion_sigma_scale = 1.0);
   // Inflates the tracker standard deviations of a pending camera (gating, >= 1).
   void SetEmtSigmaScale(int frame_id, double scale);
+  // The visual cost's sigma_v (pixels, finite, > 0) from the next Step or Redo on: the caller
+  // measured the keypoints' noise (e.g. the start-up's transfer residuals). The C_v blocks are
+  // built at each step from costs, so every pair, held or new, is weighed by it from then on.
+  void SetSigmaV(double sigma_v_px);
+  double sigma_v_px() const;
   // Drops a camera's tracker measurement (a sample the caller found unusable, e.g. one that
   // puts the camera centre on the plane, so that the step's evaluation failed): no C_EMT term
   // for it any more, its sigma scale back to 1, and its pose is initialised again, from the

@@ -19,10 +19,14 @@ from tqdm import tqdm
 
 from fusedmosaic import _core
 from fusedmosaic.estimation.consistency import (
+    SIGMA_V_AUTO,
     TransferResiduals,
     add_tracker_agreement,
     check_emt_sigma,
+    check_sigma_v,
+    measured_sigma_v,
     solver_warning,
+    starting_sigma_v,
     tracker_agreement,
     visual_agreement,
 )
@@ -65,7 +69,11 @@ class BundleOptions:
     min_pair_separation: int = 4  # EMT-guided: frames apart between kept older frames
     window: int = 2  # "window" selection, and the seed pairs used to initialise the plane
     max_points_per_pair: int = 100  # inliers kept per pair (paper Table 1: 67-222 on average)
-    sigma_v_px: float = 1.0  # px, visual noise (Sec. 4.2)
+    # px, the keypoints' noise per axis (Sec. 4.2's sigma_v, 1 px there); "auto": measured on
+    # the recording by ba-emt (consistency.SIGMA_V_AUTO: solved with 1 px, then again with the
+    # transfer residuals' robust std; report.json "visual_sigma"). ba's visual cost alone and
+    # emt's tracker alone do not depend on it.
+    sigma_v_px: float | str = "auto"
     # Constant-velocity prior std devs (rad x3, mm x3); None = the paper's appendix values
     # (estimation/motion.py estimates them from an independent recording, as Sec. 4.2 did).
     motion_sigma: tuple[float, ...] | None = None
@@ -361,7 +369,8 @@ def _visual_initialisation(n: int, matches: list[PairMatch], K: np.ndarray) -> n
 
 def _adjuster(K, options: BundleOptions, use_emt: bool, plane_std: bool = False):
     costs = _core.BundleAdjusterOptions(
-        sigma_v_px=options.sigma_v_px, loss=options.loss, loss_scale_px=options.loss_scale_px,
+        sigma_v_px=starting_sigma_v(options.sigma_v_px), loss=options.loss,
+        loss_scale_px=options.loss_scale_px,
         linear_solver=options.linear_solver, trust_region=options.trust_region,
         max_iterations=options.max_iterations,
         num_threads=options.num_threads, use_emt=use_emt, use_motion_prior=use_emt,
@@ -376,37 +385,84 @@ def _adjuster(K, options: BundleOptions, use_emt: bool, plane_std: bool = False)
 
 def _continued_with_dogleg(first, summary, frames, pairs):
     """(adjuster, solver dict) of the adjustment `first` left by Levenberg-Marquardt at its
-    iteration limit (`summary`), solved on with Powell's dogleg (BundleOptions.trust_region)
-    from where it stopped: the same options, `frames` ((frame, sample or None, C_p timing)),
-    `pairs` ((frame_l, frame_m, points_l, points_m)) and the C_p blocks its motion gate
-    released. The dict is the continuation's summary with the whole adjustment's iterations,
-    initial cost, times and released blocks, and "continued_from": the first solve's
-    trust region, termination, iterations and final cost. A continuation Ceres fails leaves
-    the first solve's result (its dict, with "continuation_failed")."""
+    iteration limit (`summary`, a dict), solved on with Powell's dogleg
+    (BundleOptions.trust_region) from where it stopped: the same options, `frames` ((frame,
+    sample or None, C_p timing)), `pairs` ((frame_l, frame_m, points_l, points_m)) and the C_p
+    blocks its motion gate released. The dict is the continuation's summary with the whole
+    adjustment's iterations, initial cost, times and released blocks, and "continued_from": the
+    first solve's trust region, termination, iterations and final cost. A continuation Ceres
+    fails leaves the first solve's result (its dict, with "continuation_failed")."""
+    return _solved_on(first, summary, frames, pairs, "trust_region", "dogleg")
+
+
+def _solved_on(first, summary: dict, frames, pairs, field: str, value):
+    """(adjuster, solver dict): the adjustment `first` (its solve's `summary`, a dict) solved
+    again from its poses and plane with its options' `field` set to `value`, with `frames`,
+    `pairs` and the C_p blocks its motion gate released (see _continued_with_dogleg).
+    field "trust_region" (dogleg) records the first solve as "continued_from"; "sigma_v_px"
+    (the measured keypoint noise) as "sigma_v_from", keeping the first's "continued_from". A
+    second solve Ceres fails leaves the first's result, with "continuation_failed"."""
     options = first.options
-    options.trust_region = "dogleg"
+    start = getattr(options, field)
+    setattr(options, field, value)
     ba = _core.BundleAdjuster(first.camera_matrix, options)
-    released = {int(k) for k in summary.motion_released_ids}
+    released = {int(k) for k in summary["motion_released_ids"]}
     for k, z, timing in frames:
         ba.add_frame(k, first.pose(k), z, *(RELEASED if k in released else timing))
     for pair in pairs:
         ba.add_pair(*pair)
     ba.set_plane(first.plane())
     second = ba.solve()
-    if second.termination == "FAILURE":  # (Levenberg-Marquardt's point stands, and is reported)
-        return first, {**summary.as_dict(), "trust_region": "levenberg_marquardt",
-                       "continuation_failed": f"dogleg: {second.message}"}
+    label = "dogleg" if field == "trust_region" else f"{field} {value:.4g}"
+    if second.termination == "FAILURE":  # (the first solve's point stands, and is reported)
+        return first, {**summary, "continuation_failed": f"{label}: {second.message}"}
     solver = second.as_dict()
+    before = {key: summary[key] for key in ("trust_region", "termination", "message",
+                                            "iterations", "final_cost")}
     solver.update(
-        iterations=summary.iterations + second.iterations, initial_cost=summary.initial_cost,
-        solve_time_s=summary.solve_time_s + second.solve_time_s,
-        plane_std_time_s=summary.plane_std_time_s + second.plane_std_time_s,
+        iterations=summary["iterations"] + second.iterations,
+        initial_cost=summary["initial_cost"],
+        solve_time_s=summary["solve_time_s"] + second.solve_time_s,
+        plane_std_time_s=summary["plane_std_time_s"] + second.plane_std_time_s,
         motion_released_ids=sorted(released | {int(k) for k in second.motion_released_ids}),
-        trust_region="dogleg",
-        continued_from={"trust_region": "levenberg_marquardt",
-                        "termination": summary.termination, "message": summary.message,
-                        "iterations": summary.iterations, "final_cost": summary.final_cost})
+        trust_region=options.trust_region)
+    if field == "trust_region":
+        solver["continued_from"] = before
+    else:
+        solver["sigma_v_from"] = before | {field: start}
+        if "continued_from" in summary:
+            solver["continued_from"] = summary["continued_from"]
     return ba, solver
+
+
+def _with_measured_sigma_v(ba, solver: dict, frames, pairs, K) -> tuple:
+    """sigma_v "auto" (consistency.measured_sigma_v): (adjuster, solver dict, report) of the
+    adjustment `ba` solved again with the keypoints' noise its `pairs`' transfer residuals
+    show at its estimate; `ba` itself when that is the value it was solved with, or when it did
+    not converge (its residuals are then the distance to the minimum, not the keypoints' noise;
+    the paper's value is kept, and the iteration warning stands)."""
+    start = ba.options.sigma_v_px
+    if solver["termination"] != "CONVERGENCE":
+        return ba, solver, {"mode": SIGMA_V_AUTO, "start_px": start, "sigma_v_px": start,
+                            "note": f"the adjustment ended {solver['termination']}: the "
+                                    f"keypoints' noise not measured; the paper's {start:g} px "
+                                    "kept"}
+    residuals = TransferResiduals()
+    plane = np.asarray(ba.plane())
+    for l, m, pl, pm in pairs:
+        residuals.add(np.asarray(ba.pose(l)), np.asarray(ba.pose(m)), plane, pl, pm, K)
+    sigma, report = measured_sigma_v(residuals, start)
+    if sigma == start:
+        return ba, solver, report
+    second, merged = _solved_on(ba, solver, frames, pairs, "sigma_v_px", sigma)
+    if second is ba:  # (a failed second solve: the paper's value stands)
+        report |= {"sigma_v_px": start, "note": "solving again with the measured sigma_v "
+                   f"failed ({merged['continuation_failed']}); the paper's {start:g} px kept"}
+        return ba, merged, report
+    if (merged["termination"] == "NO_CONVERGENCE" and merged["trust_region"]
+            == "levenberg_marquardt" and second.options.linear_solver != "iterative_schur"):
+        second, merged = _solved_on(second, merged, frames, pairs, "trust_region", "dogleg")
+    return second, merged, report
 
 
 def _status(n: int, placed: np.ndarray, matches: list[PairMatch], why: str) -> list[str]:
@@ -490,6 +546,7 @@ def check_bundle_options(options, *, use_emt: bool, camera_matrix: np.ndarray,
                          f"{o.motion_gate_chi2!r}")
     if o.emt_sigma is not None:
         check_emt_sigma(o.emt_sigma, "BundleOptions.emt_sigma")
+    check_sigma_v(o.sigma_v_px, "BundleOptions.sigma_v_px")
     if not (isinstance(o.trust_region, str) and o.trust_region in TRUST_REGIONS):
         raise ValueError(f"BundleOptions.trust_region must be one of {', '.join(TRUST_REGIONS)}, "
                          f"got {o.trust_region!r}")
@@ -642,7 +699,10 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     solver = {**summary.as_dict(), "trust_region": o.trust_region}
     if (summary.termination == "NO_CONVERGENCE" and o.trust_region == "levenberg_marquardt"
             and o.linear_solver != "iterative_schur"):  # (which dogleg cannot use)
-        ba, solver = _continued_with_dogleg(ba, summary, added, pairs)
+        ba, solver = _continued_with_dogleg(ba, solver, added, pairs)
+    visual_sigma = None
+    if use_emt and o.sigma_v_px == SIGMA_V_AUTO and solver["termination"] != "FAILURE":
+        ba, solver, visual_sigma = _with_measured_sigma_v(ba, solver, added, pairs, K)
     timings["optimisation"] = solver["solve_time_s"]
     # (pi's covariance for the warning, booked apart: 1.2 s of "problem_setup" at 150 frames
     # before its Cholesky path; review)
@@ -657,6 +717,8 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
     placed = np.isfinite(G).all(axis=(1, 2))
     details = _pair_details(front)
     details["solver"] = solver
+    # (with every camera free, pi's std is the tracker's share of the scale and position: SYN
+    # 60 frames 0.0095 with sigma_v 1 px and with 0.09; the window's steps scale with sigma_v)
     std = solver["plane_relative_std"]
     details["plane_relative_std"] = None if np.isnan(std) else float(std)
     if not use_emt:  # (plane.json's "distance_mm" read 1.0 for a plane 30 mm away; review 46)
@@ -669,10 +731,14 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
         residuals = TransferResiduals()
         for l, m, pl, pm in pairs:
             residuals.add(poses[l], poses[m], plane, pl, pm, K)
-        agreement = visual_agreement(residuals, o.sigma_v_px, source=str(dataset.root),
+        agreement = visual_agreement(residuals, ba.options.sigma_v_px, source=str(dataset.root),
                                      knob="--visual-sigma" if use_emt else None)
         details["warnings"] += agreement.pop("warnings")
         details["visual_agreement"] = agreement
+    if use_emt:  # the visual cost's sigma_v: given, or measured ("auto")
+        details["visual_sigma"] = visual_sigma or {
+            "mode": "given" if o.sigma_v_px != SIGMA_V_AUTO else SIGMA_V_AUTO,
+            "sigma_v_px": float(ba.options.sigma_v_px)}
     if use_emt and solver["termination"] == "FAILURE":
         # the poses are where the failed solve left them (the tracker's, at first): their
         # agreement, 0.0 on every axis, read as perfect (e_M 117 px; helper fuzz 32)

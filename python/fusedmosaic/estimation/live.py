@@ -236,15 +236,17 @@ def _streamed_result(method: str, status: list, finals: dict, plane, details: di
 def _lba_checks(mosaicker, frame_name=None, source: str = "the stream") -> dict:
     """report.json entries of a streamed lba-emt run that the offline one has: the plane's
     relative std and the registered pairs (for consistency.tracker_agreement's plane check),
-    the visual residuals' agreement with sigma_v, and the start-up's and window steps' solver
-    warnings, and the tracker's (frame_name: the mosaicker's frame number -> the frame's id,
-    which the tracker warning names; source: the images, named by the visual warning)."""
+    the visual residuals' agreement with sigma_v and how sigma_v was decided, and the start-up's
+    and window steps' solver warnings, and the tracker's (frame_name: the mosaicker's frame
+    number -> the frame's id, which the tracker warning names; source: the images, named by the
+    visual warning)."""
     from fusedmosaic.estimation.sequential import live_solver_warnings, observed_plane_std
 
     agreement = mosaicker.visual_agreement(source=source)
     return {"plane_relative_std": observed_plane_std(mosaicker),
             "pairs": {"registered": mosaicker.pair_counts["registered"]},
             "visual_agreement": agreement,
+            "visual_sigma": mosaicker.visual_sigma,
             "warnings": agreement.pop("warnings") + live_solver_warnings(mosaicker, frame_name)}
 
 

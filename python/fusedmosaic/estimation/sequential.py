@@ -75,11 +75,16 @@ from fusedmosaic.estimation.bundle import (
 from fusedmosaic.estimation.consistency import (
     CONVENTIONS_AND_TIMING,
     MAX_NOISE_RATIO,
+    SIGMA_V_AUTO,
+    SIGMA_V_START_PX,
     TRACKER_NOISE_ADVICE,
     TransferResiduals,
     add_tracker_agreement,
     check_emt_sigma,
+    check_sigma_v,
+    measured_sigma_v,
     solver_warning,
+    starting_sigma_v,
     tracker_agreement,
     visual_agreement,
 )
@@ -254,7 +259,10 @@ class SequentialOptions:
     # median 38.5-39.5 ms -> 32.1-32.3 frames/s, 29.9-30.7 ms; the mosaics are identical.
     matching: MatchOptions = field(default_factory=MatchOptions)
     max_points_per_pair: int = 100  # inliers kept per pair
-    sigma_v_px: float = 1.0  # px (Sec. 4.2)
+    # px, the keypoints' noise per axis (Sec. 4.2's sigma_v, 1 px there); "auto": measured by
+    # the start-up (consistency.SIGMA_V_AUTO: its BA+EMT solved with 1 px, then again with the
+    # transfer residuals' robust std, which the window keeps; visual_sigma says what it took).
+    sigma_v_px: float | str = "auto"
     # Constant-velocity prior std devs (rad x3, mm x3); None = the paper's appendix values.
     # estimation/motion.py estimates them from an independent recording, as Sec. 4.2 did.
     motion_sigma: tuple[float, ...] | None = None
@@ -342,7 +350,10 @@ class SequentialOptions:
     # between tracker-placed cameras moved pi to infinity: frames at 238 px, e_M 13.2 px; gated:
     # max 24.9 px, e_M 7.3 px (the tracker alone with the true plane: max 34.3, e_M 17.2 px).
     # The std costs one more Jacobian evaluation per step (~0.6 ms on SYN, bench_plane_gate);
-    # 0 disables the gate and that cost.
+    # 0 disables the gate and that cost. The value is for sigma_v = 1 px, with which it was
+    # measured; the window compares with it x sigma_v_px / 1 px (pi is observed through C_v
+    # alone: its std scales with sigma_v; _core.SlidingWindowOptions), and reports the steps'
+    # std at 1 px (report.json plane_gate, plane_relative_std).
     plane_max_relative_std: float = 0.02
     history_steps: int = 1000  # window step summaries kept (diagnostics, bounded)
     # Input guards (not from the paper). A timestamp more than this after the previous frame's
@@ -566,8 +577,14 @@ class SequentialMosaicker:
         # this frame's own footprint in its pixels (start-up pair selection)
         self._own_footprint = footprint_polygons(np.eye(3)[None], *self.size,
                                                  self._fov_radius)[0]
+        check_sigma_v(o.sigma_v_px, "SequentialOptions.sigma_v_px")
+        # the visual cost's sigma_v now (see sigma_v_px), and how it was decided
+        self._sigma_v = starting_sigma_v(o.sigma_v_px)
+        self.visual_sigma: dict = {
+            "mode": "given" if o.sigma_v_px != SIGMA_V_AUTO else SIGMA_V_AUTO,
+            "sigma_v_px": self._sigma_v}
         costs = _core.BundleAdjusterOptions(
-            sigma_v_px=o.sigma_v_px, loss=o.loss, linear_solver=o.linear_solver,
+            sigma_v_px=self._sigma_v, loss=o.loss, linear_solver=o.linear_solver,
             max_iterations=o.max_iterations, function_tolerance=FUNCTION_TOLERANCE, num_threads=1,
             motion_gate_chi2=o.motion_gate_chi2)
         if o.motion_sigma is not None:
@@ -837,7 +854,7 @@ class SequentialMosaicker:
               "_boot_matches", "_loop_feats",
               "_loop_centroids", "_loop_G", "_pair_H", "_recent_G", "_poses", "pair_counts",
               "_mirror_frames", "_mirror_pairs", "_mirror_pair_index", "_mirror_plane",
-              "_forgotten_residuals",
+              "_forgotten_residuals", "_sigma_v", "visual_sigma",
               "_implausible_run",
               "_world", "_times", "_intervals", "_unanchored", "bootstrap_summary",
               "_samples", "_motion_history", "_tracker_verdicts", "_tracker_episode")
@@ -865,6 +882,8 @@ class SequentialMosaicker:
     def _rebuild_window(self) -> None:
         """A new C++ window holding what the mirror says the old one held."""
         window = _core.SlidingWindow(self.K, self._window_options)
+        if self._sigma_v != self._window_options.costs.sigma_v_px:  # (measured by the start-up)
+            window.set_sigma_v(self._sigma_v)
         if self._mirror_plane is not None:
             window.set_plane(self._mirror_plane)
         for k, (pose, emt, scale, fixed, timing) in self._mirror_frames.items():
@@ -896,6 +915,11 @@ class SequentialMosaicker:
         self._window_touched = True
         self.window.set_plane(plane)
         self._mirror_plane = np.array(plane, np.float64)
+
+    def _win_set_sigma_v(self, sigma_v_px: float) -> None:
+        self._window_touched = True
+        self.window.set_sigma_v(sigma_v_px)
+        self._sigma_v = sigma_v_px
 
     def _win_set_scale(self, k, scale) -> None:
         self._window_touched = True
@@ -964,15 +988,22 @@ class SequentialMosaicker:
         pl, pm = self._mirror_pairs[key]
         residuals.add(frames[key[0]][0], frames[key[1]][0], self._mirror_plane, pl, pm, self.K)
 
+    @property
+    def sigma_v_px(self) -> float:
+        """The visual cost's sigma_v (px): the given one, or measured by the start-up ("auto";
+        SIGMA_V_START_PX until then)."""
+        return self._sigma_v
+
     def visual_agreement(self, *, source: str = "the stream") -> dict:
         """consistency.visual_agreement of the registered pairs' transfer residuals (Eq. 13)
         at their final poses: those the window forgot, and those it holds between solved
         frames; each pair counted once. Its "robust_std_px" measures the keypoints' noise
-        (SequentialOptions.sigma_v_px); a warning when it is over MAX_NOISE_RATIO x that."""
+        (SequentialOptions.sigma_v_px); a warning when it is over MAX_NOISE_RATIO x the sigma_v
+        the window used."""
         residuals = self._forgotten_residuals.copy()
         for key in self._mirror_pairs:
             self._add_residuals(residuals, key)
-        return visual_agreement(residuals, self.options.sigma_v_px, source=source,
+        return visual_agreement(residuals, self._sigma_v, source=source,
                                 knob="--visual-sigma")
 
     # ------------------------------------------------------------------------- the frame step
@@ -1466,7 +1497,7 @@ class SequentialMosaicker:
         return predict_constant_velocity(pose_a, pose_b, ratio)
 
     def _solve_startup(self, ids, tracked, table, timing, max_iterations=None, start=None,
-                       function_tolerance=FUNCTION_TOLERANCE):
+                       function_tolerance=FUNCTION_TOLERANCE, constant_plane=False):
         """The start-up's BA+EMT over frames ids with the samples `tracked` (id -> z): the
         adjuster and its summary (a dict). At most `max_iterations` (None:
         startup_max_iterations); `start`: an adjuster of these frames to start from (its poses
@@ -1483,7 +1514,52 @@ class SequentialMosaicker:
                                                     else max_iterations),
                                     function_tolerance=function_tolerance,
                                     plane_std=o.startup_max_plane_std > 0)
+        if constant_plane:
+            ba.set_constant_plane(True)
         return ba, ba.solve().as_dict()
+
+    def _startup_sigma_v(self, ba, summary, ids, tracked, table, timing, nominal):
+        """sigma_v "auto" (consistency.measured_sigma_v): the start-up adjustment `ba` (its
+        `summary`) solved again with the keypoints' noise its pairs' transfer residuals (every
+        inlier) show at its estimate, which the window keeps (visual_sigma reports it); `ba`
+        and `summary` when that is the value it was solved with, or the second solve fails.
+        `nominal`: the plane was given (held constant), not estimated. A start-up that did not
+        converge measures nothing (its residuals are the distance to the minimum, not the
+        keypoints' noise): the paper's value is kept, and its warning stands."""
+        start = self._sigma_v
+        if summary["termination"] != "CONVERGENCE":
+            self.visual_sigma = {
+                "mode": SIGMA_V_AUTO, "start_px": start, "sigma_v_px": start,
+                "note": f"the start-up adjustment ended {summary['termination']}: the keypoints' "
+                        f"noise not measured; the paper's {start:g} px kept"}
+            return ba, summary
+        residuals = TransferResiduals()
+        plane = np.asarray(ba.plane())
+        for m in self._boot_matches:
+            residuals.add(np.asarray(ba.pose(m.frame_l)), np.asarray(ba.pose(m.frame_m)), plane,
+                          m.points_l, m.points_m, self.K)
+        sigma, report = measured_sigma_v(residuals, start)
+        if sigma != start:
+            self._sigma_v = sigma  # (read by _startup_adjuster)
+            second, again = self._solve_startup(ids, tracked, table, timing, start=ba,
+                                                constant_plane=nominal)
+            if again["termination"] == "FAILURE":
+                self._sigma_v, sigma = start, start
+                report |= {"sigma_v_px": start, "note": "the start-up solved again with the "
+                           f"measured sigma_v failed ({again['message']}); the paper's "
+                           f"{start:g} px kept"}
+            else:
+                again["sigma_v_from"] = {key: summary[key] for key in (
+                    "termination", "iterations", "final_cost")} | {"sigma_v_px": start}
+                again["iterations"] += summary["iterations"]
+                again["solve_time_s"] += summary["solve_time_s"]
+                # the first solve's, at the paper's sigma_v, as the start-up's checks judged it
+                # (and the gate's limit is stated: see plane_max_relative_std)
+                again["plane_relative_std"] = summary["plane_relative_std"]
+                ba, summary = second, again
+        self._win_set_sigma_v(sigma)
+        self.visual_sigma = report
+        return ba, summary
 
     def _startup_adjuster(self, ids, tracked, timing, pairs, plane, initial, **options):
         """A BundleAdjuster of the start-up's frames (ids, from the poses `initial`, with the
@@ -1492,7 +1568,7 @@ class SequentialMosaicker:
         o = self.options
         options.setdefault("motion_gate_chi2", o.motion_gate_chi2)
         ba_options = _core.BundleAdjusterOptions(
-            sigma_v_px=o.sigma_v_px, loss=o.loss, num_threads=1,
+            sigma_v_px=self._sigma_v, loss=o.loss, num_threads=1,
             trust_region=(o.startup_trust_region if self._startup_untracked()
                           else "levenberg_marquardt"), **options)
         ba_options.motion_sigma = self._costs.motion_sigma
@@ -1819,6 +1895,7 @@ class SequentialMosaicker:
 
         behind = not_in_front(checked_poses)
         std = summary["plane_relative_std"]
+        nominal = False  # (the plane given, not estimated)
         # (the spread of every tracked start-up camera: those of a few pairs may be neighbours
         # of a camera that moved; 1 pair, 0.009 of the depth, the cameras' 0.6)
         spread = np.array([ba.pose(k) for k in ids if k in tracked]).reshape(-1, 6)
@@ -1831,6 +1908,7 @@ class SequentialMosaicker:
             # 3.7e4 mm away.
             ba.set_plane(plane_facing(spread, o.nominal_plane_distance_mm))
             ba.set_constant_plane(True)
+            nominal = True
             summary = ba.solve().as_dict()
             checked_poses = np.array([ba.pose(k) for k in checked]).reshape(-1, 6)
             behind = not_in_front(checked_poses)
@@ -1873,6 +1951,8 @@ class SequentialMosaicker:
             self._startup_problem = (self._std_refusal(std, usable, tracked)
                                      + self._disagreement(ba, tracked))
             return False
+        if o.sigma_v_px == SIGMA_V_AUTO:
+            ba, summary = self._startup_sigma_v(ba, summary, ids, tracked, table, timing, nominal)
         self.bootstrap_summary = summary
         self._mark_motion_gated(ids, summary["motion_released_ids"])
         self._motion_history.extend(w.values())  # the window's checks scale by these too
@@ -2286,11 +2366,13 @@ def _transfer_or_nan(cam_l, cam_m, plane, K) -> np.ndarray:
         return np.full((3, 3), np.nan)
 
 
-def _plane_gate_details(steps: list[tuple[float, bool]]) -> dict:
+def _plane_gate_details(steps: list[tuple[float, bool]], sigma_v_px: float) -> dict:
     """Steps whose costs saw pi (a std, NaN without visual cost or with the gate disabled),
-    how many of them the gate held, and the median relative std of the others."""
+    how many of them the gate held, and the median relative std of the others, at the paper's
+    sigma_v as the gate's limit (x SIGMA_V_START_PX / sigma_v_px, the window's sigma_v: see
+    SequentialOptions.plane_max_relative_std)."""
     seen = [(std, held) for std, held in steps if not np.isnan(std)]
-    kept = [std for std, held in seen if not held]
+    kept = [std * SIGMA_V_START_PX / sigma_v_px for std, held in seen if not held]
     return {"steps_seeing_plane": len(seen), "held": sum(held for _, held in seen),
             "median_relative_std": float(np.median(kept)) if kept else None}
 
@@ -2303,7 +2385,7 @@ def observed_plane_std(mosaicker: SequentialMosaicker,
     sequence ended or startup_wait_frames was reached); None when none was computed."""
     if plane_steps is None:
         plane_steps = [(s.plane_relative_std, s.plane_held) for s in mosaicker.step_summaries]
-    std = _plane_gate_details(plane_steps)["median_relative_std"]
+    std = _plane_gate_details(plane_steps, mosaicker.sigma_v_px)["median_relative_std"]
     if std is None:
         std = (mosaicker.bootstrap_summary or {}).get("plane_relative_std")
     return None if std is None or np.isnan(std) else float(std)
@@ -2459,7 +2541,7 @@ def run_lba_emt(dataset, *, progress: bool = True,
         # frames whose window step Ceres could not solve, left at their starting poses
         "solver_failed": [k for k in range(n) if results[k].status == SOLVER_FAILED_STATUS],
         # the plane observability gate (SequentialOptions.plane_max_relative_std)
-        "plane_gate": _plane_gate_details(plane_steps),
+        "plane_gate": _plane_gate_details(plane_steps, mosaicker.sigma_v_px),
         # per frame: the plane of the step that made the frame final
         # (None for a frame handed out before any plane: dropped from a waiting start-up)
         "plane_history": [None if results[k].plane is None else
@@ -2472,6 +2554,7 @@ def run_lba_emt(dataset, *, progress: bool = True,
     agreement = mosaicker.visual_agreement(source=str(getattr(dataset, "root", "the frames")))
     details["warnings"] += agreement.pop("warnings")
     details["visual_agreement"] = agreement
+    details["visual_sigma"] = mosaicker.visual_sigma
     if dataset.cam_from_world is not None:
         add_tracker_agreement(details, poses, dataset, mosaicker.plane, o.emt_sigma,
                               o.motion_sigma)
