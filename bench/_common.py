@@ -425,14 +425,17 @@ def record_bundle_problems(directory: Path, stem: str):
     """While active, every BundleAdjuster that estimation.bundle builds is recorded; those that
     solved are written to directory/<stem>-<i>.txt in the order they solved (an adjuster built
     only to check the options is not written), after the files of an earlier run of the same
-    stem are removed. Hooks bundle._adjuster, the one factory run_bundle uses; if that private
-    name changes, nothing is recorded (the benchmark says so) and runs are unaffected."""
+    stem are removed. Hooks bundle._adjuster, the factory run_bundle uses, and
+    bundle._rebuilt_adjuster, which solves an adjustment again (a dogleg continuation, sigma_v
+    "auto"'s second solve: the one whose result ba-emt returns); if those private names change,
+    nothing is recorded (the benchmark says so) and runs are unaffected."""
     from fusedmosaic.estimation import bundle
 
     directory = Path(directory)
     recorders: list[BundleRecorder] = []
     original = getattr(bundle, "_adjuster", None)
-    if original is None:
+    rebuilt = getattr(bundle, "_rebuilt_adjuster", None)
+    if original is None or rebuilt is None:
         yield recorders
         return
     for old in directory.glob(f"{stem}-*.txt"):
@@ -444,11 +447,16 @@ def record_bundle_problems(directory: Path, stem: str):
         recorders.append(rec)
         return rec
 
-    bundle._adjuster = make
+    def remake(K, costs):
+        rec = BundleRecorder(rebuilt(K, costs), K, directory / "_")
+        recorders.append(rec)
+        return rec
+
+    bundle._adjuster, bundle._rebuilt_adjuster = make, remake
     try:
         yield recorders
     finally:
-        bundle._adjuster = original
+        bundle._adjuster, bundle._rebuilt_adjuster = original, rebuilt
         solved = sorted((r for r in recorders if r.solved_at is not None),
                         key=lambda r: r.solved_at)
         for i, r in enumerate(solved):

@@ -160,7 +160,7 @@ void BindSlidingWindow(py::module_& m) {
            py::call_guard<py::gil_scoped_release>(),
            "The visual cost's sigma_v (px, finite, > 0) from the next step or redo on (every\n"
            "pair held is weighed by it then).")
-      .def_property_readonly("sigma_v_px", &SlidingWindow::sigma_v_px)
+      .def_property_readonly("sigma_v_px", Released(&SlidingWindow::sigma_v_px))
       .def("drop_emt_measurement", &SlidingWindow::DropEmtMeasurement, "frame_id"_a,
            py::call_guard<py::gil_scoped_release>(),
            "Drops a frame's tracker measurement (an unusable sample, e.g. one putting the camera\n"

@@ -75,6 +75,7 @@ from fusedmosaic.estimation.bundle import (
 from fusedmosaic.estimation.consistency import (
     CONVENTIONS_AND_TIMING,
     MAX_NOISE_RATIO,
+    MAX_PLANE_RELATIVE_STD,
     SIGMA_V_AUTO,
     SIGMA_V_START_PX,
     TRACKER_NOISE_ADVICE,
@@ -1497,7 +1498,8 @@ class SequentialMosaicker:
         return predict_constant_velocity(pose_a, pose_b, ratio)
 
     def _solve_startup(self, ids, tracked, table, timing, max_iterations=None, start=None,
-                       function_tolerance=FUNCTION_TOLERANCE, constant_plane=False):
+                       function_tolerance=FUNCTION_TOLERANCE, constant_plane=False,
+                       plane_std=True):
         """The start-up's BA+EMT over frames ids with the samples `tracked` (id -> z): the
         adjuster and its summary (a dict). At most `max_iterations` (None:
         startup_max_iterations); `start`: an adjuster of these frames to start from (its poses
@@ -1513,7 +1515,7 @@ class SequentialMosaicker:
                                                     if max_iterations is None
                                                     else max_iterations),
                                     function_tolerance=function_tolerance,
-                                    plane_std=o.startup_max_plane_std > 0)
+                                    plane_std=plane_std and o.startup_max_plane_std > 0)
         if constant_plane:
             ba.set_constant_plane(True)
         return ba, ba.solve().as_dict()
@@ -1521,11 +1523,13 @@ class SequentialMosaicker:
     def _startup_sigma_v(self, ba, summary, ids, tracked, table, timing, nominal):
         """sigma_v "auto" (consistency.measured_sigma_v): the start-up adjustment `ba` (its
         `summary`) solved again with the keypoints' noise its pairs' transfer residuals (every
-        inlier) show at its estimate, which the window keeps (visual_sigma reports it); `ba`
-        and `summary` when that is the value it was solved with, or the second solve fails.
-        `nominal`: the plane was given (held constant), not estimated. A start-up that did not
-        converge measures nothing (its residuals are the distance to the minimum, not the
-        keypoints' noise): the paper's value is kept, and its warning stands."""
+        inlier) show at its estimate, which the window keeps (visual_sigma reports it).
+        `nominal`: the plane was given (held constant), not estimated. As ba-emt's
+        (bundle._with_measured_sigma_v), `ba` and `summary` with the paper's value when that is
+        the value it was solved with, when the start-up did not converge (its residuals are the
+        distance to the minimum, not the keypoints' noise; its warning stands), when the images
+        barely observe its plane (relative std above MAX_PLANE_RELATIVE_STD: weighed up, the
+        few pairs could send it off), or when the second solve does not converge."""
         start = self._sigma_v
         if summary["termination"] != "CONVERGENCE":
             self.visual_sigma = {
@@ -1539,15 +1543,25 @@ class SequentialMosaicker:
             residuals.add(np.asarray(ba.pose(m.frame_l)), np.asarray(ba.pose(m.frame_m)), plane,
                           m.points_l, m.points_m, self.K)
         sigma, report = measured_sigma_v(residuals, start)
+        std = summary["plane_relative_std"]
+        if sigma != start and not nominal and not (np.isnan(std)
+                                                   or std <= MAX_PLANE_RELATIVE_STD):
+            sigma = start
+            report |= {"sigma_v_px": start,
+                       "note": f"the images barely observe the plane (relative std {std:.2g} at "
+                               f"{start:g} px, above {MAX_PLANE_RELATIVE_STD:g}): weighed up, its "
+                               f"few pairs could send it off; the paper's {start:g} px kept"}
         if sigma != start:
             self._sigma_v = sigma  # (read by _startup_adjuster)
+            # (pi's std not computed again: the first solve's, at the paper's sigma_v, stands)
             second, again = self._solve_startup(ids, tracked, table, timing, start=ba,
-                                                constant_plane=nominal)
-            if again["termination"] == "FAILURE":
+                                                constant_plane=nominal, plane_std=False)
+            if again["termination"] != "CONVERGENCE":
                 self._sigma_v, sigma = start, start
-                report |= {"sigma_v_px": start, "note": "the start-up solved again with the "
-                           f"measured sigma_v failed ({again['message']}); the paper's "
-                           f"{start:g} px kept"}
+                report |= {"sigma_v_px": start,
+                           "note": f"the start-up solved again with the measured sigma_v ended "
+                                   f"{again['termination']} ({again['message']}); its first "
+                                   f"solve, with the paper's {start:g} px, kept"}
             else:
                 again["sigma_v_from"] = {key: summary[key] for key in (
                     "termination", "iterations", "final_cost")} | {"sigma_v_px": start}
