@@ -33,15 +33,15 @@ simulator (issue 4, item 5). The suite runs short versions (tests/test_sequentia
 
 Done when (issue 4, item 5), evaluated by done_when() into the JSON's "done_when" and the
 markdown's first table, for three configurations side by side, none chosen as the headline:
-"defaults" (what the package ships: the paper's appendix Sigma_p and the visual sigma_v
-measured on the recording, sigma_v_px "auto", SequentialOptions() / BundleOptions()), "sec42"
-(the paper's Sec. 4.2 protocol: Sigma_p estimated from an independent sequence, what
-`--motion-sigma-from` does) and "paper-sigma-v" (the defaults with the paper's sigma_v = 1 px,
-`--visual-sigma 1`, the default before session 49). Per seed, with "holds on k of n seeds":
-defaults and sec42 differ most on Fig. 10 (black frames 18.5 px off with the appendix Sigma_p,
-0.56 px with the estimated one, session 47's run); the paper's 1 px (~11 x the simulated
-keypoints' 0.09 px) lets the tracker's noise into Fig. 9 (max/min 1.39-3.66 over seeds 0-7 and
-11 in session 48, 1.00-1.02 with the sigma_v measured).
+"defaults" (what the package ships: the paper's appendix Sigma_p and sigma_v 1 px,
+SequentialOptions() / BundleOptions()), "sec42" (the paper's Sec. 4.2 protocol: Sigma_p
+estimated from an independent sequence, what `--motion-sigma-from` does) and "sigma-v-auto"
+(the defaults with the visual sigma_v measured on the recording, `--visual-sigma auto`).
+Per seed, with "holds on k of n seeds": defaults and sec42 differ most on Fig. 10 (black frames
+18.5 px off with the appendix Sigma_p, 0.56 px with the estimated one, session 47's run); the
+paper's 1 px (~11 x the simulated keypoints' 0.09 px) lets the tracker's noise into Fig. 9
+(max/min 1.39-3.66 over seeds 0-7 and 11 in session 48, 1.00-1.02 with the sigma_v measured,
+session 49).
 
     python bench/bench_lba_experiments.py [--seeds 4] [--fig9-seeds 0 1 ... 11] [--quick]
                                           [--out bench/results/lba_experiments.json]
@@ -95,7 +95,7 @@ def independent_sigma(n: int, seed: int) -> tuple:
     return tuple(estimate_motion_sigma(generate_fetoscopy(syn(n, seed + 100)).poses))
 
 
-PAPER_SIGMA_V = {"sigma_v_px": 1.0}  # the paper's (Sec. 4.2); "paper-sigma-v"
+AUTO_SIGMA_V = {"sigma_v_px": "auto"}  # measured on the recording; "sigma-v-auto"
 
 
 def sigma_v_used(res) -> float:
@@ -168,9 +168,9 @@ def drift(work: Path, seeds: int, n: int) -> list[dict]:
         row: dict = {"seed": seed}
         e = errors(ds, run_pairwise(ds, progress=False))
         row["pairwise"] = {"e_M_px": mosaic_error(e), "drift_ratio": drift_ratio(e)}
-        for label, sigma in (("paper", None), ("estimated", est), ("sigma1", None)):
+        for label, sigma in (("paper", None), ("estimated", est), ("auto", None)):
             for method in ("lba-emt", "ba-emt"):
-                sv = PAPER_SIGMA_V if label == "sigma1" else {}
+                sv = AUTO_SIGMA_V if label == "auto" else {}
                 res = (run_lba_emt(ds, progress=False,
                                    options=SequentialOptions(motion_sigma=sigma, **sv))
                        if method == "lba-emt" else
@@ -187,8 +187,8 @@ def drift(work: Path, seeds: int, n: int) -> list[dict]:
         row["causal ba-emt paper"] = {"e_M_px": causal,
                                       "ratio_to_ba": ratio(causal, row["ba-emt paper"]["e_M_px"])}
         print(f"drift seed {seed}: lba/ba paper {row['ratio paper']:.2f}, "
-              f"estimated {row['ratio estimated']:.2f}, paper sigma_v "
-              f"{row['ratio sigma1']:.2f}, causal ba/ba "
+              f"estimated {row['ratio estimated']:.2f}, sigma_v auto "
+              f"{row['ratio auto']:.2f}, causal ba/ba "
               f"{row['causal ba-emt paper']['ratio_to_ba']:.2f}", flush=True)
         rows.append(row)
     return rows
@@ -214,8 +214,8 @@ def emt_noise(work: Path, seeds) -> list[dict]:
             ds = read_dataset(root)
             plane = np.array(json.loads((root / "truth_plane.json").read_text())["plane"])
             row: dict = {"nu": nu}
-            for label, sigma in (("paper", None), ("estimated", est), ("sigma1", None)):
-                sv = PAPER_SIGMA_V if label == "sigma1" else {}
+            for label, sigma in (("paper", None), ("estimated", est), ("auto", None)):
+                sv = AUTO_SIGMA_V if label == "auto" else {}
                 res = run_lba_emt(ds, progress=False, options=SequentialOptions(
                     bootstrap_frames=FIG9_BOOTSTRAP, motion_sigma=sigma, **sv))
                 row[f"lba-emt {label} e_M_px"] = mosaic_error(errors(ds, res))
@@ -225,9 +225,9 @@ def emt_noise(work: Path, seeds) -> list[dict]:
             rows.append(row)
         out.append({"seed": seed, "estimated_sigma_p": list(est), "rows": rows})
         flat = {lab: _max_over_min([r[f"lba-emt {lab} e_M_px"] for r in rows])
-                for lab in ("paper", "estimated", "sigma1")}
+                for lab in ("paper", "estimated", "auto")}
         print(f"emt noise seed {seed}: lba-emt max/min defaults {fmt(flat['paper'])}, estimated "
-              f"Sigma_p {fmt(flat['estimated'])}, paper sigma_v {fmt(flat['sigma1'])}",
+              f"Sigma_p {fmt(flat['estimated'])}, sigma_v auto {fmt(flat['auto'])}",
               flush=True)
     return out
 
@@ -253,18 +253,18 @@ def _max_over_min(values) -> float | None:
 # -- Done when (issue 4, item 5) --------------------------------------------------------------
 
 CONFIGS = {  # done_when's configurations -> (key suffix in the runs' results, description)
-    "defaults": ("paper", "shipped defaults: the paper's appendix Sigma_p, sigma_v measured on "
-                          "the recording (sigma_v_px 'auto'), SequentialOptions() / "
-                          "BundleOptions()"),
+    "defaults": ("paper", "shipped defaults: the paper's appendix Sigma_p and sigma_v 1 px, "
+                          "SequentialOptions() / BundleOptions()"),
     "sec42": ("estimated", "paper Sec. 4.2 protocol: Sigma_p estimated from an independent "
                            "sequence of the same kind (seed + 100, true poses), as "
                            "`--motion-sigma-from` does; other options default"),
-    "paper-sigma-v": ("sigma1", "the defaults with the paper's sigma_v = 1 px (Sec. 4.2; "
-                                "`--visual-sigma 1`), the default before session 49"),
+    "sigma-v-auto": ("auto", "the defaults with the visual sigma_v measured on the recording "
+                             "(`--visual-sigma auto`, session 49; ba-emt and lba-emt each its "
+                             "own)"),
 }
 # what each configuration's key means in run names and headings
 SETTING = {"paper": "paper Sigma_p", "estimated": "estimated Sigma_p",
-           "sigma1": "paper Sigma_p, paper sigma_v 1 px"}
+           "auto": "paper Sigma_p, sigma_v auto"}
 DRIFT_RATIO_MAX = 1.3  # issue 4: lba-emt drift ratio <= 1.3 ...
 PAIRWISE_DRIFT_MIN = 2.0  # ... while pairwise > 2
 LBA_OVER_BA_MAX = 1.25  # lba-emt e_M <= 1.25 x ba-emt e_M
@@ -435,8 +435,8 @@ def black_frames(work: Path, n: int, results: Path) -> dict:
     _, truth = read_poses_csv(root / "truth_poses.csv")
     plane = np.array(json.loads((root / "truth_plane.json").read_text())["plane"])
     out: dict = {"frames": n, "black_frames": black, "estimated_sigma_p": list(est), "rows": []}
-    for label, sigma in (("paper", None), ("estimated", est), ("sigma1", None)):
-        sv = [PAPER_SIGMA_V if label == "sigma1" else {}] * 3
+    for label, sigma in (("paper", None), ("estimated", est), ("auto", None)):
+        sv = [AUTO_SIGMA_V if label == "auto" else {}] * 3
         runs = [(f"lba-emt, fixed at once, {SETTING[label]}", run_lba_emt(
                     ds, progress=False, options=SequentialOptions(
                         motion_sigma=sigma, hold_prior_only_steps=0, **sv[0]))),
@@ -580,7 +580,7 @@ def main() -> None:
     res["drift_frames"] = n
     res["drift"] = drift(work, seeds, n)
     res["drift_summary"] = {}
-    for label in ("paper", "estimated", "sigma1"):
+    for label in ("paper", "estimated", "auto"):
         mean = {k: float(np.mean([r[f"{m} {label}"][f] for r in res["drift"]]))
                 for k, m, f in (("lba", "lba-emt", "e_M_px"), ("ba", "ba-emt", "e_M_px"),
                                 ("lba_wo", "lba-emt", "e_M_without_global_px"),

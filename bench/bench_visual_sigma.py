@@ -1,11 +1,11 @@
 """README's --calibration recipe against the simulator's truth: a tracker noise measured by
 `fusedmosaic calibrate` (on the checkerboard simulator's recording: its EM tracker, 0.9 deg /
 0.25 mm per axis) given to ba-emt / lba-emt on fetoscopy sequences simulated with that tracker,
-with the keypoints' noise measured on the recording (--visual-sigma auto, the default since
-session 49), given (0.1 px, the simulator's) or the paper's 1 px, against the paper's 1 deg /
-1 mm. The paper pairs its loose tracker noise with sigma_v 1 px, about 10 x what the
-simulator's keypoints are off; the true tracker noise with sigma_v 1 px weighs the tracker too
-much (review N of session 47, finding M3, and its research).
+with the keypoints' noise measured on the recording (--visual-sigma auto, session 49), given
+(0.1 px, the simulator's) or the paper's 1 px (the default), against the paper's 1 deg / 1 mm.
+The paper pairs its loose tracker noise with sigma_v 1 px, about 10 x what the simulator's
+keypoints are off; the true tracker noise with sigma_v 1 px weighs the tracker too much (review
+N of session 47, finding M3, and its research).
 
     python bench/bench_visual_sigma.py [--seeds 3] [--frames 60]
         [--out bench/results/visual_sigma.json]
@@ -24,12 +24,12 @@ from fusedmosaic.estimation.calibration import read_tracker_calibration
 
 VISUAL_SIGMA_PX = 0.1
 CONFIGS = {  # label: extra run flags (CAL: the calibration.json)
-    "defaults (1 deg / 1 mm, sigma_v auto)": [],
+    "defaults (the paper's 1 deg / 1 mm / 1 px)": [],
     "--calibration": ["--calibration", "CAL"],
     f"--calibration --visual-sigma {VISUAL_SIGMA_PX:g}":
         ["--calibration", "CAL", "--visual-sigma", str(VISUAL_SIGMA_PX)],
-    "--visual-sigma 1 (the paper's 1 deg / 1 mm / 1 px)": ["--visual-sigma", "1"],
-    "--calibration --visual-sigma 1": ["--calibration", "CAL", "--visual-sigma", "1"],
+    "--visual-sigma auto": ["--visual-sigma", "auto"],
+    "--calibration --visual-sigma auto": ["--calibration", "CAL", "--visual-sigma", "auto"],
 }
 METHODS = ("lba-emt", "ba-emt")
 

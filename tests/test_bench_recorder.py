@@ -61,10 +61,15 @@ def test_bundle_recorder_saves_the_solved_problems_the_replay_reproduces(tmp_pat
     problems.mkdir()
     (problems / "syn-ba-emt-7.txt").write_text("stale\n")  # an earlier run's file goes
     (problems / "syn-ba-emt-guided-0.txt").write_text("other\n")  # another stem's stays
-    run_dataset(data, "ba-emt", tmp_path / "plain", progress=False, report=False)
+    from fusedmosaic.estimation.bundle import BundleOptions
+
+    auto = BundleOptions(sigma_v_px="auto")
+    run_dataset(data, "ba-emt", tmp_path / "plain", progress=False, report=False, options=auto)
     with record_bundle_problems(problems, "syn-ba-emt") as recorders:
-        run_dataset(data, "ba-emt", tmp_path / "out", progress=False, report=False)
-    # the adjuster built only to check the options is not saved; sigma_v "auto" solves twice:
+        run_dataset(data, "ba-emt", tmp_path / "out", progress=False, report=False,
+                    options=auto)
+    # the adjuster built only to check the options is not saved; sigma_v "auto" (given here)
+    # solves twice:
     # with the paper's 1 px, then from there with the measured noise (the result ba-emt returns;
     # it was not recorded, review Z of session 49)
     solved = [r for r in recorders if r.summary is not None]

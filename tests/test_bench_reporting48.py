@@ -31,9 +31,9 @@ def _drift_row(seed: int, lba_paper: float, lba_est: float, drift_est: float) ->
             "ratio paper": lba_paper / 0.1,
             "lba-emt estimated": _run(lba_est, drift_est), "ba-emt estimated": _run(0.1, 1.0),
             "ratio estimated": lba_est / 0.1,
-            # paper sigma_v: lba/ba 1.0 and drift 1.0 on every seed
-            "lba-emt sigma1": _run(0.1, 1.0), "ba-emt sigma1": _run(0.1, 1.0),
-            "ratio sigma1": 1.0,
+            # sigma_v auto: lba/ba 1.0 and drift 1.0 on every seed
+            "lba-emt auto": _run(0.1, 1.0), "ba-emt auto": _run(0.1, 1.0),
+            "ratio auto": 1.0,
             "causal ba-emt paper": {"e_M_px": 0.11, "ratio_to_ba": 1.1}}
 
 
@@ -44,7 +44,7 @@ def _fig9_run(seed: int, paper_max: float, est_max: float) -> dict:
 
     return {"seed": seed, "estimated_sigma_p": [1e-4] * 3 + [0.3, 0.3, 0.01],
             "rows": [{"nu": nu, "lba-emt paper e_M_px": p, "lba-emt estimated e_M_px": e,
-                      "lba-emt sigma1 e_M_px": 0.2, "emt true plane e_M_px": 10.0 * nu}
+                      "lba-emt auto e_M_px": 0.2, "emt true plane e_M_px": 10.0 * nu}
                      for nu, p, e in zip(NUS, ramp(paper_max), ramp(est_max), strict=True)]}
 
 
@@ -70,11 +70,11 @@ def _lba_result() -> dict:
             "drift_summary": {lab: {"lba": 0.12, "ba": 0.1, "lba_wo": 0.04, "ba_wo": 0.03,
                                     "ratio_of_means": 1.2, "ratio_wo": 1.33,
                                     "causal": 0.11, "causal_ratio_of_means": 1.1}
-                              for lab in ("paper", "estimated", "sigma1")},
+                              for lab in ("paper", "estimated", "auto")},
             "emt_noise": [_fig9_run(0, 0.25, 0.18), _fig9_run(11, 0.15, 0.12)],
             "black": {"frames": 62, "black_frames": [7, 11],
                       "rows": (_black_rows("paper", 18.0) + _black_rows("estimated", 0.2)
-                               + _black_rows("sigma1", 17.0)),
+                               + _black_rows("auto", 17.0)),
                       "plots": ["fig10/plane.png"]}}
 
 
@@ -84,27 +84,27 @@ def _criterion(dw: dict, key: str) -> dict:
 
 def test_done_when_evaluates_each_criterion_for_both_configurations_per_seed():
     dw = lba.done_when(_lba_result())
-    assert list(dw["configurations"]) == ["defaults", "sec42", "paper-sigma-v"]
-    assert "`--visual-sigma 1`" in dw["configurations"]["paper-sigma-v"]
+    assert list(dw["configurations"]) == ["defaults", "sec42", "sigma-v-auto"]
+    assert "`--visual-sigma auto`" in dw["configurations"]["sigma-v-auto"]
     assert "appendix Sigma_p" in dw["configurations"]["defaults"]
     assert "--motion-sigma-from" in dw["configurations"]["sec42"]
     verdicts = {c["id"]: {k: (c[k]["holds_on"], c[k]["of"])
-                          for k in ("defaults", "sec42", "paper-sigma-v")}
+                          for k in ("defaults", "sec42", "sigma-v-auto")}
                 for c in dw["criteria"]}
     assert verdicts == {
         "fig8_lba_drift_ratio": {"defaults": (3, 3), "sec42": (2, 3),  # 1.4 > 1.3 on seed 2
-                                 "paper-sigma-v": (3, 3)},
+                                 "sigma-v-auto": (3, 3)},
         "fig8_pairwise_drift_ratio": {"defaults": (3, 3), "sec42": (3, 3),
-                                      "paper-sigma-v": (3, 3)},
+                                      "sigma-v-auto": (3, 3)},
         "fig8_lba_over_ba_e_M": {"defaults": (2, 3), "sec42": (3, 3),  # 1.5 > 1.25 on seed 1
-                                 "paper-sigma-v": (3, 3)},
+                                 "sigma-v-auto": (3, 3)},
         "fig9_lba_flat": {"defaults": (1, 2), "sec42": (2, 2),  # seed 0: 0.25 / 0.1 = 2.5
-                          "paper-sigma-v": (2, 2)},
-        "fig9_lba_below_emt": {"defaults": (2, 2), "sec42": (2, 2), "paper-sigma-v": (2, 2)},
-        "fig10_all_placed": {"defaults": (1, 1), "sec42": (1, 1), "paper-sigma-v": (1, 1)},
+                          "sigma-v-auto": (2, 2)},
+        "fig9_lba_below_emt": {"defaults": (2, 2), "sec42": (2, 2), "sigma-v-auto": (2, 2)},
+        "fig10_all_placed": {"defaults": (1, 1), "sec42": (1, 1), "sigma-v-auto": (1, 1)},
         # the defaults fail where the estimated Sigma_p passes: both are reported
         "fig10_black_over_textured": {"defaults": (0, 1), "sec42": (1, 1),
-                                      "paper-sigma-v": (0, 1)},
+                                      "sigma-v-auto": (0, 1)},
     }
     per = _criterion(dw, "fig8_lba_over_ba_e_M")["defaults"]["per_seed"]
     assert [(p["seed"], p["value"], p["holds"]) for p in per] == [
@@ -120,7 +120,7 @@ def test_done_when_evaluates_each_criterion_for_both_configurations_per_seed():
 def test_done_when_table_puts_the_defaults_first_and_marks_each_missing_seed():
     md = lba.markdown(_lba_result())
     table = md[md.index("## Done when"):md.index("## Drift")]
-    assert "| criterion | defaults | sec42 | paper-sigma-v |" in table
+    assert "| criterion | defaults | sec42 | sigma-v-auto |" in table
     row = next(line for line in table.splitlines() if "black frames <= 3.0 x" in line)
     assert row.endswith("| 0: **180.00**; holds on 0 of 1 seed | 0: 2.00; holds on 1 of 1 seed "
                         "| 0: **170.00**; holds on 0 of 1 seed |")
@@ -241,12 +241,12 @@ def test_pcle_from_json_adds_done_when(tmp_path, monkeypatch):
 def test_a_result_from_before_a_configuration_says_it_was_not_run():
     res = _lba_result()
     for row in res["drift"]:
-        for key in ("lba-emt sigma1", "ba-emt sigma1", "ratio sigma1"):
+        for key in ("lba-emt auto", "ba-emt auto", "ratio auto"):
             del row[key]
-    del res["drift_summary"]["sigma1"]
+    del res["drift_summary"]["auto"]
     dw = lba.done_when(res)
-    assert _criterion(dw, "fig8_lba_drift_ratio")["paper-sigma-v"] == {
+    assert _criterion(dw, "fig8_lba_drift_ratio")["sigma-v-auto"] == {
         "not_run": "not in this result"}
     md = lba.markdown(res)  # (its drift tables skip the configuration)
-    assert "**paper-sigma-v** (paper Sigma_p, paper sigma_v 1 px):" not in \
+    assert "**sigma-v-auto** (paper Sigma_p, sigma_v auto):" not in \
         md[md.index("## Drift"):md.index("## EMT noise")]

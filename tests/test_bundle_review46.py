@@ -68,9 +68,7 @@ def test_levenberg_marquardt_at_its_limit_is_continued_with_dogleg(scenes, scene
     max_iterations" (a setting the CLI lacks). Now it is continued from there with dogleg to the
     minimum dogleg alone reaches, and the report says so."""
     dataset = scenes[scene]
-    # (the paper's sigma_v: "auto" solves again from the continuation's end with its own,
-    # test_auto_sigma_v_after_the_continuation)
-    r = run_ba_emt(dataset, progress=False, options=BundleOptions(sigma_v_px=1.0))
+    r = run_ba_emt(dataset, progress=False)
     solver = r.details["solver"]
     first = solver["continued_from"]
     assert first["trust_region"] == "levenberg_marquardt"
@@ -82,8 +80,7 @@ def test_levenberg_marquardt_at_its_limit_is_continued_with_dogleg(scenes, scene
     assert "world" not in r.details  # (ba-emt's: the tracker's, in mm)
     assert r.details["tracker_agreement"]["noise_ratio"] < MAX_NOISE_RATIO
     # the minimum: dogleg from the start ends at the same cost and poses
-    alone = run_ba_emt(dataset, progress=False,
-                       options=BundleOptions(trust_region="dogleg", sigma_v_px=1.0))
+    alone = run_ba_emt(dataset, progress=False, options=BundleOptions(trust_region="dogleg"))
     assert alone.details["solver"]["termination"] == "CONVERGENCE"
     assert "continued_from" not in alone.details["solver"]
     assert solver["final_cost"] == pytest.approx(alone.details["solver"]["final_cost"],
@@ -101,23 +98,29 @@ def test_levenberg_marquardt_at_its_limit_is_continued_with_dogleg(scenes, scene
 
 @pytest.mark.parametrize("scene", ["late", "near"])
 def test_auto_sigma_v_after_the_continuation(scenes, scene):
-    """sigma_v "auto" (the default, session 49) on the scenes where Levenberg-Marquardt stops at
-    its limit: measured at the dogleg continuation's end, solved again from there with it, the
-    continuation still reported; e_M as with 1 px, the plane where the truth is."""
+    """sigma_v "auto" (session 49) on the scenes where Levenberg-Marquardt stops at its limit:
+    measured at the dogleg continuation's end. near: solved again from there with it, the
+    continuation still reported, the plane where the truth is. late (tracked at the last 5
+    frames only): pi's relative std 0.50 at 1 px, so the 1 px solve is kept (review Z). e_M
+    as with 1 px either way."""
     dataset = scenes[scene]
-    r = run_ba_emt(dataset, progress=False)
+    r = run_ba_emt(dataset, progress=False, options=BundleOptions(sigma_v_px="auto"))
     solver = r.details["solver"]
     assert solver["continued_from"]["termination"] == "NO_CONVERGENCE"
-    assert solver["sigma_v_from"]["trust_region"] == "dogleg"
-    assert solver["sigma_v_from"]["sigma_v_px"] == 1.0
     assert solver["termination"] == "CONVERGENCE"
     used = r.details["visual_sigma"]
-    assert used["mode"] == "auto" and 0.05 < used["sigma_v_px"] < 0.2
-    assert not any("iteration limit" in w for w in r.details["warnings"])
-    assert e_M(r, dataset) < 0.75
-    if scene == "near":
+    assert used["mode"] == "auto" and 0.05 < used["measured_px"] < 0.2
+    if scene == "late":
+        assert used["sigma_v_px"] == 1.0 and "sigma_v_from" not in solver
+        assert used["note"].startswith("the images barely observe the plane (relative std 0.5")
+    else:
+        assert solver["sigma_v_from"]["trust_region"] == "dogleg"
+        assert solver["sigma_v_from"]["sigma_v_px"] == 1.0
+        assert used["sigma_v_px"] == used["measured_px"]
         assert plane_distance(r.poses, r.plane) == pytest.approx(truth_plane_distance(dataset),
                                                                  rel=0.1)
+    assert not any("iteration limit" in w for w in r.details["warnings"])
+    assert e_M(r, dataset) < 0.75
 
 
 def test_the_iteration_warning_names_its_cause_and_an_option_the_user_has(scenes):

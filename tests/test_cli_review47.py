@@ -57,14 +57,14 @@ def test_visual_sigma_reaches_the_solver(tracked, tmp_path):
         report = json.loads((out / "report.json").read_text())
         sigma[name] = report["parameters"]["sigma_v_px"]
         used[name] = report["visual_sigma"]
-    assert sigma == {"default": "auto", "given": 0.25, "auto": "auto"}
+    assert sigma == {"default": 1.0, "given": 0.25, "auto": "auto"}
+    assert used["default"] == {"mode": "given", "sigma_v_px": 1.0}
     assert used["given"] == {"mode": "given", "sigma_v_px": 0.25}
     # auto (session 49): measured on the recording, ORB's keypoints (integer pixels of pyramid
     # levels) well off the paper's 1 px, and the adjustment solved again with it
-    assert used["default"] == used["auto"]
-    assert used["default"]["mode"] == "auto"
-    assert used["default"]["sigma_v_px"] == used["default"]["measured_px"]
-    assert 0.2 < used["default"]["sigma_v_px"] < 0.9
+    assert used["auto"]["mode"] == "auto"
+    assert used["auto"]["sigma_v_px"] == used["auto"]["measured_px"]
+    assert 0.2 < used["auto"]["sigma_v_px"] < 0.9
 
 
 @pytest.mark.parametrize("method, value, message", [

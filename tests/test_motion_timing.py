@@ -352,7 +352,7 @@ def test_a_scope_spun_in_does_not_turn_the_mosaic(tmp_path, method):
     against 1.43 / 1.71 px with five black frames tracked still at frame 0's pose (0.92 / 0.61
     without any: they take start-up places). The motion gate releases it: within 0.5 px of the
     still ones (measured ba-emt 1.44, lba-emt 1.69 px). (Measured with the paper's sigma_v of 1
-    px; with the one measured on the recording, the default since session 49, the images
+    px; with the one measured on the recording (sigma_v_px "auto", session 49), the images
     resist C_p 120 x more: ba-emt 3.4 px without the gate. The scenario's check is made at 1 px.)"""
     root = simulate_fetoscopy(tmp_path / "syn", FetoscopyOptions(
         n_frames=24, width=200, height=200, laps=24 / 37.5, seed=3))

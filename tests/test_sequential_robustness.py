@@ -229,7 +229,7 @@ def test_a_glitch_on_a_black_frame_is_the_sample_not_the_motion(scene, glitched,
     16-frame start-up, which leaves them out: 0.47 / 0.9 against 1.19 / 9.2 px ([9]), 0.50 /
     0.9 against 2.74 / 23.3 px ([9, 10]); not gated there before, the same as without.
     (Measured with the paper's sigma_v of 1 px, where the comparison with the gate off is
-    made: with the sigma_v measured on the recording, the default since session 49, the images
+    made: with the sigma_v measured on the recording (sigma_v_px "auto", session 49), the images
     resist the glitch more even without the gate.)"""
     frames = list(scene.frames)
     tracker = scene.tracker.copy()

@@ -1,4 +1,5 @@
-"""sigma_v "auto" (session 49): the visual cost's noise measured on the recording (ba-emt: after
+"""sigma_v "auto" (session 49; `--visual-sigma auto`, not the default): the visual cost's noise
+measured on the recording (ba-emt: after
 its first solve; lba-emt: at its start-up, which the window then keeps), the C++ window's
 set_sigma_v, the plane gate's limit following sigma_v, and the bad values refused."""
 
@@ -121,7 +122,7 @@ def test_a_failed_startup_call_restores_the_paper_sigma_v(monkeypatch):
     give what an uninterrupted run gives."""
     n = 16
     scene, camera, poses, _ = syn_stream(n)
-    options = SequentialOptions(bootstrap_frames=8)
+    options = SequentialOptions(bootstrap_frames=8, sigma_v_px="auto")
 
     def feed(m, frames, out):
         for k in frames:
@@ -163,15 +164,16 @@ def test_an_unconverged_startup_keeps_the_paper_sigma_v(tmp_path):
         n_frames=40, width=300, height=300, motion="handheld", distance_mm=5.0,
         radius_mm=3.0)))
     r = sequential.run_lba_emt(data, progress=False,
-                               options=SequentialOptions(startup_max_iterations=100))
+                               options=SequentialOptions(startup_max_iterations=100,
+                                                         sigma_v_px="auto"))
     assert r.details["visual_sigma"]["sigma_v_px"] == 1.0
     assert r.details["visual_sigma"]["note"] == (
         "the start-up adjustment ended NO_CONVERGENCE: the keypoints' noise not measured; the "
         "paper's 1 px kept")
     assert any(w.startswith("the start-up adjustment stopped at its iteration limit")
                for w in r.details["warnings"])
-    b = run_ba_emt(data, progress=False, options=BundleOptions(max_iterations=2,
-                                                               trust_region="dogleg"))
+    b = run_ba_emt(data, progress=False, options=BundleOptions(
+        max_iterations=2, trust_region="dogleg", sigma_v_px="auto"))
     assert b.details["visual_sigma"]["sigma_v_px"] == 1.0
     assert "ended NO_CONVERGENCE" in b.details["visual_sigma"]["note"]
     assert "sigma_v_from" not in b.details["solver"]
@@ -182,7 +184,7 @@ def test_the_window_log_replays_with_the_measured_sigma_v(tmp_path):
     solver_bench.cc) solves the recorded steps to the recorded poses."""
     n = 20
     scene, camera, poses, _ = syn_stream(n)
-    options = SequentialOptions(bootstrap_frames=8)
+    options = SequentialOptions(bootstrap_frames=8, sigma_v_px="auto")
     m = SequentialMosaicker(camera, options)
     log = tmp_path / "window.txt"
     wopts = _core.SlidingWindowOptions(window_size=options.window_size, num_new=options.num_new,

@@ -27,8 +27,8 @@ def _worst_condition(H) -> float:
 
 
 def test_a_barely_observed_plane_keeps_the_paper_sigma_v(small_stop):
-    auto = run_ba_emt(small_stop, progress=False)
-    paper = run_ba_emt(small_stop, progress=False, options=BundleOptions(sigma_v_px=1.0))
+    auto = run_ba_emt(small_stop, progress=False, options=BundleOptions(sigma_v_px="auto"))
+    paper = run_ba_emt(small_stop, progress=False)
     used = auto.details["visual_sigma"]
     assert used["sigma_v_px"] == 1.0 and 0.05 < used["measured_px"] < 0.3
     assert used["note"].startswith("the images barely observe the plane (relative std 2.")
@@ -56,8 +56,8 @@ def test_lba_emt_start_up_on_a_barely_observed_plane(monkeypatch):
             return ba, summary | {"plane_relative_std": std}
 
         monkeypatch.setattr(SequentialMosaicker, "_solve_startup", solve)
-        m = SequentialMosaicker(camera, SequentialOptions(bootstrap_frames=8,
-                                                          startup_max_plane_std=0.5))
+        m = SequentialMosaicker(camera, SequentialOptions(
+            bootstrap_frames=8, startup_max_plane_std=0.5, sigma_v_px="auto"))
         for k in range(n):
             m.add_frame(scene.render(k), float(scene.timestamps[k]), poses[k])
         m.flush()
@@ -77,7 +77,7 @@ def test_a_camera_held_still_keeps_the_converged_solve(tmp_path):
     above 0.25 says the images do not observe the plane)."""
     data = read_dataset(simulate_fetoscopy(tmp_path / "still", FetoscopyOptions(
         n_frames=60, laps=0.0, seed=1)))
-    r = run_ba_emt(data, progress=False)
+    r = run_ba_emt(data, progress=False, options=BundleOptions(sigma_v_px="auto"))
     assert r.details["solver"]["termination"] == "CONVERGENCE"
     assert not any("iteration limit" in w for w in r.details["warnings"])
     assert r.details["visual_sigma"]["sigma_v_px"] == 1.0
@@ -96,8 +96,8 @@ def test_ba_emt_reports_the_paper_sigma_v_plane_std_and_computes_it_once(tmp_pat
     real = bundle._rebuilt_adjuster
     monkeypatch.setattr(bundle, "_rebuilt_adjuster",
                         lambda K, costs: rebuilt.append(costs.plane_std) or real(K, costs))
-    auto = run_ba_emt(data, progress=False)
-    paper = run_ba_emt(data, progress=False, options=BundleOptions(sigma_v_px=1.0))
+    auto = run_ba_emt(data, progress=False, options=BundleOptions(sigma_v_px="auto"))
+    paper = run_ba_emt(data, progress=False)
     assert rebuilt == [False]  # (auto's second solve only)
     assert auto.details["solver"]["sigma_v_from"]["sigma_v_px"] == 1.0
     assert auto.details["visual_sigma"]["sigma_v_px"] < 0.2

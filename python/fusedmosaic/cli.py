@@ -257,6 +257,9 @@ def _tracker_calibration(args: argparse.Namespace, methods) -> None:
             args.tracker_trans_sigma = cal.trans_sigma_mm
             said += (f", tracker noise {cal.rot_sigma_deg:.3g} deg / {cal.trans_sigma_mm:.3g} mm "
                      "per axis")
+            if getattr(args, "visual_sigma", None) is None:  # (bench/bench_visual_sigma.py)
+                said += ("; the keypoints keep the paper's 1 px, which goes with its looser "
+                         "1 deg / 1 mm: measure their noise with --visual-sigma auto (README)")
         _say(args, f"from {args.calibration}: {said}")
     if args.tracker_time_offset is None:
         args.tracker_time_offset = 0.0
@@ -286,7 +289,7 @@ def _emt_sigma(args: argparse.Namespace) -> dict:
 
 
 def _visual_sigma(args: argparse.Namespace) -> dict:
-    """{"sigma_v_px": px or "auto"} from --visual-sigma, {} without it (the options' "auto");
+    """{"sigma_v_px": px or "auto"} from --visual-sigma, {} without it (the options' 1 px);
     only ba-emt and lba-emt weigh the images against a prior (ba's visual cost alone does not
     depend on it)."""
     if args.visual_sigma is None:
@@ -1405,10 +1408,10 @@ def _add_lba_flags(parser: argparse.ArgumentParser, methods: str = "ba-emt / lba
                              "(default: the paper's 1 mm)")
     parser.add_argument("--visual-sigma", metavar="PX|auto",
                         help=f"{methods}: the keypoints' noise per axis in pixels, the visual "
-                             "cost's sigma_v (default auto: measured on the recording, by ba-emt "
-                             "over all frames, by lba-emt at its start-up, from the registered "
-                             "points' transfer residuals; report.json visual_sigma; the paper "
-                             "used 1 px)")
+                             "cost's sigma_v (default: the paper's 1 px); auto: measured on the "
+                             "recording, by ba-emt over all frames, by lba-emt at its start-up, "
+                             "from the registered points' transfer residuals (report.json "
+                             "visual_sigma; README: when it helps and when it does not)")
     parser.add_argument("--calibration", metavar="CALIB.json",
                         help=f"tracked methods: the tracker time offset and ({methods}) "
                              "the tracker noise per axis that calibrate measured on a "

@@ -70,11 +70,11 @@ class BundleOptions:
     min_pair_separation: int = 4  # EMT-guided: frames apart between kept older frames
     window: int = 2  # "window" selection, and the seed pairs used to initialise the plane
     max_points_per_pair: int = 100  # inliers kept per pair (paper Table 1: 67-222 on average)
-    # px, the keypoints' noise per axis (Sec. 4.2's sigma_v, 1 px there); "auto": measured on
-    # the recording by ba-emt (consistency.SIGMA_V_AUTO: solved with 1 px, then again with the
-    # transfer residuals' robust std; report.json "visual_sigma"). ba's visual cost alone and
-    # emt's tracker alone do not depend on it.
-    sigma_v_px: float | str = "auto"
+    # px, the keypoints' noise per axis (Sec. 4.2's sigma_v, 1 px there, the default); "auto":
+    # measured on the recording by ba-emt (consistency.SIGMA_V_AUTO: solved with 1 px, then
+    # again with the transfer residuals' robust std; report.json "visual_sigma"). ba's visual
+    # cost alone and emt's tracker alone do not depend on it.
+    sigma_v_px: float | str = 1.0
     # Constant-velocity prior std devs (rad x3, mm x3); None = the paper's appendix values
     # (estimation/motion.py estimates them from an independent recording, as Sec. 4.2 did).
     motion_sigma: tuple[float, ...] | None = None

@@ -322,18 +322,20 @@ def visual_agreement(residuals: TransferResiduals, sigma_v_px: float, *, source:
     return out
 
 
-# sigma_v "auto" (BundleOptions / SequentialOptions.sigma_v_px, the default): the visual cost's
-# noise measured on the recording. The adjustment is solved with the paper's 1 px first (Sec.
-# 4.2), the registered points' transfer residuals at that estimate give their robust std
-# (TransferResiduals), and the adjustment is solved again from there with it (ba-emt: all
-# frames; lba-emt: its start-up, whose value the window then keeps). The paper's 1 px goes with
-# its real fetoscopic keypoints; the simulator's are ~0.09 px off, so with 1 px the images were
-# weighed 1/120 of their worth against the tracker and its noise leaked into the estimate as it
-# grew: Fig. 9's max/min 1.39-3.66 over seeds 0-7 and 11 (4 of 9 above 2), 1.00-1.02 with the
-# measured value (bench/bench_lba_experiments.py). From fewer than SIGMA_V_MIN_POINTS points the
-# paper's value is kept; SIGMA_V_FLOOR_PX bounds the weight: keypoints are not localised better
-# than ~1/20 px on real images (noise-free renderings measure less, and a smaller sigma_v would
-# leave the tracker's prior no weight where the images see the plane).
+# sigma_v "auto" (BundleOptions / SequentialOptions.sigma_v_px, `--visual-sigma auto`; not the
+# default, see SequentialOptions.sigma_v_px): the visual cost's noise measured on the recording.
+# The adjustment is solved with the paper's 1 px first (Sec. 4.2), the registered points' transfer
+# residuals at that estimate give their robust std (TransferResiduals), and the adjustment is
+# solved again from there with it (ba-emt: all frames; lba-emt: its start-up, whose value the
+# window then keeps). The paper's 1 px goes with its real fetoscopic keypoints; the simulator's
+# are ~0.09 px off, so with 1 px the images were weighed 1/120 of their worth against the tracker
+# and its noise leaked into the estimate as it grew: Fig. 9's max/min 1.39-3.66 over seeds 0-7 and
+# 11 (4 of 9 above 2), 1.00-1.02 with the measured value (bench/bench_lba_experiments.py). From
+# fewer than SIGMA_V_MIN_POINTS points the paper's value is kept; SIGMA_V_FLOOR_PX bounds the
+# weight: keypoints are not localised better than ~1/20 px on real images (noise-free renderings
+# measure less, and a smaller sigma_v would leave the tracker's prior no weight where the images
+# see the plane). Where the images barely observe the plane, or the second solve does not
+# converge, the 1 px solve is kept.
 SIGMA_V_AUTO = "auto"
 SIGMA_V_START_PX = 1.0
 SIGMA_V_MIN_POINTS = 200

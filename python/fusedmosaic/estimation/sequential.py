@@ -260,10 +260,13 @@ class SequentialOptions:
     # median 38.5-39.5 ms -> 32.1-32.3 frames/s, 29.9-30.7 ms; the mosaics are identical.
     matching: MatchOptions = field(default_factory=MatchOptions)
     max_points_per_pair: int = 100  # inliers kept per pair
-    # px, the keypoints' noise per axis (Sec. 4.2's sigma_v, 1 px there); "auto": measured by
-    # the start-up (consistency.SIGMA_V_AUTO: its BA+EMT solved with 1 px, then again with the
-    # transfer residuals' robust std, which the window keeps; visual_sigma says what it took).
-    sigma_v_px: float | str = "auto"
+    # px, the keypoints' noise per axis (Sec. 4.2's sigma_v, 1 px there, the default); "auto":
+    # measured by the start-up (consistency.SIGMA_V_AUTO: its BA+EMT solved with 1 px, then
+    # again with the transfer residuals' robust std, which the window keeps; visual_sigma says
+    # what it took). Not the default: on weak texture (200 px SYN, ~19 inliers per pair, 3000
+    # frames; bench/bench_plane_gate.py) it gave e_M 9.5 px and a frame 81 px off, against 7.6
+    # and 30 with 1 px (the tracker alone with the true plane: 18.2 / 46 px).
+    sigma_v_px: float | str = 1.0
     # Constant-velocity prior std devs (rad x3, mm x3); None = the paper's appendix values.
     # estimation/motion.py estimates them from an independent recording, as Sec. 4.2 did.
     motion_sigma: tuple[float, ...] | None = None
