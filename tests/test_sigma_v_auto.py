@@ -31,6 +31,33 @@ K = np.array([[300.0, 0.0, 150.0], [0.0, 300.0, 150.0], [0.0, 0.0, 1.0]])
 PLANE = np.array([0.0, 0.0, -1.0 / 30.0])
 
 
+def _recorded(sigma_v_px: float, n: int = 12) -> dict:
+    """A 6-frame start-up and 6 more SYN frames streamed with `sigma_v_px`: what the window
+    held (the mirror: frames, pairs, plane), the camera and the tracker poses."""
+    scene, camera, poses, _ = syn_stream(n)
+    m = SequentialMosaicker(camera, SequentialOptions(bootstrap_frames=6, sigma_v_px=sigma_v_px))
+    for k in range(n):
+        m.add_frame(scene.render(k), float(scene.timestamps[k]), poses[k])
+    m.flush()
+    return {"camera": camera, "poses": poses, "frames": m._mirror_frames,
+            "pairs": m._mirror_pairs, "plane": m._mirror_plane}
+
+
+def _replayed_window(rec: dict, options, last: int):
+    """A new SlidingWindow (`options`) holding `rec`'s plane, its start-up frames 0-5 fixed,
+    frames 6 .. last-1 pending with their tracker samples, and the pairs among those frames."""
+    w = _core.SlidingWindow(rec["camera"].camera_matrix, options)
+    w.set_plane(rec["plane"])
+    for k in range(6):
+        w.add_frame(k, rec["frames"][k][0], rec["frames"][k][1], True)
+    for k in range(6, last):
+        w.add_frame(k, None, rec["poses"][k])
+    for (l, m), (pl, pm) in rec["pairs"].items():
+        if max(l, m) < last:
+            w.add_pair(l, m, pl, pm)
+    return w
+
+
 def _residuals(std_px: float, points: int) -> TransferResiduals:
     """Transfer residuals of `points` points scattered by std_px per axis (identity cameras on
     the plane z = 30: the transfer is the identity)."""
@@ -69,26 +96,14 @@ def test_window_set_sigma_v_solves_as_a_window_built_with_it():
     """set_sigma_v before the steps gives the window a window built with that sigma_v gives
     (the C_v blocks are made at each step from the costs), and differs from 1 px's."""
     n = 12
-    scene, camera, poses, valid = syn_stream(n)
-    run = SequentialMosaicker(camera, SequentialOptions(bootstrap_frames=6, sigma_v_px=0.2))
-    for k in range(n):
-        run.add_frame(scene.render(k), float(scene.timestamps[k]), poses[k])
-    run.flush()
-    frames, pairs, plane = run._mirror_frames, run._mirror_pairs, run._mirror_plane
+    rec = _recorded(0.2, n)
 
     def window(built_px, set_px):
         costs = _core.BundleAdjusterOptions(sigma_v_px=built_px)
-        w = _core.SlidingWindow(camera.camera_matrix, _core.SlidingWindowOptions(
-            window_size=5, num_new=3, costs=costs))
+        w = _replayed_window(rec, _core.SlidingWindowOptions(window_size=5, num_new=3,
+                                                             costs=costs), n)
         if set_px is not None:
             w.set_sigma_v(set_px)
-        w.set_plane(plane)
-        for k in range(6):  # the start-up's, fixed; the rest estimated in two steps
-            w.add_frame(k, frames[k][0], frames[k][1], True)
-        for k in range(6, n):
-            w.add_frame(k, None, poses[k])
-        for (l, m), (pl, pm) in pairs.items():
-            w.add_pair(l, m, pl, pm)
         w.step([])
         return np.array([w.pose(k) for k in range(6, n)]), w.sigma_v_px
 
@@ -208,28 +223,13 @@ def test_the_plane_gate_limit_follows_sigma_v():
     the plane's relative std with it x sigma_v (pi is observed through C_v alone). At sigma_v
     0.1: held with a limit of 5 std (0.5 std after the factor), not with 15 std (1.5 std).
     Before, the limit was compared as given: 5 std did not hold it."""
-    n = 12
-    scene, camera, poses, _ = syn_stream(n)
-    run = SequentialMosaicker(camera, SequentialOptions(bootstrap_frames=6, sigma_v_px=1.0))
-    for k in range(n):
-        run.add_frame(scene.render(k), float(scene.timestamps[k]), poses[k])
-    run.flush()
-    frames, pairs, plane = run._mirror_frames, run._mirror_pairs, run._mirror_plane
+    rec = _recorded(1.0)
 
     def step(limit, sigma_v=0.1):
         o = _core.SlidingWindowOptions(window_size=5, num_new=3,
                                        costs=_core.BundleAdjusterOptions(sigma_v_px=sigma_v))
         o.plane_max_relative_std = limit
-        w = _core.SlidingWindow(camera.camera_matrix, o)
-        w.set_plane(plane)
-        for k in range(6):
-            w.add_frame(k, frames[k][0], frames[k][1], True)
-        for k in range(6, 9):
-            w.add_frame(k, None, poses[k])
-        for (l, m), (pl, pm) in pairs.items():
-            if max(l, m) < 9:
-                w.add_pair(l, m, pl, pm)
-        return w.step([])
+        return _replayed_window(rec, o, 9).step([])
 
     first = step(1e6)  # (a limit nothing reaches: the std alone)
     std = first.plane_relative_std

@@ -19,13 +19,13 @@ from tqdm import tqdm
 
 from fusedmosaic import _core
 from fusedmosaic.estimation.consistency import (
-    MAX_PLANE_RELATIVE_STD,
     SIGMA_V_AUTO,
     TransferResiduals,
     add_tracker_agreement,
+    auto_sigma_v,
     check_emt_sigma,
     check_sigma_v,
-    measured_sigma_v,
+    given_sigma_v_report,
     solver_warning,
     starting_sigma_v,
     tracker_agreement,
@@ -450,34 +450,16 @@ def _solved_on(first, summary: dict, frames, pairs, field: str, value):
 def _with_measured_sigma_v(ba, solver: dict, frames, pairs, K) -> tuple:
     """sigma_v "auto" (consistency.measured_sigma_v): (adjuster, solver dict, report) of the
     adjustment `ba` solved again with the keypoints' noise its `pairs`' transfer residuals
-    show at its estimate. `ba` itself, with the paper's value, when:
-    - that is the value it was solved with;
-    - it did not converge (its residuals are then the distance to the minimum, not the
-      keypoints' noise; the iteration warning stands);
-    - the images barely observe the plane (its relative std above MAX_PLANE_RELATIVE_STD, the
-      run's warning): weighed up, the few pairs sent the plane off (a 45 px field stop, 90
-      pairs: std 2.4 at 1 px, unbounded at 0.15 px, singular homographies; review Z, session
-      49);
-    - the second solve does not converge (a camera held still: 1 px converged in 42
-      iterations, 0.07 px stopped at 100 and its dogleg continuation at 100 more)."""
+    show at its estimate. `ba` itself, with the paper's value, where consistency.auto_sigma_v
+    measures nothing to solve again with (the first solve did not converge, the images barely
+    observe the plane), and when the second solve does not converge (a camera held still: 1 px
+    converged in 42 iterations, 0.07 px stopped at 100 and its dogleg continuation at 100
+    more)."""
     start = ba.options.sigma_v_px
-    report = {"mode": SIGMA_V_AUTO, "start_px": start, "sigma_v_px": start}
-    if solver["termination"] != "CONVERGENCE":
-        return ba, solver, report | {
-            "note": f"the adjustment ended {solver['termination']}: the keypoints' noise not "
-                    f"measured; the paper's {start:g} px kept"}
-    residuals = TransferResiduals()
-    plane = np.asarray(ba.plane())
-    for l, m, pl, pm in pairs:
-        residuals.add(np.asarray(ba.pose(l)), np.asarray(ba.pose(m)), plane, pl, pm, K)
-    sigma, report = measured_sigma_v(residuals, start)
-    std = solver["plane_relative_std"]
-    if sigma != start and not (np.isnan(std) or std <= MAX_PLANE_RELATIVE_STD):
-        return ba, solver, report | {
-            "sigma_v_px": start,
-            "note": f"the images barely observe the plane (relative std {std:.2g} at "
-                    f"{start:g} px, above {MAX_PLANE_RELATIVE_STD:g}): weighed up, its few "
-                    f"pairs could send it off; the paper's {start:g} px kept"}
+    sigma, report = auto_sigma_v(
+        start, solver["termination"], solver["plane_relative_std"],
+        lambda: TransferResiduals.of(pairs, lambda k: np.asarray(ba.pose(k)),
+                                     np.asarray(ba.plane()), K), "the adjustment")
     if sigma == start:
         return ba, solver, report
     second, merged = _solved_on(ba, solver, frames, pairs, "sigma_v_px", sigma)
@@ -758,17 +740,13 @@ def run_bundle(dataset, *, progress: bool = True, options: BundleOptions | None 
         details["tracker_glitches"] = [int(k) for k in glitches]
     details["warnings"] = []
     if solver["termination"] != "FAILURE":  # (the keypoints' noise, for --visual-sigma)
-        residuals = TransferResiduals()
-        for l, m, pl, pm in pairs:
-            residuals.add(poses[l], poses[m], plane, pl, pm, K)
+        residuals = TransferResiduals.of(pairs, poses.__getitem__, plane, K)
         agreement = visual_agreement(residuals, ba.options.sigma_v_px, source=str(dataset.root),
                                      knob="--visual-sigma" if use_emt else None)
         details["warnings"] += agreement.pop("warnings")
         details["visual_agreement"] = agreement
     if use_emt:  # the visual cost's sigma_v: given, or measured ("auto")
-        details["visual_sigma"] = visual_sigma or {
-            "mode": "given" if o.sigma_v_px != SIGMA_V_AUTO else SIGMA_V_AUTO,
-            "sigma_v_px": float(ba.options.sigma_v_px)}
+        details["visual_sigma"] = visual_sigma or given_sigma_v_report(o.sigma_v_px)
     if use_emt and solver["termination"] == "FAILURE":
         # the poses are where the failed solve left them (the tracker's, at first): their
         # agreement, 0.0 on every axis, read as perfect (e_M 117 px; helper fuzz 32)

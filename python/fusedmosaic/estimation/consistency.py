@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import copy
 import numbers
+from collections.abc import Callable
 
 import numpy as np
 
@@ -278,6 +279,15 @@ class TransferResiduals:
         self.pairs += 1
         self.sum_squares += float(np.sum(r**2))
 
+    @classmethod
+    def of(cls, pairs, pose, plane, camera_matrix) -> TransferResiduals:
+        """The residuals of `pairs` ((frame_l, frame_m, points_l, points_m)) at the poses
+        `pose(frame)` and `plane`."""
+        residuals = cls()
+        for l, m, pl, pm in pairs:
+            residuals.add(pose(l), pose(m), plane, pl, pm, camera_matrix)
+        return residuals
+
     def copy(self) -> TransferResiduals:
         """A snapshot (add replaces, never mutates, what it holds)."""
         return copy.copy(self)
@@ -356,6 +366,38 @@ def check_sigma_v(value, what: str) -> float | str:
 def starting_sigma_v(value) -> float:
     """The sigma_v an adjustment starts with: the given one, or SIGMA_V_START_PX for "auto"."""
     return SIGMA_V_START_PX if value == SIGMA_V_AUTO else float(value)
+
+
+def given_sigma_v_report(sigma_v_px) -> dict:
+    """report.json "visual_sigma" before (or without) a measurement: the option's mode ("given"
+    or "auto") and the sigma_v an adjustment starts with."""
+    return {"mode": SIGMA_V_AUTO if sigma_v_px == SIGMA_V_AUTO else "given",
+            "sigma_v_px": starting_sigma_v(sigma_v_px)}
+
+
+def auto_sigma_v(start_px: float, termination: str, plane_relative_std: float,
+                 residuals: Callable[[], TransferResiduals], what: str) -> tuple[float, dict]:
+    """sigma_v "auto" after the first solve of `what` (with `start_px`, its `termination` and
+    pi's `plane_relative_std`, NaN when not estimated): the value to solve again with, and its
+    report (measured_sigma_v). `start_px` (nothing to solve again) when it did not converge
+    (its residuals are then the distance to the minimum, not the keypoints' noise; its
+    iteration warning stands; `residuals` is not called), or when the images barely observe
+    the plane (relative std above MAX_PLANE_RELATIVE_STD: weighed up, the few pairs sent the
+    plane off, a 45 px field stop with 90 pairs: std 2.4 at 1 px, unbounded at 0.15 px,
+    singular homographies; review Z, session 49)."""
+    if termination != "CONVERGENCE":
+        return start_px, {"mode": SIGMA_V_AUTO, "start_px": start_px, "sigma_v_px": start_px,
+                          "note": f"{what} ended {termination}: the keypoints' noise not "
+                                  f"measured; the paper's {start_px:g} px kept"}
+    sigma, report = measured_sigma_v(residuals(), start_px)
+    std = plane_relative_std
+    if sigma != start_px and not (np.isnan(std) or std <= MAX_PLANE_RELATIVE_STD):
+        return start_px, report | {
+            "sigma_v_px": start_px,
+            "note": f"the images barely observe the plane (relative std {std:.2g} at "
+                    f"{start_px:g} px, above {MAX_PLANE_RELATIVE_STD:g}): weighed up, its few "
+                    f"pairs could send it off; the paper's {start_px:g} px kept"}
+    return sigma, report
 
 
 def measured_sigma_v(residuals: TransferResiduals, start_px: float = SIGMA_V_START_PX

@@ -75,15 +75,15 @@ from fusedmosaic.estimation.bundle import (
 from fusedmosaic.estimation.consistency import (
     CONVENTIONS_AND_TIMING,
     MAX_NOISE_RATIO,
-    MAX_PLANE_RELATIVE_STD,
     SIGMA_V_AUTO,
     SIGMA_V_START_PX,
     TRACKER_NOISE_ADVICE,
     TransferResiduals,
     add_tracker_agreement,
+    auto_sigma_v,
     check_emt_sigma,
     check_sigma_v,
-    measured_sigma_v,
+    given_sigma_v_report,
     solver_warning,
     starting_sigma_v,
     tracker_agreement,
@@ -584,9 +584,7 @@ class SequentialMosaicker:
         check_sigma_v(o.sigma_v_px, "SequentialOptions.sigma_v_px")
         # the visual cost's sigma_v now (see sigma_v_px), and how it was decided
         self._sigma_v = starting_sigma_v(o.sigma_v_px)
-        self.visual_sigma: dict = {
-            "mode": "given" if o.sigma_v_px != SIGMA_V_AUTO else SIGMA_V_AUTO,
-            "sigma_v_px": self._sigma_v}
+        self.visual_sigma: dict = given_sigma_v_report(o.sigma_v_px)
         costs = _core.BundleAdjusterOptions(
             sigma_v_px=self._sigma_v, loss=o.loss, linear_solver=o.linear_solver,
             max_iterations=o.max_iterations, function_tolerance=FUNCTION_TOLERANCE, num_threads=1,
@@ -1524,36 +1522,21 @@ class SequentialMosaicker:
         return ba, ba.solve().as_dict()
 
     def _startup_sigma_v(self, ba, summary, ids, tracked, table, timing, nominal):
-        """sigma_v "auto" (consistency.measured_sigma_v): the start-up adjustment `ba` (its
+        """sigma_v "auto" (consistency.auto_sigma_v): the start-up adjustment `ba` (its
         `summary`) solved again with the keypoints' noise its pairs' transfer residuals (every
         inlier) show at its estimate, which the window keeps (visual_sigma reports it).
         `nominal`: the plane was given (held constant), not estimated. As ba-emt's
-        (bundle._with_measured_sigma_v), `ba` and `summary` with the paper's value when that is
-        the value it was solved with, when the start-up did not converge (its residuals are the
-        distance to the minimum, not the keypoints' noise; its warning stands), when the images
-        barely observe its plane (relative std above MAX_PLANE_RELATIVE_STD: weighed up, the
-        few pairs could send it off), or when the second solve does not converge."""
+        (bundle._with_measured_sigma_v), `ba` and `summary` with the paper's value where
+        auto_sigma_v measures nothing to solve again with, or when the second solve does not
+        converge."""
         start = self._sigma_v
-        if summary["termination"] != "CONVERGENCE":
-            self.visual_sigma = {
-                "mode": SIGMA_V_AUTO, "start_px": start, "sigma_v_px": start,
-                "note": f"the start-up adjustment ended {summary['termination']}: the keypoints' "
-                        f"noise not measured; the paper's {start:g} px kept"}
-            return ba, summary
-        residuals = TransferResiduals()
         plane = np.asarray(ba.plane())
-        for m in self._boot_matches:
-            residuals.add(np.asarray(ba.pose(m.frame_l)), np.asarray(ba.pose(m.frame_m)), plane,
-                          m.points_l, m.points_m, self.K)
-        sigma, report = measured_sigma_v(residuals, start)
-        std = summary["plane_relative_std"]
-        if sigma != start and not nominal and not (np.isnan(std)
-                                                   or std <= MAX_PLANE_RELATIVE_STD):
-            sigma = start
-            report |= {"sigma_v_px": start,
-                       "note": f"the images barely observe the plane (relative std {std:.2g} at "
-                               f"{start:g} px, above {MAX_PLANE_RELATIVE_STD:g}): weighed up, its "
-                               f"few pairs could send it off; the paper's {start:g} px kept"}
+        sigma, report = auto_sigma_v(
+            start, summary["termination"], np.nan if nominal else summary["plane_relative_std"],
+            lambda: TransferResiduals.of(
+                [(m.frame_l, m.frame_m, m.points_l, m.points_m) for m in self._boot_matches],
+                lambda k: np.asarray(ba.pose(k)), plane, self.K),
+            "the start-up adjustment")
         if sigma != start:
             self._sigma_v = sigma  # (read by _startup_adjuster)
             # (pi's std not computed again: the first solve's, at the paper's sigma_v, stands)
