@@ -985,7 +985,10 @@ def _demo_into(args: argparse.Namespace, root: Path) -> int:
     G = np.where(np.isin(ids, left_out)[:, None, None], np.nan, G)
     cam = dataset.camera
     frames, mask = frames_to_compose(dataset)  # lba-emt: undistorted pixels
-    canvas, seams_blend = CanvasOptions(), BlendOptions("linear", border_px=1.5)
+    # (highlights masked as mosaic.png's were: report.json mosaic.mask_specular, the method's)
+    canvas = CanvasOptions()
+    seams_blend = BlendOptions("linear", border_px=1.5,
+                               mask_specular=bool(mosaic.get("mask_specular", False)))
     plan = None
     if mosaic.get("file"):
         plan = plan_canvas(G, cam.width, cam.height, max_pixels=canvas.max_pixels,
