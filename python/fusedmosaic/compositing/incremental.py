@@ -41,11 +41,33 @@ and neither counts nor ends the run. An accepted far place costs only the tiles 
 footprints (the tile budget still applies); the bounding box then spans both places, so
 `render()` of the whole raises and the caller renders sub-boxes. `stray_rebase=None` never
 accepts a far place (every later frame near it is a stray too).
+
+Footprint size. A frame is left out when its footprint's area is below MIN_AREA_FRACTION of the
+frame's own pixel area (a placement collapsed towards a point: a near-singular homography), or
+more than `absurd_area_factor` (20) times above or below the median of the last 101 placed
+frames' (or its extent, its bounding box's diagonal, above 20 x theirs). That median is seeded
+by whichever frames are placed first, so a bad first placement poisoned it: a collapsed first
+frame (1e-6 of the area) left every later frame out as "1000000 x the recent median", for the
+whole session (review 50: a live view of 3 x 3 px, 1 frame drawn of 40). The floor leaves such a
+frame out; one of 1 / 100 of the area is above it, so the median also re-bases as the stray
+rule does: frames left out by these screens in a row whose areas and
+extents agree with each other (each within CONSISTENT_SIZE_FACTOR of the previous one's, no
+frame passing the screens in between) are a new footprint size once they outnumber the frames
+the median holds; the last of them is placed, the median restarts from that run
+(`median_rebased`), and the earlier ones stay left out. A bad seed costs one frame; an
+established median (101 frames) needs 102 frames in a row of a consistent new size, so a short
+glitch never moves it.
+
+`skipped` keeps the first and the last SKIPPED_KEPT (call number, reason) of the frames left out
+(all of them up to 2 x SKIPPED_KEPT), `skipped_total` counts them all and `skipped_counts` by
+reason (its figures replaced by N): bounded however long a live session runs (a list of every
+one held 9.1 MB after 100 000 frames left out; review 50).
 """
 
 from __future__ import annotations
 
 import math
+import re
 from collections import deque
 
 import cv2
@@ -71,6 +93,23 @@ from fusedmosaic.compositing.canvas import (
 
 Box = tuple[int, int, int, int]  # x0, y0, x1, y1 (x1, y1 exclusive), canvas pixels
 
+# A footprint of less than this fraction of the frame's own pixel area is a collapsed placement:
+# a camera 32 times as far from the surface as frame 0's (the area goes with the distance
+# squared; a simulated handheld fetoscopy sweep, 150 frames, spans 0.62 to 2.03 of it). A
+# near-singular placement, diag(1e-3, 1e-3, 1), gives 1e-6 of it (0.003 pixels for a 64 x 48
+# frame): placed first, it made the median of every later frame's screen.
+MIN_AREA_FRACTION = 1e-3
+# Frames left out by the median screens in a row are one new footprint size (towards re-basing
+# the median) when each one's area and extent are within this factor of the previous one's (the
+# simulated handheld sweep's consecutive frames: areas within 1.17 of each other), while the
+# screens leave out frames 20 x off the median.
+CONSISTENT_SIZE_FACTOR = 2.0
+SKIPPED_KEPT = 20  # the first and the last entries of `skipped` kept
+MAX_SKIP_KINDS = 32  # distinct reasons counted in `skipped_counts`; further ones together
+# The view rendered shrunk is summed in float32 blocks of at most this many bytes
+# (IncrementalCanvas._render_shrunk).
+SHRUNK_BLOCK_BYTES = 64 << 20
+
 
 class IncrementalCanvas:
     """Tiled canvas in reference pixels (frame 0's grid) times `scale`.
@@ -88,6 +127,10 @@ class IncrementalCanvas:
     stray_rebase: after this many consistent strays in a row (each within `stray_diagonals`
     diagonals of the previous one, no frame placed in between) the last of them is placed and
     the new place is kept (`rebased` lists those frames' call numbers); None never does.
+    skipped: the first and last SKIPPED_KEPT (call number, reason) of the frames left out (all
+    of them up to 2 x SKIPPED_KEPT); skipped_total: how many; skipped_counts: how many by
+    reason, its figures replaced by N. median_rebased: the first call numbers of the frames
+    that re-based the footprint-size median (module notes), median_rebases: how many.
     """
 
     def __init__(self, width: int, height: int, *, mask: np.ndarray | None = None,
@@ -126,8 +169,17 @@ class IncrementalCanvas:
         self.bounds: Box | None = None
         self._last_box: Box | None = None  # the last placed frame's
         self.frames_added = 0
-        self.skipped: list[tuple[int, str]] = []  # (call number, reason)
+        # the frames left out (module notes): the first and the last few, counts
+        self._skipped_first: list[tuple[int, str]] = []  # (call number, reason)
+        self._skipped_last: deque[tuple[int, str]] = deque(maxlen=SKIPPED_KEPT)
+        self.skipped_total = 0
+        self.skipped_counts: dict[str, int] = {}
         self.rebased: list[int] = []  # call numbers of the frames placed as a new far place
+        self.median_rebased: list[int] = []  # the first of those re-basing the median
+        self.median_rebases = 0
+        # (area, extent) of the frames left out by the median screens in a row, each consistent
+        # with the previous one (CONSISTENT_SIZE_FACTOR), since a frame last passed them
+        self._odd_sizes: list[tuple[float, float]] = []
         self._strays = 0  # consistent strays in a row since the last placed frame
         self._stray_box: Box | None = None  # the last of them
         self._areas: deque[float] = deque(maxlen=101)
@@ -147,23 +199,62 @@ class IncrementalCanvas:
             self._warpers[key] = FrameWarper(self.width, self.height, mask, self.options)
         return self._warpers[key]
 
-    def _screen(self, G: np.ndarray) -> tuple[str | None, float, float]:
-        """(reason to leave the frame out or None, footprint area, footprint extent)."""
+    @property
+    def skipped(self) -> list[tuple[int, str]]:
+        """(call number, reason) of the first and the last SKIPPED_KEPT frames left out, in
+        order: every one while skipped_total <= 2 x SKIPPED_KEPT."""
+        return self._skipped_first + list(self._skipped_last)
+
+    def _skip(self, name: int, reason: str) -> None:
+        if len(self._skipped_first) < SKIPPED_KEPT:
+            self._skipped_first.append((name, reason))
+        else:
+            self._skipped_last.append((name, reason))
+        self.skipped_total += 1
+        kind = reason_kind(reason)
+        if kind not in self.skipped_counts and len(self.skipped_counts) >= MAX_SKIP_KINDS:
+            kind = "other reasons (more kinds than are counted apart)"
+        self.skipped_counts[kind] = self.skipped_counts.get(kind, 0) + 1
+
+    def _screen(self, G: np.ndarray) -> tuple[str | None, float, float, bool]:
+        """(reason to leave the frame out or None, footprint area, footprint extent, whether
+        the reason is the recent median's)."""
         if not np.isfinite(G).all():
-            return "not placed", np.nan, np.nan
+            return "not placed", np.nan, np.nan, False
         quad = footprints(G[None], self.width, self.height)[0]
         reason, area = footprint_problem(G, quad, self.width, self.height)
         if reason is not None:
-            return reason, np.nan, np.nan
+            return reason, np.nan, np.nan, False
+        own = self.width * self.height
+        if not area >= MIN_AREA_FRACTION * own:
+            return (f"footprint area {area:.3g} pixels, below {MIN_AREA_FRACTION:g} x the "
+                    f"frame's own {own} (a collapsed placement: a near-singular homography)",
+                    area, np.nan, False)
         extent = float(footprint_extents(quad))
-        if self._areas and area > self.absurd_area_factor * float(np.median(self._areas)):
-            return (f"footprint area {area / np.median(self._areas):.0f} x the recent median",
-                    area, extent)
+        factor = self.absurd_area_factor
+        if self._areas:
+            median = float(np.median(self._areas))
+            if area > factor * median:
+                return (f"footprint area {area / median:.0f} x the recent median", area, extent,
+                        True)
+            if area * factor < median:  # (a collapse short of the floor; a bad seed above)
+                return (f"footprint area 1 / {median / area:.0f} of the recent median", area,
+                        extent, True)
         # (as canvas.screen_frames: a thin footprint of normal area)
-        if self._extents and extent > self.absurd_area_factor * float(np.median(self._extents)):
+        if self._extents and extent > factor * float(np.median(self._extents)):
             return (f"footprint extent {extent / np.median(self._extents):.0f} x the recent "
-                    "median (its bounding box's diagonal)", area, extent)
-        return None, area, extent
+                    "median (its bounding box's diagonal)", area, extent, True)
+        return None, area, extent, False
+
+    def _size_run(self, area: float, extent: float) -> list[tuple[float, float]]:
+        """The run of frames left out by the median screens with this one appended, or starting
+        with it when it does not agree with the previous one (CONSISTENT_SIZE_FACTOR)."""
+        if self._odd_sizes:
+            a, e = self._odd_sizes[-1]
+            f = CONSISTENT_SIZE_FACTOR
+            if a / f <= area <= a * f and e / f <= extent <= e * f:
+                return [*self._odd_sizes, (area, extent)]
+        return [(area, extent)]
 
     def _check_image(self, image, name: int) -> np.ndarray:
         if image is None:
@@ -203,12 +294,14 @@ class IncrementalCanvas:
             *, gain: float = 1.0) -> Box | None:
         """Blends one frame placed by `homography` (frame -> reference). mask: this frame's field
         of view if it differs from the canvas's. Returns the canvas box that changed, or None if
-        the frame was left out (unplaced, footprint behind the camera, non-convex, > 20 x the
-        recent median area or extent, or a stray: growing the canvas bounds beyond `max_pixels`
+        the frame was left out (unplaced, footprint behind the camera, non-convex, collapsed
+        below MIN_AREA_FRACTION of the frame's area, area 20 x above or below the recent median
+        or extent 20 x above it, or a stray: growing the canvas bounds beyond `max_pixels`
         while landing more than `stray_diagonals` frame diagonals from every placed frame; see
         `skipped`). A frame near the content is kept however large the bounding box gets. The
-        `stray_rebase`-th consistent stray in a row is placed instead, accepting the new place
-        (see the module notes).
+        `stray_rebase`-th consistent stray in a row is placed instead, accepting the new place,
+        and a run of frames of a consistent odd size re-bases the median once it outnumbers
+        the median's frames (see the module notes).
 
         Raises TypeError (None image), ValueError (pixel type other than uint8, wrong size or
         channel count, homography not 3x3) or CanvasTooLargeError (the allocated tiles would
@@ -226,7 +319,15 @@ class IncrementalCanvas:
         warper.channels = self._frame_channels
         image = warper._check_image(image, name)  # (H, W, channels)
         channels = image.shape[2]
-        reason, area, extent = self._screen(G)
+        reason, area, extent, by_median = self._screen(G)
+        sizes = None  # the run of frames of one odd size (left out by the median screens)
+        median_run = None  # that run when it re-bases the median (this frame passes)
+        if by_median:
+            sizes = self._size_run(area, extent)
+            if len(sizes) > len(self._areas):  # it outnumbers the median's frames
+                reason, sizes, median_run = None, None, sizes
+        elif reason is None:
+            sizes = []  # a frame passing the screens ends a run
         if self.scale != 1.0:
             G = np.diag([self.scale, self.scale, 1.0]) @ G
         box = warper.box(G) if reason is None else None
@@ -257,19 +358,33 @@ class IncrementalCanvas:
                               f"{box[0]}..{box[2]}, y {box[1]}..{box[3]}: a stray placement?)")
         if reason is None:
             T = self.tile_size
-            tiles = [(ty, tx) for ty in range(box[1] // T, (box[3] - 1) // T + 1)
-                     for tx in range(box[0] // T, (box[2] - 1) // T + 1)]
+            ty0, tx0, ty1, tx1 = box[1] // T, box[0] // T, (box[3] - 1) // T, (box[2] - 1) // T
+            # counted before any list of them: a near-singular first frame's footprint spans
+            # 6.4e6 x 4.8e6 px, whose list of tiles took > 2 GB (review 50); the tiles under
+            # the footprint alone above the budget cannot fit, whatever is allocated already
+            under = (ty1 - ty0 + 1) * (tx1 - tx0 + 1)
+            if under * T * T > self.max_pixels:
+                raise self._too_large(f"at least {under * T * T}", name, box)
+            tiles = [(ty, tx) for ty in range(ty0, ty1 + 1) for tx in range(tx0, tx1 + 1)]
             new = sum(key not in self.tiles for key in tiles)
             if (len(self.tiles) + new) * T * T > self.max_pixels:
-                raise CanvasTooLargeError(
-                    f"live canvas would need {(len(self.tiles) + new) * T * T} pixels of tiles, "
-                    f"above the budget of {self.max_pixels} pixels (frame {name} lands at "
-                    f"x {box[0]}..{box[2]}, y {box[1]}..{box[3]}); raise max_pixels, lower "
-                    "scale, or start a new canvas")
+                raise self._too_large(f"{(len(self.tiles) + new) * T * T}", name, box)
+        if median_run is not None:  # (the call no longer raises: the state changes)
+            self._areas.clear()
+            self._extents.clear()
+            for a, e in median_run:
+                self._areas.append(a)
+                self._extents.append(e)
+            self.median_rebases += 1
+            if len(self.median_rebased) < SKIPPED_KEPT:
+                self.median_rebased.append(name)
+            sizes = []
+        if sizes is not None:
+            self._odd_sizes = sizes
         if reason is not None:
             self._calls += 1
             self._frame_channels = channels
-            self.skipped.append((name, reason))
+            self._skip(name, reason)
             if strays is not None:
                 self._strays, self._stray_box = strays, box
             return None
@@ -279,8 +394,9 @@ class IncrementalCanvas:
             patch = warper.warp(image, G, gain=gain, name=name)
         self._calls += 1
         self._frame_channels = channels
-        self._areas.append(area)
-        self._extents.append(extent)
+        if median_run is None:  # (else the median holds it already)
+            self._areas.append(area)
+            self._extents.append(extent)
         if self._channels is None:
             self._channels = patch.data.shape[2]
         for key in tiles:
@@ -295,6 +411,12 @@ class IncrementalCanvas:
             self.rebased.append(name)
         self.frames_added += 1
         return box
+
+    def _too_large(self, pixels: str, name: int, box: Box) -> CanvasTooLargeError:
+        return CanvasTooLargeError(
+            f"live canvas would need {pixels} pixels of tiles, above the budget of "
+            f"{self.max_pixels} pixels (frame {name} lands at x {box[0]}..{box[2]}, y "
+            f"{box[1]}..{box[3]}); raise max_pixels, lower scale, or start a new canvas")
 
     # -- views --------------------------------------------------------------------------------
     @property
@@ -357,8 +479,10 @@ class IncrementalCanvas:
 
     def _render_shrunk(self, box: Box, step: int) -> np.ndarray:
         """render(box, step=step) for step > 1: each tile's pixels are summed by blocks of the
-        view's pixels into a float32 strip of view rows, so memory is the view plus one strip
-        (<= ~64 MB), and only allocated tiles are visited."""
+        view's pixels into a float32 block of view rows and columns, so memory is the view plus
+        one block (<= SHRUNK_BLOCK_BYTES, 64 MB), and only allocated tiles are visited. A block
+        spans whole view rows unless one row alone is above that: a view of 2 x 24 691 361 px
+        (a canvas spanning a re-localisation 2e9 px away) took a 592 MB strip (review 50)."""
         x0, y0, x1, y1 = box
         C, T = self._channels - 1, self.tile_size
         vw, vh = -(-(x1 - x0) // step), -(-(y1 - y0) // step)
@@ -367,28 +491,41 @@ class IncrementalCanvas:
         for ty, tx in self.tiles:
             if tx * T < x1 and tx * T + T > x0 and ty * T < y1 and ty * T + T > y0:
                 columns.setdefault(ty, []).append(tx)
-        rows = max(1, min(-(-T // step), (64 << 20) // (vw * C * 4)))  # view rows per strip
+        row_bytes = vw * C * 4
+        rows = max(1, min(-(-T // step), SHRUNK_BLOCK_BYTES // row_bytes))  # view rows a block
+        cols = vw if row_bytes <= SHRUNK_BLOCK_BYTES else max(1, SHRUNK_BLOCK_BYTES // (C * 4))
         for r0 in range(0, vh, rows):
             r1 = min(r0 + rows, vh)
-            cy0, cy1 = y0 + r0 * step, min(y0 + r1 * step, y1)  # the strip's canvas rows
-            acc = None
-            for ty in range(cy0 // T, (cy1 - 1) // T + 1):
-                for tx in columns.get(ty, ()):
-                    ax0, ay0 = max(x0, tx * T), max(cy0, ty * T)
-                    ax1, ay1 = min(x1, tx * T + T), min(cy1, ty * T + T)
-                    sub = resolve(self.tiles[(ty, tx)][ay0 - ty * T:ay1 - ty * T,
-                                                       ax0 - tx * T:ax1 - tx * T])[0]
-                    sums, i0 = _block_sums(sub, ay0 - y0, step, axis=0)
-                    sums, j0 = _block_sums(sums, ax0 - x0, step, axis=1)
-                    if acc is None:
-                        acc = np.zeros((r1 - r0, vw, C), np.float32)
-                    acc[i0 - r0:i0 - r0 + sums.shape[0], j0:j0 + sums.shape[1]] += sums
-            if acc is not None:
-                acc *= np.float32(1.0 / (step * step))
-                acc += np.float32(0.5)  # round half up (values are >= 0)
-                np.clip(acc, 0, 255, out=acc)
-                out[r0:r1] = acc.astype(np.uint8)
+            cy0, cy1 = y0 + r0 * step, min(y0 + r1 * step, y1)  # the block's canvas rows
+            for c0 in range(0, vw, cols):
+                c1 = min(c0 + cols, vw)
+                cx0, cx1 = x0 + c0 * step, min(x0 + c1 * step, x1)  # its canvas columns
+                acc = None
+                for ty in range(cy0 // T, (cy1 - 1) // T + 1):
+                    for tx in columns.get(ty, ()):
+                        if not (tx * T < cx1 and tx * T + T > cx0):
+                            continue
+                        ax0, ay0 = max(cx0, tx * T), max(cy0, ty * T)
+                        ax1, ay1 = min(cx1, tx * T + T), min(cy1, ty * T + T)
+                        sub = resolve(self.tiles[(ty, tx)][ay0 - ty * T:ay1 - ty * T,
+                                                           ax0 - tx * T:ax1 - tx * T])[0]
+                        sums, i0 = _block_sums(sub, ay0 - y0, step, axis=0)
+                        sums, j0 = _block_sums(sums, ax0 - x0, step, axis=1)
+                        if acc is None:
+                            acc = np.zeros((r1 - r0, c1 - c0, C), np.float32)
+                        acc[i0 - r0:i0 - r0 + sums.shape[0],
+                            j0 - c0:j0 - c0 + sums.shape[1]] += sums
+                if acc is not None:
+                    acc *= np.float32(1.0 / (step * step))
+                    acc += np.float32(0.5)  # round half up (values are >= 0)
+                    np.clip(acc, 0, 255, out=acc)
+                    out[r0:r1, c0:c1] = acc.astype(np.uint8)
         return out[:, :, 0] if C == 1 else out
+
+
+def reason_kind(reason: str) -> str:
+    """A reason without its figures (each number replaced by N), for counting by kind."""
+    return re.sub(r"-?\d+(\.\d+)?(e[+-]?\d+)?", "N", reason)[:200]
 
 
 def _block_sums(a: np.ndarray, start: int, step: int, axis: int) -> tuple[np.ndarray, int]:

@@ -24,7 +24,11 @@ them). A frame without a final placement is not drawn. A failure of the view (a 
 above ``max_pixels``, any error of the worker) is recorded in ``problems`` (a count per kind,
 without frame numbers or coordinates, so it stays small however long the session;
 ``problem_details`` has the first frame of each kind and its full message) and never stops the
-session or the worker.
+session or the worker. So is each frame the canvas leaves out, by its reason ("frame left out
+of the view: " and IncrementalCanvas's reason, its figures replaced by N: a placement collapsed
+to a point, a footprint 20 x the recent median, a stray, ...): a view that stops growing says
+why (a collapsed first frame left every later one out as "1000000 x the recent median", and
+the summary showed 1 frame drawn and no problem; review 50).
 
 The canvas's bounding box can outgrow its tiles (a diagonal sweep's grows with the square of its
 length): a bounding box above the view's budget, min(``max_pixels``, VIEW_MAX_PIXELS), is
@@ -65,7 +69,7 @@ import numpy as np
 
 from fusedmosaic.compositing.blending import BlendOptions
 from fusedmosaic.compositing.canvas import CanvasTooLargeError
-from fusedmosaic.compositing.incremental import IncrementalCanvas
+from fusedmosaic.compositing.incremental import IncrementalCanvas, reason_kind
 from fusedmosaic.io.output import write_image_file
 
 _STOP = object()
@@ -204,6 +208,10 @@ class LiveMosaicView:
                 if self.canvas.add(image, G) is not None:
                     self.frames_added += 1
                     self._dirty = True
+                else:
+                    reason = self.canvas.skipped[-1][1]
+                    self._problem(f"frame left out of the view: {reason_kind(reason)}",
+                                  frame=index, message=reason)
             except Exception as exc:  # noqa: BLE001 (recorded: the worker must not die)
                 self._problem(f"frame left out of the view: {_kind(exc)}", frame=index,
                               message=f"{type(exc).__name__}: {exc}")
