@@ -404,26 +404,41 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     files = "camera.yaml and hand_eye.txt" if result.hand_eye is not None else "camera.yaml"
     _say(args, f"wrote {', '.join(written)} to {args.out} (copy {files} into the datasets "
                "recorded with this scope)")
+    # a camera.yaml run refuses (its lens model folds over inside the frame, warned above):
+    # written for inspection, but no success
+    lens = ("" if result.camera_error is None else
+            f"{args.out}/camera.yaml: its lens model folds over inside the frame, so run refuses "
+            "it (calibration.json intrinsics.undistortion; the warning above says where and what "
+            "to change)")
     if result.hand_eye_error is not None:
         raise ValueError(f"hand-eye failed: {result.hand_eye_error} (the intrinsics are written: "
-                         f"{args.out}/camera.yaml)")
+                         f"{args.out}/camera.yaml)" + (f"; {lens}" if lens else ""))
+    if lens:
+        raise ValueError(lens)
     return 0
 
 
 def _say_hand_eye(args: argparse.Namespace, he: dict) -> None:
     """calibrate's summary of a hand-eye (calibration.json's "hand_eye")."""
     offset = he["tracker_time_offset"]
+    # against the video: with the shift import gave the recording's tracking.csv (import.json)
+    total, imported = offset.get("total_s", offset["applied_s"]), offset.get("import_shift_s")
     if offset.get("estimated"):
         shift = offset["estimate_s"] * 1e3
         _say(args, f"tracker time offset {shift:+.1f} +- {offset['std_s'] * 1e3:.1f} ms "
                    + (f"(applied: the frame at t takes the tracker sample at t {shift:+.1f} ms; "
                       f"give recordings of this set-up run/import --tracker-time-offset "
-                      f"{offset['applied_s']:.4f}, or run --calibration with this "
+                      f"{total:.4f}, or run --calibration with this "
                       f"calibration.json: one or the other, not both)" if offset["applied_s"]
                       else f"(not applied: {offset.get('reason', 'not significant')})"))
     else:  # the reason was in calibration.json only
         _say(args, f"tracker time offset {offset['applied_s'] * 1e3:+.1f} ms: not estimated ("
                    + offset.get("reason", "as given with --time-offset") + ")")
+    if imported:
+        _say(args, f"the recording's tracking.csv was shifted by {imported:+.4f} s at import "
+                   f"(import.json): the tracker's clock is {total:+.4f} s ahead of the video's "
+                   "in all, which run --calibration with this calibration.json applies (less "
+                   "a shift its dataset had at import)")
     if "still_views" in he:
         source = (f"{he['still_views']} still views ({he['tracker_samples']} tracker samples "
                   "taken while the board pose held)")

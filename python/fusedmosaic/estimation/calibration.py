@@ -23,7 +23,9 @@ readable is read and checked before the board search):
    with these intrinsics; views whose largest corner error is over 3x the median (and over 1
    px) are rejected (corners found off the squares' corners, e.g. where a circular field of
    view cuts the board) and the intrinsics computed again without them. A focal length with a
-   standard error over 2 % is refused.
+   standard error over 2 % is refused. How far the corners reach into the frame is reported
+   (corner_reach: beyond it the model is extrapolated; warned below MIN_CORNER_REACH), and a
+   model that folds over inside the frame, which `run` refuses, is named (_lens_fold).
 4. Hand-eye: every detection gives cam_from_board C_k (solvePnP with the intrinsics) and the
    tracker gives tracker_from_sensor A_k, with A_k X C_k = B for the unknown X =
    sensor_from_camera and B = tracker_from_board. X starts from the relative motions
@@ -106,9 +108,19 @@ MAX_FOCAL_RELATIVE_STD = 0.02  # above it the views are too alike to calibrate f
 # the hand-eye's disagreement): cornerSubPix finds a clear board's corners to ~0.05-0.2 px, so a
 # model that fits the lens leaves about that (the simulator: 0.045 px; 0.34-0.43 px at 320x320
 # with a strong pincushion), while a lens model lacking coefficients leaves a systematic error
-# several times larger (--distortion 0 on the simulator's k1 = -0.3 lens: 0.87 px, cx 12 px
-# off for a reported standard error of 0.75 px). 0.5 px: above any fitting model's, below that.
+# several times larger (--distortion 0 on the simulator's k1 = -0.3 lens: 10 views x 6 frames at
+# 320x320, 0.87 px, cx 12 px off for a reported standard error of 0.75 px; its default 480x480
+# recording, 1.23 px, cx 16.6 px off for 0.78 px). 0.5 px: above any fitting model's, below that.
 MAX_REPROJECTION_RMS_PX = 0.5
+# The board's corners reaching less than this fraction of the frame's radius (from the principal
+# point: corner_reach) leave the lens model extrapolated over the periphery: a warning. Measured
+# (simulate checkerboard's views at 20-70 mm, 20 views at 480x480, corners projected with 0.05
+# px noise, the default k1 -0.3 lens and a fisheye one, 3-4 seeds each; the model's largest
+# error against the truth within 0.9 of the frame's radius, every fit's RMS 0.07 px): reach
+# 0.72-0.78, 0.29-0.59 px; 0.60-0.70, 0.41-23 px (mostly 0.5-2); below 0.60, 1.6-3570 px
+# (median ~20; some models fold over). So below 60 % the periphery is wrong on every seed, and
+# 70 % is the advice (README; the simulator's default views reach 68-73 %).
+MIN_CORNER_REACH = 0.6
 # Board normals (in the camera frame) of the intrinsics' views spreading less than this (RMS
 # angle about their mean) are Zhang's degenerate case, parallel views: the focal length is not
 # determined and OpenCV's standard error says nothing of it. Measured on the simulator (60 views
@@ -200,7 +212,8 @@ class CalibrationOptions:
         the frame at time t is the one at t + time_offset (0: the clocks agree).
     max_time_offset_s : the largest offset "auto" considers (an estimate at it is refused:
         the clocks may differ by more). Video capture lags by up to a few hundred ms; the search
-        costs the same at any bound, but views within it of the tracker's ends do not take part.
+        costs the same at any bound, but views within it of the tracker's ends or of a dropout
+        (valid=0 samples) do not take part.
     threads : frames searched for the board in parallel.
     """
 
@@ -319,6 +332,8 @@ class CalibrationResult:
     hand_eye: np.ndarray | None
     report: dict = field(default_factory=dict)
     hand_eye_error: str | None = None  # why the hand-eye failed (the intrinsics stand)
+    # why `run` would refuse the camera (its lens model folds over inside the frame: _lens_fold)
+    camera_error: str | None = None
 
 
 # ------------------------------------------------------------------------------------------------
@@ -675,9 +690,25 @@ def _linearised_bootstrap(J: np.ndarray, r: np.ndarray, huber: np.ndarray, clust
     return cov, int(g), int(keep.sum())
 
 
+def tracked_at_every_offset(tracker_at, bound: float, gap_s: float | None = None) -> np.ndarray:
+    """(N,) bool: the views ``tracker_at(d, method)`` -> (poses, covered (N,)) covers at every
+    offset d in [-bound, bound]. A view is uncovered where t + d falls outside the tracker's
+    span (checked at both ends) or inside a dropout, an open interval longer than ``gap_s``
+    (io.tracking: GAP_SPACINGS sample spacings; None: 5 ms, every dropout of a tracker below
+    600 Hz): each view's uncovering offsets are then such an interval, which a grid of offsets
+    at most half of it apart always meets. The grid interpolates linearly (the same coverage as
+    cubic, for less)."""
+    step = 0.005 if gap_s is None else min(0.005, 0.5 * float(gap_s))
+    grid = np.linspace(-bound, bound, max(int(np.ceil(2 * bound / step)), 1) + 1)
+    covered = np.asarray(tracker_at(grid[0], "linear")[1], bool).copy()
+    for d in grid[1:]:
+        covered &= tracker_at(d, "linear")[1]
+    return covered
+
+
 def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeResult,
                          max_offset_s: float, times: np.ndarray, *,
-                         still: np.ndarray | None = None) -> dict:
+                         still: np.ndarray | None = None, gap_s: float | None = None) -> dict:
     """The offset d (s) such that the tracker sample interpolated at t + d belongs to the frame
     at t: the d whose hand-eye fit leaves the smallest cost, over the views the tracker covers
     at every d in [-max_offset_s, max_offset_s] and with the noise of the first fit held (so the
@@ -725,7 +756,7 @@ def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeR
     differs from 0 by more than two standard errors; an estimate at the bound is flagged
     ("at_bound": the clocks may differ by more). `tracker_at(d, method)` -> (tracker_from_sensor
     of the views it covers, mask), interpolated by io.tracking's ``method`` ("cubic" or
-    "linear")."""
+    "linear"); ``gap_s`` the shortest dropout that uncovers a view (tracked_at_every_offset)."""
     from scipy.optimize import minimize_scalar
 
     times = np.asarray(times, np.float64).reshape(-1)
@@ -733,15 +764,21 @@ def estimate_time_offset(tracker_at, cam_from_board: np.ndarray, first: HandEyeR
         raise ValueError(f"time offset: {times.size} frame times for {len(cam_from_board)} "
                          "views")
     h = 0.002  # curvature step; the views must be covered there too
-    _, low = tracker_at(-max_offset_s - 2 * h)
-    _, high = tracker_at(max_offset_s + 2 * h)
-    common = low & high
+    # The views tracked at every offset the search may try (the curvature's and the bootstrap's
+    # steps beyond the bound included): one set of views for every cost, so the costs compare
+    # and their curvature is a chi^2's. Both ends alone missed the views a dropout mid-recording
+    # uncovers at offsets between them (4 invalid samples at 40 Hz: a numpy broadcast error,
+    # reported as a bound too wide).
+    common = tracked_at_every_offset(tracker_at, max_offset_s + 2 * h, gap_s)
     sigma = first.tracker_sigma
     fit_scale = first.scale_std > 0
     C = cam_from_board[common]
 
     def tracked(d: float, method: str = "cubic") -> np.ndarray:
         A, ok = tracker_at(d, method)
+        if not ok[common].all():  # (a tracker_at whose gaps are shorter than gap_s)
+            raise ValueError(f"the tracker does not cover {int((~ok & common).sum())} of the "
+                             f"views tracked at every offset at {d:+.4f} s")
         return A[common[ok]]
 
     def cost(d: float, method: str = "cubic") -> float:
@@ -994,14 +1031,21 @@ def _low_points(values: np.ndarray, count: int, apart: int) -> list[int]:
     return kept
 
 
-def _offset_bound_note(samples, times: np.ndarray) -> str:
+def _offset_bound_note(samples, times: np.ndarray, gap_s: float | None = None) -> str:
     """What the refusals of the clock offset search add: both time spans, the recording's
-    length and the bound that keeps half the views (from the valid samples' span, gaps
-    aside)."""
+    length and the bound that keeps half the views (from the valid samples' span and, with
+    ``gap_s``, their dropouts: intervals longer than it between valid samples)."""
     from fusedmosaic.io.tracking import _time
 
     ts = samples.timestamps[samples.valid]
-    margin = np.sort(np.minimum(times - ts[0], ts[-1] - times))[::-1]
+    margin = np.minimum(times - ts[0], ts[-1] - times)
+    if gap_s is not None:  # each view's distance to the nearest dropout (0 inside one)
+        for start, end in zip(ts[:-1][np.diff(ts) > gap_s * (1 + 1e-9)],
+                              ts[1:][np.diff(ts) > gap_s * (1 + 1e-9)], strict=True):
+            inside = (times > start) & (times < end)
+            near = np.where(times <= start, start - times, times - end)
+            margin = np.minimum(margin, np.where(inside, 0.0, near))
+    margin = np.sort(margin)[::-1]
     # estimate_time_offset looks 4 ms beyond the bound
     half = np.floor(100 * (margin[max(times.size // 2 - 1, 0)] - 0.004)) / 100
     return (
@@ -1205,13 +1249,20 @@ def calibrate_recording(
         frames.expected_size, frames.size_source = size, f"its first frame {size}"
     frame_ids, timestamps, frame_times = read_frame_times(root, frames, fps)
     tracking, skipped = _read_tracking(root, timestamps, o)
+    # a tracker time offset import already applied to tracking.csv (import / live --record
+    # --tracker-time-offset S): what calibrate measures is then what remains of the offset
+    import_shift = 0.0
+    if tracking is not None:
+        from fusedmosaic.io.plus import applied_tracker_time_offset
+
+        import_shift = applied_tracker_time_offset(root) or 0.0
     detections, searched = find_board_views(frames, frame_ids, timestamps, o, size=size,
                                             progress=progress)
     t_detect = time.perf_counter() - t_start
     result = calibrate_detections(detections, o, tracking=tracking,
                                   tracking_source=str(root / "tracking.csv"),
                                   hand_eye_skipped=skipped, given=given, source=str(root),
-                                  searched=searched)
+                                  searched=searched, import_shift_s=import_shift)
     result.report = {"recording": str(root.resolve()), **result.report,
                      "frames": len(frames), "frame_times": frame_times,
                      "frames_searched": searched}
@@ -1306,11 +1357,16 @@ def calibrate_detections(
     given: Camera | None = None,
     source: str = "the recording",
     searched: int | None = None,
+    import_shift_s: float = 0.0,
 ) -> CalibrationResult:
     """Intrinsics and hand-eye from board detections (calibrate_recording's stages after the
     board search): ``tracking`` the TrackingSamples (None: the hand-eye skipped, for the reason
     ``hand_eye_skipped``), ``given`` the recording's camera.yaml (its field-of-view mask and
-    pixel size carried over), ``source`` and ``tracking_source`` name them in messages."""
+    pixel size carried over), ``source`` and ``tracking_source`` name them in messages.
+    ``import_shift_s``: the tracker time offset already applied to the tracking at import
+    (io.plus.applied_tracker_time_offset); the report's tracker_time_offset then gives it
+    ("import_shift_s") and the offset against the video, it plus the one applied here
+    ("total_s": what recordings of the set-up need)."""
     o = CalibrationOptions() if options is None else options
     o.validate()
     t0 = time.perf_counter()
@@ -1391,6 +1447,9 @@ def calibrate_detections(
                     pixel_size_um=None if given is None else given.pixel_size_um,
                     fov_mask_radius=None if given is None else given.fov_mask_radius)
     ids = detections.ids
+    fitted = [points[i] for k, i in enumerate(chosen) if k not in dropped]
+    reach = corner_reach(fitted, camera)
+    fold = _lens_fold(camera, reach, fitted)
     report: dict = {
         "board": {"inner_corners": [o.board_cols, o.board_rows], "square_mm": o.square_mm},
         "image_size": list(size),
@@ -1412,6 +1471,8 @@ def calibrate_detections(
             "lens_model": o.lens_model,
             "distortion": [float(v) for v in dist],
             "distortion_coefficients": o.coefficients,
+            "corner_reach": reach,
+            "undistortion": fold,
         },
         "timings_s": {"intrinsics": time.perf_counter() - t0},
     }
@@ -1420,6 +1481,11 @@ def calibrate_detections(
     if model_warning:
         report["intrinsics"]["warning"] = model_warning
         warnings.warn(f"{source}: {model_warning}", stacklevel=2)
+    if reach.get("warning"):
+        warnings.warn(f"{source}: {reach['warning']}", stacklevel=2)
+    camera_error = fold.get("error")
+    if camera_error:
+        warnings.warn(f"{source}: {camera_error}", stacklevel=2)
     hand_eye, error = None, None
     if tracking is None:
         report["hand_eye"] = {"skipped": hand_eye_skipped or "no tracker samples"}
@@ -1431,11 +1497,87 @@ def calibrate_detections(
         try:
             hand_eye, report["hand_eye"] = _hand_eye_stage(tracking, tracking_source, views, K,
                                                            dist, o, model_warning=model_warning)
+            offset = report["hand_eye"]["tracker_time_offset"]
+            offset.update(import_shift_s=float(import_shift_s),
+                          total_s=float(import_shift_s + offset["applied_s"]))
         except ValueError as exc:
             error = str(exc)
             report["hand_eye"] = {"failed": error}
         report["timings_s"]["hand_eye"] = time.perf_counter() - t0
-    return CalibrationResult(camera, hand_eye, report, error)
+    return CalibrationResult(camera, hand_eye, report, error, camera_error)
+
+
+def corner_reach(points: list[np.ndarray], camera: Camera) -> dict:
+    """How far into the frame the board's corners ``points`` (the intrinsics' views) reach: the
+    largest corner radius from the principal point over the largest radius of a pixel the
+    frames show (within the field-of-view mask, if any), "fraction"; with a "warning" below
+    MIN_CORNER_REACH. The lens model is fitted to the corners alone: beyond their reach it is
+    extrapolated, and `run` undistorts whole frames with it."""
+    c = camera.camera_matrix[:2, 2]
+    corner = max(float(np.linalg.norm(p - c, axis=1).max()) for p in points)
+    mask = camera.fov_mask()
+    if mask is None:
+        used = np.array([[0, 0], [camera.width - 1, 0], [0, camera.height - 1],
+                         [camera.width - 1, camera.height - 1]], np.float64)
+    else:
+        v, u = np.nonzero(mask)
+        used = np.stack([u, v], 1).astype(np.float64)
+    frame = float(np.linalg.norm(used - c, axis=1).max())
+    out = {"fraction": corner / frame, "corner_radius_px": corner, "frame_radius_px": frame,
+           "what": ("the board corners' largest radius from the principal point over the "
+                    "frame's (its farthest pixel" + (" inside the field-of-view mask" if mask
+                                                     is not None else "") + "): beyond it "
+                    "the lens model is extrapolated")}
+    if out["fraction"] < MIN_CORNER_REACH:
+        out["warning"] = (
+            f"the board's corners reach {100 * out['fraction']:.0f} % of the frame's radius "
+            f"from the principal point ({corner:.0f} of {frame:.0f} px; "
+            "70 % advised): beyond it, over the frame's periphery, "
+            "the lens model is extrapolated and may err by pixels to tens of pixels, whatever "
+            "the RMS reprojection error and the standard errors say (they see the corners "
+            "only). Film views with the board near the frame's edges and corners")
+    return out
+
+
+def _lens_fold(camera: Camera, reach: dict, points: list[np.ndarray]) -> dict:
+    """What calibration.json says of undistorting whole frames with ``camera`` (as `run`
+    does: io.calibration.LensUndistortion, within the field-of-view mask): {"folds_over":
+    False}, or True with the fold's pixel and an "error" (run refuses the camera.yaml), which
+    compares its radius with the board's corners' ``points`` in its direction (within 22.5
+    deg). A model with many coefficients (--distortion 8) can fit the corners to 0.04 px and
+    fold over beyond them (review: `simulate checkerboard`, seed 0: at 64 % of the frame's
+    radius, near the top edge, where the corners reached 62 %; 70 % at most)."""
+    from fusedmosaic.io.calibration import LensFoldError
+
+    out: dict = {"folds_over": False, "fov_mask_radius": camera.fov_mask_radius}
+    try:
+        camera.undistortion()
+    except LensFoldError as exc:
+        (u, v), (x, y) = exc.pixel, exc.raw
+        c = camera.camera_matrix[:2, 2]
+        radius = float(np.hypot(x - c[0], y - c[1]) / reach["frame_radius_px"])
+        d = np.concatenate(points) - c
+        # each corner's direction from the principal point against the fold's, within +-pi
+        turn = np.angle(np.exp(1j * (np.arctan2(d[:, 1], d[:, 0])
+                                     - np.arctan2(y - c[1], x - c[0]))))
+        along = np.linalg.norm(d[np.abs(turn) <= np.pi / 8], axis=1)
+        there = float(along.max() if along.size else 0.0) / reach["frame_radius_px"]
+        n = 0 if camera.distortion is None else camera.distortion.size
+        out.update(folds_over=True, pixel=[u, v], raw_pixel=[x, y], radius_fraction=radius,
+                   corner_reach_that_way=there, error=(
+                       f"the {camera.lens_model} lens model with {n} distortion coefficients "
+                       f"folds over inside the {camera.width}x{camera.height} frame: undistorted "
+                       f"pixel ({u}, {v}) is drawn from raw pixel ({x:.0f}, {y:.0f}), mirrored, "
+                       f"at {100 * radius:.0f} % of the frame's radius from the principal point "
+                       f"(the board's corners reach {100 * there:.0f} % that way, "
+                       f"{100 * reach['fraction']:.0f} % at most): it fits the corners but not "
+                       "the frame beyond them, and run refuses this "
+                       "camera.yaml (its undistorted frames would show a double image). "
+                       "Calibrate with fewer distortion coefficients (--distortion 5 or 4), or "
+                       "with views that bring the board to the frame's edges and corners"))
+    except ValueError as exc:  # no undistorted pixel inside the raw frame
+        out.update(folds_over=True, error=str(exc))
+    return out
 
 
 def _camera_model_warning(rms_px: float, o: CalibrationOptions) -> str:
@@ -1451,8 +1593,10 @@ def _camera_model_warning(rms_px: float, o: CalibrationOptions) -> str:
         hint = ("more distortion coefficients (--distortion 5) or, for a wide-angle scope, "
                 "--lens-model fisheye")
     elif n < 8:
-        hint = ("--distortion 8 (the rational model) or, for a wide-angle scope, "
-                "--lens-model fisheye")
+        # (calibrate checks that the rational model does not fold over beyond the corners:
+        # _lens_fold; it did on the simulator's default recording, seed 0)
+        hint = ("--distortion 8 (the rational model: calibrate then checks that it does not "
+                "fold over inside the frame) or, for a wide-angle scope, --lens-model fisheye")
     else:
         hint = "--lens-model fisheye"
     model = f"{o.lens_model} model with {n} distortion coefficient{'s' * (n != 1)}"
@@ -1530,7 +1674,7 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
     RMS reprojection error high: _camera_model_warning), the board's scale against the
     tracker's is not 1 (--square-mm, the tracker's unit), or the clock offset lies at the
     search bound."""
-    from fusedmosaic.io.tracking import interpolate_camera_poses
+    from fusedmosaic.io.tracking import GAP_SPACINGS, interpolate_camera_poses, sample_spacing
 
     times, poses = views.times, views.poses
 
@@ -1570,9 +1714,14 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
             # A bound leaving too few views tracked at every offset within it skipped the
             # estimate (--max-time-offset 4 on a 6.4 s recording; the reason only in
             # calibration.json) or failed its fits: refused, naming the recording's length.
+            # the shortest dropout that uncovers a frame (io.tracking.interpolate_camera_poses)
+            gap_s = GAP_SPACINGS * sample_spacing(samples.timestamps[samples.valid])
+            # (the coverage's default 5 ms steps meet every dropout of a tracker up to 300 Hz;
+            # a faster one's are checked in finer steps)
+            finer = {"gap_s": gap_s} if gap_s < 0.01 else {}
             try:
                 offset = estimate_time_offset(tracker_at, poses, first, o.max_time_offset_s,
-                                              times, still=held)
+                                              times, still=held, **finer)
                 # (a scan without a clear least is no failure: the offset not determined, 0)
                 failed = "" if offset["estimated"] or "scan" in offset else (
                     f"at least {MIN_HAND_EYE_VIEWS} views tracked at every offset are needed")
@@ -1580,12 +1729,18 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
                 failed = f"over them {exc}"
             if failed:
                 bound = o.max_time_offset_s + 0.004  # as estimate_time_offset looks
-                covered = int((tracker_at(-bound)[1] & tracker_at(bound)[1]).sum())
-                note = _offset_bound_note(samples, times)
+                ends = tracker_at(-bound)[1] & tracker_at(bound)[1]
+                covered = tracked_at_every_offset(tracker_at, bound, gap_s)
+                note = _offset_bound_note(samples, times, gap_s)
+                dropouts = int(ends.sum() - covered.sum())
+                if dropouts:
+                    note += (f"; the tracker's dropouts (over {1e3 * gap_s:.0f} ms between valid "
+                             f"samples) leave {dropouts} more views untracked at some offset "
+                             "within it")
                 raise ValueError(
                     f"the clock offset search within +-{o.max_time_offset_s:g} s "
-                    f"(--max-time-offset) covers {covered} of the {times.size} views (those "
-                    f"tracked at every offset within it): {failed}; {note}. Lower "
+                    f"(--max-time-offset) covers {int(covered.sum())} of the {times.size} views "
+                    f"(those tracked at every offset within it): {failed}; {note}. Lower "
                     "--max-time-offset, or give the offset with --time-offset S")
             # A fit failing after an estimated offset may be the offset's fault: the coarse
             # scan holds the hand-eye fitted at 0, so clocks >= ~0.6 s apart were estimated
@@ -1837,11 +1992,13 @@ def camera_model_difference(a: Camera, b: Camera, region: float = 0.8) -> float:
 @dataclass(frozen=True)
 class TrackerCalibration:
     """What calibrate measured of the tracker, for runs of recordings from the same set-up:
-    time_offset_s, the tracker's clock ahead of the video's (the offset calibrate applied: 0
-    when not significant); rot_sigma_deg / trans_sigma_mm, its noise per axis as seen against
-    the board (tracker_sigma_from says which samples: a still view's raw samples, or samples
-    interpolated at moving frames' times, below a raw sample's); time_offset_note: why the
-    offset is 0 or where it came from ("" when calibrate measured and applied it)."""
+    time_offset_s, the shift to apply to the dataset's tracking.csv (the tracker's clock ahead
+    of the video's as calibrate measured it, 0 where not significant, less any shift the
+    dataset's tracking.csv had at import); rot_sigma_deg / trans_sigma_mm, its noise per axis
+    as seen against the board (tracker_sigma_from says which samples: a still view's raw
+    samples, or samples interpolated at moving frames' times, below a raw sample's);
+    time_offset_note: why the offset is 0 or where it came from ("" when calibrate measured
+    and applied it)."""
 
     time_offset_s: float
     rot_sigma_deg: float
@@ -1854,10 +2011,15 @@ def read_tracker_calibration(path: str | Path,
                              dataset: str | Path | None = None) -> TrackerCalibration:
     """The tracker's time offset and noise from a calibration.json calibrate wrote (its
     "hand_eye" entry); ValueError naming the file when it has no hand-eye calibration or a
-    value is missing or out of range. ``dataset``: the dataset the calibration is for (run's);
-    when its tracking.csv was already shifted by a tracker time offset at import
-    (io.plus.applied_tracker_time_offset), calibration.json's offset is not applied again:
-    time_offset_s 0, with a warning and the note saying so."""
+    value is missing or out of range. The offset is calibrate's total against the video (the
+    shift its recording's tracking.csv had at import, "import_shift_s", plus the one calibrate
+    applied, "applied_s"; "total_s" says the sum). ``dataset``: the dataset the calibration is
+    for (run's); when its tracking.csv was already shifted at import
+    (io.plus.applied_tracker_time_offset), only the difference is applied, with a warning when
+    there is one (the two disagree). A calibration.json without "import_shift_s" (calibrate
+    before it) gives its "applied_s", and a dataset shifted at import none (time_offset_s 0,
+    with a warning). Warns when calibrate warned of the hand-eye or of the intrinsics (a lens
+    model that misfits inflates the tracker noise seen)."""
     from fusedmosaic.io.output import read_json_object
     from fusedmosaic.io.tracking import check_time_offset
 
@@ -1865,7 +2027,8 @@ def read_tracker_calibration(path: str | Path,
     if not path.is_file():
         raise ValueError(f"{path}: {'is a folder; expected' if path.is_dir() else 'not found:'} "
                          "a calibration.json written by fusedmosaic calibrate")
-    he = read_json_object(path).get("hand_eye")
+    data = read_json_object(path)
+    he = data.get("hand_eye")
     why = (he.get("skipped") or he.get("failed")) if isinstance(he, dict) else \
         'no "hand_eye" entry'
     if why:
@@ -1885,6 +2048,12 @@ def read_tracker_calibration(path: str | Path,
                          "tracker_sigma_deg or tracker_sigma_mm (written by an older "
                          "calibrate? calibrate the recording again)") from None
     offset = check_time_offset(offset, f"{path}: hand_eye.tracker_time_offset.applied_s")
+    import_shift = entry.get("import_shift_s")  # None: written before calibrate read import.json
+    if import_shift is not None:  # (its total_s, for the reader, is this sum)
+        import_shift = check_time_offset(
+            import_shift, f"{path}: hand_eye.tracker_time_offset.import_shift_s")
+        total = check_time_offset(import_shift + offset,
+                                  f"{path}: hand_eye.tracker_time_offset.total_s")
     for key, value, bound in zip(("tracker_sigma_deg", "tracker_sigma_mm"), sigma,
                                  MAX_TRACKER_SIGMA, strict=True):
         if (isinstance(value, bool) or not isinstance(value, (int, float))
@@ -1894,6 +2063,16 @@ def read_tracker_calibration(path: str | Path,
     if he.get("warning"):  # what calibrate said of it holds for its noise figure too
         warnings.warn(f"{path}: calibrate warned of this calibration: {he['warning']}",
                       stacklevel=2)
+    intrinsics = data.get("intrinsics")
+    if isinstance(intrinsics, dict) and intrinsics.get("warning"):
+        # A lens model that misfits biases every board pose, and the tracker's disagreement
+        # with them is taken for its noise: review, --distortion 0 on the simulator's k1 -0.3
+        # lens, 1.52 deg / 0.80 mm seen for a true 0.9 / 0.25 (ba-emt / lba-emt weigh the
+        # tracker by it)
+        warnings.warn(f"{path}: calibrate warned of its intrinsics, so the tracker noise it "
+                      f"saw ({float(sigma[0]):.3g} deg / {float(sigma[1]):.3g} mm) may be "
+                      f"inflated by the lens model's misfit: {intrinsics['warning']}",
+                      stacklevel=2)
     if entry.get("estimated") and offset == 0:
         note = f"calibrate did not apply one: {entry.get('reason', 'not significant')}"
     elif not entry.get("estimated"):
@@ -1901,17 +2080,37 @@ def read_tracker_calibration(path: str | Path,
                 else "as given to calibrate")
     else:
         note = ""
-    if dataset is not None and offset:
-        from fusedmosaic.io.plus import IMPORT_RECORD, applied_tracker_time_offset
+    if import_shift:  # the calibration recording's tracking.csv was shifted at import
+        note = "; ".join(filter(None, [
+            note, f"calibrate's recording was shifted by {import_shift:+g} s at import: "
+                  f"{total:+g} s in all"]))
+    from fusedmosaic.io.plus import IMPORT_RECORD, applied_tracker_time_offset
 
-        done = applied_tracker_time_offset(dataset)
-        if done:  # tracking.csv is on the video's clock already: a second shift would err
+    done = None if dataset is None else applied_tracker_time_offset(dataset)
+    record = None if dataset is None else Path(dataset) / IMPORT_RECORD
+    if import_shift is None:  # (an older calibration.json: its offset against its recording)
+        if done and offset:  # tracking.csv is on the video's clock already: not again
             warnings.warn(
                 f"{Path(dataset) / 'tracking.csv'} was already shifted by the tracker time "
-                f"offset {done:+g} s at import ({Path(dataset) / IMPORT_RECORD}); "
-                f"{path}'s offset {offset:+g} s not applied again", stacklevel=2)
+                f"offset {done:+g} s at import ({record}); {path}'s offset {offset:+g} s not "
+                "applied again", stacklevel=2)
             offset, note = 0.0, (f"not applied: tracking.csv was shifted by {done:+g} s at "
                                  "import")
+    else:
+        offset = total
+        if done:  # tracking.csv shifted by `done` already: what remains of calibrate's total
+            offset = check_time_offset(total - done, f"{path}: its offset {total:+g} s less "
+                                                     f"the shift at import ({record})")
+            if abs(offset) > 1e-9:
+                warnings.warn(
+                    f"{Path(dataset) / 'tracking.csv'} was shifted by the tracker time offset "
+                    f"{done:+g} s at import ({record}), {path} measured {total:+g} s: the "
+                    f"difference {offset:+g} s applied", stacklevel=2)
+                note = (f"tracking.csv was shifted by {done:+g} s at import, calibrate measured "
+                        f"{total:+g} s: the difference applied")
+            else:
+                offset, note = 0.0, (f"tracking.csv was shifted by {done:+g} s at import, the "
+                                     "offset calibrate measured")
     return TrackerCalibration(offset, float(sigma[0]), float(sigma[1]),
                               str(he.get("tracker_sigma_from", "")), note)
 

@@ -324,6 +324,15 @@ def project_points(points, camera_matrix, distortion, lens_model: str = "pinhole
     return out.reshape(-1, 2)
 
 
+class LensFoldError(ValueError):
+    """A lens model that folds over inside the frame (LensUndistortion): ``pixel`` (u, v) the
+    first undistorted pixel found where it does, drawn from raw pixel ``raw`` (x, y)."""
+
+    def __init__(self, message: str, *, pixel: tuple[int, int], raw: tuple[float, float]):
+        super().__init__(message)
+        self.pixel, self.raw = pixel, raw
+
+
 class LensUndistortion:
     """Removes a camera's lens distortion (camera.yaml's distortion_coefficients, through
     OpenCV's standard model or, with lens_model "fisheye", its fisheye model) from keypoints
@@ -393,12 +402,13 @@ class LensUndistortion:
         folded = used & ~(det > 0)
         if folded.any():
             v, u = np.argwhere(folded)[0]
-            raise ValueError(
+            raise LensFoldError(
                 f"{source}: distortion_coefficients: {self.distortion.tolist()} fold the "
                 f"{self.lens_model} lens model over inside the {self.width}x{self.height} frame "
                 f"(e.g. undistorted pixel ({u}, {v}) is drawn from raw pixel "
                 f"({mx[v, u]:.0f}, {my[v, u]:.0f}), mirrored): the undistorted frames would "
-                "show a double image; check the coefficients' order, sign and scale")
+                "show a double image; check the coefficients' order, sign and scale",
+                pixel=(int(u), int(v)), raw=(float(mx[v, u]), float(my[v, u])))
 
     def valid(self, raw_mask: np.ndarray | None = None) -> np.ndarray:
         """(H, W) uint8, 255 where an undistorted pixel's whole bilinear support lies inside
