@@ -3,6 +3,8 @@ paper's 1 px solve is kept: a plane the images barely observe (a small field sto
 the few pairs sent the plane off and wrote singular homographies), and a second solve that
 does not converge (a camera held still); pi's std is the 1 px solve's."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -31,7 +33,10 @@ def test_a_barely_observed_plane_keeps_the_paper_sigma_v(small_stop):
     paper = run_ba_emt(small_stop, progress=False)
     used = auto.details["visual_sigma"]
     assert used["sigma_v_px"] == 1.0 and 0.05 < used["measured_px"] < 0.3
-    assert used["note"].startswith("the images barely observe the plane (relative std 2.")
+    # (relative std 2.4 when SIFT's copies of a correspondence counted twice, 3.4 each once)
+    std = re.match(r"the images barely observe the plane \(relative std ([0-9.e+]+) at 1 px, "
+                   r"above 0\.25\)", used["note"])
+    assert std and float(std.group(1)) > 1.0, used["note"]
     assert "sigma_v_from" not in auto.details["solver"]
     # (Ceres' threads: ~1e-13 apart)
     np.testing.assert_allclose(auto.homographies, paper.homographies, rtol=0, atol=1e-9)
