@@ -327,8 +327,9 @@ def test_tiles_warp_only_the_part_of_a_large_frame_they_need(tmp_path, monkeypat
     monkeypatch.setattr(canvas_module.FrameWarper, "warp", counting)
     plan, covered = write_mosaic_png(tmp_path / "m.png", frames, G, 100, 100,
                                      canvas=CanvasOptions(absurd_area_factor=100.0))
-    assert (plan.width, plan.height) == (5951, 5951) and plan.use.all()
-    assert max(warped) <= (1024 + 1) ** 2  # a tile's region, not the 5951^2 box
+    # (the frame's pixel extent -0.5 .. W - 0.5, magnified 60 x: 5951 from pixel centres)
+    assert (plan.width, plan.height) == (6011, 6011) and plan.use.all()
+    assert max(warped) <= (1024 + 1) ** 2  # a tile's region, not the 6011^2 box
     mosaic = cv2.imread(str(tmp_path / "m.png"), cv2.IMREAD_UNCHANGED)
     # the sliver's pixels: the one-piece warp of the same frame (whole box, no clipping)
     alone = render_mosaic([frames[5]], G[5:6], 100, 100)

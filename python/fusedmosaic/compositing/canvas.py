@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from fusedmosaic.compositing.blending import (
+    COVERED,
     BlendOptions,
     FrameWarper,
     MultibandRegion,
@@ -25,6 +26,7 @@ from fusedmosaic.compositing.blending import (
     accumulate,
     as_blend_options,
     compensate_gains,
+    fill_outside,
     fit_bands,
     footprint_box,
     resolve,
@@ -180,12 +182,23 @@ def usable_frames(homographies: np.ndarray, width: int, height: int) -> np.ndarr
 def canvas_bounds(homographies: np.ndarray, width: int, height: int,
                   use: np.ndarray | None = None) -> tuple[int, int, int, int]:
     """(x0, y0, x1, y1) integer bounds in reference pixels of the used frames (x1, y1
-    exclusive): the union of the frames' pixel-centre footprints."""
+    exclusive): the bounding box of the reference pixels whose square the frames' pixel extent
+    (-0.5 .. W - 0.5 in frame pixels: what the warp covers, as footprint_box) overlaps.
+
+    Before (review 50), the bounds were those of the pixel centres (0 .. W - 1), which equals
+    this for a translation but not for a frame magnified against the reference: a frame
+    zoomed 2x at frame 0 gave (0, 0, 319, 239) where its warp covers (-1, -1, 320, 240), so
+    mosaic.png lost a covered rim that IncrementalCanvas (the live view, the video) shows.
+    This box lies within footprint_box's, which rounds the same extent outward."""
     use = usable_frames(homographies, width, height) if use is None else use
     if not use.any():
         raise NoFrameToComposeError("no placed frame to compose a mosaic from")
-    pts = footprints(homographies[use], width - 1, height - 1).reshape(-1, 2)
-    lo, hi = np.floor(pts.min(axis=0)), np.ceil(pts.max(axis=0)) + 1
+    # frame pixel (u, v) -> (u - 0.5, v - 0.5): footprints' corners 0 .. W become the extent
+    half = np.array([[1.0, 0, -0.5], [0, 1.0, -0.5], [0, 0, 1.0]])
+    pts = footprints(homographies[use] @ half, width, height).reshape(-1, 2)
+    # reference pixel p's square [p - 0.5, p + 0.5] overlaps [lo, hi] for p in
+    # floor(lo + 0.5) .. ceil(hi - 0.5)
+    lo, hi = np.floor(pts.min(axis=0) + 0.5), np.ceil(pts.max(axis=0) - 0.5) + 1
     if not (np.isfinite(lo).all() and np.isfinite(hi).all()
             and np.abs(np.concatenate([lo, hi])).max() <= 2 * MAX_COORDINATE):
         raise ValueError(f"canvas bounds x {lo[0]:.3g}..{hi[0]:.3g}, y {lo[1]:.3g}..{hi[1]:.3g} "
@@ -366,6 +379,7 @@ class _PatchSource:
         self._iter = None if self._seq is not None else iter(frames)
         self.G, self.warper, self.gains = G, warper, gains
         self._cache: OrderedDict[int, Patch] = OrderedDict()
+        self._filled: dict[int, np.ndarray] = {}  # a cached patch's colour, filled (`filled`)
         self._cache_bytes, self._bytes = cache_bytes, 0
         self._clip = clip
 
@@ -404,9 +418,36 @@ class _PatchSource:
         if (cut is None and self._seq is not None and patch.nbytes <= self._cache_bytes):
             self._cache[k] = patch
             self._bytes += patch.nbytes
-            while self._bytes > self._cache_bytes:
-                self._bytes -= self._cache.popitem(last=False)[1].nbytes
+            self._evict()
         return patch
+
+    def _evict(self) -> None:
+        while self._bytes > self._cache_bytes:
+            k, patch = self._cache.popitem(last=False)
+            filled = self._filled.pop(k, None)
+            self._bytes -= patch.nbytes + (0 if filled is None else filled.nbytes)
+
+    def filled(self, k: int, patch: Patch) -> np.ndarray:
+        """(h, w, C) float32 colour of frame k's `patch`: its premultiplied colour divided by
+        its weight, and where no frame pixel reaches, the push-pull fill of the whole patch
+        (fill_outside), so every part multiband cuts from it shows the same values there
+        (MULTIBAND_REACH). Kept with the patch while it is cached (its bytes counted in the
+        cache's). A patch warped only over a tile's region (`clip`) is filled from that part:
+        tiled then differs from one piece near that frame's edges (a frame too large for the
+        cache: 32 MB holds a 1400 x 1400 px colour patch)."""
+        cached = self._cache.get(k) is patch
+        if cached and k in self._filled:
+            return self._filled[k]
+        weight = patch.data[:, :, -1]
+        covered = weight > COVERED
+        inverse = np.zeros_like(weight)
+        np.divide(np.float32(1.0), weight, out=inverse, where=covered)
+        colour = fill_outside(patch.data[:, :, :-1] * inverse[:, :, None], covered)
+        if cached:
+            self._filled[k] = colour
+            self._bytes += colour.nbytes
+            self._evict()
+        return colour
 
     def weight_patch(self, k: int, region: tuple[int, int, int, int] | None = None) -> Patch:
         if k in self._cache:
@@ -418,6 +459,23 @@ class _PatchSource:
         image = (self.image(k) if self.warper.options.mask_specular and self._seq is not None
                  else None)
         return self.warper.warp_weight(self.G[k], image, name=k, box=self._cut(k, region))
+
+
+# A frame's patch enters multiband's pyramids cut to the pixels the frame owns plus this many
+# 2^bands px around them (the reach of the coarsest band's weights): with many overlapping
+# frames each owns a small part of its footprint. Where the part lies outside the frame's
+# footprint it takes the push-pull fill (fill_outside) of the whole patch (_PatchSource.filled),
+# not of the part: that fill depends on where the part was cut, and changed the blend near the
+# frames' edges by up to 6 grey levels against the uncut blend, and tiled against one piece by
+# as much (17 with the hand-held frames' black corners and no field-of-view mask; review 50).
+# Now 1 and 0-1. Widening the cut instead did less for more: 150 SYN frames 400x400 (no mask,
+# bands 5, true homographies), CPU with OpenCV on 1 thread (median of 5) and grey levels off
+# the uncut blend (pixels > 2): the part's fill 2.39 s, 6 (387); the whole patch's 3.94 s, 1 (0);
+# the part's at reach 4 3.02 s, 4 (53); uncut 3.71 s. Hand-held with its mask: 1.15 s, 2 (0);
+# 1.75 s, 1; 1.74 s, 1; 4.45 s. bench_compositing's tiled 3000-frame mosaic (tile 1024): 64 s,
+# 110 s, 87 s (tiled still 3-4 levels off one piece; a tile margin of 8 x 2^bands, not 4,
+# brought that to 1 and took 113 s).
+MULTIBAND_REACH = 2
 
 
 def _render_region(x0: int, y0: int, w: int, h: int, ks: Iterable[int], source: _PatchSource,
@@ -467,15 +525,19 @@ def _render_region(x0: int, y0: int, w: int, h: int, ks: Iterable[int], source: 
         rows, cols = np.flatnonzero(seam.any(axis=1)), np.flatnonzero(seam.any(axis=0))
         if len(rows) == 0:
             continue
-        # Only the part the frame owns, plus the reach of its coarsest band's weights
-        # (~2 x 2^bands px), enters the pyramids: with many overlapping frames each owns a
-        # small part of its footprint.
-        reach = 2 * step
+        # Only the part the frame owns, plus MULTIBAND_REACH x 2^bands px, enters the
+        # pyramids, filled outside the footprint as the whole patch is (MULTIBAND_REACH).
+        reach = MULTIBAND_REACH * step
         r0, r1 = max(0, (rows[0] - reach) // step * step), rows[-1] + 1 + reach
         c0, c1 = max(0, (cols[0] - reach) // step * step), cols[-1] + 1 + reach
         r1 = min(-(-r1 // step) * step, seam.shape[0])
         c1 = min(-(-c1 // step) * step, seam.shape[1])
-        region.feed(Patch(ax0 + reg[1].start + c0, ay0 + reg[0].start + r0, data[r0:r1, c0:c1]),
+        part = data[r0:r1, c0:c1]
+        if (part[:, :, -1] <= COVERED).any():
+            part = np.empty(part.shape, np.float32)
+            part[:, :, :-1] = source.filled(k, p)[inside][r0:r1, c0:c1]
+            part[:, :, -1] = 1.0  # (weight 1 everywhere: MultibandRegion.feed fills no more)
+        region.feed(Patch(ax0 + reg[1].start + c0, ay0 + reg[0].start + r0, part),
                     seam[r0:r1, c0:c1])
     if region is None:
         raise ValueError("no frame to render and no channel count given")
@@ -571,10 +633,10 @@ def write_mosaic_png(path: str | Path, frames: Sequence, homographies: np.ndarra
     one band of tiles (tile_size rows x canvas width x C bytes, C + 1 with canvas.alpha), the
     rendering of one tile (its accumulator, tile_size^2 x (C + 1) x 4 bytes, and its uint8
     result; for multiband, a tile and its margin of 4 x 2^bands px, in pyramids), the patch
-    cache (canvas.cache_mb) and the PNG encoding (~9 MiB: png.PngStreamWriter), whatever the
-    canvas size (up to canvas.max_pixels). A 29800 x 2048 canvas, tile 2048 (band 175 MB,
-    accumulator 64 MB) peaks at 386 MB traced (899 MB when the encoding took four copies of
-    the band).
+    cache (canvas.cache_mb; for multiband, the patches' filled colour counted in it) and the
+    PNG encoding (~9 MiB: png.PngStreamWriter), whatever the canvas size (up to
+    canvas.max_pixels). A 29800 x 2048 canvas, tile 2048 (band 175 MB, accumulator 64 MB) peaks
+    at 386 MB traced (899 MB when the encoding took four copies of the band).
 
     frames: a sequence (frames[k]); frames overlapping several tiles are read and warped again
     unless still in the cache; each frame's specular mask is found once (highlights: those
