@@ -162,7 +162,7 @@ def test_clock_offset_not_determined_when_no_scan_has_a_least(barely_turning):
 
 
 def _fake_offset(estimate_s, std_s):
-    def fake(tracker_at, C, first, max_offset_s, times, *, still=None):
+    def fake(tracker_at, C, first, max_offset_s, times, *, still=None, gap_s=None):
         return {"estimated": True, "estimate_s": estimate_s, "std_s": std_s,
                 "applied_s": estimate_s, "at_bound": False, "views": len(C),
                 "scan": "turns between views"}

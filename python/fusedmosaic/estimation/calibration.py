@@ -1040,8 +1040,8 @@ def _offset_bound_note(samples, times: np.ndarray, gap_s: float | None = None) -
     ts = samples.timestamps[samples.valid]
     margin = np.minimum(times - ts[0], ts[-1] - times)
     if gap_s is not None:  # each view's distance to the nearest dropout (0 inside one)
-        for start, end in zip(ts[:-1][np.diff(ts) > gap_s * (1 + 1e-9)],
-                              ts[1:][np.diff(ts) > gap_s * (1 + 1e-9)], strict=True):
+        dropout = np.diff(ts) > gap_s * (1 + 1e-9)
+        for start, end in zip(ts[:-1][dropout], ts[1:][dropout], strict=True):
             inside = (times > start) & (times < end)
             near = np.where(times <= start, start - times, times - end)
             margin = np.minimum(margin, np.where(inside, 0.0, near))
@@ -1715,13 +1715,12 @@ def _hand_eye_stage(samples, source: str, views: _Views, K: np.ndarray, dist: np
             # estimate (--max-time-offset 4 on a 6.4 s recording; the reason only in
             # calibration.json) or failed its fits: refused, naming the recording's length.
             # the shortest dropout that uncovers a frame (io.tracking.interpolate_camera_poses)
+            # (the coverage's 5 ms steps meet every dropout of a tracker up to 300 Hz; a faster
+            # one's are checked in finer steps: tracked_at_every_offset)
             gap_s = GAP_SPACINGS * sample_spacing(samples.timestamps[samples.valid])
-            # (the coverage's default 5 ms steps meet every dropout of a tracker up to 300 Hz;
-            # a faster one's are checked in finer steps)
-            finer = {"gap_s": gap_s} if gap_s < 0.01 else {}
             try:
                 offset = estimate_time_offset(tracker_at, poses, first, o.max_time_offset_s,
-                                              times, still=held, **finer)
+                                              times, still=held, gap_s=gap_s)
                 # (a scan without a clear least is no failure: the offset not determined, 0)
                 failed = "" if offset["estimated"] or "scan" in offset else (
                     f"at least {MIN_HAND_EYE_VIEWS} views tracked at every offset are needed")
