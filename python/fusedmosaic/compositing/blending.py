@@ -480,6 +480,17 @@ def resolve(acc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 # ------------------------------------------------------------------------------------------
 
 
+def filled_colour(colour_w: np.ndarray) -> np.ndarray:
+    """(h, w, C) float32 colour of a weighted patch's data `colour_w` (h, w, C + 1: colour
+    premultiplied by the weight, then the weight): divided by its weight where it covers
+    (COVERED), push-pull filled elsewhere (fill_outside)."""
+    w = colour_w[:, :, -1:]
+    covered = w > COVERED
+    colour = np.zeros(colour_w.shape[:2] + (colour_w.shape[2] - 1,), np.float32)
+    np.divide(colour_w[:, :, :-1], w, out=colour, where=covered)
+    return fill_outside(colour, covered[:, :, 0])
+
+
 def fill_outside(colour: np.ndarray, covered: np.ndarray) -> np.ndarray:
     """Push-pull fill: pixels outside `covered` take smooth values extrapolated from inside, so
     the Laplacian pyramid of a frame does not see the black outside its footprint.
@@ -535,12 +546,7 @@ class MultibandRegion:
 
     def feed(self, patch: Patch, seam: np.ndarray) -> None:
         """patch: aligned, cropped to the region; seam: (h, w) bool, the pixels it owns."""
-        colour_w = patch.data
-        w = colour_w[:, :, -1:]
-        covered = w > COVERED
-        colour = np.zeros(colour_w.shape[:2] + (colour_w.shape[2] - 1,), np.float32)
-        np.divide(colour_w[:, :, :-1], w, out=colour, where=covered)
-        gauss = fill_outside(colour, covered[:, :, 0])
+        gauss = filled_colour(patch.data)
         mask = seam.astype(np.float32)
         for l in range(self.bands + 1):
             if l < self.bands:

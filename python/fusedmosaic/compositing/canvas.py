@@ -26,7 +26,7 @@ from fusedmosaic.compositing.blending import (
     accumulate,
     as_blend_options,
     compensate_gains,
-    fill_outside,
+    filled_colour,
     fit_bands,
     footprint_box,
     resolve,
@@ -438,11 +438,7 @@ class _PatchSource:
         cached = self._cache.get(k) is patch
         if cached and k in self._filled:
             return self._filled[k]
-        weight = patch.data[:, :, -1]
-        covered = weight > COVERED
-        inverse = np.zeros_like(weight)
-        np.divide(np.float32(1.0), weight, out=inverse, where=covered)
-        colour = fill_outside(patch.data[:, :, :-1] * inverse[:, :, None], covered)
+        colour = filled_colour(patch.data)  # (as MultibandRegion.feed fills a part)
         if cached:
             self._filled[k] = colour
             self._bytes += colour.nbytes
