@@ -74,6 +74,20 @@ def test_collapsed_first_frame_is_left_out_not_the_median():
     assert canvas.bounds == reference.bounds == (4, -1, 5 * 39 + W + 1, H + 1)
 
 
+def test_mosaic_png_leaves_out_the_collapsed_frame_as_the_live_view():
+    """The floor is canvas.footprint_problem's, shared: plan_canvas (mosaic.png) leaves the
+    collapsed frame out with the same reason, and its canvas is that of the other 39 frames.
+    Before (session 51) only IncrementalCanvas had the floor: mosaic.png drew the frame (a dot
+    at the reference's origin) and its canvas reached x = 0, 5 px beyond the others'."""
+    from fusedmosaic.compositing.canvas import plan_canvas
+
+    Gs = np.stack([np.diag([1e-3, 1e-3, 1.0])] + [_shift(5.0 * k) for k in range(1, 40)])
+    plan, others = plan_canvas(Gs, W, H), plan_canvas(Gs[1:], W, H)
+    assert plan.skipped == {0: COLLAPSED} and plan.use.sum() == 39
+    assert (plan.x0, plan.y0, plan.x1, plan.y1) == (others.x0, others.y0, others.x1, others.y1)
+    assert plan.x0 == 5  # (the collapsed frame's dot at 0 is not on it)
+
+
 def test_live_view_reports_the_frames_the_canvas_leaves_out():
     """Before the fix: frames_drawn 1, a 3 x 3 px view and problems {}."""
     frames = _frames(40)

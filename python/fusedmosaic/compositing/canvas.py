@@ -49,6 +49,12 @@ STRAY_MAX_FRACTION = 0.1
 # 2e19 px, beyond int64, and its canvas came out of negative size. 1e15 px keeps every sum of
 # the bounds exact in float64 and int64; such a frame is far beyond any pixel budget anyway.
 MAX_COORDINATE = 1e15
+# A footprint of less than this fraction of the frame's own pixel area is a collapsed placement:
+# a camera 32 times as far from the surface as frame 0's (the area goes with the distance
+# squared; a simulated handheld fetoscopy sweep, 150 frames, spans 0.62 to 2.03 of it). A
+# near-singular placement, diag(1e-3, 1e-3, 1), gives 1e-6 of it (0.003 pixels for a 64 x 48
+# frame). Left out by footprint_problem, so mosaic.png, the live view and the video agree.
+MIN_AREA_FRACTION = 1e-3
 MAX_TILE_SIZE = 8192  # px: a tile's accumulator is then 8192^2 x (C + 1) x 4 B (1 GiB colour)
 
 
@@ -109,7 +115,9 @@ def _orientation(width: int, height: int) -> float:
 def footprint_problem(G: np.ndarray, quad: np.ndarray, width: int, height: int
                       ) -> tuple[str | None, float]:
     """(why the frame placed by G, whose footprint() corners are `quad`, cannot be composed,
-    or None; its footprint area). Shared by plan_canvas and IncrementalCanvas."""
+    or None; its footprint area). Shared by plan_canvas and IncrementalCanvas: a footprint behind
+    the camera, beyond MAX_COORDINATE, non-convex, mirrored or below MIN_AREA_FRACTION of the
+    frame's own area (collapsed)."""
     if not np.isfinite(quad).all():
         return "footprint behind the camera", np.nan
     if np.abs(quad).max() > MAX_COORDINATE:
@@ -128,6 +136,11 @@ def footprint_problem(G: np.ndarray, quad: np.ndarray, width: int, height: int
         # frame -> reference between two views on the same side of the surface keeps the
         # orientation; a flip is a placement failure (a plane or pose sign), not a view
         return "mirrored footprint (the homography flips the frame)", abs(signed)
+    own = width * height
+    if not abs(signed) >= MIN_AREA_FRACTION * own:
+        return (f"footprint area {abs(signed):.3g} pixels, below {MIN_AREA_FRACTION:g} x the "
+                f"frame's own {own} (a collapsed placement: a near-singular homography)",
+                abs(signed))
     return None, abs(signed)
 
 

@@ -42,8 +42,9 @@ footprints (the tile budget still applies); the bounding box then spans both pla
 `render()` of the whole raises and the caller renders sub-boxes. `stray_rebase=None` never
 accepts a far place (every later frame near it is a stray too).
 
-Footprint size. A frame is left out when its footprint's area is below MIN_AREA_FRACTION of the
-frame's own pixel area (a placement collapsed towards a point: a near-singular homography), or
+Footprint size. A frame is left out when its footprint's area is below canvas.MIN_AREA_FRACTION
+of the frame's own pixel area (a placement collapsed towards a point: a near-singular homography;
+canvas.footprint_problem's floor, so mosaic.png leaves it out too), or
 more than `absurd_area_factor` (20) times above or below the median of the last 101 placed
 frames' (or its extent, its bounding box's diagonal, above 20 x theirs). That median is seeded
 by whichever frames are placed first, so a bad first placement poisoned it: a collapsed first
@@ -93,12 +94,6 @@ from fusedmosaic.compositing.canvas import (
 
 Box = tuple[int, int, int, int]  # x0, y0, x1, y1 (x1, y1 exclusive), canvas pixels
 
-# A footprint of less than this fraction of the frame's own pixel area is a collapsed placement:
-# a camera 32 times as far from the surface as frame 0's (the area goes with the distance
-# squared; a simulated handheld fetoscopy sweep, 150 frames, spans 0.62 to 2.03 of it). A
-# near-singular placement, diag(1e-3, 1e-3, 1), gives 1e-6 of it (0.003 pixels for a 64 x 48
-# frame): placed first, it made the median of every later frame's screen.
-MIN_AREA_FRACTION = 1e-3
 # Frames left out by the median screens in a row are one new footprint size (towards re-basing
 # the median) when each one's area and extent are within this factor of the previous one's (the
 # simulated handheld sweep's consecutive frames: areas within 1.17 of each other), while the
@@ -223,13 +218,8 @@ class IncrementalCanvas:
             return "not placed", np.nan, np.nan, False
         quad = footprints(G[None], self.width, self.height)[0]
         reason, area = footprint_problem(G, quad, self.width, self.height)
-        if reason is not None:
+        if reason is not None:  # (a collapse below MIN_AREA_FRACTION included)
             return reason, np.nan, np.nan, False
-        own = self.width * self.height
-        if not area >= MIN_AREA_FRACTION * own:
-            return (f"footprint area {area:.3g} pixels, below {MIN_AREA_FRACTION:g} x the "
-                    f"frame's own {own} (a collapsed placement: a near-singular homography)",
-                    area, np.nan, False)
         extent = float(footprint_extents(quad))
         factor = self.absurd_area_factor
         if self._areas:
