@@ -150,19 +150,23 @@ def test_frame_whose_pixel_extent_crosses_the_horizon_is_left_out():
 # -- F4 / F10 / F11: the live view -------------------------------------------------------------
 
 def test_live_view_worker_survives_a_canvas_wider_than_openigtlink_takes():
-    """Two frames 70000 px apart (1.1 Mpx of bounding box, within max_pixels): the IMAGE
-    message's size is uint16, the send raised struct.error, the worker died and every later
-    frame was lost without a problem recorded. The image is now sent shrunk by a whole factor,
-    its geometry saying so."""
+    """A view 70000 px wide (1.1 Mpx of bounding box, within max_pixels): the IMAGE message's
+    size is uint16, the send raised struct.error, the worker died and every later frame was
+    lost without a problem recorded. The image is now sent shrunk by a whole factor, its
+    geometry saying so. (Frames every 200 px, one place: two frames 70000 px apart are two
+    places since session 51, and the view shows the latest frames' one.)"""
     server = _Recorder()
     view = LiveMosaicView(16, 16, server=server, interval_s=0.0)
     image = np.full((16, 16), 200, np.uint8)
-    view.add(image, _shift(0))
-    view.add(image, _shift(70000))
+    for x in range(0, 70001, 200):
+        view.add(image, _shift(x))
+        while view._queue.qsize() > 10:  # (not beyond the worker's MAX_QUEUED)
+            time.sleep(0.001)
     for k in range(1, 6):
         view.add(image, _shift(16 * k))
     view.close(timeout_s=30)
-    assert view.frames_added == 7 and view.problems == {}, view.problems
+    assert view.frames_added == 356 and view.problems == {}, view.problems
+    assert view.summary()["places"] == 1
     sent, matrix = server.sent[-1]
     summary = view.summary()
     width, height = summary["width"], summary["height"]
@@ -244,9 +248,9 @@ def test_live_view_publication_interval_follows_its_cost(monkeypatch):
     view = LiveMosaicView(16, 16, interval_s=0.0)
     real_render = view.canvas.render
 
-    def slow_render(*args):
+    def slow_render(*args, **kwargs):
         time.sleep(0.1)
-        return real_render(*args)
+        return real_render(*args, **kwargs)
 
     monkeypatch.setattr(view.canvas, "render", slow_render)
     image = np.full((16, 16), 100, np.uint8)

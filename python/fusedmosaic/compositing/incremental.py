@@ -100,6 +100,12 @@ Box = tuple[int, int, int, int]  # x0, y0, x1, y1 (x1, y1 exclusive), canvas pix
 # screens leave out frames 20 x off the median.
 CONSISTENT_SIZE_FACTOR = 2.0
 SKIPPED_KEPT = 20  # the first and the last entries of `skipped` kept
+# Places (groups of placed frames far apart: `places`) tracked at most; beyond, the one of
+# fewest frames other than the latest frame's is forgotten (it only chooses the view's box).
+MAX_PLACES = 16
+# A place is shown by `view_bounds` once it holds this many frames (a lone glitch placed far
+# within the budget does not move the view).
+MIN_VIEW_PLACE_FRAMES = 3
 MAX_SKIP_KINDS = 32  # distinct reasons counted in `skipped_counts`; further ones together
 # The view rendered shrunk is summed in float32 blocks of at most this many bytes
 # (IncrementalCanvas._render_shrunk).
@@ -170,6 +176,12 @@ class IncrementalCanvas:
         self.skipped_total = 0
         self.skipped_counts: dict[str, int] = {}
         self.rebased: list[int] = []  # call numbers of the frames placed as a new far place
+        # places: id -> [box, frames] of groups of placed frames, each more than
+        # stray_diagonals frame diagonals from the others (`places`, `view_bounds`)
+        self._places: dict[int, list] = {}
+        self._place_ids = 0
+        self._place: int | None = None  # the latest placed frame's place
+        self._view_place: int | None = None  # the latest place with MIN_VIEW_PLACE_FRAMES
         self.median_rebased: list[int] = []  # the first of those re-basing the median
         self.median_rebases = 0
         # (area, extent) of the frames left out by the median screens in a row, each consistent
@@ -396,11 +408,51 @@ class IncrementalCanvas:
             accumulate(tile, key[1] * T, key[0] * T, patch, self.options.blend)
         self.bounds = self._bounds_with(box)
         self._last_box = box
+        self._join_place(box)
         self._strays, self._stray_box = 0, None
         if rebase:
             self.rebased.append(name)
         self.frames_added += 1
         return box
+
+    def _join_place(self, box: Box) -> None:
+        """Adds a placed frame's box to its place: the places within `stray_diagonals` of its
+        diagonals merge with it into one, or it starts a new one."""
+        reach = self._reach(box)
+        near = [k for k, (b, _) in self._places.items() if _gap(box, b) <= reach]
+        frames = 1
+        for k in near:
+            b, n = self._places.pop(k)
+            box = (min(box[0], b[0]), min(box[1], b[1]), max(box[2], b[2]), max(box[3], b[3]))
+            frames += n
+        self._place_ids += 1
+        self._place = self._place_ids
+        self._places[self._place] = [box, frames]
+        if self._view_place in near or frames >= MIN_VIEW_PLACE_FRAMES or self._view_place is None:
+            self._view_place = self._place
+        if len(self._places) > MAX_PLACES:
+            keep = (self._place, self._view_place)
+            drop = min((k for k in self._places if k not in keep),
+                       key=lambda k: self._places[k][1])
+            del self._places[drop]
+
+    @property
+    def places(self) -> int:
+        """Groups of placed frames, each more than `stray_diagonals` frame diagonals from the
+        others (a re-localisation far away, or a far jump within the budget, starts one; a
+        frame near two joins them): 1 for a normal session (at most MAX_PLACES tracked)."""
+        return len(self._places)
+
+    @property
+    def view_bounds(self) -> Box | None:
+        """The bounding box of the place where the latest frames are (the latest place with at
+        least MIN_VIEW_PLACE_FRAMES frames, so a lone far frame does not move it): `bounds`
+        while there is one place. What a live view shows after a re-localisation far away,
+        where the whole bounding box, shrunk to a view, made the latest frames a line 2 pixels
+        high (review 50)."""
+        if self._view_place is None:
+            return self.bounds
+        return tuple(self._places[self._view_place][0])
 
     def _too_large(self, pixels: str, name: int, box: Box) -> CanvasTooLargeError:
         return CanvasTooLargeError(

@@ -30,6 +30,14 @@ to a point, a footprint 20 x the recent median, a stray, ...): a view that stops
 why (a collapsed first frame left every later one out as "1000000 x the recent median", and
 the summary showed 1 frame drawn and no problem; review 50).
 
+Frames placed far apart (more than the canvas's stray_diagonals frame diagonals from every
+earlier frame: a re-localisation accepted as a new place, or a jump within the budget) make
+places (IncrementalCanvas.places); the view then shows the place of the latest frames only
+(IncrementalCanvas.view_bounds: a lone far frame does not move it), told once (``notify``;
+``summary()``: ``places``). The whole bounding box, shrunk to the view's budget, made the latest
+frames a line 2 pixels high after a re-localisation far away (review 50); the final outputs
+show every place.
+
 The canvas's bounding box can outgrow its tiles (a diagonal sweep's grows with the square of its
 length): a bounding box above the view's budget, min(``max_pixels``, VIEW_MAX_PIXELS), is
 published shrunk by the least whole factor that fits it (area averaged: IncrementalCanvas.render's
@@ -96,7 +104,8 @@ class LiveMosaicView:
     larger bounding box being shrunk: module notes); mask_specular: specular highlights not
     pasted (BlendOptions.mask_specular); pixel_size_mm: a reference pixel's size on the tissue
     for the server's image geometry (None: 1 mm); notify(text): told once, on the worker's
-    thread, when the view is first published shrunk (None: a warning); its errors are
+    thread, when the view is first published shrunk and when it first shows one place of
+    several (None: a warning); its errors are
     ignored."""
 
     def __init__(self, width: int, height: int, *, mask: np.ndarray | None = None, lens=None,
@@ -141,6 +150,7 @@ class LiveMosaicView:
         self.view_scale: float | None = None  # the last published image's pixels per ref. pixel
         self._notify = notify
         self._told_reduced = False
+        self._told_places = False
         # the publication waiting for the publisher (frame, view, origin, scale), or None
         self._waiting: tuple | None = None
         self._waiting_cv = threading.Condition()
@@ -236,9 +246,17 @@ class LiveMosaicView:
         publication waiting, if any (latest wins)."""
         self._last_publish = time.monotonic()
         self._dirty = False
-        x0, y0, x1, y1 = self.canvas.bounds  # (the worker's thread: bounds are the view's)
+        # (the worker's thread: bounds are the view's) the place of the latest frames only,
+        # once frames were placed far apart (module notes)
+        x0, y0, x1, y1 = box = self.canvas.view_bounds
+        if self.canvas.places > 1 and not self._told_places:
+            self._told_places = True
+            self._tell(f"live view: frames were placed {self.canvas.places} places far apart "
+                       f"(more than {self.canvas.stray_diagonals:g} frame diagonals: a "
+                       "re-localisation?); the view shows the place of the latest frames, the "
+                       "final mosaic all of them (report.json live view places)")
         step = shrink_step(x1 - x0, y1 - y0, self.view_max_pixels)
-        view = self.canvas.render() if step == 1 else self.canvas.render(step=step)
+        view = self.canvas.render(box, step=step)
         if step > 1:
             self.reduced += 1
             if not self._told_reduced:
@@ -334,6 +352,8 @@ class LiveMosaicView:
                "scale": self.canvas.scale if self.view_scale is None else self.view_scale,
                # publications shrunk to fit the view's budget (its bounding box above it)
                "reduced": self.reduced, "view_max_pixels": self.view_max_pixels,
+               # groups of frames placed far apart; the view shows the latest frames' one
+               "places": self.canvas.places,
                "pixel_size_mm": 1.0 if self.pixel_size_mm is None else self.pixel_size_mm,
                # a publication's cost (render, and the publisher's CPU time for the last
                # delivery) and the interval it imposes
