@@ -256,13 +256,19 @@ def test_video_damaged_in_the_middle_is_refused(tmp_path):
 
 def test_video_cut_or_damaged_warned_as_either(tmp_path):
     """Damage nearer the end: the header's last frame no longer decodes either, so the frames
-    are counted by decoding, with a warning that said 'a count estimated from the duration, as
-    Matroska's, or a truncated file' of an AVI (whose count is exact): nothing tells a file cut
-    short from one damaged in the middle there, and the warning says what the latter means."""
+    are counted by decoding. An AVI whose index is whole at its end shows the loss inside and
+    is refused (review 51: frames 7-11 were read as frames 4-8, with a warning only); one cut
+    short, its index gone with its end, is warned of as either."""
     root = tmp_path / "ds"
     root.mkdir()
     _write_video(root / "video.avi", 12)
+    whole = (root / "video.avi").read_bytes()
     _damage(root / "video.avi", 12, 0.5, 2)
+    with pytest.raises(ValueError, match=r"video\.avi: its header counts 12 frames but decoding "
+                                         r"it gives \d+, and the file is whole at its end: its "
+                                         r"index \(idx1\) lists 12 frames"):
+        FrameSource.open(root)
+    (root / "video.avi").write_bytes(whole[: len(whole) * 3 // 4])  # cut short
     with pytest.warns(UserWarning, match=r"video\.avi: its header counts 12 frames but \d+ decode "
                                          r"\(a truncated file, or frames damaged in the middle, "
                                          r"which the decoder passes without a word: every frame "

@@ -766,8 +766,11 @@ def _summary(method: str, G: np.ndarray, out: Path, report_json: dict, outputs: 
         else:
             msg += f" (e_M = {e_M:.3f} px)"
     m = outputs["mosaic"]
-    if outputs["plan"] is None:
-        lines = [msg, "  mosaic  not written (above the canvas budget: see report.json)"]
+    if outputs["plan"] is None:  # (the canvas budget, or no frame left to compose: review 51
+        # found the latter summed up as the former, sending the user to --max-canvas-pixels)
+        lines = [msg, "  mosaic  not written" + (
+            f": {m['skipped']}" if "skipped_frames" in m
+            else " (above the canvas budget: see report.json)")]
     else:
         detail = f"{m['width']} x {m['height']} px, {m['blend']}"
         if m["tiled"]:

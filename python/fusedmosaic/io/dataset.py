@@ -120,7 +120,8 @@ def read_dataset(
 
     Row i of frames.csv (``frame,timestamp``, both strictly increasing) describes the i-th image
     in name order; without frames.csv, frame ids are 0..N-1, or for frame files numbered with
-    gaps (missing files) their numbers from the first one's (see read_frame_times).
+    gaps (missing files) their numbers from the first one's, over their step (see
+    read_frame_times).
 
     fps : frame rate giving the timestamps when frames.csv is absent (timestamp = frame / fps);
         None: the video's own frame rate (FrameSource.frame_rate), else DEFAULT_FPS. A dataset
@@ -357,19 +358,23 @@ def _file_numbers(frames: FrameSource) -> np.ndarray | None:
 @dataclass(frozen=True, eq=False)
 class FileNumbers:
     """The numbers of frame files named with one number each (``000010.png``,
-    ``frame_10.png``: the same text around it in every name) that count frames (consecutive
-    files mostly one apart, the median step 1), in name order; a step over 1 is a gap, files
-    missing. Names without such numbers (img_a.png, timestamps) have none (FileNumbers.of:
-    None).
+    ``frame_10.png``: the same text around it in every name) that count frames in steps of
+    ``step`` (k: every step a multiple of k, and k the median step, so that at least half the
+    files are k apart; 1 for files numbered frame by frame, k > 1 for every k-th frame of a
+    video named by its frame number), in name order; a step over k is a gap, files missing.
+    Names without such numbers (img_a.png, timestamps whose steps vary) have none
+    (FileNumbers.of: None).
 
-    A dataset without frames.csv whose files have gaps is timed by the numbers
-    (read_frame_times); with frames.csv, its frame ids must skip what the files skip
-    (check_frame_ids)."""
+    A dataset without frames.csv is timed by the numbers (read_frame_times: frame id = (file
+    number - the first one's) / k, so one step of k is one frame interval and the frames after
+    a gap keep their own times); with frames.csv and gaps, its frame ids must skip what the
+    files skip (check_frame_ids)."""
 
     folder: Path
     names: tuple[str, ...]
     numbers: np.ndarray  # (N,) int64, strictly increasing
     gaps: tuple[int, ...]  # i: files missing between names[i - 1] and names[i]
+    step: int = 1  # k: the numbers' step between consecutive frames
 
     @classmethod
     def of(cls, frames: FrameSource) -> FileNumbers | None:
@@ -378,28 +383,30 @@ class FileNumbers:
             return None
         steps = np.diff(numbers)
         # (equal numbers, f01.png and f1.png, FrameSource.open refuses; FrameSource(paths)
-        # may hold them); timestamps
-        if np.any(steps <= 0) or np.median(steps) != 1:
+        # may hold them)
+        if np.any(steps <= 0):
             return None
-        gaps = tuple(int(i) + 1 for i in np.flatnonzero(steps > 1))
+        # k: the steps' gcd, and their median, so the dominant step (a step of 2 with one of 4
+        # where a file is missing: k 2, one gap; review 51 found it read as consecutive frames
+        # without a word). Timestamps as names (steps of 33 and 34 ms) have gcd 1, median 33:
+        # none.
+        k = int(np.gcd.reduce(steps))
+        if np.median(steps) != k:
+            return None
+        gaps = tuple(int(i) + 1 for i in np.flatnonzero(steps > k))
         paths = frames.paths
-        return cls(paths[0].parent, tuple(p.name for p in paths), numbers, gaps)
+        return cls(paths[0].parent, tuple(p.name for p in paths), numbers, gaps, k)
 
-    @staticmethod
-    def regular_step(frames: FrameSource) -> int | None:
-        """K when the frame files are numbered in steps of K > 1 throughout (000000.png,
-        000005.png, ...: e.g. every K-th frame of a video, named by its frame number), else
-        None."""
-        numbers = _file_numbers(frames)
-        if numbers is None:
-            return None
-        steps = np.unique(np.diff(numbers))
-        return int(steps[0]) if steps.size == 1 and steps[0] > 1 else None
+    @property
+    def frames(self) -> np.ndarray:
+        """The frame ids the numbers give: (number - the first one's) / step."""
+        return (self.numbers - self.numbers[0]) // self.step
 
     @property
     def missing(self) -> int:
         """The number of files missing in the gaps."""
-        return int(sum(self.numbers[i] - self.numbers[i - 1] - 1 for i in self.gaps))
+        k = self.step
+        return int(sum((self.numbers[i] - self.numbers[i - 1]) // k - 1 for i in self.gaps))
 
     def _name(self, number: int, like: str) -> str:
         """The file name ``number`` would have, written as ``like``."""
@@ -413,9 +420,11 @@ class FileNumbers:
         texts = []
         for i in self.gaps[:limit]:
             before, after = self.names[i - 1], self.names[i]
-            a, b = int(self.numbers[i - 1]) + 1, int(self.numbers[i]) - 1
+            k = self.step
+            a, b = int(self.numbers[i - 1]) + k, int(self.numbers[i]) - k
             missing = (self._name(a, before) if a == b else
-                       f"{self._name(a, before)}-{self._name(b, before)} ({b - a + 1} files)")
+                       f"{self._name(a, before)}-{self._name(b, before)} "
+                       f"({(b - a) // k + 1} files)")
             texts.append(f"{missing} missing between {before} and {after}")
         more = len(self.gaps) - limit
         if more > 0:
@@ -429,7 +438,12 @@ class FileNumbers:
         missing at different places (every row after pairs with the wrong image), or nothing
         (ids renumbered, a counter of its own): a warning naming frames.csv's row and the file
         (a review found such valid datasets refused)."""
-        expected = ids[0] + (self.numbers - self.numbers[0])
+        # files numbered in steps of k: ids stepping as the numbers (the video's frame numbers)
+        # or as the frames (renumbered 0, 1, 2, ...) both skip what the files skip
+        candidates = [ids[0] + (self.numbers - self.numbers[0])]
+        if self.step > 1:
+            candidates.insert(0, ids[0] + self.frames)
+        expected = min(candidates, key=lambda e: int(np.count_nonzero(ids != e)))
         wrong = np.flatnonzero(ids != expected)
         if not wrong.size:
             return
@@ -449,8 +463,9 @@ def read_frame_times(root: Path, frames: FrameSource, fps: float | None = None, 
     """(frame ids, timestamps s, where they come from) of the images ``frames`` of the dataset
     or recording folder ``root``: from frames.csv (``frame,timestamp``, both strictly
     increasing, one row per image), else ids 0..N-1 (for frame files numbered with gaps,
-    FileNumbers, their numbers less the first one's, with a warning naming the missing files)
-    at timestamp = id / rate, the rate being
+    FileNumbers, their numbers less the first one's, divided by their step k, with a warning
+    naming the missing files; files numbered in steps of k > 1, with gaps or none, are warned
+    of) at timestamp = id / rate, the rate being
     ``fps`` if given, else the video's (frames.frame_rate), else DEFAULT_FPS; a video whose
     own stamps leave its nominal rate (variable frame rate; FrameSource.presentation_times) is
     timed by its stamps unless ``fps`` is given. ValueError naming
@@ -497,10 +512,13 @@ def read_frame_times(root: Path, frames: FrameSource, fps: float | None = None, 
         source = "the default: " + ("no frame rate in " + video if video else "PNG frames")
     frame_ids = np.arange(len(frames), dtype=np.int64)
     described = f"frame / {rate:.6g} fps ({source}; no frames.csv)"
+    k = 1 if numbered is None else numbered.step
     if numbered is not None and numbered.gaps:  # missing files: the numbers time the frames
-        frame_ids = numbered.numbers - numbered.numbers[0]
+        frame_ids = numbered.frames
         first = numbered.numbers[0]
         number = "number" + (f" - {first}" if first else "")
+        if k > 1:
+            number = f"({number}) / {k}" if first else f"{number} / {k}"
         described = (f"frame / {rate:.6g} fps ({source}; no frames.csv; frame = file {number}, "
                      f"{numbered.missing} missing)")
         gap = int(np.diff(frame_ids).max()) / rate
@@ -509,20 +527,29 @@ def read_frame_times(root: Path, frames: FrameSource, fps: float | None = None, 
                              f"the frames are timed by their numbers, which puts frames "
                              f"{_time(gap)} s apart, more than MAX_FRAME_GAP_S "
                              f"({MAX_FRAME_GAP_S:g} s): give frames.csv with their times")
-        warnings.warn(
-            f"{numbered.folder}: {numbered.describe_gaps()}: no frames.csv, so the frames are "
-            f"numbered and timed by their file numbers (frame id = file {number}, timestamp = "
-            f"id / {rate:.6g} fps): the frames after a gap keep their own times, and the "
-            "missing frames are left out; give frames.csv if the file numbers are not frame "
-            "numbers", stacklevel=2)
-    if numbered is None and (k := FileNumbers.regular_step(frames)) is not None:
+        if k == 1:
+            warnings.warn(
+                f"{numbered.folder}: {numbered.describe_gaps()}: no frames.csv, so the frames "
+                f"are numbered and timed by their file numbers (frame id = file {number}, "
+                f"timestamp = id / {rate:.6g} fps): the frames after a gap keep their own times, "
+                "and the missing frames are left out; give frames.csv if the file numbers are "
+                "not frame numbers", stacklevel=2)
+    if k > 1:  # every k-th frame kept, named by its number? (a step of k: one frame interval)
         names = [p.name for p in frames.paths[:2]]
+        kept = (f"--fps {rate / k:.6g}" if fps is None else
+                f"--fps the kept frames' rate (the video's / {k}; the {rate:.6g} given is taken "
+                "as such)")
+        if numbered.gaps:  # (as for files numbered frame by frame: the numbers time them)
+            taken = (f"a step of {k} is taken as one frame interval and the frames are timed "
+                     f"by their numbers, {described}: {numbered.describe_gaps()}: the frames "
+                     "after a gap keep their own times, and the missing frames are left out")
+        else:
+            taken = f"they are taken as consecutive frames, timed {described}"
         warnings.warn(
             f"{frames.paths[0].parent}: the frame files are numbered in steps of {k} "
-            f"({names[0]}, {names[1]}, ...): no frames.csv, so they are taken as consecutive "
-            f"frames, timed {described}; if the numbers are the video's frame numbers (every "
-            f"{k}th frame kept), give frames.csv with their times, or --fps {rate / k:.6g}",
-            stacklevel=2)
+            f"({names[0]}, {names[1]}, ...): no frames.csv, so {taken}; if the numbers are the "
+            f"video's frame numbers (every {_ordinal(k)} frame kept), give frames.csv with their "
+            f"times, or {kept}", stacklevel=2)
     if len(frames) > 1:
         step = 1.0 / rate
         bound, name = min((MAX_FRAME_GAP_S, "MAX_FRAME_GAP_S"),
@@ -535,6 +562,12 @@ def read_frame_times(root: Path, frames: FrameSource, fps: float | None = None, 
                 f"{MAX_TIMESTAMP_S:g} s): no endoscope or pCLE video is that slow; check the "
                 "frame rate (fusedmosaic run: --fps)")
     return frame_ids, frame_ids / rate, described
+
+
+def _ordinal(k: int) -> str:
+    """2nd, 3rd, 5th, 11th, 21st."""
+    suffix = "th" if 10 <= k % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(k % 10, "th")
+    return f"{k}{suffix}"
 
 
 # A video whose stamps stay within this fraction of a frame interval of frame / rate is timed at

@@ -257,6 +257,16 @@ class FrameSource(Sequence):
                 self.counted_by = "decoding"
                 self.close()
                 if 0 < self._length < header:
+                    lost = _avi_frames_lost_inside(self.video, header)
+                    if lost is not None:
+                        raise ValueError(
+                            f"{self.video}: its header counts {header} frames but decoding it "
+                            f"gives {self._length}, and the file is whole at its end: {lost}; "
+                            "the decoder passes the loss without an error, so every frame "
+                            "after it would be read under another frame's number (its time, "
+                            "its tracker or robot sample); repair the file, or give the frames "
+                            "that decode as frames/*.png with frames.csv (each one's frame "
+                            "number and time)")
                     warnings.warn(
                         f"{self.video}: its header counts {header} frames but {self._length} "
                         f"decode ({self._fewer_frames_why()}): the {self._length} are read",
@@ -803,6 +813,86 @@ def _decode_times(capture: cv2.VideoCapture, limit: int | None = None) -> list[f
             if run > MAX_UNDECODABLE_RUN:
                 break
     return times
+
+
+# An AVI's idx1 index, the last chunk of the file, is looked for in this much of its end (16
+# bytes per chunk: 4M chunks), and the movi list that its offsets count from in this much of its
+# start (the headers before it; OpenCV's writer: 8 kB).
+AVI_INDEX_TAIL_BYTES = 64 << 20
+AVI_MOVI_HEAD_BYTES = 1 << 20
+_AVI_VIDEO_CHUNKS = (int.from_bytes(b"dc", "little"), int.from_bytes(b"db", "little"))
+
+
+def _avi_frames_lost_inside(video: Path, count: int) -> str | None:
+    """Where an AVI that decodes fewer frames than its header's ``count`` shows frames lost
+    inside it, for the refusal; None when it does not (not an AVI; no intact idx1 at its end;
+    every frame's chunk where its index says), and the file may only be cut short (the warning).
+
+    The seek to the header's last frame that confirms the count (FrameSource._probe_end) fails
+    when bytes are lost inside an AVI (the index's offsets after the loss shift), so its
+    decoding pass is not checked as one whose last frame is there (_check_decodes_in_order) and
+    a lost frame went by with the truncated file's warning: every frame after it read under the
+    next one's number, time and tracker sample (review 51: 12-frame MJPG AVI, frame 5's chunk
+    cut out or its id damaged; frames 5-10 were read as frames 6-11). The stamps of such an
+    AVI count its packets, as a truncated file's do: they show nothing. Its index does: written
+    last, it is gone from a file cut short; a file that ends with a whole idx1 listing the
+    ``count`` frames was not cut short, and an entry that does not find its frame's chunk id at
+    its offset (bytes lost before that chunk, or its id damaged) shows the loss inside. An
+    index whose entries all find their chunks (the last frames' data does not decode: the
+    frames decoded are the first ones, right) and an OpenDML AVI (its index elsewhere) are
+    left to the warning."""
+    if video.suffix.lower() != ".avi":
+        return None
+    try:
+        size = video.stat().st_size
+        with open(video, "rb") as f:
+            head = f.read(min(size, AVI_MOVI_HEAD_BYTES))
+            tail_size = min(size, AVI_INDEX_TAIL_BYTES)
+            f.seek(size - tail_size)
+            tail = f.read(tail_size)
+    except OSError:
+        return None
+    movi = head.find(b"movi", 12)
+    while movi >= 0 and head[movi - 8:movi - 4] != b"LIST":
+        movi = head.find(b"movi", movi + 1)
+    if head[:4] != b"RIFF" or head[8:12] != b"AVI " or movi < 0:
+        return None
+    at = tail.rfind(b"idx1")
+    while at >= 0:  # the idx1 chunk that ends the file (a pad byte allowed)
+        length = int.from_bytes(tail[at + 4:at + 8], "little")
+        if at + 8 + length in (len(tail), len(tail) - 1):
+            break
+        at = tail.rfind(b"idx1", 0, at)
+    if at < 0:
+        return None
+    entries = np.frombuffer(tail, np.dtype([("id", "<u4"), ("flags", "<u4"), ("offset", "<u4"),
+                                            ("size", "<u4")]), length // 16, at + 8)
+    video_chunk = np.isin(entries["id"] >> 16, _AVI_VIDEO_CHUNKS)
+    streams, counts = np.unique(entries["id"][video_chunk] & 0xFFFF, return_counts=True)
+    if not streams.size or counts.max() < count:
+        return None  # (an index listing fewer frames than the header counts proves nothing)
+    frames = entries[video_chunk & ((entries["id"] & 0xFFFF) == streams[np.argmax(counts)])]
+    data = np.memmap(video, np.uint8, mode="r")
+    # the offsets count from the movi list's id (AVI 1.0), or from the file's start; as FFmpeg,
+    # the one under which more chunks are found
+    best, sized = None, None
+    for base in (movi, 0, movi + 4 - int(frames["offset"][0])):
+        at_chunk = base + frames["offset"].astype(np.int64)
+        inside = (at_chunk >= 0) & (at_chunk + 8 <= size)
+        found, same_size = np.zeros(len(frames), bool), np.zeros(len(frames), bool)
+        header = data[at_chunk[inside, None] + np.arange(8)].view("<u4")  # (id, size)
+        found[inside] = header[:, 0] == frames["id"][inside]
+        same_size[inside] = found[inside] & (header[:, 1] == frames["size"][inside])
+        if best is None or found.sum() > best.sum():
+            best, sized = found, same_size
+    if best.all():
+        return None
+    k = int(np.flatnonzero(~best)[0])
+    if sized[0] and not sized[:k].all():  # its sizes tell sooner (a chunk cut out: the entry
+        k = int(np.flatnonzero(~sized)[0])  # of the lost frame finds the next one's id there)
+    return (f"its index (idx1) lists {len(frames)} frames, and frame {k}'s chunk is not where "
+            f"it says ({int((~best).sum())} of the {len(frames)} are not): bytes lost or "
+            f"damaged inside the file at frame {k}")
 
 
 def _codec(video: Path) -> str:
