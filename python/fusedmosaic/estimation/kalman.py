@@ -159,7 +159,9 @@ class KalmanOptions:
     sp_k: float = 4.0
     sp_x_r: float = 0.5
     # False: Eqs. 7-8 as written (the state variance is not carried over).
-    # True: standard Kalman filter, see RobotKalmanFilter.
+    # True: the state variance carried over, a Kalman-filter form compared in
+    # bench/bench_pcle_cases.py; not the optimal update for these relative measurements (it
+    # over-weights the image), see RobotKalmanFilter.
     propagate_variance: bool = False
     # Variance of X_f(0) for propagate_variance=True, px^2 (frame 0 defines the origin).
     initial_variance: float = 0.0
@@ -376,7 +378,8 @@ class FilterStep:
 
     position : (2,) filtered position X_f(i) (px, relative to frame 0).
     displacement : (2,) X_f(i) - X_f(i-1).
-    variance : (2,) state variance per axis: sigma_est^2 of Eq. 8, or the propagated P(i).
+    variance : (2,) state variance per axis: sigma_est^2 of Eq. 8, or the propagated P(i)
+        (with ``propagate_variance``: not X_f's error variance, see RobotKalmanFilter).
     prior_variance, likelihood_variance : the robot and image variances used (Eq. 9-10;
         inf for a confidence of 0). With ``propagate_variance`` the prior one includes P(i-1).
     c_angle, c_speed, c_match, c_sp : the confidences (NaN when not computed: warm-up, missing
@@ -422,19 +425,33 @@ class RobotKalmanFilter:
     measurements (a two-state "stochastic cloning" filter gives the same X_f, with the position
     variance growing by sigma_est^2 per step).
 
-    With ``propagate_variance = True`` it is a standard Kalman filter on the position, the
-    robot displacement as the control input and the image registration read as a position
-    measurement in the mosaic:
+    With ``propagate_variance = True`` the state variance is carried over, as a Kalman filter on
+    the position would, the robot displacement as the control input and the image registration
+    read as a position measurement in the mosaic (the "standard Kalman filter" variant the
+    project compares in bench/bench_pcle_cases.py):
 
     - predict: ``x- = X_f(i-1) + dX_r(i)``, ``P- = P(i-1) + sigma_r0^2 / c_rob(i)``
-    - measure: ``z = X_f(i-1) + dX(i)`` with ``R = sigma_i0^2 / c_img(i)``: frame i registered
-      against frame i-1 *as already placed* in the mosaic, so only the registration noise counts
+    - measure: ``z = X_f(i-1) + dX(i)`` with ``R = sigma_i0^2 / c_img(i)``
     - update: ``K = P- / (P- + R)``, ``X_f(i) = x- + K (z - x-)``, ``P(i) = (1 - K) P-``,
       with ``P(0) = options.initial_variance``.
 
-    The accumulated P makes the image term gain weight over time (steady state
-    ``K > Q / (Q + R)``): the robot's errors integrate, the registration to the placed mosaic
-    does not. Both modes coincide on the first step when P(0) = 0.
+    This is *not* the optimal (or a consistent) Kalman update for these measurements: the prior
+    mean and the "measurement" both contain X_f(i-1), hence the same error e(i-1), so the
+    innovation ``z - x-`` is the difference of the two displacement noises, of variance
+    ``Q + R`` (Q = sigma_r0^2 / c_rob), not ``P- + R``. The optimal weight of the image is
+    ``Q / (Q + R)``, Eqs. 7-8, the default mode; with P carried over ``K > Q / (Q + R)``: the
+    image is over-weighted, and the reported P(i) converges to a constant while the true
+    position error is a random walk of the step errors. (Read as "registered against frame i-1
+    as already placed", X_f(i-1) would be exact and P(i-1) should be 0; read as uncertain, z
+    carries the same error: either way the carried-over P is not the state's.) Measured under
+    the filter's own model (independent white displacement noise, 200 runs of 100 steps;
+    review 51): with sigma_r0 = sigma_i0 = 1 px the step error variance is 0.535 against the
+    optimal 0.500; with sigma_r0 = 0.1 px (an accurate robot at the online estimate's floor)
+    and sigma_i0 = 1 px, 0.0169 against 0.0099 (+70 %), the error variance of X_f after 100
+    steps 1.67 against 1.03, and the reported variance 0.098 against a true 1.67 (17x too
+    small). A heuristic kept for that comparison, not a better filter: the default mode is the
+    paper's, and the optimal one under that model. Both modes coincide on the first step when
+    P(0) = 0.
     """
 
     options: KalmanOptions = field(default_factory=KalmanOptions)

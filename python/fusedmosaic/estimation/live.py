@@ -208,12 +208,15 @@ def _streamed_result(method: str, status: list, finals: dict, plane, details: di
     if method == "lba-emt":
         details["plane_history"] = [None if k not in finals or finals[k].plane is None
                                     else np.asarray(finals[k].plane).tolist() for k in range(n)]
-    else:  # kalman-robot: what the offline run reports (translation._run), None / NaN where
-        # a frame was not processed; runner.add_streamed_checks compares X_m and X_r
-        from fusedmosaic.estimation.translation import frame_columns, name_anchor
+    else:  # kalman-robot, ncc, robot: what the offline run reports (translation._run), None /
+        # NaN where a frame was not processed; runner.add_streamed_checks compares X_m and X_r
+        from fusedmosaic.estimation.translation import ESTIMATES, frame_columns, name_anchor
 
         details.update(frame_columns([finals.get(k) for k in range(n)],
                                      np.arange(n) if ids is None else ids))
+        # (estimate, and frame_columns' ncc_score, sigma_robot0_px and per_frame_ms, were
+        # missing: a script reading them failed on a live run's report.json; review 51)
+        details["estimate"] = ESTIMATES[TRANSLATION_ESTIMATES[method]][1]
         # the mosaicker counts the frames it was given, not the dropped ones: its "against
         # frame N" named the N-th processed frame, another one of the recording
         recorded = {r.index: k for k, r in finals.items()}

@@ -88,6 +88,41 @@ Such a frame adds no image step to the filter's history, so the warm-up would ne
 the wrong units), they are believed over the robot, as ``robot_gate_rebase`` gated frames in a
 row make the robot believed over them: the robot is judged (gated) from then on.
 
+Unconfirmed robot steps (robot gating, not in the paper). On a frame the robot places alone (no
+usable registration: inconsistent directions, failed, blank, unjudged, or image-gated) nothing
+above judges the robot, and a glitch went through: the frame was placed at it, both anchors
+moved there, the next trusted registrations chained from it and, disagreeing with the correct
+robot, had it gated and, after ``robot_gate_rebase`` frames, re-anchored at the wrong X_f: the
+offset was permanent (review 51; simulator 256x224 px, 60 frames, seed 0, mean error 7.1 µm
+without a glitch: a +300 µm sample at frame 12, a contact loss, 332.6 µm; +5000 µm, 5650 µm;
++300 µm at frame 34, image-gated, 188 µm; no warning). A robot is a smooth actuator, so such a
+step is judged against the robot's *own* recent motion (:meth:`RobotPriorMosaicker._robot_jump`):
+its last anchor extrapolated at its velocity between its last two anchors (none before two, nor
+across a rebase). A sample off that by more than ``robot_gate_sigmas`` x the robust scale of the
+recent anchors' own deviations (per frame interval, once ``robot_sigma_min_frames`` of them
+exist) and more than ``robot_gate_fraction`` of the frame's smaller side (allowed once more per
+frame placed without a robot sample since the anchor, up to ``robot_gate_max_span`` times; not
+by gated frames) is gated: the frame is placed at the extrapolation (``prior-only``, ``c_img =
+c_rob = 0``, ``FrameResult.robot_gated``) and the robot anchor stays, so the next sample, back
+on its course, is taken from the last good one. A run of ``robot_gate_rebase`` such samples is
+accepted: one of about a constant deviation (a lasting offset, e.g. a re-homed robot) by the
+rebase above (re-anchored at the extrapolated X_f), one moving steadily away from the
+extrapolation (deviations on a line: the robot changed its velocity) by believing the robot at
+its last sample. The three glitches above now give 7.2, 7.2 and 7.1 µm, the glitch frame alone
+gated; a lasting +300 µm offset from frame 12 on, 332.7 -> 8.8 µm (frames 12-14 gated, the
+next ones by the registrations, then re-anchored), with frames 12-17 blank 332.7 -> 17.7. Genuine
+motion stays far inside the bound: on the simulator's circle and spiral (seeds 0-2, 512x448 and
+256x224, robot.csv and robot_noisy.csv, with contact loss and stick-slip, where the image is
+stuck while the robot moves), a robot at a third of the frame rate and 600 µm/frame scans whose
+frames do not overlap, the robot's deviations reach 0.19 of the bound (0.52 on the 600
+µm/frame circles, turning 0.2 rad/frame), none is gated and #1-#5 are unchanged to 0.01 µm. A
+robot starting from rest deviates by its first step: below the floor whenever consecutive
+frames overlap (sim0 held still 5 frames, the first moving frame blank: not gated). Starting at
+600 µm/frame (512x448 px, frames not overlapping) it is gated for 2 frames, placed at rest,
+then believed (3.7 -> 56.4 µm; rebased, it was 1459). The noisy robot on such a scan (velocity
+noise 180 µm/frame, before the robot's own scale is measured): one of three scans gated twice
+at frames 4-5, 1227 -> 1257 µm (the robot alone 1227), the two others unchanged.
+
 Image gating (not in the paper), the converse: a registration the filter does not trust
 (``c_img < robot_sigma_c_img``; in the warm-up, the trust of "Robot noise" above) that differs
 from the robot displacement by more than ``image_gate_sigmas`` of the robot's standard
@@ -258,7 +293,9 @@ class RobotPriorOptions:
     # smaller side (the registration overlap of two frames is more than that) and 20 sigma_r0
     # leave all of them alone. None: no gating. Both are per frame: a robot sample returning
     # after k frames without one (a dropout) spans k + 1 frames and is allowed k + 1 times them,
-    # up to robot_gate_max_span times.
+    # up to robot_gate_max_span times. The same two (robot_gate_sigmas x the robot's own
+    # deviation scale, not sigma_r0) bound a robot step that no registration confirms
+    # (module docstring, "Unconfirmed robot steps").
     robot_gate_fraction: float | None = 0.5
     robot_gate_sigmas: float = 20.0
     # Gated frames in a row after which the robot is re-anchored (a lasting offset, e.g. the
@@ -469,7 +506,11 @@ class FrameResult:
         is also given for the image estimate. ``c_img`` and ``c_rob`` are the weights of Eqs.
         7-8: until enough frames give c_angle / c_speed / c_sp they hold the paper's initial
         values c_img = 1 and c_rob = 10 (KalmanOptions.c_img0 / c_rob0), which is why c_rob is
-        not bounded by 1.
+        not bounded by 1. ``c_rob`` is 0 whenever the robot sample had no weight: none, gated
+        (``robot_gated``), or of unknown noise (``robot_noise_unknown``) on a frame the image
+        placed (sigma_r0 inf gives the robot an infinite variance whatever c_rob; the filter's
+        c_rob0 = 10 was reported there, read as a 10:1 weight of the robot; review 51). On a
+        frame the robot places alone it is 1 (c_img 0), of unknown noise or not.
     ncc_score : mean forward/backward peak NCC (NaN without a registration).
     position_image, position_robot, position_fused : (2,) X_m, X_r, X_f where computed (NaN
         otherwise): the fused estimate also reports X_m and X_r for comparison.
@@ -479,8 +520,15 @@ class FrameResult:
     timings : seconds per stage: ``ncc`` (forward + backward), ``ssim`` (c_match), ``filter``
         (confidences + Eqs. 4-8), ``total`` (the whole call).
     robot_gated : True when the robot sample was left out as a glitch (module docstring): the
-        frame follows the image (``c_rob = 0``, ``c_sp`` NaN); ``displacement_robot`` is the
+        frame follows the image (``c_rob = 0``, ``c_sp`` NaN), or, without a usable
+        registration, the extrapolation of the robot's own recent motion (``prior-only``,
+        ``c_img = c_rob = 0``; "Unconfirmed robot steps"); ``displacement_robot`` is the
         rejected robot displacement.
+    robot_noise_unknown : True when sigma_r0 was not measured yet (``sigma_robot0`` inf:
+        the robot's noise unknown, ``robot_unknown_at_start``): the robot had no weight next to
+        a registration (``c_rob = 0``), and placed the frame only without one. report.json
+        lists these frames (``robot_noise_unknown``) and writes their ``sigma_robot0_px`` as
+        null.
     image_gated : True when the registration was left out by the image gate (module docstring,
         "Image gating"): the robot places the frame (``prior-only``, ``c_img = 0``);
         ``displacement_image`` is the rejected registration.
@@ -516,6 +564,7 @@ class FrameResult:
     ncc_consistent: bool | None = None
     image_gated: bool = False
     registered_against: int | None = None
+    robot_noise_unknown: bool = False
 
     @property
     def placed(self) -> bool:
@@ -672,7 +721,16 @@ class RobotPriorMosaicker:
         # X_f's: frame 0, or when frame 0 is blank and has no robot sample the first frame that
         # is textured or has one.
         self._fused_origin: int | None = None
-        self._robot_anchor: tuple[np.ndarray, np.ndarray] | None = None  # (robot µm, X_f)
+        # (robot µm, X_f, timestamp s) of the last robot sample taken as an anchor
+        self._robot_anchor: tuple[np.ndarray, np.ndarray, float] | None = None
+        # µm/s, the robot's own velocity between its last two anchors (not across a rebase):
+        # what an unconfirmed robot step is judged against (_robot_jump)
+        self._robot_velocity: np.ndarray | None = None
+        # |deviation| (px per frame interval, both axes) of the recent anchors from that
+        # extrapolation: the robot's own jerkiness, _robot_jump's scale
+        self._robot_jumps: deque[np.ndarray] = deque(maxlen=self.options.robot_sigma_window)
+        # the signed deviations (px) of the samples gated so in a row since the anchor
+        self._jump_run: list[np.ndarray] = []
         # Frames placed from the image alone, for want of a robot sample, since the robot anchor:
         # the robot displacement spans that many more image steps than the image displacement.
         self._steps_without_robot = 0
@@ -867,7 +925,8 @@ class RobotPriorMosaicker:
     # innovations deque is appended to); the filter, changed in place, by its snapshot (a
     # deepcopy took ~0.5 ms, 5 % of a 512x448 frame).
     _STATE = ("_count", "_last_timestamp", "_anchor", "_robot_origin_um", "_image_origin",
-              "_robot_origin", "_fused_origin", "_robot_anchor",
+              "_robot_origin", "_fused_origin", "_robot_anchor", "_robot_velocity",
+              "_robot_jumps", "_jump_run",
               "_steps_without_robot", "_gated_in_a_row", "_unjudged_in_a_row", "_innovations",
               "_intensity", "_spacings", "_placed_timestamp")
 
@@ -905,6 +964,7 @@ class RobotPriorMosaicker:
         ssim_gain = nan  # (SSIM at the NCC shift) - (at 0 px), computed in the warm-up only
         dx_img_f, dx_rob_f = _NAN2, _NAN2
         robot_gated = image_gated = False
+        jumped = False  # robot_gated as an unconfirmed robot step (_robot_jump)
 
         # Robot position X_r (Eq. 3), relative to frame 0.
         if self._robot_origin is None and np.isfinite(robot).all():
@@ -1019,7 +1079,7 @@ class RobotPriorMosaicker:
             intervals = self._frame_intervals(t)
             previous = kf.position
             if self._robot_anchor is not None and np.isfinite(robot).all():
-                r_um, r_xf = self._robot_anchor
+                r_um, r_xf, _ = self._robot_anchor
                 dx_rob_f = r_xf + (robot - r_um) / self.pixel_size_um - previous  # Eq. 4
             if self._anchor is not None and not (inconsistent and np.isfinite(dx_rob_f).all()):
                 # an inconsistent registration only when no robot sample can place the frame
@@ -1046,6 +1106,9 @@ class RobotPriorMosaicker:
                 sigma_r = self.sigma_robot0
                 if sigma_r != kf.options.sigma_robot0:
                     kf.options = replace(kf.options, sigma_robot0=sigma_r)
+                # where the robot's own recent motion puts the frame, when this sample jumps
+                # off it (None otherwise): used if the robot would place the frame alone
+                extrapolated = self._robot_jump(robot, t, previous) if robot_ok else None
                 c_match = conf["c_match"] if image_ok else 0.0
                 verdict = None
                 if image_ok and robot_ok:
@@ -1059,6 +1122,11 @@ class RobotPriorMosaicker:
                 elif not self._streak_judged():
                     self._unjudged_in_a_row = 0
                 dx_rob_used = _NAN2 if robot_gated else dx_rob_f
+                if not image_ok and extrapolated is not None:
+                    # the robot alone would place it, at a jump of its own signal: a glitch
+                    # nothing can check ("Robot gating": unconfirmed robot steps)
+                    robot_gated = jumped = True
+                    dx_rob_used = extrapolated
                 before = kf.snapshot() if image_ok and robot_ok and not robot_gated else None
                 warm = kf.warming_up
                 step = kf.update(dx_img_f, dx_rob_used, c_match, intervals)
@@ -1066,6 +1134,9 @@ class RobotPriorMosaicker:
                                                          sigma_r, ssim_gain):
                     kf.restore(before)  # the robot places the frame (c_img = 0)
                     image_ok, c_match, image_gated = False, 0.0, True
+                    if extrapolated is not None:  # as above: the robot alone, at a jump
+                        robot_gated = jumped = True
+                        dx_rob_used = extrapolated
                     step = kf.update(_NAN2, dx_rob_used, c_match, intervals)
                     if warm:
                         # Its step still enters the histories of Eq. 13-14: the warm-up ends
@@ -1076,6 +1147,11 @@ class RobotPriorMosaicker:
                 computed = conf["c_match"]
                 for name in CONFIDENCES:
                     conf[name] = float(getattr(step, name))
+                if robot_gated or (image_ok and np.isinf(sigma_r)):
+                    # the robot sample had no weight: left out, or of unknown noise (sigma_r0
+                    # inf: Eq. 9's variance is inf whatever c_rob; the filter's c_rob, 10 in
+                    # its warm-up, read as a 10:1 weight of the robot; review 51)
+                    conf["c_rob"] = 0.0
                 if np.isnan(conf["c_match"]):
                     # a registration left out (gated, unjudged, inconsistent): its SSIM, when
                     # computed, still says why (report.json had null for every gated frame)
@@ -1109,8 +1185,18 @@ class RobotPriorMosaicker:
             # last good one, unless the robot has been gated so often in a row that it more
             # likely moved its origin than glitched.
             self._gated_in_a_row = self._gated_in_a_row + 1 if robot_gated else 0
+            motion = self._robot_extrapolation(robot, t)
+            self._jump_run = [*self._jump_run, motion[1]] if jumped else []
             if not robot_gated or self._gated_in_a_row >= self.options.robot_gate_rebase:
-                self._robot_anchor = (robot.copy(), x_f.copy())
+                if robot_gated:  # a rebase: the offset is no motion, the velocity unknown
+                    self._robot_velocity = None
+                elif self._robot_anchor is not None:  # the robot's own velocity
+                    if motion is not None and motion[2] == 1.0:  # (not a run believed)
+                        self._robot_jumps.append(np.abs(motion[1]))
+                    r_um, _, r_t = self._robot_anchor
+                    self._robot_velocity = (robot - r_um) / (t - r_t)
+                self._robot_anchor = (robot.copy(), x_f.copy(), t)
+                self._jump_run = []
                 self._steps_without_robot = 0
                 self._gated_in_a_row = 0
         elif self.estimate == "fused" and placed and self._robot_anchor is not None:
@@ -1140,6 +1226,7 @@ class RobotPriorMosaicker:
             ncc_consistent=consistent,
             image_gated=image_gated,
             registered_against=against,
+            robot_noise_unknown=bool(np.isinf(sigma_r)),
             **conf,
         )
 
@@ -1222,6 +1309,61 @@ class RobotPriorMosaicker:
         limit = k * np.sqrt(step.prior_variance)
         return bool(np.abs(np.asarray(dx_robot) - np.asarray(dx_image)).max() > limit)
 
+    def _robot_extrapolation(self, robot: np.ndarray, t: float):
+        """(where the robot's own recent motion puts it at ``t``, µm; the robot sample
+        ``robot``'s deviation from that, px, signed; the frame intervals spanned since its
+        anchor), or None without a velocity. The motion: the last robot anchor extrapolated at
+        the velocity between the last two (``_robot_velocity``; None before there are two, and
+        after a rebase until the next)."""
+        if self._robot_velocity is None or self._robot_anchor is None:
+            return None
+        r_um, _, r_t = self._robot_anchor
+        expected = r_um + self._robot_velocity * (t - r_t)
+        spacing = float(np.median(self._spacings)) if self._spacings else t - r_t
+        span = max(1.0, float(round((t - r_t) / spacing)))
+        return expected, (robot - expected) / self.pixel_size_um, span
+
+    def _robot_jump(self, robot: np.ndarray, t: float, previous: np.ndarray
+                    ) -> np.ndarray | None:
+        """The displacement from X_f(i-1) (``previous``) to where the robot's own recent motion
+        puts frame i (_robot_extrapolation), when the robot sample ``robot`` (µm, at ``t``)
+        jumps off it; else None (also without a velocity). A robot is a smooth actuator: a gross
+        jump of its own signal is a glitch (module docstring, "Robot gating": unconfirmed robot
+        steps). The bound: ``robot_gate_sigmas`` x the robust scale (1.4826 x median) of the
+        recent anchors' own deviations (per frame interval; once robot_sigma_min_frames of them
+        exist), at least ``robot_gate_fraction`` of the frame's smaller side; allowed once per
+        frame placed without a robot sample since the anchor, plus one, up to
+        ``robot_gate_max_span`` times (the extrapolation's error grows with the span; gated
+        frames do not widen it: a lasting offset of 1.3 x the bound passed at the third,
+        review 51). ``robot_gate_fraction`` None: never.
+
+        Also None (the robot believed) for the ``robot_gate_rebase``-th such sample in a row
+        when the run moves steadily away from the extrapolation (its deviations on a line, of a
+        slope beyond the bound: the robot changed its velocity, e.g. started from rest faster
+        than half a frame per frame); a run of about one deviation (a lasting offset) is
+        re-anchored as a gated run is (the rebase)."""
+        motion = self._robot_extrapolation(robot, t)
+        if motion is None:
+            return None
+        expected, deviation, span = motion
+        floor = self._gate_floor_px
+        if len(self._robot_jumps) >= self.options.robot_sigma_min_frames:
+            scale = 1.4826 * float(np.median(np.concatenate(self._robot_jumps)))
+            floor = max(self.options.robot_gate_sigmas * scale, floor)
+        # frames placed without a robot sample since the anchor widen it; gated ones do not (a
+        # lasting offset then stays gated until the rebase, as in _robot_glitch)
+        bound = floor * min(1 + self._steps_without_robot, self.options.robot_gate_max_span)
+        if not float(np.abs(deviation).max()) > bound:  # (also for bound = inf)
+            return None
+        run = [*self._jump_run, deviation]
+        if len(run) >= self.options.robot_gate_rebase and len(run) >= 2:
+            steps = np.diff(np.asarray(run), axis=0)  # the run's velocity off the extrapolation
+            steady = len(run) < 3 or np.abs(np.diff(steps, axis=0)).max() <= floor
+            if steady and np.abs(run[-1] - run[0]).max() > floor:
+                return None
+        r_um, r_xf, _ = self._robot_anchor
+        return r_xf + (expected - r_um) / self.pixel_size_um - previous
+
     def _streak_judged(self) -> bool:
         """True once robot_gate_rebase registrations in a row were left unjudged: they are
         then believed over the robot (_robot_glitch)."""
@@ -1283,14 +1425,23 @@ class RobotPriorMosaicker:
 
 
 def frame_columns(results: list, ids) -> dict:
-    """report.json's per-frame "confidences", "trajectories_px" (X_m, X_r, X_f), "robot_gated"
-    and "image_gated" (the IDs of the frames whose robot sample, whose registration was left
-    out, as every other frame list of report.json names them) of a run's FrameResults, one per
-    frame with ``ids`` its frame IDs, None for a frame not processed (a live run's dropped
-    frames: confidences None, positions NaN)."""
+    """report.json's per-frame "confidences", "ncc_score", "sigma_robot0_px",
+    "trajectories_px" (X_m, X_r, X_f), "robot_gated", "image_gated" and "robot_noise_unknown"
+    (the IDs of the frames whose robot sample, whose registration was left out, whose robot
+    noise sigma_r0 was not measured yet, as every other frame list of report.json names them)
+    of a run's FrameResults, one per frame with ``ids`` its frame IDs, None for a frame not
+    processed (a live run's dropped frames: confidences, scores None, positions NaN); and
+    "per_frame_ms", the time of add_frame per processed frame after the first. Offline runs
+    and streamed ones (estimation/live.py) both write these."""
+    def values(name: str) -> list:
+        return [None if r is None else float(getattr(r, name)) for r in results]
+
     return {
-        "confidences": {name: [None if r is None else float(getattr(r, name)) for r in results]
-                        for name in CONFIDENCES},
+        "confidences": {name: values(name) for name in CONFIDENCES},
+        "ncc_score": values("ncc_score"),
+        "sigma_robot0_px": values("sigma_robot0"),
+        "per_frame_ms": ms_stats(np.array([r.timings["total"] for r in results
+                                           if r is not None and r.index > 0] or [0.0]) * 1e3),
         "trajectories_px": {
             key: np.stack([np.full(2, np.nan) if r is None else getattr(r, field)
                            for r in results])
@@ -1300,6 +1451,8 @@ def frame_columns(results: list, ids) -> dict:
                         if r is not None and r.robot_gated],
         "image_gated": [int(ids[k]) for k, r in enumerate(results)
                         if r is not None and r.image_gated],
+        "robot_noise_unknown": [int(ids[k]) for k, r in enumerate(results)
+                                if r is not None and r.robot_noise_unknown],
     }
 
 
@@ -1349,7 +1502,6 @@ def _run(
         )
 
     G = np.stack([r.homography for r in results])
-    per_frame = np.array([r.timings["total"] for r in results[1:]]) if n > 1 else np.zeros(1)
     timings = {"read_frames": read_s}
     for stage in (*STAGES, "total"):
         timings[f"{stage}_per_frame_sum" if stage == "total" else stage] = float(
@@ -1362,9 +1514,6 @@ def _run(
     details = {
         "estimate": symbol,
         **frame_columns(results, dataset.frame_ids),
-        "ncc_score": column("ncc_score"),
-        "sigma_robot0_px": column("sigma_robot0"),
-        "per_frame_ms": ms_stats(per_frame * 1e3),
         "warnings": _origin_warnings(dataset, mosaicker, estimate),
     }
     if estimate != "robot":
