@@ -554,6 +554,7 @@ def _feature_options(args: argparse.Namespace):
                              "threshold)")
         options.orb_fast_threshold = args.orb_fast_threshold
     options.validate(names={"max_image_side": "--detect-max-side",
+                            "detector": "--detector",
                             "max_features": "--max-features",
                             "orb_fast_threshold": "--orb-fast-threshold"})
     return options

@@ -7,6 +7,8 @@ pixels away from its edge so the border itself never makes a corner, optionally 
 
 from __future__ import annotations
 
+import threading
+import warnings
 from dataclasses import dataclass
 
 import cv2
@@ -16,9 +18,10 @@ import numpy as np
 @dataclass
 class FeatureOptions:
     detector: str = "sift"  # "sift" (paper Sec. 4.1, VLFeat SIFT) or "orb" (faster)
-    # Strongest keypoints kept per frame. 1000 ORB keypoints keep lba-emt at ~0.2 px on SYN where
-    # 500 gave ~0.55 px (bench/bench_sequential.py); ORB pairs are matched in the C++ core
-    # (pairs.py) so this stays real-time. SIFT finds fewer on low-contrast tissue anyway.
+    # Strongest keypoints kept per frame, inside the mask. 1000 ORB keypoints keep lba-emt at
+    # ~0.2 px on SYN where 500 gave ~0.55 px (bench/bench_sequential.py); ORB pairs are matched
+    # in the C++ core (pairs.py) so this stays real-time. SIFT finds fewer on low-contrast
+    # tissue anyway.
     max_features: int = 1000
     # SIFT peak threshold. OpenCV's default is 0.04; the paper used VLFeat SIFT whose default
     # peak threshold is 0, which matters on low-contrast placenta: lower keeps more keypoints.
@@ -237,6 +240,14 @@ def fov_mask_from_image(image: np.ndarray, threshold: int = 12) -> np.ndarray | 
 SPECULAR_THRESHOLD = 235  # grey level every channel of a core pixel reaches
 SPECULAR_GROWTH = 1.0  # the masked glow: this many core radii beyond the core ...
 SPECULAR_MARGIN_PX = 3  # ... plus this many pixels
+# On a grey (monochrome) or over-exposed frame, bright tissue reaches the threshold too and is
+# masked as highlights (review: a hand-held pair at gain 1.7, 8 % of pixels >= 235, lost 47 % of
+# its field of view, SIFT keypoints 947 -> 347, inliers 489 -> 161). Not told apart from real
+# highlights; FeatureExtractor warns when the mask takes more than this fraction of the field
+# of view. The simulator's highlights took 2.2-2.9 % (3 lights, sigma 5 px), 3.1-3.5 % (6),
+# 7.9-9.2 % (3, sigma 12), 11.9-12.8 % (8, sigma 12); that grey pair at gain 1.5 4-7 %, 1.6
+# 22-28 %, 1.7 49-58 %.
+SPECULAR_WARN_FRACTION = 0.2
 
 
 def specular_mask(image: np.ndarray, *, threshold: int = SPECULAR_THRESHOLD,
@@ -309,6 +320,8 @@ class FeatureExtractor:
         self._lens_mask = (self._shrink(undistortion.valid())
                            if undistortion is not None and raw is None else None)
         self._small_masks: dict[tuple, np.ndarray] = {}  # fixed mask at detection sizes
+        self._specular_warned = False  # (_check_specular_area)
+        self._specular_lock = threading.Lock()
 
     def _shrink(self, mask: np.ndarray) -> np.ndarray:
         m = self.options.mask_margin_px
@@ -321,15 +334,21 @@ class FeatureExtractor:
                   max_features: int | None = None):
         o = self.options
         if o.detector == "sift":
-            return cv2.SIFT_create(nfeatures=o.max_features if max_features is None
-                                   else max_features,
-                                   contrastThreshold=float(o.sift_contrast_threshold
-                                                           if contrast_threshold is None
-                                                           else contrast_threshold))
+            # Uncapped, the strongest inside the mask kept after (_CappedSift). OpenCV's SIFT
+            # keeps its nfeatures strongest over the whole image and only then drops those
+            # outside the mask, so keypoints on the black rim, the margin or a highlight spent
+            # the cap: 1280x720 frames with 3 specular lights kept 892 / 919 of 1000 (477
+            # inliers; 1000 / 1000 and 532 capped after the mask), fov_mask_radius 200 on them
+            # 204 / 217 (103 inliers; 340 / 330 and 169; review). ORB masks first.
+            return _CappedSift(cv2.SIFT_create(nfeatures=0, contrastThreshold=float(
+                o.sift_contrast_threshold if contrast_threshold is None
+                else contrast_threshold)), o.max_features if max_features is None
+                else max_features)
         return cv2.ORB_create(nfeatures=o.max_features,
                               fastThreshold=fast_threshold or o.orb_fast_threshold)
 
     def extract(self, image: np.ndarray, frame_id: int = 0) -> Features:
+        image = np.asarray(image)  # (a list: a bare AttributeError on .ndim; review)
         # (H, W, 1) / (H, W, 2) failed in cvtColor, a side of 1 px in ORB's pyramid (review)
         if (image.ndim not in (2, 3) or image.dtype != np.uint8
                 or (image.ndim == 3 and image.shape[2] not in (1, 3, 4))
@@ -361,6 +380,7 @@ class FeatureExtractor:
         if self.options.mask_specular:
             highlights = specular_mask(gray)
             if highlights is not None:
+                self._check_specular_area(highlights, mask, frame_id)
                 mask = cv2.bitwise_not(highlights) if mask is None else cv2.bitwise_and(
                     mask, cv2.bitwise_not(highlights))
         binary = self.options.detector == "orb"
@@ -381,7 +401,10 @@ class FeatureExtractor:
                 and o.orb_fast_threshold_low < o.orb_fast_threshold):
             keypoints, descriptors = self._detect(self._detector(o.orb_fast_threshold_low),
                                                   gray, mask, frame_id)  # more candidate corners
-        if (not binary and len(keypoints) < o.sift_min_features
+        # Not when max_features itself is below sift_min_features and was reached: the cap, not
+        # low contrast, kept the count down, and the retry (capped too) cannot give more; it ran
+        # on every textured frame (400x400: 126 ms per frame at max_features 30, 74 at 50).
+        if (not binary and len(keypoints) < min(o.sift_min_features, o.max_features)
                 and o.sift_contrast_threshold_low < o.sift_contrast_threshold
                 and structure_to_noise(gray, mask) >= SIFT_RETRY_MIN_STRUCTURE):
             keypoints, descriptors = self._detect(self._detector(
@@ -393,6 +416,28 @@ class FeatureExtractor:
             scale = np.array(full_size, np.float64) / np.array(size, np.float64)
             points = (points + 0.5) * scale - 0.5
         return Features(frame_id, points, descriptors, binary)
+
+    def _check_specular_area(self, highlights: np.ndarray, mask: np.ndarray | None,
+                             frame_id: int) -> None:
+        """Warns (once per extractor, i.e. per run) when the specular mask takes more than
+        SPECULAR_WARN_FRACTION of the field of view: bright tissue taken for highlights."""
+        if self._specular_warned:
+            return
+        inside = highlights if mask is None else cv2.bitwise_and(highlights, mask)
+        field = highlights.size if mask is None else cv2.countNonZero(mask)
+        fraction = cv2.countNonZero(inside) / max(field, 1)
+        if fraction <= SPECULAR_WARN_FRACTION:
+            return
+        with self._specular_lock:
+            if self._specular_warned:
+                return
+            self._specular_warned = True
+        warnings.warn(
+            f"frame {frame_id}: the specular-highlight mask (pixels whose every channel reaches "
+            f"grey {SPECULAR_THRESHOLD}, and their glow) keeps keypoints off {fraction:.0%} of "
+            f"the field of view, more than highlights cover (the simulator's: 2-13 %): bright "
+            f"tissue on a grey or over-exposed frame? Fewer keypoints there; mask_specular "
+            f"(--keep-specular) turns the mask off (warned once)", stacklevel=3)
 
     def _detect(self, detector, gray: np.ndarray, mask: np.ndarray | None, frame_id: int):
         """detector.detectAndCompute, its cv2.error (e.g. std::bad_alloc: out of memory) a
@@ -425,6 +470,29 @@ class FeatureExtractor:
         if fixed:
             self._small_masks[size] = small
         return small
+
+
+class _CappedSift:
+    """An uncapped SIFT detector whose detectAndCompute keeps the n strongest keypoints inside
+    the mask by response, with their descriptors, in their order; ties at the n-th response all
+    kept, as OpenCV's KeyPointsFilter::retainBest (SIFT's own cap, which it applies before the
+    mask). All described, then selected: on this 2-core Xeon, SIFT per frame (median of 21, one
+    thread) 400x400 SYN 56.7 ms capped by OpenCV, 57.3 ms so (under the cap: the same
+    keypoints); 1280x720 with specular lights 323 -> 341 ms (+5 %, ~900 -> 1000 keypoints
+    described); detecting uncapped and describing only the kept ones took 1.6x (SIFT's compute
+    builds the pyramid again)."""
+
+    def __init__(self, sift, n: int):
+        self.sift, self.n = sift, n
+
+    def detectAndCompute(self, gray: np.ndarray, mask: np.ndarray | None):  # noqa: N802
+        keypoints, descriptors = self.sift.detectAndCompute(gray, mask)
+        n = self.n
+        if len(keypoints) <= n:
+            return keypoints, descriptors
+        response = np.array([k.response for k in keypoints], np.float32)
+        keep = np.flatnonzero(response >= np.partition(response, len(response) - n)[-n])
+        return [keypoints[i] for i in keep], descriptors[keep]
 
 
 def extract_features(frames, frame_indices, camera_mask: np.ndarray | None,

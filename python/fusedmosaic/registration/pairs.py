@@ -22,7 +22,19 @@ from fusedmosaic.registration.features import C_INT_MAX, Features
 @dataclass
 class MatchOptions:
     ratio: float = 0.8  # Lowe's ratio test
-    ransac_threshold_px: float = 3.0  # inlier reprojection threshold
+    # Inlier reprojection threshold, full-resolution pixels, whatever the detection scale s
+    # (FeatureOptions.max_image_side: keypoints only as precise as the shrunk copy's pixels).
+    # Not scaled with s: no rule helped on every sequence. ORB, mean homography error vs truth
+    # over the field of view, pairs 1 and 3 frames apart, 3 px vs 3 s px: 1280x720 hand-held
+    # seeds 11 + 12 (56 pairs) at side 512 (s 2.5) 0.58 vs 0.31 px, 320 (s 4) 1.67 vs 0.61,
+    # but seed 13 (20 pairs) 0.28 vs 0.33 and 0.55 vs 0.82; 960x540 seeds 0, 1 (48 pairs) at
+    # 384 0.33-0.36 vs 0.55-0.65, at 240 1.09-1.15 vs 1.78-2.75 (3 x max(1, s / 2.5), 3 px to
+    # s 2.5: 1.48-1.63); lba-emt on the SYN circle at 1280x720 (150 frames) e_M 2.67 vs 1.96
+    # px at 512, 3.63 vs 2.68 at 320. SIFT (sub-pixel keypoints) lost accuracy with any larger
+    # threshold.
+    # Detection below ~1/3 of the frame's side costs 0.5-1.7 px per pair whatever the
+    # threshold (session 51 review).
+    ransac_threshold_px: float = 3.0
     ransac_confidence: float = 0.999
     ransac_max_iters: int = 2000
     # fewer inliers: the pair is not registered. Counted per match: SIFT's keypoints at one
@@ -31,6 +43,21 @@ class MatchOptions:
     # the pair then keeps each correspondence once (unique_correspondences)
     min_inliers: int = 15
     min_inlier_ratio: float = 0.2  # inliers / ratio-test matches
+    # Inliers this thinly spread are refused (thin_support): the smaller principal standard
+    # deviation of the inlier points in frame m, as a fraction of the frame's shorter side. A
+    # homography fitted to a thin band or a small cluster is unconstrained across it and passes
+    # degeneracy: on 400x400 frames a 40 px textured band (ORB: 0.009) was 11.5 px off on
+    # average over the field of view, synthetic matches on two lines 10 px apart (0.012) and in
+    # a 20 px cluster (0.013) put the corners 9-26 px off. The pairs of the simulator's scenes
+    # (SYN 400, hand-held 400 circular, weak-texture SYN 200; ORB and SIFT; 2 seeds x 80
+    # frames, every pair whose true footprints overlap, ~25 000 registered): median 0.09-0.20,
+    # 1st percentile 0.016-0.10; below 0.015 only pairs overlapping by 0.07-0.19 whose
+    # homographies were 16-24 px off (median) over the frame. SYN 152 (seed 0): SIFT lba-emt's
+    # pairs 0.045 at least, ba-emt's 0.017, neither refuses one (e_M 0.134 / 0.093 px as
+    # before); ORB lba-emt 0.023 (none refused), ba-emt 24 of 5295 refused, e_M 0.256 -> 0.255
+    # px. An 80 px textured patch (0.022, 9 px off) is not refused: ba-emt registers pairs as
+    # thin as it. 0: no check.
+    min_inlier_spread: float = 0.015
     # the warped frame's area over the frame's outside (1/4, 4): degenerate (degeneracy)
     max_scale_change: float = 4.0
     num_threads: int = 2  # pairs matched in parallel (OpenCV releases the GIL)
@@ -88,11 +115,15 @@ class MatchOptions:
         number("ransac_threshold_px", lambda v: v > 0, "pixels > 0")
         number("ransac_confidence", lambda v: 0 < v < 1, "a value in (0, 1)")
         number("min_inlier_ratio", lambda v: 0 <= v <= 1, "a value in [0, 1]")
+        number("min_inlier_spread", lambda v: 0 <= v < 0.5,
+               "a fraction in [0, 0.5) of the frame's shorter side (0: no check)")
         number("max_scale_change", lambda v: v > 1, "a factor > 1 (1 refuses every pair)")
         number("guided_radius_px", lambda v: v >= 0, "pixels >= 0 (0: no guided search)")
         integer("ransac_max_iters", 1, C_INT_MAX)  # findHomography's maxIters is a C int
         integer("min_inliers", 4)  # a homography needs 4 correspondences
         integer("num_threads", 1)
+        if not isinstance(self.guided_sift, bool | np.bool_):  # ('no' is truthy: guided; review)
+            raise ValueError(f"guided_sift: expected True or False, got {self.guided_sift!r}")
         if self.binary_matcher not in BINARY_MATCHERS:
             raise ValueError(f"binary_matcher: expected one of {BINARY_MATCHERS}, got "
                              f"{self.binary_matcher!r}")
@@ -261,9 +292,38 @@ def _register(f_l: Features, f_m: Features, image_size: tuple[int, int], o: Matc
     if reason:
         out.status = reason
         return out
+    points_l, points_m = unique_correspondences(pl[inl], pm[inl])
+    reason = thin_support(points_m, image_size, o.min_inlier_spread)
+    if reason:
+        out.status = reason
+        return out
     out.H_lm = H / H[2, 2]
-    out.points_l, out.points_m = unique_correspondences(pl[inl], pm[inl])
+    out.points_l, out.points_m = points_l, points_m
     return out
+
+
+def inlier_spread(points: np.ndarray) -> float:
+    """The smaller principal standard deviation of (N, 2) points, pixels (0 for fewer than 2)."""
+    if len(points) < 2:
+        return 0.0
+    return float(np.sqrt(max(np.linalg.eigvalsh(np.cov(np.asarray(points, np.float64).T))[0],
+                             0.0)))
+
+
+def thin_support(points_m: np.ndarray, image_size: tuple[int, int],
+                 min_spread: float) -> str | None:
+    """Why a homography fitted to these inliers (frame m) is not constrained over the frame,
+    or None: their smaller principal standard deviation below min_spread (MatchOptions.
+    min_inlier_spread) times the frame's shorter side."""
+    if min_spread <= 0:
+        return None
+    spread, limit = inlier_spread(points_m), min_spread * min(image_size)
+    if spread >= limit:
+        return None
+    return (f"inliers too thinly spread ({len(points_m)} inliers span {spread:.1f} px across "
+            f"(smaller principal standard deviation), under min_inlier_spread "
+            f"{min_spread:g} x the frame's shorter side = {limit:.1f} px: a thin band or small "
+            f"cluster leaves the homography unconstrained over the frame)")
 
 
 def unique_correspondences(points_l: np.ndarray, points_m: np.ndarray
