@@ -426,8 +426,8 @@ class FeatureExtractor:
         inside = highlights if mask is None else cv2.bitwise_and(highlights, mask)
         field = highlights.size if mask is None else cv2.countNonZero(mask)
         fraction = cv2.countNonZero(inside) / max(field, 1)
-        if fraction <= SPECULAR_WARN_FRACTION:
-            return
+        if fraction <= SPECULAR_WARN_FRACTION or fraction >= 0.95:
+            return  # (>= 95 %: a saturated or blank-white frame, textureless either way)
         with self._specular_lock:
             if self._specular_warned:
                 return
