@@ -4,22 +4,12 @@ the place of the latest frames (IncrementalCanvas.view_bounds)."""
 
 import cv2
 import numpy as np
+from test_incremental_review50 import H, W, _frames, _shift  # 64 x 48 frames of one texture
 
 from fusedmosaic.compositing import IncrementalCanvas
 from fusedmosaic.compositing.live_view import LiveMosaicView
 
-W, H = 64, 48
 FAR = 50_000.0  # px: 625 frame diagonals
-
-
-def _shift(x: float, y: float = 0.0) -> np.ndarray:
-    return np.array([[1.0, 0, x], [0, 1, y], [0, 0, 1]])
-
-
-def _frames(n: int, seed: int = 0) -> list[np.ndarray]:
-    rng = np.random.default_rng(seed)
-    texture = cv2.GaussianBlur(rng.integers(0, 255, (H, W + 5 * n), np.uint8), (0, 0), 2)
-    return [texture[:, 5 * k:5 * k + W].copy() for k in range(n)]
 
 
 def test_view_follows_a_far_re_localisation(tmp_path):
