@@ -237,7 +237,7 @@ class SequentialOptions:
     cameras whose relative std is at most ``startup_max_plane_std``.
     Beyond the paper (0 disables each): ``loop_pairs`` spatial loop pairs per frame (at least
     ``loop_min_separation`` frames back), ``hold_prior_only_steps``,
-    ``hold_unanchored_frames`` (frames without an anchor stay free until one follows), the
+    ``hold_unanchored_frames`` (frames without an anchor stay free until two follow), the
     plane observability gate ``plane_max_relative_std``.
     Tracker checks: ``gate_chi2`` / ``gate_sigma_scale`` down-weight a sample that disagrees
     with the images; ``motion_gate_chi2`` releases C_p where the tracker or a solve says the
@@ -337,9 +337,10 @@ class SequentialOptions:
     hold_prior_only_steps: int = 2
     # A frame without an anchor (no tracker sample used, no registered pair leading to an
     # anchored frame: black frames in a tracker dropout, and the visual chain after them) stays
-    # free too, with the frames after it, until a frame with an anchor links to them (the
-    # tracker returns, or a pair to an anchored older frame), for up to this many frames; then
-    # C_p and the pairs tie the lost frames to anchors on both sides. 0 finalises them at once,
+    # free too, with the frames after it, until two frames with an anchor follow them (the
+    # tracker returns, or a pair to an anchored older frame; two, so that C_p ties the far side's
+    # velocity as well as its position: _held_tail), for up to this many frames; then C_p and
+    # the pairs tie the lost frames to anchors on both sides. 0 finalises them at once,
     # extrapolated ("dead-reckoned"). 12 black frames in a 26-frame dropout (SYN, 110 frames):
     # black e_M / worst 165 / 338 px -> 10.2 / 16.6, the 4 textured frames chained to them
     # 352 px -> 0.1; held steps (up to ~28 free frames) p95 5.4 ms where 3.8 before.
@@ -452,7 +453,7 @@ class FrameResult:
     with visual evidence), "prior-only" (final, from the tracker and motion priors alone: no
     registered pair), "dead-reckoned" (final, with no anchor at all: neither a tracker sample
     nor a registered pair to a frame that had one, e.g. black frames inside a tracker dropout;
-    placed by the constant-velocity prior between the anchored frames around it when one follows
+    placed by the constant-velocity prior between the anchored frames around it when two follow
     within hold_unanchored_frames, else extrapolated, its error growing with the gap),
     "prior-only (solver failed)" (final, its window step could not be solved, Ceres FAILURE, even
     after dropping the tracker samples that made it fail: left at its starting pose, the tracker
@@ -506,6 +507,11 @@ def canonical_rotation_vector(r: np.ndarray) -> np.ndarray:
 # check tell.
 MAX_ROTATION_VECTOR_RAD = 1e6
 
+# mm: the largest SequentialOptions.nominal_plane_distance_mm (1 km; endoscopes see their plane
+# tens of mm away). The C++ core refuses a plane with |pi| <= 1e-12 (the plane at infinity):
+# 1e12 mm jammed a start-up whose camera did not translate (review 51); 1e6 is far inside.
+MAX_NOMINAL_PLANE_DISTANCE_MM = 1e6
+
 
 class SequentialMosaicker:
     """Frame-by-frame LBAVis+EMT. `camera` is an io.Camera with a camera_matrix."""
@@ -523,7 +529,8 @@ class SequentialMosaicker:
                           ("hold_prior_only_steps", 0), ("hold_unanchored_frames", 0),
                           ("history_steps", 0),
                           ("max_keyframe_blocks", 1), ("tracker_reanchor_after", 1),
-                          ("startup_wait_frames", 1), ("startup_max_iterations", 1),
+                          ("startup_wait_frames", 1), ("max_iterations", 1),
+                          ("startup_max_iterations", 1),
                           ("startup_trial_iterations", 1),
                           ("seed", 0)):
             value = getattr(o, name)
@@ -545,10 +552,18 @@ class SequentialMosaicker:
                              f"got {o.startup_min_overlap}")
         for name in ("max_timestamp_gap_s", "tracker_max_speed_mm_s", "tracker_max_angular_speed",
                      "tracker_jump_margin_mm", "tracker_jump_margin_rad", "tracker_max_gap_s",
-                     "motion_max_gap_s", "nominal_plane_distance_mm"):
+                     "motion_max_gap_s"):
             value = getattr(o, name)
             if not (isinstance(value, numbers.Real) and value > 0):
                 raise ValueError(f"SequentialOptions.{name} must be > 0, got {value!r}")
+        # a distance, never "off": inf (or 1e12) gave a start-up without translation pi = 0 (or
+        # |pi| <= 1e-12), which SetPlane refuses; the call was rolled back and every later
+        # add_frame and flush raised the same error, naming no option (review 51)
+        value = o.nominal_plane_distance_mm
+        if not (isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_)
+                and 0 < value <= MAX_NOMINAL_PLANE_DISTANCE_MM):
+            raise ValueError("SequentialOptions.nominal_plane_distance_mm must be finite, > 0 "
+                             f"and <= {MAX_NOMINAL_PLANE_DISTANCE_MM:g} (mm), got {value!r}")
         for name in ("plane_max_relative_std", "startup_max_plane_std"):
             value = getattr(o, name)
             if not (isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_)
@@ -2170,8 +2185,17 @@ class SequentialMosaicker:
     def _held_tail(self, final_step: bool, anchored: set[int] | None) -> int:
         """Index into the pending frames from which they stay free for the next step: the first
         prior-only frame followed by fewer than two frames with visual evidence (Sec. 4.2.3),
-        or the first frame without an anchor (`anchored`: the step's anchored frames) within
-        hold_unanchored_frames of the newest."""
+        or the first frame without an anchor (`anchored`: the step's anchored frames) followed
+        by fewer than two anchored frames, within hold_unanchored_frames of the newest.
+
+        Two on the far side, not one: one anchored frame fixes the lost stretch's far end but
+        not its velocity there (the C_p term of the frame after it comes in a later step), so
+        with one step per frame (PHB preset, chi_e = 1) the stretch was fixed as soon as the
+        first anchored frame came and bent away from the motion (review 51, 300 px SYN, 6
+        black frames in a 12-frame tracker gap: black e_j mean / worst 21.2 / 31.6 px -> 4.7 /
+        6.7, as with the SYN preset, 4.8 / 6.8, whose 3-frame steps held two anchored frames
+        already; 250 px, 8 black: 11.6 / 17.8 -> 2.0 / 3.0). They are final one step later when
+        the first anchored frame ends its step: one frame with chi_e = 1."""
         n = len(self._pending)
         if final_step:
             return n
@@ -2183,7 +2207,7 @@ class SequentialMosaicker:
                 return i
             if (anchored is not None and p["id"] not in anchored
                     and newest - p["id"] < o.hold_unanchored_frames
-                    and not any(q["id"] in anchored for q in self._pending[i + 1:])):
+                    and sum(q["id"] in anchored for q in self._pending[i + 1:]) < 2):
                 return i
         return n
 
