@@ -591,6 +591,7 @@ class _Anchor:
 _NAN2 = np.full(2, np.nan)
 # Recent frame spacings whose median is the nominal frame interval (_frame_intervals).
 _SPACING_WINDOW = 32
+_NOT_YET = object()  # (RobotPriorMosaicker._place: a value not computed yet)
 
 
 def field_boxes(width: int, height: int, radius: float | None
@@ -958,6 +959,7 @@ class RobotPriorMosaicker:
             raise ValueError(f"frame {i}: pixel values overflow float32 on the sequence's "
                              "intensity scale (the first textured frame's range mapped to 0-255)")
         timings = dict.fromkeys(STAGES, 0.0)
+        motion = _NOT_YET  # the robot's extrapolation at t (_robot_extrapolation), once a frame
         nan = float("nan")
         conf = dict.fromkeys(CONFIDENCES, nan)
         score, sigma_r = nan, nan
@@ -1108,7 +1110,9 @@ class RobotPriorMosaicker:
                     kf.options = replace(kf.options, sigma_robot0=sigma_r)
                 # where the robot's own recent motion puts the frame, when this sample jumps
                 # off it (None otherwise): used if the robot would place the frame alone
-                extrapolated = self._robot_jump(robot, t, previous) if robot_ok else None
+                if robot_ok:
+                    motion = self._robot_extrapolation(robot, t)
+                extrapolated = self._robot_jump(robot, t, previous, motion) if robot_ok else None
                 c_match = conf["c_match"] if image_ok else 0.0
                 verdict = None
                 if image_ok and robot_ok:
@@ -1185,7 +1189,8 @@ class RobotPriorMosaicker:
             # last good one, unless the robot has been gated so often in a row that it more
             # likely moved its origin than glitched.
             self._gated_in_a_row = self._gated_in_a_row + 1 if robot_gated else 0
-            motion = self._robot_extrapolation(robot, t)
+            if motion is _NOT_YET:  # (the anchor and velocity have not moved since)
+                motion = self._robot_extrapolation(robot, t)
             self._jump_run = [*self._jump_run, motion[1]] if jumped else []
             if not robot_gated or self._gated_in_a_row >= self.options.robot_gate_rebase:
                 if robot_gated:  # a rebase: the offset is no motion, the velocity unknown
@@ -1323,7 +1328,7 @@ class RobotPriorMosaicker:
         span = max(1.0, float(round((t - r_t) / spacing)))
         return expected, (robot - expected) / self.pixel_size_um, span
 
-    def _robot_jump(self, robot: np.ndarray, t: float, previous: np.ndarray
+    def _robot_jump(self, robot: np.ndarray, t: float, previous: np.ndarray, motion
                     ) -> np.ndarray | None:
         """The displacement from X_f(i-1) (``previous``) to where the robot's own recent motion
         puts frame i (_robot_extrapolation), when the robot sample ``robot`` (µm, at ``t``)
@@ -1341,8 +1346,8 @@ class RobotPriorMosaicker:
         when the run moves steadily away from the extrapolation (its deviations on a line, of a
         slope beyond the bound: the robot changed its velocity, e.g. started from rest faster
         than half a frame per frame); a run of about one deviation (a lasting offset) is
-        re-anchored as a gated run is (the rebase)."""
-        motion = self._robot_extrapolation(robot, t)
+        re-anchored as a gated run is (the rebase). ``motion``: _robot_extrapolation(robot, t),
+        which _place reuses."""
         if motion is None:
             return None
         expected, deviation, span = motion
