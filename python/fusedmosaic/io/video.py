@@ -267,9 +267,20 @@ class FrameSource(Sequence):
                             "its tracker or robot sample); repair the file, or give the frames "
                             "that decode as frames/*.png with frames.csv (each one's frame "
                             "number and time)")
+                    read = f"the {self._length} are read"
+                    whole = _avi_whole_frames(self.video)
+                    if whole is not None and self._length == whole + 1 > 1:
+                        # the file ends inside the last decoded frame's chunk: FFmpeg decodes
+                        # what it has of it (an MJPG frame's top with another view below; one
+                        # such frame moved a 27-frame lba-emt run's e_M 0.14 -> 5.7 px)
+                        self._length -= 1
+                        self._times = self._times[:self._length]
+                        read = (f"the {self._length} whole ones are read; frame {self._length}, "
+                                "cut inside its chunk at the file's end and decoded in part, is "
+                                "left out")
                     warnings.warn(
-                        f"{self.video}: its header counts {header} frames but {self._length} "
-                        f"decode ({self._fewer_frames_why()}): the {self._length} are read",
+                        f"{self.video}: its header counts {header} frames but "
+                        f"{len(times)} decode ({self._fewer_frames_why()}): {read}",
                         stacklevel=2)
         if self._length <= 0 and self.video is not None and header > 0:
             raise ValueError(
@@ -821,6 +832,44 @@ def _decode_times(capture: cv2.VideoCapture, limit: int | None = None) -> list[f
 AVI_INDEX_TAIL_BYTES = 64 << 20
 AVI_MOVI_HEAD_BYTES = 1 << 20
 _AVI_VIDEO_CHUNKS = (int.from_bytes(b"dc", "little"), int.from_bytes(b"db", "little"))
+
+
+def _avi_whole_frames(video: Path) -> int | None:
+    """How many video chunks of an AVI's movi list lie whole in the file (walked from its start,
+    as a file cut short has lost its index); None when it is not an AVI or its chunks cannot be
+    walked. A truncated AVI whose decoding gives one frame more ends inside that frame's chunk:
+    the decoder gives what it has of it, a frame decoded in part (FrameSource)."""
+    if video.suffix.lower() != ".avi":
+        return None
+    try:
+        data = np.memmap(video, np.uint8, mode="r")
+    except (OSError, ValueError):
+        return None
+    size = len(data)
+    head = bytes(data[:min(size, AVI_MOVI_HEAD_BYTES)])
+    movi = head.find(b"movi", 12)
+    while movi >= 0 and head[movi - 8:movi - 4] != b"LIST":
+        movi = head.find(b"movi", movi + 1)
+    if head[:4] != b"RIFF" or head[8:12] != b"AVI " or movi < 0:
+        return None
+    end = min(size, movi + int.from_bytes(head[movi - 4:movi], "little"))
+    at, whole = movi + 4, 0
+    while at + 8 <= end:
+        chunk = bytes(data[at:at + 8])
+        length = int.from_bytes(chunk[4:], "little")
+        if chunk[:4] == b"LIST":  # a 'rec ' list: its chunks are walked
+            at += 12
+            continue
+        if not chunk[:4].isascii():
+            return None  # (not a chunk id: the walk lost its way)
+        if at + 8 + length > size:
+            break  # the chunk the file ends inside
+        if int.from_bytes(chunk[2:4], "little") in _AVI_VIDEO_CHUNKS:
+            if length == 0:
+                return None  # (a dropped frame's empty chunk: decoders differ on counting it)
+            whole += 1
+        at += 8 + length + (length & 1)
+    return whole
 
 
 def _avi_frames_lost_inside(video: Path, count: int) -> str | None:

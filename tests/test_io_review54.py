@@ -1,0 +1,52 @@
+"""Review 54 (black-box CLI review): a video cut short inside a frame's chunk."""
+
+import cv2
+import numpy as np
+import pytest
+
+from fusedmosaic.io import FrameSource, read_dataset
+from fusedmosaic.io.video import _avi_whole_frames
+from tests.test_dataset_review51 import _avi, _shown
+
+
+def test_avi_cut_inside_a_frame_leaves_that_frame_out(tmp_path):
+    """Cut inside frame 9's chunk: FFmpeg decodes what the file holds of frame 9 (an MJPG
+    frame's top, another view or grey below) and it was read as a whole frame (one such frame
+    moved a 27-frame lba-emt run's e_M 0.14 -> 5.7 px). The 9 whole frames are read, the warning
+    says frame 9 is left out."""
+    root, data, chunks, images = _avi(tmp_path / "d")
+    cut = chunks[9] + 8 + (chunks[10] - chunks[9]) // 2
+    (root / "video.avi").write_bytes(bytes(data[:cut]))
+    assert _avi_whole_frames(root / "video.avi") == 9
+    capture = cv2.VideoCapture(str(root / "video.avi"))
+    decoded = 0
+    while capture.grab():
+        decoded += 1
+    capture.release()
+    assert decoded == 10  # frame 9 in part
+    with pytest.warns(UserWarning, match=r"video\.avi: its header counts 12 frames but 10 decode "
+                                         r"\(a truncated file, .*\): the 9 whole ones are read; "
+                                         r"frame 9, cut inside its chunk at the file's end and "
+                                         r"decoded in part, is left out$"):
+        ds = read_dataset(root)
+    assert len(ds) == 9
+    assert _shown(ds, images) == list(range(9))
+    np.testing.assert_allclose(ds.timestamps, np.arange(9) / 25.0)
+
+
+def test_avi_cut_between_chunks_keeps_every_decoded_frame(tmp_path):
+    root, data, chunks, images = _avi(tmp_path / "d")
+    (root / "video.avi").write_bytes(bytes(data[:chunks[9]]))
+    assert _avi_whole_frames(root / "video.avi") == 9
+    with pytest.warns(UserWarning, match=r"12 frames but 9 decode .*: the 9 are read$"):
+        frames = FrameSource.open(root)
+    assert len(frames) == 9
+
+
+def test_whole_frames_of_what_is_not_an_avi(tmp_path):
+    root, data, _, _ = _avi(tmp_path / "d")
+    assert _avi_whole_frames(root / "video.avi") == 12
+    (tmp_path / "x.avi").write_bytes(b"RIFX" + bytes(data[4:]))
+    assert _avi_whole_frames(tmp_path / "x.avi") is None
+    (tmp_path / "x.mkv").write_bytes(bytes(data))
+    assert _avi_whole_frames(tmp_path / "x.mkv") is None
