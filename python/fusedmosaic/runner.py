@@ -516,10 +516,33 @@ def composing_lens(camera, undistorted: bool):
     return lens, (camera.fov_mask() if lens is None else lens.mask)
 
 
-def is_blank(image, status: str | None = None) -> bool:
-    """A frame with no visual content (every pixel <= BLANK_LEVEL): placed, not composed.
-    A frame its method calls "placed" was registered, so has content: not read."""
-    return status != "placed" and bool(np.asarray(image).max() <= BLANK_LEVEL)
+def is_blank(image, status: str | None = None, mask=None) -> bool:
+    """A frame with no visual content: placed, not composed. Black (every pixel <= BLANK_LEVEL),
+    or, 8-bit, textureless inside the field of view ``mask`` (its 1st-99th percentile range
+    <= BLANK_LEVEL grey levels: a capture card's uniform "no signal" frame, a lens in turbid
+    fluid; 10 grey frames of 45 pasted a grey veil over the tissue, review 54). A frame its
+    method calls "placed" was registered, so has content: not read."""
+    if status == "placed":
+        return False
+    image = np.asarray(image)
+    if image.max() <= BLANK_LEVEL:
+        return True
+    if image.dtype != np.uint8:
+        return False
+    if mask is not None and np.shape(mask) == image.shape[:2]:
+        image = image[np.asarray(mask) > 0]
+    if image.size == 0:
+        return False
+    low, high = np.percentile(image, (1, 99))
+    return bool(high - low <= BLANK_LEVEL)
+
+
+def blank_reason(image, mask=None) -> str:
+    """Why is_blank left a frame out, for report.json's mosaic.skipped_frames."""
+    if np.asarray(image).max() <= BLANK_LEVEL:
+        return f"no visual content (every pixel <= {BLANK_LEVEL}): not composed"
+    return (f"no visual content (textureless: 98 % of its pixels within {BLANK_LEVEL} grey "
+            "levels): not composed")
 
 
 def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=None, video=None,
@@ -561,9 +584,13 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
     # (12 black frames of 60: 363k of 694k mosaic pixels > 20 grey levels darker, linear).
     # Only frames the method placed without looking are read here (it judged the others).
     blank = np.zeros(len(G), dtype=bool)
+    blank_why: dict[int, str] = {}
     for k in np.flatnonzero(np.isfinite(G).all(axis=(1, 2)) & ~dead & ~unreadable):
         if not (result.images_seen and result.status[k] == "placed"):
-            blank[k] = is_blank(frames[k])
+            image = frames[k]
+            blank[k] = is_blank(image, mask=mask)
+            if blank[k]:
+                blank_why[int(k)] = blank_reason(image, mask)
     if (dead | unreadable | blank).any():
         G = np.where((dead | unreadable | blank)[:, None, None], np.nan, G)
     if blend is None:
@@ -584,8 +611,7 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
                            for k in np.flatnonzero(dead)},
              **{int(k): "image unreadable: not composed"
                 for k in np.flatnonzero(unreadable)},
-             **{int(k): f"no visual content (every pixel <= {BLANK_LEVEL}): not composed"
-                for k in np.flatnonzero(blank)}}.items())}
+             **blank_why}.items())}
 
     plan, none_left = None, None
     try:
@@ -1234,11 +1260,12 @@ def run_igtl(address: str, out: str | Path, *, record: str | Path, camera,
     created = [folder for path in (out, record, *(() if preview is None else (Path(preview),)))
                for folder in missing_folders(path)]
     view, server, recorder, src = None, None, None, None
+    fov = camera.fov_mask()  # (is_blank: the frames arrive raw)
 
     def on_final(index, image, r) -> None:  # given to the session only with a view
         if (image is not None and np.isfinite(r.homography).all()
                 and r.status != "dead-reckoned"  # as compose_outputs: not drawn
-                and not is_blank(image, r.status)):
+                and not is_blank(image, r.status, fov)):
             view.add(image, r.homography)
 
     rejected: dict[str, int] = {}  # why (its kind) -> frames refused

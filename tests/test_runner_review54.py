@@ -1,0 +1,48 @@
+"""Review 54 (black-box CLI review): textureless frames that are not black (a capture card's
+uniform "no signal" frame) were placed from the priors, correctly, and then pasted into the
+mosaic: a grey veil over the tissue, with no word in report.json."""
+
+import json
+
+import cv2
+import numpy as np
+
+from fusedmosaic.runner import BLANK_LEVEL, is_blank
+
+
+def test_is_blank_judges_texture_inside_the_field_of_view():
+    rng = np.random.default_rng(0)
+    grey = np.clip(128 + rng.normal(0, 2, (60, 80, 3)), 0, 255).astype(np.uint8)  # noisy grey
+    assert is_blank(grey, "prior-only") and not is_blank(grey, "placed")
+    tissue = np.clip(128 + rng.normal(0, 12, (60, 80, 3)), 0, 255).astype(np.uint8)
+    assert not is_blank(tissue, "prior-only")
+    faint = grey.copy()  # a textured patch over 5 % of the field: content
+    faint[:12, :20] = rng.integers(60, 200, (12, 20, 3))
+    assert not is_blank(faint)
+    # a circular field of view, black outside: judged inside it
+    mask = np.zeros((60, 80), np.uint8)
+    cv2.circle(mask, (40, 30), 25, 255, -1)
+    ringed = np.where(mask[..., None] > 0, grey, 0).astype(np.uint8)
+    assert is_blank(ringed, mask=mask) and not is_blank(ringed)
+    assert is_blank(np.full((60, 80), BLANK_LEVEL, np.uint8))  # black, as before
+    # only 8-bit frames are judged by their range (a 16-bit frame's scale is unknown here)
+    assert not is_blank((grey[..., 0].astype(np.uint16) * 4), "prior-only")
+
+
+def test_uniform_grey_frames_are_placed_not_composed(tmp_path):
+    from fusedmosaic.runner import run_dataset
+    from fusedmosaic.simulation import FetoscopyOptions, simulate_fetoscopy
+
+    root = simulate_fetoscopy(tmp_path / "data", FetoscopyOptions(n_frames=24, width=160,
+                                                                  height=160))
+    paths = sorted((root / "frames").glob("*.png"))
+    for k in range(8, 12):
+        cv2.imwrite(str(paths[k]), np.full((160, 160, 3), 128, np.uint8))
+    out = tmp_path / "out"
+    run_dataset(root, "lba-emt", out, progress=False, report=False)
+    report = json.loads((out / "report.json").read_text())
+    assert report["frame_status"][8:12] == ["prior-only"] * 4
+    skipped = report["mosaic"]["skipped_frames"]
+    assert sorted(skipped, key=int) == ["8", "9", "10", "11"]
+    assert all(why.startswith("no visual content (textureless") for why in skipped.values())
+    assert report["mosaic"]["frames_shown"] == 20
