@@ -50,3 +50,43 @@ def test_whole_frames_of_what_is_not_an_avi(tmp_path):
     assert _avi_whole_frames(tmp_path / "x.avi") is None
     (tmp_path / "x.mkv").write_bytes(bytes(data))
     assert _avi_whole_frames(tmp_path / "x.mkv") is None
+
+
+def test_an_unnumbered_png_among_numbered_frames_is_refused(tmp_path):
+    """frames/thumb.png beside 000000.png ... was read as the last frame, with no word."""
+    from fusedmosaic.io.video import sort_frame_names
+
+    with pytest.raises(ValueError, match=r"^frames: 'thumb\.png' \(and 1 more\) has no number "
+                                         r"in its name, beside numbered frames \(e\.g\. "
+                                         r"'000000\.png'\): frames are ordered by the numbers "
+                                         r"in their names; remove the files that are not "
+                                         r"frames, or rename them$"):
+        sort_frame_names(["000001.png", "thumb.png", "000000.png", "zcover.png"])
+    assert sort_frame_names(["b.png", "a.png"]) == ["a.png", "b.png"]  # none numbered: by name
+    # the numbered names' pattern without a number: a sequence's first file, as some tools name it
+    assert sort_frame_names(["frame2.png", "frame.png", "frame1.png"]) == [
+        "frame.png", "frame1.png", "frame2.png"]
+    root, _, _, _ = _avi(tmp_path / "d")
+    (root / "video.avi").unlink()
+    (root / "frames").mkdir()
+    for k in range(3):
+        cv2.imwrite(str(root / "frames" / f"{k:06d}.png"), np.zeros((48, 64), np.uint8))
+    cv2.imwrite(str(root / "frames" / "thumb.png"), np.zeros((48, 64), np.uint8))
+    with pytest.raises(ValueError, match=r"frames: 'thumb\.png' has no number in its name"):
+        read_dataset(root)
+
+
+def test_a_principal_point_outside_the_frame_is_warned_about(tmp_path):
+    """cx = 900 px for a 200 px wide frame ran without a word (review 54)."""
+    from fusedmosaic.io import Camera
+
+    K = np.array([[240.0, 0, 900.5], [0, 240.0, 99.5], [0, 0, 1]])
+    with pytest.warns(UserWarning, match=r"camera_matrix: principal point \(900\.5, 99\.5\) px "
+                                         r"lies outside the 200x200 frame: calibrated at another "
+                                         r"resolution or crop, or cx and cy mistyped\?"):
+        Camera(200, 200, camera_matrix=K)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Camera(200, 200, camera_matrix=np.array([[240.0, 0, 199.0], [0, 240.0, 0.5], [0, 0, 1]]))

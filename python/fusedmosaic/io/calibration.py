@@ -107,6 +107,16 @@ class Camera:
                 self.camera_matrix = self._checked_camera_matrix(self.camera_matrix)
             except ValueError:
                 pass
+            else:
+                cx, cy = self.camera_matrix[:2, 2]
+                if not (0 <= cx <= self.width and 0 <= cy <= self.height):
+                    # accepted (a crop may move it off the frame), but rarely meant (review 54:
+                    # cx 900 for a 200 px frame ran without a word)
+                    warnings.warn(
+                        f"{self.source}: camera_matrix: principal point ({cx:g}, {cy:g}) px "
+                        f"lies outside the {self.width}x{self.height} frame: calibrated at "
+                        "another resolution or crop, or cx and cy mistyped? (the frames are "
+                        "used as they are)", stacklevel=3)
         if self.lens_model not in LENS_MODELS:
             raise ValueError(f"{self.source}: lens model {self.lens_model!r}: expected one of "
                              f"{', '.join(LENS_MODELS)}")

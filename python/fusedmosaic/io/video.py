@@ -90,6 +90,20 @@ def sort_frame_names(names: Iterable[str], folder: str | Path = "frames") -> lis
     """
     stems = {name: name[:-4] if name.lower().endswith(".png") else name for name in names}
     natural = sorted(stems, key=lambda n: (natural_key(stems[n]), n))
+    # A name without a number among numbered frames (a thumb.png, a cover.png beside
+    # 000000.png ...) was read as the last frame, timed and given a tracker pose (review 54);
+    # one that begins the numbered names' pattern (frame.png before frame1.png, as some tools
+    # name a sequence's first file) is a frame
+    patterns = {_DIGITS.sub("", stems[n]) for n in natural if _DIGITS.search(stems[n])}
+    plain = [n for n in natural if not _DIGITS.search(stems[n])
+             and not any(p.startswith(stems[n]) for p in patterns)]
+    if plain and patterns:
+        numbered = next(n for n in natural if _DIGITS.search(stems[n]))
+        more = f" (and {len(plain) - 1} more)" if len(plain) > 1 else ""
+        raise ValueError(
+            f"{folder}: {plain[0]!r}{more} has no number in its name, beside numbered frames "
+            f"(e.g. {numbered!r}): frames are ordered by the numbers in their names; remove "
+            "the files that are not frames, or rename them")
     # Two names with equal numbers (5.png and 05.png, a copy) were read as consecutive frames,
     # every later one timed a frame late against tracking.csv / robot.csv without frames.csv
     # (review 47): which of them is the frame is as ambiguous as the orders below.
