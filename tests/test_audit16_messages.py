@@ -253,8 +253,8 @@ def test_drift_note_says_why_the_ratio_is_undefined():
     assert drift_note(np.full(8, nan), frame_ids=np.arange(10, 18)).endswith(
         "none placed in frames 10-11 nor in frames 16-17")
     assert drift_note(np.array([0.0, 1.0, 2.0])) == (
-        "the first quarter (frame 0) has mean e_j 0 (with under 8 frames a quarter is one "
-        "frame): no ratio to it")
+        "the first quarter (frame 0) holds only the reference frame, whose e_j is 0 by "
+        "construction and left out (with under 8 frames a quarter is one frame): no ratio to it")
     inf_first = np.array([np.inf, 1, 1, 1, 1, 1, 1, np.inf])
     assert np.isnan(drift_ratio(inf_first))  # no RuntimeWarning (warnings are errors here)
     assert "holds a frame placed at infinity" in drift_note(inf_first)

@@ -171,8 +171,8 @@ def test_the_drift_ratio_leaves_out_the_reference_frames_exact_zero():
     assert drift_ratio(real) == pytest.approx(400.0)
     # a quarter holding only the reference has no ratio, as before
     assert np.isnan(drift_ratio(np.array([0.0, 1.0, 2.0])))
-    assert drift_note(np.array([0.0, 1.0, 2.0])).startswith("the first quarter (frame 0) has "
-                                                            "mean e_j 0")
+    assert drift_note(np.array([0.0, 1.0, 2.0])).startswith("the first quarter (frame 0) holds "
+                                                            "only the reference frame")
 
 
 def test_evaluate_reports_drift_1_for_a_constant_error(pcle, tmp_path):

@@ -677,13 +677,12 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                   else _sampled_indices(dataset, results[0]["position_sampled_frames"]))
         sample = ({"frames": "all"} if args.positions is None
                   else {"frames": "positions", "positions": args.positions})
-        base = np.array([np.nan if e is None else e
-                         for e in results[0]["position_errors_um"]])[frames]
+        base = _position_errors(results[0], dataset)[frames]
         report["wilcoxon"] = []
         for r in results[1:]:
-            other = np.array([np.nan if e is None else e for e in r["position_errors_um"]])[frames]
+            other = _position_errors(r, dataset)[frames]
             pair = {"a": results[0]["output"], "b": r["output"], **sample}
-            both = int((np.isfinite(base) & np.isfinite(other)).sum())
+            both = int((~np.isnan(base) & ~np.isnan(other)).sum())
             if both < 2:  # this pair has no test; the others still do
                 pair.update(n=both, statistic=None, p_value=None, note=(
                     f"n/a: {both} frame{'' if both == 1 else 's'} placed by both (the test "
@@ -733,6 +732,19 @@ def _wilcoxon_text(w: dict) -> str:
     return f"p = {w['p_value']:.3g} ({n})" + (f": {w['note']}" if w.get("note") else "")
 
 
+def _position_errors(result: dict, truth) -> np.ndarray:
+    """An evaluate_output result's µm position errors per frame as an array: NaN where it has
+    none (null: unplaced, or no truth), inf for the frames it lists as "position_at_infinity"
+    (null in the JSON too, but placed: the Wilcoxon test ranks them as the worst instead of
+    dropping them as unplaced; review 52). `truth`: the truth Dataset (its frame ids)."""
+    errors = np.array([np.nan if e is None else e for e in result["position_errors_um"]],
+                      np.float64)
+    at_infinity = result.get("position_at_infinity") or []
+    if at_infinity:
+        errors[np.isin(np.asarray(truth.frame_ids), at_infinity)] = np.inf
+    return errors
+
+
 def _sampled_indices(truth, sampled_ids: list[int]) -> np.ndarray:
     """Positions (rows of position_errors_um) of the frames --positions sampled; `truth`: the
     truth Dataset."""
@@ -770,12 +782,15 @@ def _evaluation_md_notes(results: list[dict], wilcoxon: list[dict], labels: list
 
         lines = ["## Wilcoxon signed-rank tests", "",
                  f"Paired position errors (µm) per frame; differences of at most "
-                 f"{WILCOXON_ZERO:g} µm are ties, not ranked.", "",
+                 f"{WILCOXON_ZERO:g} µm are ties, not ranked; a frame placed at infinity "
+                 "counts as the largest difference; frames only one output places are not "
+                 "paired (counted in the p column's note).", "",
                  "| a | b | frames | n | ranked | p |",
                  "|---|---|---|---|---|---|"]
         for w in wilcoxon:
             over = "all" if w["frames"] == "all" else f"{w['positions']} evenly spaced"
-            p = w["note"] if w["p_value"] is None else f"{w['p_value']:.3g}"
+            p = w["note"] if w["p_value"] is None else (
+                f"{w['p_value']:.3g}" + (f" ({w['note']})" if w.get("note") else ""))
             lines.append(f"| {by_output.get(w['a'], w['a'])} | {by_output.get(w['b'], w['b'])} "
                          f"| {over} | {w['n']} | {w.get('n_ranked', '–')} | {p} |")
         notes.append("\n".join(lines))

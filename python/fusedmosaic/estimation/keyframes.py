@@ -15,6 +15,7 @@ stop adding state. Evicted frames are returned so the caller can forget their da
 
 from __future__ import annotations
 
+import numbers
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -30,10 +31,23 @@ class _Block:
 
 
 class KeyframeIndex:
+    """Keyframe candidates: blocks of `block_size` consecutive frames (an integer >= 1), at
+    most `max_blocks` (an integer >= 1) kept, evicted by crowding on a grid of square cells
+    `cell_size_px` reference pixels wide (a finite number > 0: 0 or NaN put every block in
+    one cell of NaN, eviction then oldest first whatever the coverage, with numpy warnings at
+    each eviction; review 52). ValueError otherwise, naming the argument."""
+
     def __init__(self, block_size: int, *, max_blocks: int = 200, cell_size_px: float = 200.0,
                  rng: np.random.Generator | None = None):
-        if block_size < 1 or max_blocks < 1:
-            raise ValueError("block_size and max_blocks must be >= 1")
+        for name, value in (("block_size", block_size), ("max_blocks", max_blocks)):
+            if (not isinstance(value, numbers.Integral) or isinstance(value, bool | np.bool_)
+                    or value < 1):
+                raise ValueError(f"KeyframeIndex: {name} must be an integer >= 1, got "
+                                 f"{value!r}")
+        if (not isinstance(cell_size_px, numbers.Real) or isinstance(cell_size_px, bool | np.bool_)
+                or not np.isfinite(cell_size_px) or cell_size_px <= 0):
+            raise ValueError("KeyframeIndex: cell_size_px (the crowding grid's cell, reference "
+                             f"pixels) must be a finite number > 0, got {cell_size_px!r}")
         self.block_size = block_size
         self.max_blocks = max_blocks
         self.cell_size_px = cell_size_px

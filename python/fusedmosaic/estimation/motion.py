@@ -12,6 +12,7 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from fusedmosaic import _core
 from fusedmosaic.estimation.world import poses_to_aligned, tracked_world
@@ -277,11 +278,18 @@ def predict_constant_velocity(pose_km2: np.ndarray, pose_km1: np.ndarray,
     return np.asarray(_core.compose_poses(motion * ratio, pose_km1))
 
 
-def constant_velocity_residuals(poses: np.ndarray, frame_ids=None) -> np.ndarray:
+def constant_velocity_residuals(poses: np.ndarray, frame_ids=None, *,
+                                geodesic: bool = False) -> np.ndarray:
     """(M, 6) x_k - mu_p(x_{k-1}, x_{k-2}) with mu_p = T_{k-1} T_{k-2}^-1 T_{k-1} (Eq. 16), over
     the triples of consecutive finite rows; with frame_ids (N,), only triples of consecutive
     frame ids (k-2, k-1, k): across a gap, e.g. dropped frames, the step is not one frame's,
-    and a second difference over s frames is ~s^2 times a frame's."""
+    and a second difference over s frames is ~s^2 times a frame's.
+
+    The rotation part is the plain difference of angle-axis vectors, as the C++ prior takes it
+    (paper Eq. 20), or with ``geodesic`` the rotation from the prediction to the pose,
+    log(R_k R_bar_k^T) as an angle-axis vector: the same to first order near the identity, but
+    a difference of angle-axis vectors wraps by ~2 pi where the two rotations straddle a
+    rotation of pi (r and -r' for two rotations 0.002 rad apart), and is distorted near it."""
     poses = np.asarray(poses, np.float64)
     if poses.ndim != 2 or poses.shape[1] != 6 or len(poses) < 3:
         raise ValueError(f"poses: expected shape (N >= 3, 6), got {poses.shape}")
@@ -293,8 +301,12 @@ def constant_velocity_residuals(poses: np.ndarray, frame_ids=None) -> np.ndarray
             continue
         if ids is not None and not ids[k] - ids[k - 1] == ids[k - 1] - ids[k - 2] == 1:
             continue
-        mu = _core.compose_poses(_core.compose_poses(b, _core.invert_pose(a)), b)
-        out.append(c - mu)
+        mu = np.asarray(_core.compose_poses(_core.compose_poses(b, _core.invert_pose(a)), b))
+        residual = c - mu
+        if geodesic:
+            residual[:3] = (Rotation.from_rotvec(c[:3])
+                            * Rotation.from_rotvec(mu[:3]).inv()).as_rotvec()
+        out.append(residual)
     if not out:
         raise ValueError("poses: no three consecutive finite poses" if ids is None else
                          "poses: no three consecutive frames (ids k-2, k-1, k) with finite "
@@ -310,7 +322,7 @@ def _motion_rms(poses: np.ndarray, frame_ids=None) -> np.ndarray:
     poses = np.asarray(poses, np.float64)
     if poses.ndim == 2 and poses.shape[1:] == (6,):
         poses = poses_to_aligned(poses, tracked_world(poses))
-    r = constant_velocity_residuals(poses, frame_ids)
+    r = constant_velocity_residuals(poses, frame_ids, geodesic=True)
     return np.sqrt(np.mean(r**2, axis=0))
 
 
@@ -322,8 +334,13 @@ def estimate_motion_sigma(poses: np.ndarray, *,
                           floor: tuple[float, float] = MOTION_SIGMA_FLOOR) -> np.ndarray:
     """Per-component RMS of the constant-velocity residual (6,), rotations then translations,
     floored at (rad, mm) so a perfectly smooth recording does not give a zero deviation. The
-    residuals are taken in the world the pose methods work in (estimation/world.py): angle-axis
-    differences near a rotation of pi would otherwise be ~2 pi."""
+    residuals are taken in the world the pose methods work in (estimation/world.py), the
+    rotation's as the geodesic log(R_k R_bar_k^T) (constant_velocity_residuals, geodesic): a
+    difference of angle-axis vectors wraps by ~2 pi where the pose and its prediction straddle
+    a rotation of pi, which the world's alignment cannot avoid once the camera turns by more
+    than pi over the recording (a spin about the optical axis: rz 1.0 rad for 0.0025; review
+    52). RMS, as Sigma_p is the residual's standard deviation (Eq. 14), not a robust scale:
+    the recording should hold the motion to be mosaicked, not outliers."""
     return _floored(_motion_rms(poses), floor)
 
 

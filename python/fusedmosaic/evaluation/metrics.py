@@ -78,8 +78,9 @@ def drift_ratio(errors: np.ndarray, reference: int | None = 0) -> float:
     default; None: none), 0 by construction (the estimate writes it as the identity, the truth
     is taken to its grid), is left out of the quarter means when it is 0 up to EXACT_E_J_PX: a
     constant error would otherwise give a ratio above 1 (2.0 over 8 frames). NaN when undefined
-    (drift_note says why: a quarter without a placed frame, a first quarter holding only the
-    reference, or whose mean e_j is 0 (up to EXACT_E_J_PX) or inf); inf when the last quarter
+    (drift_note says why: a quarter without a placed frame, a quarter with no scored frame but
+    the reference (always so under 8 frames, a quarter being one frame), a first quarter whose
+    mean e_j over its other frames is 0 (up to EXACT_E_J_PX) or inf); inf when the last quarter
     holds a frame placed at infinity (drift_note says so too)."""
     return _drift(errors, reference=reference)[0]
 
@@ -119,9 +120,10 @@ def truth_in_reference(G_est: np.ndarray, G_true: np.ndarray) -> tuple[np.ndarra
     frame r the truth is re-based to it (inv(G_true[r]) @ G_true, normalised), frame 0
     included: a truth given in another grid (frame 0 not the identity, e.g. positions in a
     microscope image, seed 004 Sec. IV-A) scores the same as one in frame 0's. Without a row
-    for r the truth is returned as it is, with r = 0: for r != 0 a score against it holds frame
-    r's true offset on every frame, so scoring goes through scoring_truth, which refuses that
-    case (kept for callers that only draw the truth)."""
+    for r the truth is returned as it is, with r = 0: its grid is then unknown (for r != 0 a
+    score against it holds frame r's true offset on every frame, for r = 0 the offset of frame
+    0 in the truth's grid when that is another), so scoring goes through scoring_truth, which
+    refuses that case (kept for callers that only draw the truth)."""
     G_true = np.asarray(G_true, np.float64)
     r = reference_frame(G_est)
     if not np.isfinite(G_true[r]).all():
@@ -133,19 +135,44 @@ def truth_in_reference(G_est: np.ndarray, G_true: np.ndarray) -> tuple[np.ndarra
 
 def unscorable_reference(G_est: np.ndarray, G_true: np.ndarray, frame_ids=None,
                          output: str = "the output") -> str | None:
-    """Why G_est cannot be scored against G_true (None when it can): its reference frame r
-    (reference_frame) is not frame 0 and the truth has no row for it, so the truth cannot be
-    taken to r's grid, and scored in frame 0's grid every e_j would hold frame r's true offset
-    (a run's e_M of 159.5 px for 0.46 px). frame_ids names the frame (default: its index),
-    `output` what writes it as the identity."""
+    """Why G_est cannot be scored against G_true (None when it can): the truth has no row for
+    the estimate's reference frame r (reference_frame), so it cannot be taken to r's grid, and
+    which grid it is in cannot be checked. r != 0 (frame 0 unplaced): scored in frame 0's grid
+    every e_j would hold frame r's true offset (a run's e_M of 159.5 px for 0.46 px). r = 0
+    (frame 0 placed, its truth row empty or missing) when a frame would be scored: a truth
+    given in another grid (positions in a microscope image, seed 004 Sec. IV-A; or written
+    with another frame as the identity) is taken to frame 0's grid through that row alone, and
+    scored as it is every e_j would hold frame 0's offset in that grid (an exact estimate
+    scored 111.8 px; review 52). Such a truth is refused, not aligned on another frame: that
+    would absorb that frame's own error into every e_j, another measure than Eq. 28's. (A
+    truth in frame 0's grid lacking only frame 0's row is refused too: its identity row, added,
+    makes it scorable.) frame_ids names the frames (default: their index), `output` what
+    writes r as the identity."""
+    G_est = np.asarray(G_est, np.float64)
+    G_true = np.asarray(G_true, np.float64)
     r = reference_frame(G_est)
-    if r == 0 or np.isfinite(np.asarray(G_true, np.float64)[r]).all():
+    if np.isfinite(G_true[r]).all():
         return None
-    k = r if frame_ids is None else int(np.asarray(frame_ids)[r])
+    ids = np.arange(len(G_true)) if frame_ids is None else np.asarray(frame_ids)
+    k = int(ids[r])
+    if r != 0:
+        return (f"the truth has no row for the output's reference frame {k} (the frame "
+                f"{output} writes as the identity, frame 0 being unplaced): the truth cannot "
+                "be taken to the output's grid, and scored in another grid every e_j would "
+                "hold that frame's offset")
+    scored = np.isfinite(G_est).all(axis=(1, 2)) & np.isfinite(G_true).all(axis=(1, 2))
+    if not scored.any():  # nothing would be scored: no figure in a wrong grid either
+        return None
+    identity = [j for j in np.flatnonzero(np.isfinite(G_true).all(axis=(1, 2)))
+                if np.allclose(G_true[j] / G_true[j][2, 2], np.eye(3), atol=1e-9)]
+    grid = (f"its identity row is frame {int(ids[identity[0]])}'s, so it is in that frame's "
+            "grid, not the output's" if identity else
+            "which grid it is in cannot be checked (a truth in another grid, e.g. positions "
+            "in a microscope image, is taken to the output's grid through that row)")
     return (f"the truth has no row for the output's reference frame {k} (the frame {output} "
-            "writes as the identity, frame 0 being unplaced): the truth cannot be taken to the "
-            "output's grid, and scored in another grid every e_j would hold that frame's "
-            "offset")
+            f"writes as the identity): {grid}; scored as it is every e_j would hold frame "
+            f"{k}'s offset in the truth's grid. Give the truth a row for frame {k} (the "
+            f"identity when the truth is in frame {k}'s grid)")
 
 
 def scoring_truth(G_est: np.ndarray, G_true: np.ndarray, frame_ids=None,
@@ -163,17 +190,32 @@ def scoring_truth(G_est: np.ndarray, G_true: np.ndarray, frame_ids=None,
 def run_metrics(G_est: np.ndarray, G_true: np.ndarray, width: int, height: int,
                 frame_ids=None) -> dict:
     """report.json's scores of a run against its dataset's truth: {"metrics": {e_M_px,
-    drift_ratio, max_e_j_px, frames_scored}}, or {"metrics": None, "metrics_note": why} when
-    the output's reference frame has no truth row (scoring_truth; `evaluate` refuses it
-    alike)."""
+    max_e_j_px, drift_ratio, frames_scored}}, or {"metrics": None, "metrics_note": why} when
+    the truth has no row for the output's reference frame (scoring_truth; `evaluate` refuses
+    it alike). As evaluate_output's: a measure that is undefined is None, with
+    "drift_ratio_note" saying why the drift ratio is undefined or infinite; a frame placed at
+    infinity keeps e_j inf, so e_M_px and max_e_j_px are inf (null in report.json, strict
+    JSON) and "placed_at_infinity" names the frames (frame_ids; default: their index). Before,
+    max_e_j_px was None beside an inf e_M when every scored frame was at infinity, and a null
+    drift ratio came without a word (review 52)."""
     G_ref, r, why = scoring_truth(G_est, G_true, frame_ids, "homographies.csv")
     if why is not None:
         return {"metrics": None, "metrics_note": f"not scored: {why}"}
     errors = frame_errors(G_est, G_ref, width, height)
-    return {"metrics": {
-        "e_M_px": mosaic_error(errors), "drift_ratio": drift_ratio(errors, r),
-        "max_e_j_px": float(np.nanmax(errors)) if np.isfinite(errors).any() else None,
-        "frames_scored": int((~np.isnan(errors)).sum())}}  # placed, with ground truth
+    ids = np.arange(len(errors)) if frame_ids is None else np.asarray(frame_ids)
+    scored = ~np.isnan(errors)
+    drift, drift_why = _drift(errors, ids, r)
+    metrics: dict = {
+        "e_M_px": mosaic_error(errors) if scored.any() else None,
+        "drift_ratio": None if np.isnan(drift) else drift,  # (inf: null in the JSON file)
+        "max_e_j_px": float(np.nanmax(errors)) if scored.any() else None,
+        "frames_scored": int(scored.sum())}  # placed, with ground truth
+    if drift_why is not None:
+        metrics["drift_ratio_note"] = drift_why
+    if np.isinf(errors).any():  # e_M, max e_j (and drift, when in the last quarter) inf:
+        # null in report.json, so the frames are named
+        metrics["placed_at_infinity"] = [int(k) for k in ids[np.isinf(errors)]]
+    return {"metrics": metrics}
 
 
 def drift_note(errors: np.ndarray, frame_ids=None, reference: int | None = 0) -> str | None:
@@ -215,16 +257,19 @@ def _drift(errors: np.ndarray, frame_ids=None,
     first, last = errors[:q], errors[n - q:]
     # under 8 frames a quarter is one frame: the reference's alone, exact by definition (a
     # method writes it as the identity up to rounding: 1e-14 px would give a ratio 1e13)
-    why = " (with under 8 frames a quarter is one frame)" if q == 1 else ""
-    if np.isnan(last).all():  # (a sequence of under 8 frames whose reference is the last)
-        return float("nan"), (f"the last quarter ({spans[1]}) holds only the reference frame "
-                              "(e_j 0 by construction): the ratio is undefined")
-    # (the first quarter's only scored frame being the reference counts as a mean e_j of 0)
-    first = float(np.nanmean(first)) if not np.isnan(first).all() else 0.0
-    last = float(np.nanmean(last))
-    if first <= EXACT_E_J_PX:
-        return float("nan"), (f"the first quarter ({spans[0]}) has mean e_j 0{why}: no "
-                              "ratio to it")
+    for which, where, part, ending in (("last", spans[1], last, "the ratio is undefined"),
+                                       ("first", spans[0], first, "no ratio to it")):
+        if np.isnan(part).all():  # scored frames there (checked above): the reference alone
+            holds = ("holds only the reference frame, whose e_j is 0 by construction and left "
+                     "out (with under 8 frames a quarter is one frame)" if q == 1 else
+                     "has no scored frame but the reference frame, whose e_j is 0 by "
+                     "construction and left out (the others are unplaced or have no "
+                     "ground-truth homography)")
+            return float("nan"), f"the {which} quarter ({where}) {holds}: {ending}"
+    first, last = float(np.nanmean(first)), float(np.nanmean(last))
+    if first <= EXACT_E_J_PX:  # frames other than the reference scored 0 (an exact estimate)
+        return float("nan"), (f"the first quarter ({spans[0]}) has mean e_j 0 (up to "
+                              f"{EXACT_E_J_PX:g} px) over its scored frames: no ratio to it")
     if np.isinf(first):
         return float("nan"), (f"the first quarter ({spans[0]}) holds a frame placed at "
                               "infinity (e_j inf): no ratio to it")
@@ -323,21 +368,60 @@ def compare_position_errors(errors_a: np.ndarray, errors_b: np.ndarray) -> dict:
     Pairs whose errors differ by at most WILCOXON_ZERO count as no difference and are not
     ranked (scipy's zero_method="wilcox"; the reference frame, 0 vs 0, is one): "n" counts the
     frames placed by both, "n_ranked" the pairs ranked. With none ranked p = 1 and "note" says
-    why."""
+    why.
+
+    A frame placed at infinity (error inf, as position_errors_um gives it: placed, unusably)
+    is paired and counts as the worst: its difference ranks above every finite one, with its
+    sign (the test uses ranks and signs only); placed at infinity by both, it is a tie.
+    Before, such frames were dropped as if unplaced, so the method that placed them at
+    infinity was compared on its good frames alone (review 52). "at_infinity_a" /
+    "at_infinity_b" count them, and frames only one method places (NaN for the other: the
+    other left it unplaced) are not paired but counted, "unplaced_a" / "unplaced_b" (placed by
+    the other); "note" says so when any is not 0."""
     errors_a, errors_b = np.asarray(errors_a, np.float64), np.asarray(errors_b, np.float64)
-    ok = np.isfinite(errors_a) & np.isfinite(errors_b)
+    if errors_a.shape != errors_b.shape or errors_a.ndim != 1:
+        raise ValueError(f"Wilcoxon test needs two per-frame error lists of the same length, "
+                         f"got shapes {errors_a.shape} and {errors_b.shape}")
+    if (errors_a == -np.inf).any() or (errors_b == -np.inf).any():
+        raise ValueError("Wilcoxon test: an error of -inf (errors are distances, >= 0)")
+    placed_a, placed_b = ~np.isnan(errors_a), ~np.isnan(errors_b)
+    ok = placed_a & placed_b
     if ok.sum() < 2:
         raise ValueError("Wilcoxon test needs at least 2 frames placed by both methods")
-    d = errors_a[ok] - errors_b[ok]
+    a, b = errors_a[ok], errors_b[ok]
+    inf_a, inf_b = np.isinf(a), np.isinf(b)
+    with np.errstate(invalid="ignore"):
+        d = np.where(inf_a & inf_b, 0.0, a - b)  # (inf - inf: both at infinity, a tie)
+    finite = d[np.isfinite(d)]
+    # ranked above every finite difference: any larger magnitude gives the same ranks
+    top = 2.0 * (float(np.abs(finite).max()) if finite.size else 0.0) + 1.0
+    d = np.where(np.isinf(d), np.sign(d) * top, d)
     ranked = d[np.abs(d) > WILCOXON_ZERO]
-    result = {"n": int(ok.sum()), "n_ranked": int(len(ranked))}
+    result = {"n": int(ok.sum()), "n_ranked": int(len(ranked)),
+              "at_infinity_a": int(inf_a.sum()), "at_infinity_b": int(inf_b.sum()),
+              "unplaced_a": int((placed_b & ~placed_a).sum()),
+              "unplaced_b": int((placed_a & ~placed_b).sum())}
+    notes = []
     if len(ranked) == 0:  # no difference at all: nothing to rank
-        result.update(statistic=0.0, p_value=1.0,
-                      note=f"no paired difference above {WILCOXON_ZERO:g}: nothing to rank")
+        result.update(statistic=0.0, p_value=1.0)
+        notes.append(f"no paired difference above {WILCOXON_ZERO:g}: nothing to rank")
     else:
         res = stats.wilcoxon(ranked)
         result.update(statistic=float(res.statistic), p_value=float(res.pvalue))
-    result.update(mean_a=float(errors_a[ok].mean()), mean_b=float(errors_b[ok].mean()))
+    for side in ("a", "b"):
+        if result[f"at_infinity_{side}"]:
+            k = result[f"at_infinity_{side}"]
+            notes.append(f"{k} frame{'s' if k != 1 else ''} placed at infinity by {side}, "
+                         "ranked as the largest differences")
+    for side, other in (("a", "b"), ("b", "a")):
+        if result[f"unplaced_{side}"]:
+            k = result[f"unplaced_{side}"]
+            notes.append(f"{k} frame{'s' if k != 1 else ''} placed by {other} only "
+                         f"({side} left {'them' if k != 1 else 'it'} unplaced), not paired")
+    if notes:
+        result["note"] = "; ".join(notes)
+    # (means as position_stats': inf when a frame is placed at infinity)
+    result.update(mean_a=float(a.mean()), mean_b=float(b.mean()))
     return result
 
 
@@ -439,8 +523,9 @@ def evaluate_output(out_dir: str | Path, truth_root, *,
     homography); evaluation_notes words the other keys.
 
     The truth is taken to the grid of the output's reference frame (truth_in_reference); an
-    output whose reference is a frame r != 0 the truth has no row for is refused (ValueError):
-    it could only be scored in another grid.
+    output whose reference frame r the truth has no row for is refused (ValueError): it could
+    only be scored in another grid (r != 0), or in a grid that cannot be checked (r = 0, when a
+    frame would be scored; see unscorable_reference).
 
     positions_n: also the position statistics at that many evenly spaced frames, chosen among
     the frames that have a ground-truth homography (a sparse truth, as seed 004's n images),

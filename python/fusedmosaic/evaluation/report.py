@@ -400,6 +400,7 @@ def write_report(directory: str | Path, runs: list[RunRecord], truth: TruthRecor
 
     mosaic / video: links relative to `directory` shown at the top. Returns the .md path."""
     from fusedmosaic.evaluation.metrics import (
+        drift_note,
         drift_ratio,
         frame_errors,
         mosaic_error,
@@ -438,17 +439,24 @@ def write_report(directory: str | Path, runs: list[RunRecord], truth: TruthRecor
     header = ("| method | output | frames placed | e_M (px) | max e_j (px) | drift "
               "| sum of stage times (s) |")
     lines += [header, "|---|---|---|---|---|---|---|"]
+    drift_notes = []  # why a drift ratio is "–" or inf (a caller's notes may hold them)
     for i, run in enumerate(runs):
         placed = int(np.isfinite(run.homographies).all(axis=(1, 2)).sum())
         e = errors[i] if errors is not None else None  # (None: not scored)
         em = mosaic_error(e) if e is not None else None
-        mx = float(np.nanmax(e)) if e is not None and np.isfinite(e).any() else None
+        # (inf when a scored frame is placed at infinity, as e_M: it was "–" beside e_M inf
+        # when no scored frame had a finite e_j; review 52)
+        mx = float(np.nanmax(e)) if e is not None and (~np.isnan(e)).any() else None
         dr = drift_ratio(e, references[i]) if e is not None else None
+        why = drift_note(e, truth.frame_ids if len(truth.frame_ids) == len(e) else None,
+                         references[i]) if e is not None else None
+        if why is not None:
+            drift_notes.append(f"**Drift ratio ({run.label}):** {why}")
         total = sum(run.timings.values()) if run.timings else None
         lines.append(f"| {run.label} | `{run.output or '.'}` | {placed}/{len(run.homographies)} "
                      f"| {_fmt(em)} | {_fmt(mx)} | {_fmt(dr, 2)} | {_fmt(total, 1)} |")
     lines.append("")
-    for note in [*scoring, *(notes or [])]:
+    for note in [*scoring, *(n for n in drift_notes if n not in (notes or [])), *(notes or [])]:
         lines += [note, ""]
     if mosaic:
         lines += ["## Mosaic", "", f"![mosaic]({mosaic})", ""]
