@@ -125,7 +125,7 @@ def test_window_gating_and_memory_release():
 @pytest.mark.parametrize(
     ("call", "message"),
     [
-        (lambda w: (w.add_frame(5, None, None), w.add_frame(5, None, None)),
+        (lambda w: (w.add_frame(5, np.zeros(6), None), w.add_frame(5, None, None)),
          "frame ids must increase; got 5 after 5"),
         (lambda w: w.add_frame(1, None, None, fixed=True), "a fixed frame needs its pose"),
         (lambda w: w.step([]), "no pending frame"),

@@ -151,6 +151,7 @@ void BindSlidingWindow(py::module_& m) {
           "fixed"_a = false, "motion_ratio"_a = 1.0, "motion_sigma_scale"_a = 1.0,
           "initial, emt_measurement : (6,) float64 cam_from_world [r, t] or None\n"
           "fixed : already estimated (enters the window fixed; needs initial)\n"
+          "The window's first frame needs initial or emt_measurement (ValueError otherwise).\n"
           "motion_ratio, motion_sigma_scale : timing of the constant-velocity prior linking this\n"
           "    camera to the two preceding ones (1, 1: evenly spaced; 0, inf: no prior across a\n"
           "    long gap, the camera starting at the preceding one; see BundleAdjuster)")
@@ -165,7 +166,8 @@ void BindSlidingWindow(py::module_& m) {
            py::call_guard<py::gil_scoped_release>(),
            "Drops a frame's tracker measurement (an unusable sample, e.g. one putting the camera\n"
            "centre on the plane): no C_EMT term, and its pose is initialised again from the\n"
-           "constant-velocity prediction by the next step or redo that estimates it.")
+           "constant-velocity prediction by the next step or redo that estimates it.\n"
+           "ValueError for the window's first frame while pending (no predecessors).")
       .def("set_motion_timing", &SlidingWindow::SetMotionTiming, "frame_id"_a,
            "motion_ratio"_a, "motion_sigma_scale"_a, py::call_guard<py::gil_scoped_release>(),
            "The timing of a frame's constant-velocity prior (as add_frame's), from the next "
@@ -199,12 +201,14 @@ void BindSlidingWindow(py::module_& m) {
            "velocity prediction without one or when the sample is gated (sigma scale > 1; a\n"
            "frame add_frame gave an initial pose but no sample: the prediction too);\n"
            "frame_ids, distinct, must hold every frame from the first of them on (the last\n"
-           "step's, and any added since), with no pending frame before them; keyframe_ids\n"
-           "fixed frames not among them. ValueError (IndexError: an unknown id) else, with\n"
-           "nothing changed.")
+           "step's, and any added since), with no pending frame before them, the window's\n"
+           "first frame among them only with a tracker sample; keyframe_ids fixed frames not\n"
+           "among them. ValueError (IndexError: an unknown id) else, with nothing changed.")
       .def("forget", &SlidingWindow::Forget, "frame_ids"_a,
            py::call_guard<py::gil_scoped_release>(),
-           "Drops fixed frames outside the window and their pairs.")
+           "Drops fixed frames outside the window and their pairs (unknown ids ignored).\n"
+           "ValueError, nothing dropped, for a pending frame, one in the window, or one of the\n"
+           "two frames before the first pending one (its constant-velocity prior's).")
       .def("pose", &SlidingWindow::GetPose, "frame_id"_a,
            py::call_guard<py::gil_scoped_release>(),
            "(6,) cam_from_world; ValueError for a pending frame without a pose yet (no\n"

@@ -194,7 +194,9 @@ def match_l2_guided(
 def evaluate_pose_prior(
     cam_from_world: _ArrayLike, measurement: _ArrayLike, sigma: _ArrayLike = ...
 ) -> tuple[_Array, tuple[_Array]]:
-    """EMT pose prior (Eq. 19): residuals S (x - z), S = diag(1 / sigma).
+    """EMT pose prior (Eq. 19): residuals S (x - z), S = diag(1 / sigma); the rotation part
+    with z's angle-axis vector the one of its rotation nearest x's (near |r| = pi one rotation
+    has two vectors 2 pi apart), else the plain difference.
 
     cam_from_world, measurement : (6,); sigma : (6,) standard deviations (default
     DEFAULT_EMT_SIGMA). Returns (residuals (6,), (J (6, 6),)).
@@ -207,7 +209,8 @@ def evaluate_constant_velocity(
     sigma: _ArrayLike = ...,
     ratio: float = 1.0,
 ) -> tuple[_Array, tuple[_Array, _Array, _Array]]:
-    """Constant-velocity prior (Eq. 15, 16, 20): S_p (x_k - mu_p).
+    """Constant-velocity prior (Eq. 15, 16, 20): S_p (x_k - mu_p), the rotation part with
+    mu_p's angle-axis vector the one of its rotation nearest x_k's (as evaluate_pose_prior).
 
     mu_p = T_{k-1} T_{k-2}^-1 T_{k-1} (poses as rigid transforms); with ratio != 1 (frames not
     evenly spaced, (t_k - t_{k-1}) / (t_{k-1} - t_{k-2})) mu_p = exp(ratio m) T_{k-1}, m the
@@ -536,7 +539,8 @@ class SlidingWindow:
         motion_sigma_scale: float = 1.0,
     ) -> None:
         """initial, emt_measurement : (6,) cam_from_world or None; ids must increase.
-        fixed : already estimated (enters the window fixed; needs initial).
+        fixed : already estimated (enters the window fixed; needs initial). The window's first
+        frame needs initial or emt_measurement (no predecessors to predict it from): ValueError.
         motion_ratio, motion_sigma_scale : timing of the constant-velocity prior linking this
         camera to the two preceding ones (1, 1: evenly spaced; 0, inf: no prior across a long
         gap, the camera starting at the preceding one; see BundleAdjuster.add_frame)."""
@@ -547,7 +551,8 @@ class SlidingWindow:
     def drop_emt_measurement(self, frame_id: int) -> None:
         """Drops a frame's tracker measurement (an unusable sample, e.g. one putting the camera
         centre on the plane): no C_EMT term, and its pose is initialised again from the
-        constant-velocity prediction by the next step or redo that estimates it."""
+        constant-velocity prediction by the next step or redo that estimates it. ValueError for
+        the window's first frame while pending (no predecessors to predict it from)."""
 
     def set_motion_timing(
         self, frame_id: int, motion_ratio: float, motion_sigma_scale: float
@@ -571,11 +576,14 @@ class SlidingWindow:
              hold_plane: bool = False) -> WindowStepSummary:
         """Re-estimates the last frames (after set_emt_sigma_scale). frame_ids, distinct, must
         hold every frame from the first of them on (the last step's frames, and any added since,
-        pending), with no pending frame before them, and keyframe_ids fixed frames not among
-        them; ValueError otherwise (IndexError for an unknown id), with nothing changed."""
+        pending), with no pending frame before them, the window's first frame among them only
+        with a tracker sample, and keyframe_ids fixed frames not among them; ValueError
+        otherwise (IndexError for an unknown id), with nothing changed."""
 
     def forget(self, frame_ids: list[int]) -> None:
-        """Drops fixed frames outside the window, with their pairs."""
+        """Drops fixed frames outside the window, with their pairs (unknown ids ignored).
+        ValueError, nothing dropped, for a pending frame, one in the window, or one of the two
+        frames before the first pending one (its constant-velocity prior links it to them)."""
 
     def pose(self, frame_id: int) -> _Array:
         """(6,) cam_from_world; IndexError for an unknown id, ValueError for a pending frame

@@ -130,6 +130,15 @@ void SlidingWindow::AddFrame(int frame_id, const std::optional<Pose>& initial,
                                 std::to_string(frame_id) + " after " +
                                 std::to_string(frames_.rbegin()->first));
   }
+  if (frames_.empty() && !initial && !emt_measurement) {
+    // InitialisePending starts a frame from its initial pose, its tracker sample or the
+    // prediction from its predecessors: the first frame has none of the last.
+    throw std::invalid_argument(
+        "add_frame: frame " + std::to_string(frame_id) +
+        " is the window's first frame and has neither an initial pose nor a tracker sample "
+        "(emt_measurement): it has no predecessors to be predicted from, so nothing would place "
+        "it; give it one of them");
+  }
   Frame frame;
   if (initial) {
     CheckPose(*initial, "initial");
@@ -171,6 +180,15 @@ double SlidingWindow::sigma_v_px() const {
 void SlidingWindow::DropEmtMeasurement(int frame_id) {
   std::lock_guard<std::mutex> lock(mutex_);
   Frame& frame = FindFrame(frame_id, "drop_emt_measurement");
+  if (!frame.fixed && frame_id == frames_.begin()->first) {
+    // Its next step would start it from the prediction of its predecessors (its initial pose
+    // is not kept, as for any frame): the first frame has none.
+    throw std::invalid_argument(
+        "drop_emt_measurement: frame " + std::to_string(frame_id) +
+        " is the window's first frame and still pending: without its tracker sample it would "
+        "have no starting pose (no predecessors to predict it from, and its initial pose is "
+        "not kept)");
+  }
   frame.emt_measurement.reset();
   frame.emt_sigma_scale = 1.0;
   frame.has_initial = false;  // (InitialisePending predicts it at its next step)
@@ -323,6 +341,16 @@ WindowStepSummary SlidingWindow::Redo(const std::vector<int>& frame_ids,
   }
   if (!plane_set_) throw std::invalid_argument("redo: set_plane must be called first");
   CheckKeyframes(keyframe_ids, ids, "redo");  // (before anything changes)
+  if (ids.front() == frames_.begin()->first && !frames_.begin()->second.emt_measurement) {
+    // (InitialisePending would refuse it after the loop below had made every frame pending)
+    throw std::invalid_argument(
+        "redo: frame " + std::to_string(ids.front()) +
+        " is the window's first frame and has no tracker sample: a redo starts each frame "
+        "again from its sample or the constant-velocity prediction of its predecessors (not "
+        "from its initial pose or last estimate), and it has neither");
+  }
+  // Nothing below throws before Solve's InitialisePending, which the checks above satisfy: a
+  // refused call leaves the window as it was.
   for (int id : ids) {
     Frame& f = frames_.at(id);
     // Started again as a step starts them (InitialisePending), not from the solve being redone:
@@ -351,8 +379,9 @@ WindowStepSummary SlidingWindow::Solve(std::vector<int> free_ids,
     Frame& f = frames_.at(id);
     f.fixed = true;
     if (f.emt_measurement) {
-      const Pose r = (ToVector(f.pose) - *f.emt_measurement).cwiseQuotient(c.emt_sigma);
-      out.emt_mahalanobis2.push_back(r.squaredNorm());
+      Pose r;  // x - z as C_EMT takes it (pose_prior.h), nominal Sigma_EMT
+      PoseDifference(f.pose.data(), f.emt_measurement->data(), r.data());
+      out.emt_mahalanobis2.push_back(r.cwiseQuotient(c.emt_sigma).squaredNorm());
     } else {
       out.emt_mahalanobis2.push_back(std::numeric_limits<double>::quiet_NaN());
     }
@@ -588,6 +617,18 @@ void SlidingWindow::Forget(const std::vector<int>& frame_ids) {
   for (const auto& [id, f] : frames_)
     if (!f.fixed) pending.push_back(id);
   const std::vector<int> window = WindowIdsLocked(std::max<int>(1, pending.size()));
+  // The two cameras before the first pending frame: its C_p (Eq. 27) and, without a tracker
+  // sample, its starting pose (Eq. 16) take them. The window holds them while at most
+  // window_size - 2 frames are pending; with more it holds fewer (none from window_size on),
+  // and an older camera would silently stand in for a forgotten one.
+  std::vector<int> predecessors;
+  if (!pending.empty()) {
+    for (auto it = frames_.find(pending.front());
+         it != frames_.begin() && predecessors.size() < 2;) {
+      predecessors.push_back((--it)->first);
+    }
+  }
+  // Every id checked before any is dropped: a refused call changes nothing.
   for (int id : frame_ids) {
     auto it = frames_.find(id);
     if (it == frames_.end()) continue;
@@ -595,6 +636,18 @@ void SlidingWindow::Forget(const std::vector<int>& frame_ids) {
       throw std::invalid_argument("forget: frame " + std::to_string(id) +
                                   " is pending or in the window");
     }
+    if (std::count(predecessors.begin(), predecessors.end(), id)) {
+      throw std::invalid_argument(
+          "forget: frame " + std::to_string(id) + " is one of the two cameras before the first "
+          "pending frame " + std::to_string(pending.front()) + ", which its constant-velocity "
+          "prior links it to (the window keeps them only while at most window_size - 2 = " +
+          std::to_string(options_.window_size - 2) + " frames are pending; " +
+          std::to_string(pending.size()) + " are)");
+    }
+  }
+  for (int id : frame_ids) {
+    auto it = frames_.find(id);
+    if (it == frames_.end()) continue;  // (unknown, or listed twice)
     for (const auto& key : it->second.pair_keys) {
       auto p = pairs_.find(key);
       if (p == pairs_.end()) continue;

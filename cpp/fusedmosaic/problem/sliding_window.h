@@ -74,8 +74,8 @@ struct WindowStepSummary {
   std::vector<int> frame_ids;  // the cameras estimated (and now fixed)
   std::vector<int> fixed_ids;  // the window cameras held fixed
   std::vector<int> keyframe_ids;
-  // Per estimated camera: (z - x)^T Sigma_EMT^-1 (z - x) at the solution with the nominal
-  // Sigma_EMT, NaN without a measurement. Used by the caller to gate gross tracker outliers.
+  // Per estimated camera: (x - z)^T Sigma_EMT^-1 (x - z) at the solution with the nominal
+  // Sigma_EMT, x - z as C_EMT takes it (pose_prior.h), NaN without a measurement. Used by the caller to gate gross tracker outliers.
   std::vector<double> emt_mahalanobis2;
   int iterations = 0;  // Ceres iterations (CeresIterations), summed over the step's runs
   // Costs as SolveSummary's: NaN where they could not be evaluated (a FAILURE termination).
@@ -138,7 +138,8 @@ class SlidingWindow {
   // (cam_from_world); when absent the step starts from the tracker measurement, or else from
   // the constant-velocity prediction of the two preceding cameras. fixed: the camera is already
   // estimated (e.g. by the bootstrap bundle adjustment) and enters the window as such; it then
-  // needs `initial`.
+  // needs `initial`. The window's first frame needs `initial` or `emt_measurement`: it has no
+  // predecessors to be predicted from (std::invalid_argument otherwise).
   // motion_ratio, motion_sigma_scale: timing of the constant-velocity prior linking this camera
   // to the two preceding ones (see BundleAdjuster::AddFrame); 1, 1 for evenly spaced frames.
   void AddFrame(int frame_id, const std::optional<Pose>& initial,
@@ -156,7 +157,8 @@ class SlidingWindow {
   // for it any more, its sigma scale back to 1, and its pose is initialised again, from the
   // constant-velocity prediction of its predecessors, by the next Step or Redo that estimates
   // it (until then a pending camera has no pose: GetPose refuses it; a fixed one keeps its last
-  // estimate, which later steps hold constant, until a Redo estimates it again).
+  // estimate, which later steps hold constant, until a Redo estimates it again). Refused
+  // (std::invalid_argument) for the window's first frame while pending: it has no predecessors.
   void DropEmtMeasurement(int frame_id);
   // The timing of a camera's constant-velocity prior, as AddFrame's, from the next Step or
   // Redo that estimates it on (e.g. judged again when later tracker samples are known).
@@ -173,12 +175,16 @@ class SlidingWindow {
   // prediction when it has none or its sample is gated (sigma scale > 1), also when AddFrame
   // gave it an initial pose (not kept); the plane where it is.
   // frame_ids must be distinct and hold every frame from the first of them on (the last step's
-  // cameras, and any added since), with no pending frame before them: std::invalid_argument
-  // otherwise, with nothing changed.
+  // cameras, and any added since), with no pending frame before them, and the window's first
+  // frame among them needs a tracker sample (no predecessors): std::invalid_argument otherwise
+  // (std::out_of_range for an unknown id), with nothing changed.
   WindowStepSummary Redo(const std::vector<int>& frame_ids, const std::vector<int>& keyframe_ids,
                          bool hold_plane = false);
 
-  // Drops fixed cameras outside the current window, with their pairs.
+  // Drops fixed cameras outside the current window, with their pairs; unknown ids are ignored.
+  // Refuses (std::invalid_argument, nothing dropped) a pending camera, one in the window, and
+  // the two cameras before the first pending one (its C_p links it to them, Eq. 27), which
+  // the window no longer holds when more than window_size - 2 cameras are pending.
   void Forget(const std::vector<int>& frame_ids);
 
   // Throw std::invalid_argument for a pending camera added without an initial pose (it has none

@@ -6,8 +6,12 @@
 //     mu_p(x_{k-1}, x_{k-2}) = [r(T_bar_k), t(T_bar_k)]                       (Eq. 15)
 // and x_k | x_{k-1}, x_{k-2} ~ N(mu_p, Sigma_p), so
 //     C_p = sum_{k>=3} (x_k - mu_p)^T Sigma_p^-1 (x_k - mu_p)                  (Eq. 20)
-// The residual is r = S_p (x_k - mu_p), S_p = diag(1 / sigma_p). As in the paper (and in
-// pose_prior.h) x_k - mu_p is the plain difference of angle-axis + translation 6-vectors.
+// The residual is r = S_p (x_k - mu_p), S_p = diag(1 / sigma_p). As in pose_prior.h, x_k - mu_p
+// is the paper's difference of the angle-axis + translation 6-vectors with mu_p's rotation
+// vector taken as the one nearest x_k's (PoseDifference, geometry/pose.h): mu_p comes out of
+// ToPose with |r| <= pi, and near pi it and x_k could name nearly the same rotation by vectors
+// 2 pi apart. The paper's plain difference bit for bit whenever their difference along mu_p's
+// axis is below pi; d/dx_k = I.
 //
 // Standard deviations (appendix, Eq. 30): Sigma_p = diag(0.0044 x3, 15.2178 x3) is called a
 // covariance there; for consistency with Sigma_EMT (whose values match the standard deviations
@@ -65,8 +69,8 @@ struct ConstantVelocityCostFunctor {
     PredictConstantVelocity(RigidTransform<T>::FromPose(cam_km2_from_world),
                             RigidTransform<T>::FromPose(cam_km1_from_world), ratio_)
         .ToPose(mu);
+    PoseDifference(cam_k_from_world, mu, residuals_ptr);  // x_k - mu_p, as in pose_prior.h
     Eigen::Map<Eigen::Matrix<T, 6, 1>> residuals(residuals_ptr);
-    for (int i = 0; i < kPoseSize; ++i) residuals[i] = cam_k_from_world[i] - mu[i];
     residuals.applyOnTheLeft(sqrt_information_.template cast<T>());
     return true;
   }
