@@ -330,6 +330,18 @@ class SequentialOptions:
     # step summary counts them as loop correspondences (SYN: 800 of a step's 1800, no loop pair).
     loop_pairs: int = 2
     loop_min_separation: int = 10  # frames between a new frame and its loop candidates
+    # Pair consistency (not in the paper, 0 disables): a new frame's registered pairs are
+    # checked against each other before they enter C_v, with a limit of this fraction of the
+    # frame's diagonal (at least PAIR_CONSISTENCY_MIN_PX) on the mean corner distance. Two
+    # partners registered to each other predict one pair from the other (a triangle); a pair
+    # that two or more triangles contradict, and more than confirm it, is left out. Pairs to
+    # final frames (recent or loop) place the frame at that frame's estimate times the pair's
+    # homography; with 3 or more, those off their median are left out when over half agree.
+    # Counted in pair_counts["inconsistent"]. A frame decoded in part (an MJPG frame's top,
+    # another view below) registered 3 of its pairs to that other view, 66 px off; under C_v's
+    # squares they moved a 27-frame run's e_M 0.14 -> 5.5 px (0.140 with the check); the same
+    # splice at frame 60 of 90 took frames 64-83 6-19 px off, e_M 1.41 (0.188; 0.187 unspliced).
+    pair_consistency_fraction: float = 0.05
     # A frame without visual evidence (Sec. 4.2.3) is placed by C_EMT and C_p alone. Fixed at the
     # end of its step it would be extrapolated from its predecessors only; instead it stays free
     # (with the frames after it) for up to this many more steps, until two frames with visual
@@ -511,6 +523,7 @@ MAX_ROTATION_VECTOR_RAD = 1e6
 # tens of mm away). The C++ core refuses a plane with |pi| <= 1e-12 (the plane at infinity):
 # 1e12 mm jammed a start-up whose camera did not translate (review 51); 1e6 is far inside.
 MAX_NOMINAL_PLANE_DISTANCE_MM = 1e6
+PAIR_CONSISTENCY_MIN_PX = 10.0  # (SequentialOptions.pair_consistency_fraction's floor)
 
 
 class SequentialMosaicker:
@@ -547,6 +560,11 @@ class SequentialMosaicker:
             if not (isinstance(value, numbers.Real) and 0.0 < value):
                 raise ValueError(f"SequentialOptions.{name} must be > 0 (inf: no gate), got "
                                  f"{value!r}")
+        value = o.pair_consistency_fraction
+        if not (isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_)
+                and 0 <= value < np.inf):
+            raise ValueError("SequentialOptions.pair_consistency_fraction must be finite and "
+                             f">= 0 (0 disables the check), got {value!r}")
         if not 0.0 <= o.startup_min_overlap <= 1.0:
             raise ValueError("SequentialOptions.startup_min_overlap must be a fraction in [0, 1], "
                              f"got {o.startup_min_overlap}")
@@ -710,7 +728,7 @@ class SequentialMosaicker:
         # correspondences of the registered ones.
         self.pair_counts = {"attempted": 0, "registered": 0, "correspondences": 0,
                             "loop_attempted": 0, "loop_registered": 0,
-                            "guided": 0, "guided_fallback": 0}
+                            "guided": 0, "guided_fallback": 0, "inconsistent": 0}
 
     @property
     def frame_count(self) -> int:
@@ -1195,6 +1213,14 @@ class SequentialMosaicker:
         self._finalized = []
         waiting = False
         if self._plane is None:  # bootstrap: keep everything until the initial adjustment
+            known: dict[int, dict[int, np.ndarray]] = {}
+            for m in self._boot_matches:
+                known.setdefault(m.frame_l, {})[m.frame_m] = m.H_lm
+            outliers = self._inconsistent_pairs(ok, known)
+            if outliers:
+                ok = [m for m in ok if m.frame_m not in outliers]
+                self._pair_H[k] = {m.frame_m: m.H_lm for m in ok}
+                self.pair_counts["inconsistent"] += len(outliers)
             self._boot_feats.append(feats)
             self._boot_matches += ok
             self._chain_startup(k, ok)
@@ -1207,6 +1233,12 @@ class SequentialMosaicker:
             loop_matches = self._match_loops(k, feats, tracker_pose, ok)
             loops = [m for m in loop_matches if m.ok]
             self._count_pairs(loop_matches, loops, "loop_")
+            outliers = self._inconsistent_pairs(ok + loops)
+            if outliers:
+                ok = [m for m in ok if m.frame_m not in outliers]
+                loops = [m for m in loops if m.frame_m not in outliers]
+                self._pair_H[k] = {m.frame_m: m.H_lm for m in ok}
+                self.pair_counts["inconsistent"] += len(outliers)
             # After a loss (frames placed with no anchor, see _unanchored), a frame with an
             # anchor of its own (its tracker sample, or a registered pair to an anchored frame)
             # is not tied to the lost frames by pairs or the constant-velocity term: they would
@@ -1326,6 +1358,88 @@ class SequentialMosaicker:
         predicted = [None if G_k is None else np.linalg.solve(G_k, self._loop_G[i])
                      for i in near]  # loop frame i -> frame k pixels
         return self._match(feats, [self._loop_feats[i] for i in near], predicted)
+
+    def _startup_pair_outlier(self, ba):
+        """The start-up pair whose transfer residuals (RMS, px) at the adjustment ``ba`` are
+        the largest, when above the pair consistency limit and 5 x the pairs' median; else
+        None."""
+        fraction = self.options.pair_consistency_fraction
+        if fraction <= 0 or len(self._boot_matches) < 3:
+            return None
+        w, h = self.size
+        limit = max(PAIR_CONSISTENCY_MIN_PX, fraction * np.hypot(w, h))
+        plane = np.asarray(ba.plane(), np.float64)
+        poses = {}
+        rms = np.zeros(len(self._boot_matches))
+        for i, m in enumerate(self._boot_matches):
+            for k in (m.frame_l, m.frame_m):
+                if k not in poses:
+                    poses[k] = np.asarray(ba.pose(k), np.float64)
+            d = _core.transfer_points(np.asarray(m.points_m, np.float64), poses[m.frame_l],
+                                      poses[m.frame_m], plane, self.K) - m.points_l
+            d = d[np.isfinite(d).all(axis=1)]
+            rms[i] = np.sqrt(np.mean(d**2)) if len(d) else 0.0
+        worst = int(np.argmax(rms))
+        if rms[worst] > limit and rms[worst] > 5 * np.median(rms):
+            return self._boot_matches[worst]
+        return None
+
+    def _inconsistent_pairs(self, matches: list, known: dict | None = None) -> set[int]:
+        """The partners of the new frame's pairs (``matches``, frame_l the new frame) that the
+        others contradict (SequentialOptions.pair_consistency_fraction): by triangles through
+        the pairs ``known`` among the partners ({a: {b: H_ab}}, default the recent ones), then
+        by where pairs to final frames place the new frame. Fewer than 3 pairs: none."""
+        fraction = self.options.pair_consistency_fraction
+        if fraction <= 0 or len(matches) < 3:
+            return set()
+        w, h = self.size
+        corners = np.array([[0, 0, 1], [w, 0, 1], [w, h, 1], [0, h, 1]], float)
+        limit = max(PAIR_CONSISTENCY_MIN_PX, fraction * np.hypot(w, h))
+
+        def apart(A, B) -> float:  # mean corner distance of two homographies into frame k
+            with np.errstate(divide="ignore", invalid="ignore"):
+                a, b = corners @ A.T, corners @ B.T
+                return float(np.linalg.norm(a[:, :2] / a[:, 2:] - b[:, :2] / b[:, 2:],
+                                            axis=1).mean())
+
+        known = self._pair_H if known is None else known  # {a: {b: H (b -> a pixels)}}
+        outliers: set[int] = set()
+        # triangles: two partners a, b registered to each other (a recent pair) predict the
+        # pair k-b as k-a times a-b; a pair contradicted by two or more triangles and by more
+        # than confirm it is an outlier (a pending partner has no estimate to judge it by)
+        H = {m.frame_m: m.H_lm for m in matches}  # partner pixels -> frame k pixels
+        good, bad = dict.fromkeys(H, 0), dict.fromkeys(H, 0)
+        ids = list(H)
+        for i, a in enumerate(ids):
+            for b in ids[i + 1:]:
+                if b in known.get(a, {}):
+                    d = apart(H[a] @ known[a][b], H[b])
+                elif a in known.get(b, {}):
+                    d = apart(H[b] @ known[b][a], H[a])
+                else:
+                    continue
+                for x in (a, b):
+                    if d <= limit:
+                        good[x] += 1
+                    else:  # (NaN: at infinity, not agreeing)
+                        bad[x] += 1
+        outliers |= {x for x in ids if bad[x] >= 2 and bad[x] > good[x]}
+        # placements: pairs to final frames (recent or loop) place frame k at that frame's
+        # estimate times the pair's homography
+        placed = []
+        for m in matches:
+            G = self._recent_G.get(m.frame_m, self._loop_G.get(m.frame_m))
+            if G is not None and m.frame_m not in outliers:
+                placed.append((m.frame_m, G @ np.linalg.inv(m.H_lm)))
+        if len(placed) >= 3:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                p = np.einsum("nij,cj->nci", np.array([G for _, G in placed]), corners)
+                p = p[..., :2] / p[..., 2:]
+                deviation = np.linalg.norm(p - np.median(p, axis=0), axis=2).mean(axis=1)
+            agree = deviation <= limit  # (NaN: a pair placing it at infinity, not agreeing)
+            if not agree.all() and 2 * agree.sum() > len(placed):
+                outliers |= {i for (i, _), a in zip(placed, agree, strict=True) if not a}
+        return outliers
 
     def _predict_reference(self, ok: list) -> np.ndarray | None:
         """Frame k's reference homography from a registered pair to a recent final frame."""
@@ -1862,6 +1976,7 @@ class SequentialMosaicker:
         must_decide = final_step or len(ids) >= o.startup_wait_frames
         # (see startup_trial_iterations)
         trial = limit > 0 and not must_decide and len(tracked) < len(ids) / 2
+        pairs_left_out: list[tuple[int, int]] = []
         while True:
             if trial:
                 ba, summary = self._solve_startup(ids, tracked, table, timing,
@@ -1877,6 +1992,18 @@ class SequentialMosaicker:
                     ba, summary = self._solve_startup(ids, tracked, table, timing, start=ba)
             else:
                 ba, summary = self._solve_startup(ids, tracked, table, timing)
+            # a registered pair the adjustment leaves grossly off is left out and the start-up
+            # solved again (one at a time, the worst; at most a quarter of the pairs): see
+            # pair_consistency_fraction, whose triangles miss a group of wrong pairs that agree
+            # with each other (a frame's lower half from another view, 4 of its 11 pairs there)
+            pair = (self._startup_pair_outlier(ba)
+                    if len(pairs_left_out) < len(usable) // 4 else None)
+            if pair is not None and any(m is not pair for m in usable):
+                pairs_left_out.append((pair.frame_l, pair.frame_m))
+                self._boot_matches = [m for m in self._boot_matches if m is not pair]
+                usable = [m for m in usable if m is not pair]
+                self.pair_counts["inconsistent"] += 1
+                continue
             worst = self._startup_outlier(ba, tracked, seen) if len(gated) < most else None
             rest = {k: z for k, z in tracked.items() if k != worst}
             if worst is None or not any(m.frame_l in rest and m.frame_m in rest
@@ -2557,7 +2684,9 @@ def run_lba_emt(dataset, *, progress: bool = True,
         "pairs": {"attempted": c["attempted"], "registered": c["registered"],
                   "mean_correspondences": c["correspondences"] / max(c["registered"], 1),
                   "loop_attempted": c["loop_attempted"],
-                  "loop_registered": c["loop_registered"]},
+                  "loop_registered": c["loop_registered"],
+                  # registered pairs left out by the consistency check (pair_consistency_fraction)
+                  "inconsistent": c["inconsistent"]},
         "tracker_gated": [k for k in range(n) if results[k].tracker_gated],
         "tracker_dropped": [k for k in range(n) if results[k].tracker_dropped],
         # C_p released by the motion gate (SequentialOptions.motion_gate_chi2)
