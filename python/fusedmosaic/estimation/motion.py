@@ -285,8 +285,10 @@ def constant_velocity_residuals(poses: np.ndarray, frame_ids=None, *,
     frame ids (k-2, k-1, k): across a gap, e.g. dropped frames, the step is not one frame's,
     and a second difference over s frames is ~s^2 times a frame's.
 
-    The rotation part is the plain difference of angle-axis vectors, as the C++ prior takes it
-    (paper Eq. 20), or with ``geodesic`` the rotation from the prediction to the pose,
+    The rotation part is the plain difference of angle-axis vectors (paper Eq. 20; the C++
+    prior's too away from a rotation of pi, where it takes the prediction's angle-axis vector
+    nearest the pose's: geometry/pose.h PoseDifference), or with ``geodesic`` the rotation
+    from the prediction to the pose,
     log(R_k R_bar_k^T) as an angle-axis vector: the same to first order near the identity, but
     a difference of angle-axis vectors wraps by ~2 pi where the two rotations straddle a
     rotation of pi (r and -r' for two rotations 0.002 rad apart), and is distorted near it."""
