@@ -90,3 +90,30 @@ def test_a_principal_point_outside_the_frame_is_warned_about(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         Camera(200, 200, camera_matrix=np.array([[240.0, 0, 199.0], [0, 240.0, 0.5], [0, 0, 1]]))
+
+
+def test_an_alpha_channel_that_is_not_opaque_is_named_once(tmp_path):
+    """A BGRA frame's alpha was dropped without a word: as a field-of-view mask it was lost."""
+    import warnings
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    rng = np.random.default_rng(0)
+    alpha = np.zeros((48, 64), np.uint8)
+    cv2.circle(alpha, (32, 24), 20, 255, -1)
+    for k in range(3):
+        image = np.dstack([rng.integers(0, 256, (48, 64, 3), np.uint8), alpha])
+        cv2.imwrite(str(frames / f"{k:06d}.png"), image)
+    source = FrameSource.open(tmp_path)
+    with pytest.warns(UserWarning, match=r"000000\.png: its alpha channel is not opaque "
+                                         r"everywhere, and is ignored .*fov_mask_radius") as w:
+        images = [source[k] for k in range(3)]
+    assert len([x for x in w if "alpha" in str(x.message)]) == 1
+    assert all(image.shape == (48, 64, 3) for image in images)
+    for k in range(3):  # an opaque alpha: nothing to say
+        cv2.imwrite(str(frames / f"{k:06d}.png"),
+                    np.dstack([images[k], np.full((48, 64), 255, np.uint8)]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        source = FrameSource.open(tmp_path)
+        assert source[0].shape == (48, 64, 3)

@@ -239,6 +239,7 @@ class FrameSource(Sequence):
         self.counted_by = "its header"  # a video's frame count: its header's, or "decoding"
         self.blank_unreadable = blank_unreadable
         self.unreadable: dict[int, str] = {}  # with blank_unreadable: index -> why (see above)
+        self._alpha_noted = False  # (_check: a non-opaque alpha warned about once)
         self._blank: np.ndarray | None = None  # the all-zero frame given for unreadable ones
         if self.paths is not None:
             self._length = len(self.paths)
@@ -689,6 +690,14 @@ class FrameSource(Sequence):
             raise ValueError(f"{name}: {_bits(image.dtype)} but {first_name} is "
                              f"{_bits(first)}; frames must be all 8-bit or all 16-bit")
         if image.ndim == 3 and image.shape[2] == 4:
+            if not self._alpha_noted and (image[:, :, 3] < image[:, :, 3].max()).any():
+                with self._lock:  # (once per source: an alpha mask repeats on every frame)
+                    if not self._alpha_noted:
+                        self._alpha_noted = True
+                        warnings.warn(
+                            f"{name}: its alpha channel is not opaque everywhere, and is "
+                            "ignored (the colours are read as they are); a field of view "
+                            "given as alpha goes into camera.yaml as fov_mask_radius", stacklevel=3)
             image = np.ascontiguousarray(image[:, :, :3])
         if image.ndim == 3 and image.shape[2] == 1:
             image = image[:, :, 0]
