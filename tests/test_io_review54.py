@@ -117,3 +117,24 @@ def test_an_alpha_channel_that_is_not_opaque_is_named_once(tmp_path):
         warnings.simplefilter("error")
         source = FrameSource.open(tmp_path)
         assert source[0].shape == (48, 64, 3)
+
+
+@pytest.mark.parametrize("count", ["kept", "zero"])
+def test_avi_cut_inside_its_last_frame_with_its_count(tmp_path, count):
+    """Cut inside frame 11's chunk with the header still counting 12 frames (or counting none:
+    a recorder that stopped before writing it): all 12 decode, frame 11 in part, and it was read
+    as whole, without a word (review 54)."""
+    root, data, chunks, images = _avi(tmp_path / "d")
+    length = int.from_bytes(data[chunks[11] + 4:chunks[11] + 8], "little")
+    data = data[:chunks[11] + 8 + length // 2]
+    if count == "zero":  # MainAVIHeader.dwTotalFrames and the stream header's dwLength
+        for tag, offset in ((b"avih", 16), (b"strh", 32)):
+            at = data.index(tag) + 8 + offset
+            data[at:at + 4] = (0).to_bytes(4, "little")
+    (root / "video.avi").write_bytes(bytes(data))
+    with pytest.warns(UserWarning, match=r"video\.avi: the file ends inside frame 11's chunk "
+                                         r"\(cut short, or its recorder stopped mid-frame\): that "
+                                         r"frame decodes in part and is left out; the 11 whole "
+                                         r"ones are read"):
+        ds = read_dataset(root)
+    assert len(ds) == 11 and _shown(ds, images) == list(range(11))

@@ -25,6 +25,9 @@ def test_is_blank_judges_texture_inside_the_field_of_view():
     ringed = np.where(mask[..., None] > 0, grey, 0).astype(np.uint8)
     assert is_blank(ringed, mask=mask) and not is_blank(ringed)
     assert is_blank(np.full((60, 80), BLANK_LEVEL, np.uint8))  # black, as before
+    blue = np.zeros((60, 80, 3), np.uint8)  # a uniform blue "no signal" screen: per channel
+    blue[..., 0] = 200
+    assert is_blank(blue, "prior-only")
     # only 8-bit frames are judged by their range (a 16-bit frame's scale is unknown here)
     assert not is_blank((grey[..., 0].astype(np.uint16) * 4), "prior-only")
 

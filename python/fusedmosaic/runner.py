@@ -518,10 +518,12 @@ def composing_lens(camera, undistorted: bool):
 
 def is_blank(image, status: str | None = None, mask=None) -> bool:
     """A frame with no visual content: placed, not composed. Black (every pixel <= BLANK_LEVEL),
-    or, 8-bit, textureless inside the field of view ``mask`` (its 1st-99th percentile range
-    <= BLANK_LEVEL grey levels: a capture card's uniform "no signal" frame, a lens in turbid
-    fluid; 10 grey frames of 45 pasted a grey veil over the tissue, review 54). A frame its
-    method calls "placed" was registered, so has content: not read."""
+    or, 8-bit, textureless inside the field of view ``mask`` (each channel's 1st-99th
+    percentile range <= BLANK_LEVEL levels: a capture card's uniform "no signal" frame, a lens
+    in turbid fluid; 10 grey frames of 45 pasted a grey veil over the tissue, review 54). A
+    frame its method calls "placed" was registered, so has content: not read. Without a mask
+    (no fov_mask_radius) a grey frame inside the scope's black circle is not judged
+    textureless."""
     if status == "placed":
         return False
     image = np.asarray(image)
@@ -533,8 +535,9 @@ def is_blank(image, status: str | None = None, mask=None) -> bool:
         image = image[np.asarray(mask) > 0]
     if image.size == 0:
         return False
-    low, high = np.percentile(image, (1, 99))
-    return bool(high - low <= BLANK_LEVEL)
+    values = image.reshape(-1, image.shape[-1]) if image.ndim == 3 else image.reshape(-1, 1)
+    low, high = np.percentile(values, (1, 99), axis=0)  # per channel (a blue "no signal")
+    return bool((high - low).max() <= BLANK_LEVEL)
 
 
 def blank_reason(image, mask=None) -> str:

@@ -334,13 +334,14 @@ class SequentialOptions:
     # checked against each other before they enter C_v, with a limit of this fraction of the
     # frame's diagonal (at least PAIR_CONSISTENCY_MIN_PX) on the mean corner distance. Two
     # partners registered to each other predict one pair from the other (a triangle); a pair
-    # that two or more triangles contradict, and more than confirm it, is left out. Pairs to
-    # final frames (recent or loop) place the frame at that frame's estimate times the pair's
-    # homography; with 3 or more, those off their median are left out when over half agree.
-    # Counted in pair_counts["inconsistent"]. A frame decoded in part (an MJPG frame's top,
-    # another view below) registered 3 of its pairs to that other view, 66 px off; under C_v's
-    # squares they moved a 27-frame run's e_M 0.14 -> 5.5 px (0.140 with the check); the same
-    # splice at frame 60 of 90 took frames 64-83 6-19 px off, e_M 1.41 (0.188; 0.187 unspliced).
+    # that two or more triangles contradict, and more than confirm it, is left out. The
+    # start-up then leaves out, one at a time, a pair its adjustment leaves over the limit and
+    # 5 x the pairs' median RMS (a group of wrong pairs that agree with each other: triangles
+    # miss it). Counted in pair_counts["inconsistent"]. A frame decoded in part (an MJPG
+    # frame's top, another view below) registered 3 of its pairs to that other view, 66 px off;
+    # under C_v's squares they moved a 27-frame run's e_M 0.14 -> 5.5 px (0.140 with the
+    # check); the same splice at frame 60 of 90 took frames 64-83 6-19 px off, e_M 1.41 (0.188;
+    # 0.187 unspliced).
     pair_consistency_fraction: float = 0.05
     # A frame without visual evidence (Sec. 4.2.3) is placed by C_EMT and C_p alone. Fixed at the
     # end of its step it would be extrapolated from its predecessors only; instead it stays free
@@ -660,6 +661,7 @@ class SequentialMosaicker:
         self._finalized: list[FrameResult] = []
         self._boot_feats: list = []  # bootstrap: features and pairs of the first frames
         self._boot_matches: list = []
+        self._startup_left_out: list = []  # (_bootstrap: pairs its try left out)
         self._loop_feats: dict = {}  # one frame per retained keyframe block: its features
         self._loop_centroids: dict = {}
         self._loop_G: dict = {}  # their reference homographies (guided matching predictions)
@@ -886,7 +888,7 @@ class SequentialMosaicker:
               "_plane",
               "_startup_G", "_startup_plane", "_startup_problem", "_startup_refused",
               "num_steps", "_orphans", "_finalized", "_boot_feats",
-              "_boot_matches", "_loop_feats",
+              "_boot_matches", "_startup_left_out", "_loop_feats",
               "_loop_centroids", "_loop_G", "_pair_H", "_recent_G", "_poses", "pair_counts",
               "_mirror_frames", "_mirror_pairs", "_mirror_pair_index", "_mirror_plane",
               "_forgotten_residuals", "_sigma_v", "visual_sigma",
@@ -1196,6 +1198,15 @@ class SequentialMosaicker:
         self._recent.append((k, feats))
         timings["matching"] = time.perf_counter() - t0
         ok = [m for m in matches if m.ok]
+        known = None  # (the recent pairs; in the start-up, all of its pairs)
+        if self._plane is None:
+            known = {}
+            for m in self._boot_matches:
+                known.setdefault(m.frame_l, {})[m.frame_m] = m.H_lm
+        outliers = self._inconsistent_pairs(ok, known)
+        if outliers:  # (before any frame counts them as its visual evidence)
+            ok = [m for m in ok if m.frame_m not in outliers]
+            self.pair_counts["inconsistent"] += len(outliers)
         recent = {i for i, _ in self._recent}
         self._pair_H = {i: v for i, v in self._pair_H.items() if i in recent} | {
             k: {m.frame_m: m.H_lm for m in ok}}
@@ -1213,19 +1224,13 @@ class SequentialMosaicker:
         self._finalized = []
         waiting = False
         if self._plane is None:  # bootstrap: keep everything until the initial adjustment
-            known: dict[int, dict[int, np.ndarray]] = {}
-            for m in self._boot_matches:
-                known.setdefault(m.frame_l, {})[m.frame_m] = m.H_lm
-            outliers = self._inconsistent_pairs(ok, known)
-            if outliers:
-                ok = [m for m in ok if m.frame_m not in outliers]
-                self._pair_H[k] = {m.frame_m: m.H_lm for m in ok}
-                self.pair_counts["inconsistent"] += len(outliers)
             self._boot_feats.append(feats)
             self._boot_matches += ok
             self._chain_startup(k, ok)
             if len(self._pending) >= self.options.bootstrap_frames:
                 waiting = not (self._startup_due() and self._bootstrap())
+                if waiting:
+                    self._restore_startup_pairs()
             if waiting:
                 self._drop_oldest_startup_frames()
         else:
@@ -1233,12 +1238,6 @@ class SequentialMosaicker:
             loop_matches = self._match_loops(k, feats, tracker_pose, ok)
             loops = [m for m in loop_matches if m.ok]
             self._count_pairs(loop_matches, loops, "loop_")
-            outliers = self._inconsistent_pairs(ok + loops)
-            if outliers:
-                ok = [m for m in ok if m.frame_m not in outliers]
-                loops = [m for m in loops if m.frame_m not in outliers]
-                self._pair_H[k] = {m.frame_m: m.H_lm for m in ok}
-                self.pair_counts["inconsistent"] += len(outliers)
             # After a loss (frames placed with no anchor, see _unanchored), a frame with an
             # anchor of its own (its tracker sample, or a registered pair to an anchored frame)
             # is not tied to the lost frames by pairs or the constant-velocity term: they would
@@ -1313,6 +1312,7 @@ class SequentialMosaicker:
                         "the sequence ended with 1 frame in the start-up: the plane needs a "
                         "registered pair, at least 2 frames with tracker poses")
                 if not self._bootstrap(final_step=True):
+                    self._restore_startup_pairs()
                     raise ValueError(self._startup_problem or (
                         f"no pair among the first {len(self._pending)} frames could be "
                         "registered with tracker poses: the plane cannot be initialised"))
@@ -1359,6 +1359,20 @@ class SequentialMosaicker:
                      for i in near]  # loop frame i -> frame k pixels
         return self._match(feats, [self._loop_feats[i] for i in near], predicted)
 
+    def _restore_startup_pairs(self) -> None:
+        """A start-up try that refused its plane (the start-up waits) gives back the pairs it
+        left out: its adjustment, refused, does not judge them."""
+        for pair in self._startup_left_out:  # (replaced, never mutated: _save)
+            self._boot_matches = [*self._boot_matches, pair]
+            if pair.frame_l in self._pair_H:
+                self._pair_H = {**self._pair_H, pair.frame_l: {
+                    **self._pair_H[pair.frame_l], pair.frame_m: pair.H_lm}}
+            for p in self._pending:
+                if p["id"] in (pair.frame_l, pair.frame_m):
+                    p["visual"] = True
+        self.pair_counts["inconsistent"] -= len(self._startup_left_out)
+        self._startup_left_out = []
+
     def _startup_pair_outlier(self, ba):
         """The start-up pair whose transfer residuals (RMS, px) at the adjustment ``ba`` are
         the largest, when above the pair consistency limit and 5 x the pairs' median; else
@@ -1386,9 +1400,10 @@ class SequentialMosaicker:
 
     def _inconsistent_pairs(self, matches: list, known: dict | None = None) -> set[int]:
         """The partners of the new frame's pairs (``matches``, frame_l the new frame) that the
-        others contradict (SequentialOptions.pair_consistency_fraction): by triangles through
-        the pairs ``known`` among the partners ({a: {b: H_ab}}, default the recent ones), then
-        by where pairs to final frames place the new frame. Fewer than 3 pairs: none."""
+        others contradict (SequentialOptions.pair_consistency_fraction), by triangles through
+        the pairs ``known`` among the partners ({a: {b: H_ab}}, default the recent ones). Not by
+        where pairs to final frames place it: a loop pair that disagrees with the recent
+        frames' estimates may be the one correcting their drift. Fewer than 3 pairs: none."""
         fraction = self.options.pair_consistency_fraction
         if fraction <= 0 or len(matches) < 3:
             return set()
@@ -1403,10 +1418,9 @@ class SequentialMosaicker:
                                             axis=1).mean())
 
         known = self._pair_H if known is None else known  # {a: {b: H (b -> a pixels)}}
-        outliers: set[int] = set()
         # triangles: two partners a, b registered to each other (a recent pair) predict the
         # pair k-b as k-a times a-b; a pair contradicted by two or more triangles and by more
-        # than confirm it is an outlier (a pending partner has no estimate to judge it by)
+        # than confirm it is an outlier
         H = {m.frame_m: m.H_lm for m in matches}  # partner pixels -> frame k pixels
         good, bad = dict.fromkeys(H, 0), dict.fromkeys(H, 0)
         ids = list(H)
@@ -1423,23 +1437,7 @@ class SequentialMosaicker:
                         good[x] += 1
                     else:  # (NaN: at infinity, not agreeing)
                         bad[x] += 1
-        outliers |= {x for x in ids if bad[x] >= 2 and bad[x] > good[x]}
-        # placements: pairs to final frames (recent or loop) place frame k at that frame's
-        # estimate times the pair's homography
-        placed = []
-        for m in matches:
-            G = self._recent_G.get(m.frame_m, self._loop_G.get(m.frame_m))
-            if G is not None and m.frame_m not in outliers:
-                placed.append((m.frame_m, G @ np.linalg.inv(m.H_lm)))
-        if len(placed) >= 3:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                p = np.einsum("nij,cj->nci", np.array([G for _, G in placed]), corners)
-                p = p[..., :2] / p[..., 2:]
-                deviation = np.linalg.norm(p - np.median(p, axis=0), axis=2).mean(axis=1)
-            agree = deviation <= limit  # (NaN: a pair placing it at infinity, not agreeing)
-            if not agree.all() and 2 * agree.sum() > len(placed):
-                outliers |= {i for (i, _), a in zip(placed, agree, strict=True) if not a}
-        return outliers
+        return {x for x in ids if bad[x] >= 2 and bad[x] > good[x]}
 
     def _predict_reference(self, ok: list) -> np.ndarray | None:
         """Frame k's reference homography from a registered pair to a recent final frame."""
@@ -1912,6 +1910,7 @@ class SequentialMosaicker:
         False (nothing done) while no registered pair has tracker poses for both frames, or
         when the plane it gives is not in front of every start-up camera."""
         t0 = time.perf_counter()
+        self._startup_left_out = []  # (pairs this try leaves out: restored if it refuses)
         self._startup_refused = (0, 0, 0)
         self._startup_problem = self._tracker_jumps()  # (None: not refused for this)
         if self._startup_problem:  # (checked again at the next frame: a count, no solve)
@@ -2000,9 +1999,18 @@ class SequentialMosaicker:
                     if len(pairs_left_out) < len(usable) // 4 else None)
             if pair is not None and any(m is not pair for m in usable):
                 pairs_left_out.append((pair.frame_l, pair.frame_m))
+                self._startup_left_out.append(pair)
+                if pair.frame_m in self._pair_H.get(pair.frame_l, {}):  # (replaced: _save)
+                    self._pair_H = {**self._pair_H, pair.frame_l: {
+                        i: H for i, H in self._pair_H[pair.frame_l].items()
+                        if i != pair.frame_m}}
                 self._boot_matches = [m for m in self._boot_matches if m is not pair]
                 usable = [m for m in usable if m is not pair]
                 self.pair_counts["inconsistent"] += 1
+                seen = {i for m in self._boot_matches for i in (m.frame_l, m.frame_m)}
+                for p in self._pending:  # (its visual evidence: the pairs left)
+                    if p["id"] in (pair.frame_l, pair.frame_m) and p["id"] not in seen:
+                        p["visual"] = False
                 continue
             worst = self._startup_outlier(ba, tracked, seen) if len(gated) < most else None
             rest = {k: z for k, z in tracked.items() if k != worst}

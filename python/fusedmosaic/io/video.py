@@ -249,6 +249,7 @@ class FrameSource(Sequence):
             if np.isfinite(rate) and 0.0 < rate <= MAX_VIDEO_FRAME_RATE:
                 self.frame_rate = rate
             self._length = header = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
+            judged = False  # (whether the warning below judged its last frame)
             # The header's count is checked at its end. Fewer frames than the file holds (a
             # recorder that crashed before updating it): frames decoding after the last counted
             # one. More (Matroska / WebM have no count: OpenCV estimates duration x nominal rate,
@@ -297,6 +298,20 @@ class FrameSource(Sequence):
                         f"{self.video}: its header counts {header} frames but "
                         f"{len(times)} decode ({self._fewer_frames_why()}): {read}",
                         stacklevel=2)
+                    judged = True
+            if not judged and self._length > 1:
+                # a file cut inside its last frame's chunk whose count still holds (the header
+                # counting the frames that decode), or one without a count (a recorder that
+                # stopped before writing it): the same part-decoded last frame
+                whole = _avi_whole_frames(self.video)
+                if whole is not None and self._length == whole + 1:
+                    self._length -= 1
+                    if self._times is not None:
+                        self._times = self._times[:self._length]
+                    warnings.warn(
+                        f"{self.video}: the file ends inside frame {self._length}'s chunk (cut "
+                        "short, or its recorder stopped mid-frame): that frame decodes in part "
+                        f"and is left out; the {self._length} whole ones are read", stacklevel=2)
         if self._length <= 0 and self.video is not None and header > 0:
             raise ValueError(
                 f"{self.video}: its header counts {header} frames ({_codec(self.video)}) but "
