@@ -138,11 +138,13 @@ def test_an_avi_left_by_a_killed_recorder_reads_every_frame_as_itself(tmp_path):
         """)
     subprocess.run([sys.executable, "-c", script], check=True, timeout=60)
     assert cv2.VideoCapture(str(tmp_path / "video.avi")).get(cv2.CAP_PROP_FRAME_COUNT) == 0
-    frames = FrameSource.open(tmp_path)
+    with warnings.catch_warnings():  # (the kill may cut a frame's chunk: it is left out)
+        warnings.filterwarnings("ignore", r".*video\.avi: the file ends inside frame \d+'s "
+                                r"chunk", UserWarning)
+        frames = FrameSource.open(tmp_path)
     n = len(frames)
     assert 30 <= n < 120 and frames.counted_by == "decoding"
-    # (the last frame may have been cut short by the kill: not checked)
-    assert _wrong_frames(frames, [k for k in _orders(n) if k < n - 1]) == []
+    assert _wrong_frames(frames, [k for k in _orders(n) if k < n]) == []
     assert frames._missed_landings >= 1  # (caught; where they land varies)
 
 
