@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from fusedmosaic import _core
+from tests.test_residuals import numeric_jacobian
 
 K = np.array([[450.0, 0, 199.5], [0, 450.0, 199.5], [0, 0, 1]])
 PLANE = np.array([0.0, 0.0, -1 / 35.0])
@@ -26,16 +27,6 @@ def options():
     """The SYN preset (W = 5, chi_e = 3) on one thread: twin windows agree bit for bit."""
     return _core.SlidingWindowOptions(window_size=5, num_new=3,
                                       costs=_core.BundleAdjusterOptions(num_threads=1))
-
-
-def numeric_jacobian(f, x, h=1e-6):
-    x = np.asarray(x, dtype=float)
-    cols = []
-    for j in range(x.size):
-        e = np.zeros_like(x)
-        e[j] = h
-        cols.append((f(x + e) - f(x - e)) / (2 * h))
-    return np.stack(cols, axis=1)
 
 
 def geodesic(r_a, r_b):

@@ -517,33 +517,31 @@ def composing_lens(camera, undistorted: bool):
 
 
 def is_blank(image, status: str | None = None, mask=None) -> bool:
-    """A frame with no visual content: placed, not composed. Black (every pixel <= BLANK_LEVEL),
-    or, 8-bit, textureless inside the field of view ``mask`` (each channel's 1st-99th
-    percentile range <= BLANK_LEVEL levels: a capture card's uniform "no signal" frame, a lens
-    in turbid fluid; 10 grey frames of 45 pasted a grey veil over the tissue, review 54). A
-    frame its method calls "placed" was registered, so has content: not read. Without a mask
-    (no fov_mask_radius) a grey frame inside the scope's black circle is not judged
-    textureless."""
-    if status == "placed":
-        return False
+    """A frame with no visual content: placed, not composed (blank_reason says why). A frame
+    its method calls "placed" was registered, so has content: not read."""
+    return status != "placed" and blank_reason(image, mask) is not None
+
+
+def blank_reason(image, mask=None) -> str | None:
+    """Why a frame has no visual content, for report.json's mosaic.skipped_frames; None when
+    it has. Black (every pixel <= BLANK_LEVEL), or, 8-bit, textureless inside the field of
+    view ``mask`` (each channel's 1st-99th percentile range <= BLANK_LEVEL levels: a capture
+    card's uniform "no signal" frame, a lens in turbid fluid; 10 grey frames of 45 pasted a
+    grey veil over the tissue, review 54). Without a mask (no fov_mask_radius) a grey frame
+    inside the scope's black circle is not judged textureless."""
     image = np.asarray(image)
     if image.max() <= BLANK_LEVEL:
-        return True
+        return f"no visual content (every pixel <= {BLANK_LEVEL}): not composed"
     if image.dtype != np.uint8:
-        return False
+        return None
     if mask is not None and np.shape(mask) == image.shape[:2]:
         image = image[np.asarray(mask) > 0]
     if image.size == 0:
-        return False
+        return None
     values = image.reshape(-1, image.shape[-1]) if image.ndim == 3 else image.reshape(-1, 1)
     low, high = np.percentile(values, (1, 99), axis=0)  # per channel (a blue "no signal")
-    return bool((high - low).max() <= BLANK_LEVEL)
-
-
-def blank_reason(image, mask=None) -> str:
-    """Why is_blank left a frame out, for report.json's mosaic.skipped_frames."""
-    if np.asarray(image).max() <= BLANK_LEVEL:
-        return f"no visual content (every pixel <= {BLANK_LEVEL}): not composed"
+    if (high - low).max() > BLANK_LEVEL:
+        return None
     return (f"no visual content (textureless: 98 % of its pixels within {BLANK_LEVEL} grey "
             "levels): not composed")
 
@@ -590,10 +588,10 @@ def compose_outputs(w, dataset, result, G: np.ndarray, *, blend=None, canvas=Non
     blank_why: dict[int, str] = {}
     for k in np.flatnonzero(np.isfinite(G).all(axis=(1, 2)) & ~dead & ~unreadable):
         if not (result.images_seen and result.status[k] == "placed"):
-            image = frames[k]
-            blank[k] = is_blank(image, mask=mask)
-            if blank[k]:
-                blank_why[int(k)] = blank_reason(image, mask)
+            why = blank_reason(frames[k], mask)
+            if why is not None:
+                blank[k] = True
+                blank_why[int(k)] = why
     if (dead | unreadable | blank).any():
         G = np.where((dead | unreadable | blank)[:, None, None], np.nan, G)
     if blend is None:

@@ -1373,6 +1373,13 @@ class SequentialMosaicker:
         self.pair_counts["inconsistent"] -= len(self._startup_left_out)
         self._startup_left_out = []
 
+    def _pair_consistency_limit(self) -> float:
+        """px, the pair consistency checks' limit (SequentialOptions.pair_consistency_fraction
+        of the frame's diagonal, at least PAIR_CONSISTENCY_MIN_PX)."""
+        w, h = self.size
+        return max(PAIR_CONSISTENCY_MIN_PX,
+                   self.options.pair_consistency_fraction * np.hypot(w, h))
+
     def _startup_pair_outlier(self, ba):
         """The start-up pair whose transfer residuals (RMS, px) at the adjustment ``ba`` are
         the largest, when above the pair consistency limit and 5 x the pairs' median; else
@@ -1380,8 +1387,7 @@ class SequentialMosaicker:
         fraction = self.options.pair_consistency_fraction
         if fraction <= 0 or len(self._boot_matches) < 3:
             return None
-        w, h = self.size
-        limit = max(PAIR_CONSISTENCY_MIN_PX, fraction * np.hypot(w, h))
+        limit = self._pair_consistency_limit()
         plane = np.asarray(ba.plane(), np.float64)
         poses = {}
         rms = np.zeros(len(self._boot_matches))
@@ -1409,7 +1415,7 @@ class SequentialMosaicker:
             return set()
         w, h = self.size
         corners = np.array([[0, 0, 1], [w, 0, 1], [w, h, 1], [0, h, 1]], float)
-        limit = max(PAIR_CONSISTENCY_MIN_PX, fraction * np.hypot(w, h))
+        limit = self._pair_consistency_limit()
 
         def apart(A, B) -> float:  # mean corner distance of two homographies into frame k
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -1975,7 +1981,6 @@ class SequentialMosaicker:
         must_decide = final_step or len(ids) >= o.startup_wait_frames
         # (see startup_trial_iterations)
         trial = limit > 0 and not must_decide and len(tracked) < len(ids) / 2
-        pairs_left_out: list[tuple[int, int]] = []
         while True:
             if trial:
                 ba, summary = self._solve_startup(ids, tracked, table, timing,
@@ -1996,10 +2001,9 @@ class SequentialMosaicker:
             # pair_consistency_fraction, whose triangles miss a group of wrong pairs that agree
             # with each other (a frame's lower half from another view, 4 of its 11 pairs there)
             pair = (self._startup_pair_outlier(ba)
-                    if len(pairs_left_out) < len(usable) // 4 else None)
+                    if len(self._startup_left_out) < len(usable) // 4 else None)
             if pair is not None and any(m is not pair for m in usable):
-                pairs_left_out.append((pair.frame_l, pair.frame_m))
-                self._startup_left_out.append(pair)
+                self._startup_left_out = [*self._startup_left_out, pair]  # (replaced: _save)
                 if pair.frame_m in self._pair_H.get(pair.frame_l, {}):  # (replaced: _save)
                     self._pair_H = {**self._pair_H, pair.frame_l: {
                         i: H for i, H in self._pair_H[pair.frame_l].items()

@@ -284,13 +284,7 @@ class FrameSource(Sequence):
                             "that decode as frames/*.png with frames.csv (each one's frame "
                             "number and time)")
                     read = f"the {self._length} are read"
-                    whole = _avi_whole_frames(self.video)
-                    if whole is not None and self._length == whole + 1 > 1:
-                        # the file ends inside the last decoded frame's chunk: FFmpeg decodes
-                        # what it has of it (an MJPG frame's top with another view below; one
-                        # such frame moved a 27-frame lba-emt run's e_M 0.14 -> 5.7 px)
-                        self._length -= 1
-                        self._times = self._times[:self._length]
+                    if self._leave_out_part_frame():
                         read = (f"the {self._length} whole ones are read; frame {self._length}, "
                                 "cut inside its chunk at the file's end and decoded in part, is "
                                 "left out")
@@ -299,19 +293,14 @@ class FrameSource(Sequence):
                         f"{len(times)} decode ({self._fewer_frames_why()}): {read}",
                         stacklevel=2)
                     judged = True
-            if not judged and self._length > 1:
-                # a file cut inside its last frame's chunk whose count still holds (the header
-                # counting the frames that decode), or one without a count (a recorder that
-                # stopped before writing it): the same part-decoded last frame
-                whole = _avi_whole_frames(self.video)
-                if whole is not None and self._length == whole + 1:
-                    self._length -= 1
-                    if self._times is not None:
-                        self._times = self._times[:self._length]
-                    warnings.warn(
-                        f"{self.video}: the file ends inside frame {self._length}'s chunk (cut "
-                        "short, or its recorder stopped mid-frame): that frame decodes in part "
-                        f"and is left out; the {self._length} whole ones are read", stacklevel=2)
+            # a file cut inside its last frame's chunk whose count still holds (the header
+            # counting the frames that decode), or one without a count (a recorder that stopped
+            # before writing it): the same part-decoded last frame
+            if not judged and self._leave_out_part_frame():
+                warnings.warn(
+                    f"{self.video}: the file ends inside frame {self._length}'s chunk (cut "
+                    "short, or its recorder stopped mid-frame): that frame decodes in part and "
+                    f"is left out; the {self._length} whole ones are read", stacklevel=2)
         if self._length <= 0 and self.video is not None and header > 0:
             raise ValueError(
                 f"{self.video}: its header counts {header} frames ({_codec(self.video)}) but "
@@ -476,6 +465,18 @@ class FrameSource(Sequence):
             f"an error by the decoder{where}, so every frame after would be read under another "
             "frame's number (its time, its tracker or robot sample); repair the file, or give "
             "the frames that decode as frames/*.png with frames.csv")
+
+    def _leave_out_part_frame(self) -> bool:
+        """Whether the video's last decoded frame lies past its whole chunks (an AVI cut inside
+        that frame's chunk: FFmpeg decodes what it has of it, an MJPG frame's top with another
+        view below; one such frame moved a 27-frame lba-emt run's e_M 0.14 -> 5.7 px); if so it
+        is left out (the frame count and the stamps shortened by one)."""
+        if self._length < 2 or _avi_whole_frames(self.video) != self._length - 1:
+            return False
+        self._length -= 1
+        if self._times is not None:
+            self._times = self._times[:self._length]
+        return True
 
     def _fewer_frames_why(self) -> str:
         """Why a video decodes fewer frames than its header counts, for the warning: the
