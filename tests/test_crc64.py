@@ -31,7 +31,7 @@ def test_refuses_what_is_not_a_contiguous_buffer():
         _core.crc64(np.zeros((4, 4))[:, ::2])
 
 
-@pytest.mark.realtime
+@pytest.mark.realtime  # counts this thread's ticks while another computes a CRC
 def test_other_threads_run_while_it_computes():
     data = np.random.default_rng(1).integers(0, 256, 256 * 2**20, dtype=np.uint8)  # 256 MiB
     done = threading.Event()
@@ -44,14 +44,15 @@ def test_other_threads_run_while_it_computes():
         done.set()
 
     thread = threading.Thread(target=crc)
-    gaps, last = [], time.perf_counter()
+    ticks = 0
     thread.start()
-    while not done.is_set():  # the main thread's longest pause while the CRC runs
+    while not done.is_set():  # this thread's 1 ms beat while the CRC runs
+        ticks += 1
         time.sleep(0.001)
-        now = time.perf_counter()
-        gaps.append(now - last)
-        last = now
     thread.join()
-    # holding the GIL, the main thread would wait the whole CRC (measured 0.57 s with crcmod
-    # over 200 MB); released, it keeps its 1 ms beat (a loaded 2-core machine: < 1/4 of it)
-    assert took[0] > 0.02 and max(gaps) < took[0] / 4, (max(gaps), took[0])
+    # holding the GIL, this thread would tick once or twice in all (before the CRC starts and
+    # after it ends; crcmod held it 0.57 s over 200 MB); released, it ticks about once a ms.
+    # Counted, not timed: one scheduling pause of a loaded 2-core machine (a 67 ms gap in a
+    # 173 ms CRC, CI of session 54) leaves the count far above the held case's.
+    assert took[0] > 0.02, took[0]
+    assert ticks >= max(10, took[0] * 1000 / 10), (ticks, took[0])
