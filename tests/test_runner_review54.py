@@ -49,3 +49,39 @@ def test_uniform_grey_frames_are_placed_not_composed(tmp_path):
     assert sorted(skipped, key=int) == ["8", "9", "10", "11"]
     assert all(why.startswith("no visual content (textureless") for why in skipped.values())
     assert report["mosaic"]["frames_shown"] == 20
+
+
+def test_a_ground_truth_that_does_not_fit_costs_the_scores_not_the_run(tmp_path, capsys):
+    """Review 54: ground_truth.csv lacking a frame's row blocked `run` (exit 2), though the run
+    only scores against it. The mosaic is made, the truth left out with a warning, report.json
+    says why; read_dataset and `evaluate --truth` still refuse it."""
+    import pytest
+
+    from fusedmosaic.cli import main
+    from fusedmosaic.io.dataset import read_dataset
+    from fusedmosaic.runner import run_dataset
+    from fusedmosaic.simulation import FetoscopyOptions, simulate_fetoscopy
+
+    root = simulate_fetoscopy(tmp_path / "data", FetoscopyOptions(n_frames=16, width=160,
+                                                                  height=160))
+    truth = root / "ground_truth.csv"
+    lines = truth.read_text().splitlines(keepends=True)
+    truth.write_text("".join(lines[:6] + lines[7:]))  # frame 5's row removed
+    no_row = r"ground_truth\.csv: no row for frame 5 \(1 frames missing"
+    with pytest.raises(ValueError, match=no_row):
+        read_dataset(root)
+    ds = read_dataset(root, strict_truth=False)
+    assert ds.ground_truth is None and "no row for frame 5" in ds.ignored["ground_truth.csv"]
+
+    out = tmp_path / "out"
+    with pytest.warns(UserWarning, match=no_row + r".* -- left out: the run is not scored"):
+        run_dataset(root, "lba-emt", out, progress=False, report=False)
+    report = json.loads((out / "report.json").read_text())
+    assert report["placed"] == 16 and (out / "mosaic.png").is_file()
+    assert report["metrics"] is None
+    assert report["metrics_note"] == ("not scored: ground_truth.csv left out (inputs_ignored "
+                                      "says why)")
+    assert "no row for frame 5" in report["inputs_ignored"]["ground_truth.csv"]
+    capsys.readouterr()
+    assert main(["evaluate", str(out), "--truth", str(root), "--no-report"]) == 2
+    assert "no row for frame 5" in capsys.readouterr().err

@@ -121,11 +121,18 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
                                                   else 0.0),
                                strict_tracking=method in NEEDS_TRACKING,
                                strict_robot=method in NEEDS_ROBOT,
+                               strict_truth=False,
                                blank_unreadable=not stop_on_unreadable)
-        if dataset.ignored:
-            warnings.warn(f"{'; '.join(dataset.ignored.values())} -- left out: method {method!r} "
-                          f"does not use {'it' if len(dataset.ignored) == 1 else 'them'}",
+        # a ground truth that does not fit the frames costs the run its scores, not its mosaic
+        # (it blocked the run, exit 2; review 54): `fusedmosaic evaluate --truth` still refuses
+        unused = {k: v for k, v in dataset.ignored.items() if k != "ground_truth.csv"}
+        if unused:
+            warnings.warn(f"{'; '.join(unused.values())} -- left out: method {method!r} "
+                          f"does not use {'it' if len(unused) == 1 else 'them'}",
                           stacklevel=2)
+        if "ground_truth.csv" in dataset.ignored:
+            warnings.warn(f"{dataset.ignored['ground_truth.csv']} -- left out: the run is not "
+                          "scored (report.json metrics null)", stacklevel=2)
         if method in NEEDS_TRACKING and result is None:  # a live session may have had none
             dataset.require_tracking(method)
             if not dataset.pose_valid.any():  # --allow-untracked: every frame flagged
@@ -192,6 +199,9 @@ def run_dataset(dataset_root: str | Path, method: str, out: str | Path, *,
                 report_json["unreadable_frames"] = unreadable
             if dataset.frames.bits_in_use is not None:  # 16-bit frames, converted with one scale
                 report_json["frame_bits_in_use"] = dataset.frames.bits_in_use
+            if "ground_truth.csv" in dataset.ignored:
+                report_json.update(metrics=None, metrics_note=(
+                    "not scored: ground_truth.csv left out (inputs_ignored says why)"))
             if dataset.ground_truth is not None:
                 from fusedmosaic.evaluation.metrics import run_metrics
 

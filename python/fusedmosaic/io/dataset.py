@@ -58,8 +58,8 @@ class Dataset:
     frame_times : where ``timestamps`` come from, for reports: "frames.csv", or without it
         "frame / R fps" and whose rate R is (given, the video's, the default).
     ignored : {file name: why it was left out} for files present but not read, only for a
-        source the caller does not need (read_dataset's strict_tracking / strict_robot False):
-        e.g. {"tracking.csv": "<path>: row 1: header is ..."}.
+        source the caller does not need (read_dataset's strict_tracking / strict_robot /
+        strict_truth False): e.g. {"tracking.csv": "<path>: row 1: header is ..."}.
     """
 
     root: Path
@@ -114,6 +114,7 @@ def read_dataset(
     robot_time_offset: float = 0.0,
     strict_tracking: bool = True,
     strict_robot: bool = True,
+    strict_truth: bool = True,
     blank_unreadable: bool = False,
 ) -> Dataset:
     """Read and check a dataset folder. Images are not loaded (only the first, to check its size).
@@ -142,6 +143,10 @@ def read_dataset(
         does not use it: such a file is left out (Dataset.tracking / .robot None) and the
         reason recorded in Dataset.ignored; a usable one is still read (reports plot it), its
         frames outside the samples' time span flagged invalid.
+    strict_truth : a ground_truth.csv that cannot be read, or that lacks a row for a frame,
+        raises ValueError (the default: the caller evaluates against it). False (run, whose
+        scoring is a by-product): it is left out (Dataset.ground_truth None) and the reason
+        recorded in Dataset.ignored.
     blank_unreadable : a frame that cannot be read (damaged PNG, undecodable video frame) is
         read as an all-zero image and recorded in Dataset.frames.unreadable instead of raising
         ValueError when read (FrameSource).
@@ -171,8 +176,13 @@ def read_dataset(
     _read_robot(dataset, allow_untracked, robot_time_offset, lenient=not strict_robot)
     truth_path = root / "ground_truth.csv"
     if truth_path.exists():
-        dataset.ground_truth = _align_ground_truth(truth_path, frame_ids,
-                                                   explicit=frame_times == "frames.csv")
+        try:
+            dataset.ground_truth = _align_ground_truth(truth_path, frame_ids,
+                                                       explicit=frame_times == "frames.csv")
+        except ValueError as error:
+            if strict_truth:
+                raise
+            dataset.ignored[truth_path.name] = str(error)
     return dataset
 
 
